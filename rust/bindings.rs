@@ -1,0 +1,270 @@
+//! Python bindings: the only module that knows about pyo3. It checks shapes, releases the GIL
+//! around batch work and turns core errors into Python exceptions.
+
+use std::path::PathBuf;
+
+use numpy::ndarray::{Array1, Array2, Array3};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::exceptions::{
+    PyFileNotFoundError, PyMemoryError, PyOSError, PyRuntimeError, PyValueError,
+};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use crate::error::CoreError;
+use crate::model::{Model, FORMAT};
+use crate::rollout::{n_records, rollout, TrajectoryInfo};
+use crate::stepper::NewtonOptions;
+
+impl From<CoreError> for PyErr {
+    fn from(e: CoreError) -> PyErr {
+        match e {
+            CoreError::NotFound(_) => PyFileNotFoundError::new_err(e.to_string()),
+            CoreError::Io(_) => PyOSError::new_err(e.to_string()),
+            CoreError::Format(_) | CoreError::Invalid(_) => PyValueError::new_err(e.to_string()),
+        }
+    }
+}
+
+/// Largest trajectory array a call may allocate (16 GiB of float64).
+const MAX_OUTPUT_BYTES: usize = 16 << 30;
+
+/// Runs `f` with the GIL released; a panic becomes a RuntimeError instead of crossing into Python.
+fn detached<T: Send>(
+    py: Python<'_>,
+    f: impl FnOnce() -> Result<T, CoreError> + Send,
+) -> PyResult<T> {
+    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
+        .map_err(|_| PyRuntimeError::new_err("internal error in the poisson_rs core (panic)"))?
+        .map_err(PyErr::from)
+}
+
+/// An (n, 3) float64 array as rows of 3; the caller has made it C-contiguous.
+fn states(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
+    let shape = a.shape();
+    if shape[1] != 3 {
+        return Err(PyValueError::new_err(format!(
+            "{what} must have shape (n, 3), got ({}, {})",
+            shape[0], shape[1]
+        )));
+    }
+    let view = a.as_array();
+    Ok(view
+        .rows()
+        .into_iter()
+        .map(|r| [r[0], r[1], r[2]])
+        .collect())
+}
+
+/// A generating function loaded from a model file.
+#[pyclass(name = "Model", module = "poisson_rs._core", frozen)]
+struct PyModel {
+    inner: Model,
+}
+
+#[pymethods]
+impl PyModel {
+    /// Loads a model file. Raises FileNotFoundError or ValueError.
+    #[staticmethod]
+    fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        let inner = detached(py, || Model::from_file(&path))?;
+        Ok(PyModel { inner })
+    }
+
+    /// Parses the bytes of a model file. Raises ValueError.
+    #[staticmethod]
+    fn from_bytes(py: Python<'_>, data: Vec<u8>) -> PyResult<Self> {
+        let inner = detached(py, || Model::from_bytes(&data))?;
+        Ok(PyModel { inner })
+    }
+
+    /// The file's metadata, as strings.
+    #[getter]
+    fn metadata<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        for (k, v) in &self.inner.metadata {
+            d.set_item(k, v)?;
+        }
+        Ok(d)
+    }
+
+    #[getter]
+    fn chart(&self) -> &'static str {
+        self.inner.chart.name()
+    }
+
+    #[getter]
+    fn mlp_power(&self) -> u32 {
+        self.inner.generating.mlp_power
+    }
+
+    #[getter]
+    fn n_parameters(&self) -> usize {
+        self.inner
+            .generating
+            .mlp
+            .as_ref()
+            .map_or(0, |m| m.n_parameters())
+    }
+
+    #[getter]
+    fn n_polynomial_terms(&self) -> usize {
+        self.inner.generating.polynomial.terms.len()
+    }
+
+    /// S, ∂S/∂p and ∂²S/∂p² at time t for p of shape (n, 3): arrays (n,), (n, 3), (n, 3, 3).
+    #[allow(clippy::type_complexity)]
+    fn derivatives<'py>(
+        &self,
+        py: Python<'py>,
+        t: f64,
+        p: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray2<f64>>,
+        Bound<'py, PyArray3<f64>>,
+    )> {
+        let p = states(&p, "p")?;
+        let g = &self.inner.generating;
+        let (s, grad, hess) = detached(py, || {
+            let mut ws = g.workspace();
+            let n = p.len();
+            let (mut s, mut grad, mut hess) = (
+                Vec::with_capacity(n),
+                Vec::with_capacity(3 * n),
+                Vec::with_capacity(9 * n),
+            );
+            for q in &p {
+                let jet = g.jet(t, q, &mut ws);
+                s.push(jet.0[0]);
+                grad.extend(jet.grad());
+                hess.extend(jet.hess().iter().flatten());
+            }
+            Ok((s, grad, hess))
+        })?;
+        let n = p.len();
+        let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
+        Ok((
+            Array1::from_vec(s).into_pyarray(py),
+            Array2::from_shape_vec((n, 3), grad)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+            Array3::from_shape_vec((n, 3, 3), hess)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+        ))
+    }
+
+    /// S and ∂S/∂t at (t, p) for p of shape (n, 3): arrays (n,), (n,).
+    fn time_derivative<'py>(
+        &self,
+        py: Python<'py>,
+        t: f64,
+        p: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+        let p = states(&p, "p")?;
+        let g = &self.inner.generating;
+        let (s, dt): (Vec<f64>, Vec<f64>) = detached(py, || {
+            let mut ws = g.workspace();
+            Ok(p.iter()
+                .map(|q| g.value_and_time_derivative(t, q, &mut ws))
+                .unzip())
+        })?;
+        Ok((
+            Array1::from_vec(s).into_pyarray(py),
+            Array1::from_vec(dt).into_pyarray(py),
+        ))
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Model(chart={:?}, polynomial_terms={}, mlp_parameters={}, mlp_power={})",
+            self.inner.chart.name(),
+            self.n_polynomial_terms(),
+            self.n_parameters(),
+            self.inner.generating.mlp_power
+        )
+    }
+}
+
+fn info_dict<'py>(py: Python<'py>, info: &[TrajectoryInfo]) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    let col = |f: &dyn Fn(&TrajectoryInfo) -> f64| Array1::from_iter(info.iter().map(f));
+    d.set_item(
+        "converged",
+        Array1::from_iter(info.iter().map(|i| i.converged)).into_pyarray(py),
+    )?;
+    d.set_item(
+        "failed_step",
+        Array1::from_iter(info.iter().map(|i| i.failed_step)).into_pyarray(py),
+    )?;
+    d.set_item(
+        "failure_code",
+        Array1::from_iter(info.iter().map(|i| i.failure.map_or(0, |f| f.code()))).into_pyarray(py),
+    )?;
+    d.set_item(
+        "newton_iterations",
+        Array1::from_iter(info.iter().map(|i| i.newton_iterations)).into_pyarray(py),
+    )?;
+    d.set_item(
+        "max_newton_iterations",
+        Array1::from_iter(info.iter().map(|i| i.max_newton_iterations)).into_pyarray(py),
+    )?;
+    d.set_item("max_residual", col(&|i| i.max_residual).into_pyarray(py))?;
+    Ok(d)
+}
+
+/// Rolls out the bisection integrator of `model` from each row of `mu0` (n, 3).
+///
+/// Returns the trajectories (n, n_steps // every + 1, 3) and a dict of per-trajectory arrays.
+#[pyfunction]
+#[pyo3(signature = (model, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
+#[allow(clippy::too_many_arguments)]
+fn rollout_model<'py>(
+    py: Python<'py>,
+    model: &PyModel,
+    mu0: PyReadonlyArray2<'py, f64>,
+    h: f64,
+    n_steps: usize,
+    every: usize,
+    tol: f64,
+    max_iter: u32,
+) -> PyResult<(Bound<'py, PyArray3<f64>>, Bound<'py, PyDict>)> {
+    let mu0 = states(&mu0, "mu0")?;
+    let newton = NewtonOptions::validated(tol, max_iter)?;
+    if every == 0 {
+        return Err(PyValueError::new_err("every must be at least 1"));
+    }
+    let records = n_records(n_steps, every);
+    let len = mu0
+        .len()
+        .checked_mul(records)
+        .and_then(|x| x.checked_mul(3))
+        .filter(|&x| x.saturating_mul(8) <= MAX_OUTPUT_BYTES)
+        .ok_or_else(|| {
+            PyMemoryError::new_err(format!(
+                "the output ({} trajectories x {records} states x 3) exceeds {} GiB; \
+                 raise `every` or split the batch",
+                mu0.len(),
+                MAX_OUTPUT_BYTES >> 30
+            ))
+        })?;
+    let stepper = model.inner.stepper(newton);
+    let (out, info) = detached(py, || {
+        let mut out = vec![0.0; len];
+        let info = rollout(&stepper, &mu0, h, n_steps, every, &mut out)?;
+        Ok((out, info))
+    })?;
+    let traj = Array3::from_shape_vec((mu0.len(), records, 3), out)
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    Ok((traj.into_pyarray(py), info_dict(py, &info)?))
+}
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<PyModel>()?;
+    m.add_function(wrap_pyfunction!(rollout_model, m)?)?;
+    m.add("MODEL_FORMAT", FORMAT)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -1,0 +1,304 @@
+//! Generating functions S(t, p) = P(t, p) + t^m · N(t, p).
+//!
+//! P is a sparse polynomial (exact Taylor terms, or −tH) and N a tanh MLP with inputs (t, p).
+//! A step only needs ∂S/∂p and ∂²S/∂p² at fixed t = h; both come out of one forward-mode pass.
+
+use crate::dual::{Dual1, Jet2, Scalar, PAIRS};
+use crate::error::CoreError;
+
+/// One monomial c · t^k p₁^a p₂^b p₃^c.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Monomial {
+    pub t_power: u32,
+    pub p_powers: [u32; 3],
+    pub coeff: f64,
+}
+
+/// A sparse polynomial in (t, p).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Polynomial {
+    pub terms: Vec<Monomial>,
+}
+
+/// (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) without negative powers.
+#[inline(always)]
+fn power_jet(x: f64, n: u32) -> [f64; 3] {
+    match n {
+        0 => [1.0, 0.0, 0.0],
+        1 => [x, 1.0, 0.0],
+        _ => {
+            let xn2 = x.powi(n as i32 - 2);
+            let nf = n as f64;
+            [xn2 * x * x, nf * xn2 * x, nf * (nf - 1.0) * xn2]
+        }
+    }
+}
+
+impl Polynomial {
+    /// P(t, ·) with its p-gradient and p-Hessian, in closed form.
+    pub fn jet(&self, t: f64, p: &[f64; 3]) -> Jet2 {
+        let mut out = [0.0; 10];
+        for m in &self.terms {
+            let c = m.coeff * t.powi(m.t_power as i32);
+            let j = [
+                power_jet(p[0], m.p_powers[0]),
+                power_jet(p[1], m.p_powers[1]),
+                power_jet(p[2], m.p_powers[2]),
+            ];
+            // ∂/∂p_i picks the derivative factor of variable i, the value of the others.
+            let factor = |d: [usize; 3]| c * j[0][d[0]] * j[1][d[1]] * j[2][d[2]];
+            out[0] += factor([0, 0, 0]);
+            for i in 0..3 {
+                let mut d = [0; 3];
+                d[i] = 1;
+                out[1 + i] += factor(d);
+            }
+            for (k, &(a, b)) in PAIRS.iter().enumerate() {
+                let mut d = [0; 3];
+                d[a] += 1;
+                d[b] += 1;
+                out[4 + k] += factor(d);
+            }
+        }
+        Jet2(out)
+    }
+
+    /// P(t, p) and ∂P/∂t.
+    pub fn value_and_time_derivative(&self, t: f64, p: &[f64; 3]) -> (f64, f64) {
+        let (mut v, mut dt) = (0.0, 0.0);
+        for m in &self.terms {
+            let pp = p[0].powi(m.p_powers[0] as i32)
+                * p[1].powi(m.p_powers[1] as i32)
+                * p[2].powi(m.p_powers[2] as i32);
+            v += m.coeff * t.powi(m.t_power as i32) * pp;
+            if m.t_power > 0 {
+                dt += m.coeff * m.t_power as f64 * t.powi(m.t_power as i32 - 1) * pp;
+            }
+        }
+        (v, dt)
+    }
+}
+
+/// A dense layer y = W x + b, W row-major of shape (out, in).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Layer {
+    pub n_in: usize,
+    pub n_out: usize,
+    pub weight: Vec<f64>,
+    pub bias: Vec<f64>,
+}
+
+impl Layer {
+    pub fn new(
+        n_in: usize,
+        n_out: usize,
+        weight: Vec<f64>,
+        bias: Vec<f64>,
+    ) -> Result<Self, CoreError> {
+        if weight.len() != n_in * n_out || bias.len() != n_out {
+            return Err(CoreError::Format(format!(
+                "layer of shape ({n_out}, {n_in}) needs {} weights and {n_out} biases, got {} and {}",
+                n_in * n_out,
+                weight.len(),
+                bias.len()
+            )));
+        }
+        if weight.iter().chain(&bias).any(|w| !w.is_finite()) {
+            return Err(CoreError::Format(
+                "a layer holds a NaN or infinite weight".into(),
+            ));
+        }
+        Ok(Layer {
+            n_in,
+            n_out,
+            weight,
+            bias,
+        })
+    }
+
+    /// out = W x + b, with `x` and `out` of any [`Scalar`].
+    #[inline]
+    fn forward<T: Scalar>(&self, x: &[T], out: &mut [T]) {
+        for (o, (row, &b)) in out
+            .iter_mut()
+            .zip(self.weight.chunks_exact(self.n_in).zip(&self.bias))
+        {
+            let mut acc = T::cst(b);
+            for (xi, &w) in x.iter().zip(row) {
+                acc = xi.mul_add(w, acc);
+            }
+            *o = acc;
+        }
+    }
+}
+
+/// A tanh MLP R⁴ → R with inputs (t, p₁, p₂, p₃); tanh after every layer but the last.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mlp {
+    pub layers: Vec<Layer>,
+}
+
+impl Mlp {
+    pub fn new(layers: Vec<Layer>) -> Result<Self, CoreError> {
+        let first = layers
+            .first()
+            .ok_or_else(|| CoreError::Format("an MLP needs at least one layer".into()))?;
+        if first.n_in != 4 {
+            return Err(CoreError::Format(format!(
+                "the first layer must take 4 inputs (t, p1, p2, p3), it takes {}",
+                first.n_in
+            )));
+        }
+        for (i, w) in layers.windows(2).enumerate() {
+            if w[0].n_out != w[1].n_in {
+                return Err(CoreError::Format(format!(
+                    "layer {i} has {} outputs but layer {} takes {} inputs",
+                    w[0].n_out,
+                    i + 1,
+                    w[1].n_in
+                )));
+            }
+        }
+        let last = layers.last().unwrap();
+        if last.n_out != 1 {
+            return Err(CoreError::Format(format!(
+                "the last layer must have 1 output, it has {}",
+                last.n_out
+            )));
+        }
+        Ok(Mlp { layers })
+    }
+
+    /// Widest layer: the size of each workspace buffer.
+    pub fn max_width(&self) -> usize {
+        self.layers
+            .iter()
+            .map(|l| l.n_out.max(l.n_in))
+            .max()
+            .unwrap_or(0)
+    }
+
+    pub fn n_parameters(&self) -> usize {
+        self.layers
+            .iter()
+            .map(|l| l.weight.len() + l.bias.len())
+            .sum()
+    }
+
+    /// N(inputs) for any scalar type, using `a` and `b` (each ≥ `max_width`) as scratch.
+    fn eval<T: Scalar>(&self, inputs: [T; 4], a: &mut [T], b: &mut [T]) -> T {
+        a[..4].copy_from_slice(&inputs);
+        let mut width = 4;
+        let n = self.layers.len();
+        let (mut src, mut dst) = (a, b);
+        for (i, layer) in self.layers.iter().enumerate() {
+            layer.forward(&src[..width], &mut dst[..layer.n_out]);
+            width = layer.n_out;
+            if i + 1 < n {
+                for z in dst[..width].iter_mut() {
+                    *z = z.tanh();
+                }
+            }
+            std::mem::swap(&mut src, &mut dst);
+        }
+        src[0]
+    }
+}
+
+/// Scratch memory for one evaluation at a time; allocated once per worker, never per step.
+#[derive(Clone, Debug)]
+pub struct Workspace {
+    jet_a: Vec<Jet2>,
+    jet_b: Vec<Jet2>,
+    d1_a: Vec<Dual1>,
+    d1_b: Vec<Dual1>,
+}
+
+/// S(t, p) = P(t, p) + t^m N(t, p). S(0, ·) = 0 holds by construction (k ≥ 1, m ≥ 1).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GeneratingFunction {
+    pub polynomial: Polynomial,
+    pub mlp: Option<Mlp>,
+    pub mlp_power: u32,
+}
+
+impl GeneratingFunction {
+    pub fn new(
+        polynomial: Polynomial,
+        mlp: Option<Mlp>,
+        mlp_power: u32,
+    ) -> Result<Self, CoreError> {
+        if let Some(m) = polynomial.terms.iter().find(|m| m.t_power == 0) {
+            return Err(CoreError::Format(format!(
+                "polynomial term with t-power 0 (p-powers {:?}) would break S(0, p) = 0",
+                m.p_powers
+            )));
+        }
+        if let Some(m) = polynomial.terms.iter().find(|m| !m.coeff.is_finite()) {
+            return Err(CoreError::Format(format!(
+                "polynomial coefficient {} is not finite",
+                m.coeff
+            )));
+        }
+        if mlp.is_some() && mlp_power == 0 {
+            return Err(CoreError::Format(
+                "mlp_power must be at least 1 so that S(0, p) = 0".into(),
+            ));
+        }
+        Ok(GeneratingFunction {
+            polynomial,
+            mlp,
+            mlp_power,
+        })
+    }
+
+    pub fn workspace(&self) -> Workspace {
+        let w = self.mlp.as_ref().map_or(0, Mlp::max_width).max(4);
+        Workspace {
+            jet_a: vec![Jet2::default(); w],
+            jet_b: vec![Jet2::default(); w],
+            d1_a: vec![Dual1::default(); w],
+            d1_b: vec![Dual1::default(); w],
+        }
+    }
+
+    /// S(t, p), ∂S/∂p and ∂²S/∂p² at fixed t, exactly (forward mode).
+    pub fn jet(&self, t: f64, p: &[f64; 3], ws: &mut Workspace) -> Jet2 {
+        let mut s = self.polynomial.jet(t, p);
+        if let Some(mlp) = &self.mlp {
+            let inputs = [
+                Jet2::cst(t),
+                Jet2::var(p[0], 0),
+                Jet2::var(p[1], 1),
+                Jet2::var(p[2], 2),
+            ];
+            let n = mlp.eval(inputs, &mut ws.jet_a, &mut ws.jet_b);
+            s = n.mul_add(t.powi(self.mlp_power as i32), s);
+        }
+        s
+    }
+
+    /// S(t, p) and ∂S/∂t, for the Hamilton–Jacobi residual.
+    pub fn value_and_time_derivative(
+        &self,
+        t: f64,
+        p: &[f64; 3],
+        ws: &mut Workspace,
+    ) -> (f64, f64) {
+        let (mut v, mut dt) = self.polynomial.value_and_time_derivative(t, p);
+        if let Some(mlp) = &self.mlp {
+            // Seed t as the first dual variable; p enters as constants.
+            let inputs = [
+                Dual1::var(t, 0),
+                Dual1::cst(p[0]),
+                Dual1::cst(p[1]),
+                Dual1::cst(p[2]),
+            ];
+            let n = mlp.eval(inputs, &mut ws.d1_a, &mut ws.d1_b);
+            let m = self.mlp_power as i32;
+            v += t.powi(m) * n.v;
+            dt += t.powi(m) * n.g[0] + m as f64 * t.powi(m - 1) * n.v;
+        }
+        (v, dt)
+    }
+}
