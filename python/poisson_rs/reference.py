@@ -244,14 +244,15 @@ def _jacobi_sn_cn_dn(
 def _flow_sorted(
     inertia: FloatArray, nu0: FloatArray, times: FloatArray, rate: FloatArray
 ) -> FloatArray:
-    """Exact flow for strictly increasing inertia.
+    """Exact flow for strictly increasing inertia, away from equilibria.
 
     Parameters
     ----------
     inertia : ndarray, shape (3,)
         I₁ < I₂ < I₃.
     nu0 : ndarray, shape (n, 3)
-        Initial momenta, scaled so that max |ν₀ᵢ| is of order one.
+        Initial momenta, scaled so that max |ν₀ᵢ| is of order one, each with at least two
+        components whose squares are non-zero (otherwise it is an equilibrium).
     times : ndarray, shape (T,)
         Times at which to evaluate.
     rate : ndarray, shape (n,)
@@ -265,14 +266,8 @@ def _flow_sorted(
     from scipy.special import elliprf
 
     i1, i2, i3 = (float(v) for v in inertia)
-    out = np.broadcast_to(nu0[:, None, :], (nu0.shape[0], times.size, 3)).copy()
-    sq = nu0 * nu0
-    # At most one non-zero component: a principal axis (or the origin), an equilibrium.
-    moving = np.count_nonzero(sq, axis=1) >= 2
-    if not np.any(moving):
-        return out
-    x = nu0[moving]
-    s1, s2, s3 = sq[moving].T
+    x = nu0
+    s1, s2, s3 = (nu0 * nu0).T
     a_term = s1 * ((i3 - i1) / i1) + s2 * ((i3 - i2) / i2)
     b_term = s2 * ((i2 - i1) / i2) + s3 * ((i3 - i1) / i3)
     delta = s1 * ((i2 - i1) / i1) - s3 * ((i3 - i2) / i3)
@@ -280,11 +275,11 @@ def _flow_sorted(
 
     amp1 = np.sqrt(i1 * a_term / (i3 - i1))
     amp3 = np.sqrt(i3 * b_term / (i3 - i1))
-    amp2 = np.where(
-        about_1, np.sqrt(i2 * b_term / (i2 - i1)), np.sqrt(i2 * a_term / (i3 - i2))
-    )
+    amp2 = np.where(about_1, np.sqrt(i2 * b_term / (i2 - i1)), np.sqrt(i2 * a_term / (i3 - i2)))
     m = np.where(
-        about_1, (i3 - i2) * b_term / ((i2 - i1) * a_term), (i2 - i1) * a_term / ((i3 - i2) * b_term)
+        about_1,
+        (i3 - i2) * b_term / ((i2 - i1) * a_term),
+        (i2 - i1) * a_term / ((i3 - i2) * b_term),
     )
     m1 = np.where(
         about_1,
@@ -309,10 +304,8 @@ def _flow_sorted(
     col_d = (p * amp_d)[:, None] * dn
     col_c = (r * amp_c)[:, None] * cn
     side = about_1[:, None]
-    out[moving, :, 0] = np.where(side, col_d, col_c)
-    out[moving, :, 1] = (p * r * amp2)[:, None] * sn
-    out[moving, :, 2] = np.where(side, col_c, col_d)
-    return out
+    col_2 = (p * r * amp2)[:, None] * sn
+    return np.stack([np.where(side, col_d, col_c), col_2, np.where(side, col_c, col_d)], axis=-1)
 
 
 def _flow_symmetric(inertia: FloatArray, mu0: FloatArray, times: FloatArray) -> FloatArray:
@@ -370,11 +363,12 @@ def exact_solution(body: RigidBody, mu0: ArrayLike, times: ArrayLike) -> FloatAr
     states, t, single = _check_inputs(body, mu0, times)
     inertia = np.asarray(body.inertia, dtype=np.float64)
     n_distinct = np.unique(inertia).size
-    if n_distinct == 1:
-        out = np.broadcast_to(states[:, None, :], (states.shape[0], t.size, 3)).copy()
-    elif n_distinct == 2:
+    if n_distinct == 2:
         out = _flow_symmetric(inertia, states, t)
     else:
+        # Equilibria (and everything, for a spherical body) stay put.
+        out = np.broadcast_to(states[:, None, :], (states.shape[0], t.size, 3)).copy()
+    if n_distinct == 3:
         perm = np.argsort(inertia)
         # Parity of perm: (Pa) × (Pb) = det(P) P(a × b), so an odd permutation reverses time.
         inversions = sum(perm[i] > perm[j] for i in range(3) for j in range(i + 1, 3))
@@ -383,9 +377,14 @@ def exact_solution(body: RigidBody, mu0: ArrayLike, times: ArrayLike) -> FloatAr
         # the flow is homogeneous: μ(t; s ν₀) = s ν(s t; ν₀).
         _, exponent = np.frexp(np.max(np.abs(states), axis=1))
         scale = np.ldexp(1.0, exponent)
-        flow = _flow_sorted(inertia[perm], states[:, perm] / scale[:, None], direction * t, scale)
-        out = np.empty_like(flow)
-        out[..., perm] = flow * scale[:, None, None]
+        nu0 = states[:, perm] / scale[:, None]
+        # At most one component with a non-zero square: a principal axis or the origin.
+        moving = np.count_nonzero(nu0 * nu0, axis=1) >= 2
+        if np.any(moving):
+            flow = _flow_sorted(inertia[perm], nu0[moving], direction * t, scale[moving])
+            unsorted = np.empty_like(flow)
+            unsorted[..., perm] = flow * scale[moving, None, None]
+            out[moving] = unsorted
     return out[0] if single else out
 
 

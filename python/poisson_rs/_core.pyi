@@ -1,0 +1,43 @@
+"""Type stubs for the Rust extension module."""
+
+from os import PathLike
+
+import numpy as np
+import numpy.typing as npt
+
+MODEL_FORMAT: str
+__version__: str
+
+class Model:
+    """A generating function loaded from a model file (validated on load)."""
+
+    @staticmethod
+    def load(path: str | PathLike[str]) -> Model: ...
+    @staticmethod
+    def from_bytes(data: bytes) -> Model: ...
+    @property
+    def metadata(self) -> dict[str, str]: ...
+    @property
+    def chart(self) -> str: ...
+    @property
+    def mlp_power(self) -> int: ...
+    @property
+    def n_parameters(self) -> int: ...
+    @property
+    def n_polynomial_terms(self) -> int: ...
+    def derivatives(
+        self, t: float, p: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    def time_derivative(
+        self, t: float, p: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+
+def rollout_model(
+    model: Model,
+    mu0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-12,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...

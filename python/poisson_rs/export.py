@@ -1,0 +1,168 @@
+"""Model files: a generating function and its provenance in one safetensors file.
+
+Layout (all tensors float64 except ``poly.powers``, int64):
+
+- ``poly.powers`` (n, 4), rows (k, a, b, c) for t^k p₁^a p₂^b p₃^c; ``poly.coeffs`` (n,);
+- ``mlp.{i}.weight`` (out, in), ``mlp.{i}.bias`` (out,): inputs (t, p₁, p₂, p₃), tanh between
+  layers, one output; input and output scales are folded in.
+
+Metadata (strings; JSON where structured): ``format``, ``chart``, ``mlp_power``, ``widths``,
+``taylor_order``, ``system``, ``inertia``, ``h_max``, ``domain``, ``final_loss``, ``command``,
+``seed``, ``train_seconds``, ``package_version``, ``name``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .generating import GeneratingFunction
+
+# Kept free of torch at import time: loading a model to step it in Rust needs no torch.
+_CHARTS = ("cayley", "exp")
+
+FORMAT = "poisson_rs.generating/1"
+PACKAGE_VERSION = "0.1.0"
+_REQUIRED = ("format", "chart", "mlp_power", "widths", "system", "inertia", "h_max", "domain")
+
+
+def save_model(
+    s_fn: GeneratingFunction,
+    path: str | os.PathLike[str],
+    *,
+    inertia: tuple[float, float, float],
+    h_max: float,
+    domain: Mapping[str, Any],
+    taylor_order: int = 0,
+    record: Mapping[str, Any] | None = None,
+) -> Path:
+    """Writes ``s_fn`` to ``path`` atomically (a crash never leaves a half-written file).
+
+    ``record`` holds provenance (final_loss, command, seed, train_seconds, name, ...); values are
+    stored as JSON strings unless already strings.
+    """
+    from safetensors.numpy import save
+
+    tensors: dict[str, np.ndarray] = {}
+    if len(s_fn.coeffs):
+        tensors["poly.powers"] = s_fn.powers.cpu().numpy().astype(np.int64)
+        tensors["poly.coeffs"] = s_fn.coeffs.detach().cpu().numpy().astype(np.float64)
+    for i, (w, b) in enumerate(s_fn.exported_layers()):
+        tensors[f"mlp.{i}.weight"] = np.ascontiguousarray(w, dtype=np.float64)
+        tensors[f"mlp.{i}.bias"] = np.ascontiguousarray(b, dtype=np.float64)
+    meta: dict[str, str] = {
+        "format": FORMAT,
+        "chart": s_fn.chart,
+        "mlp_power": str(s_fn.mlp_power),
+        "widths": json.dumps(list(s_fn.widths)),
+        "taylor_order": str(int(taylor_order)),
+        "system": "rigid_body",
+        "inertia": json.dumps([float(i) for i in inertia]),
+        "h_max": repr(float(h_max)),
+        "domain": json.dumps(dict(domain)),
+        "package_version": PACKAGE_VERSION,
+    }
+    for k, v in (record or {}).items():
+        meta[k] = v if isinstance(v, str) else json.dumps(v)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = save(tensors, metadata=meta)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _json(meta: Mapping[str, str], key: str) -> Any:
+    try:
+        return json.loads(meta[key])
+    except (json.JSONDecodeError, TypeError) as e:
+        raise ValueError(f"metadata '{key}' is not valid JSON: {meta[key]!r}") from e
+
+
+def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
+    """Checks a model file's metadata and decodes it; raises ValueError naming the problem."""
+    missing = [k for k in _REQUIRED if k not in raw]
+    if missing:
+        raise ValueError(f"model metadata lacks {', '.join(missing)}")
+    if raw["format"] != FORMAT:
+        raise ValueError(f"model format is {raw['format']!r}, expected {FORMAT!r}")
+    if raw["system"] != "rigid_body":
+        raise ValueError(f"unsupported system {raw['system']!r}; only 'rigid_body' is known")
+    meta: dict[str, Any] = dict(raw)
+    if raw["chart"] not in _CHARTS:
+        raise ValueError(f"unknown chart {raw['chart']!r}; expected one of {_CHARTS}")
+    inertia = _json(raw, "inertia")
+    if (
+        not isinstance(inertia, list)
+        or len(inertia) != 3
+        or not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in inertia)
+    ):
+        raise ValueError(f"metadata 'inertia' must be 3 positive numbers, got {raw['inertia']!r}")
+    meta["inertia"] = tuple(float(v) for v in inertia)
+    try:
+        meta["h_max"] = float(raw["h_max"])
+        meta["mlp_power"] = int(raw["mlp_power"])
+        meta["taylor_order"] = int(raw.get("taylor_order", "0"))
+    except ValueError as e:
+        raise ValueError(f"model metadata has a malformed number: {e}") from e
+    if not (math.isfinite(meta["h_max"]) and meta["h_max"] > 0):
+        raise ValueError(f"metadata 'h_max' must be a positive number, got {raw['h_max']!r}")
+    widths = _json(raw, "widths")
+    if not isinstance(widths, list) or not all(isinstance(w, int) and w > 0 for w in widths):
+        raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
+    meta["widths"] = tuple(widths)
+    domain = _json(raw, "domain")
+    if not isinstance(domain, dict) or domain.get("kind") not in ("cube", "shell"):
+        raise ValueError(f"metadata 'domain' must name a cube or a shell: {raw['domain']!r}")
+    meta["domain"] = domain
+    for key in ("final_loss", "seed", "train_seconds"):
+        if key in raw:
+            meta[key] = _json(raw, key)
+    return meta
+
+
+def load_generating(path: str | os.PathLike[str], meta: Mapping[str, Any]) -> GeneratingFunction:
+    """Rebuilds the torch generating function of a model file already validated by the core.
+
+    Checks that the tensors agree with the metadata (layer widths), raising ValueError if not.
+    """
+    import torch
+    from safetensors.numpy import load_file
+
+    from .generating import GeneratingFunction
+
+    tensors = load_file(str(path))
+    n_layers = sum(1 for k in tensors if k.endswith(".weight"))
+    widths = tuple(int(tensors[f"mlp.{i}.weight"].shape[0]) for i in range(n_layers - 1))
+    if n_layers and widths != tuple(meta["widths"]):
+        raise ValueError(
+            f"metadata 'widths' says {list(meta['widths'])} but the tensors hold {list(widths)}"
+        )
+    if not n_layers and meta["widths"]:
+        raise ValueError(f"metadata 'widths' says {list(meta['widths'])} but there is no MLP")
+    s_fn = GeneratingFunction(
+        widths,
+        mlp_power=meta["mlp_power"] if n_layers else 1,
+        powers=tensors.get("poly.powers"),
+        coeffs=tensors.get("poly.coeffs"),
+        chart=meta["chart"],
+    )
+    with torch.no_grad():
+        for i, layer in enumerate(s_fn.linears):
+            layer.weight.copy_(torch.from_numpy(tensors[f"mlp.{i}.weight"]))
+            layer.bias.copy_(torch.from_numpy(tensors[f"mlp.{i}.bias"]))
+    return s_fn.eval()

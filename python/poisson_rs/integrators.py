@@ -1,0 +1,250 @@
+"""Integrators behind one ``integrate()``: the learned bisection integrator, stepped in Rust."""
+
+from __future__ import annotations
+
+import numbers
+import os
+import warnings
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, Protocol, overload
+
+import numpy as np
+
+from . import _core
+from .export import load_generating, parse_metadata
+from .reference import RigidBody
+
+if TYPE_CHECKING:
+    import torch
+
+    from .generating import GeneratingFunction
+
+MODELS_PACKAGE = "poisson_rs.models"
+DEFAULT_MODEL = "default"
+
+
+@dataclass(frozen=True)
+class RolloutInfo:
+    """Per-trajectory diagnostics of a rollout; every field has shape (n,)."""
+
+    converged: np.ndarray
+    """True when every step's Newton solve converged."""
+    failed_step: np.ndarray
+    """Index of the step that failed (state k → k+1), or −1."""
+    failure_code: np.ndarray
+    """0 none, 1 no convergence, 2 singular Jacobian, 3 non-finite value, 4 chart singular."""
+    newton_iterations: np.ndarray
+    """Newton updates summed over the trajectory."""
+    max_newton_iterations: np.ndarray
+    """Most Newton updates in one step."""
+    max_residual: np.ndarray
+    """Largest accepted residual |tar(∂S/∂p, p) − μ|∞ over the steps."""
+
+
+class Stepper(Protocol):
+    """Anything ``integrate()`` can drive: a rollout of (n, 3) float64 initial states."""
+
+    def _rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
+
+
+class LearnedIntegrator:
+    """A bisection integrator whose generating function was learned (or given) and saved to a file.
+
+    Steps run in the Rust core; :meth:`torch_step` is the same map in pure torch, for checking.
+    """
+
+    def __init__(self, path: Path, *, tol: float = 1e-12, max_iter: int = 50) -> None:
+        self.path = Path(path)
+        self._core = _core.Model.load(str(self.path))
+        self.metadata: dict[str, Any] = parse_metadata(self._core.metadata)
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+        self._generating: GeneratingFunction | None = None
+
+    @property
+    def name(self) -> str:
+        return str(self.metadata.get("name", self.path.stem))
+
+    @property
+    def chart(self) -> str:
+        return str(self.metadata["chart"])
+
+    @property
+    def body(self) -> RigidBody:
+        return RigidBody(self.metadata["inertia"])
+
+    @property
+    def h_max(self) -> float:
+        return float(self.metadata["h_max"])
+
+    @property
+    def n_parameters(self) -> int:
+        return int(self._core.n_parameters)
+
+    @property
+    def generating(self) -> GeneratingFunction:
+        """The torch generating function (loaded on first use: stepping in Rust needs no torch)."""
+        if self._generating is None:
+            self._generating = load_generating(self.path, self.metadata)
+        return self._generating
+
+    def torch_step(self, mu: torch.Tensor, h: float) -> torch.Tensor:
+        """The step map in pure torch (autograd Newton), float64. mu: (B, 3) → (B, 3)."""
+        import torch
+
+        from .generating import bisection_step
+
+        mu = torch.as_tensor(mu, dtype=torch.float64)
+        return bisection_step(
+            self.generating, mu, h, chart=self.chart, tol=self.tol, max_iter=self.max_iter
+        )
+
+    def derivatives(self, t: float, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """S, ∂S/∂p, ∂²S/∂p² from the Rust core (forward mode). p: (n, 3) → (n,), (n,3), (n,3,3)."""
+        p = _as_states(p, "p")[0]
+        return self._core.derivatives(float(t), p)
+
+    def _rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        return _core.rollout_model(self._core, mu0, h, n_steps, every, self.tol, self.max_iter)
+
+    def __repr__(self) -> str:
+        return (
+            f"LearnedIntegrator(name={self.name!r}, chart={self.chart!r}, "
+            f"parameters={self.n_parameters}, h_max={self.h_max})"
+        )
+
+
+def list_models() -> list[str]:
+    """Names of the models shipped with the package (loadable with ``load_model(name)``)."""
+    root = resources.files(MODELS_PACKAGE)
+    return sorted(p.name.removesuffix(".safetensors") for p in root.iterdir()
+                  if p.name.endswith(".safetensors"))
+
+
+def load_model(
+    path: str | os.PathLike[str] | None = None, *, tol: float = 1e-12, max_iter: int = 50
+) -> LearnedIntegrator:
+    """Loads a learned integrator.
+
+    ``path`` is a model file, the name of a shipped model (see :func:`list_models`), or None for
+    the default model. ``tol`` and ``max_iter`` set the Newton solve (relative update tolerance and
+    iteration cap). Raises FileNotFoundError for a missing file, ValueError for a corrupt one.
+    """
+    if path is None:
+        path = DEFAULT_MODEL
+    if isinstance(path, str) and path in list_models():
+        path = Path(str(resources.files(MODELS_PACKAGE).joinpath(f"{path}.safetensors")))
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str, a path or None, got {type(path).__name__}")
+    if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+        raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+    if not (isinstance(max_iter, numbers.Integral) and max_iter >= 1):
+        raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+    return LearnedIntegrator(Path(path), tol=tol, max_iter=int(max_iter))
+
+
+def _as_states(mu0: Any, what: str = "mu0") -> tuple[np.ndarray, bool]:
+    """(n, 3) C-contiguous float64 copy of an array-like of states, and whether it was one state."""
+    arr = np.asarray(mu0)
+    if arr.dtype == object or arr.dtype.kind not in "fiu":
+        raise TypeError(f"{what} must be an array of real numbers, got dtype {arr.dtype}")
+    if arr.shape == (3,):
+        single = True
+        arr = arr[None, :]
+    elif arr.ndim == 2 and arr.shape[1] == 3:
+        single = False
+    else:
+        raise ValueError(f"{what} must have shape (3,) or (n, 3), got {arr.shape}")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{what} holds NaN or infinite values")
+    return arr, single
+
+
+@overload
+def integrate(
+    stepper: Stepper,
+    mu0: Any,
+    h: float,
+    n_steps: int,
+    *,
+    every: int = ...,
+    return_info: Literal[False] = ...,
+    on_failure: Literal["warn", "raise", "ignore"] = ...,
+) -> np.ndarray: ...
+
+
+@overload
+def integrate(
+    stepper: Stepper,
+    mu0: Any,
+    h: float,
+    n_steps: int,
+    *,
+    every: int = ...,
+    return_info: Literal[True],
+    on_failure: Literal["warn", "raise", "ignore"] = ...,
+) -> tuple[np.ndarray, RolloutInfo]: ...
+
+
+def integrate(
+    stepper: Stepper,
+    mu0: Any,
+    h: float,
+    n_steps: int,
+    *,
+    every: int = 1,
+    return_info: bool = False,
+    on_failure: Literal["warn", "raise", "ignore"] = "warn",
+) -> np.ndarray | tuple[np.ndarray, RolloutInfo]:
+    """Advances initial states ``n_steps`` steps of size ``h``, keeping every ``every``-th state.
+
+    Parameters
+    ----------
+    stepper: an integrator, e.g. from :func:`load_model`.
+    mu0: (3,) or (n, 3) array-like of angular momenta.
+    h: step size (time units), finite and > 0.
+    n_steps: number of steps, >= 0.
+    every: keep states 0, every, 2·every, ... (bounds memory on long horizons).
+    return_info: also return a :class:`RolloutInfo`.
+    on_failure: a trajectory whose Newton solve fails stops there and its later states are NaN;
+        "warn" (default) warns once per call, "raise" raises RuntimeError, "ignore" stays silent.
+
+    Returns
+    -------
+    float64 array (n_steps // every + 1, 3) for one state, (n, n_steps // every + 1, 3) for n.
+    """
+    if not hasattr(stepper, "_rollout"):
+        raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
+    arr, single = _as_states(mu0)
+    if isinstance(h, bool) or not isinstance(h, numbers.Real):
+        raise TypeError(f"h must be a real number, got {type(h).__name__}")
+    if not (np.isfinite(h) and h > 0):
+        raise ValueError(f"h must be finite and > 0, got {h}")
+    for name, value, low in (("n_steps", n_steps, 0), ("every", every, 1)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise TypeError(f"{name} must be an integer, got {type(value).__name__}")
+        if value < low:
+            raise ValueError(f"{name} must be >= {low}, got {value}")
+    if on_failure not in ("warn", "raise", "ignore"):
+        raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
+    traj, raw = stepper._rollout(arr, float(h), int(n_steps), int(every))
+    info = RolloutInfo(**raw)
+    n_failed = int((~info.converged).sum())
+    if n_failed and on_failure != "ignore":
+        first = int(np.flatnonzero(~info.converged)[0])
+        msg = (
+            f"{n_failed} of {len(info.converged)} trajectories failed (first: trajectory {first} "
+            f"at step {int(info.failed_step[first])}); their later states are NaN"
+        )
+        if on_failure == "raise":
+            raise RuntimeError(msg)
+        warnings.warn(msg, RuntimeWarning, stacklevel=2)
+    out = traj[0] if single else traj
+    return (out, info) if return_info else out
