@@ -7,9 +7,8 @@ import itertools
 
 import numpy as np
 import pytest
-from scipy.special import ellipj
-
 from poisson_rs.reference import RigidBody, dop853_solution, exact_solution
+from scipy.special import ellipj
 
 PAPER_INERTIA = (1.5, 2.0, 2.5)
 PERMUTATIONS = list(itertools.permutations(range(3)))
@@ -61,7 +60,7 @@ def test_rigid_body_defaults_and_storage() -> None:
         ((1.0, float("nan"), 3.0), "finite"),
         ((1.0, float("inf"), 3.0), "finite"),
         (("1", "2", "3"), "real numbers"),
-        ("123", "sequence of 3 real numbers"),
+        ("123", "entries must be real numbers"),
         (5.0, "sequence of 3 real numbers"),
         (np.ones((3, 1)), "real numbers"),
     ],
@@ -140,9 +139,7 @@ def test_exact_matches_dop853_random_states() -> None:
     unsorted = 0
     worst = 0.0
     for k in range(60):
-        inertia = (
-            PAPER_INERTIA if k % 4 == 0 else tuple(float(v) for v in rng.uniform(0.5, 3.0, 3))
-        )
+        inertia = PAPER_INERTIA if k % 4 == 0 else tuple(float(v) for v in rng.uniform(0.5, 3.0, 3))
         unsorted += inertia != tuple(sorted(inertia))
         mu0 = rng.normal(size=3) * rng.uniform(0.2, 5.0)
         sides["smallest" if _delta(inertia, mu0) > 0 else "largest"] += 1
@@ -246,7 +243,7 @@ def test_very_near_separatrix(rel: float) -> None:
 
 
 def test_on_separatrix_exactly() -> None:
-    # For I = (2, 3, 6), 2H·I₂ − |μ|² = (μ₁² − μ₃²)/2 vanishes exactly in floating point at μ₁ = ±μ₃.
+    # For I = (2, 3, 6), 2H·I₂ − |μ|² = (μ₁² − μ₃²)/2: exactly zero in floating point at μ₁ = ±μ₃.
     body = RigidBody((2.0, 3.0, 6.0))
     mu0 = np.array([[1.0, 0.3, 1.0], [-1.0, 0.3, 1.0], [0.5, -2.0, -0.5], [1.0, 0.0, -1.0]])
     assert np.all(2.0 * body.hamiltonian(mu0) * 3.0 - body.casimir(mu0) == 0.0)
@@ -322,7 +319,7 @@ def test_symmetric_top(inertia: tuple[float, float, float]) -> None:
     exact = exact_solution(body, mu0, times)
     assert _rel_err(exact, dop853_solution(body, mu0, times), mu0) <= 1e-9
     # Uniform rotation about the symmetry axis: that component is constant.
-    axis = [i for i in range(3) if inertia.count(inertia[i]) == 1][0]
+    axis = next(i for i in range(3) if inertia.count(inertia[i]) == 1)
     np.testing.assert_array_equal(exact[..., axis], np.repeat(mu0[:, None, axis], times.size, 1))
     # The nearly symmetric body goes through the elliptic formulas and stays close.
     eps = 1e-9

@@ -13,24 +13,30 @@ function S(t, p) that solves a Hamilton–Jacobi equation; S is learned in torch
 from __future__ import annotations
 
 from .integrators import (
+    BisectionIntegrator,
     LearnedIntegrator,
     RolloutInfo,
+    TaylorIntegrator,
     integrate,
     list_models,
     load_model,
+    taylor_integrator,
 )
 from .reference import RigidBody, dop853_solution, exact_solution
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "BisectionIntegrator",
     "LearnedIntegrator",
     "RigidBody",
     "RolloutInfo",
+    "TaylorIntegrator",
     "__version__",
     "dop853_solution",
     "exact_solution",
     "integrate",
     "list_models",
     "load_model",
+    "taylor_integrator",
 ]

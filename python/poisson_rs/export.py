@@ -17,7 +17,7 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -34,35 +34,37 @@ PACKAGE_VERSION = "0.1.0"
 _REQUIRED = ("format", "chart", "mlp_power", "widths", "system", "inertia", "h_max", "domain")
 
 
-def save_model(
-    s_fn: GeneratingFunction,
-    path: str | os.PathLike[str],
+def model_bytes(
     *,
-    inertia: tuple[float, float, float],
+    powers: np.ndarray,
+    coeffs: np.ndarray,
+    layers: Sequence[tuple[np.ndarray, np.ndarray]],
+    mlp_power: int,
+    chart: str,
+    inertia: Sequence[float],
     h_max: float,
     domain: Mapping[str, Any],
     taylor_order: int = 0,
     record: Mapping[str, Any] | None = None,
-) -> Path:
-    """Writes ``s_fn`` to ``path`` atomically (a crash never leaves a half-written file).
-
-    ``record`` holds provenance (final_loss, command, seed, train_seconds, name, ...); values are
-    stored as JSON strings unless already strings.
+) -> bytes:
+    """The bytes of a model file: polynomial terms, MLP layers (weight (out, in), bias (out,))
+    and metadata. ``record`` holds provenance (final_loss, command, seed, train_seconds, name,
+    ...); non-string values are stored as JSON.
     """
     from safetensors.numpy import save
 
     tensors: dict[str, np.ndarray] = {}
-    if len(s_fn.coeffs):
-        tensors["poly.powers"] = s_fn.powers.cpu().numpy().astype(np.int64)
-        tensors["poly.coeffs"] = s_fn.coeffs.detach().cpu().numpy().astype(np.float64)
-    for i, (w, b) in enumerate(s_fn.exported_layers()):
+    if len(coeffs):
+        tensors["poly.powers"] = np.ascontiguousarray(powers, dtype=np.int64)
+        tensors["poly.coeffs"] = np.ascontiguousarray(coeffs, dtype=np.float64)
+    for i, (w, b) in enumerate(layers):
         tensors[f"mlp.{i}.weight"] = np.ascontiguousarray(w, dtype=np.float64)
         tensors[f"mlp.{i}.bias"] = np.ascontiguousarray(b, dtype=np.float64)
     meta: dict[str, str] = {
         "format": FORMAT,
-        "chart": s_fn.chart,
-        "mlp_power": str(s_fn.mlp_power),
-        "widths": json.dumps(list(s_fn.widths)),
+        "chart": chart,
+        "mlp_power": str(int(mlp_power)),
+        "widths": json.dumps([int(w.shape[0]) for w, _ in layers[:-1]]),
         "taylor_order": str(int(taylor_order)),
         "system": "rigid_body",
         "inertia": json.dumps([float(i) for i in inertia]),
@@ -72,9 +74,34 @@ def save_model(
     }
     for k, v in (record or {}).items():
         meta[k] = v if isinstance(v, str) else json.dumps(v)
+    return save(tensors, metadata=meta)
+
+
+def save_model(
+    s_fn: GeneratingFunction,
+    path: str | os.PathLike[str],
+    *,
+    inertia: Sequence[float],
+    h_max: float,
+    domain: Mapping[str, Any],
+    taylor_order: int = 0,
+    record: Mapping[str, Any] | None = None,
+) -> Path:
+    """Writes a torch generating function to ``path`` atomically (never a half-written file)."""
+    data = model_bytes(
+        powers=s_fn.powers.cpu().numpy(),
+        coeffs=s_fn.coeffs.detach().cpu().numpy(),
+        layers=s_fn.exported_layers(),
+        mlp_power=s_fn.mlp_power,
+        chart=s_fn.chart,
+        inertia=inertia,
+        h_max=h_max,
+        domain=domain,
+        taylor_order=taylor_order,
+        record=record,
+    )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    data = save(tensors, metadata=meta)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
@@ -119,15 +146,15 @@ def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
         meta["taylor_order"] = int(raw.get("taylor_order", "0"))
     except ValueError as e:
         raise ValueError(f"model metadata has a malformed number: {e}") from e
-    if not (math.isfinite(meta["h_max"]) and meta["h_max"] > 0):
+    if not meta["h_max"] > 0:
         raise ValueError(f"metadata 'h_max' must be a positive number, got {raw['h_max']!r}")
     widths = _json(raw, "widths")
     if not isinstance(widths, list) or not all(isinstance(w, int) and w > 0 for w in widths):
         raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
     meta["widths"] = tuple(widths)
     domain = _json(raw, "domain")
-    if not isinstance(domain, dict) or domain.get("kind") not in ("cube", "shell"):
-        raise ValueError(f"metadata 'domain' must name a cube or a shell: {raw['domain']!r}")
+    if not isinstance(domain, dict) or domain.get("kind") not in ("cube", "shell", "all"):
+        raise ValueError(f"metadata 'domain' must be a cube, a shell or all: {raw['domain']!r}")
     meta["domain"] = domain
     for key in ("final_loss", "seed", "train_seconds"):
         if key in raw:
@@ -135,17 +162,18 @@ def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
     return meta
 
 
-def load_generating(path: str | os.PathLike[str], meta: Mapping[str, Any]) -> GeneratingFunction:
-    """Rebuilds the torch generating function of a model file already validated by the core.
+def load_generating(
+    tensors: Mapping[str, np.ndarray], meta: Mapping[str, Any]
+) -> GeneratingFunction:
+    """Rebuilds the torch generating function from a model file's tensors (already validated by
+    the core) and decoded metadata.
 
     Checks that the tensors agree with the metadata (layer widths), raising ValueError if not.
     """
     import torch
-    from safetensors.numpy import load_file
 
     from .generating import GeneratingFunction
 
-    tensors = load_file(str(path))
     n_layers = sum(1 for k in tensors if k.endswith(".weight"))
     widths = tuple(int(tensors[f"mlp.{i}.weight"].shape[0]) for i in range(n_layers - 1))
     if n_layers and widths != tuple(meta["widths"]):

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol, overload
 import numpy as np
 
 from . import _core
-from .export import load_generating, parse_metadata
+from .export import load_generating, model_bytes, parse_metadata
 from .reference import RigidBody
 
 if TYPE_CHECKING:
@@ -51,23 +51,37 @@ class Stepper(Protocol):
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
 
 
-class LearnedIntegrator:
-    """A bisection integrator whose generating function was learned (or given) and saved to a file.
+class BisectionIntegrator:
+    """A Poisson integrator read off the Lagrangian bisection of a generating function S(t, p).
 
     Steps run in the Rust core; :meth:`torch_step` is the same map in pure torch, for checking.
+    Build one with :func:`load_model` (a learned S saved to a file) or :func:`taylor_integrator`
+    (the truncated Taylor series of the exact S).
     """
 
-    def __init__(self, path: Path, *, tol: float = 1e-12, max_iter: int = 50) -> None:
-        self.path = Path(path)
-        self._core = _core.Model.load(str(self.path))
+    def __init__(self, source: Path | bytes, *, tol: float = 1e-12, max_iter: int = 50) -> None:
+        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        self._source = source
+        if isinstance(source, bytes):
+            self._core = _core.Model.from_bytes(source)
+        else:
+            self._core = _core.Model.load(str(source))
         self.metadata: dict[str, Any] = parse_metadata(self._core.metadata)
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self._generating: GeneratingFunction | None = None
 
     @property
+    def path(self) -> Path | None:
+        return self._source if isinstance(self._source, Path) else None
+
+    @property
     def name(self) -> str:
-        return str(self.metadata.get("name", self.path.stem))
+        default = self._source.stem if isinstance(self._source, Path) else "unnamed"
+        return str(self.metadata.get("name", default))
 
     @property
     def chart(self) -> str:
@@ -83,13 +97,18 @@ class LearnedIntegrator:
 
     @property
     def n_parameters(self) -> int:
+        """Trainable parameters of the MLP part (0 for a polynomial S)."""
         return int(self._core.n_parameters)
 
     @property
     def generating(self) -> GeneratingFunction:
-        """The torch generating function (loaded on first use: stepping in Rust needs no torch)."""
+        """The torch generating function (built on first use: stepping in Rust needs no torch)."""
         if self._generating is None:
-            self._generating = load_generating(self.path, self.metadata)
+            from safetensors.numpy import load, load_file
+
+            src = self._source
+            tensors = load(src) if isinstance(src, bytes) else load_file(str(src))
+            self._generating = load_generating(tensors, self.metadata)
         return self._generating
 
     def torch_step(self, mu: torch.Tensor, h: float) -> torch.Tensor:
@@ -103,10 +122,9 @@ class LearnedIntegrator:
             self.generating, mu, h, chart=self.chart, tol=self.tol, max_iter=self.max_iter
         )
 
-    def derivatives(self, t: float, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def derivatives(self, t: float, p: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """S, ∂S/∂p, ∂²S/∂p² from the Rust core (forward mode). p: (n, 3) → (n,), (n,3), (n,3,3)."""
-        p = _as_states(p, "p")[0]
-        return self._core.derivatives(float(t), p)
+        return self._core.derivatives(float(t), _as_states(p, "p")[0])
 
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
@@ -115,16 +133,25 @@ class LearnedIntegrator:
 
     def __repr__(self) -> str:
         return (
-            f"LearnedIntegrator(name={self.name!r}, chart={self.chart!r}, "
+            f"{type(self).__name__}(name={self.name!r}, chart={self.chart!r}, "
             f"parameters={self.n_parameters}, h_max={self.h_max})"
         )
+
+
+class LearnedIntegrator(BisectionIntegrator):
+    """A bisection integrator whose generating function was learned; see :func:`load_model`."""
+
+
+class TaylorIntegrator(BisectionIntegrator):
+    """The paper's classical approach: S truncated to its Taylor series in t; see
+    :func:`taylor_integrator`."""
 
 
 def list_models() -> list[str]:
     """Names of the models shipped with the package (loadable with ``load_model(name)``)."""
     root = resources.files(MODELS_PACKAGE)
-    return sorted(p.name.removesuffix(".safetensors") for p in root.iterdir()
-                  if p.name.endswith(".safetensors"))
+    names = (p.name for p in root.iterdir() if p.name.endswith(".safetensors"))
+    return sorted(n.removesuffix(".safetensors") for n in names)
 
 
 def load_model(
@@ -138,15 +165,47 @@ def load_model(
     """
     if path is None:
         path = DEFAULT_MODEL
-    if isinstance(path, str) and path in list_models():
-        path = Path(str(resources.files(MODELS_PACKAGE).joinpath(f"{path}.safetensors")))
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path must be a str, a path or None, got {type(path).__name__}")
-    if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
-        raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
-    if not (isinstance(max_iter, numbers.Integral) and max_iter >= 1):
-        raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
-    return LearnedIntegrator(Path(path), tol=tol, max_iter=int(max_iter))
+    if isinstance(path, str) and path in list_models():
+        path = str(resources.files(MODELS_PACKAGE).joinpath(f"{path}.safetensors"))
+    return LearnedIntegrator(Path(path), tol=tol, max_iter=max_iter)
+
+
+def taylor_integrator(
+    body: RigidBody | None = None,
+    order: int = 3,
+    chart: str = "cayley",
+    *,
+    tol: float = 1e-12,
+    max_iter: int = 50,
+) -> TaylorIntegrator:
+    """The Taylor-in-t integrator, S = Σ_{k≤order} t^k S_k with the S_k exact (order ≥ 1).
+
+    Its order of accuracy is ``order``, or ``order + 1`` where S_{order+1} vanishes (odd orders
+    in the Cayley chart).
+    """
+    from .taylor import taylor_terms
+
+    body = RigidBody() if body is None else body
+    if not isinstance(body, RigidBody):
+        raise TypeError(f"body must be a RigidBody, got {type(body).__name__}")
+    if isinstance(order, bool) or not isinstance(order, numbers.Integral) or order < 1:
+        raise ValueError(f"order must be an integer >= 1, got {order!r}")
+    powers, coeffs = taylor_terms(body.inertia, int(order), chart)
+    data = model_bytes(
+        powers=powers,
+        coeffs=coeffs,
+        layers=[],
+        mlp_power=1,
+        chart=chart,
+        inertia=body.inertia,
+        h_max=float("inf"),
+        domain={"kind": "all"},
+        taylor_order=int(order),
+        record={"name": f"taylor{order}-{chart}"},
+    )
+    return TaylorIntegrator(data, tol=tol, max_iter=max_iter)
 
 
 def _as_states(mu0: Any, what: str = "mu0") -> tuple[np.ndarray, bool]:

@@ -82,8 +82,6 @@ class RigidBody:
 
     def __post_init__(self) -> None:
         raw = self.inertia
-        if isinstance(raw, (str, bytes)):
-            raise ValueError(f"inertia must be a sequence of 3 real numbers, got {raw!r}")
         try:
             entries = tuple(raw)
         except TypeError as exc:
@@ -266,7 +264,6 @@ def _flow_sorted(
     from scipy.special import elliprf
 
     i1, i2, i3 = (float(v) for v in inertia)
-    x = nu0
     s1, s2, s3 = (nu0 * nu0).T
     a_term = s1 * ((i3 - i1) / i1) + s2 * ((i3 - i2) / i2)
     b_term = s2 * ((i2 - i1) / i2) + s3 * ((i3 - i1) / i3)
@@ -288,13 +285,13 @@ def _flow_sorted(
     )
     lam = np.sqrt(np.where(about_1, (i2 - i1) * a_term, (i3 - i2) * b_term) / (i1 * i2 * i3))
 
-    x_d = np.where(about_1, x[:, 0], x[:, 2])
-    x_c = np.where(about_1, x[:, 2], x[:, 0])
+    x_d = np.where(about_1, nu0[:, 0], nu0[:, 2])
+    x_c = np.where(about_1, nu0[:, 2], nu0[:, 0])
     amp_d = np.where(about_1, amp1, amp3)
     amp_c = np.where(about_1, amp3, amp1)
     p = np.where(x_d >= 0.0, 1.0, -1.0)
     r = np.where(x_c >= 0.0, 1.0, -1.0)
-    sn0 = p * r * x[:, 1] / amp2
+    sn0 = p * r * nu0[:, 1] / amp2
     cn0 = np.abs(x_c) / amp_c
     dn0 = np.abs(x_d) / amp_d
     tau0 = sn0 * elliprf(cn0 * cn0, dn0 * dn0, 1.0)

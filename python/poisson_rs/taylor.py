@@ -28,7 +28,7 @@ from fractions import Fraction
 
 import numpy as np
 
-__all__ = ["MAX_ORDER", "CHARTS", "evaluate_terms", "taylor_coefficients", "taylor_terms"]
+__all__ = ["CHARTS", "MAX_ORDER", "evaluate_terms", "taylor_coefficients", "taylor_terms"]
 
 #: Largest supported truncation order (S_15 has degree 16 and 153 monomials; exact arithmetic
 #: stays well under a second up to here).
@@ -158,9 +158,7 @@ def _exp_chart_c(n_terms: int) -> list[Fraction]:
     i.e. 1/12, 1/720, 1/30240, 1/1209600, ...
     """
     b = _bernoulli(2 * n_terms)
-    return [
-        (-1) ** n * b[2 * n + 2] / math.factorial(2 * n + 2) for n in range(n_terms)
-    ]
+    return [(-1) ** n * b[2 * n + 2] / math.factorial(2 * n + 2) for n in range(n_terms)]
 
 
 def _validate(inertia: Sequence[float], order: int, chart: str) -> tuple[Fraction, ...]:
