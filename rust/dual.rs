@@ -28,6 +28,23 @@ pub trait Scalar:
         let d = 1.0 - v * v;
         self.chain(v, d, -2.0 * v * d)
     }
+    fn sqrt(self) -> Self {
+        let r = self.value().sqrt();
+        self.chain(r, 0.5 / r, -0.25 / (r * r * r))
+    }
+    fn recip(self) -> Self {
+        let v = self.value();
+        self.chain(1.0 / v, -1.0 / (v * v), 2.0 / (v * v * v))
+    }
+    fn powi(self, n: i32) -> Self {
+        let v = self.value();
+        let nf = f64::from(n);
+        self.chain(
+            v.powi(n),
+            nf * v.powi(n - 1),
+            nf * (nf - 1.0) * v.powi(n - 2),
+        )
+    }
     /// True when every component is finite.
     fn is_finite(&self) -> bool;
 }

@@ -214,12 +214,40 @@ pub struct Workspace {
     d1_b: Vec<Dual1>,
 }
 
+/// What the MLP sees.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MlpInputs {
+    /// N(t, p): the MLP takes (t, p₁, p₂, p₃) as they are (the paper's ansatz).
+    Plain,
+    /// |p|^(m+1) · N(|p| t, p/|p|): the scaling S(t, λp) = λ S(λt, p) of every quadratic
+    /// Hamiltonian is built in, so the MLP only learns a function on [0, τ_max] × S².
+    Homogeneous,
+}
+
+impl MlpInputs {
+    pub fn name(self) -> &'static str {
+        match self {
+            MlpInputs::Plain => "t,p",
+            MlpInputs::Homogeneous => "homogeneous",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "t,p" => Some(MlpInputs::Plain),
+            "homogeneous" => Some(MlpInputs::Homogeneous),
+            _ => None,
+        }
+    }
+}
+
 /// S(t, p) = P(t, p) + t^m N(t, p). S(0, ·) = 0 holds by construction (k ≥ 1, m ≥ 1).
 #[derive(Clone, Debug, PartialEq)]
 pub struct GeneratingFunction {
     pub polynomial: Polynomial,
     pub mlp: Option<Mlp>,
     pub mlp_power: u32,
+    pub inputs: MlpInputs,
 }
 
 impl GeneratingFunction {
@@ -227,6 +255,7 @@ impl GeneratingFunction {
         polynomial: Polynomial,
         mlp: Option<Mlp>,
         mlp_power: u32,
+        inputs: MlpInputs,
     ) -> Result<Self, CoreError> {
         if let Some(m) = polynomial.terms.iter().find(|m| m.t_power == 0) {
             return Err(CoreError::Format(format!(
@@ -249,6 +278,7 @@ impl GeneratingFunction {
             polynomial,
             mlp,
             mlp_power,
+            inputs,
         })
     }
 
@@ -265,15 +295,29 @@ impl GeneratingFunction {
     /// S(t, p), ∂S/∂p and ∂²S/∂p² at fixed t, exactly (forward mode).
     pub fn jet(&self, t: f64, p: &[f64; 3], ws: &mut Workspace) -> Jet2 {
         let mut s = self.polynomial.jet(t, p);
-        if let Some(mlp) = &self.mlp {
-            let inputs = [
-                Jet2::cst(t),
-                Jet2::var(p[0], 0),
-                Jet2::var(p[1], 1),
-                Jet2::var(p[2], 2),
-            ];
-            let n = mlp.eval(inputs, &mut ws.jet_a, &mut ws.jet_b);
-            s = n.mul_add(t.powi(self.mlp_power as i32), s);
+        let Some(mlp) = &self.mlp else { return s };
+        let tm = t.powi(self.mlp_power as i32);
+        let pj = [Jet2::var(p[0], 0), Jet2::var(p[1], 1), Jet2::var(p[2], 2)];
+        match self.inputs {
+            MlpInputs::Plain => {
+                let n = mlp.eval(
+                    [Jet2::cst(t), pj[0], pj[1], pj[2]],
+                    &mut ws.jet_a,
+                    &mut ws.jet_b,
+                );
+                s = n.mul_add(tm, s);
+            }
+            MlpInputs::Homogeneous => {
+                let r2 = pj[0] * pj[0] + pj[1] * pj[1] + pj[2] * pj[2];
+                // At p = 0 the term and its derivatives up to order m ≥ 1 vanish.
+                if r2.value() > 0.0 {
+                    let r = r2.sqrt();
+                    let inv = r.recip();
+                    let inputs = [r.scale(t), pj[0] * inv, pj[1] * inv, pj[2] * inv];
+                    let n = mlp.eval(inputs, &mut ws.jet_a, &mut ws.jet_b);
+                    s = (n * r.powi(self.mlp_power as i32 + 1)).mul_add(tm, s);
+                }
+            }
         }
         s
     }
@@ -286,19 +330,42 @@ impl GeneratingFunction {
         ws: &mut Workspace,
     ) -> (f64, f64) {
         let (mut v, mut dt) = self.polynomial.value_and_time_derivative(t, p);
-        if let Some(mlp) = &self.mlp {
-            // Seed t as the first dual variable; p enters as constants.
-            let inputs = [
-                Dual1::var(t, 0),
-                Dual1::cst(p[0]),
-                Dual1::cst(p[1]),
-                Dual1::cst(p[2]),
-            ];
-            let n = mlp.eval(inputs, &mut ws.d1_a, &mut ws.d1_b);
-            let m = self.mlp_power as i32;
-            v += t.powi(m) * n.v;
-            dt += t.powi(m) * n.g[0] + m as f64 * t.powi(m - 1) * n.v;
-        }
+        let Some(mlp) = &self.mlp else { return (v, dt) };
+        // Seed the time input as dual variable 0; p enters as constants.
+        let (inputs, factor) = match self.inputs {
+            MlpInputs::Plain => (
+                [
+                    Dual1::var(t, 0),
+                    Dual1::cst(p[0]),
+                    Dual1::cst(p[1]),
+                    Dual1::cst(p[2]),
+                ],
+                1.0,
+            ),
+            MlpInputs::Homogeneous => {
+                let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+                if r == 0.0 {
+                    return (v, dt);
+                }
+                let tau = Dual1 {
+                    v: r * t,
+                    g: [r, 0.0, 0.0],
+                };
+                (
+                    [
+                        tau,
+                        Dual1::cst(p[0] / r),
+                        Dual1::cst(p[1] / r),
+                        Dual1::cst(p[2] / r),
+                    ],
+                    r.powi(self.mlp_power as i32 + 1),
+                )
+            }
+        };
+        let n = mlp.eval(inputs, &mut ws.d1_a, &mut ws.d1_b);
+        let m = self.mlp_power as i32;
+        v += factor * t.powi(m) * n.v;
+        dt += factor * (t.powi(m) * n.g[0] + f64::from(m) * t.powi(m - 1) * n.v);
         (v, dt)
     }
 }

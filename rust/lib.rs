@@ -16,8 +16,11 @@ pub mod stepper;
 mod bindings;
 
 pub use error::{CoreError, StepFailure};
-pub use generating::{GeneratingFunction, Layer, Mlp, Monomial, Polynomial};
+pub use generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
 pub use groupoid::Chart;
 pub use model::Model;
 pub use rollout::{rollout, TrajectoryInfo};
 pub use stepper::{BisectionStepper, NewtonOptions, StepMap, StepStats};
+
+#[cfg(test)]
+mod tests;

@@ -5,8 +5,8 @@
 //! - `mlp.{i}.weight` (out, in) and `mlp.{i}.bias` (out,), i = 0, 1, …; inputs (t, p₁, p₂, p₃),
 //!   tanh after every layer but the last, one output.
 //!
-//! Metadata (strings): `format` = [`FORMAT`], `chart` (`cayley` | `exp`), `mlp_power` (m ≥ 1,
-//! required with an MLP). Other keys (system, inertia, training record, …) are kept for the caller.
+//! Metadata (strings): `format` = [`FORMAT`], `chart` (`cayley` | `exp`); with an MLP also
+//! `mlp_power` (m ≥ 1) and `mlp_inputs` (`t,p` | `homogeneous`, see [`MlpInputs`]). Other keys (system, inertia, training record, …) are kept for the caller.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -14,7 +14,7 @@ use std::path::Path;
 use safetensors::{Dtype, SafeTensors};
 
 use crate::error::CoreError;
-use crate::generating::{GeneratingFunction, Layer, Mlp, Monomial, Polynomial};
+use crate::generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
 use crate::groupoid::Chart;
 use crate::stepper::{BisectionStepper, NewtonOptions};
 
@@ -187,7 +187,14 @@ impl Model {
                 format_err(format!("mlp_power '{s}' is not a non-negative integer"))
             })?,
         };
-        let generating = GeneratingFunction::new(polynomial, mlp, mlp_power)?;
+        let inputs = match (&mlp, metadata.get("mlp_inputs")) {
+            (None, _) => MlpInputs::Plain,
+            (Some(_), None) => return Err(format_err("metadata key 'mlp_inputs' is missing")),
+            (Some(_), Some(s)) => MlpInputs::from_name(s).ok_or_else(|| {
+                format_err(format!("unknown mlp_inputs '{s}' (t,p or homogeneous)"))
+            })?,
+        };
+        let generating = GeneratingFunction::new(polynomial, mlp, mlp_power, inputs)?;
         Ok(Model {
             generating,
             chart,

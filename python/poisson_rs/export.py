@@ -6,9 +6,9 @@ Layout (all tensors float64 except ``poly.powers``, int64):
 - ``mlp.{i}.weight`` (out, in), ``mlp.{i}.bias`` (out,): inputs (t, p₁, p₂, p₃), tanh between
   layers, one output; input and output scales are folded in.
 
-Metadata (strings; JSON where structured): ``format``, ``chart``, ``mlp_power``, ``widths``,
-``taylor_order``, ``system``, ``inertia``, ``h_max``, ``domain``, ``final_loss``, ``command``,
-``seed``, ``train_seconds``, ``package_version``, ``name``.
+Metadata (strings; JSON where structured): ``format``, ``chart``, ``mlp_power``, ``mlp_inputs``,
+``widths``, ``taylor_order``, ``system``, ``inertia``, ``h_max``, ``domain``, ``final_loss``,
+``command``, ``seed``, ``train_seconds``, ``package_version``, ``name``.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ def model_bytes(
     mlp_power: int,
     chart: str,
     inertia: Sequence[float],
+    mlp_inputs: str = "t,p",
     h_max: float,
     domain: Mapping[str, Any],
     taylor_order: int = 0,
@@ -64,6 +65,7 @@ def model_bytes(
         "format": FORMAT,
         "chart": chart,
         "mlp_power": str(int(mlp_power)),
+        "mlp_inputs": mlp_inputs,
         "widths": json.dumps([int(w.shape[0]) for w, _ in layers[:-1]]),
         "taylor_order": str(int(taylor_order)),
         "system": "rigid_body",
@@ -93,6 +95,7 @@ def save_model(
         coeffs=s_fn.coeffs.detach().cpu().numpy(),
         layers=s_fn.exported_layers(),
         mlp_power=s_fn.mlp_power,
+        mlp_inputs=s_fn.inputs,
         chart=s_fn.chart,
         inertia=inertia,
         h_max=h_max,
@@ -188,6 +191,7 @@ def load_generating(
         powers=tensors.get("poly.powers"),
         coeffs=tensors.get("poly.coeffs"),
         chart=meta["chart"],
+        inputs=meta.get("mlp_inputs", "t,p"),
     )
     with torch.no_grad():
         for i, layer in enumerate(s_fn.linears):

@@ -15,9 +15,16 @@ from torch import Tensor, nn
 
 from .groupoid import check_chart, sou, tar
 
+MLP_INPUTS: tuple[str, ...] = ("t,p", "homogeneous")
+
 
 class GeneratingFunction(nn.Module):
-    """S(t, p) = Σ cᵢ t^kᵢ p^αᵢ + t^m · s_out · MLP(t·s_t, p·s_p).
+    """S(t, p) = Σ cᵢ t^kᵢ p^αᵢ + t^m · N(t, p), with N one of
+
+    - ``inputs="t,p"`` (the paper's ansatz): N = s_out · MLP(t·s_τ, p·s_p);
+    - ``inputs="homogeneous"``: N = |p|^(m+1) · s_out · MLP(|p| t·s_τ, p/|p|). Every quadratic
+      Hamiltonian's exact S obeys S(t, λp) = λ S(λt, p); this ansatz obeys it too, so the MLP
+      only learns a function of τ = |p| t ∈ [0, τ_max] and of the direction p/|p|.
 
     Parameters
     ----------
@@ -28,6 +35,8 @@ class GeneratingFunction(nn.Module):
     powers, coeffs:
         Polynomial part: int array (n, 4) of rows (k, a, b, c) for t^k p₁^a p₂^b p₃^c with k ≥ 1,
         and float array (n,).
+    inputs:
+        "t,p" or "homogeneous" (see above).
     chart:
         Groupoid chart the function is meant for ("cayley" or "exp"); stored, not used here.
     input_scale:
@@ -45,12 +54,16 @@ class GeneratingFunction(nn.Module):
         powers: np.ndarray | None = None,
         coeffs: np.ndarray | None = None,
         chart: str = "cayley",
+        inputs: str = "t,p",
         input_scale: Sequence[float] = (1.0, 1.0, 1.0, 1.0),
         output_scale: float = 1.0,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
         self.chart = check_chart(chart)
+        if inputs not in MLP_INPUTS:
+            raise ValueError(f"inputs must be one of {MLP_INPUTS}, got {inputs!r}")
+        self.inputs = inputs
         widths = tuple(int(w) for w in widths)
         if any(w < 1 for w in widths):
             raise ValueError(f"layer widths must be positive integers, got {widths}")
@@ -113,10 +126,16 @@ class GeneratingFunction(nn.Module):
     def forward(self, t: Tensor, p: Tensor) -> Tensor:
         """S(t, p) for t (B,) and p (B, 3) → (B,)."""
         s = self.polynomial(t, p)
-        if self.widths:
+        if not self.widths:
+            return s
+        if self.inputs == "t,p":
             z = torch.cat([t[:, None], p], dim=1) * self.input_scale
-            s = s + t**self.mlp_power * self.output_scale * self.mlp(z)[:, 0]
-        return s
+            return s + t**self.mlp_power * self.output_scale * self.mlp(z)[:, 0]
+        # Clamped so that p = 0 gives finite gradients (the term vanishes there to order m + 1).
+        r = (p * p).sum(1).clamp_min(1e-300).sqrt()
+        z = torch.cat([(r * t)[:, None], p / r[:, None]], dim=1) * self.input_scale
+        n = r ** (self.mlp_power + 1) * self.output_scale * self.mlp(z)[:, 0]
+        return s + t**self.mlp_power * n
 
     def exported_layers(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The MLP's (weight (out, in), bias (out,)) pairs as float64, scales folded in."""

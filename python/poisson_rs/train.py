@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from .export import save_model
-from .generating import GeneratingFunction
+from .generating import MLP_INPUTS, GeneratingFunction
 from .groupoid import check_chart, sou
 from .taylor import evaluate_terms, taylor_terms
 
@@ -33,6 +33,8 @@ class TrainConfig:
     inertia: tuple[float, float, float] = (1.5, 2.0, 2.5)
     chart: str = "cayley"
     widths: tuple[int, ...] = (32, 32)
+    inputs: str = "homogeneous"
+    """What the MLP sees: "t,p" (the paper) or "homogeneous" (see GeneratingFunction)."""
     taylor_order: int = 1
     """Exact Taylor terms S_1..S_K in the polynomial part (0: none, 1: S = −tH + …)."""
     mlp_power: int | None = None
@@ -81,6 +83,8 @@ class TrainConfig:
         for name, ok in checks:
             if not ok:
                 raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+        if self.inputs not in MLP_INPUTS:
+            raise ValueError(f"inputs must be one of {MLP_INPUTS}, got {self.inputs!r}")
         if self.schedule not in ("cosine", "constant"):
             raise ValueError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
         if self.dtype not in ("float32", "float64"):
@@ -104,6 +108,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "widths": (500, 250, 250, 250),
         "taylor_order": 0,
         "mlp_power": 1,
+        "inputs": "t,p",
         "domain": "cube",
         "half_width": 3.0,
         "n_points": 80_000,
@@ -142,7 +147,10 @@ def sample_points(
 def hj_residual(
     s_fn: GeneratingFunction, inertia: Sequence[float], t: Tensor, p: Tensor, create_graph: bool
 ) -> Tensor:
-    """r = ∂S/∂t + H(sou(∂S/∂p, p)) by nested autograd. t (B,), p (B, 3) → (B,)."""
+    """r = ∂S/∂t + H(sou(∂S/∂p, p)) by nested autograd. t (B,), p (B, 3) → (B,).
+
+    For a homogeneous S the residual scales as r(t, λp) = λ² r(λt, p).
+    """
     t = t.detach().requires_grad_(True)
     p = p.detach().requires_grad_(True)
     with torch.enable_grad():
@@ -165,16 +173,21 @@ def build_model(cfg: TrainConfig) -> GeneratingFunction:
         else (np.zeros((0, 4), np.int64), np.zeros(0))
     )
     r_scale = cfg.half_width * math.sqrt(3) if cfg.domain == "cube" else cfg.r_max
-    # Output scale: RMS over the domain of S_m (the term the MLP replaces first).
+    homogeneous = cfg.inputs == "homogeneous"
+    # Output scale: RMS over the domain of S_m (the term the MLP replaces first), per unit
+    # |p|^(m+1) for the homogeneous ansatz.
     gen = torch.Generator().manual_seed(cfg.seed + 1)
     _, p = sample_points(cfg, 2048, gen, torch.float64, "cpu")
     pw, cf = taylor_terms(cfg.inertia, max(m, 1), cfg.chart)
     sel = pw[:, 0] == m
+    out_scale = 1.0
     if sel.any():
         vals = evaluate_terms(pw[sel], cf[sel], np.ones(len(p)), p.numpy())
-        out_scale = float(np.sqrt(np.mean(vals**2)))
-    else:
-        out_scale = 1.0
+        if homogeneous:
+            vals = vals / np.linalg.norm(p.numpy(), axis=1) ** (m + 1)
+        out_scale = float(np.sqrt(np.mean(vals**2))) or 1.0
+    t_scale = 1.0 / (cfg.h_max * r_scale) if homogeneous else 1.0 / cfg.h_max
+    p_scale = 1.0 if homogeneous else 1.0 / r_scale
     torch.manual_seed(cfg.seed)
     return GeneratingFunction(
         cfg.widths,
@@ -182,10 +195,22 @@ def build_model(cfg: TrainConfig) -> GeneratingFunction:
         powers=powers,
         coeffs=coeffs,
         chart=cfg.chart,
-        input_scale=(1.0 / cfg.h_max, 1.0 / r_scale, 1.0 / r_scale, 1.0 / r_scale),
-        output_scale=out_scale if out_scale > 0 else 1.0,
+        inputs=cfg.inputs,
+        input_scale=(t_scale, p_scale, p_scale, p_scale),
+        output_scale=out_scale,
         dtype=dtype,
     ).to(cfg.device)
+
+
+def _loss(
+    s_fn: GeneratingFunction, cfg: TrainConfig, t: Tensor, p: Tensor, create_graph: bool
+) -> Tensor:
+    """Mean squared HJ residual (eq. HJML); for the homogeneous ansatz each residual is divided by
+    |p|², which makes every point weigh as its image on the unit sphere."""
+    r = hj_residual(s_fn, cfg.inertia, t, p, create_graph=create_graph)
+    if cfg.inputs == "homogeneous":
+        r = r / (p * p).sum(1)
+    return r.pow(2).mean()
 
 
 @dataclass
@@ -196,7 +221,7 @@ class TrainResult:
     """Training loss every ``log_every`` iterations."""
     seconds: float = 0.0
     validation_rms: float = float("nan")
-    """RMS HJ residual on 8192 held-out points (seed + 7919)."""
+    """Root of the training loss on 8192 held-out points (seed + 7919)."""
 
 
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -269,7 +294,7 @@ def train(
             idx = torch.randint(len(pool[0]), (cfg.batch,), generator=gen).to(cfg.device)
             t, p = pool[0][idx], pool[1][idx]
         opt.zero_grad(set_to_none=True)
-        loss = hj_residual(s_fn, cfg.inertia, t, p, create_graph=True).pow(2).mean()
+        loss = _loss(s_fn, cfg, t, p, create_graph=True)
         loss.backward()
         opt.step()
         if i % log_every == 0 or i == cfg.iterations - 1:
@@ -299,7 +324,7 @@ def train(
     seconds = time.perf_counter() - t0
     vgen = torch.Generator().manual_seed(cfg.seed + 7919)
     tv, pv = sample_points(cfg, 8192, vgen, dtype, cfg.device)
-    rms = float(hj_residual(s_fn, cfg.inertia, tv, pv, create_graph=False).pow(2).mean().sqrt())
+    rms = float(_loss(s_fn, cfg, tv, pv, create_graph=False).sqrt())
     return TrainResult(s_fn.double().cpu(), cfg, losses, seconds, rms)
 
 

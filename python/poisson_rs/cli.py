@@ -1,0 +1,164 @@
+"""Command line: ``poisson-rs demo`` (the paper's scene), ``train`` and ``models``."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shlex
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+
+def _table(rows: Sequence[dict[str, Any]], cols: Sequence[str]) -> str:
+    def fmt(v: Any) -> str:
+        return f"{v:.2e}" if isinstance(v, float) else str(v)
+
+    cells = [[fmt(r[c]) for c in cols] for r in rows]
+    widths = [max(len(c), *(len(x[i]) for x in cells)) for i, c in enumerate(cols)]
+    line = "  ".join(c.ljust(w) for c, w in zip(cols, widths, strict=True))
+    body = ["  ".join(x.ljust(w) for x, w in zip(r, widths, strict=True)) for r in cells]
+    return "\n".join([line, "-" * len(line), *body])
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from . import charts
+    from .integrators import load_model, taylor_integrator
+    from .scene import PAPER_STATES, run_scene
+
+    model = load_model(args.model)
+    body = model.body
+    methods = {
+        f"learned:{model.name}": model,
+        f"taylor3-{model.chart}": taylor_integrator(body, 3, model.chart),
+        f"taylor5-{model.chart}": taylor_integrator(body, 5, model.chart),
+    }
+    other = "exp" if model.chart == "cayley" else "cayley"
+    methods[f"taylor3-{other}"] = taylor_integrator(body, 3, other)
+    print(f"model: {model!r}")
+    print(f"scene: I = {body.inertia}, states {PAPER_STATES.tolist()}")
+    print(f"       {args.steps} steps of h = {args.h}")
+    scene = run_scene(methods, body, PAPER_STATES, args.h, args.steps)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    learned = scene.runs[0]
+    charts.paper_figure_2(scene, learned, out / "fig2_orbits.png")
+    charts.paper_figure_3(scene, scene.runs, out / "fig3_errors.png")
+    charts.write_trajectories(scene, scene.runs, out / "trajectories.csv")
+    rows = scene.metrics(horizons=(10.0, args.h * args.steps))
+    charts.write_rows(rows, out / "metrics.csv")
+    print(
+        _table(rows, ["method", "state", "T", "error", "max_rel_dH", "max_rel_dC", "steps_per_s"])
+    )
+    failed = [r.name for r in scene.runs if r.info is not None and not r.info.converged.all()]
+    if failed:
+        print(f"Newton failed in: {', '.join(failed)}")
+    print(f"wrote {out}/fig2_orbits.png, fig3_errors.png, metrics.csv/json, trajectories.csv")
+    return 0
+
+
+def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    from .train import PRESETS, TrainConfig, save_result, train
+
+    overrides: dict[str, Any] = dict(PRESETS[args.preset])
+    for f in dataclasses.fields(TrainConfig):
+        v = getattr(args, f.name, None)
+        if v is not None:
+            overrides[f.name] = tuple(v) if isinstance(v, list) else v
+    if args.points == 0:
+        overrides["n_points"] = None
+    cfg = TrainConfig(**overrides)
+    try:
+        cfg.validate()
+    except ValueError as e:
+        print(f"poisson-rs train: {e}", file=sys.stderr)
+        return 2
+    print(f"training: {cfg}")
+    result = train(
+        cfg,
+        checkpoint=args.checkpoint,
+        checkpoint_every=args.checkpoint_every,
+        resume=args.resume,
+        progress=not args.no_progress,
+    )
+    name = args.name or Path(args.out).stem
+    command = "poisson-rs " + shlex.join(argv)
+    path = save_result(result, args.out, name=name, command=command)
+    its = max(cfg.iterations, 1)
+    print(
+        f"final loss {result.losses[-1] if result.losses else float('nan'):.3e}, "
+        f"validation RMS residual {result.validation_rms:.3e}, "
+        f"{result.seconds:.1f} s ({result.seconds / its:.4f} s/iteration) -> {path}"
+    )
+    return 0
+
+
+def cmd_models(args: argparse.Namespace) -> int:
+    from .integrators import list_models, load_model
+
+    for name in list_models():
+        m = load_model(name)
+        md = m.metadata
+        print(f"{name}: {m!r}\n  command: {md.get('command', '?')}\n  seed: {md.get('seed', '?')}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="poisson-rs", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    d = sub.add_parser("demo", help="the paper's scene with the default model: figures and table")
+    d.add_argument("--model", default=None, help="model file or shipped name (default: default)")
+    d.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
+    d.add_argument("--steps", type=int, default=10_000, help="number of steps (default 10000)")
+    d.add_argument("--h", type=float, default=0.1, help="step size (default 0.1)")
+
+    t = sub.add_parser("train", help="train a generating function on the HJ residual")
+    t.add_argument("--preset", choices=["default", "paper"], default="default")
+    t.add_argument("--out", required=True, help="model file to write (.safetensors)")
+    t.add_argument("--name", default=None, help="model name recorded in the file")
+    t.add_argument("--inertia", type=float, nargs=3, metavar="I")
+    t.add_argument("--chart", choices=["cayley", "exp"])
+    t.add_argument("--widths", type=int, nargs="*", metavar="W", help="hidden layer widths")
+    t.add_argument("--inputs", choices=["t,p", "homogeneous"], help="MLP ansatz")
+    t.add_argument("--taylor-order", dest="taylor_order", type=int, help="exact Taylor terms K")
+    t.add_argument("--mlp-power", dest="mlp_power", type=int, help="m in t^m·MLP")
+    t.add_argument("--domain", choices=["cube", "shell"])
+    t.add_argument("--r-min", dest="r_min", type=float)
+    t.add_argument("--r-max", dest="r_max", type=float)
+    t.add_argument("--half-width", dest="half_width", type=float)
+    t.add_argument("--h-max", dest="h_max", type=float, help="t is sampled in [0, h_max]")
+    t.add_argument("--batch", type=int)
+    t.add_argument("--points", dest="n_points", type=int, help="fixed point pool (0: resample)")
+    t.add_argument("--iterations", type=int)
+    t.add_argument("--lr", type=float)
+    t.add_argument("--schedule", choices=["cosine", "constant"])
+    t.add_argument("--seed", type=int)
+    t.add_argument("--dtype", choices=["float32", "float64"])
+    t.add_argument("--device", help="cpu, cuda, cuda:0, ...")
+    t.add_argument("--checkpoint", default=None, help="checkpoint file (written periodically)")
+    t.add_argument("--checkpoint-every", dest="checkpoint_every", type=int, default=500)
+    t.add_argument("--resume", action="store_true", help="continue from --checkpoint")
+    t.add_argument("--no-progress", dest="no_progress", action="store_true")
+
+    sub.add_parser("models", help="list the shipped models and how they were trained")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "demo":
+            return cmd_demo(args)
+        if args.command == "train":
+            return cmd_train(args, argv)
+        return cmd_models(args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"poisson-rs {args.command}: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

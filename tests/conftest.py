@@ -1,0 +1,143 @@
+"""Shared fixtures: seeded random generating functions, saved to model files and loaded back."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import pytest
+import torch
+
+from poisson_rs import LearnedIntegrator, load_model
+from poisson_rs.export import save_model
+from poisson_rs.generating import GeneratingFunction
+from poisson_rs.taylor import taylor_terms
+
+PAPER_INERTIA = (1.5, 2.0, 2.5)
+
+# The tests use tiny tensors: torch's thread pool only adds overhead on a loaded 2-core machine
+# (a 64-state torch_step takes 0.6 s with it and 0.02 s without).
+torch.set_num_threads(1)
+
+
+class RandomModel(Protocol):
+    """Signature of the ``random_model`` factory fixture."""
+
+    def __call__(
+        self,
+        seed: int,
+        *,
+        chart: str | None = None,
+        inputs: str | None = None,
+        widths: tuple[int, ...] | None = None,
+        taylor_order: int | None = None,
+        mlp_power: int | None = None,
+        output_scale: float = 0.05,
+    ) -> LearnedIntegrator: ...
+
+
+def build_generating(
+    seed: int,
+    *,
+    chart: str | None = None,
+    inputs: str | None = None,
+    widths: tuple[int, ...] | None = None,
+    taylor_order: int | None = None,
+    mlp_power: int | None = None,
+    output_scale: float = 0.05,
+) -> GeneratingFunction:
+    """A seeded random S = Σ_{k≤K} t^k S_k + t^m · N(t, p); unset choices are drawn from ``seed``.
+
+    The MLP gets random non-zero biases and non-trivial input scales, so that export (which folds
+    the scales into the first and last layers) is exercised too. ``output_scale`` keeps the MLP a
+    perturbation of the Taylor part, so that Newton converges at the step sizes under test.
+    """
+    rng = np.random.default_rng(seed)
+    chart = str(rng.choice(["cayley", "exp"])) if chart is None else chart
+    inputs = str(rng.choice(["t,p", "homogeneous"])) if inputs is None else inputs
+    if widths is None:
+        widths = tuple(int(w) for w in rng.integers(3, 17, size=int(rng.integers(1, 4))))
+    taylor_order = int(rng.integers(1, 4)) if taylor_order is None else taylor_order
+    mlp_power = int(rng.integers(1, 4)) if mlp_power is None else mlp_power
+    powers, coeffs = taylor_terms(PAPER_INERTIA, taylor_order, chart)
+    input_scale = (float(rng.uniform(2.0, 10.0)), *(float(s) for s in rng.uniform(0.2, 0.5, 3)))
+    torch.manual_seed(seed)
+    s_fn = GeneratingFunction(
+        widths,
+        mlp_power=mlp_power,
+        powers=powers,
+        coeffs=coeffs,
+        chart=chart,
+        inputs=inputs,
+        input_scale=input_scale,
+        output_scale=output_scale,
+    )
+    with torch.no_grad():
+        for layer in s_fn.linears:
+            layer.bias.copy_(torch.as_tensor(rng.normal(0.0, 0.5, layer.bias.shape)))
+    return s_fn
+
+
+def save_generating(
+    s_fn: GeneratingFunction, path: Path, *, taylor_order: int = 0, **record: object
+) -> Path:
+    """Writes ``s_fn`` as a model file for the paper's body (h ≤ 1 on the cube [−3, 3]³)."""
+    return save_model(
+        s_fn,
+        path,
+        inertia=PAPER_INERTIA,
+        h_max=1.0,
+        domain={"kind": "cube", "half_width": 3.0, "t_max": 1.0},
+        taylor_order=taylor_order,
+        record=dict(record),
+    )
+
+
+@pytest.fixture(scope="session")
+def random_model(tmp_path_factory: pytest.TempPathFactory) -> RandomModel:
+    """Factory: ``random_model(seed, chart=..., widths=..., ...)`` → a loaded LearnedIntegrator.
+
+    Goes through the whole export path (torch module → safetensors file → Rust core), so a test
+    comparing its Rust steps with its own torch module (``.generating``, rebuilt from the file)
+    checks the file format as well. The metadata records ``taylor_order`` and ``seed``.
+    """
+    root = tmp_path_factory.mktemp("models")
+    cache: dict[tuple[object, ...], LearnedIntegrator] = {}
+
+    def make(
+        seed: int,
+        *,
+        chart: str | None = None,
+        inputs: str | None = None,
+        widths: tuple[int, ...] | None = None,
+        taylor_order: int | None = None,
+        mlp_power: int | None = None,
+        output_scale: float = 0.05,
+    ) -> LearnedIntegrator:
+        key = (seed, chart, inputs, widths, taylor_order, mlp_power, output_scale)
+        if key not in cache:
+            s_fn = build_generating(
+                seed,
+                chart=chart,
+                inputs=inputs,
+                widths=widths,
+                taylor_order=taylor_order,
+                mlp_power=mlp_power,
+                output_scale=output_scale,
+            )
+            order = int(np.max(s_fn.powers[:, 0].numpy(), initial=0))
+            path = root / f"model{len(cache)}.safetensors"
+            cache[key] = load_model(save_generating(s_fn, path, taylor_order=order, seed=seed))
+        return cache[key]
+
+    return make
+
+
+def random_states(
+    rng: np.random.Generator, n: int, r_min: float = 0.5, r_max: float = 3.5
+) -> np.ndarray:
+    """n states with |μ| uniform in [r_min, r_max] and uniformly random directions: (n, 3)."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d * rng.uniform(r_min, r_max, size=(n, 1))
