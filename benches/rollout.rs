@@ -1,1 +1,207 @@
-fn main() {}
+//! Rollout throughput (steps per second) and the cost of one Newton step.
+//!
+//! Uses the shipped default model when `python/poisson_rs/models/default.safetensors` exists,
+//! else a seeded random stand-in of the same kind: the Taylor K=3 polynomial for
+//! I = (1.5, 2, 2.5) (Cayley chart) plus t⁵ · MLP with hidden widths (32, 32).
+//!
+//! Each rollout size does a few thousand to twenty thousand steps per iteration, so
+//! `cargo bench --bench rollout` takes under two minutes on two cores.
+
+use std::hint::black_box;
+use std::path::Path;
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use criterion::{
+    criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput,
+};
+use poisson_rs::{
+    rollout, BisectionStepper, Chart, GeneratingFunction, Layer, Mlp, MlpInputs, Model, Monomial,
+    NewtonOptions, Polynomial, StepMap,
+};
+
+/// Step size of the paper's scene.
+const H: f64 = 0.1;
+
+/// splitmix64, for reproducible weights and initial states.
+struct Rng(u64);
+
+impl Rng {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    fn range(&mut self, a: f64, b: f64) -> f64 {
+        a + (b - a) * ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64)
+    }
+
+    /// A uniformly random point on the sphere of radius `r`.
+    fn sphere(&mut self, r: f64) -> [f64; 3] {
+        loop {
+            let v = [
+                self.range(-1.0, 1.0),
+                self.range(-1.0, 1.0),
+                self.range(-1.0, 1.0),
+            ];
+            let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            if n > 0.1 && n <= 1.0 {
+                return v.map(|c| r * c / n);
+            }
+        }
+    }
+}
+
+/// t S₁ + t³ S₃ for I = (1.5, 2, 2.5), Cayley chart (DESIGN.md §1).
+fn taylor3() -> Polynomial {
+    let terms: [(u32, [u32; 3], f64); 9] = [
+        (1, [2, 0, 0], -1.0 / 3.0),
+        (1, [0, 2, 0], -1.0 / 4.0),
+        (1, [0, 0, 2], -1.0 / 5.0),
+        (3, [4, 0, 0], -2.0 / 81.0),
+        (3, [2, 2, 0], -71.0 / 2160.0),
+        (3, [2, 0, 2], -17.0 / 675.0),
+        (3, [0, 4, 0], -1.0 / 96.0),
+        (3, [0, 2, 2], -11.0 / 720.0),
+        (3, [0, 0, 4], -2.0 / 375.0),
+    ];
+    Polynomial {
+        terms: terms
+            .iter()
+            .map(|&(t_power, p_powers, coeff)| Monomial {
+                t_power,
+                p_powers,
+                coeff,
+            })
+            .collect(),
+    }
+}
+
+/// Taylor K=3 + t⁵ · MLP 4 → 32 → 32 → 1 with Xavier-uniform weights (seed 42).
+fn random_model() -> BisectionStepper {
+    let mut rng = Rng(42);
+    let widths = [4, 32, 32, 1];
+    let layers = widths
+        .windows(2)
+        .map(|w| {
+            let (n_in, n_out) = (w[0], w[1]);
+            let a = (6.0 / (n_in + n_out) as f64).sqrt();
+            let weight = (0..n_in * n_out).map(|_| rng.range(-a, a)).collect();
+            let bias = (0..n_out).map(|_| rng.range(-0.1, 0.1)).collect();
+            Layer::new(n_in, n_out, weight, bias).unwrap()
+        })
+        .collect();
+    let mlp = Mlp::new(layers).unwrap();
+    let generating = GeneratingFunction::new(taylor3(), Some(mlp), 5, MlpInputs::Plain).unwrap();
+    BisectionStepper {
+        generating,
+        chart: Chart::Cayley,
+        newton: NewtonOptions::default(),
+    }
+}
+
+fn load_stepper() -> BisectionStepper {
+    static STEPPER: OnceLock<BisectionStepper> = OnceLock::new();
+    STEPPER.get_or_init(load_stepper_once).clone()
+}
+
+fn load_stepper_once() -> BisectionStepper {
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("python/poisson_rs/models/default.safetensors");
+    if path.exists() {
+        let model = Model::from_file(&path).expect("the default model file does not load");
+        let n = model.generating.mlp.as_ref().map_or(0, Mlp::n_parameters);
+        println!(
+            "bench model: {} (chart {}, {} MLP parameters, {} polynomial terms)",
+            path.display(),
+            model.chart.name(),
+            n,
+            model.generating.polynomial.terms.len()
+        );
+        model.stepper(NewtonOptions::default())
+    } else {
+        println!(
+            "bench model: {} not found; using a seeded random stand-in \
+             (Taylor K=3 + t^5 MLP 4-32-32-1, Cayley)",
+            path.display()
+        );
+        random_model()
+    }
+}
+
+/// `n` initial states on spheres of radius 1 to 4.
+fn initial_states(n: usize) -> Vec<[f64; 3]> {
+    let mut rng = Rng(7);
+    (0..n)
+        .map(|_| {
+            let r = rng.range(1.0, 4.0);
+            rng.sphere(r)
+        })
+        .collect()
+}
+
+fn bench_rollout(c: &mut Criterion) {
+    let stepper = load_stepper();
+    let mut group = c.benchmark_group("rollout");
+    group.sample_size(10);
+    group.warm_up_time(Duration::from_secs(1));
+    group.measurement_time(Duration::from_secs(3));
+    group.sampling_mode(SamplingMode::Flat);
+    for (batch, n_steps) in [(1usize, 1000usize), (64, 50), (4096, 5)] {
+        let mu0 = initial_states(batch);
+        let mut out = vec![0.0; batch * (n_steps + 1) * 3];
+        // Every trajectory must succeed, or the bench would time early exits.
+        let infos = rollout(&stepper, &mu0, H, n_steps, 1, &mut out).unwrap();
+        let failed = infos.iter().filter(|i| !i.converged).count();
+        assert_eq!(failed, 0, "{failed} of {batch} bench trajectories failed");
+        group.throughput(Throughput::Elements((batch * n_steps) as u64));
+        group.bench_with_input(
+            BenchmarkId::new(format!("steps={n_steps}"), format!("batch={batch}")),
+            &mu0,
+            |b, mu0| {
+                b.iter(|| {
+                    let infos = rollout(&stepper, black_box(mu0), H, n_steps, 1, &mut out);
+                    black_box(infos.unwrap())
+                })
+            },
+        );
+    }
+    group.finish();
+}
+
+fn bench_step(c: &mut Criterion) {
+    let stepper = load_stepper();
+    let mut ws = stepper.workspace();
+    let mu0 = [1.0, 1.0, 2.0];
+    let mut probe = mu0;
+    let stats = stepper.step(H, &mut probe, &mut ws).unwrap();
+    println!(
+        "one step from {mu0:?}: {} Newton updates, residual {:e}",
+        stats.iterations, stats.residual
+    );
+    let mut group = c.benchmark_group("newton_step");
+    group.sample_size(10);
+    group.warm_up_time(Duration::from_secs(1));
+    group.measurement_time(Duration::from_secs(2));
+    group.throughput(Throughput::Elements(1));
+    group.bench_function("step", |b| {
+        b.iter(|| {
+            let mut mu = black_box(mu0);
+            let r = stepper.step(H, &mut mu, &mut ws);
+            black_box((r, mu))
+        })
+    });
+    // One evaluation of S, ∇S and ∇²S: a Newton update costs about one of these.
+    let gf = &stepper.generating;
+    let mut gws = gf.workspace();
+    group.bench_function("jet", |b| {
+        b.iter(|| black_box(gf.jet(black_box(H), black_box(&mu0), &mut gws)))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_rollout, bench_step);
+criterion_main!(benches);

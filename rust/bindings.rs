@@ -98,6 +98,21 @@ impl PyModel {
         self.inner.generating.mlp_power
     }
 
+    /// Hidden layer widths of the MLP (empty without one).
+    #[getter]
+    fn widths(&self) -> Vec<usize> {
+        self.inner
+            .generating
+            .mlp
+            .as_ref()
+            .map_or_else(Vec::new, |m| {
+                m.layers[..m.layers.len() - 1]
+                    .iter()
+                    .map(|l| l.n_out)
+                    .collect()
+            })
+    }
+
     #[getter]
     fn n_parameters(&self) -> usize {
         self.inner

@@ -68,7 +68,8 @@ impl Scalar for f64 {
     }
     #[inline(always)]
     fn mul_add(self, c: f64, acc: Self) -> Self {
-        self.mul_add(c, acc)
+        // Not f64::mul_add: without a target FMA feature that is a libm call per weight.
+        acc + self * c
     }
     fn is_finite(&self) -> bool {
         f64::is_finite(*self)
@@ -276,7 +277,7 @@ impl Scalar for Jet2 {
     fn mul_add(self, c: f64, acc: Self) -> Self {
         let mut a = acc.0;
         for (x, y) in a.iter_mut().zip(self.0) {
-            *x = y.mul_add(c, *x);
+            *x += y * c;
         }
         Jet2(a)
     }

@@ -21,8 +21,23 @@ use crate::stepper::{BisectionStepper, NewtonOptions};
 /// The format tag every model file carries.
 pub const FORMAT: &str = "poisson_rs.generating/1";
 
-/// Largest exponent accepted in a polynomial term (guards against corrupt files).
+/// Largest exponent accepted in a polynomial term or as mlp_power (guards against corrupt files).
 const MAX_POWER: i64 = 64;
+
+/// Most MLP layers a file may hold; bounds allocation before any tensor is read.
+const MAX_LAYERS: usize = 1024;
+
+/// The layer index of `mlp.{i}.weight` / `mlp.{i}.bias`, with `i` written canonically.
+fn layer_index(name: &str) -> Option<usize> {
+    let rest = name.strip_prefix("mlp.")?;
+    let digits = rest
+        .strip_suffix(".weight")
+        .or_else(|| rest.strip_suffix(".bias"))?;
+    let canonical = !digits.is_empty()
+        && digits.bytes().all(|b| b.is_ascii_digit())
+        && (digits == "0" || !digits.starts_with('0'));
+    canonical.then(|| digits.parse().ok()).flatten()
+}
 
 /// A loaded model: its generating function, chart and metadata.
 #[derive(Clone, Debug)]
@@ -152,14 +167,7 @@ impl Model {
         for name in st.names() {
             if name == "poly.powers" || name == "poly.coeffs" {
                 has_poly = true;
-            } else if let Some(i) = name
-                .strip_prefix("mlp.")
-                .and_then(|r| {
-                    r.strip_suffix(".weight")
-                        .or_else(|| r.strip_suffix(".bias"))
-                })
-                .and_then(|i| i.parse::<usize>().ok())
-            {
+            } else if let Some(i) = layer_index(name).filter(|&i| i < MAX_LAYERS) {
                 n_layers = n_layers.max(i + 1);
             } else {
                 return Err(format_err(format!("unexpected tensor '{name}'")));
@@ -183,9 +191,15 @@ impl Model {
         let mlp_power = match (&mlp, metadata.get("mlp_power")) {
             (None, _) => 0,
             (Some(_), None) => return Err(format_err("metadata key 'mlp_power' is missing")),
-            (Some(_), Some(s)) => s.parse::<u32>().map_err(|_| {
-                format_err(format!("mlp_power '{s}' is not a non-negative integer"))
-            })?,
+            (Some(_), Some(s)) => s
+                .parse::<u32>()
+                .ok()
+                .filter(|&m| i64::from(m) <= MAX_POWER)
+                .ok_or_else(|| {
+                    format_err(format!(
+                        "mlp_power '{s}' is not an integer in 0..={MAX_POWER}"
+                    ))
+                })?,
         };
         let inputs = match (&mlp, metadata.get("mlp_inputs")) {
             (None, _) => MlpInputs::Plain,

@@ -72,6 +72,9 @@ pub struct BisectionStepper {
     pub newton: NewtonOptions,
 }
 
+/// F(p), its Jacobian dF/dp and x = ∂S/∂p(h, p).
+type Residual = ([f64; 3], Matrix3<f64>, [f64; 3]);
+
 /// F(p) = tar(∂S/∂p(h,p), p) − μ with its Jacobian, plus x = ∂S/∂p(h,p).
 #[inline]
 fn residual(
@@ -80,7 +83,7 @@ fn residual(
     mu: &[f64; 3],
     p: &[f64; 3],
     ws: &mut Workspace,
-) -> Result<([f64; 3], Matrix3<f64>, [f64; 3]), StepFailure> {
+) -> Result<Residual, StepFailure> {
     let jet = st.generating.jet(h, p, ws);
     if !jet.is_finite() {
         return Err(StepFailure::NonFinite);

@@ -7,8 +7,9 @@ import itertools
 
 import numpy as np
 import pytest
-from poisson_rs.reference import RigidBody, dop853_solution, exact_solution
 from scipy.special import ellipj
+
+from poisson_rs.reference import RigidBody, dop853_solution, exact_solution
 
 PAPER_INERTIA = (1.5, 2.0, 2.5)
 PERMUTATIONS = list(itertools.permutations(range(3)))

@@ -4,6 +4,7 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
+
 from poisson_rs.taylor import evaluate_terms, taylor_coefficients, taylor_terms
 
 INERTIA = (1.5, 2.0, 2.5)

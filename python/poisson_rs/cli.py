@@ -66,7 +66,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         v = getattr(args, f.name, None)
         if v is not None:
             overrides[f.name] = tuple(v) if isinstance(v, list) else v
-    if args.points == 0:
+    if args.n_points == 0:
         overrides["n_points"] = None
     cfg = TrainConfig(**overrides)
     try:

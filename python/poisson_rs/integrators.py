@@ -70,6 +70,11 @@ class BisectionIntegrator:
         else:
             self._core = _core.Model.load(str(source))
         self.metadata: dict[str, Any] = parse_metadata(self._core.metadata)
+        if tuple(self._core.widths) != self.metadata["widths"]:
+            raise ValueError(
+                f"metadata 'widths' says {list(self.metadata['widths'])} but the tensors hold "
+                f"{self._core.widths}"
+            )
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self._generating: GeneratingFunction | None = None
