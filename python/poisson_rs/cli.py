@@ -24,7 +24,7 @@ def _table(rows: Sequence[dict[str, Any]], cols: Sequence[str]) -> str:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from . import charts
-    from .integrators import load_model, taylor_integrator
+    from .integrators import list_models, load_model, taylor_integrator
     from .scene import PAPER_STATES, run_scene
 
     model = load_model(args.model)
@@ -36,6 +36,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     }
     other = "exp" if model.chart == "cayley" else "cayley"
     methods[f"taylor3-{other}"] = taylor_integrator(body, 3, other)
+    if args.with_paper and "paper" in list_models() and model.name != "paper":
+        # The paper's own configuration, trained as stated: the honest reference point.
+        methods["learned:paper"] = load_model("paper")
     print(f"model: {model!r}")
     print(f"scene: I = {body.inertia}, states {PAPER_STATES.tolist()}")
     print(f"       {args.steps} steps of h = {args.h}")
@@ -113,6 +116,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     d.add_argument("--steps", type=int, default=10_000, help="number of steps (default 10000)")
     d.add_argument("--h", type=float, default=0.1, help="step size (default 0.1)")
+    d.add_argument(
+        "--no-paper",
+        dest="with_paper",
+        action="store_false",
+        help="skip the shipped paper-configuration model (its 253k-parameter rollout is slow)",
+    )
 
     t = sub.add_parser("train", help="train a generating function on the HJ residual")
     t.add_argument("--preset", choices=["default", "paper"], default="default")

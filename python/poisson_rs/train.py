@@ -32,22 +32,22 @@ class TrainConfig:
 
     inertia: tuple[float, float, float] = (1.5, 2.0, 2.5)
     chart: str = "cayley"
-    widths: tuple[int, ...] = (32, 32)
+    widths: tuple[int, ...] = (8, 8)
     inputs: str = "homogeneous"
     """What the MLP sees: "t,p" (the paper) or "homogeneous" (see GeneratingFunction)."""
-    taylor_order: int = 1
+    taylor_order: int = 3
     """Exact Taylor terms S_1..S_K in the polynomial part (0: none, 1: S = −tH + …)."""
     mlp_power: int | None = None
     """m in t^m·MLP; default K + 2 for K ≥ 1 (S_{K+1} vanishes for odd K in the Cayley chart)."""
     domain: str = "shell"
-    r_min: float = 0.5
-    r_max: float = 4.5
+    r_min: float = 1.0
+    r_max: float = 4.0
     half_width: float = 3.0
     h_max: float = 0.1
-    batch: int = 4096
+    batch: int = 2048
     n_points: int | None = None
     """Fixed pool of training points (the paper's 80,000); None draws fresh points every step."""
-    iterations: int = 3000
+    iterations: int = 2000
     lr: float = 3e-3
     schedule: str = "cosine"
     seed: int = 0
