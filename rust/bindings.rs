@@ -3,8 +3,8 @@
 
 use std::path::PathBuf;
 
-use numpy::ndarray::{Array1, Array2, Array3};
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::ndarray::{Array1, Array2, Array3, Ix1, Ix2, Ix3};
+use numpy::{IntoPyArray, PyArray, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::{
     PyFileNotFoundError, PyMemoryError, PyOSError, PyRuntimeError, PyValueError,
 };
@@ -25,6 +25,9 @@ impl From<CoreError> for PyErr {
         }
     }
 }
+
+/// A float64 NumPy array owned by Python.
+type Array<'py, D> = Bound<'py, PyArray<f64, D>>;
 
 /// Largest trajectory array a call may allocate (16 GiB of float64).
 const MAX_OUTPUT_BYTES: usize = 16 << 30;
@@ -128,17 +131,12 @@ impl PyModel {
     }
 
     /// S, ∂S/∂p and ∂²S/∂p² at time t for p of shape (n, 3): arrays (n,), (n, 3), (n, 3, 3).
-    #[allow(clippy::type_complexity)]
     fn derivatives<'py>(
         &self,
         py: Python<'py>,
         t: f64,
         p: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<(
-        Bound<'py, PyArray1<f64>>,
-        Bound<'py, PyArray2<f64>>,
-        Bound<'py, PyArray3<f64>>,
-    )> {
+    ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
         let p = states(&p, "p")?;
         let g = &self.inner.generating;
         let (s, grad, hess) = detached(py, || {
@@ -176,7 +174,7 @@ impl PyModel {
         py: Python<'py>,
         t: f64,
         p: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix1>)> {
         let p = states(&p, "p")?;
         let g = &self.inner.generating;
         let (s, dt): (Vec<f64>, Vec<f64>) = detached(py, || {
@@ -244,7 +242,7 @@ fn rollout_model<'py>(
     every: usize,
     tol: f64,
     max_iter: u32,
-) -> PyResult<(Bound<'py, PyArray3<f64>>, Bound<'py, PyDict>)> {
+) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     let mu0 = states(&mu0, "mu0")?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
     if every == 0 {

@@ -249,6 +249,15 @@ def train(
     dtype = getattr(torch, cfg.dtype)
     s_fn = build_model(cfg)
     opt = torch.optim.Adam(s_fn.mlp.parameters(), lr=cfg.lr)
+    # Adam divides by sqrt(v) + eps with eps = 1e-8: when exact Taylor terms leave a residual of
+    # 1e-5, raw gradients sit below eps and training stalls. Optimise the loss relative to its
+    # value at initialisation, a function of the configuration alone (so resuming reproduces
+    # it); reported losses stay in absolute units.
+    pgen = torch.Generator().manual_seed(cfg.seed + 104729)
+    tp, pp = sample_points(cfg, min(cfg.batch, 4096), pgen, dtype, cfg.device)
+    loss_scale = float(_loss(s_fn, cfg, tp, pp, create_graph=False).detach())
+    if not (math.isfinite(loss_scale) and loss_scale > 0):
+        loss_scale = 1.0
     lr_at: Callable[[int], float]
     if cfg.schedule == "cosine":
         # Cosine decay to 1% of lr: most of the final accuracy comes from the small-lr tail.
@@ -277,14 +286,6 @@ def train(
         start, losses, elapsed = state["iteration"], state["losses"], state["seconds"]
     if s_fn.n_parameters() == 0 or cfg.iterations == 0:
         start = cfg.iterations
-    # Adam divides by sqrt(v) + eps with eps = 1e-8: when exact Taylor terms leave a residual of
-    # 1e-5, raw gradients sit below eps and training stalls. Optimise the loss relative to its
-    # value at initialisation instead (reported losses stay in absolute units).
-    pgen = torch.Generator().manual_seed(cfg.seed + 104729)
-    tp, pp = sample_points(cfg, min(cfg.batch, 4096), pgen, dtype, cfg.device)
-    loss_scale = float(_loss(s_fn, cfg, tp, pp, create_graph=False).detach())
-    if not (math.isfinite(loss_scale) and loss_scale > 0):
-        loss_scale = 1.0
     bar = None
     if progress:
         from tqdm.auto import tqdm
