@@ -11,6 +11,7 @@ use pyo3::exceptions::{
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
+use crate::classical::{self, ClassicalMethod, RigidBody};
 use crate::error::CoreError;
 use crate::model::{Model, FORMAT};
 use crate::rollout::{n_records, rollout, TrajectoryInfo};
@@ -227,6 +228,27 @@ fn info_dict<'py>(py: Python<'py>, info: &[TrajectoryInfo]) -> PyResult<Bound<'p
     Ok(d)
 }
 
+/// Records per trajectory and numbers in the (n, records, 3) output of a rollout; refuses
+/// outputs over MAX_OUTPUT_BYTES before anything is allocated.
+fn output_size(n: usize, n_steps: usize, every: usize) -> PyResult<(usize, usize)> {
+    if every == 0 {
+        return Err(PyValueError::new_err("every must be at least 1"));
+    }
+    let records = n_records(n_steps, every);
+    let len = n
+        .checked_mul(records)
+        .and_then(|x| x.checked_mul(3))
+        .filter(|&x| x.saturating_mul(8) <= MAX_OUTPUT_BYTES)
+        .ok_or_else(|| {
+            PyMemoryError::new_err(format!(
+                "the output ({n} trajectories x {records} states x 3) exceeds {} GiB; \
+                 raise `every` or split the batch",
+                MAX_OUTPUT_BYTES >> 30
+            ))
+        })?;
+    Ok((records, len))
+}
+
 /// Rolls out the bisection integrator of `model` from each row of `mu0` (n, 3).
 ///
 /// Returns the trajectories (n, n_steps // every + 1, 3) and a dict of per-trajectory arrays.
@@ -245,23 +267,7 @@ fn rollout_model<'py>(
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     let mu0 = states(&mu0, "mu0")?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
-    if every == 0 {
-        return Err(PyValueError::new_err("every must be at least 1"));
-    }
-    let records = n_records(n_steps, every);
-    let len = mu0
-        .len()
-        .checked_mul(records)
-        .and_then(|x| x.checked_mul(3))
-        .filter(|&x| x.saturating_mul(8) <= MAX_OUTPUT_BYTES)
-        .ok_or_else(|| {
-            PyMemoryError::new_err(format!(
-                "the output ({} trajectories x {records} states x 3) exceeds {} GiB; \
-                 raise `every` or split the batch",
-                mu0.len(),
-                MAX_OUTPUT_BYTES >> 30
-            ))
-        })?;
+    let (records, len) = output_size(mu0.len(), n_steps, every)?;
     let stepper = model.inner.stepper(newton);
     let (out, info) = detached(py, || {
         let mut out = vec![0.0; len];
@@ -273,10 +279,46 @@ fn rollout_model<'py>(
     Ok((traj.into_pyarray(py), info_dict(py, &info)?))
 }
 
+/// Rolls out the classical integrator `name` (rk4, midpoint, splitting, splitting4, dmv) for the
+/// rigid body with principal moments `inertia` from each row of `mu0` (n, 3). `tol` and
+/// `max_iter` set the Newton solve of the implicit methods (midpoint, dmv).
+///
+/// Returns the trajectories (n, n_steps // every + 1, 3) and a dict of per-trajectory arrays.
+#[pyfunction]
+#[pyo3(signature = (name, inertia, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
+#[allow(clippy::too_many_arguments)]
+fn rollout_classical<'py>(
+    py: Python<'py>,
+    name: &str,
+    inertia: [f64; 3],
+    mu0: PyReadonlyArray2<'py, f64>,
+    h: f64,
+    n_steps: usize,
+    every: usize,
+    tol: f64,
+    max_iter: u32,
+) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+    let method = ClassicalMethod::from_name(name)?;
+    let body = RigidBody::new(inertia)?;
+    let mu0 = states(&mu0, "mu0")?;
+    let newton = NewtonOptions::validated(tol, max_iter)?;
+    let (records, len) = output_size(mu0.len(), n_steps, every)?;
+    let (out, info) = detached(py, || {
+        let mut out = vec![0.0; len];
+        let info =
+            classical::rollout_classical(method, body, newton, &mu0, h, n_steps, every, &mut out)?;
+        Ok((out, info))
+    })?;
+    let traj = Array3::from_shape_vec((mu0.len(), records, 3), out)
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    Ok((traj.into_pyarray(py), info_dict(py, &info)?))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyModel>()?;
     m.add_function(wrap_pyfunction!(rollout_model, m)?)?;
+    m.add_function(wrap_pyfunction!(rollout_classical, m)?)?;
     m.add("MODEL_FORMAT", FORMAT)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

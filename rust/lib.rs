@@ -4,6 +4,7 @@
 //! S(t, p) = P(t, p) + t^m · MLP(t, p). The core is pure Rust; the Python bindings live in one
 //! module behind the `python` feature.
 
+pub mod classical;
 pub mod dual;
 pub mod error;
 pub mod generating;
@@ -15,6 +16,10 @@ pub mod stepper;
 #[cfg(feature = "python")]
 mod bindings;
 
+pub use classical::{
+    rollout_classical, ClassicalMethod, ImplicitMidpoint, MoserVeselov, RigidBody, Rk4, Splitting,
+    Splitting4, SplittingComposition,
+};
 pub use error::{CoreError, StepFailure};
 pub use generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
 pub use groupoid::Chart;

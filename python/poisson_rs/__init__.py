@@ -14,9 +14,11 @@ from __future__ import annotations
 
 from .integrators import (
     BisectionIntegrator,
+    ClassicalIntegrator,
     LearnedIntegrator,
     RolloutInfo,
     TaylorIntegrator,
+    classical,
     integrate,
     list_models,
     load_model,
@@ -28,11 +30,13 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BisectionIntegrator",
+    "ClassicalIntegrator",
     "LearnedIntegrator",
     "RigidBody",
     "RolloutInfo",
     "TaylorIntegrator",
     "__version__",
+    "classical",
     "dop853_solution",
     "exact_solution",
     "integrate",

@@ -43,3 +43,13 @@ def rollout_model(
     tol: float = 1e-12,
     max_iter: int = 50,
 ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...
+def rollout_classical(
+    name: str,
+    inertia: tuple[float, float, float],
+    mu0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-12,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...
