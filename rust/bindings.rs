@@ -2,6 +2,7 @@
 //! around batch work and turns core errors into Python exceptions.
 
 use std::path::PathBuf;
+use std::time::Instant;
 
 use numpy::ndarray::{Array1, Array2, Array3, Ix1, Ix2, Ix3};
 use numpy::{IntoPyArray, PyArray, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -11,11 +12,13 @@ use pyo3::exceptions::{
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::classical::{self, ClassicalMethod, RigidBody};
+use crate::classical::{
+    ClassicalMethod, ImplicitMidpoint, MoserVeselov, RigidBody, Rk4, Splitting, Splitting4,
+};
 use crate::error::CoreError;
 use crate::model::{Model, FORMAT};
-use crate::rollout::{n_records, rollout, TrajectoryInfo};
-use crate::stepper::NewtonOptions;
+use crate::rollout::{n_records, Rollout, TrajectoryInfo};
+use crate::stepper::{NewtonOptions, StepMap};
 
 impl From<CoreError> for PyErr {
     fn from(e: CoreError) -> PyErr {
@@ -249,9 +252,66 @@ fn output_size(n: usize, n_steps: usize, every: usize) -> PyResult<(usize, usize
     Ok((records, len))
 }
 
+/// Wall-clock time a rollout segment aims at: Ctrl-C is noticed within about this long (plus one
+/// step of every trajectory, the smallest segment).
+const SEGMENT_SECONDS: f64 = 0.05;
+
+/// Trajectory-steps in the first segment, before its duration is known.
+const FIRST_SEGMENT_WORK: usize = 1 << 12;
+
+/// Runs a rollout of `stepper` into a new (n, records, 3) array, in segments with the GIL
+/// released. Between segments it re-attaches and calls `py.check_signals()`, so Ctrl-C raises
+/// KeyboardInterrupt within about SEGMENT_SECONDS instead of at the end. Segment sizes adapt to
+/// the measured speed; the result does not depend on them (see [`Rollout`]).
+fn run_rollout<'py, S: StepMap>(
+    py: Python<'py>,
+    stepper: &S,
+    mu0: &[[f64; 3]],
+    h: f64,
+    n_steps: usize,
+    every: usize,
+) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+    // Refuses an oversized output before anything is allocated, and one the system cannot
+    // give with MemoryError rather than the abort of a failed infallible allocation.
+    let (records, len) = output_size(mu0.len(), n_steps, every)?;
+    let mut out: Vec<f64> = Vec::new();
+    out.try_reserve_exact(len).map_err(|_| {
+        PyMemoryError::new_err(format!(
+            "cannot allocate the output ({} trajectories x {records} states x 3 float64, \
+             {:.1} GiB); raise `every` or split the batch",
+            mu0.len(),
+            (len as f64) * 8.0 / f64::from(1u32 << 30)
+        ))
+    })?;
+    let mut rollout = detached(py, || {
+        out.resize(len, 0.0);
+        Rollout::start(mu0, h, n_steps, every, &mut out)
+    })?;
+    let mut segment = (FIRST_SEGMENT_WORK / mu0.len().max(1)).max(1);
+    while !rollout.is_finished() {
+        let start = Instant::now();
+        detached(py, || rollout.advance(stepper, segment, &mut out))?;
+        py.check_signals()?;
+        // Rescale towards SEGMENT_SECONDS, growing at most 8× at a time so that a segment
+        // timed while the machine was briefly idle cannot overshoot by much.
+        let seconds = start.elapsed().as_secs_f64();
+        let factor = if seconds > 0.0 {
+            (SEGMENT_SECONDS / seconds).min(8.0)
+        } else {
+            8.0
+        };
+        segment = ((segment as f64 * factor) as usize).max(1);
+    }
+    let info = rollout.into_info();
+    let traj = Array3::from_shape_vec((mu0.len(), records, 3), out)
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    Ok((traj.into_pyarray(py), info_dict(py, &info)?))
+}
+
 /// Rolls out the bisection integrator of `model` from each row of `mu0` (n, 3).
 ///
 /// Returns the trajectories (n, n_steps // every + 1, 3) and a dict of per-trajectory arrays.
+/// Ctrl-C interrupts it (KeyboardInterrupt) within about SEGMENT_SECONDS.
 #[pyfunction]
 #[pyo3(signature = (model, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
 #[allow(clippy::too_many_arguments)]
@@ -267,16 +327,8 @@ fn rollout_model<'py>(
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     let mu0 = states(&mu0, "mu0")?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
-    let (records, len) = output_size(mu0.len(), n_steps, every)?;
     let stepper = model.inner.stepper(newton);
-    let (out, info) = detached(py, || {
-        let mut out = vec![0.0; len];
-        let info = rollout(&stepper, &mu0, h, n_steps, every, &mut out)?;
-        Ok((out, info))
-    })?;
-    let traj = Array3::from_shape_vec((mu0.len(), records, 3), out)
-        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
-    Ok((traj.into_pyarray(py), info_dict(py, &info)?))
+    run_rollout(py, &stepper, &mu0, h, n_steps, every)
 }
 
 /// Rolls out the classical integrator `name` (rk4, midpoint, splitting, splitting4, dmv) for the
@@ -284,6 +336,7 @@ fn rollout_model<'py>(
 /// `max_iter` set the Newton solve of the implicit methods (midpoint, dmv).
 ///
 /// Returns the trajectories (n, n_steps // every + 1, 3) and a dict of per-trajectory arrays.
+/// Ctrl-C interrupts it (KeyboardInterrupt) within about SEGMENT_SECONDS.
 #[pyfunction]
 #[pyo3(signature = (name, inertia, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
 #[allow(clippy::too_many_arguments)]
@@ -302,16 +355,24 @@ fn rollout_classical<'py>(
     let body = RigidBody::new(inertia)?;
     let mu0 = states(&mu0, "mu0")?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
-    let (records, len) = output_size(mu0.len(), n_steps, every)?;
-    let (out, info) = detached(py, || {
-        let mut out = vec![0.0; len];
-        let info =
-            classical::rollout_classical(method, body, newton, &mu0, h, n_steps, every, &mut out)?;
-        Ok((out, info))
-    })?;
-    let traj = Array3::from_shape_vec((mu0.len(), records, 3), out)
-        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
-    Ok((traj.into_pyarray(py), info_dict(py, &info)?))
+    // The same steppers as `classical::rollout_classical`, driven in segments here.
+    match method {
+        ClassicalMethod::Rk4 => run_rollout(py, &Rk4 { body }, &mu0, h, n_steps, every),
+        ClassicalMethod::Midpoint => {
+            let stepper = ImplicitMidpoint { body, newton };
+            run_rollout(py, &stepper, &mu0, h, n_steps, every)
+        }
+        ClassicalMethod::Splitting => {
+            run_rollout(py, &Splitting::strang(body), &mu0, h, n_steps, every)
+        }
+        ClassicalMethod::Splitting4 => {
+            run_rollout(py, &Splitting4::suzuki(body), &mu0, h, n_steps, every)
+        }
+        ClassicalMethod::Dmv => {
+            let stepper = MoserVeselov::new(body, newton);
+            run_rollout(py, &stepper, &mu0, h, n_steps, every)
+        }
+    }
 }
 
 #[pymodule]

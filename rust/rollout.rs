@@ -1,6 +1,8 @@
-//! Batches of long rollouts, one trajectory per rayon task.
+//! Batches of long rollouts, one trajectory per rayon task, in segments of steps.
 //!
-//! Trajectories are independent, so the result is bit-identical whatever the thread count.
+//! Trajectories are independent, so the result is bit-identical whatever the thread count; a
+//! trajectory's state is carried exactly between segments, so it is bit-identical whatever the
+//! segmentation too.
 
 use rayon::prelude::*;
 
@@ -55,21 +57,130 @@ pub fn check_arguments(h: f64, every: usize) -> Result<(), CoreError> {
     Ok(())
 }
 
-/// Advances one trajectory, writing its records into `out` (n_records × 3).
-fn run_one<S: StepMap>(
-    stepper: &S,
-    ws: &mut S::Workspace,
-    mu0: [f64; 3],
+/// Rows of 3 numbers per stored state and the check that `out` holds (n, n_records, 3).
+fn check_buffer(n: usize, n_steps: usize, every: usize, out: &[f64]) -> Result<usize, CoreError> {
+    let row = 3 * n_records(n_steps, every);
+    if out.len() != n * row {
+        return Err(CoreError::Invalid(format!(
+            "output buffer holds {} numbers, {} needed",
+            out.len(),
+            n * row
+        )));
+    }
+    Ok(row)
+}
+
+/// A batch rollout that can be advanced a segment of steps at a time.
+///
+/// It carries each trajectory's current state and [`TrajectoryInfo`] between segments and writes
+/// records at their global indices, so any split into segments gives results bit-identical to
+/// one segment of all the steps (each trajectory sees the same sequence of `step` calls). The
+/// bindings use this to return to Python between segments and notice Ctrl-C.
+#[derive(Clone, Debug)]
+pub struct Rollout {
     h: f64,
     n_steps: usize,
     every: usize,
+    /// Steps taken so far by every live trajectory.
+    steps_done: usize,
+    mu: Vec<[f64; 3]>,
+    info: Vec<TrajectoryInfo>,
+}
+
+impl Rollout {
+    /// Checks the arguments and writes the initial states into record 0 of `out`
+    /// (length n · n_records(n_steps, every) · 3, laid out as (n, n_records, 3)).
+    pub fn start(
+        mu0: &[[f64; 3]],
+        h: f64,
+        n_steps: usize,
+        every: usize,
+        out: &mut [f64],
+    ) -> Result<Self, CoreError> {
+        check_arguments(h, every)?;
+        let row = check_buffer(mu0.len(), n_steps, every, out)?;
+        if let Some(bad) = mu0.iter().position(|m| !m.iter().all(|v| v.is_finite())) {
+            return Err(CoreError::Invalid(format!(
+                "initial state {bad} is not finite"
+            )));
+        }
+        for (o, m) in out.chunks_exact_mut(row).zip(mu0) {
+            o[..3].copy_from_slice(m);
+        }
+        Ok(Rollout {
+            h,
+            n_steps,
+            every,
+            steps_done: 0,
+            mu: mu0.to_vec(),
+            info: vec![TrajectoryInfo::default(); mu0.len()],
+        })
+    }
+
+    /// Steps taken so far (by every trajectory that has not failed).
+    pub fn steps_done(&self) -> usize {
+        self.steps_done
+    }
+
+    /// Whether all `n_steps` steps have been taken.
+    pub fn is_finished(&self) -> bool {
+        self.steps_done == self.n_steps
+    }
+
+    /// Advances every live trajectory by up to `max_steps` steps (fewer at the end), writing the
+    /// records that fall in this segment into `out` (the buffer given to [`Rollout::start`]).
+    /// Returns the number of steps taken.
+    pub fn advance<S: StepMap>(
+        &mut self,
+        stepper: &S,
+        max_steps: usize,
+        out: &mut [f64],
+    ) -> Result<usize, CoreError> {
+        let row = check_buffer(self.mu.len(), self.n_steps, self.every, out)?;
+        let steps = max_steps.min(self.n_steps - self.steps_done);
+        let (h, every, first) = (self.h, self.every, self.steps_done);
+        if steps > 0 && !self.mu.is_empty() {
+            out.par_chunks_mut(row)
+                .zip(self.mu.par_iter_mut())
+                .zip(self.info.par_iter_mut())
+                .for_each_init(
+                    || stepper.workspace(),
+                    |ws, ((o, mu), info)| {
+                        if info.converged {
+                            advance_one(stepper, ws, mu, info, h, first..first + steps, every, o);
+                        }
+                    },
+                );
+        }
+        self.steps_done += steps;
+        Ok(steps)
+    }
+
+    /// The per-trajectory diagnostics (final once [`Rollout::is_finished`]).
+    pub fn info(&self) -> &[TrajectoryInfo] {
+        &self.info
+    }
+
+    pub fn into_info(self) -> Vec<TrajectoryInfo> {
+        self.info
+    }
+}
+
+/// Takes the global steps `steps` (state k → k+1 for k in the range) of one live trajectory,
+/// writing its records into its row `out` (n_records × 3).
+#[allow(clippy::too_many_arguments)]
+fn advance_one<S: StepMap>(
+    stepper: &S,
+    ws: &mut S::Workspace,
+    mu: &mut [f64; 3],
+    info: &mut TrajectoryInfo,
+    h: f64,
+    steps: std::ops::Range<usize>,
+    every: usize,
     out: &mut [f64],
-) -> TrajectoryInfo {
-    let mut info = TrajectoryInfo::default();
-    let mut mu = mu0;
-    out[..3].copy_from_slice(&mu);
-    for k in 0..n_steps {
-        match stepper.step(h, &mut mu, ws) {
+) {
+    for k in steps {
+        match stepper.step(h, mu, ws) {
             Ok(stats) => {
                 info.newton_iterations += u64::from(stats.iterations);
                 info.max_newton_iterations = info.max_newton_iterations.max(stats.iterations);
@@ -82,18 +193,18 @@ fn run_one<S: StepMap>(
                 info.failure = Some(failure);
                 let next = (k + 1).div_ceil(every);
                 out[3 * next..].fill(f64::NAN);
-                return info;
+                return;
             }
         }
         if (k + 1) % every == 0 {
             let r = 3 * ((k + 1) / every);
-            out[r..r + 3].copy_from_slice(&mu);
+            out[r..r + 3].copy_from_slice(mu);
         }
     }
-    info
 }
 
-/// Rolls out every initial state for `n_steps` steps of size `h`, keeping every `every`-th state.
+/// Rolls out every initial state for `n_steps` steps of size `h`, keeping every `every`-th state:
+/// a [`Rollout`] advanced in one segment.
 ///
 /// `out` has length n · n_records(n_steps, every) · 3, laid out as (n, n_records, 3).
 pub fn rollout<S: StepMap>(
@@ -104,26 +215,7 @@ pub fn rollout<S: StepMap>(
     every: usize,
     out: &mut [f64],
 ) -> Result<Vec<TrajectoryInfo>, CoreError> {
-    check_arguments(h, every)?;
-    let row = 3 * n_records(n_steps, every);
-    if out.len() != mu0.len() * row {
-        return Err(CoreError::Invalid(format!(
-            "output buffer holds {} numbers, {} needed",
-            out.len(),
-            mu0.len() * row
-        )));
-    }
-    if let Some(bad) = mu0.iter().position(|m| !m.iter().all(|v| v.is_finite())) {
-        return Err(CoreError::Invalid(format!(
-            "initial state {bad} is not finite"
-        )));
-    }
-    Ok(out
-        .par_chunks_mut(row)
-        .zip(mu0.par_iter())
-        .map_init(
-            || stepper.workspace(),
-            |ws, (o, &m)| run_one(stepper, ws, m, h, n_steps, every, o),
-        )
-        .collect())
+    let mut r = Rollout::start(mu0, h, n_steps, every, out)?;
+    r.advance(stepper, n_steps, out)?;
+    Ok(r.into_info())
 }

@@ -1733,3 +1733,280 @@ fn model_rejects_huge_layer_index() {
     t.push(f64_tensor("mlp.4000000000.weight", &[1], &[1.0]));
     expect_format_error(&serialize_tensors(&t, Some(meta)), "mlp", "layer index 4e9");
 }
+
+// ---------------------------------------------------------------------------------------------
+// 6. Segmented rollouts and a property-based fuzz of the model loader
+// ---------------------------------------------------------------------------------------------
+
+/// Runs `rollout` as a [`crate::rollout::Rollout`] advanced in segments of the given sizes
+/// (cycled), checking the step bookkeeping on the way.
+fn rollout_in_segments<S: StepMap>(
+    st: &S,
+    mu0: &[[f64; 3]],
+    h: f64,
+    n_steps: usize,
+    every: usize,
+    segments: &[usize],
+) -> (Vec<f64>, Vec<TrajectoryInfo>) {
+    let mut out = vec![0.0; mu0.len() * n_records(n_steps, every) * 3];
+    let mut r = crate::rollout::Rollout::start(mu0, h, n_steps, every, &mut out).unwrap();
+    let mut sizes = segments.iter().cycle();
+    while !r.is_finished() {
+        let want = *sizes.next().unwrap();
+        let before = r.steps_done();
+        let took = r.advance(st, want, &mut out).unwrap();
+        assert_eq!(took, want.min(n_steps - before));
+        assert_eq!(r.steps_done(), before + took);
+    }
+    // A finished rollout takes no more steps and leaves the output alone.
+    let snapshot = out.clone();
+    assert_eq!(r.advance(st, 5, &mut out).unwrap(), 0);
+    assert!(out
+        .iter()
+        .zip(&snapshot)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
+    (out, r.into_info())
+}
+
+#[track_caller]
+fn assert_bit_identical(
+    a: &(Vec<f64>, Vec<TrajectoryInfo>),
+    b: &(Vec<f64>, Vec<TrajectoryInfo>),
+    what: &str,
+) {
+    assert_eq!(a.0.len(), b.0.len(), "{what}: lengths");
+    for (k, (x, y)) in a.0.iter().zip(&b.0).enumerate() {
+        assert_eq!(x.to_bits(), y.to_bits(), "{what}: value {k}: {x} vs {y}");
+    }
+    for (x, y) in a.1.iter().zip(&b.1) {
+        assert_eq!(x.max_residual.to_bits(), y.max_residual.to_bits(), "{what}");
+        assert_eq!(x, y, "{what}");
+    }
+}
+
+/// Any split of a rollout into segments gives the one-shot result bit for bit, including
+/// trajectories that fail mid-way (records, failed step and statistics).
+#[test]
+fn segmented_rollout_is_bit_identical_to_one_shot() {
+    let segmentations: [&[usize]; 5] = [&[1], &[3, 1, 4], &[7], &[13], &[1000]];
+    let mut rng = Rng::new(0x5EED_0070);
+    // A learned-like S in both charts, plus the tanh bump of huge amplitude around p₁ = 5 that
+    // makes the trajectories starting near there fail after a few steps.
+    let bump = Mlp::new(vec![
+        Layer::new(4, 1, vec![0.0, 10.0, 0.0, 0.0], vec![-50.0]).unwrap(),
+        Layer::new(1, 1, vec![1e8], vec![0.0]).unwrap(),
+    ])
+    .unwrap();
+    let failing = GeneratingFunction::new(
+        Polynomial { terms: minus_t_h() },
+        Some(bump),
+        1,
+        MlpInputs::Plain,
+    )
+    .unwrap();
+    let steppers = [
+        stepper(random_generating(&mut rng, MlpInputs::Plain), Chart::Cayley),
+        stepper(
+            random_generating(&mut rng, MlpInputs::Homogeneous),
+            Chart::Exp,
+        ),
+        stepper(failing, Chart::Cayley),
+    ];
+    let mut mu0: Vec<[f64; 3]> = (0..5)
+        .map(|_| {
+            let r = rng.range(1.0, 4.0);
+            rng.sphere(r)
+        })
+        .collect();
+    // One state on the bump (fails at once), two large ones whose μ₁ grows towards it (the
+    // bump or, in the exponential chart, the chart's singularity stops them later), and 0.
+    mu0.extend([
+        [5.0, 0.1, 0.1],
+        [3.9, 5.2, -0.4],
+        [3.9, -5.2, -0.6],
+        [0.0, 0.0, 0.0],
+    ]);
+    let n_steps = 60;
+    let mut saw_mid_failure = false;
+    for (s, st) in steppers.iter().enumerate() {
+        for every in [1, 3, 7, 61] {
+            let mut out = vec![0.0; mu0.len() * n_records(n_steps, every) * 3];
+            let infos = rollout(st, &mu0, 0.1, n_steps, every, &mut out).unwrap();
+            saw_mid_failure |= infos.iter().any(|i| i.failed_step >= 10);
+            let one_shot = (out, infos);
+            for seg in segmentations {
+                let got = rollout_in_segments(st, &mu0, 0.1, n_steps, every, seg);
+                assert_bit_identical(
+                    &got,
+                    &one_shot,
+                    &format!("stepper {s}, every {every}, segments {seg:?}"),
+                );
+            }
+        }
+    }
+    assert!(saw_mid_failure, "no trajectory failed mid-way");
+    // The scripted stepper fails at exactly known steps; segment boundaries on either side of a
+    // failure or a record must not matter.
+    let scripted = [
+        [0.0, 1.0, 2.0],
+        [3.0, 0.0, 0.0],
+        [-100.0, 0.0, 0.0],
+        [5.0, 0.0, 0.0],
+    ];
+    for every in [1, 2, 3, 4, 11] {
+        let mut out = vec![0.0; 4 * n_records(10, every) * 3];
+        let infos = rollout(&FailAtFive, &scripted, 0.1, 10, every, &mut out).unwrap();
+        assert_eq!(infos[0].failed_step, 5);
+        let one_shot = (out, infos);
+        for seg in [&[1usize][..], &[2], &[4, 1], &[5], &[6], &[3, 3, 4]] {
+            let got = rollout_in_segments(&FailAtFive, &scripted, 0.1, 10, every, seg);
+            assert_bit_identical(
+                &got,
+                &one_shot,
+                &format!("scripted, every {every}, {seg:?}"),
+            );
+        }
+    }
+}
+
+#[test]
+fn segmented_rollout_checks_its_arguments() {
+    use crate::rollout::Rollout;
+    let st = hamiltonian_stepper(Chart::Cayley);
+    let mu0 = [[1.0, 1.0, 2.0], [3.0, 2.0, 0.0]];
+    let mut out = vec![0.0; 2 * n_records(10, 3) * 3];
+    for (h, every) in [(0.0, 1), (f64::NAN, 1), (0.1, 0)] {
+        assert!(matches!(
+            Rollout::start(&mu0, h, 10, every, &mut out),
+            Err(CoreError::Invalid(_))
+        ));
+    }
+    assert!(matches!(
+        Rollout::start(&[[f64::NAN, 0.0, 0.0]], 0.1, 10, 3, &mut out[..12]),
+        Err(CoreError::Invalid(_))
+    ));
+    let mut r = Rollout::start(&mu0, 0.1, 10, 3, &mut out).unwrap();
+    assert_eq!(&out[..3], &mu0[0]);
+    // A buffer of another size is refused, not indexed out of bounds.
+    let mut wrong = vec![0.0; out.len() - 3];
+    assert!(matches!(
+        r.advance(&st, 4, &mut wrong),
+        Err(CoreError::Invalid(_))
+    ));
+    assert_eq!(r.steps_done(), 0);
+    assert_eq!(r.advance(&st, 4, &mut out).unwrap(), 4);
+    assert_eq!(r.advance(&st, 0, &mut out).unwrap(), 0);
+    assert_eq!(r.advance(&st, 100, &mut out).unwrap(), 6);
+    assert!(r.is_finished() && r.info().iter().all(|i| i.converged));
+    // An empty batch advances (its step count) without touching anything.
+    let mut empty = Rollout::start(&[], 0.1, 10, 1, &mut []).unwrap();
+    assert_eq!(empty.advance(&st, 7, &mut []).unwrap(), 7);
+}
+
+/// `Model::from_bytes` on arbitrary input either loads or returns `CoreError::Format`; it never
+/// panics (proptest turns a panic into a failing, shrunk case). Seeded, so it reproduces.
+mod loader_fuzz {
+    use proptest::prelude::*;
+    use proptest::sample::Index;
+    use proptest::test_runner::{Config, RngSeed};
+
+    use super::valid_bytes;
+    use crate::error::CoreError;
+    use crate::model::Model;
+
+    fn config() -> Config {
+        Config {
+            cases: 2000,
+            failure_persistence: None,
+            rng_seed: RngSeed::Fixed(0x5EED_0080),
+            ..Config::default()
+        }
+    }
+
+    /// Ok or a non-empty Format error; anything else (another variant, a panic) fails the case.
+    fn check(bytes: &[u8]) -> Result<(), TestCaseError> {
+        match Model::from_bytes(bytes) {
+            Ok(_) => Ok(()),
+            Err(CoreError::Format(m)) if !m.is_empty() => Ok(()),
+            Err(e) => Err(TestCaseError::fail(format!("unexpected error {e:?}"))),
+        }
+    }
+
+    /// One edit of a byte string: overwrite, bit flip, insertion, deletion or truncation.
+    #[derive(Clone, Debug)]
+    enum Edit {
+        Set(Index, u8),
+        Flip(Index, u8),
+        Insert(Index, Vec<u8>),
+        Delete(Index, usize),
+        Truncate(Index),
+    }
+
+    fn edit() -> impl Strategy<Value = Edit> {
+        prop_oneof![
+            (any::<Index>(), any::<u8>()).prop_map(|(i, b)| Edit::Set(i, b)),
+            (any::<Index>(), 0u8..8).prop_map(|(i, b)| Edit::Flip(i, b)),
+            (any::<Index>(), prop::collection::vec(any::<u8>(), 1..16))
+                .prop_map(|(i, v)| Edit::Insert(i, v)),
+            (any::<Index>(), 1usize..64).prop_map(|(i, n)| Edit::Delete(i, n)),
+            any::<Index>().prop_map(Edit::Truncate),
+        ]
+    }
+
+    fn apply(bytes: &mut Vec<u8>, e: &Edit) {
+        if bytes.is_empty() {
+            return;
+        }
+        match e {
+            Edit::Set(i, b) => {
+                let at = i.index(bytes.len());
+                bytes[at] = *b;
+            }
+            Edit::Flip(i, bit) => {
+                let at = i.index(bytes.len());
+                bytes[at] ^= 1 << bit;
+            }
+            Edit::Insert(i, v) => {
+                let at = i.index(bytes.len() + 1);
+                bytes.splice(at..at, v.iter().copied());
+            }
+            Edit::Delete(i, n) => {
+                let at = i.index(bytes.len());
+                let end = (at + n).min(bytes.len());
+                bytes.drain(at..end);
+            }
+            Edit::Truncate(i) => {
+                let at = i.index(bytes.len());
+                bytes.truncate(at);
+            }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(config())]
+
+        #[test]
+        fn random_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..600)) {
+            check(&bytes)?;
+        }
+
+        /// Random bytes behind a plausible header length, so the parser gets past the prefix.
+        #[test]
+        fn random_headers_never_panic(body in prop::collection::vec(any::<u8>(), 0..600),
+                                      len in 0u64..700) {
+            let mut bytes = len.to_le_bytes().to_vec();
+            bytes.extend(body);
+            check(&bytes)?;
+        }
+
+        /// 1–8 random edits anywhere in a valid file (header, metadata, tensor data).
+        #[test]
+        fn mutated_valid_files_never_panic(edits in prop::collection::vec(edit(), 1..8)) {
+            let mut bytes = valid_bytes();
+            for e in &edits {
+                apply(&mut bytes, e);
+            }
+            check(&bytes)?;
+        }
+    }
+}

@@ -42,7 +42,14 @@ def rollout_model(
     every: int = 1,
     tol: float = 1e-12,
     max_iter: int = 50,
-) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    """Trajectories (n, n_steps // every + 1, 3) and per-trajectory diagnostics (n,).
+
+    Runs in segments of about 50 ms with the GIL released, checking for signals in between
+    (Ctrl-C raises KeyboardInterrupt); the result does not depend on the segmentation. An output
+    over 16 GiB, or one that cannot be allocated, raises MemoryError before any step.
+    """
+
 def rollout_classical(
     name: str,
     inertia: tuple[float, float, float],
@@ -52,4 +59,5 @@ def rollout_classical(
     every: int = 1,
     tol: float = 1e-12,
     max_iter: int = 50,
-) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    """As :func:`rollout_model`, for the classical method ``name``."""

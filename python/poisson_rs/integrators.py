@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import math
 import numbers
 import os
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol, overload
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import _core
 from .export import load_generating, model_bytes, parse_metadata
@@ -41,6 +44,10 @@ class RolloutInfo:
     """Most Newton updates in one step."""
     max_residual: np.ndarray
     """Largest accepted residual |tar(∂S/∂p, p) − μ|∞ over the steps."""
+    out_of_domain: np.ndarray
+    """int64: recorded states (the kept ones, every ``every``-th, the initial one included)
+    outside the model's training domain; states between records are not checked, NaN states
+    after a failure are not counted. Zeros for methods without a domain (Taylor, classical)."""
 
 
 class Stepper(Protocol):
@@ -75,6 +82,7 @@ class BisectionIntegrator:
                 f"metadata 'widths' says {list(self.metadata['widths'])} but the tensors hold "
                 f"{self._core.widths}"
             )
+        self.domain: dict[str, Any] = _check_domain(self.metadata["domain"])
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self._generating: GeneratingFunction | None = None
@@ -130,6 +138,39 @@ class BisectionIntegrator:
     def derivatives(self, t: float, p: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """S, ∂S/∂p, ∂²S/∂p² from the Rust core (forward mode). p: (n, 3) → (n,), (n,3), (n,3,3)."""
         return self._core.derivatives(float(t), _as_states(p, "p")[0])
+
+    def hj_residual(self, mu: ArrayLike, h: float) -> np.ndarray:
+        """The model's Hamilton–Jacobi residual at (h, p = μ), relative to H(μ).
+
+        r = ∂S/∂t(h, p) + H(sou(∂S/∂p(h, p), p)) vanishes for the exact S, and S = Σ t^k S_k
+        truncated at order K leaves r = O(h^K); |r|/H(μ) says how far the step map of size h
+        can be trusted near μ (e.g. along a trajectory). Derivatives come from the Rust core,
+        sou from a NumPy copy of the chart map.
+
+        mu: (..., 3) states; h: time, finite and >= 0. Returns (...,) float64, signed, r/H(μ)
+        (r itself where H(μ) = 0, i.e. μ = 0). Non-finite states, and states whose
+        |∂S/∂p| reaches the exponential chart's singularity, give NaN.
+        """
+        if isinstance(h, bool) or not isinstance(h, numbers.Real):
+            raise TypeError(f"h must be a real number, got {type(h).__name__}")
+        if not (math.isfinite(h) and h >= 0):
+            raise ValueError(f"h must be finite and >= 0, got {h}")
+        arr = np.asarray(mu)
+        if arr.dtype == object or arr.dtype.kind not in "fiu":
+            raise TypeError(f"mu must be an array of real numbers, got dtype {arr.dtype}")
+        if arr.ndim == 0 or arr.shape[-1] != 3:
+            raise ValueError(f"mu must have shape (..., 3), got {arr.shape}")
+        p = np.ascontiguousarray(arr.reshape(-1, 3), dtype=np.float64)
+        out = np.full(len(p), np.nan)
+        ok = np.isfinite(p).all(axis=1)
+        q = np.ascontiguousarray(p[ok])
+        _, grad, _ = self._core.derivatives(float(h), q)
+        _, s_t = self._core.time_derivative(float(h), q)
+        body = self.body
+        r = s_t + body.hamiltonian(sou_numpy(self.chart, grad, q))
+        energy = body.hamiltonian(q)
+        out[ok] = r / np.where(energy > 0, energy, 1.0)
+        return out.reshape(arr.shape[:-1])
 
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
@@ -213,6 +254,101 @@ def taylor_integrator(
     return TaylorIntegrator(data, tol=tol, max_iter=max_iter)
 
 
+def _check_domain(domain: Mapping[str, Any]) -> dict[str, Any]:
+    """A training domain from a model's metadata, with the numbers its kind needs checked.
+
+    Raises ValueError for a shell without finite 0 <= r_min < r_max, a cube without a finite
+    half_width > 0, or another kind than "shell", "cube" and "all".
+    """
+
+    def number(key: str) -> float:
+        v = domain.get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"metadata 'domain' needs a finite number {key!r}: {dict(domain)!r}")
+        return float(v)
+
+    kind = domain.get("kind")
+    if kind == "shell":
+        r_min, r_max = number("r_min"), number("r_max")
+        if not 0 <= r_min < r_max:
+            raise ValueError(f"metadata 'domain' needs 0 <= r_min < r_max: {dict(domain)!r}")
+    elif kind == "cube":
+        if not number("half_width") > 0:
+            raise ValueError(f"metadata 'domain' needs half_width > 0: {dict(domain)!r}")
+    elif kind != "all":
+        raise ValueError(f"metadata 'domain' must be a cube, a shell or all: {dict(domain)!r}")
+    return dict(domain)
+
+
+def count_out_of_domain(domain: Mapping[str, Any] | None, traj: np.ndarray) -> np.ndarray:
+    """States of ``traj`` (n, records, 3) outside a training ``domain``, per trajectory: (n,) int64.
+
+    Shell: |μ| outside [r_min, r_max]; cube: some |μᵢ| > half_width; "all" or None: none.
+    NaN states (after a Newton failure) compare false and are not counted.
+    """
+    kind = None if domain is None else domain.get("kind")
+    if domain is None or kind not in ("shell", "cube"):
+        return np.zeros(traj.shape[0], dtype=np.int64)
+    if kind == "shell":
+        r = np.linalg.norm(traj, axis=-1)
+        outside = (r < domain["r_min"]) | (r > domain["r_max"])
+    else:
+        outside = (np.abs(traj) > domain["half_width"]).any(axis=-1)
+    return outside.sum(axis=1, dtype=np.int64)
+
+
+def _describe_domain(domain: Mapping[str, Any]) -> str:
+    if domain["kind"] == "shell":
+        return f"the shell {domain['r_min']:g} <= |mu| <= {domain['r_max']:g}"
+    return f"the cube |mu_i| <= {domain['half_width']:g}"
+
+
+# c(θ) = (1 − (θ/2)cot(θ/2))/θ² in s = θ²: the same series as groupoid._C_SERIES (which this
+# module cannot import without importing torch), used for s < 1 where the closed form cancels.
+_EXP_C_SERIES = (
+    1.0 / 12.0,
+    1.0 / 720.0,
+    1.0 / 30240.0,
+    1.0 / 1209600.0,
+    1.0 / 47900160.0,
+    691.0 / 1307674368000.0,
+    1.0 / 74724249600.0,
+    3617.0 / 10670622842880000.0,
+    43867.0 / 5109094217170944000.0,
+    174611.0 / 802857662698291200000.0,
+    77683.0 / 14101100039391805440000.0,
+    236364091.0 / 1693824136731743669452800000.0,
+)
+
+# Largest |x| the exponential chart accepts (as groupoid.EXP_CHART_MAX_ANGLE and the Rust core).
+_EXP_CHART_MAX_ANGLE = 2.0 * math.pi - 0.1
+
+
+def sou_numpy(chart: str, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Source map sou(x, p) in NumPy (float64), the twin of ``groupoid.sou`` without torch.
+
+    Cayley: p + ½ x×p + ¼ x (x·p); exponential: p + ½ x×p + c(|x|²) x×(x×p), NaN where
+    |x| reaches the chart's singularity. x, p: (..., 3) → (..., 3).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    p = np.asarray(p, dtype=np.float64)
+    xp = np.cross(x, p)
+    if chart == "cayley":
+        return p + 0.5 * xp + 0.25 * x * (x * p).sum(-1, keepdims=True)
+    if chart != "exp":
+        raise ValueError(f"unknown chart {chart!r}; expected 'cayley' or 'exp'")
+    s = (x * x).sum(-1, keepdims=True)
+    series = np.zeros_like(s)
+    for a in reversed(_EXP_C_SERIES):
+        series = series * s + a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        th = np.sqrt(s)
+        closed = 1.0 / s - 1.0 / (2.0 * th * np.tan(0.5 * th))
+    c = np.where(s < 1.0, series, closed)
+    c = np.where(s < _EXP_CHART_MAX_ANGLE**2, c, np.nan)
+    return p + 0.5 * xp + c * np.cross(x, xp)
+
+
 def _as_states(mu0: Any, what: str = "mu0") -> tuple[np.ndarray, bool]:
     """(n, 3) C-contiguous float64 copy of an array-like of states, and whether it was one state."""
     arr = np.asarray(mu0)
@@ -241,6 +377,7 @@ def integrate(
     every: int = ...,
     return_info: Literal[False] = ...,
     on_failure: Literal["warn", "raise", "ignore"] = ...,
+    strict: bool = ...,
 ) -> np.ndarray: ...
 
 
@@ -254,6 +391,7 @@ def integrate(
     every: int = ...,
     return_info: Literal[True],
     on_failure: Literal["warn", "raise", "ignore"] = ...,
+    strict: bool = ...,
 ) -> tuple[np.ndarray, RolloutInfo]: ...
 
 
@@ -266,6 +404,7 @@ def integrate(
     every: int = 1,
     return_info: bool = False,
     on_failure: Literal["warn", "raise", "ignore"] = "warn",
+    strict: bool = True,
 ) -> np.ndarray | tuple[np.ndarray, RolloutInfo]:
     """Advances initial states ``n_steps`` steps of size ``h``, keeping every ``every``-th state.
 
@@ -279,10 +418,18 @@ def integrate(
     return_info: also return a :class:`RolloutInfo`.
     on_failure: a trajectory whose Newton solve fails stops there and its later states are NaN;
         "warn" (default) warns once per call, "raise" raises RuntimeError, "ignore" stays silent.
+    strict: a learned model refuses steps beyond the h_max it was trained for (ValueError);
+        ``strict=False`` lets it extrapolate.
 
     Returns
     -------
     float64 array (n_steps // every + 1, 3) for one state, (n, n_steps // every + 1, 3) for n.
+
+    A model that records its training domain (a shell or a cube of states) is checked against
+    it: ``info.out_of_domain`` counts, per trajectory, the recorded states (only the kept ones,
+    every ``every``-th) outside it, and one RuntimeWarning per call says so when any are. Its
+    ``hj_residual`` tells how well it solves its equation there. Ctrl-C interrupts a long
+    rollout (KeyboardInterrupt) within a fraction of a second.
     """
     if not hasattr(stepper, "_rollout"):
         raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
@@ -298,8 +445,29 @@ def integrate(
             raise ValueError(f"{name} must be >= {low}, got {value}")
     if on_failure not in ("warn", "raise", "ignore"):
         raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
+    domain: dict[str, Any] | None = None
+    if isinstance(stepper, BisectionIntegrator):
+        domain = stepper.domain
+        if strict and math.isfinite(stepper.h_max) and h > stepper.h_max:
+            raise ValueError(
+                f"h = {h} exceeds h_max = {stepper.h_max}, the largest step {stepper.name!r} "
+                "was trained for; pass strict=False to extrapolate"
+            )
     traj, raw = stepper._rollout(arr, float(h), int(n_steps), int(every))
-    info = RolloutInfo(**raw)
+    # Vectorised over the recorded states: cheap next to the rollout that made them.
+    out_of_domain = count_out_of_domain(domain, traj)
+    info = RolloutInfo(**raw, out_of_domain=out_of_domain)
+    n_outside = int(out_of_domain.sum())
+    if n_outside:
+        assert domain is not None
+        n_traj = int((out_of_domain > 0).sum())
+        warnings.warn(
+            f"{n_outside} recorded states of {n_traj} of {len(out_of_domain)} trajectories lie "
+            f"outside the training domain ({_describe_domain(domain)}); the model extrapolates "
+            "there (see info.out_of_domain and hj_residual)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     n_failed = int((~info.converged).sum())
     if n_failed and on_failure != "ignore":
         first = int(np.flatnonzero(~info.converged)[0])
