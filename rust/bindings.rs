@@ -12,9 +12,7 @@ use pyo3::exceptions::{
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::classical::{
-    ClassicalMethod, ImplicitMidpoint, MoserVeselov, RigidBody, Rk4, Splitting, Splitting4,
-};
+use crate::classical::{ClassicalMethod, RigidBody};
 use crate::error::CoreError;
 use crate::model::{Model, FORMAT};
 use crate::rollout::{n_records, Rollout, TrajectoryInfo};
@@ -355,24 +353,8 @@ fn rollout_classical<'py>(
     let body = RigidBody::new(inertia)?;
     let mu0 = states(&mu0, "mu0")?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
-    // The same steppers as `classical::rollout_classical`, driven in segments here.
-    match method {
-        ClassicalMethod::Rk4 => run_rollout(py, &Rk4 { body }, &mu0, h, n_steps, every),
-        ClassicalMethod::Midpoint => {
-            let stepper = ImplicitMidpoint { body, newton };
-            run_rollout(py, &stepper, &mu0, h, n_steps, every)
-        }
-        ClassicalMethod::Splitting => {
-            run_rollout(py, &Splitting::strang(body), &mu0, h, n_steps, every)
-        }
-        ClassicalMethod::Splitting4 => {
-            run_rollout(py, &Splitting4::suzuki(body), &mu0, h, n_steps, every)
-        }
-        ClassicalMethod::Dmv => {
-            let stepper = MoserVeselov::new(body, newton);
-            run_rollout(py, &stepper, &mu0, h, n_steps, every)
-        }
-    }
+    let stepper = method.stepper(body, newton);
+    run_rollout(py, &stepper, &mu0, h, n_steps, every)
 }
 
 #[pymodule]

@@ -405,6 +405,48 @@ impl ClassicalMethod {
     }
 }
 
+/// A classical integrator chosen at run time (by name), itself a [`StepMap`].
+#[derive(Clone, Debug)]
+pub enum ClassicalStepper {
+    Rk4(Rk4),
+    Midpoint(ImplicitMidpoint),
+    Splitting(Splitting),
+    Splitting4(Splitting4),
+    Dmv(MoserVeselov),
+}
+
+impl ClassicalMethod {
+    /// The integrator for `body`; `newton` matters only for the implicit ones.
+    pub fn stepper(self, body: RigidBody, newton: NewtonOptions) -> ClassicalStepper {
+        match self {
+            ClassicalMethod::Rk4 => ClassicalStepper::Rk4(Rk4 { body }),
+            ClassicalMethod::Midpoint => {
+                ClassicalStepper::Midpoint(ImplicitMidpoint { body, newton })
+            }
+            ClassicalMethod::Splitting => ClassicalStepper::Splitting(Splitting::strang(body)),
+            ClassicalMethod::Splitting4 => ClassicalStepper::Splitting4(Splitting4::suzuki(body)),
+            ClassicalMethod::Dmv => ClassicalStepper::Dmv(MoserVeselov::new(body, newton)),
+        }
+    }
+}
+
+impl StepMap for ClassicalStepper {
+    type Workspace = ();
+
+    fn workspace(&self) {}
+
+    #[inline]
+    fn step(&self, h: f64, mu: &mut [f64; 3], ws: &mut ()) -> Result<StepStats, StepFailure> {
+        match self {
+            ClassicalStepper::Rk4(s) => s.step(h, mu, ws),
+            ClassicalStepper::Midpoint(s) => s.step(h, mu, ws),
+            ClassicalStepper::Splitting(s) => s.step(h, mu, ws),
+            ClassicalStepper::Splitting4(s) => s.step(h, mu, ws),
+            ClassicalStepper::Dmv(s) => s.step(h, mu, ws),
+        }
+    }
+}
+
 /// [`rollout`] with the named classical integrator; `newton` matters only for the implicit ones.
 #[allow(clippy::too_many_arguments)]
 pub fn rollout_classical(
@@ -417,31 +459,7 @@ pub fn rollout_classical(
     every: usize,
     out: &mut [f64],
 ) -> Result<Vec<TrajectoryInfo>, CoreError> {
-    match method {
-        ClassicalMethod::Rk4 => rollout(&Rk4 { body }, mu0, h, n_steps, every, out),
-        ClassicalMethod::Midpoint => rollout(
-            &ImplicitMidpoint { body, newton },
-            mu0,
-            h,
-            n_steps,
-            every,
-            out,
-        ),
-        ClassicalMethod::Splitting => {
-            rollout(&Splitting::strang(body), mu0, h, n_steps, every, out)
-        }
-        ClassicalMethod::Splitting4 => {
-            rollout(&Splitting4::suzuki(body), mu0, h, n_steps, every, out)
-        }
-        ClassicalMethod::Dmv => rollout(
-            &MoserVeselov::new(body, newton),
-            mu0,
-            h,
-            n_steps,
-            every,
-            out,
-        ),
-    }
+    rollout(&method.stepper(body, newton), mu0, h, n_steps, every, out)
 }
 
 #[cfg(test)]

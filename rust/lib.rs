@@ -17,8 +17,8 @@ pub mod stepper;
 mod bindings;
 
 pub use classical::{
-    rollout_classical, ClassicalMethod, ImplicitMidpoint, MoserVeselov, RigidBody, Rk4, Splitting,
-    Splitting4, SplittingComposition,
+    rollout_classical, ClassicalMethod, ClassicalStepper, ImplicitMidpoint, MoserVeselov,
+    RigidBody, Rk4, Splitting, Splitting4, SplittingComposition,
 };
 pub use error::{CoreError, StepFailure};
 pub use generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
