@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -58,3 +60,24 @@ def test_first_failures_orders_methods_by_the_step_where_they_break() -> None:
     assert got[0]["h_breaks"] == 0.1 and "error > 0.1" in got[0]["how"]
     assert got[1]["h_breaks"] == 1.0 and "Newton failure" in got[1]["how"]
     assert got[2]["h_breaks"] == pytest.approx(float("inf"))
+
+
+def test_cli_writes_the_map_and_its_numbers(tmp_path: Path) -> None:
+    import csv
+
+    from poisson_rs.cli import main
+
+    assert main(["stability", "--quick", "--out", str(tmp_path), "--no-progress"]) == 0
+    for name in (
+        "stability_map.png",
+        "stability_summary.png",
+        "stability.csv",
+        "stability.json",
+        "first_failures.csv",
+    ):
+        assert (tmp_path / name).stat().st_size > 0, name
+    with (tmp_path / "stability.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    # 7 methods × 2 step sizes × 12 states, every one recorded.
+    assert len(rows) == 7 * 2 * 12
+    assert {"rel_error", "max_rel_dH", "max_rel_dC", "converged", "failure"} <= set(rows[0])

@@ -92,3 +92,247 @@ def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> P
                     row += [f"{v:.17g}" for v in (*r.traj[i, k], e[i, k], hh[i, k], cc[i, k])]
                 w.writerow(row)
     return path
+
+
+# --- Work–precision charts (``poisson-rs chart``; numbers from poisson_rs.workprecision) ---
+
+_CLASSICAL_STYLE = {
+    "rk4": ("tab:green", "^"),
+    "midpoint": ("tab:olive", "v"),
+    "splitting": ("tab:cyan", "D"),
+    "splitting4": ("tab:brown", "P"),
+    "dmv": ("tab:pink", "X"),
+    "dop853": ("tab:red", "*"),
+}
+
+
+def method_style(method: str) -> dict[str, Any]:
+    """Line style of a method, fixed by its name so every chart colours it the same way.
+
+    Learned models are thick (black for the default), Taylor K in the Cayley chart blue and in
+    the exponential chart orange (darker for larger K, dashed), classical methods their own colour.
+    """
+    from matplotlib import colormaps
+
+    if method.startswith("learned:"):
+        color = "black" if method == "learned:default" else "tab:purple"
+        return {"color": color, "marker": "o", "lw": 2.2, "ls": "-", "ms": 5, "zorder": 5}
+    if method.startswith("taylor"):
+        order, _, chart = method.removeprefix("taylor").partition("-")
+        shade = 0.35 + 0.6 * min(int(order), 7) / 7
+        cmap = colormaps["Blues" if chart == "cayley" else "Oranges"]
+        ls = "-" if chart == "cayley" else "--"
+        marker = "o" if chart == "cayley" else "s"
+        return {"color": cmap(shade), "marker": marker, "lw": 1.3, "ls": ls, "ms": 3.5}
+    color, marker = _CLASSICAL_STYLE.get(method, ("tab:gray", "h"))
+    return {"color": color, "marker": marker, "lw": 1.3, "ls": ":", "ms": 5}
+
+
+def _by_method(rows: Sequence[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """Rows grouped by method, in first-seen order, each group ordered coarse to fine."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(r["method"], []).append(r)
+    for pts in groups.values():
+        pts.sort(key=lambda r: (-r["h"], -(r["tol"] if r.get("tol") is not None else 0.0)))
+    return groups
+
+
+def work_precision_figure(
+    rows: Sequence[dict[str, Any]],
+    path: Path,
+    *,
+    metric: str = "error_T",
+    ylabel: str = "max |μ(T) − μ_exact(T)|",
+    title: str = "",
+    ceiling: float = 10.0,
+    levels: Sequence[float] = (),
+) -> Path:
+    """Log–log ``metric`` against seconds per trajectory: one panel per scene, a curve per method.
+
+    A failed run (Newton failure, non-finite state) is drawn as an × on the panel's top edge at
+    its cost; a value above ``ceiling`` (the orbit is lost) as an open triangle there. Dashed
+    horizontal lines mark ``levels``; open markers a learned model's steps past its training h.
+    """
+    from matplotlib.lines import Line2D
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    # Constrained layout keeps room for the legend outside the panels (tight_layout does not).
+    fig = Figure(figsize=(6.2 * len(scenes) + 2.6, 5.6), layout="constrained")
+    axes = fig.subplots(1, len(scenes), squeeze=False, sharey=True)[0]
+    for ax, scene in zip(axes, scenes, strict=True):
+        srows = [r for r in rows if r["scene"] == scene]
+        finite = [r[metric] for r in srows if not r["failed"] and r[metric]]
+        low = min(finite, default=1e-16)
+        top = min(ceiling, max(finite, default=ceiling)) * 3
+        edge = ax.get_xaxis_transform()  # x in data, y in axes fraction: the top edge
+        for method, pts in _by_method(srows).items():
+            st = method_style(method)
+            ok = [r for r in pts if not r["failed"] and r[metric] is not None]
+            inside = [r for r in ok if r[metric] <= ceiling]
+            xs = [r["seconds_per_traj"] for r in inside]
+            ys = [max(r[metric], 1e-17) for r in inside]  # a zero would vanish on a log axis
+            ax.plot(xs, ys, label=method, **st)
+            # A learned model stepping past the h it was trained for: open markers.
+            ext = [(x, y) for x, y, r in zip(xs, ys, inside, strict=True) if r.get("extrapolated")]
+            if ext:
+                marker_style = {k: st[k] for k in ("color", "marker", "ms", "zorder") if k in st}
+                ax.plot(*zip(*ext, strict=True), ls="none", mfc="white", **marker_style)
+            # Off-chart markers sit on the top edge, unclipped. An empty unclipped line would
+            # still count at the figure origin in the layout's bounding boxes: skip those.
+            style = {"color": st["color"], "ms": 8, "ls": "none", "clip_on": False}
+            over = [r["seconds_per_traj"] for r in ok if r[metric] > ceiling]
+            if over:
+                ax.plot(over, [0.985] * len(over), marker="^", mfc="none", transform=edge, **style)
+            bad = [r["seconds_per_traj"] for r in pts if r["failed"] and r["seconds_per_traj"]]
+            if bad:
+                ax.plot(bad, [0.985] * len(bad), marker="x", mew=2, transform=edge, **style)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_ylim(max(low / 3, 1e-16), top)
+        for level in levels:
+            ax.axhline(level, color="0.6", lw=0.6, ls="--", zorder=0)
+        t_end = srows[0]["T"] if srows else float("nan")
+        ax.set_title(f"{scene} scene, T = {t_end:g}")
+        ax.set_xlabel("wall-clock seconds per trajectory")
+        ax.grid(True, which="major", alpha=0.3)
+    axes[0].set_ylabel(ylabel)
+    handles, labels = axes[0].get_legend_handles_labels()
+    handles += [
+        Line2D([], [], color="0.3", marker="x", mew=2, ls="none", ms=8),
+        Line2D([], [], color="0.3", marker="^", mfc="none", ls="none", ms=8),
+    ]
+    labels += ["failed run (top edge)", f"> {ceiling:g} (top edge)"]
+    if any(r.get("extrapolated") for r in rows):
+        handles.append(Line2D([], [], color="0.3", marker="o", mfc="white", ls="none", ms=6))
+        labels.append("h > trained h_max")
+    fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "") -> Path:
+    """|ΔH|/H (max over growing windows) against time, log–log: one panel per initial state.
+
+    A flat curve is a bounded energy error; a drift shows as a slope (1 for linear growth).
+    """
+    states = list(dict.fromkeys(r["state"] for r in rows))
+    fig = Figure(figsize=(6.2 * len(states) + 2.6, 5.2), layout="constrained")
+    axes = fig.subplots(1, len(states), squeeze=False, sharey=True)[0]
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    t_max = max(r["t"] for r in rows)
+    for ax, state in zip(axes, states, strict=True):
+        for method in methods:
+            pts = [r for r in rows if r["state"] == state and r["method"] == method]
+            if not pts:
+                continue
+            st = {**method_style(method), "marker": None}
+            ts = [r["t"] for r in pts]
+            # A run cut short (time budget, failure) says so in its label.
+            label = method if pts[0].get("tol") is None else f"{method}, tol {pts[0]['tol']:.0e}"
+            label += "" if ts[-1] >= t_max else f" (to t = {ts[-1]:.4g})"
+            # Exact zeros (midpoint, DMV keep H to the last bit over short windows) sit at 1e-17.
+            ax.plot(ts, [max(r["max_rel_dH"], 1e-17) for r in pts], label=label, **st)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(f"μ₀ = {state}, h = {rows[0]['h']:g}")
+        ax.set_xlabel("time t")
+        ax.grid(True, which="major", alpha=0.3)
+    axes[0].set_ylabel(
+        "max |H − H₀| / H₀ over the window ending at t\n(exact zeros drawn at 1e-17)"
+    )
+    # Labels may differ between panels (a run cut short on one state only): merge them.
+    entries: dict[str, Any] = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            entries.setdefault(label, handle)
+    fig.legend(
+        list(entries.values()), list(entries), loc="outside right center", fontsize=8, frameon=False
+    )
+    if title:
+        fig.suptitle(title, fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def stability_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
+    """Stability map: log₁₀ relative error at T per state (rows) and step size (columns), one
+    panel per method; Newton failures are black crosses, never a colour."""
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    hs = sorted({float(r["h"]) for r in rows})
+    labels = list(dict.fromkeys(r["state"] for r in rows))
+    n = len(methods)
+    cols = min(n, 4)
+    nrows = (n + cols - 1) // cols
+    fig = Figure(figsize=(4.2 * cols, 3.6 * nrows + 0.6))
+    axes = fig.subplots(nrows, cols, squeeze=False, sharex=True, sharey=True)
+    image = None
+    for k, method in enumerate(methods):
+        ax = axes[k // cols, k % cols]
+        grid = np.full((len(labels), len(hs)), np.nan)
+        for r in rows:
+            if r["method"] != method:
+                continue
+            i, j = labels.index(r["state"]), hs.index(float(r["h"]))
+            if r["converged"]:
+                grid[i, j] = np.log10(max(float(r["rel_error"]), 1e-16))
+            else:
+                ax.plot(j, i, marker="x", color="black", ms=7, mew=2)
+        image = ax.imshow(
+            grid, aspect="auto", cmap="viridis", vmin=-12, vmax=0.5, interpolation="nearest"
+        )
+        ax.set_title(method, fontsize=10)
+        ax.set_xticks(range(len(hs)), [f"{h:g}" for h in hs], rotation=90, fontsize=7)
+        ax.set_yticks(range(len(labels)), labels, fontsize=7)
+    for k in range(n, nrows * cols):
+        axes[k // cols, k % cols].set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("h")
+    if image is not None:
+        fig.colorbar(
+            image,
+            ax=axes,
+            shrink=0.8,
+            label="log₁₀ |μ(T) − μ_exact(T)| / |μ₀|  (× = Newton failure)",
+        )
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    return path
+
+
+def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
+    """Worst relative error at T, worst |ΔH|/H and worst |ΔC|/C over the states against h, per
+    method; a step size where Newton failed for some state is marked × at the top."""
+    fig = Figure(figsize=(15, 4.5))
+    axes = fig.subplots(1, 3)
+    keys = [
+        ("rel_error", "worst |μ(T) − μ_exact(T)| / |μ₀|"),
+        ("max_rel_dH", "worst max |H − H₀| / H₀"),
+        ("max_rel_dC", "worst max |C − C₀| / C₀"),
+    ]
+    for method in dict.fromkeys(r["method"] for r in rows):
+        mine = [r for r in rows if r["method"] == method]
+        hs = sorted({float(r["h"]) for r in mine})
+        failed = [any(not r["converged"] for r in mine if float(r["h"]) == h) for h in hs]
+        for ax, (key, _) in zip(axes, keys, strict=True):
+            worst = []
+            for h in hs:
+                vals = [float(r[key]) for r in mine if float(r["h"]) == h and r["converged"]]
+                worst.append(max(vals) + 1e-17 if vals else np.nan)
+            (line,) = ax.loglog(hs, worst, marker="o", ms=3, lw=1, label=method)
+            top = ax.get_ylim()[1]
+            for h, f in zip(hs, failed, strict=True):
+                if f:
+                    ax.plot(h, top, marker="x", color=line.get_color(), ms=8, mew=2, clip_on=False)
+    for ax, (_, label) in zip(axes, keys, strict=True):
+        ax.set_xlabel("step size h")
+        ax.set_ylabel(label)
+        ax.grid(True, which="major", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Where methods break (× at the top: Newton failed for some state)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path

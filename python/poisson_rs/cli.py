@@ -1,4 +1,4 @@
-"""Command line: ``poisson-rs demo`` (the paper's scene), ``train`` and ``models``."""
+"""Command line: ``poisson-rs demo`` (the paper's scene), ``train``, ``models`` and ``chart``."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 import dataclasses
 import shlex
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -107,6 +107,142 @@ def cmd_models(args: argparse.Namespace) -> int:
     return 0
 
 
+def _level_summary(rows: Sequence[dict[str, Any]], levels: Sequence[float]) -> list[str]:
+    """Per error level: the fastest method on the paper scene, the runner-up and the learned."""
+    from .workprecision import rank_at_level
+
+    lines = [
+        "fastest to reach max |μ(T) − μ_exact(T)| ≤ level, paper scene, T = 10 (s per trajectory,",
+        "interpolated log–log between neighbouring measured points; [cheapest measured point]):",
+    ]
+    for level in levels:
+        ranked = rank_at_level(rows, level)
+        if not ranked:
+            lines.append(f"  {level:.0e}: no method reaches it")
+            continue
+        win = ranked[0]
+        measured = rank_at_level(rows, level, interpolate=False)
+        point = next((m for m in measured if m["method"] == win["method"]), None)
+        knob = ""
+        if point is not None:
+            what = f"tol={point['tol']:.0e}" if point["tol"] is not None else f"h={point['h']:g}"
+            knob = f" [{what}: {point['seconds']:.1e} s]"
+        line = f"  {level:.0e}: {win['method']} {win['seconds']:.1e} s{knob}"
+        if len(ranked) > 1:
+            nxt = ranked[1]
+            line += f"; next {nxt['method']} {nxt['seconds'] / win['seconds']:.1f}×"
+        for i, r in enumerate(ranked):
+            if r["method"].startswith("learned:") and i > 0:
+                ratio = r["seconds"] / win["seconds"]
+                line += f"; {r['method']} #{i + 1}/{len(ranked)} {ratio:.1f}×"
+        lines.append(line)
+    return lines
+
+
+def cmd_chart(args: argparse.Namespace) -> int:
+    import os
+
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    # Rayon reads this when its pool starts, at the first rollout, which is still to come (in a
+    # process that already stepped, the pool keeps its size). One thread measures each method's
+    # cost on one core, as DOP853 (SciPy, serial) runs anyway, and keeps the timings steady when
+    # another process holds a core: a 2-core rollout then runs serially on some calls and in
+    # parallel on others.
+    previous = os.environ.get("RAYON_NUM_THREADS")
+    os.environ["RAYON_NUM_THREADS"] = str(args.threads)
+    try:
+        return _chart(args)
+    finally:
+        if previous is None:
+            del os.environ["RAYON_NUM_THREADS"]
+        else:
+            os.environ["RAYON_NUM_THREADS"] = previous
+
+
+def _chart(args: argparse.Namespace) -> int:
+    import time
+
+    from . import charts
+    from .workprecision import LEVELS, run_chart
+
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def progress(msg: str) -> None:
+        print(f"{time.perf_counter() - t0:6.1f} s  {msg}", flush=True)
+
+    data = run_chart(quick=args.quick, include_paper=not args.no_paper, progress=progress)
+    charts.write_rows(data.rows, out / "workprecision.csv")
+    charts.write_rows(data.long_rows, out / "long_run_energy.csv")
+    scenes = "; ".join(f"{s.name}: {s.description}" for s in data.scenes)
+    charts.work_precision_figure(
+        data.rows,
+        out / "workprecision_error.png",
+        title=f"Error at T against cost ({scenes})",
+        levels=LEVELS,
+    )
+    charts.work_precision_figure(
+        data.rows,
+        out / "workprecision_energy.png",
+        metric="max_rel_dH",
+        ylabel="max |H − H₀| / H₀ over [0, T]",
+        title="Energy error against cost",
+    )
+    n_long = max((r["step"] for r in data.long_rows), default=0)
+    charts.long_run_figure(
+        data.long_rows,
+        out / "long_run_energy.png",
+        title=f"Energy error over {n_long} steps of h = 0.1, paper scene",
+    )
+    failed = sorted(
+        {f"{r['method']} ({r['scene']}, h={r['h']:g})" for r in data.rows if r["failed"]}
+    )
+    print()
+    for line in data.notes:
+        print(f"note: {line}")
+    if failed:
+        print(f"failed runs (recorded, marked × in the charts): {', '.join(failed)}")
+    for line in _level_summary(data.rows, LEVELS):
+        print(line)
+    print(
+        f"(timings on {args.threads} rayon thread(s); an integrate() call costs "
+        f"{data.call_overhead_s * 1e6:.0f} µs before any step, so timings batch the states to "
+        "amortise it: see the timing_batch column)"
+    )
+    print(
+        f"wrote {out}/workprecision_error.png, workprecision_energy.png, long_run_energy.png, "
+        f"workprecision.csv/json, long_run_energy.csv/json in {time.perf_counter() - t0:.0f} s"
+    )
+    return 0
+
+
+def cmd_stability(args: argparse.Namespace) -> int:
+    from . import charts
+    from .stability import QUICK_STEP_SIZES, STEP_SIZES, first_failures, stability_map
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    steps = QUICK_STEP_SIZES if args.quick else STEP_SIZES
+    rows = stability_map(step_sizes=steps, horizon=args.horizon, progress=_progress(args))
+    charts.write_rows(rows, out / "stability.csv")
+    charts.stability_figure(rows, out / "stability_map.png")
+    charts.stability_summary_figure(rows, out / "stability_summary.png")
+    first = first_failures(rows, threshold=args.threshold)
+    charts.write_rows(first, out / "first_failures.csv")
+    print(f"where each method first breaks (relative error > {args.threshold:g} or Newton fails):")
+    print(_table(first, ["method", "h_breaks", "how"]))
+    print(f"wrote {out}/stability_map.png, stability_summary.png, stability.csv/json")
+    return 0
+
+
+def _progress(args: argparse.Namespace) -> Callable[[str], None] | None:
+    if getattr(args, "no_progress", False):
+        return None
+    return lambda msg: print(f"  {msg}", file=sys.stderr, flush=True)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="poisson-rs", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -152,6 +288,29 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--no-progress", dest="no_progress", action="store_true")
 
     sub.add_parser("models", help="list the shipped models and how they were trained")
+
+    st = sub.add_parser("stability", help="stability map: where each method breaks as h grows")
+    st.add_argument("--out", default="out/stability", help="output folder")
+    st.add_argument("--horizon", type=float, default=20.0, help="time T of the error (default 20)")
+    st.add_argument("--threshold", type=float, default=0.1, help="relative error called broken")
+    st.add_argument("--quick", action="store_true", help="two step sizes only (for tests)")
+    st.add_argument("--no-progress", dest="no_progress", action="store_true")
+
+    c = sub.add_parser("chart", help="work–precision charts: error and energy error against cost")
+    c.add_argument("--out", default="out/chart", help="output folder (default: out/chart)")
+    c.add_argument("--quick", action="store_true", help="a tiny sweep (seconds; for tests)")
+    c.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="rayon threads for the rollouts (default 1: cost per trajectory on one core)",
+    )
+    c.add_argument(
+        "--no-paper",
+        dest="no_paper",
+        action="store_true",
+        help="skip the shipped paper-configuration model (253k parameters, slow)",
+    )
     return p
 
 
@@ -163,6 +322,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_demo(args)
         if args.command == "train":
             return cmd_train(args, argv)
+        if args.command == "chart":
+            return cmd_chart(args)
+        if args.command == "stability":
+            return cmd_stability(args)
         return cmd_models(args)
     except (ValueError, FileNotFoundError) as e:
         print(f"poisson-rs {args.command}: {e}", file=sys.stderr)

@@ -28,6 +28,15 @@ MODELS_PACKAGE = "poisson_rs.models"
 DEFAULT_MODEL = "default"
 
 
+#: Meaning of :attr:`RolloutInfo.failure_code` (0: no failure).
+FAILURE_CODES: dict[int, str] = {
+    1: "no convergence",
+    2: "singular Jacobian",
+    3: "non-finite value",
+    4: "chart singular",
+}
+
+
 @dataclass(frozen=True)
 class RolloutInfo:
     """Per-trajectory diagnostics of a rollout; every field has shape (n,)."""

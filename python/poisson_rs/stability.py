@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .integrators import Stepper, classical, integrate, load_model, taylor_integrator
+from .integrators import FAILURE_CODES, Stepper, classical, integrate, load_model, taylor_integrator
 from .reference import RigidBody, exact_solution
 
 Row = dict[str, Any]
@@ -64,9 +64,6 @@ def default_methods(body: RigidBody) -> dict[str, Callable[[], Stepper]]:
     }
 
 
-FAILURES = {1: "no convergence", 2: "singular Jacobian", 3: "non-finite", 4: "chart singular"}
-
-
 def stability_map(
     body: RigidBody | None = None,
     step_sizes: Sequence[float] = STEP_SIZES,
@@ -109,7 +106,7 @@ def stability_map(
                         "T": T,
                         "converged": ok,
                         "failed_step": int(info.failed_step[i]),
-                        "failure": FAILURES.get(int(info.failure_code[i]), ""),
+                        "failure": FAILURE_CODES.get(int(info.failure_code[i]), ""),
                         "rel_error": float(np.linalg.norm(traj[i, -1] - exact[i]) / r0)
                         if ok
                         else float("nan"),
