@@ -3,15 +3,22 @@
 Coordinates (x, p) ∈ R³×R³; x is a chart of SO(3) near the identity, p its conjugate momentum.
 Units are x = 0, where sou = tar = p. ``sou`` is the spatial momentum, ``tar`` the body one, and
 |sou(x, p)| = |tar(x, p)| in both charts, which is why every bisection map keeps the Casimir.
+
+The maps take NumPy arrays or torch tensors (differentiably) alike; torch is imported only when a
+tensor arrives, so stepping and diagnostics in NumPy never load it.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
-import torch
-from torch import Tensor
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+Array = TypeVar("Array", np.ndarray, "torch.Tensor")
 
 ChartName = Literal["cayley", "exp"]
 CHARTS: tuple[str, ...] = ("cayley", "exp")
@@ -44,38 +51,55 @@ def check_chart(chart: str) -> str:
     return chart
 
 
-def exp_chart_coefficient(s: Tensor) -> Tensor:
-    """c as a function of s = θ² (any shape), differentiable everywhere below the pole."""
+def _namespace(x: Any) -> Any:
+    """torch for a tensor, NumPy otherwise."""
+    if type(x).__module__.partition(".")[0] == "torch":
+        import torch
+
+        return torch
+    return np
+
+
+def _cross(xp: Any, a: Array, b: Array) -> Array:
+    return xp.linalg.cross(a, b, dim=-1) if xp is not np else np.cross(a, b)
+
+
+def exp_chart_coefficient(s: Array) -> Array:
+    """c as a function of s = θ² (any shape), differentiable everywhere below the pole; NaN from
+    θ = EXP_CHART_MAX_ANGLE on, where the chart is refused."""
+    xp = _namespace(s)
     small = s < 1.0
-    s_series = torch.where(small, s, torch.zeros_like(s))
-    series = torch.zeros_like(s)
+    s_series = xp.where(small, s, xp.zeros_like(s))
+    series = xp.zeros_like(s)
     for a in reversed(_C_SERIES):
         series = series * s_series + a
-    # Keep the closed form's argument away from 0 so its (discarded) branch has finite gradients.
-    s_closed = torch.where(small, torch.ones_like(s), s)
-    th = torch.sqrt(s_closed)
-    closed = 1.0 / s_closed - 1.0 / (2.0 * th * torch.tan(0.5 * th))
-    return torch.where(small, series, closed)
+    # Keep the closed form's argument away from 0 so its (discarded) branch stays finite, and
+    # its gradient too.
+    s_closed = xp.where(small, xp.ones_like(s), s)
+    th = xp.sqrt(s_closed)
+    closed = 1.0 / s_closed - 1.0 / (2.0 * th * xp.tan(0.5 * th))
+    c = xp.where(small, series, closed)
+    return xp.where(s < EXP_CHART_MAX_ANGLE**2, c, xp.full_like(c, math.nan))
 
 
-def _apply(chart: str, x: Tensor, p: Tensor, sign: float) -> Tensor:
-    xp = torch.linalg.cross(x, p, dim=-1)
+def _apply(chart: str, x: Array, p: Array, sign: float) -> Array:
+    xp = _namespace(x)
+    xcp = _cross(xp, x, p)
     if chart == "cayley":
         # p ± ½ x×p + ¼ x (x·p)
-        return p + (0.5 * sign) * xp + 0.25 * x * (x * p).sum(-1, keepdim=True)
+        return p + (0.5 * sign) * xcp + 0.25 * x * (x * p).sum(-1)[..., None]
     if chart == "exp":
         # p ± ½ x×p + c(|x|²) x×(x×p)
-        s = (x * x).sum(-1, keepdim=True)
-        c = exp_chart_coefficient(s)
-        return p + (0.5 * sign) * xp + c * torch.linalg.cross(x, xp, dim=-1)
+        c = exp_chart_coefficient((x * x).sum(-1)[..., None])
+        return p + (0.5 * sign) * xcp + c * _cross(xp, x, xcp)
     raise ValueError(f"unknown chart {chart!r}; expected one of {CHARTS}")
 
 
-def sou(chart: str, x: Tensor, p: Tensor) -> Tensor:
-    """Source map (spatial momentum). x, p: (..., 3) → (..., 3)."""
+def sou(chart: str, x: Array, p: Array) -> Array:
+    """Source map (spatial momentum). x, p: (..., 3) arrays or tensors → (..., 3)."""
     return _apply(chart, x, p, 1.0)
 
 
-def tar(chart: str, x: Tensor, p: Tensor) -> Tensor:
-    """Target map (body momentum). x, p: (..., 3) → (..., 3)."""
+def tar(chart: str, x: Array, p: Array) -> Array:
+    """Target map (body momentum). x, p: (..., 3) arrays or tensors → (..., 3)."""
     return _apply(chart, x, p, -1.0)

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 
 from . import _core
 from .export import load_generating, model_bytes, parse_metadata
+from .groupoid import sou
 from .reference import RigidBody
 
 if TYPE_CHECKING:
@@ -176,7 +177,7 @@ class BisectionIntegrator:
         _, grad, _ = self._core.derivatives(float(h), q)
         _, s_t = self._core.time_derivative(float(h), q)
         body = self.body
-        r = s_t + body.hamiltonian(sou_numpy(self.chart, grad, q))
+        r = s_t + body.hamiltonian(sou(self.chart, grad, q))
         energy = body.hamiltonian(q)
         out[ok] = r / np.where(energy > 0, energy, 1.0)
         return out.reshape(arr.shape[:-1])
@@ -310,52 +311,6 @@ def _describe_domain(domain: Mapping[str, Any]) -> str:
     if domain["kind"] == "shell":
         return f"the shell {domain['r_min']:g} <= |mu| <= {domain['r_max']:g}"
     return f"the cube |mu_i| <= {domain['half_width']:g}"
-
-
-# c(θ) = (1 − (θ/2)cot(θ/2))/θ² in s = θ²: the same series as groupoid._C_SERIES (which this
-# module cannot import without importing torch), used for s < 1 where the closed form cancels.
-_EXP_C_SERIES = (
-    1.0 / 12.0,
-    1.0 / 720.0,
-    1.0 / 30240.0,
-    1.0 / 1209600.0,
-    1.0 / 47900160.0,
-    691.0 / 1307674368000.0,
-    1.0 / 74724249600.0,
-    3617.0 / 10670622842880000.0,
-    43867.0 / 5109094217170944000.0,
-    174611.0 / 802857662698291200000.0,
-    77683.0 / 14101100039391805440000.0,
-    236364091.0 / 1693824136731743669452800000.0,
-)
-
-# Largest |x| the exponential chart accepts (as groupoid.EXP_CHART_MAX_ANGLE and the Rust core).
-_EXP_CHART_MAX_ANGLE = 2.0 * math.pi - 0.1
-
-
-def sou_numpy(chart: str, x: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Source map sou(x, p) in NumPy (float64), the twin of ``groupoid.sou`` without torch.
-
-    Cayley: p + ½ x×p + ¼ x (x·p); exponential: p + ½ x×p + c(|x|²) x×(x×p), NaN where
-    |x| reaches the chart's singularity. x, p: (..., 3) → (..., 3).
-    """
-    x = np.asarray(x, dtype=np.float64)
-    p = np.asarray(p, dtype=np.float64)
-    xp = np.cross(x, p)
-    if chart == "cayley":
-        return p + 0.5 * xp + 0.25 * x * (x * p).sum(-1, keepdims=True)
-    if chart != "exp":
-        raise ValueError(f"unknown chart {chart!r}; expected 'cayley' or 'exp'")
-    s = (x * x).sum(-1, keepdims=True)
-    series = np.zeros_like(s)
-    for a in reversed(_EXP_C_SERIES):
-        series = series * s + a
-    with np.errstate(divide="ignore", invalid="ignore"):
-        th = np.sqrt(s)
-        closed = 1.0 / s - 1.0 / (2.0 * th * np.tan(0.5 * th))
-    c = np.where(s < 1.0, series, closed)
-    c = np.where(s < _EXP_CHART_MAX_ANGLE**2, c, np.nan)
-    return p + 0.5 * xp + c * np.cross(x, xp)
 
 
 def _as_states(mu0: Any, what: str = "mu0") -> tuple[np.ndarray, bool]:
