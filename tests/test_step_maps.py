@@ -129,3 +129,15 @@ def test_multi_step_rollout_matches_torch(
     assert _rel_err(rust, oracle, mu0) <= 1e-11
     # ... and the states really moved: the comparison is not of near-constant sequences.
     assert _rel_err(rust[:, -1], mu0, mu0) > 1e-2
+
+
+@pytest.mark.parametrize("chart", ["cayley", "exp"])
+def test_torch_step_at_states_with_zero_components(chart: str) -> None:
+    # p ** k with a tensor exponent has NaN second derivatives at p = 0; the paper's (3, 2, 0)
+    # and the principal axes must step exactly as in Rust.
+    model = pr.taylor_integrator(order=5, chart=chart)
+    mu = np.array([[3.0, 2.0, 0.0], [0.0, 0.0, 1.5], [0.0, 2.0, 0.0], [0.0, 0.0, 0.0]])
+    rust = pr.integrate(model, mu, 0.1, 1)[:, 1]
+    ours = model.torch_step(torch.tensor(mu), 0.1).numpy()
+    assert np.isfinite(ours).all()
+    np.testing.assert_allclose(ours, rust, rtol=0, atol=1e-14)

@@ -64,14 +64,32 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from .train import PRESETS, TrainConfig, save_result, train
 
-    overrides: dict[str, Any] = dict(PRESETS[args.preset])
+    flags: dict[str, Any] = {}
     for f in dataclasses.fields(TrainConfig):
         v = getattr(args, f.name, None)
         if v is not None:
-            overrides[f.name] = tuple(v) if isinstance(v, list) else v
+            flags[f.name] = tuple(v) if isinstance(v, list) else v
     if args.n_points == 0:
-        overrides["n_points"] = None
-    cfg = TrainConfig(**overrides)
+        flags["n_points"] = None
+    command = "poisson-rs " + shlex.join(argv)
+    if args.scene is not None:
+        import json
+
+        from .integrators import load_model
+        from .scenes import train_scene
+
+        path = train_scene(
+            args.scene,
+            args.out,
+            progress=not args.no_progress,
+            command=command,
+            name=args.name,
+            overrides=flags,
+        )
+        met = json.loads(load_model(path).metadata["target_met"])
+        print(f"scene target {'met' if met else 'NOT met'} -> {path}")
+        return 0 if met else 1
+    cfg = TrainConfig(**{**PRESETS[args.preset], **flags})
     try:
         cfg.validate()
     except ValueError as e:
@@ -86,7 +104,6 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         progress=not args.no_progress,
     )
     name = args.name or Path(args.out).stem
-    command = "poisson-rs " + shlex.join(argv)
     path = save_result(result, args.out, name=name, command=command)
     its = max(cfg.iterations, 1)
     print(
@@ -261,6 +278,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("train", help="train a generating function on the HJ residual")
     t.add_argument("--preset", choices=["default", "paper"], default="default")
+    t.add_argument(
+        "--scene",
+        default=None,
+        help="scene file (TOML): derive the domain from it and stop once its target is met",
+    )
     t.add_argument("--out", required=True, help="model file to write (.safetensors)")
     t.add_argument("--name", default=None, help="model name recorded in the file")
     t.add_argument("--inertia", type=float, nargs=3, metavar="I")

@@ -114,12 +114,23 @@ class GeneratingFunction(nn.Module):
         """P(t, p) for t (B,) and p (B, 3) → (B,)."""
         if len(self.coeffs) == 0:
             return torch.zeros_like(t)
-        k = self.powers.to(t.dtype)
+        # Integer powers by repeated products, then gathered: ``p ** k`` with a tensor exponent
+        # has NaN second derivatives at p = 0 (0 · 0⁻¹), which would poison the Newton Jacobian
+        # at states such as (3, 2, 0).
+        top = int(self.powers.max())
+
+        def table(x: Tensor) -> Tensor:
+            cols = [torch.ones_like(x)]
+            for _ in range(top):
+                cols.append(cols[-1] * x)
+            return torch.stack(cols, dim=1)  # (B, top + 1)
+
+        k = self.powers
         mono = (
-            t[:, None] ** k[:, 0]
-            * p[:, 0:1] ** k[:, 1]
-            * p[:, 1:2] ** k[:, 2]
-            * p[:, 2:3] ** k[:, 3]
+            table(t)[:, k[:, 0]]
+            * table(p[:, 0])[:, k[:, 1]]
+            * table(p[:, 1])[:, k[:, 2]]
+            * table(p[:, 2])[:, k[:, 3]]
         )
         return mono @ self.coeffs
 

@@ -11,7 +11,7 @@ import dataclasses
 import json
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .export import save_model
+from .export import model_bytes, save_model
 from .generating import MLP_INPUTS, GeneratingFunction
 from .groupoid import check_chart, sou
 from .taylor import evaluate_terms, taylor_terms
@@ -222,6 +222,10 @@ class TrainResult:
     seconds: float = 0.0
     validation_rms: float = float("nan")
     """Root of the training loss on 8192 held-out points (seed + 7919)."""
+    iterations_run: int = 0
+    """Adam iterations actually taken (fewer than ``config.iterations`` after an early stop)."""
+    stopped_early: bool = False
+    """True when ``train(stop=...)`` asked to stop before the last iteration."""
 
 
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -239,13 +243,27 @@ def train(
     progress: bool = True,
     log_every: int = 10,
     callback: Callable[[int, float], None] | None = None,
+    evaluate_every: int = 0,
+    stop: Callable[[int, GeneratingFunction], bool] | None = None,
 ) -> TrainResult:
     """Trains a generating function on the HJ residual with Adam.
 
     ``checkpoint`` saves the run every ``checkpoint_every`` iterations (atomically);
     ``resume=True`` continues from it, bit-for-bit as if never interrupted on the same device.
+
+    ``stop(iterations_done, model)`` is called every ``evaluate_every`` iterations and after the
+    last one; returning True ends training there (e.g. once a rollout of the current model meets
+    an accuracy target, see :mod:`poisson_rs.scenes`). ``model`` is the live module, in the
+    training dtype and device: export it (:func:`export_bytes`) rather than keep it. Without
+    ``stop`` the run is exactly the plain one.
     """
     cfg.validate()
+    if stop is not None and (
+        isinstance(evaluate_every, bool)
+        or not isinstance(evaluate_every, int)
+        or evaluate_every < 1
+    ):
+        raise ValueError(f"evaluate_every must be an integer >= 1, got {evaluate_every!r}")
     dtype = getattr(torch, cfg.dtype)
     s_fn = build_model(cfg)
     opt = torch.optim.Adam(s_fn.mlp.parameters(), lr=cfg.lr)
@@ -292,6 +310,8 @@ def train(
 
         bar = tqdm(total=cfg.iterations, initial=start, desc="train", unit="it", leave=True)
     t0 = time.perf_counter() - elapsed
+    # A model without parameters skips training (start = iterations above) and took no step.
+    done, stopped_early = (start if s_fn.n_parameters() else 0), False
     for i in range(start, cfg.iterations):
         for g in opt.param_groups:
             g["lr"] = lr_at(i)
@@ -328,17 +348,53 @@ def train(
                     "seconds": time.perf_counter() - t0,
                 },
             )
+        done = i + 1
+        if stop is not None and (done % evaluate_every == 0 or done == cfg.iterations):
+            # No gradients and no random draws: a run whose stop never fires takes exactly the
+            # same steps as one without it.
+            with torch.no_grad():
+                if stop(done, s_fn):
+                    stopped_early = done < cfg.iterations
+                    break
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - t0
     vgen = torch.Generator().manual_seed(cfg.seed + 7919)
     tv, pv = sample_points(cfg, 8192, vgen, dtype, cfg.device)
     rms = float(_loss(s_fn, cfg, tv, pv, create_graph=False).detach().sqrt())
-    return TrainResult(s_fn.double().cpu(), cfg, losses, seconds, rms)
+    return TrainResult(s_fn.double().cpu(), cfg, losses, seconds, rms, done, stopped_early)
 
 
-def save_result(result: TrainResult, path: str | Path, *, name: str, command: str) -> Path:
-    """Exports a trained model with its provenance (command, seed, loss, time)."""
+def export_bytes(
+    s_fn: GeneratingFunction, cfg: TrainConfig, record: Mapping[str, Any] | None = None
+) -> bytes:
+    """The model file of ``s_fn`` (any dtype or device; written as float64) as bytes, ready for
+    ``BisectionIntegrator(bytes)``: how a model is rolled out in Rust in the middle of training."""
+    return model_bytes(
+        powers=s_fn.powers.cpu().numpy(),
+        coeffs=s_fn.coeffs.detach().to(torch.float64).cpu().numpy(),
+        layers=s_fn.exported_layers(),
+        mlp_power=s_fn.mlp_power,
+        mlp_inputs=s_fn.inputs,
+        chart=s_fn.chart,
+        inertia=cfg.inertia,
+        h_max=cfg.h_max,
+        domain=cfg.domain_dict(),
+        taylor_order=cfg.taylor_order,
+        record=record,
+    )
+
+
+def save_result(
+    result: TrainResult,
+    path: str | Path,
+    *,
+    name: str,
+    command: str,
+    extra: Mapping[str, Any] | None = None,
+) -> Path:
+    """Exports a trained model with its provenance (command, seed, loss, time); ``extra`` adds
+    metadata entries (non-strings stored as JSON), e.g. a scene's target and measured numbers."""
     cfg = result.config
     return save_model(
         result.model,
@@ -356,5 +412,6 @@ def save_result(result: TrainResult, path: str | Path, *, name: str, command: st
             "train_seconds": round(result.seconds, 2),
             "iterations": cfg.iterations,
             "config": json.dumps(dataclasses.asdict(cfg)),
+            **(dict(extra) if extra else {}),
         },
     )
