@@ -15,7 +15,15 @@ from typing import Any
 
 import numpy as np
 
-from .integrators import FAILURE_CODES, Stepper, classical, integrate, load_model, taylor_integrator
+from .integrators import (
+    FAILURE_CODES,
+    Stepper,
+    classical,
+    integrate,
+    list_models,
+    load_model,
+    taylor_integrator,
+)
 from .reference import RigidBody, exact_solution
 
 Row = dict[str, Any]
@@ -51,10 +59,16 @@ def states(body: RigidBody, radii: Sequence[float] = RADII) -> tuple[np.ndarray,
     return np.array(rows), labels
 
 
+def _loader(name: str) -> Callable[[], Stepper]:
+    return lambda: load_model(name)
+
+
 def default_methods(body: RigidBody) -> dict[str, Callable[[], Stepper]]:
-    """Methods of the map, built lazily: the learned default, Taylor series and classical ones."""
+    """Methods of the map, built lazily: the shipped learned models (but the 253k-parameter paper
+    configuration, too slow for the grid), Taylor series and classical ones."""
+    learned = {f"learned:{n}": _loader(n) for n in list_models() if n != "paper"}
     return {
-        "learned:default": load_model,
+        **learned,
         "taylor3-cayley": lambda: taylor_integrator(body, 3, "cayley"),
         "taylor5-cayley": lambda: taylor_integrator(body, 5, "cayley"),
         "taylor3-exp": lambda: taylor_integrator(body, 3, "exp"),
