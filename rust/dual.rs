@@ -298,6 +298,36 @@ impl Scalar for Jet2 {
     }
 }
 
+/// A scalar that can seed one of the three independent variables p₁, p₂, p₃: lets one generic
+/// evaluation of S give either its gradient ([`Dual1`]) or its gradient and Hessian ([`Jet2`]).
+pub trait Variable: Scalar {
+    /// The `i`-th independent variable with value `v`.
+    fn variable(v: f64, i: usize) -> Self;
+    /// The same quantity from a [`Jet2`] (dropping what this type does not carry).
+    fn from_jet(j: &Jet2) -> Self;
+}
+
+impl Variable for Dual1 {
+    fn variable(v: f64, i: usize) -> Self {
+        Dual1::var(v, i)
+    }
+    fn from_jet(j: &Jet2) -> Self {
+        Dual1 {
+            v: j.0[0],
+            g: j.grad(),
+        }
+    }
+}
+
+impl Variable for Jet2 {
+    fn variable(v: f64, i: usize) -> Self {
+        Jet2::var(v, i)
+    }
+    fn from_jet(j: &Jet2) -> Self {
+        *j
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -72,10 +72,7 @@ pub struct BisectionStepper {
     pub newton: NewtonOptions,
 }
 
-/// F(p), its Jacobian dF/dp and x = ∂S/∂p(h, p).
-type Residual = ([f64; 3], Matrix3<f64>, [f64; 3]);
-
-/// F(p) = tar(∂S/∂p(h,p), p) − μ with its Jacobian, plus x = ∂S/∂p(h,p).
+/// F(p) = tar(∂S/∂p(h,p), p) − μ and its Jacobian dF/dp.
 #[inline]
 fn residual(
     st: &BisectionStepper,
@@ -83,7 +80,7 @@ fn residual(
     mu: &[f64; 3],
     p: &[f64; 3],
     ws: &mut Workspace,
-) -> Result<Residual, StepFailure> {
+) -> Result<([f64; 3], Matrix3<f64>), StepFailure> {
     let jet = st.generating.jet(h, p, ws);
     if !jet.is_finite() {
         return Err(StepFailure::NonFinite);
@@ -95,7 +92,7 @@ fn residual(
     let t = st.chart.tar(&x, &pd)?;
     let f = [t[0].v - mu[0], t[1].v - mu[1], t[2].v - mu[2]];
     let j = Matrix3::from_fn(|r, c| t[r].g[c]);
-    Ok((f, j, g))
+    Ok((f, j))
 }
 
 fn max_abs(a: &[f64; 3]) -> f64 {
@@ -120,8 +117,15 @@ impl StepMap for BisectionStepper {
         let mut iterations = 0;
         let mut done = false;
         loop {
-            let (f, j, x) = residual(self, h, &target, &p, ws)?;
             if done {
+                // Converged: x at the final p needs the gradient of S only, not its Hessian.
+                let g = self.generating.gradient(h, &p, ws);
+                if !g.is_finite() {
+                    return Err(StepFailure::NonFinite);
+                }
+                let x = g.g;
+                let t = self.chart.tar(&x, &p)?;
+                let f = [t[0] - target[0], t[1] - target[1], t[2] - target[2]];
                 let out = self.chart.sou(&x, &p)?;
                 if !out.iter().all(|v| v.is_finite()) {
                     return Err(StepFailure::NonFinite);
@@ -132,6 +136,7 @@ impl StepMap for BisectionStepper {
                     residual: max_abs(&f),
                 });
             }
+            let (f, j) = residual(self, h, &target, &p, ws)?;
             if iterations >= self.newton.max_iter {
                 return Err(StepFailure::NotConverged);
             }
