@@ -302,6 +302,16 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--lr", type=float)
     t.add_argument("--schedule", choices=["cosine", "constant"])
     t.add_argument("--seed", type=int)
+    t.add_argument(
+        "--lbfgs-iterations", dest="lbfgs_iterations", type=int, help="L-BFGS polish after Adam"
+    )
+    t.add_argument(
+        "--data-weight", dest="data_weight", type=float, help="weight λ of the trajectory-data loss"
+    )
+    t.add_argument(
+        "--data-points", dest="data_points", type=int, help="exact one-step pairs for the data loss"
+    )
+    t.add_argument("--data-h", dest="data_h", type=float, help="step of the data pairs (h_max)")
     t.add_argument("--dtype", choices=["float32", "float64"])
     t.add_argument("--device", help="cpu, cuda, cuda:0, ...")
     t.add_argument("--checkpoint", default=None, help="checkpoint file (written periodically)")

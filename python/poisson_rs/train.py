@@ -3,6 +3,9 @@
     r(t, p) = ∂S/∂t(t, p) + H(sou(∂S/∂p(t, p), p))
 
 at sampled (t, p), t ∈ [0, h_max] and p in a cube or a spherical shell (the paper's eq. HJML).
+
+Optionally (the paper's future work) a data term compares the model's one-step map with
+trajectory pairs (μ_k, μ_{k+1}) at step h, and L-BFGS polishes the weights after Adam.
 """
 
 from __future__ import annotations
@@ -22,8 +25,13 @@ from torch import Tensor
 
 from .export import model_bytes, save_model
 from .generating import MLP_INPUTS, GeneratingFunction
-from .groupoid import check_chart, sou
+from .groupoid import check_chart, sou, tar
+from .reference import RigidBody, exact_solution
 from .taylor import evaluate_terms, taylor_terms
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
 
 
 @dataclass
@@ -53,6 +61,16 @@ class TrainConfig:
     seed: int = 0
     dtype: str = "float64"
     device: str = "cpu"
+    lbfgs_iterations: int = 0
+    """L-BFGS iterations (strong-Wolfe line search, several loss evaluations each) after Adam, on
+    one fixed seeded batch of ``batch`` points; 0: none."""
+    data_weight: float = 0.0
+    """λ in loss = loss_HJ/loss_HJ(init) + λ·loss_data/loss_data(init); 0: no data term."""
+    data_points: int = 0
+    """Pairs (μ_k, μ_{k+1}) taken from the exact solution, one step of ``data_h`` from seeded
+    random states of the training domain; 0: none (or pass ``train(data=...)``)."""
+    data_h: float | None = None
+    """Step h of the data pairs (time units); None: h_max."""
 
     def resolved_mlp_power(self) -> int:
         if self.mlp_power is not None:
@@ -79,10 +97,16 @@ class TrainConfig:
             ("widths", all(w >= 1 for w in self.widths)),
             ("mlp_power", self.resolved_mlp_power() >= 1),
             ("n_points", self.n_points is None or self.n_points >= 1),
+            ("lbfgs_iterations", _is_int(self.lbfgs_iterations) and self.lbfgs_iterations >= 0),
+            ("data_weight", math.isfinite(self.data_weight) and self.data_weight >= 0),
+            ("data_points", _is_int(self.data_points) and self.data_points >= 0),
+            ("data_h", self.data_h is None or (math.isfinite(self.data_h) and self.data_h > 0)),
         ]
         for name, ok in checks:
             if not ok:
                 raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+        if self.data_points > 0 and self.data_weight == 0:
+            raise ValueError("data_points > 0 needs data_weight > 0 (the pairs would be unused)")
         if self.inputs not in MLP_INPUTS:
             raise ValueError(f"inputs must be one of {MLP_INPUTS}, got {self.inputs!r}")
         if self.schedule not in ("cosine", "constant"):
@@ -91,6 +115,9 @@ class TrainConfig:
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise ValueError("device 'cuda' requested but torch sees no CUDA device")
+
+    def resolved_data_h(self) -> float:
+        return self.h_max if self.data_h is None else self.data_h
 
     def domain_dict(self) -> dict[str, Any]:
         if self.domain == "cube":
@@ -213,6 +240,91 @@ def _loss(
     return r.pow(2).mean()
 
 
+def data_from_exact(
+    body: RigidBody, states: np.ndarray, h: float, n_steps: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Trajectory pairs from the exact flow: states (n, 3), step h (time units), n_steps ≥ 1 steps
+    each → (mu_k, mu_k1), both (n·n_steps, 3) float64, μ_{k+1} = exact flow of μ_k over h."""
+    if not (_is_int(n_steps) and n_steps >= 1):
+        raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
+    states = np.asarray(states, dtype=np.float64).reshape(-1, 3)
+    traj = exact_solution(body, states, h * np.arange(n_steps + 1))  # (n, n_steps + 1, 3)
+    return traj[:, :-1].reshape(-1, 3), traj[:, 1:].reshape(-1, 3)
+
+
+def solve_momentum(
+    s_fn: GeneratingFunction, mu: Tensor, h: float, *, tol: float = 1e-12, max_iter: int = 20
+) -> tuple[Tensor, Tensor]:
+    """Newton for p with tar(∂S/∂p(h, p), p) = μ, from p = μ (as in ``bisection_step``), without
+    tracking gradients to the weights. mu (B, 3) → (p (B, 3) detached, converged (B,) bool)."""
+    mu = mu.detach()
+    t = torch.full((mu.shape[0],), float(h), dtype=mu.dtype, device=mu.device)
+    p = mu.clone()
+    done = torch.zeros(mu.shape[0], dtype=torch.bool, device=mu.device)
+    for _ in range(max_iter):
+        pv = p.detach().requires_grad_(True)
+        with torch.enable_grad():
+            (x,) = torch.autograd.grad(s_fn(t, pv).sum(), pv, create_graph=True)
+            f = tar(s_fn.chart, x, pv) - mu
+            jac = torch.stack(
+                [torch.autograd.grad(f[:, i].sum(), pv, retain_graph=True)[0] for i in range(3)],
+                dim=1,
+            )
+        delta = torch.linalg.solve(jac.detach(), -f.detach()[..., None])[..., 0]
+        delta = torch.where(done[:, None], torch.zeros_like(delta), delta)
+        p = p + delta
+        done = done | (delta.abs().amax(-1) <= tol * p.abs().amax(-1).clamp_min(1e-300))
+        if bool(done.all()):
+            break
+    return p.detach(), done & torch.isfinite(p).all(-1)
+
+
+def _differentiable_step(s_fn: GeneratingFunction, mu: Tensor, p: Tensor, h: float) -> Tensor:
+    """sou(∂S/∂p(h, p̃), p̃) after one Newton step p̃ = p − J⁻¹(tar(∂S/∂p(h, p), p) − μ) from the
+    converged p with J held constant. In value p̃ = p; in the weights θ, dp̃/dθ = −J⁻¹ ∂tar/∂θ,
+    which is the implicit function theorem's dp/dθ, so the gradient of the map is exact.
+
+    Why not freeze p (differentiate through ∂S/∂p only)? Measured against finite differences of
+    ``bisection_step`` that gradient is wrong even in sign: a change of S moves tar and sou
+    alike, and the frozen-p gradient keeps the part that the Newton solve cancels.
+    mu, p: (B, 3) → (B, 3).
+    """
+    t = torch.full((mu.shape[0],), float(h), dtype=mu.dtype, device=mu.device)
+    pv = p.detach().requires_grad_(True)
+    with torch.enable_grad():
+        (x,) = torch.autograd.grad(s_fn(t, pv).sum(), pv, create_graph=True)
+        f = tar(s_fn.chart, x, pv) - mu
+        jac = torch.stack(
+            [torch.autograd.grad(f[:, i].sum(), pv, retain_graph=True)[0] for i in range(3)],
+            dim=1,
+        ).detach()
+        # pv is a leaf: the backward pass only leaves a (discarded) pv.grad behind.
+        pt = pv - torch.linalg.solve(jac, f[..., None])[..., 0]
+        (xt,) = torch.autograd.grad(s_fn(t, pt).sum(), pt, create_graph=True)
+        return sou(s_fn.chart, xt, pt)
+
+
+def step_map(s_fn: GeneratingFunction, mu: Tensor, h: float) -> tuple[Tensor, Tensor]:
+    """The model's bisection step μ_k ↦ μ_{k+1} = sou(∂S/∂p(h, p), p) with tar(∂S/∂p(h, p), p) =
+    μ_k, differentiable in the weights (exactly, see ``_differentiable_step``); the Newton solve
+    itself is not tracked. mu (B, 3) → (μ_{k+1} (B, 3), NaN where not converged; converged (B,))."""
+    p, ok = solve_momentum(s_fn, mu, h)
+    out = _differentiable_step(s_fn, mu, torch.where(ok[:, None], p, mu), h)
+    return torch.where(ok[:, None], out, torch.full_like(out, float("nan"))), ok
+
+
+def data_loss(s_fn: GeneratingFunction, mu_k: Tensor, mu_k1: Tensor, h: float) -> Tensor:
+    """Mean of |step_map(μ_k) − μ_{k+1}|² / |μ_k|² (squared relative one-step error, scale-free
+    like the homogeneous HJ loss) over the pairs whose Newton solve converged; (n, 3) each → ()."""
+    p, ok = solve_momentum(s_fn, mu_k, h)
+    # Failed solves are dropped before the differentiable part: masking their NaNs afterwards
+    # would still send 0·NaN = NaN into every weight's gradient.
+    mu_k, mu_k1, p = mu_k[ok], mu_k1[ok], p[ok]
+    out = _differentiable_step(s_fn, mu_k, p, h)
+    err = ((out - mu_k1) ** 2).sum(1) / (mu_k * mu_k).sum(1).clamp_min(1e-300)
+    return err.sum() / max(len(err), 1)
+
+
 @dataclass
 class TrainResult:
     model: GeneratingFunction
@@ -226,6 +338,12 @@ class TrainResult:
     """Adam iterations actually taken (fewer than ``config.iterations`` after an early stop)."""
     stopped_early: bool = False
     """True when ``train(stop=...)`` asked to stop before the last iteration."""
+    lbfgs_losses: list[float] = field(default_factory=list)
+    """HJ loss (absolute units) at every L-BFGS loss evaluation, line-search trials included."""
+    lbfgs_iterations_run: int = 0
+    """L-BFGS iterations actually taken (fewer than asked once it converges)."""
+    data_rms: float = float("nan")
+    """Root of the data loss (relative one-step error) on the training pairs; NaN without data."""
 
 
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -245,8 +363,14 @@ def train(
     callback: Callable[[int, float], None] | None = None,
     evaluate_every: int = 0,
     stop: Callable[[int, GeneratingFunction], bool] | None = None,
+    data: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> TrainResult:
-    """Trains a generating function on the HJ residual with Adam.
+    """Trains a generating function on the HJ residual with Adam, then L-BFGS if
+    ``cfg.lbfgs_iterations`` > 0.
+
+    ``data = (mu_k, mu_k1)``, two (n, 3) arrays of pairs one step of ``cfg.data_h`` apart, adds
+    the data term (weight ``cfg.data_weight``) with the caller's pairs instead of
+    ``cfg.data_points`` exact ones; they are not part of the recorded configuration.
 
     ``checkpoint`` saves the run every ``checkpoint_every`` iterations (atomically);
     ``resume=True`` continues from it, bit-for-bit as if never interrupted on the same device.
@@ -255,7 +379,9 @@ def train(
     last one; returning True ends training there (e.g. once a rollout of the current model meets
     an accuracy target, see :mod:`poisson_rs.scenes`). ``model`` is the live module, in the
     training dtype and device: export it (:func:`export_bytes`) rather than keep it. Without
-    ``stop`` the run is exactly the plain one.
+    ``stop`` the run is exactly the plain one; an early stop also skips L-BFGS.
+
+    Checkpoints cover the Adam phase; resuming re-runs L-BFGS from the final Adam state.
     """
     cfg.validate()
     if stop is not None and (
@@ -265,6 +391,7 @@ def train(
     ):
         raise ValueError(f"evaluate_every must be an integer >= 1, got {evaluate_every!r}")
     dtype = getattr(torch, cfg.dtype)
+    pairs = _data_pairs(cfg, data, dtype)
     s_fn = build_model(cfg)
     opt = torch.optim.Adam(s_fn.mlp.parameters(), lr=cfg.lr)
     # Adam divides by sqrt(v) + eps with eps = 1e-8: when exact Taylor terms leave a residual of
@@ -276,6 +403,23 @@ def train(
     loss_scale = float(_loss(s_fn, cfg, tp, pp, create_graph=False).detach())
     if not (math.isfinite(loss_scale) and loss_scale > 0):
         loss_scale = 1.0
+    h_data = cfg.resolved_data_h()
+    data_scale = 1.0
+    if pairs is not None:
+        # The data term is normalised the same way, so data_weight = 1 weighs both terms equally
+        # at the start whatever their units.
+        data_scale = float(data_loss(s_fn, *pairs, h_data).detach())
+        if not (math.isfinite(data_scale) and data_scale > 0):
+            data_scale = 1.0
+
+    def objective(t: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
+        """(normalised training loss, absolute HJ loss) at the points (t, p)."""
+        loss = _loss(s_fn, cfg, t, p, create_graph=True)
+        total = loss / loss_scale
+        if pairs is not None:
+            total = total + cfg.data_weight * data_loss(s_fn, *pairs, h_data) / data_scale
+        return total, loss
+
     lr_at: Callable[[int], float]
     if cfg.schedule == "cosine":
         # Cosine decay to 1% of lr: most of the final accuracy comes from the small-lr tail.
@@ -323,8 +467,8 @@ def train(
             idx = torch.randint(len(pool[0]), (cfg.batch,), generator=gen).to(cfg.device)
             t, p = pool[0][idx], pool[1][idx]
         opt.zero_grad(set_to_none=True)
-        loss = _loss(s_fn, cfg, t, p, create_graph=True)
-        (loss / loss_scale).backward()
+        total, loss = objective(t, p)
+        total.backward()
         opt.step()
         if i % log_every == 0 or i == cfg.iterations - 1:
             value = float(loss.detach())
@@ -358,11 +502,99 @@ def train(
                     break
     if bar is not None:
         bar.close()
+    lbfgs_losses: list[float] = []
+    lbfgs_done = 0
+    if cfg.lbfgs_iterations and s_fn.n_parameters() and not stopped_early:
+        lbfgs_done = _polish(s_fn, cfg, objective, dtype, lbfgs_losses)
     seconds = time.perf_counter() - t0
     vgen = torch.Generator().manual_seed(cfg.seed + 7919)
     tv, pv = sample_points(cfg, 8192, vgen, dtype, cfg.device)
     rms = float(_loss(s_fn, cfg, tv, pv, create_graph=False).detach().sqrt())
-    return TrainResult(s_fn.double().cpu(), cfg, losses, seconds, rms, done, stopped_early)
+    drms = (
+        float(data_loss(s_fn, *pairs, h_data).detach().sqrt())
+        if pairs is not None
+        else float("nan")
+    )
+    return TrainResult(
+        s_fn.double().cpu(),
+        cfg,
+        losses,
+        seconds,
+        rms,
+        done,
+        stopped_early,
+        lbfgs_losses,
+        lbfgs_done,
+        drms,
+    )
+
+
+def _data_pairs(
+    cfg: TrainConfig, data: tuple[np.ndarray, np.ndarray] | None, dtype: torch.dtype
+) -> tuple[Tensor, Tensor] | None:
+    """The data term's pairs as tensors (n, 3) each, or None when it is off."""
+    if data is not None and cfg.data_points:
+        raise ValueError("pass data=(mu_k, mu_k1) or set data_points, not both")
+    if data is None and not cfg.data_points:
+        if cfg.data_weight > 0:
+            raise ValueError("data_weight > 0 needs data_points > 0 or train(data=...)")
+        return None
+    if data is None:
+        # Own seed: the data states are independent of the training and validation points.
+        gen = torch.Generator().manual_seed(cfg.seed + 15485863)
+        _, states = sample_points(cfg, cfg.data_points, gen, torch.float64, "cpu")
+        data = data_from_exact(RigidBody(cfg.inertia), states.numpy(), cfg.resolved_data_h())
+    if cfg.data_weight == 0:
+        raise ValueError("data given but data_weight = 0 (the pairs would be unused)")
+    mu_k, mu_k1 = (np.asarray(a, dtype=np.float64) for a in data)
+    if mu_k.ndim != 2 or mu_k.shape[1:] != (3,) or mu_k.shape != mu_k1.shape or not len(mu_k):
+        raise ValueError(f"data must be two (n, 3) arrays, got {mu_k.shape} and {mu_k1.shape}")
+    if not (np.isfinite(mu_k).all() and np.isfinite(mu_k1).all()):
+        raise ValueError("data contains NaN or inf")
+    return (
+        torch.as_tensor(mu_k, dtype=dtype, device=cfg.device),
+        torch.as_tensor(mu_k1, dtype=dtype, device=cfg.device),
+    )
+
+
+def _polish(
+    s_fn: GeneratingFunction,
+    cfg: TrainConfig,
+    objective: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]],
+    dtype: torch.dtype,
+    record: list[float],
+) -> int:
+    """L-BFGS (strong Wolfe) on one fixed seeded batch; appends the HJ loss at each evaluation to
+    ``record`` and returns the iterations taken."""
+    gen = torch.Generator().manual_seed(cfg.seed + 31337)
+    t, p = sample_points(cfg, cfg.batch, gen, dtype, cfg.device)
+    # torch's L-BFGS thresholds are absolute (a curvature pair counts only if yᵀs > 1e-10, it stops
+    # at |g|∞ ≤ tolerance_grad): rescale the objective to 1 at the start of polishing, which does
+    # not move its minimiser, so that those thresholds mean the same after any Adam phase.
+    start = float(objective(t, p)[0].detach())
+    scale = start if math.isfinite(start) and start > 0 else 1.0
+    params = list(s_fn.mlp.parameters())
+    opt = torch.optim.LBFGS(
+        params,
+        lr=1.0,
+        max_iter=cfg.lbfgs_iterations,
+        max_eval=25 * cfg.lbfgs_iterations,
+        tolerance_grad=1e-12,
+        tolerance_change=1e-15,
+        history_size=50,
+        line_search_fn="strong_wolfe",
+    )
+
+    def closure() -> Tensor:
+        opt.zero_grad(set_to_none=True)
+        total, loss = objective(t, p)
+        record.append(float(loss.detach()))
+        total = total / scale
+        total.backward()
+        return total.detach()
+
+    opt.step(closure)
+    return int(opt.state[params[0]].get("n_iter", 0))
 
 
 def export_bytes(
