@@ -84,6 +84,10 @@ _MODEL_TYPES: dict[str, str] = {
     "seed": "int",
     "dtype": "str",
     "device": "str",
+    "lbfgs_iterations": "int",
+    "data_weight": "float",
+    "data_points": "int",
+    "data_h": "float",
     "evaluate_every": "int",
     "margin": "floats",
 }
