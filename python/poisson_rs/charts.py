@@ -313,6 +313,7 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
         ("max_rel_dH", "worst max |H − H₀| / H₀"),
         ("max_rel_dC", "worst max |C − C₀| / C₀"),
     ]
+    marks: list[tuple[float, str]] = []  # (h, colour) of failures, drawn once limits are final
     for method in dict.fromkeys(r["method"] for r in rows):
         mine = [r for r in rows if r["method"] == method]
         hs = sorted({float(r["h"]) for r in mine})
@@ -323,10 +324,11 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
                 vals = [float(r[key]) for r in mine if float(r["h"]) == h and r["converged"]]
                 worst.append(max(vals) + 1e-17 if vals else np.nan)
             (line,) = ax.loglog(hs, worst, marker="o", ms=3, lw=1, label=method)
-            top = ax.get_ylim()[1]
-            for h, f in zip(hs, failed, strict=True):
-                if f:
-                    ax.plot(h, top, marker="x", color=line.get_color(), ms=8, mew=2, clip_on=False)
+        marks += [(h, line.get_color()) for h, f in zip(hs, failed, strict=True) if f]
+    for ax in axes:
+        top = ax.get_ylim()[1]
+        for h, colour in marks:
+            ax.plot(h, top, marker="x", color=colour, ms=8, mew=2, clip_on=False)
     for ax, (_, label) in zip(axes, keys, strict=True):
         ax.set_xlabel("step size h")
         ax.set_ylabel(label)
