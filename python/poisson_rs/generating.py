@@ -174,6 +174,47 @@ def derivatives(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor,
     return s.detach(), g.detach(), torch.stack(rows, dim=1).detach()
 
 
+def newton_system(
+    s_fn: GeneratingFunction, chart: str, t: Tensor, p: Tensor, mu: Tensor
+) -> tuple[Tensor, Tensor]:
+    """F(p) = tar(∂S/∂p(t, p), p) − μ and its Jacobian dF/dp by autograd through ∂S/∂p (so the
+    Hessian of S enters exactly). ``p`` must be a leaf requiring grad; F keeps its graph (to p and
+    the weights), the Jacobian is detached. t (B,), p and mu (B, 3) → F (B, 3), J (B, 3, 3)."""
+    with torch.enable_grad():
+        (x,) = torch.autograd.grad(s_fn(t, p).sum(), p, create_graph=True)
+        f = tar(chart, x, p) - mu
+        rows = [torch.autograd.grad(f[:, i].sum(), p, retain_graph=True)[0] for i in range(3)]
+    return f, torch.stack(rows, dim=1).detach()
+
+
+def solve_momentum(
+    s_fn: GeneratingFunction,
+    mu: Tensor,
+    h: float,
+    *,
+    chart: str | None = None,
+    tol: float = 1e-12,
+    max_iter: int = 50,
+) -> tuple[Tensor, Tensor]:
+    """Newton for p with tar(∂S/∂p(h, p), p) = μ from p = μ, untracked. Stops per state once the
+    update satisfies |δ|∞ ≤ tol·|p|∞ (the Rust core's rule). mu (B, 3) → (p (B, 3) detached,
+    converged (B,) bool)."""
+    chart = check_chart(chart or s_fn.chart)
+    mu = mu.detach()
+    t = torch.full((mu.shape[0],), float(h), dtype=mu.dtype, device=mu.device)
+    p = mu.clone()
+    done = torch.zeros(mu.shape[0], dtype=torch.bool, device=mu.device)
+    for _ in range(max_iter):
+        f, jac = newton_system(s_fn, chart, t, p.detach().requires_grad_(True), mu)
+        delta = torch.linalg.solve(jac, -f.detach()[..., None])[..., 0]
+        delta = torch.where(done[:, None], torch.zeros_like(delta), delta)
+        p = p + delta
+        done = done | (delta.abs().amax(-1) <= tol * p.abs().amax(-1).clamp_min(1e-300))
+        if bool(done.all()):
+            break
+    return p.detach(), done & torch.isfinite(p).all(-1)
+
+
 def bisection_step(
     s_fn: GeneratingFunction,
     mu: Tensor,
@@ -183,34 +224,14 @@ def bisection_step(
     tol: float = 1e-12,
     max_iter: int = 50,
 ) -> Tensor:
-    """One bisection step μ ↦ sou(∂S/∂p(h, p), p) with tar(∂S/∂p(h, p), p) = μ, in pure torch.
-
-    Newton on p starts at p = μ; its Jacobian comes from autograd through ∂S/∂p (so the Hessian of
-    S enters exactly). Stops per state once the update satisfies |δ|∞ ≤ tol·|p|∞; states that do
-    not converge within ``max_iter`` come back as NaN. mu: (B, 3) float64 → (B, 3).
+    """One bisection step μ ↦ sou(∂S/∂p(h, p), p) with tar(∂S/∂p(h, p), p) = μ, in pure torch
+    (Newton by :func:`solve_momentum`). States that do not converge within ``max_iter`` come back
+    as NaN. mu: (B, 3) float64 → (B, 3).
     """
     chart = check_chart(chart or s_fn.chart)
-    mu = mu.detach()
+    p, done = solve_momentum(s_fn, mu, h, chart=chart, tol=tol, max_iter=max_iter)
     t = torch.full((mu.shape[0],), float(h), dtype=mu.dtype, device=mu.device)
-    p = mu.clone()
-    done = torch.zeros(mu.shape[0], dtype=torch.bool, device=mu.device)
-    for _ in range(max_iter):
-        pv = p.detach().requires_grad_(True)
-        with torch.enable_grad():
-            (x,) = torch.autograd.grad(s_fn(t, pv).sum(), pv, create_graph=True)
-            f = tar(chart, x, pv) - mu
-            jac = torch.stack(
-                [torch.autograd.grad(f[:, i].sum(), pv, retain_graph=True)[0] for i in range(3)],
-                dim=1,
-            )
-        delta = torch.linalg.solve(jac.detach(), -f.detach()[..., None])[..., 0]
-        delta = torch.where(done[:, None], torch.zeros_like(delta), delta)
-        p = p + delta
-        small = delta.abs().amax(-1) <= tol * p.abs().amax(-1).clamp_min(1e-300)
-        done = done | small
-        if bool(done.all()):
-            break
-    pv = p.detach().requires_grad_(True)
+    pv = p.requires_grad_(True)
     with torch.enable_grad():
         (x,) = torch.autograd.grad(s_fn(t, pv).sum(), pv)
     out = sou(chart, x, p).detach()

@@ -24,8 +24,8 @@ import torch
 from torch import Tensor
 
 from .export import model_bytes, save_model
-from .generating import MLP_INPUTS, GeneratingFunction
-from .groupoid import check_chart, sou, tar
+from .generating import MLP_INPUTS, GeneratingFunction, newton_system, solve_momentum
+from .groupoid import check_chart, sou
 from .reference import RigidBody, exact_solution
 from .taylor import evaluate_terms, taylor_terms
 
@@ -252,31 +252,8 @@ def data_from_exact(
     return traj[:, :-1].reshape(-1, 3), traj[:, 1:].reshape(-1, 3)
 
 
-def solve_momentum(
-    s_fn: GeneratingFunction, mu: Tensor, h: float, *, tol: float = 1e-12, max_iter: int = 20
-) -> tuple[Tensor, Tensor]:
-    """Newton for p with tar(∂S/∂p(h, p), p) = μ, from p = μ (as in ``bisection_step``), without
-    tracking gradients to the weights. mu (B, 3) → (p (B, 3) detached, converged (B,) bool)."""
-    mu = mu.detach()
-    t = torch.full((mu.shape[0],), float(h), dtype=mu.dtype, device=mu.device)
-    p = mu.clone()
-    done = torch.zeros(mu.shape[0], dtype=torch.bool, device=mu.device)
-    for _ in range(max_iter):
-        pv = p.detach().requires_grad_(True)
-        with torch.enable_grad():
-            (x,) = torch.autograd.grad(s_fn(t, pv).sum(), pv, create_graph=True)
-            f = tar(s_fn.chart, x, pv) - mu
-            jac = torch.stack(
-                [torch.autograd.grad(f[:, i].sum(), pv, retain_graph=True)[0] for i in range(3)],
-                dim=1,
-            )
-        delta = torch.linalg.solve(jac.detach(), -f.detach()[..., None])[..., 0]
-        delta = torch.where(done[:, None], torch.zeros_like(delta), delta)
-        p = p + delta
-        done = done | (delta.abs().amax(-1) <= tol * p.abs().amax(-1).clamp_min(1e-300))
-        if bool(done.all()):
-            break
-    return p.detach(), done & torch.isfinite(p).all(-1)
+#: Newton cap for the data pairs: a pair that needs more is dropped from the data loss.
+_DATA_NEWTON_ITERATIONS = 20
 
 
 def _differentiable_step(s_fn: GeneratingFunction, mu: Tensor, p: Tensor, h: float) -> Tensor:
@@ -291,13 +268,8 @@ def _differentiable_step(s_fn: GeneratingFunction, mu: Tensor, p: Tensor, h: flo
     """
     t = torch.full((mu.shape[0],), float(h), dtype=mu.dtype, device=mu.device)
     pv = p.detach().requires_grad_(True)
+    f, jac = newton_system(s_fn, s_fn.chart, t, pv, mu)
     with torch.enable_grad():
-        (x,) = torch.autograd.grad(s_fn(t, pv).sum(), pv, create_graph=True)
-        f = tar(s_fn.chart, x, pv) - mu
-        jac = torch.stack(
-            [torch.autograd.grad(f[:, i].sum(), pv, retain_graph=True)[0] for i in range(3)],
-            dim=1,
-        ).detach()
         # pv is a leaf: the backward pass only leaves a (discarded) pv.grad behind.
         pt = pv - torch.linalg.solve(jac, f[..., None])[..., 0]
         (xt,) = torch.autograd.grad(s_fn(t, pt).sum(), pt, create_graph=True)
@@ -308,7 +280,7 @@ def step_map(s_fn: GeneratingFunction, mu: Tensor, h: float) -> tuple[Tensor, Te
     """The model's bisection step μ_k ↦ μ_{k+1} = sou(∂S/∂p(h, p), p) with tar(∂S/∂p(h, p), p) =
     μ_k, differentiable in the weights (exactly, see ``_differentiable_step``); the Newton solve
     itself is not tracked. mu (B, 3) → (μ_{k+1} (B, 3), NaN where not converged; converged (B,))."""
-    p, ok = solve_momentum(s_fn, mu, h)
+    p, ok = solve_momentum(s_fn, mu, h, max_iter=_DATA_NEWTON_ITERATIONS)
     out = _differentiable_step(s_fn, mu, torch.where(ok[:, None], p, mu), h)
     return torch.where(ok[:, None], out, torch.full_like(out, float("nan"))), ok
 
@@ -316,7 +288,7 @@ def step_map(s_fn: GeneratingFunction, mu: Tensor, h: float) -> tuple[Tensor, Te
 def data_loss(s_fn: GeneratingFunction, mu_k: Tensor, mu_k1: Tensor, h: float) -> Tensor:
     """Mean of |step_map(μ_k) − μ_{k+1}|² / |μ_k|² (squared relative one-step error, scale-free
     like the homogeneous HJ loss) over the pairs whose Newton solve converged; (n, 3) each → ()."""
-    p, ok = solve_momentum(s_fn, mu_k, h)
+    p, ok = solve_momentum(s_fn, mu_k, h, max_iter=_DATA_NEWTON_ITERATIONS)
     # Failed solves are dropped before the differentiable part: masking their NaNs afterwards
     # would still send 0·NaN = NaN into every weight's gradient.
     mu_k, mu_k1, p = mu_k[ok], mu_k1[ok], p[ok]
