@@ -56,13 +56,18 @@ def test_lbfgs_lowers_the_validation_residual_after_adam():
         f"{adam.validation_rms:.3e} -> {polished.validation_rms:.3e}"
     )
     assert adam.lbfgs_iterations_run == 0 and adam.lbfgs_losses == []
+    # The reported final loss is the polished one, not Adam's last.
+    assert adam.final_loss == adam.losses[-1]
+    assert polished.final_loss == polished.lbfgs_losses[-1] < adam.final_loss
 
 
 def test_new_fields_are_recorded_in_the_model_file(tmp_path: Path):
     result = train(_tiny(iterations=5, lbfgs_iterations=2), progress=False)
     path = save_result(result, tmp_path / "m.safetensors", name="m", command="-")
-    config = json.loads(pr.load_model(path).metadata["config"])
+    meta = pr.load_model(path).metadata
+    config = json.loads(meta["config"])
     assert config["lbfgs_iterations"] == 2 and config["data_weight"] == 0.0
+    assert meta["final_loss"] == result.lbfgs_losses[-1]
 
 
 @pytest.mark.parametrize(

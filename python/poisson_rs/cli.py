@@ -107,7 +107,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     path = save_result(result, args.out, name=name, command=command)
     its = max(cfg.iterations, 1)
     print(
-        f"final loss {result.losses[-1] if result.losses else float('nan'):.3e}, "
+        f"final loss {result.final_loss:.3e}, "
         f"validation RMS residual {result.validation_rms:.3e}, "
         f"{result.seconds:.1f} s ({result.seconds / its:.4f} s/iteration) -> {path}"
     )

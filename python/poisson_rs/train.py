@@ -317,6 +317,13 @@ class TrainResult:
     data_rms: float = float("nan")
     """Root of the data loss (relative one-step error) on the training pairs; NaN without data."""
 
+    @property
+    def final_loss(self) -> float:
+        """The last training loss evaluated (absolute units): L-BFGS's when it polished, else
+        Adam's; NaN when no iteration ran."""
+        losses = self.lbfgs_losses or self.losses
+        return losses[-1] if losses else float("nan")
+
 
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -611,7 +618,7 @@ def save_result(
             "name": name,
             "command": command,
             "seed": cfg.seed,
-            "final_loss": result.losses[-1] if result.losses else float("nan"),
+            "final_loss": result.final_loss,
             "validation_rms_residual": result.validation_rms,
             "train_seconds": round(result.seconds, 2),
             "iterations": cfg.iterations,
