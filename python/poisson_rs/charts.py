@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -336,5 +337,113 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
     axes[0].legend(fontsize=8)
     fig.suptitle("Where methods break (× at the top: Newton failed for some state)")
     fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path
+
+
+# --- Size against accuracy and speed (``poisson-rs sweep``; numbers from poisson_rs.sweep) ---
+
+_DEPTH_COLOURS = {1: "tab:cyan", 2: "tab:blue", 3: "tab:green"}
+
+
+def sweep_figure(rows: Sequence[dict[str, Any]], path: Path, *, title: str = "") -> Path:
+    """Error at T from (1,1,2) and from (3,2,0), and rollout steps/s, against parameter count
+    (log–log), from :func:`poisson_rs.sweep.run_sweep` rows.
+
+    Each trained seed is a small dot and each architecture's median a large one (colour: depth),
+    medians of one depth joined by a line; a shipped model is a star labelled with where it was
+    trained; each Taylor series (no network) is a horizontal line. A non-finite error (a failed
+    rollout) is an × on the panel's top edge.
+    """
+    from .sweep import medians
+
+    fig = Figure(figsize=(17, 5.4), layout="constrained")
+    axes = fig.subplots(1, 3)
+    panels = [
+        ("error_112", "|μ(T) − μ_exact(T)|, μ₀ = (1, 1, 2)"),
+        ("error_320", "|μ(T) − μ_exact(T)|, μ₀ = (3, 2, 0)"),
+        ("steps_per_s", "rollout steps/s (Rust, batch 64)"),
+    ]
+    learned = [r for r in rows if r["kind"] == "learned"]
+    med = medians(learned)
+    for ax, (key, ylabel) in zip(axes, panels, strict=True):
+        edge = ax.get_xaxis_transform()
+        for depth in sorted({r["depth"] for r in med}):
+            colour = _DEPTH_COLOURS.get(depth, "tab:gray")
+            pts = sorted((r for r in med if r["depth"] == depth), key=lambda r: r["params"])
+            seeds = [r for r in learned if r["depth"] == depth]
+            ok = [r for r in seeds if math.isfinite(r[key])]
+            ax.plot(
+                [r["params"] for r in ok],
+                [r[key] for r in ok],
+                ls="none",
+                marker="o",
+                ms=3.5,
+                alpha=0.45,
+                color=colour,
+            )
+            bad = [r["params"] for r in seeds if not math.isfinite(r[key])]
+            if bad:
+                ax.plot(
+                    bad,
+                    [0.985] * len(bad),
+                    ls="none",
+                    marker="x",
+                    mew=2,
+                    ms=8,
+                    color=colour,
+                    transform=edge,
+                    clip_on=False,
+                )
+            good = [r for r in pts if r[key] is not None and math.isfinite(r[key])]
+            ax.plot(
+                [r["params"] for r in good],
+                [r[key] for r in good],
+                marker="o",
+                ms=7,
+                lw=1.2,
+                color=colour,
+                label=f"depth {depth}: median of {pts[0]['n_seeds']} seeds" if pts else None,
+            )
+            for r in good:
+                ax.annotate(
+                    r["model"],
+                    (r["params"], r[key]),
+                    textcoords="offset points",
+                    xytext=(4, 5),
+                    fontsize=7,
+                    color=colour,
+                )
+        for r in rows:
+            if r["kind"] != "shipped" or not math.isfinite(r[key]):
+                continue
+            where = f", trained on {r['trained_on']}" if r["trained_on"] else ""
+            ax.plot(
+                r["params"],
+                r[key],
+                marker="*",
+                ms=13,
+                ls="none",
+                color="tab:purple",
+                label=f"{r['model']} ({r['widths']}{where})",
+            )
+        for r in rows:
+            if r["kind"] != "taylor" or not math.isfinite(r[key]):
+                continue
+            st = method_style(r["model"])
+            ax.axhline(r[key], color=st["color"], ls=st["ls"], lw=1.1, label=r["model"])
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("trainable parameters")
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which="major", alpha=0.3)
+    axes[0].set_title("error at T = 10, h = 0.1", fontsize=10)
+    axes[1].set_title("error at T = 10, h = 0.1", fontsize=10)
+    axes[2].set_title("speed (higher is faster)", fontsize=10)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     return path

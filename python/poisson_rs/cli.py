@@ -1,4 +1,5 @@
-"""Command line: ``poisson-rs demo`` (the paper's scene), ``train``, ``models`` and ``chart``."""
+"""Command line: ``poisson-rs demo`` (the paper's scene), ``train``, ``models``, ``chart``,
+``stability`` and ``sweep``."""
 
 from __future__ import annotations
 
@@ -71,6 +72,8 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
             flags[f.name] = tuple(v) if isinstance(v, list) else v
     if args.n_points == 0:
         flags["n_points"] = None
+    if "sampling_states" in flags:
+        flags["sampling_states"] = _triples(flags["sampling_states"], "--sampling-states")
     command = "poisson-rs " + shlex.join(argv)
     if args.scene is not None:
         import json
@@ -110,6 +113,106 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
         f"final loss {result.final_loss:.3e}, "
         f"validation RMS residual {result.validation_rms:.3e}, "
         f"{result.seconds:.1f} s ({result.seconds / its:.4f} s/iteration) -> {path}"
+    )
+    return 0
+
+
+def _triples(values: Sequence[float], flag: str) -> tuple[tuple[float, float, float], ...]:
+    """A flat list x y z x y z ... as 3-vectors; ValueError unless its length is a multiple of 3."""
+    if not values or len(values) % 3:
+        raise ValueError(f"{flag} needs x y z for each state (3 numbers each), got {len(values)}")
+    it = iter(float(v) for v in values)
+    return tuple(zip(it, it, it, strict=True))
+
+
+def _sampling_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--sampling",
+        choices=["uniform", "scene"],
+        help="training points uniform over the domain, or partly near the scene's orbits",
+    )
+    p.add_argument(
+        "--sampling-fraction",
+        dest="sampling_fraction",
+        type=float,
+        help="share of each batch near the orbits with --sampling scene (default 0.5)",
+    )
+    p.add_argument(
+        "--sampling-noise",
+        dest="sampling_noise",
+        type=float,
+        help="offset of an orbit point, relative to |μ| (default 0.02)",
+    )
+
+
+def _architectures(values: Sequence[str]) -> list[tuple[int, ...]]:
+    """Architectures from "8,8" "16,16,16" to [(8, 8), (16, 16, 16)]; ValueError if malformed."""
+    out = []
+    for v in values:
+        try:
+            out.append(tuple(int(w) for w in v.split(",")))
+        except ValueError:
+            raise ValueError(f"--widths takes integers like 8,8 or 16,16,16; got {v!r}") from None
+    return out
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    import json
+    import os
+    import time
+
+    import torch
+
+    from . import charts
+    from .sweep import FAST, medians, run_sweep
+
+    out = Path(args.out)
+    png = out / f"{args.stem}.png"
+    if args.replot is not None:
+        rows = json.loads(Path(args.replot).read_text())
+        charts.sweep_figure(rows, png, title=args.title or "")
+        print(f"wrote {png}")
+        return 0
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    # One torch thread for training and one rayon thread for the rollouts (read when the rayon
+    # pool starts, at this process's first rollout): costs per core, steady on a shared machine.
+    torch.set_num_threads(args.threads)
+    os.environ.setdefault("RAYON_NUM_THREADS", str(args.threads))
+    kwargs: dict[str, Any] = dict(FAST) if args.fast else {}
+    if args.widths is not None:
+        kwargs["architectures"] = _architectures(args.widths)
+    if args.seeds is not None:
+        kwargs["seeds"] = args.seeds
+    if args.iterations is not None:
+        kwargs["iterations"] = args.iterations
+    if args.no_paper:
+        kwargs["shipped"] = ()
+    overrides: dict[str, Any] = {}
+    for key in ("sampling", "sampling_fraction", "sampling_noise"):
+        if getattr(args, key) is not None:
+            overrides[key] = getattr(args, key)
+    if overrides.get("sampling") == "scene":
+        # The orbits of the states the sweep measures: the paper's two.
+        from .scene import PAPER_STATES
+
+        overrides["sampling_states"] = tuple(map(tuple, PAPER_STATES.tolist()))
+    t0 = time.perf_counter()
+    rows = run_sweep(
+        overrides=overrides,
+        models_out=args.models_out,
+        progress=None if args.no_progress else lambda m: print(f"  {m}", flush=True),
+        **kwargs,
+    )
+    charts.write_rows(rows, out / f"{args.stem}.csv")
+    med = medians(rows)
+    charts.write_rows(med, out / f"{args.stem}_medians.csv")
+    charts.sweep_figure(rows, png, title=args.title or "")
+    cols = ["model", "params", "error_112", "error_320", "error_held_out", "max_rel_dH"]
+    print(_table(med, [*cols, "steps_per_s", "train_seconds"]))
+    print(
+        f"wrote {png}, {args.stem}.csv/json and {args.stem}_medians.csv/json to {out} "
+        f"in {time.perf_counter() - t0:.0f} s"
     )
     return 0
 
@@ -312,6 +415,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--data-points", dest="data_points", type=int, help="exact one-step pairs for the data loss"
     )
     t.add_argument("--data-h", dest="data_h", type=float, help="step of the data pairs (h_max)")
+    _sampling_flags(t)
+    t.add_argument(
+        "--sampling-states",
+        dest="sampling_states",
+        type=float,
+        nargs="+",
+        metavar="X",
+        help="initial states whose orbits scene sampling follows: x y z [x y z ...]",
+    )
+    t.add_argument(
+        "--sampling-horizon", dest="sampling_horizon", type=float, help="orbit time span (10)"
+    )
     t.add_argument("--dtype", choices=["float32", "float64"])
     t.add_argument("--device", help="cpu, cuda, cuda:0, ...")
     t.add_argument("--checkpoint", default=None, help="checkpoint file (written periodically)")
@@ -343,6 +458,24 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="skip the shipped paper-configuration model (253k parameters, slow)",
     )
+    sw = sub.add_parser(
+        "sweep", help="accuracy against parameter count and rollout speed, over network sizes"
+    )
+    sw.add_argument("--out", default="out/sweep", help="output folder (default: out/sweep)")
+    sw.add_argument("--stem", default="sweep", help="file name stem (default: sweep)")
+    sw.add_argument(
+        "--widths", nargs="+", metavar="W,W", help="architectures, e.g. 8,8 16,16,16 (default: 6)"
+    )
+    sw.add_argument("--seeds", type=int, nargs="+", help="training seeds (default: 0 1 2)")
+    sw.add_argument("--iterations", type=int, help="Adam iterations (default: 2000)")
+    _sampling_flags(sw)
+    sw.add_argument("--no-paper", dest="no_paper", action="store_true", help="skip the paper model")
+    sw.add_argument("--fast", action="store_true", help="two tiny networks, 20 iterations (tests)")
+    sw.add_argument("--threads", type=int, default=1, help="torch and rayon threads (default 1)")
+    sw.add_argument("--models-out", dest="models_out", help="folder to save the trained models in")
+    sw.add_argument("--replot", metavar="JSON", help="redraw the chart from rows saved")
+    sw.add_argument("--title", default=None, help="figure title")
+    sw.add_argument("--no-progress", dest="no_progress", action="store_true")
     return p
 
 
@@ -358,6 +491,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_chart(args)
         if args.command == "stability":
             return cmd_stability(args)
+        if args.command == "sweep":
+            return cmd_sweep(args)
         return cmd_models(args)
     except (ValueError, FileNotFoundError) as e:
         print(f"poisson-rs {args.command}: {e}", file=sys.stderr)

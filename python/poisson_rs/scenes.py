@@ -25,6 +25,8 @@ A scene is a TOML file::
     [model]                                 # optional TrainConfig overrides, plus
     chart = "exp"                           #   evaluate_every (iterations between rollouts)
     widths = [4]                            #   and margin ([lo, hi] on the |μ| range)
+    sampling = "scene"                      # optional: half of each batch near the exact
+                                            #   orbits of the scene's states up to its horizon
 
 The shell states are drawn with their own seed (|μ| uniform in [r_min, r_max], directions
 uniform on the sphere), so they are held out from the training points. Errors are Euclidean
@@ -88,6 +90,9 @@ _MODEL_TYPES: dict[str, str] = {
     "data_weight": "float",
     "data_points": "int",
     "data_h": "float",
+    "sampling": "str",
+    "sampling_fraction": "float",
+    "sampling_noise": "float",
     "evaluate_every": "int",
     "margin": "floats",
 }
@@ -365,7 +370,8 @@ def load_scene(path: str | Path) -> Scene:
 
 def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
     """The TrainConfig a scene asks for: shell domain from the |μ| its states visit, h_max from its
-    largest step, then its [model] values, then ``overrides``.
+    largest step, then its [model] values, then ``overrides``; with ``sampling = "scene"`` the
+    sampled orbits are the scene's states up to its horizon unless ``overrides`` name others.
 
     |μ| is a Casimir, kept by the exact flow and by every bisection step, so a trajectory stays
     at its |μ₀|: the shell spans margin[0]·min |μ₀| to margin[1]·max |μ₀|.
@@ -382,6 +388,10 @@ def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
     }
     base.update(scene.model)
     base.update(overrides)
+    if base.get("sampling") == "scene":
+        # Scene sampling follows this scene's own orbits: every state, up to its horizon.
+        base.setdefault("sampling_states", tuple(map(tuple, scene.states().tolist())))
+        base.setdefault("sampling_horizon", scene.horizon)
     return TrainConfig(**base)
 
 
