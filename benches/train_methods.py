@@ -4,15 +4,16 @@
 Methods (each a function ``(s_fn, t, p) -> (∂S/∂t (B,), ∂S/∂p (B, 3))`` differentiable in the
 MLP parameters, importable from this file; ``METHODS`` names them):
 
-- ``nested``: nested autograd, ``torch.autograd.grad(..., create_graph=True)`` (what
-  ``poisson_rs.train`` does);
+- ``nested``: nested autograd, ``torch.autograd.grad(..., create_graph=True)`` (the trainer's
+  ``derivatives="autograd"``, how the shipped models were trained);
 - ``func_grad``: ``torch.func.vmap(torch.func.grad(...))`` of ``functional_call``, per sample;
 - ``func_jvp``: ``torch.func.jvp`` of the batched model along the 4 input directions (each S_b
   depends on (t_b, p_b) only, so one batched tangent gives every sample's derivative);
 - ``hand``: (value, ∂/∂t, ∂/∂p₁, ∂/∂p₂, ∂/∂p₃) propagated by hand through the tanh layers, plus
   the polynomial's closed-form gradient, so the loss needs only a first-order backward;
 - ``hand_reverse``: the same closed forms, but the MLP's input gradient by a hand-written backward
-  pass (one cotangent instead of four tangents); autograd differentiates it once more;
+  pass (one cotangent instead of four tangents); autograd differentiates it once more. This is
+  ``poisson_rs.generating.hj_derivatives``, what the trainer uses by default;
 - ``compiled:<m>``: ``torch.compile`` of method m with the loss (by default the fastest in the
   warm-up; ``--compile M ...`` names others, ``--compile`` alone none), its warm-up bounded by
   ``--compile-timeout`` with SIGALRM; a failure is reported, not raised.
@@ -47,7 +48,13 @@ import torch
 from torch import Tensor
 from torch.func import functional_call, grad, jvp, vmap
 
-from poisson_rs.generating import GeneratingFunction
+from poisson_rs.generating import (
+    GeneratingFunction,
+    assemble_derivatives,
+    hj_derivatives,
+    mlp_input,
+    polynomial_gradient,
+)
 from poisson_rs.groupoid import sou
 from poisson_rs.train import PRESETS, TrainConfig, _loss, build_model, hamiltonian, sample_points
 
@@ -60,12 +67,9 @@ LossFn = Callable[[Tensor, Tensor], Tensor]
 
 
 def nested_autograd(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
-    """∂S/∂t and ∂S/∂p by reverse mode with ``create_graph=True`` (as ``train.hj_residual``)."""
-    t = t.detach().requires_grad_(True)
-    p = p.detach().requires_grad_(True)
-    with torch.enable_grad():
-        st, sp = torch.autograd.grad(s_fn(t, p).sum(), (t, p), create_graph=True)
-    return st, sp
+    """∂S/∂t and ∂S/∂p by reverse mode with ``create_graph=True``:
+    ``generating.hj_derivatives(method="autograd")``."""
+    return hj_derivatives(s_fn, t, p, method="autograd")
 
 
 def func_vmap_grad(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
@@ -94,69 +98,18 @@ def func_jvp(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Te
     return d[0], d[1:].T
 
 
-def polynomial_gradient(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> Tensor:
-    """∂P/∂(t, p₁, p₂, p₃) of the polynomial part in closed form: (B, 4)."""
-    if len(s_fn.coeffs) == 0:
-        return torch.zeros(t.shape[0], 4, dtype=t.dtype, device=t.device)
-    k = s_fn.powers.to(t.dtype)  # (n, 4)
-    x = torch.cat([t[:, None], p], dim=1)[:, None, :]  # (B, 1, 4)
-    pw = x**k  # (B, n, 4): x_j^k_j
-    dpw = k * x ** (k - 1.0).clamp_min(0.0)  # d/dx_j x_j^k_j; the clamp keeps x_j = 0 finite
-    a, b, c, d = pw.unbind(-1)
-    # Products of the other three factors, written out rather than divided out, so that a zero
-    # coordinate needs no special case.
-    others = torch.stack([b * c * d, a * c * d, a * b * d, a * b * c], dim=-1)
-    return torch.einsum("bnj,n->bj", dpw * others, s_fn.coeffs)
-
-
-def _mlp_input(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
-    """The MLP input before ``input_scale``, (B, 4), and its Jacobian rows ∂/∂t, ∂/∂p₁..₃:
-    (B or 1, 4, 4)."""
-    if s_fn.inputs == "t,p":
-        # z = (t, p): the Jacobian is the identity, the same for every sample.
-        return torch.cat([t[:, None], p], dim=1), torch.eye(4, dtype=t.dtype, device=t.device)[None]
-    r = (p * p).sum(1).clamp_min(1e-300).sqrt()  # clamped as in GeneratingFunction.forward
-    u = p / r[:, None]
-    z = torch.cat([(r * t)[:, None], u], dim=1)
-    # z = (r t, p/r): rows ∂z/∂t = (r, 0, 0, 0) and ∂z/∂p_k = (t u_k, (δ_ik − u_i u_k)/r).
-    eye = torch.eye(3, dtype=t.dtype, device=t.device)
-    row_t = torch.cat([r[:, None], torch.zeros_like(p)], dim=1)[:, None, :]
-    rows_p = torch.cat(
-        [(t[:, None] * u)[:, :, None], (eye - u[:, :, None] * u[:, None, :]) / r[:, None, None]],
-        dim=2,
-    )
-    return z, torch.cat([row_t, rows_p], dim=1)
-
-
-def _assemble(
-    s_fn: GeneratingFunction, t: Tensor, p: Tensor, o: Tensor, do: Tensor
-) -> tuple[Tensor, Tensor]:
-    """∂S/∂t, ∂S/∂p from the raw MLP output o (B,) and its gradient do (B, 4) in (t, p): the
-    product rule through t^m, the output scale and, if homogeneous, |p|^(m+1); plus ∂P."""
-    g = polynomial_gradient(s_fn, t, p)
-    m, c = s_fn.mlp_power, s_fn.output_scale
-    if s_fn.inputs == "t,p":
-        n, dn_t, dn_p = c * o, c * do[:, 0], c * do[:, 1:]
-    else:
-        r = (p * p).sum(1).clamp_min(1e-300).sqrt()
-        q = c * r ** (m + 1)
-        n, dn_t = q * o, q * do[:, 0]
-        # ∂(r^(m+1))/∂p_k = (m + 1) r^(m−1) p_k.
-        dn_p = ((m + 1) * c * r ** (m - 1) * o)[:, None] * p + q[:, None] * do[:, 1:]
-    tm = t**m
-    st = g[:, 0] + m * t ** (m - 1) * n + tm * dn_t
-    return st, g[:, 1:] + tm[:, None] * dn_p
-
-
 def hand_forward(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
     """∂S/∂t and ∂S/∂p by hand-propagated forward-mode tangents: (value, ∂/∂t, ∂/∂p₁..₃)
-    through every layer, so that the loss needs only a first-order backward."""
+    through every layer, so that the loss needs only a first-order backward. The closed forms
+    around the MLP are the library's (``generating.mlp_input``, ``assemble_derivatives``)."""
     if not s_fn.widths:
         g = polynomial_gradient(s_fn, t, p)
         return g[:, 0], g[:, 1:]
     lin = s_fn.linears
     w0 = lin[0].weight * s_fn.input_scale  # (H, 4): the input scale folded into the first layer
-    z, jac = _mlp_input(s_fn, t, p)
+    z, jac = mlp_input(s_fn, t, p)
+    if jac is None:  # inputs "t,p": the identity, the same for every sample
+        jac = torch.eye(4, dtype=t.dtype, device=t.device)[None]
     h = torch.nn.functional.linear(z, w0, lin[0].bias)
     dh = jac.transpose(0, 1) @ w0.T  # (4, B or 1, H): tangents of the pre-activation
     for layer in lin[1:]:
@@ -165,28 +118,13 @@ def hand_forward(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor
         h = torch.nn.functional.linear(a, layer.weight, layer.bias)
         # One GEMM for the 4 tangents together: (4, B, H) @ (H, H') runs as (4B, H) @ (H, H').
         dh = da @ layer.weight.T
-    return _assemble(s_fn, t, p, h[:, 0], dh[..., 0].T)
+    return assemble_derivatives(s_fn, t, p, h[:, 0], dh[..., 0].T)
 
 
 def hand_reverse(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
-    """∂S/∂t and ∂S/∂p by a hand-written backward pass to the inputs (one (B, H) cotangent
-    instead of four tangents); autograd then differentiates this graph once more."""
-    if not s_fn.widths:
-        g = polynomial_gradient(s_fn, t, p)
-        return g[:, 0], g[:, 1:]
-    lin = s_fn.linears
-    w0 = lin[0].weight * s_fn.input_scale
-    z, jac = _mlp_input(s_fn, t, p)
-    h = torch.nn.functional.linear(z, w0, lin[0].bias)
-    acts = []
-    for layer in lin[1:]:
-        acts.append(torch.tanh(h))
-        h = torch.nn.functional.linear(acts[-1], layer.weight, layer.bias)
-    g = lin[-1].weight  # (1, H): ∂o/∂a of the last hidden layer, the same for every sample
-    for a, layer in zip(reversed(acts), reversed(lin[:-1]), strict=True):
-        w = w0 if layer is lin[0] else layer.weight
-        g = ((1.0 - a * a) * g) @ w  # through tanh, then the layer below: (B, H_in)
-    return _assemble(s_fn, t, p, h[:, 0], (jac @ g[:, :, None])[..., 0])
+    """The trainer's default: ``generating.hj_derivatives(method="reverse")``, closed forms and a
+    hand-written backward pass to the inputs; autograd then differentiates this graph once."""
+    return hj_derivatives(s_fn, t, p, method="reverse")
 
 
 METHODS: dict[str, Derivatives] = {

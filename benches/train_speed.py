@@ -13,6 +13,7 @@ import time
 
 import torch
 
+from poisson_rs.generating import HJ_DERIVATIVES
 from poisson_rs.train import PRESETS, TrainConfig, train
 
 
@@ -22,9 +23,14 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--iterations", type=int, default=10)
     ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument(
+        "--derivatives", choices=HJ_DERIVATIVES, help="the trainer's ∂S method (preset's default)"
+    )
     args = ap.parse_args()
     cfg = TrainConfig(**PRESETS[args.preset])
     cfg = dataclasses.replace(cfg, device=args.device, iterations=args.warmup + args.iterations)
+    if args.derivatives:
+        cfg = dataclasses.replace(cfg, derivatives=args.derivatives)
     stamps: list[float] = []
 
     def tick(i: int, loss: float) -> None:
@@ -39,6 +45,7 @@ def main() -> None:
         "preset": args.preset,
         "device": name,
         "threads": torch.get_num_threads(),
+        "derivatives": cfg.derivatives,
         "seconds_per_iteration": per_it,
         "iterations_timed": args.iterations,
     }

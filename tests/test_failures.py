@@ -201,7 +201,9 @@ def test_hj_residual_of_taylor_series_shrinks_with_order(chart: str):
 def _torch_relative_residual(model: pr.BisectionIntegrator, mu: np.ndarray, h: float) -> np.ndarray:
     p = torch.from_numpy(mu)
     t = torch.full((len(mu),), h, dtype=torch.float64)
-    r = torch_hj_residual(model.generating, model.body.inertia, t, p, create_graph=False)
+    r = torch_hj_residual(
+        model.generating, model.body.inertia, t, p, create_graph=False, derivatives="autograd"
+    )
     return r.detach().numpy() / BODY.hamiltonian(mu)
 
 

@@ -218,12 +218,22 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_models(args: argparse.Namespace) -> int:
+    import json
+
     from .integrators import list_models, load_model
 
     for name in list_models():
         m = load_model(name)
         md = m.metadata
         print(f"{name}: {m!r}\n  command: {md.get('command', '?')}\n  seed: {md.get('seed', '?')}")
+        try:
+            recorded = json.loads(md.get("config", "{}"))
+        except ValueError:
+            recorded = {}
+        if isinstance(recorded, dict) and recorded and "derivatives" not in recorded:
+            # Recorded before the option existed, i.e. trained with nested autograd; the default
+            # is now the reverse pass, which ends a few ulps away.
+            print("  derivatives: autograd (add --derivatives autograd to reproduce it exactly)")
     return 0
 
 
@@ -429,6 +439,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     t.add_argument("--dtype", choices=["float32", "float64"])
     t.add_argument("--device", help="cpu, cuda, cuda:0, ...")
+    t.add_argument(
+        "--derivatives",
+        choices=["reverse", "autograd"],
+        help="how the HJ loss takes dS/dt, dS/dp: hand-written reverse pass (default, faster) or "
+        "nested autograd (as the shipped models were trained)",
+    )
     t.add_argument("--checkpoint", default=None, help="checkpoint file (written periodically)")
     t.add_argument("--checkpoint-every", dest="checkpoint_every", type=int, default=500)
     t.add_argument("--resume", action="store_true", help="continue from --checkpoint")

@@ -174,6 +174,140 @@ def derivatives(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor,
     return s.detach(), g.detach(), torch.stack(rows, dim=1).detach()
 
 
+#: Ways :func:`hj_derivatives` can take ∂S/∂t and ∂S/∂p (``benches/train_methods.py`` times them
+#: and three more): "reverse", closed forms plus a hand-written backward pass through the MLP, and
+#: "autograd", nested ``torch.autograd.grad`` (how the shipped models were trained).
+HJ_DERIVATIVES: tuple[str, ...] = ("reverse", "autograd")
+
+
+def check_hj_derivatives(method: str) -> str:
+    """Returns ``method`` if it names one of :data:`HJ_DERIVATIVES`, else raises ValueError."""
+    if method not in HJ_DERIVATIVES:
+        raise ValueError(f"derivatives must be one of {HJ_DERIVATIVES}, got {method!r}")
+    return method
+
+
+def polynomial_gradient(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> Tensor:
+    """∂P/∂(t, p₁, p₂, p₃) of the polynomial part in closed form, for t (B,) and p (B, 3) →
+    (B, 4). Constant in the MLP parameters (the coefficients are buffers)."""
+    if len(s_fn.coeffs) == 0:
+        return torch.zeros(t.shape[0], 4, dtype=t.dtype, device=t.device)
+    k = s_fn.powers  # (n, 4)
+    top = int(k.max())
+    x = torch.cat([t[:, None], p], dim=1)  # (B, 4)
+    # x^j for j = 0..top by repeated products, as in ``polynomial``: exact integer powers, and a
+    # zero coordinate needs no special case (0⁰ = 1).
+    table = [torch.ones_like(x)]
+    for _ in range(top):
+        table.append(table[-1] * x)
+    pw = torch.stack(table, dim=2)  # (B, 4, top + 1)
+    cols = torch.arange(4, device=x.device)
+    f = pw[:, cols, k]  # (B, n, 4): x_j^k_j
+    df = k.to(x.dtype) * pw[:, cols, (k - 1).clamp_min(0)]  # k_j x_j^(k_j − 1), 0 where k_j = 0
+    a, b, c, d = f.unbind(-1)
+    # Products of the other three factors, written out rather than divided out (x_j may be 0).
+    others = torch.stack([b * c * d, a * c * d, a * b * d, a * b * c], dim=-1)
+    return torch.einsum("bnj,n->bj", df * others, s_fn.coeffs)
+
+
+def mlp_input(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor | None]:
+    """The MLP input before ``input_scale``, z (B, 4), and its Jacobian rows ∂z/∂t, ∂z/∂p₁..₃ as
+    (B, 4, 4), or None for ``inputs="t,p"`` where z = (t, p) and the Jacobian is the identity."""
+    if s_fn.inputs == "t,p":
+        return torch.cat([t[:, None], p], dim=1), None
+    r = (p * p).sum(1).clamp_min(1e-300).sqrt()  # clamped as in GeneratingFunction.forward
+    u = p / r[:, None]
+    z = torch.cat([(r * t)[:, None], u], dim=1)
+    # z = (r t, p/r): rows ∂z/∂t = (r, 0, 0, 0) and ∂z/∂p_k = (t u_k, (δ_ik − u_i u_k)/r).
+    eye = torch.eye(3, dtype=t.dtype, device=t.device)
+    row_t = torch.cat([r[:, None], torch.zeros_like(p)], dim=1)[:, None, :]
+    rows_p = torch.cat(
+        [(t[:, None] * u)[:, :, None], (eye - u[:, :, None] * u[:, None, :]) / r[:, None, None]],
+        dim=2,
+    )
+    return z, torch.cat([row_t, rows_p], dim=1)
+
+
+def assemble_derivatives(
+    s_fn: GeneratingFunction, t: Tensor, p: Tensor, o: Tensor, do: Tensor
+) -> tuple[Tensor, Tensor]:
+    """∂S/∂t (B,) and ∂S/∂p (B, 3) from the raw MLP output o (B,) and its gradient do (B, 4) in
+    (t, p): the product rule through t^m, the output scale and, if homogeneous, |p|^(m+1); plus
+    the polynomial's closed-form gradient."""
+    g = polynomial_gradient(s_fn, t, p)
+    m, c = s_fn.mlp_power, s_fn.output_scale
+    if s_fn.inputs == "t,p":
+        n, dn_t, dn_p = c * o, c * do[:, 0], c * do[:, 1:]
+    else:
+        r = (p * p).sum(1).clamp_min(1e-300).sqrt()
+        q = c * r ** (m + 1)
+        n, dn_t = q * o, q * do[:, 0]
+        # ∂(r^(m+1))/∂p_k = (m + 1) r^(m−1) p_k.
+        dn_p = ((m + 1) * c * r ** (m - 1) * o)[:, None] * p + q[:, None] * do[:, 1:]
+    tm = t**m
+    st = g[:, 0] + m * t ** (m - 1) * n + tm * dn_t
+    return st, g[:, 1:] + tm[:, None] * dn_p
+
+
+def _hj_derivatives_reverse(
+    s_fn: GeneratingFunction, t: Tensor, p: Tensor
+) -> tuple[Tensor, Tensor]:
+    """∂S/∂t, ∂S/∂p with the MLP's input gradient by a hand-written backward pass: one (B, H)
+    cotangent per layer, built from ordinary tensor ops that autograd can differentiate once
+    (a first-order backward over this graph instead of autograd's double backward)."""
+    if not s_fn.widths:
+        g = polynomial_gradient(s_fn, t, p)
+        return g[:, 0], g[:, 1:]
+    lin = s_fn.linears
+    w0 = lin[0].weight * s_fn.input_scale  # (H, 4): the input scale folded into the first layer
+    z, jac = mlp_input(s_fn, t, p)
+    h = torch.nn.functional.linear(z, w0, lin[0].bias)
+    acts = []
+    for layer in lin[1:]:
+        acts.append(torch.tanh(h))
+        h = torch.nn.functional.linear(acts[-1], layer.weight, layer.bias)
+    g = lin[-1].weight  # (1, H): ∂o/∂a of the last hidden layer, the same for every sample
+    for a, layer in zip(reversed(acts), reversed(lin[:-1]), strict=True):
+        w = w0 if layer is lin[0] else layer.weight
+        g = ((1.0 - a * a) * g) @ w  # through tanh (tanh' = 1 − tanh²), then the layer below
+    do = g if jac is None else (jac @ g[:, :, None])[..., 0]  # (B, 4): ∂o/∂(t, p)
+    return assemble_derivatives(s_fn, t, p, h[:, 0], do)
+
+
+def hj_derivatives(
+    s_fn: GeneratingFunction,
+    t: Tensor,
+    p: Tensor,
+    *,
+    method: str = "reverse",
+    create_graph: bool = True,
+) -> tuple[Tensor, Tensor]:
+    """∂S/∂t and ∂S/∂p at t (B,) [time] and p (B, 3) [momentum] → (B,) and (B, 3), for any
+    :class:`GeneratingFunction` (chart, polynomial part, MLP inputs and power, or no MLP).
+
+    ``create_graph=True`` keeps them differentiable in the MLP parameters, so that a loss built
+    from them can be back-propagated (the HJ loss); False returns them without a graph.
+    ``method`` (one of :data:`HJ_DERIVATIVES`) changes the cost, not the values beyond rounding:
+
+    - "reverse": closed-form polynomial gradient and product rules, and the MLP's input gradient
+      by a hand-written backward pass, so that training needs a first-order backward only (the
+      faster on a CPU: README, Performance);
+    - "autograd": nested ``torch.autograd.grad`` of S.sum() (the paper's way).
+
+    t and p are taken as constants: the results are not differentiable in them.
+    """
+    check_hj_derivatives(method)
+    t, p = t.detach(), p.detach()
+    if method == "autograd":
+        t, p = t.requires_grad_(True), p.requires_grad_(True)
+        with torch.enable_grad():
+            st, sp = torch.autograd.grad(s_fn(t, p).sum(), (t, p), create_graph=create_graph)
+        return st, sp
+    # Like autograd.grad's create_graph: a graph to the parameters exactly when asked for.
+    with torch.set_grad_enabled(create_graph):
+        return _hj_derivatives_reverse(s_fn, t, p)
+
+
 def newton_system(
     s_fn: GeneratingFunction, chart: str, t: Tensor, p: Tensor, mu: Tensor
 ) -> tuple[Tensor, Tensor]:

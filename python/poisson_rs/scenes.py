@@ -86,6 +86,7 @@ _MODEL_TYPES: dict[str, str] = {
     "seed": "int",
     "dtype": "str",
     "device": "str",
+    "derivatives": "str",
     "lbfgs_iterations": "int",
     "data_weight": "float",
     "data_points": "int",

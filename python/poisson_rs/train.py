@@ -25,7 +25,14 @@ import torch
 from torch import Tensor
 
 from .export import model_bytes, save_model
-from .generating import MLP_INPUTS, GeneratingFunction, newton_system, solve_momentum
+from .generating import (
+    MLP_INPUTS,
+    GeneratingFunction,
+    check_hj_derivatives,
+    hj_derivatives,
+    newton_system,
+    solve_momentum,
+)
 from .groupoid import check_chart, sou
 from .reference import RigidBody, exact_solution
 from .taylor import evaluate_terms, taylor_terms
@@ -62,6 +69,10 @@ class TrainConfig:
     seed: int = 0
     dtype: str = "float64"
     device: str = "cpu"
+    derivatives: str = "reverse"
+    """How the HJ loss takes ∂S/∂t and ∂S/∂p (``generating.hj_derivatives``): "reverse" (a
+    hand-written backward pass; the faster) or "autograd" (nested autograd, as the shipped models
+    were trained). The loss agrees to rounding; a run's last bits, and so its path, differ."""
     lbfgs_iterations: int = 0
     """L-BFGS iterations (strong-Wolfe line search, several loss evaluations each) after Adam, on
     one fixed seeded batch of ``batch`` points; 0: none."""
@@ -127,6 +138,7 @@ class TrainConfig:
             raise ValueError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        check_hj_derivatives(self.derivatives)
         self._validate_sampling()
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise ValueError("device 'cuda' requested but torch sees no CUDA device")
@@ -256,18 +268,23 @@ def _sample_domain(
 
 
 def hj_residual(
-    s_fn: GeneratingFunction, inertia: Sequence[float], t: Tensor, p: Tensor, create_graph: bool
+    s_fn: GeneratingFunction,
+    inertia: Sequence[float],
+    t: Tensor,
+    p: Tensor,
+    create_graph: bool,
+    *,
+    derivatives: str = "reverse",
 ) -> Tensor:
-    """r = ∂S/∂t + H(sou(∂S/∂p, p)) by nested autograd. t (B,), p (B, 3) → (B,).
+    """r = ∂S/∂t + H(sou(∂S/∂p, p)), the derivatives by ``hj_derivatives(method=derivatives)``;
+    differentiable in the MLP parameters if ``create_graph``. t (B,), p (B, 3) → (B,), in units
+    of energy.
 
     For a homogeneous S the residual scales as r(t, λp) = λ² r(λt, p).
     """
-    t = t.detach().requires_grad_(True)
-    p = p.detach().requires_grad_(True)
-    with torch.enable_grad():
-        s = s_fn(t, p)
-        st, sp = torch.autograd.grad(s.sum(), (t, p), create_graph=create_graph)
-        return st + hamiltonian(inertia, sou(s_fn.chart, sp, p))
+    st, sp = hj_derivatives(s_fn, t, p, method=derivatives, create_graph=create_graph)
+    with torch.set_grad_enabled(create_graph):
+        return st + hamiltonian(inertia, sou(s_fn.chart, sp, p.detach()))
 
 
 def build_model(cfg: TrainConfig) -> GeneratingFunction:
@@ -320,7 +337,7 @@ def _loss(
 ) -> Tensor:
     """Mean squared HJ residual (eq. HJML); for the homogeneous ansatz each residual is divided by
     |p|², which makes every point weigh as its image on the unit sphere."""
-    r = hj_residual(s_fn, cfg.inertia, t, p, create_graph=create_graph)
+    r = hj_residual(s_fn, cfg.inertia, t, p, create_graph, derivatives=cfg.derivatives)
     if cfg.inputs == "homogeneous":
         r = r / (p * p).sum(1)
     return r.pow(2).mean()
