@@ -11,7 +11,7 @@ import torch
 from conftest import build_generating
 
 from poisson_rs.generating import GeneratingFunction, hj_derivatives
-from poisson_rs.train import TrainConfig, _loss, train
+from poisson_rs.train import PRESETS, TrainConfig, _loss, train
 
 
 def points(
@@ -162,5 +162,7 @@ def test_bad_method_names_are_refused(bad: Any) -> None:
         hj_derivatives(s_fn, *points(4), method=bad)
 
 
-def test_default_is_the_reverse_pass() -> None:
+def test_default_is_the_reverse_pass_and_the_paper_preset_nested_autograd() -> None:
+    """The paper preset keeps nested autograd, the faster on the GPU it is trained on."""
     assert TrainConfig().derivatives == "reverse"
+    assert TrainConfig(**PRESETS["paper"]).derivatives == "autograd"

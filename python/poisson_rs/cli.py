@@ -232,8 +232,8 @@ def cmd_models(args: argparse.Namespace) -> int:
             recorded = {}
         if isinstance(recorded, dict) and recorded and "derivatives" not in recorded:
             # Recorded before the option existed, i.e. trained with nested autograd; the default
-            # is now the reverse pass, which ends a few ulps away.
-            print("  derivatives: autograd (add --derivatives autograd to reproduce it exactly)")
+            # is now the reverse pass, whose weights end ~1e-14 away.
+            print("  derivatives: autograd (add --derivatives autograd to the command)")
     return 0
 
 
