@@ -16,8 +16,8 @@ use criterion::{
     criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput,
 };
 use poisson_rs::{
-    rollout, BisectionStepper, Chart, GeneratingFunction, Layer, Mlp, MlpInputs, Model, Monomial,
-    NewtonOptions, Polynomial, StepMap,
+    kernel, rollout, BisectionStepper, Chart, GeneratingFunction, Layer, Mlp, MlpInputs, Model,
+    Monomial, NewtonOptions, Polynomial, StepMap,
 };
 
 /// Step size of the paper's scene.
@@ -203,5 +203,31 @@ fn bench_step(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_rollout, bench_step);
+/// The batched layer kernel alone, on one thread: a 250×250 layer of the paper's network against
+/// the jets (10 columns each) of 1 and of 16 trajectories. Throughput counts flops
+/// (2 per weight and column), to set beside a BLAS GEMM on one core.
+fn bench_kernel(c: &mut Criterion) {
+    let mut rng = Rng(3);
+    let (n_in, n_out) = (250, 250);
+    let w: Vec<f64> = (0..n_in * n_out).map(|_| rng.range(-0.1, 0.1)).collect();
+    let packed = kernel::pack(&w, n_in, n_out);
+    println!("kernel: fused multiply-add {}", kernel::uses_fma());
+    let mut group = c.benchmark_group("kernel_250x250");
+    group.sample_size(20);
+    group.warm_up_time(Duration::from_secs(1));
+    group.measurement_time(Duration::from_secs(2));
+    for trajectories in [1usize, 16] {
+        let cols = 10 * trajectories;
+        let x: Vec<f64> = (0..n_in * cols).map(|_| rng.range(-1.0, 1.0)).collect();
+        let mut z = vec![0.0; n_out * cols];
+        group.throughput(Throughput::Elements((2 * n_in * n_out * cols) as u64));
+        group.bench_function(
+            BenchmarkId::new("flops", format!("trajectories={trajectories}")),
+            |b| b.iter(|| kernel::gemm(&packed, n_in, n_out, black_box(&x), cols, &mut z)),
+        );
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_rollout, bench_step, bench_kernel);
 criterion_main!(benches);

@@ -301,13 +301,23 @@ impl Scalar for Jet2 {
 /// A scalar that can seed one of the three independent variables p₁, p₂, p₃: lets one generic
 /// evaluation of S give either its gradient ([`Dual1`]) or its gradient and Hessian ([`Jet2`]).
 pub trait Variable: Scalar {
+    /// Numbers carried per quantity: the rows of a batched layer hold this many per trajectory.
+    const COMPONENTS: usize;
     /// The `i`-th independent variable with value `v`.
     fn variable(v: f64, i: usize) -> Self;
     /// The same quantity from a [`Jet2`] (dropping what this type does not carry).
     fn from_jet(j: &Jet2) -> Self;
+    /// Component `c` (0 is the value).
+    fn component(&self, c: usize) -> f64;
+    /// The quantity whose component `c` is `f(c)`.
+    fn from_components(f: impl Fn(usize) -> f64) -> Self;
+    /// tanh with its chain rule, in place, on `rows` of a batched layer: each row holds the
+    /// components of `n` trajectories, component-major (`row[c·n + j]`).
+    fn tanh_rows(z: &mut [f64], rows: usize, n: usize);
 }
 
 impl Variable for Dual1 {
+    const COMPONENTS: usize = 4;
     fn variable(v: f64, i: usize) -> Self {
         Dual1::var(v, i)
     }
@@ -317,14 +327,73 @@ impl Variable for Dual1 {
             g: j.grad(),
         }
     }
+    #[inline(always)]
+    fn component(&self, c: usize) -> f64 {
+        if c == 0 {
+            self.v
+        } else {
+            self.g[c - 1]
+        }
+    }
+    #[inline(always)]
+    fn from_components(f: impl Fn(usize) -> f64) -> Self {
+        Dual1 {
+            v: f(0),
+            g: [f(1), f(2), f(3)],
+        }
+    }
+    fn tanh_rows(z: &mut [f64], rows: usize, n: usize) {
+        for row in z.chunks_exact_mut(4 * n).take(rows) {
+            let (v, g) = row.split_at_mut(n);
+            let (g0, g12) = g.split_at_mut(n);
+            let (g1, g2) = g12.split_at_mut(n);
+            for j in 0..n {
+                let y = v[j].tanh();
+                let d = 1.0 - y * y;
+                v[j] = y;
+                g0[j] *= d;
+                g1[j] *= d;
+                g2[j] *= d;
+            }
+        }
+    }
 }
 
 impl Variable for Jet2 {
+    const COMPONENTS: usize = 10;
     fn variable(v: f64, i: usize) -> Self {
         Jet2::var(v, i)
     }
     fn from_jet(j: &Jet2) -> Self {
         *j
+    }
+    #[inline(always)]
+    fn component(&self, c: usize) -> f64 {
+        self.0[c]
+    }
+    #[inline(always)]
+    fn from_components(f: impl Fn(usize) -> f64) -> Self {
+        Jet2(std::array::from_fn(f))
+    }
+    fn tanh_rows(z: &mut [f64], rows: usize, n: usize) {
+        for row in z.chunks_exact_mut(10 * n).take(rows) {
+            let (v, rest) = row.split_at_mut(n);
+            let (g, h) = rest.split_at_mut(3 * n);
+            for j in 0..n {
+                let y = v[j].tanh();
+                let d1 = 1.0 - y * y;
+                let d2 = -2.0 * y * d1;
+                v[j] = y;
+                let gj = [g[j], g[n + j], g[2 * n + j]];
+                // The Hessian first: it needs the incoming gradient (Jet2::chain's formula).
+                for (k, &(a, b)) in PAIRS.iter().enumerate() {
+                    h[k * n + j] = d1 * h[k * n + j] + d2 * gj[a] * gj[b];
+                }
+                for (i, &gi) in gj.iter().enumerate() {
+                    g[i * n + j] = d1 * gi;
+                }
+            }
+        }
     }
 }
 

@@ -5,6 +5,10 @@
 
 use crate::dual::{Dual1, Jet2, Scalar, Variable, PAIRS};
 use crate::error::CoreError;
+use crate::kernel;
+
+/// Most trajectories one batched evaluation takes.
+pub const MAX_BATCH: usize = 32;
 
 /// One monomial c · t^k p₁^a p₂^b p₃^c.
 #[derive(Clone, Debug, PartialEq)]
@@ -86,6 +90,8 @@ pub struct Layer {
     pub n_out: usize,
     pub weight: Vec<f64>,
     pub bias: Vec<f64>,
+    /// W in the batched kernel's panel layout ([`kernel::pack`]).
+    packed: Vec<f64>,
 }
 
 impl Layer {
@@ -108,12 +114,26 @@ impl Layer {
                 "a layer holds a NaN or infinite weight".into(),
             ));
         }
+        let packed = kernel::pack(&weight, n_in, n_out);
         Ok(Layer {
             n_in,
             n_out,
             weight,
             bias,
+            packed,
         })
+    }
+
+    /// z = W x + b for a batch: `x` holds `n_in` rows and `z` `n_out` rows of `K·n` columns
+    /// (component-major); the bias enters the value columns `0..n` only.
+    fn forward_batch(&self, x: &[f64], n: usize, k: usize, z: &mut [f64]) {
+        let cols = k * n;
+        kernel::gemm(&self.packed, self.n_in, self.n_out, x, cols, z);
+        for (row, &b) in z.chunks_exact_mut(cols).zip(&self.bias) {
+            for v in &mut row[..n] {
+                *v += b;
+            }
+        }
     }
 
     /// out = W x + b, with `x` and `out` of any [`Scalar`].
@@ -203,6 +223,27 @@ impl Mlp {
         }
         src[0]
     }
+
+    /// N for `n` trajectories at once. The inputs are rows 0..4 of `a` (`T::COMPONENTS · n`
+    /// columns each, component-major); returns the output row, in `a` or `b`.
+    fn eval_batch<'a, T: Variable>(
+        &self,
+        n: usize,
+        a: &'a mut [f64],
+        b: &'a mut [f64],
+    ) -> &'a [f64] {
+        let k = T::COMPONENTS;
+        let last = self.layers.len() - 1;
+        let (mut src, mut dst) = (a, b);
+        for (i, layer) in self.layers.iter().enumerate() {
+            layer.forward_batch(src, n, k, dst);
+            if i < last {
+                T::tanh_rows(dst, layer.n_out, n);
+            }
+            std::mem::swap(&mut src, &mut dst);
+        }
+        &src[..k * n]
+    }
 }
 
 /// Scratch memory for one evaluation at a time; allocated once per worker, never per step.
@@ -212,6 +253,9 @@ pub struct Workspace {
     jet_b: Vec<Jet2>,
     d1_a: Vec<Dual1>,
     d1_b: Vec<Dual1>,
+    /// Two (widest layer × 10·MAX_BATCH) activation buffers for batched passes.
+    batch_a: Vec<f64>,
+    batch_b: Vec<f64>,
 }
 
 /// What the MLP sees.
@@ -284,11 +328,18 @@ impl GeneratingFunction {
 
     pub fn workspace(&self) -> Workspace {
         let w = self.mlp.as_ref().map_or(0, Mlp::max_width).max(4);
+        let batch = if self.mlp.is_some() {
+            w * 10 * MAX_BATCH
+        } else {
+            0
+        };
         Workspace {
             jet_a: vec![Jet2::default(); w],
             jet_b: vec![Jet2::default(); w],
             d1_a: vec![Dual1::default(); w],
             d1_b: vec![Dual1::default(); w],
+            batch_a: vec![0.0; batch],
+            batch_b: vec![0.0; batch],
         }
     }
 
@@ -303,10 +354,21 @@ impl GeneratingFunction {
         self.derivatives(t, p, &mut ws.d1_a, &mut ws.d1_b)
     }
 
-    /// S at fixed t with p seeded as the dual variables of `T`.
-    fn derivatives<T: Variable>(&self, t: f64, p: &[f64; 3], a: &mut [T], b: &mut [T]) -> T {
-        let mut s = T::from_jet(&self.polynomial.jet(t, p));
-        let Some(mlp) = &self.mlp else { return s };
+    /// `jet` for up to [`MAX_BATCH`] momenta at once: `out[j]` is the jet at `p[j]`. Each layer
+    /// of the MLP is one matrix–matrix product over the batch.
+    pub fn jets(&self, t: f64, p: &[[f64; 3]], out: &mut [Jet2], ws: &mut Workspace) {
+        self.derivatives_batch(t, p, out, ws);
+    }
+
+    /// `gradient` for up to [`MAX_BATCH`] momenta at once.
+    pub fn gradients(&self, t: f64, p: &[[f64; 3]], out: &mut [Dual1], ws: &mut Workspace) {
+        self.derivatives_batch(t, p, out, ws);
+    }
+
+    /// The MLP's inputs at (t, p) with p seeded as the dual variables of `T`, and the factor
+    /// that multiplies its output; None where the MLP term vanishes identically.
+    #[inline]
+    fn mlp_inputs<T: Variable>(&self, t: f64, p: &[f64; 3]) -> Option<([T; 4], T)> {
         let tm = t.powi(self.mlp_power as i32);
         let pj = [
             T::variable(p[0], 0),
@@ -314,23 +376,64 @@ impl GeneratingFunction {
             T::variable(p[2], 2),
         ];
         match self.inputs {
-            MlpInputs::Plain => {
-                let n = mlp.eval([T::cst(t), pj[0], pj[1], pj[2]], a, b);
-                s = n.mul_add(tm, s);
-            }
+            MlpInputs::Plain => Some(([T::cst(t), pj[0], pj[1], pj[2]], T::cst(tm))),
             MlpInputs::Homogeneous => {
                 let r2 = pj[0] * pj[0] + pj[1] * pj[1] + pj[2] * pj[2];
                 // At p = 0 the term and its derivatives up to order m ≥ 1 vanish.
-                if r2.value() > 0.0 {
-                    let r = r2.sqrt();
-                    let inv = r.recip();
-                    let inputs = [r.scale(t), pj[0] * inv, pj[1] * inv, pj[2] * inv];
-                    let n = mlp.eval(inputs, a, b);
-                    s = (n * r.powi(self.mlp_power as i32 + 1)).mul_add(tm, s);
+                if r2.value() <= 0.0 {
+                    return None;
                 }
+                let r = r2.sqrt();
+                let inv = r.recip();
+                let inputs = [r.scale(t), pj[0] * inv, pj[1] * inv, pj[2] * inv];
+                Some((inputs, r.powi(self.mlp_power as i32 + 1).scale(tm)))
             }
         }
-        s
+    }
+
+    /// S at fixed t with p seeded as the dual variables of `T`.
+    fn derivatives<T: Variable>(&self, t: f64, p: &[f64; 3], a: &mut [T], b: &mut [T]) -> T {
+        let s = T::from_jet(&self.polynomial.jet(t, p));
+        match (&self.mlp, self.mlp_inputs::<T>(t, p)) {
+            (Some(mlp), Some((inputs, factor))) => s + mlp.eval(inputs, a, b) * factor,
+            _ => s,
+        }
+    }
+
+    /// `derivatives` for a batch: the per-trajectory inputs and outputs of the MLP are mapped
+    /// one at a time, the MLP itself runs on all of them together.
+    fn derivatives_batch<T: Variable>(
+        &self,
+        t: f64,
+        p: &[[f64; 3]],
+        out: &mut [T],
+        ws: &mut Workspace,
+    ) {
+        let n = p.len();
+        assert!(n <= MAX_BATCH && out.len() == n, "batch of {n} momenta");
+        for (o, pj) in out.iter_mut().zip(p) {
+            *o = T::from_jet(&self.polynomial.jet(t, pj));
+        }
+        let Some(mlp) = &self.mlp else { return };
+        let cols = T::COMPONENTS * n;
+        let mut factors = [None; MAX_BATCH];
+        for (j, pj) in p.iter().enumerate() {
+            let inputs = self.mlp_inputs::<T>(t, pj);
+            for i in 0..4 {
+                for c in 0..T::COMPONENTS {
+                    // A vanishing term still gets finite inputs; its output is not used.
+                    ws.batch_a[i * cols + c * n + j] =
+                        inputs.map_or(0.0, |(x, _)| x[i].component(c));
+                }
+            }
+            factors[j] = inputs.map(|(_, f)| f);
+        }
+        let row = mlp.eval_batch::<T>(n, &mut ws.batch_a, &mut ws.batch_b);
+        for (j, (o, f)) in out.iter_mut().zip(&factors).enumerate() {
+            if let Some(f) = f {
+                *o = *o + T::from_components(|c| row[c * n + j]) * *f;
+            }
+        }
     }
 
     /// S(t, p) and ∂S/∂t, for the Hamilton–Jacobi residual.

@@ -9,6 +9,7 @@ pub mod dual;
 pub mod error;
 pub mod generating;
 pub mod groupoid;
+pub mod kernel;
 pub mod model;
 pub mod rollout;
 pub mod stepper;

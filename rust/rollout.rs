@@ -1,4 +1,4 @@
-//! Batches of long rollouts, one trajectory per rayon task, in segments of steps.
+//! Batches of long rollouts, a fixed chunk of trajectories per rayon task, in segments of steps.
 //!
 //! Trajectories are independent, so the result is bit-identical whatever the thread count; a
 //! trajectory's state is carried exactly between segments, so it is bit-identical whatever the
@@ -7,7 +7,8 @@
 use rayon::prelude::*;
 
 use crate::error::{CoreError, StepFailure};
-use crate::stepper::StepMap;
+use crate::generating::MAX_BATCH;
+use crate::stepper::{StepMap, StepResult, StepStats};
 
 /// Per-trajectory diagnostics of a rollout.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -140,15 +141,16 @@ impl Rollout {
         let steps = max_steps.min(self.n_steps - self.steps_done);
         let (h, every, first) = (self.h, self.every, self.steps_done);
         if steps > 0 && !self.mu.is_empty() {
-            out.par_chunks_mut(row)
-                .zip(self.mu.par_iter_mut())
-                .zip(self.info.par_iter_mut())
+            // Fixed chunks of `batch` consecutive trajectories: which trajectories share a
+            // batched solve never depends on the thread count.
+            let batch = stepper.batch().clamp(1, MAX_BATCH);
+            out.par_chunks_mut(row * batch)
+                .zip(self.mu.par_chunks_mut(batch))
+                .zip(self.info.par_chunks_mut(batch))
                 .for_each_init(
                     || stepper.workspace(),
                     |ws, ((o, mu), info)| {
-                        if info.converged {
-                            advance_one(stepper, ws, mu, info, h, first..first + steps, every, o);
-                        }
+                        advance_chunk(stepper, ws, mu, info, h, first..first + steps, every, o);
                     },
                 );
         }
@@ -166,39 +168,57 @@ impl Rollout {
     }
 }
 
-/// Takes the global steps `steps` (state k → k+1 for k in the range) of one live trajectory,
-/// writing its records into its row `out` (n_records × 3).
+/// Takes the global steps `steps` (state k → k+1 for k in the range) of a chunk of
+/// trajectories, writing their records into their rows of `out` (n_records × 3 each).
 #[allow(clippy::too_many_arguments)]
-fn advance_one<S: StepMap>(
+fn advance_chunk<S: StepMap>(
     stepper: &S,
     ws: &mut S::Workspace,
-    mu: &mut [f64; 3],
-    info: &mut TrajectoryInfo,
+    mu: &mut [[f64; 3]],
+    info: &mut [TrajectoryInfo],
     h: f64,
     steps: std::ops::Range<usize>,
     every: usize,
     out: &mut [f64],
 ) {
+    let n = mu.len();
+    let row = out.len() / n;
+    let mut live = [false; MAX_BATCH];
+    let mut results: [StepResult; MAX_BATCH] = [Ok(StepStats::default()); MAX_BATCH];
+    for (l, i) in live.iter_mut().zip(info.iter()) {
+        *l = i.converged;
+    }
     for k in steps {
-        match stepper.step(h, mu, ws) {
-            Ok(stats) => {
-                info.newton_iterations += u64::from(stats.iterations);
-                info.max_newton_iterations = info.max_newton_iterations.max(stats.iterations);
-                info.max_residual = info.max_residual.max(stats.residual);
-            }
-            Err(failure) => {
-                // The trajectory stops here: later records are NaN, never stale values.
-                info.converged = false;
-                info.failed_step = k as i64;
-                info.failure = Some(failure);
-                let next = (k + 1).div_ceil(every);
-                out[3 * next..].fill(f64::NAN);
-                return;
-            }
+        if !live[..n].contains(&true) {
+            return;
         }
-        if (k + 1) % every == 0 {
-            let r = 3 * ((k + 1) / every);
-            out[r..r + 3].copy_from_slice(mu);
+        stepper.step_batch(h, mu, &live[..n], &mut results[..n], ws);
+        for i in 0..n {
+            if !live[i] {
+                continue;
+            }
+            let o = &mut out[i * row..(i + 1) * row];
+            match results[i] {
+                Ok(stats) => {
+                    let info = &mut info[i];
+                    info.newton_iterations += u64::from(stats.iterations);
+                    info.max_newton_iterations = info.max_newton_iterations.max(stats.iterations);
+                    info.max_residual = info.max_residual.max(stats.residual);
+                    if (k + 1) % every == 0 {
+                        let r = 3 * ((k + 1) / every);
+                        o[r..r + 3].copy_from_slice(&mu[i]);
+                    }
+                }
+                Err(failure) => {
+                    // The trajectory stops here: later records are NaN, never stale values.
+                    live[i] = false;
+                    info[i].converged = false;
+                    info[i].failed_step = k as i64;
+                    info[i].failure = Some(failure);
+                    let next = (k + 1).div_ceil(every);
+                    o[3 * next..].fill(f64::NAN);
+                }
+            }
         }
     }
 }

@@ -180,6 +180,25 @@ fn random_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction {
     GeneratingFunction::new(Polynomial { terms }, Some(mlp), m, inputs).unwrap()
 }
 
+/// Like [`random_generating`] with two hidden layers of 40: wide enough for the batched path.
+fn wide_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction {
+    let widths = [4, 40, 40, 1];
+    let layers = widths
+        .windows(2)
+        .map(|w| {
+            let (n_in, n_out) = (w[0], w[1]);
+            let a = (6.0 / (n_in + n_out) as f64).sqrt();
+            let weight = (0..n_in * n_out).map(|_| rng.range(-a, a)).collect();
+            let bias = (0..n_out).map(|_| rng.range(-0.5, 0.5)).collect();
+            Layer::new(n_in, n_out, weight, bias).unwrap()
+        })
+        .collect();
+    let mut terms = minus_t_h();
+    terms.extend(random_terms(rng, 4, (2, 4), 3, 0.02));
+    let mlp = Mlp::new(layers).unwrap();
+    GeneratingFunction::new(Polynomial { terms }, Some(mlp), 3, inputs).unwrap()
+}
+
 fn stepper(generating: GeneratingFunction, chart: Chart) -> BisectionStepper {
     BisectionStepper {
         generating,
@@ -892,11 +911,20 @@ fn rollout_in_pool(
 #[test]
 fn rollout_is_bit_identical_across_thread_counts() {
     let mut rng = Rng::new(0x5EED_0030);
-    for (chart, inputs) in [
-        (Chart::Cayley, MlpInputs::Plain),
-        (Chart::Exp, MlpInputs::Homogeneous),
+    for (chart, inputs, wide) in [
+        (Chart::Cayley, MlpInputs::Plain, false),
+        (Chart::Exp, MlpInputs::Homogeneous, false),
+        (Chart::Cayley, MlpInputs::Homogeneous, true),
+        (Chart::Exp, MlpInputs::Plain, true),
     ] {
-        let st = stepper(random_generating(&mut rng, inputs), chart);
+        let gf = if wide {
+            wide_generating(&mut rng, inputs)
+        } else {
+            random_generating(&mut rng, inputs)
+        };
+        let st = stepper(gf, chart);
+        // The wide models take the batched path, in chunks that straddle the thread split.
+        assert_eq!(st.batch() > 1, wide);
         let mut mu0: Vec<[f64; 3]> = (0..37)
             .map(|_| {
                 let r = rng.range(1.0, 4.0);
@@ -2007,6 +2035,138 @@ mod loader_fuzz {
                 apply(&mut bytes, e);
             }
             check(&bytes)?;
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The batched kernel
+// ---------------------------------------------------------------------------------------------
+
+/// The packed register-blocked product equals the textbook one exactly: every element is the
+/// same chain of multiply-adds over k, whatever its block, column position or k-block.
+#[test]
+fn kernel_gemm_is_the_sequential_product_exactly() {
+    use crate::kernel::{gemm, pack, uses_fma};
+    let mut rng = Rng::new(71);
+    // Shapes around the block sizes: MR = 6 rows, NR = 8 columns, KC = 128 k-block.
+    for &(n_in, n_out, cols) in &[
+        (1, 1, 1),
+        (4, 5, 7),
+        (4, 6, 8),
+        (7, 13, 17),
+        (130, 11, 40),
+        (300, 250, 10),
+        (257, 7, 9),
+    ] {
+        let w: Vec<f64> = (0..n_in * n_out).map(|_| rng.range(-1.0, 1.0)).collect();
+        let x: Vec<f64> = (0..n_in * cols).map(|_| rng.range(-2.0, 2.0)).collect();
+        let mut z = vec![f64::NAN; n_out * cols];
+        gemm(&pack(&w, n_in, n_out), n_in, n_out, &x, cols, &mut z);
+        for o in 0..n_out {
+            for c in 0..cols {
+                let mut acc = 0.0;
+                for k in 0..n_in {
+                    let (a, b) = (w[o * n_in + k], x[k * cols + c]);
+                    acc = if uses_fma() {
+                        a.mul_add(b, acc)
+                    } else {
+                        a * b + acc
+                    };
+                }
+                assert_eq!(
+                    z[o * cols + c].to_bits(),
+                    acc.to_bits(),
+                    "({n_in}, {n_out}, {cols}) at ({o}, {c})"
+                );
+            }
+        }
+    }
+}
+
+/// Batched jets and gradients agree with the one-at-a-time path (a different summation
+/// order, so to round-off) for every input kind, batch size and p = 0.
+#[test]
+fn batched_derivatives_match_single_ones() {
+    use crate::dual::Dual1;
+    use crate::generating::MAX_BATCH;
+    let mut rng = Rng::new(72);
+    for inputs in ALL_INPUTS {
+        for _ in 0..6 {
+            let gf = random_generating(&mut rng, inputs);
+            let mut ws = gf.workspace();
+            for n in [1, 3, 8, 13, MAX_BATCH] {
+                let mut p: Vec<[f64; 3]> = (0..n).map(|_| rng.vec3(-3.0, 3.0)).collect();
+                p[n / 2] = [0.0; 3];
+                let mut jets = vec![Jet2::default(); n];
+                let mut grads = vec![Dual1::default(); n];
+                gf.jets(0.1, &p, &mut jets, &mut ws);
+                gf.gradients(0.1, &p, &mut grads, &mut ws);
+                for j in 0..n {
+                    let single = gf.jet(0.1, &p[j], &mut ws);
+                    let g = gf.gradient(0.1, &p[j], &mut ws);
+                    let scale = single.0.iter().fold(1.0_f64, |m, v| m.max(v.abs()));
+                    for c in 0..10 {
+                        assert!(
+                            (jets[j].0[c] - single.0[c]).abs() <= 1e-13 * scale,
+                            "{inputs:?} n={n} j={j} c={c}: {} vs {}",
+                            jets[j].0[c],
+                            single.0[c]
+                        );
+                    }
+                    for c in 0..3 {
+                        assert!((grads[j].g[c] - g.g[c]).abs() <= 1e-13 * scale);
+                        assert!((grads[j].g[c] - jets[j].0[1 + c]).abs() <= 1e-13 * scale);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A batched Newton step gives each trajectory what its own step gives, to round-off, with the
+/// dead ones left untouched.
+#[test]
+fn batched_step_matches_single_steps() {
+    use crate::stepper::StepResult;
+    let mut rng = Rng::new(73);
+    for chart in [Chart::Cayley, Chart::Exp] {
+        for inputs in ALL_INPUTS {
+            let st = stepper(wide_generating(&mut rng, inputs), chart);
+            let mut ws = st.workspace();
+            let n = st.batch();
+            assert!(n > 1);
+            let mu0: Vec<[f64; 3]> = (0..n)
+                .map(|_| {
+                    let r = rng.range(0.5, 4.0);
+                    rng.sphere(r)
+                })
+                .collect();
+            let live: Vec<bool> = (0..n).map(|i| i % 5 != 2).collect();
+            let mut mu = mu0.clone();
+            let mut results: Vec<StepResult> = vec![Err(StepFailure::NonFinite); n];
+            st.step_batch(0.1, &mut mu, &live, &mut results, &mut ws);
+            for i in 0..n {
+                if !live[i] {
+                    assert_eq!(mu[i], mu0[i]);
+                    assert_eq!(results[i], Err(StepFailure::NonFinite));
+                    continue;
+                }
+                let mut single = mu0[i];
+                let stats = st.step(0.1, &mut single, &mut ws).unwrap();
+                let batched = results[i].unwrap();
+                assert!(
+                    batched.iterations.abs_diff(stats.iterations) <= 1,
+                    "{chart:?} {inputs:?} {i}: {batched:?} vs {stats:?}"
+                );
+                for c in 0..3 {
+                    assert!(
+                        (mu[i][c] - single[c]).abs() <= 1e-12 * norm(&single),
+                        "{chart:?} {inputs:?} {i}: {:?} vs {single:?}",
+                        mu[i]
+                    );
+                }
+            }
         }
     }
 }
