@@ -192,18 +192,13 @@ def polynomial_gradient(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> Tenso
     (B, 4). Constant in the MLP parameters (the coefficients are buffers)."""
     if len(s_fn.coeffs) == 0:
         return torch.zeros(t.shape[0], 4, dtype=t.dtype, device=t.device)
-    k = s_fn.powers  # (n, 4)
-    top = int(k.max())
-    x = torch.cat([t[:, None], p], dim=1)  # (B, 4)
-    # x^j for j = 0..top by repeated products, as in ``polynomial``: exact integer powers, and a
-    # zero coordinate needs no special case (0⁰ = 1).
-    table = [torch.ones_like(x)]
-    for _ in range(top):
-        table.append(table[-1] * x)
-    pw = torch.stack(table, dim=2)  # (B, 4, top + 1)
-    cols = torch.arange(4, device=x.device)
-    f = pw[:, cols, k]  # (B, n, 4): x_j^k_j
-    df = k.to(x.dtype) * pw[:, cols, (k - 1).clamp_min(0)]  # k_j x_j^(k_j − 1), 0 where k_j = 0
+    k = s_fn.powers.to(t.dtype)  # (n, 4)
+    x = torch.cat([t[:, None], p], dim=1)[:, None, :]  # (B, 1, 4)
+    # Tensor powers rather than ``polynomial``'s table of products: no data-dependent size (which
+    # would break a torch.compile graph), and nothing differentiates this gradient in x, where
+    # ``x ** k`` would have NaN second derivatives at 0.
+    f = x**k  # (B, n, 4): x_j^k_j
+    df = k * x ** (k - 1.0).clamp_min(0.0)  # k_j x_j^(k_j − 1); the clamp keeps 0⁻¹ out
     a, b, c, d = f.unbind(-1)
     # Products of the other three factors, written out rather than divided out (x_j may be 0).
     others = torch.stack([b * c * d, a * c * d, a * b * d, a * b * c], dim=-1)
