@@ -410,7 +410,7 @@ def sweep_figure(rows: Sequence[dict[str, Any]], path: Path, *, title: str = "")
                     r["model"],
                     (r["params"], r[key]),
                     textcoords="offset points",
-                    xytext=(4, 5),
+                    xytext=(4, -11) if depth >= 3 else (4, 5),  # apart from depth 2's labels
                     fontsize=7,
                     color=colour,
                 )
@@ -418,6 +418,8 @@ def sweep_figure(rows: Sequence[dict[str, Any]], path: Path, *, title: str = "")
             if r["kind"] != "shipped" or not math.isfinite(r[key]):
                 continue
             where = f", trained on {r['trained_on']}" if r["trained_on"] else ""
+            if r["train_seconds"] is not None:
+                where += f" in {r['train_seconds']:.0f} s"
             ax.plot(
                 r["params"],
                 r[key],
@@ -425,13 +427,14 @@ def sweep_figure(rows: Sequence[dict[str, Any]], path: Path, *, title: str = "")
                 ms=13,
                 ls="none",
                 color="tab:purple",
-                label=f"{r['model']} ({r['widths']}{where})",
+                label=f"shipped {r['model']}: {r['widths']}{where}",
             )
         for r in rows:
             if r["kind"] != "taylor" or not math.isfinite(r[key]):
                 continue
             st = method_style(r["model"])
-            ax.axhline(r[key], color=st["color"], ls=st["ls"], lw=1.1, label=r["model"])
+            label = f"{r['model']} (no network)"
+            ax.axhline(r[key], color=st["color"], ls=st["ls"], lw=1.1, label=label)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("trainable parameters")

@@ -156,6 +156,21 @@ def _architectures(values: Sequence[str]) -> list[tuple[int, ...]]:
     return out
 
 
+def _sweep_title(rows: Sequence[dict[str, Any]]) -> str:
+    """What a sweep trained, from its rows: iterations, seeds and sampling of the learned ones."""
+    learned = [r for r in rows if r["kind"] == "learned"]
+    if not learned:
+        return ""
+    its = sorted({r["iterations"] for r in learned})
+    seeds = sorted({r["seed"] for r in learned})
+    sampling = ", ".join(sorted({r["sampling"] for r in learned}))
+    return (
+        f"Default recipe (Cayley, Taylor K=3 + t⁵·MLP) at several sizes: "
+        f"{'/'.join(map(str, its))} Adam iterations, seeds {', '.join(map(str, seeds))}, "
+        f"{sampling} sampling; paper's scene, h = 0.1, T = 10"
+    )
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     import json
     import os
@@ -170,7 +185,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     png = out / f"{args.stem}.png"
     if args.replot is not None:
         rows = json.loads(Path(args.replot).read_text())
-        charts.sweep_figure(rows, png, title=args.title or "")
+        charts.sweep_figure(rows, png, title=args.title or _sweep_title(rows))
         print(f"wrote {png}")
         return 0
     if args.threads < 1:
@@ -207,7 +222,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     charts.write_rows(rows, out / f"{args.stem}.csv")
     med = medians(rows)
     charts.write_rows(med, out / f"{args.stem}_medians.csv")
-    charts.sweep_figure(rows, png, title=args.title or "")
+    charts.sweep_figure(rows, png, title=args.title or _sweep_title(rows))
     cols = ["model", "params", "error_112", "error_320", "error_held_out", "max_rel_dH"]
     print(_table(med, [*cols, "steps_per_s", "train_seconds"]))
     print(

@@ -98,7 +98,8 @@ COLUMNS = (
     "steps_per_s",
 )
 """Every row's keys, in this order. ``kind``: "learned" (trained here), "shipped" or "taylor";
-``widths``: hidden widths joined by "-" ("" without a network); ``seed``, ``train_seconds``,
+``widths``: hidden widths joined by "-" ("" without a network); ``sampling``: "uniform" or
+"scene F, noise σ" (TrainConfig.sampling_fraction and sampling_noise); ``seed``, ``train_seconds``,
 ``validation_rms``: None where they do not apply; a failed trajectory's errors are inf."""
 
 _NUMERIC = (
@@ -290,7 +291,7 @@ def run_sweep(
             )
         sampling = cfg.sampling
         if cfg.sampling == "scene":
-            sampling = f"scene {cfg.sampling_fraction:g}"
+            sampling = f"scene {cfg.sampling_fraction:g}, noise {cfg.sampling_noise:g}"
         row: Row = {
             "model": name,
             "kind": "learned",
