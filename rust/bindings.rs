@@ -127,6 +127,12 @@ impl PyModel {
             .map_or(0, |m| m.n_parameters())
     }
 
+    /// Trajectories a rollout solves together in batched passes (1: one at a time).
+    #[getter]
+    fn batch(&self) -> usize {
+        self.inner.stepper(NewtonOptions::default()).batch()
+    }
+
     #[getter]
     fn n_polynomial_terms(&self) -> usize {
         self.inner.generating.polynomial.terms.len()
@@ -306,12 +312,13 @@ fn run_rollout<'py, S: StepMap>(
     Ok((traj.into_pyarray(py), info_dict(py, &info)?))
 }
 
-/// Rolls out the bisection integrator of `model` from each row of `mu0` (n, 3).
+/// Rolls out the bisection integrator of `model` from each row of `mu0` (n, 3). `simplified`
+/// lets batched steps reuse the Newton Jacobian (see `NewtonOptions::simplified`).
 ///
 /// Returns the trajectories (n, n_steps // every + 1, 3) and a dict of per-trajectory arrays.
 /// Ctrl-C interrupts it (KeyboardInterrupt) within about SEGMENT_SECONDS.
 #[pyfunction]
-#[pyo3(signature = (model, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
+#[pyo3(signature = (model, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50, simplified=true))]
 #[allow(clippy::too_many_arguments)]
 fn rollout_model<'py>(
     py: Python<'py>,
@@ -322,9 +329,13 @@ fn rollout_model<'py>(
     every: usize,
     tol: f64,
     max_iter: u32,
+    simplified: bool,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     let mu0 = states(&mu0, "mu0")?;
-    let newton = NewtonOptions::validated(tol, max_iter)?;
+    let newton = NewtonOptions {
+        simplified,
+        ..NewtonOptions::validated(tol, max_iter)?
+    };
     let stepper = model.inner.stepper(newton);
     run_rollout(py, &stepper, &mu0, h, n_steps, every)
 }

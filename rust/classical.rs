@@ -672,10 +672,7 @@ mod tests {
     #[test]
     fn newton_reports_failures_and_zero_state_is_a_fixed_point() {
         let b = body(PAPER);
-        let tight = NewtonOptions {
-            tol: 1e-12,
-            max_iter: 1,
-        };
+        let tight = NewtonOptions::validated(1e-12, 1).unwrap();
         let mut mu = [1.0, 1.0, 2.0];
         let r = ImplicitMidpoint {
             body: b,

@@ -90,8 +90,9 @@ pub struct Layer {
     pub n_out: usize,
     pub weight: Vec<f64>,
     pub bias: Vec<f64>,
-    /// W in the batched kernel's panel layout ([`kernel::pack`]).
+    /// W and Wᵀ in the batched kernel's panel layout ([`kernel::pack`]).
     packed: Vec<f64>,
+    packed_t: Vec<f64>,
 }
 
 impl Layer {
@@ -115,12 +116,17 @@ impl Layer {
             ));
         }
         let packed = kernel::pack(&weight, n_in, n_out);
+        let transposed: Vec<f64> = (0..n_in * n_out)
+            .map(|i| weight[(i % n_out) * n_in + i / n_out])
+            .collect();
+        let packed_t = kernel::pack(&transposed, n_out, n_in);
         Ok(Layer {
             n_in,
             n_out,
             weight,
             bias,
             packed,
+            packed_t,
         })
     }
 
@@ -224,6 +230,54 @@ impl Mlp {
         src[0]
     }
 
+    /// N and its gradient with respect to the 4 inputs for `n` trajectories: one pass of values
+    /// forward (keeping every layer's activations in `acts`) and one of adjoints back, 4 flops
+    /// per weight against forward mode's 8. Inputs are rows 0..4 of `acts` (`n` columns);
+    /// returns the output row, and the input adjoints in rows 0..4 of `a` or `b`.
+    fn value_and_input_gradient<'a>(
+        &self,
+        n: usize,
+        acts: &'a mut [f64],
+        a: &'a mut [f64],
+        b: &'a mut [f64],
+    ) -> (&'a [f64], &'a [f64]) {
+        let last = self.layers.len() - 1;
+        let mut off = 0;
+        for (i, layer) in self.layers.iter().enumerate() {
+            let (x, z) = acts[off..].split_at_mut(layer.n_in * n);
+            layer.forward_batch(x, n, 1, z);
+            if i < last {
+                for v in &mut z[..layer.n_out * n] {
+                    *v = v.tanh();
+                }
+            }
+            off += layer.n_in * n;
+        }
+        // `off` is now the output row. Adjoints: δ = 1 at the output, g = Wᵀ δ per layer, and
+        // δ = g ⊙ tanh' through each hidden activation y (tanh' = 1 − y²).
+        let (acts, out) = acts.split_at(off);
+        let (mut delta, mut g) = (a, b);
+        delta[..n].fill(1.0);
+        for (i, layer) in self.layers.iter().enumerate().rev() {
+            kernel::gemm(&layer.packed_t, layer.n_out, layer.n_in, delta, n, g);
+            off -= layer.n_in * n;
+            if i > 0 {
+                let y = &acts[off..off + layer.n_in * n];
+                for (gv, &yv) in g[..layer.n_in * n].iter_mut().zip(y) {
+                    *gv *= 1.0 - yv * yv;
+                }
+            }
+            std::mem::swap(&mut delta, &mut g);
+        }
+        (&out[..n], &delta[..4 * n])
+    }
+
+    /// Rows of activations `value_and_input_gradient` keeps per trajectory: the inputs and
+    /// every layer's output.
+    fn activation_rows(&self) -> usize {
+        4 + self.layers.iter().map(|l| l.n_out).sum::<usize>()
+    }
+
     /// N for `n` trajectories at once. The inputs are rows 0..4 of `a` (`T::COMPONENTS · n`
     /// columns each, component-major); returns the output row, in `a` or `b`.
     fn eval_batch<'a, T: Variable>(
@@ -256,6 +310,8 @@ pub struct Workspace {
     /// Two (widest layer × 10·MAX_BATCH) activation buffers for batched passes.
     batch_a: Vec<f64>,
     batch_b: Vec<f64>,
+    /// Every layer's activations for MAX_BATCH trajectories, kept for the reverse pass.
+    acts: Vec<f64>,
 }
 
 /// What the MLP sees.
@@ -340,6 +396,7 @@ impl GeneratingFunction {
             d1_b: vec![Dual1::default(); w],
             batch_a: vec![0.0; batch],
             batch_b: vec![0.0; batch],
+            acts: vec![0.0; self.mlp.as_ref().map_or(0, Mlp::activation_rows) * MAX_BATCH],
         }
     }
 
@@ -363,6 +420,41 @@ impl GeneratingFunction {
     /// `gradient` for up to [`MAX_BATCH`] momenta at once.
     pub fn gradients(&self, t: f64, p: &[[f64; 3]], out: &mut [Dual1], ws: &mut Workspace) {
         self.derivatives_batch(t, p, out, ws);
+    }
+
+    /// S and ∂S/∂p for up to [`MAX_BATCH`] momenta, with the MLP differentiated in reverse
+    /// mode: half the flops of [`GeneratingFunction::gradients`], the same numbers to
+    /// round-off.
+    pub fn gradients_reverse(&self, t: f64, p: &[[f64; 3]], out: &mut [Dual1], ws: &mut Workspace) {
+        let n = p.len();
+        assert!(n <= MAX_BATCH && out.len() == n, "batch of {n} momenta");
+        for (o, pj) in out.iter_mut().zip(p) {
+            *o = Dual1::from_jet(&self.polynomial.jet(t, pj));
+        }
+        let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
+            return;
+        };
+        let mut inputs = [None; MAX_BATCH];
+        for (j, pj) in p.iter().enumerate() {
+            inputs[j] = self.mlp_inputs::<Dual1>(t, pj);
+            for i in 0..4 {
+                ws.acts[i * n + j] = inputs[j].map_or(0.0, |(x, _)| x[i].v);
+            }
+        }
+        let (value, adjoint) =
+            mlp.value_and_input_gradient(n, &mut ws.acts, &mut ws.batch_a, &mut ws.batch_b);
+        for (j, (o, inp)) in out.iter_mut().zip(&inputs[..n]).enumerate() {
+            if let Some((x, f)) = inp {
+                // Chain rule through the input map: ∂N/∂p = Σᵢ ∂N/∂inᵢ · ∂inᵢ/∂p.
+                let mut nd = Dual1::cst(value[j]);
+                for (i, xi) in x.iter().enumerate() {
+                    for c in 0..3 {
+                        nd.g[c] += adjoint[i * n + j] * xi.g[c];
+                    }
+                }
+                *o = *o + nd * *f;
+            }
+        }
     }
 
     /// The MLP's inputs at (t, p) with p seeded as the dual variables of `T`, and the factor
@@ -414,7 +506,9 @@ impl GeneratingFunction {
         for (o, pj) in out.iter_mut().zip(p) {
             *o = T::from_jet(&self.polynomial.jet(t, pj));
         }
-        let Some(mlp) = &self.mlp else { return };
+        let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
+            return;
+        };
         let cols = T::COMPONENTS * n;
         let mut factors = [None; MAX_BATCH];
         for (j, pj) in p.iter().enumerate() {

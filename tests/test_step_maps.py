@@ -75,6 +75,54 @@ def test_step_map_matches_torch_both_charts(
     _check_step(model, mu, h)
 
 
+# MLPs with over 1000 parameters: the Rust core solves them 16 trajectories at a time, each layer
+# one matrix product, with simplified Newton by default.
+BATCHED = [
+    pytest.param(110, "cayley", "t,p", (40, 40), 1, id="cayley-tp-40x40"),
+    pytest.param(111, "exp", "homogeneous", (64, 32, 16), 3, id="exp-homogeneous-64x32x16"),
+]
+
+
+@pytest.mark.parametrize("newton", ["simplified", "full"])
+@pytest.mark.parametrize(("seed", "chart", "inputs", "widths", "mlp_power"), BATCHED)
+def test_batched_step_map_matches_torch(
+    random_model: RandomModel,
+    seed: int,
+    chart: str,
+    inputs: str,
+    widths: tuple[int, ...],
+    mlp_power: int,
+    newton: str,
+):
+    loaded = random_model(seed, chart=chart, inputs=inputs, widths=widths, mlp_power=mlp_power)
+    model = pr.LearnedIntegrator(loaded._source, newton=newton)  # type: ignore[arg-type]
+    assert model.batch == 16 and model.newton == newton
+    # 37 states: two full batches and a partial one.
+    mu = random_states(np.random.default_rng(seed), 37)
+    _check_step(model, mu, 0.1)
+
+
+def test_simplified_and_full_newton_agree_over_a_rollout(random_model: RandomModel):
+    loaded = random_model(110, chart="cayley", inputs="t,p", widths=(40, 40), mlp_power=1)
+    mu = random_states(np.random.default_rng(5), 40)
+    runs = {}
+    for newton in ("simplified", "full"):
+        model = pr.LearnedIntegrator(loaded._source, newton=newton)  # type: ignore[arg-type]
+        runs[newton] = pr.integrate(model, mu, 0.1, 50, return_info=True)
+    (a, info_a), (b, info_b) = runs["simplified"], runs["full"]
+    assert _rel_err(a, b, mu) <= 1e-11
+    assert info_a.converged.all() and info_b.converged.all()
+    # More updates, each far cheaper: simplified Newton is linear, not quadratic.
+    assert (info_a.newton_iterations >= info_b.newton_iterations).all()
+    assert info_a.max_residual.max() <= 1e-11 * np.linalg.norm(mu, axis=1).max()
+
+
+def test_newton_option_is_checked():
+    with pytest.raises(ValueError, match="newton must be 'simplified' or 'full'"):
+        pr.load_model("default", newton="quasi")  # type: ignore[arg-type]
+    assert pr.load_model("default").batch == 1  # 121 parameters: one trajectory at a time
+
+
 @pytest.mark.parametrize("chart", ["cayley", "exp"])
 @pytest.mark.parametrize("order", [1, 3, 5])
 def test_taylor_step_map_matches_torch(chart: str, order: int):

@@ -76,11 +76,20 @@ class BisectionIntegrator:
     (the truncated Taylor series of the exact S).
     """
 
-    def __init__(self, source: Path | bytes, *, tol: float = 1e-12, max_iter: int = 50) -> None:
+    def __init__(
+        self,
+        source: Path | bytes,
+        *,
+        tol: float = 1e-12,
+        max_iter: int = 50,
+        newton: Literal["simplified", "full"] = "simplified",
+    ) -> None:
         if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
             raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
         if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
             raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        if newton not in ("simplified", "full"):
+            raise ValueError(f"newton must be 'simplified' or 'full', got {newton!r}")
         self._source = source
         if isinstance(source, bytes):
             self._core = _core.Model.from_bytes(source)
@@ -95,6 +104,7 @@ class BisectionIntegrator:
         self.domain: dict[str, Any] = _check_domain(self.metadata["domain"])
         self.tol = float(tol)
         self.max_iter = int(max_iter)
+        self.newton = newton
         self._generating: GeneratingFunction | None = None
 
     @property
@@ -122,6 +132,12 @@ class BisectionIntegrator:
     def n_parameters(self) -> int:
         """Trainable parameters of the MLP part (0 for a polynomial S)."""
         return int(self._core.n_parameters)
+
+    @property
+    def batch(self) -> int:
+        """Trajectories a rollout solves together, each MLP layer one matrix product over them
+        (1: one at a time, for MLPs too small to gain from it)."""
+        return int(self._core.batch)
 
     @property
     def generating(self) -> GeneratingFunction:
@@ -185,7 +201,16 @@ class BisectionIntegrator:
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        return _core.rollout_model(self._core, mu0, h, n_steps, every, self.tol, self.max_iter)
+        return _core.rollout_model(
+            self._core,
+            mu0,
+            h,
+            n_steps,
+            every,
+            self.tol,
+            self.max_iter,
+            self.newton == "simplified",
+        )
 
     def __repr__(self) -> str:
         return (
@@ -211,13 +236,20 @@ def list_models() -> list[str]:
 
 
 def load_model(
-    path: str | os.PathLike[str] | None = None, *, tol: float = 1e-12, max_iter: int = 50
+    path: str | os.PathLike[str] | None = None,
+    *,
+    tol: float = 1e-12,
+    max_iter: int = 50,
+    newton: Literal["simplified", "full"] = "simplified",
 ) -> LearnedIntegrator:
     """Loads a learned integrator.
 
     ``path`` is a model file, the name of a shipped model (see :func:`list_models`), or None for
     the default model. ``tol`` and ``max_iter`` set the Newton solve (relative update tolerance and
-    iteration cap). Raises FileNotFoundError for a missing file, ValueError for a corrupt one.
+    iteration cap). Models large enough to be solved in batches (``batch > 1``, e.g. the paper's)
+    use simplified Newton by default: the Jacobian of a step's first update is kept while the
+    updates contract by 4× or more; ``newton="full"`` recomputes it every update. Both agree to
+    ``tol``. Raises FileNotFoundError for a missing file, ValueError for a corrupt one.
     """
     if path is None:
         path = DEFAULT_MODEL
@@ -225,7 +257,7 @@ def load_model(
         raise TypeError(f"path must be a str, a path or None, got {type(path).__name__}")
     if isinstance(path, str) and path in list_models():
         path = str(resources.files(MODELS_PACKAGE).joinpath(f"{path}.safetensors"))
-    return LearnedIntegrator(Path(path), tol=tol, max_iter=max_iter)
+    return LearnedIntegrator(Path(path), tol=tol, max_iter=max_iter, newton=newton)
 
 
 def taylor_integrator(
