@@ -4,8 +4,11 @@
 //! else a seeded random stand-in of the same kind: the Taylor K=3 polynomial for
 //! I = (1.5, 2, 2.5) (Cayley chart) plus t⁵ · MLP with hidden widths (32, 32).
 //!
+//! Also: the batched layer kernel alone on a 250×250 layer, and rollouts of the 500-250-250-250
+//! `paper` model (or a random stand-in of its size) in steps/s and, under full Newton, flops/s.
+//!
 //! Each rollout size does a few thousand to twenty thousand steps per iteration, so
-//! `cargo bench --bench rollout` takes under two minutes on two cores.
+//! `cargo bench --bench rollout` takes about three minutes on two cores.
 
 use std::hint::black_box;
 use std::path::Path;
@@ -101,6 +104,92 @@ fn random_model() -> BisectionStepper {
         chart: Chart::Cayley,
         newton: NewtonOptions::default(),
     }
+}
+
+/// The shipped 500-250-250-250 `paper` model, or a seeded random stand-in of that size.
+fn paper_stepper(newton: NewtonOptions) -> BisectionStepper {
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("python/poisson_rs/models/paper.safetensors");
+    if path.exists() {
+        return Model::from_file(&path)
+            .expect("the paper model file does not load")
+            .stepper(newton);
+    }
+    println!("paper model not found; using a seeded random 500-250-250-250 stand-in");
+    let mut rng = Rng(43);
+    let widths = [4, 500, 250, 250, 250, 1];
+    let layers = widths
+        .windows(2)
+        .map(|w| {
+            let (n_in, n_out) = (w[0], w[1]);
+            let a = 0.1 * (6.0 / (n_in + n_out) as f64).sqrt();
+            let weight = (0..n_in * n_out).map(|_| rng.range(-a, a)).collect();
+            Layer::new(n_in, n_out, weight, vec![0.0; n_out]).unwrap()
+        })
+        .collect();
+    let mut terms = taylor3();
+    terms.terms.truncate(3); // −tH
+    let mlp = Mlp::new(layers).unwrap();
+    let generating = GeneratingFunction::new(terms, Some(mlp), 1, MlpInputs::Plain).unwrap();
+    BisectionStepper {
+        generating,
+        chart: Chart::Cayley,
+        newton,
+    }
+}
+
+/// Paper-sized MLP (253,501 parameters): steps/s with the default simplified Newton, and the
+/// kernel's flop rate under full Newton, where every update is a value/gradient/Hessian pass
+/// (20 flops per weight) and the final pass a reverse-mode gradient (4 per weight).
+fn bench_paper(c: &mut Criterion) {
+    let simplified = paper_stepper(NewtonOptions::default());
+    let full = paper_stepper(NewtonOptions {
+        simplified: false,
+        ..NewtonOptions::default()
+    });
+    let weights: usize = simplified
+        .generating
+        .mlp
+        .as_ref()
+        .map_or(0, |m| m.layers.iter().map(|l| l.weight.len()).sum());
+    let mut group = c.benchmark_group("rollout_paper");
+    group.sample_size(10);
+    group.warm_up_time(Duration::from_secs(1));
+    group.sampling_mode(SamplingMode::Flat);
+    for (batch, n_steps) in [(1usize, 20usize), (64, 4), (4096, 1)] {
+        let mu0 = initial_states(batch);
+        let mut out = vec![0.0; batch * (n_steps + 1) * 3];
+        let infos = rollout(&full, &mu0, H, n_steps, 1, &mut out).unwrap();
+        assert!(
+            infos.iter().all(|i| i.converged),
+            "paper bench trajectories failed"
+        );
+        let updates: u64 = infos.iter().map(|i| i.newton_iterations).sum();
+        let flops = (20 * updates + 4 * (batch * n_steps) as u64) * weights as u64;
+        // Batch 4096 takes about a second per iteration.
+        group.measurement_time(Duration::from_secs(if batch == 4096 { 15 } else { 4 }));
+        for (name, stepper, throughput) in [
+            (
+                "steps",
+                &simplified,
+                Throughput::Elements((batch * n_steps) as u64),
+            ),
+            ("full_newton_flops", &full, Throughput::Elements(flops)),
+        ] {
+            group.throughput(throughput);
+            group.bench_with_input(
+                BenchmarkId::new(name, format!("batch={batch}")),
+                &mu0,
+                |b, mu0| {
+                    b.iter(|| {
+                        let infos = rollout(stepper, black_box(mu0), H, n_steps, 1, &mut out);
+                        black_box(infos.unwrap())
+                    })
+                },
+            );
+        }
+    }
+    group.finish();
 }
 
 fn load_stepper() -> BisectionStepper {
@@ -229,5 +318,11 @@ fn bench_kernel(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_rollout, bench_step, bench_kernel);
+criterion_group!(
+    benches,
+    bench_rollout,
+    bench_step,
+    bench_kernel,
+    bench_paper
+);
 criterion_main!(benches);
