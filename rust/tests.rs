@@ -139,6 +139,12 @@ fn random_mlp(rng: &mut Rng, max_width: usize, gain: f64) -> Mlp {
         widths.push(1 + rng.below(max_width));
     }
     widths.push(1);
+    mlp_with_widths(rng, &widths, gain)
+}
+
+/// A tanh MLP with the given layer sizes (4 first, 1 last), Xavier-uniform weights times `gain`
+/// and biases in (−0.5, 0.5).
+fn mlp_with_widths(rng: &mut Rng, widths: &[usize], gain: f64) -> Mlp {
     let layers = widths
         .windows(2)
         .map(|w| {
@@ -182,20 +188,9 @@ fn random_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction {
 
 /// Like [`random_generating`] with two hidden layers of 40: wide enough for the batched path.
 fn wide_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction {
-    let widths = [4, 40, 40, 1];
-    let layers = widths
-        .windows(2)
-        .map(|w| {
-            let (n_in, n_out) = (w[0], w[1]);
-            let a = (6.0 / (n_in + n_out) as f64).sqrt();
-            let weight = (0..n_in * n_out).map(|_| rng.range(-a, a)).collect();
-            let bias = (0..n_out).map(|_| rng.range(-0.5, 0.5)).collect();
-            Layer::new(n_in, n_out, weight, bias).unwrap()
-        })
-        .collect();
+    let mlp = mlp_with_widths(rng, &[4, 40, 40, 1], 1.0);
     let mut terms = minus_t_h();
     terms.extend(random_terms(rng, 4, (2, 4), 3, 0.02));
-    let mlp = Mlp::new(layers).unwrap();
     GeneratingFunction::new(Polynomial { terms }, Some(mlp), 3, inputs).unwrap()
 }
 
