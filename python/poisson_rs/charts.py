@@ -15,6 +15,18 @@ from matplotlib.figure import Figure  # the OO API: no pyplot state, no display 
 from .scene import Run, SceneResult
 
 
+def _save_with_legend(
+    fig: Figure, path: Path, handles: Sequence[Any], labels: Sequence[str], title: str | None
+) -> Path:
+    """One legend right of the panels, an optional title, and the PNG at ``path``."""
+    fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    return path
+
+
 def write_rows(rows: Sequence[dict[str, Any]], path: Path) -> None:
     """Writes dict rows as CSV and the same rows as JSON (``path`` with suffix .json)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -207,12 +219,7 @@ def work_precision_figure(
     if any(r.get("extrapolated") for r in rows):
         handles.append(Line2D([], [], color="0.3", marker="o", mfc="white", ls="none", ms=6))
         labels.append("h > trained h_max")
-    fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    return path
+    return _save_with_legend(fig, path, handles, labels, title)
 
 
 def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "") -> Path:
@@ -250,14 +257,7 @@ def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "")
     for ax in axes:
         for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
             entries.setdefault(label, handle)
-    fig.legend(
-        list(entries.values()), list(entries), loc="outside right center", fontsize=8, frameon=False
-    )
-    if title:
-        fig.suptitle(title, fontsize=10)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    return path
+    return _save_with_legend(fig, path, list(entries.values()), list(entries), title)
 
 
 def stability_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
@@ -444,9 +444,4 @@ def sweep_figure(rows: Sequence[dict[str, Any]], path: Path, *, title: str = "")
     axes[1].set_title("error at T = 10, h = 0.1", fontsize=10)
     axes[2].set_title("speed (higher is faster)", fontsize=10)
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    return path
+    return _save_with_legend(fig, path, handles, labels, title)
