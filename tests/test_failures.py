@@ -71,7 +71,11 @@ def _run_python(code: str, env: dict[str, str] | None = None, timeout: float = 1
 # A rollout of 10⁹ steps (an hour for the learned model, minutes for splitting) that keeps only
 # 1001 states; "ready" is printed just before it starts.
 _LONG_ROLLOUT = """
+import signal
 import sys
+# A job started in the background by a non-interactive shell inherits SIGINT ignored, and Python
+# then installs no handler: restore the one that raises KeyboardInterrupt.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 import numpy as np
 import poisson_rs as pr
 body = pr.RigidBody((1.5, 2.0, 2.5))
