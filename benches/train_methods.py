@@ -51,12 +51,18 @@ from torch.func import functional_call, grad, jvp, vmap
 from poisson_rs.generating import (
     GeneratingFunction,
     assemble_derivatives,
+    first_layer,
     hj_derivatives,
-    mlp_input,
     polynomial_gradient,
 )
-from poisson_rs.groupoid import sou
-from poisson_rs.train import PRESETS, TrainConfig, _loss, build_model, hamiltonian, sample_points
+from poisson_rs.train import (
+    PRESETS,
+    TrainConfig,
+    _loss,
+    build_model,
+    loss_from_derivatives,
+    sample_points,
+)
 
 Derivatives = Callable[[GeneratingFunction, Tensor, Tensor], tuple[Tensor, Tensor]]
 LossFn = Callable[[Tensor, Tensor], Tensor]
@@ -101,16 +107,14 @@ def func_jvp(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Te
 def hand_forward(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
     """∂S/∂t and ∂S/∂p by hand-propagated forward-mode tangents: (value, ∂/∂t, ∂/∂p₁..₃)
     through every layer, so that the loss needs only a first-order backward. The closed forms
-    around the MLP are the library's (``generating.mlp_input``, ``assemble_derivatives``)."""
+    around the MLP are the library's (``generating.first_layer``, ``assemble_derivatives``)."""
     if not s_fn.widths:
         g = polynomial_gradient(s_fn, t, p)
         return g[:, 0], g[:, 1:]
     lin = s_fn.linears
-    w0 = lin[0].weight * s_fn.input_scale  # (H, 4): the input scale folded into the first layer
-    z, jac = mlp_input(s_fn, t, p)
+    h, w0, jac = first_layer(s_fn, t, p)
     if jac is None:  # inputs "t,p": the identity, the same for every sample
         jac = torch.eye(4, dtype=t.dtype, device=t.device)[None]
-    h = torch.nn.functional.linear(z, w0, lin[0].bias)
     dh = jac.transpose(0, 1) @ w0.T  # (4, B or 1, H): tangents of the pre-activation
     for layer in lin[1:]:
         a = torch.tanh(h)
@@ -140,21 +144,11 @@ METHODS: dict[str, Derivatives] = {
 # --------------------------------------------------------------------------------------------
 
 
-def residual_loss(
-    s_fn: GeneratingFunction, inertia: tuple[float, ...], st: Tensor, sp: Tensor, p: Tensor
-) -> Tensor:
-    """The trainer's loss (``train._loss``) from given ∂S/∂t (B,) and ∂S/∂p (B, 3)."""
-    r = st + hamiltonian(inertia, sou(s_fn.chart, sp, p))
-    if s_fn.inputs == "homogeneous":
-        r = r / (p * p).sum(1)
-    return r.pow(2).mean()
-
-
 def hj_loss(s_fn: GeneratingFunction, inertia: tuple[float, ...], method: Derivatives) -> LossFn:
     """``(t, p) -> loss`` with the derivatives taken by ``method``."""
 
     def loss(t: Tensor, p: Tensor) -> Tensor:
-        return residual_loss(s_fn, inertia, *method(s_fn, t, p), p)
+        return loss_from_derivatives(s_fn, inertia, *method(s_fn, t, p), p)
 
     return loss
 
@@ -290,7 +284,7 @@ def compile_runner(
 
     def loss_parts(t: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         st, sp = method(model, t, p)
-        return residual_loss(model, inertia, st, sp, p), st, sp
+        return loss_from_derivatives(model, inertia, st, sp, p), st, sp
 
     # Derivatives and loss in one graph: inductor can fuse the tangent arithmetic with the
     # residual's, and AOTAutograd derives one backward for both. The derivatives come out too,

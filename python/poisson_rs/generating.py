@@ -244,6 +244,18 @@ def assemble_derivatives(
     return st, g[:, 1:] + tm[:, None] * dn_p
 
 
+def first_layer(
+    s_fn: GeneratingFunction, t: Tensor, p: Tensor
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The MLP's first pre-activation (B, H), its weight with the input scale folded in (H, 4),
+    and the Jacobian rows of its input (B, 4, 4), None for inputs "t,p" (see :func:`mlp_input`):
+    where every hand-written derivative pass through the MLP starts."""
+    first = s_fn.linears[0]
+    w0 = first.weight * s_fn.input_scale
+    z, jac = mlp_input(s_fn, t, p)
+    return torch.nn.functional.linear(z, w0, first.bias), w0, jac
+
+
 def _hj_derivatives_reverse(
     s_fn: GeneratingFunction, t: Tensor, p: Tensor
 ) -> tuple[Tensor, Tensor]:
@@ -254,9 +266,7 @@ def _hj_derivatives_reverse(
         g = polynomial_gradient(s_fn, t, p)
         return g[:, 0], g[:, 1:]
     lin = s_fn.linears
-    w0 = lin[0].weight * s_fn.input_scale  # (H, 4): the input scale folded into the first layer
-    z, jac = mlp_input(s_fn, t, p)
-    h = torch.nn.functional.linear(z, w0, lin[0].bias)
+    h, w0, jac = first_layer(s_fn, t, p)
     acts = []
     for layer in lin[1:]:
         acts.append(torch.tanh(h))

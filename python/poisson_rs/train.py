@@ -288,7 +288,14 @@ def hj_residual(
     """
     st, sp = hj_derivatives(s_fn, t, p, method=derivatives, create_graph=create_graph)
     with torch.set_grad_enabled(create_graph):
-        return st + hamiltonian(inertia, sou(s_fn.chart, sp, p.detach()))
+        return _residual(s_fn, inertia, st, sp, p)
+
+
+def _residual(
+    s_fn: GeneratingFunction, inertia: Sequence[float], st: Tensor, sp: Tensor, p: Tensor
+) -> Tensor:
+    """r = ∂S/∂t + H(sou(∂S/∂p, p)) from the derivatives: (B,), in units of energy."""
+    return st + hamiltonian(inertia, sou(s_fn.chart, sp, p.detach()))
 
 
 def build_model(cfg: TrainConfig) -> GeneratingFunction:
@@ -341,8 +348,18 @@ def _loss(
 ) -> Tensor:
     """Mean squared HJ residual (eq. HJML); for the homogeneous ansatz each residual is divided by
     |p|², which makes every point weigh as its image on the unit sphere."""
-    r = hj_residual(s_fn, cfg.inertia, t, p, create_graph, derivatives=cfg.derivatives)
-    if cfg.inputs == "homogeneous":
+    st, sp = hj_derivatives(s_fn, t, p, method=cfg.derivatives, create_graph=create_graph)
+    with torch.set_grad_enabled(create_graph):
+        return loss_from_derivatives(s_fn, cfg.inertia, st, sp, p)
+
+
+def loss_from_derivatives(
+    s_fn: GeneratingFunction, inertia: Sequence[float], st: Tensor, sp: Tensor, p: Tensor
+) -> Tensor:
+    """The mean squared HJ residual from ∂S/∂t (B,) and ∂S/∂p (B, 3) however they were taken,
+    at momenta p (B, 3); for the homogeneous ansatz each residual is divided by |p|²."""
+    r = _residual(s_fn, inertia, st, sp, p)
+    if s_fn.inputs == "homogeneous":
         r = r / (p * p).sum(1)
     return r.pow(2).mean()
 
