@@ -16,7 +16,7 @@ use crate::classical::{ClassicalMethod, RigidBody};
 use crate::error::CoreError;
 use crate::model::{Model, FORMAT};
 use crate::rollout::{n_records, Rollout, TrajectoryInfo};
-use crate::stepper::{NewtonOptions, StepMap};
+use crate::stepper::{batch_size, NewtonOptions, StepMap};
 
 impl From<CoreError> for PyErr {
     fn from(e: CoreError) -> PyErr {
@@ -130,7 +130,7 @@ impl PyModel {
     /// Trajectories a rollout solves together in batched passes (1: one at a time).
     #[getter]
     fn batch(&self) -> usize {
-        self.inner.stepper(NewtonOptions::default()).batch()
+        batch_size(&self.inner.generating)
     }
 
     #[getter]

@@ -134,28 +134,15 @@ fn max_abs(a: &[f64; 3]) -> f64 {
     a[0].abs().max(a[1].abs()).max(a[2].abs())
 }
 
-/// p += δ with J δ = f; returns whether |δ|∞ ≤ tol · |p|∞, and |δ|∞.
-#[inline]
-fn apply_update(
-    jacobian: &Matrix3<f64>,
-    f: &[f64; 3],
-    p: &mut [f64; 3],
-    iterations: &mut u32,
-    tol: f64,
-) -> Result<(bool, f64), StepFailure> {
-    let delta = jacobian
-        .lu()
-        .solve(&Vector3::new(f[0], f[1], f[2]))
-        .ok_or(StepFailure::SingularJacobian)?;
-    if !delta.iter().all(|d| d.is_finite()) {
-        return Err(StepFailure::SingularJacobian);
+/// Trajectories per batched solve for a generating function: [`BISECTION_BATCH`] for MLPs of
+/// [`BATCH_MIN_PARAMETERS`] or more, else 1 (one at a time).
+pub fn batch_size(generating: &GeneratingFunction) -> usize {
+    let weights = generating.mlp.as_ref().map_or(0, Mlp::n_parameters);
+    if weights >= BATCH_MIN_PARAMETERS {
+        BISECTION_BATCH
+    } else {
+        1
     }
-    for i in 0..3 {
-        p[i] += delta[i];
-    }
-    *iterations += 1;
-    let size = delta.amax();
-    Ok((size <= tol * max_abs(p).max(1e-300), size))
 }
 
 impl BisectionStepper {
@@ -178,12 +165,8 @@ impl BisectionStepper {
         let x: [Dual1; 3] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
         let pd: [Dual1; 3] = std::array::from_fn(|i| Dual1::var(p[i], i));
         let t = self.chart.tar(&x, &pd)?;
-        if *iterations >= self.newton.max_iter {
-            return Err(StepFailure::NotConverged);
-        }
-        let f = [target[0] - t[0].v, target[1] - t[1].v, target[2] - t[2].v];
         *jacobian = Matrix3::from_fn(|r, c| t[r].g[c]);
-        apply_update(jacobian, &f, p, iterations, self.newton.tol)
+        self.update(&t.map(|ti| ti.v), jacobian, target, p, iterations)
     }
 
     /// One simplified-Newton update of p from ∂S/∂p at p and a kept Jacobian.
@@ -201,11 +184,37 @@ impl BisectionStepper {
             return Err(StepFailure::NonFinite);
         }
         let t = self.chart.tar(&grad.g, p)?;
+        self.update(&t, jacobian, target, p, iterations)
+    }
+
+    /// p += δ with J δ = μ − tar(x, p), given tar(x, p) at the current p, unless the iteration
+    /// cap is reached. Returns whether |δ|∞ ≤ tol · |p|∞, and |δ|∞.
+    #[inline]
+    fn update(
+        &self,
+        tar: &[f64; 3],
+        jacobian: &Matrix3<f64>,
+        target: &[f64; 3],
+        p: &mut [f64; 3],
+        iterations: &mut u32,
+    ) -> Result<(bool, f64), StepFailure> {
         if *iterations >= self.newton.max_iter {
             return Err(StepFailure::NotConverged);
         }
-        let f = [target[0] - t[0], target[1] - t[1], target[2] - t[2]];
-        apply_update(jacobian, &f, p, iterations, self.newton.tol)
+        let f = Vector3::new(target[0] - tar[0], target[1] - tar[1], target[2] - tar[2]);
+        let delta = jacobian
+            .lu()
+            .solve(&f)
+            .ok_or(StepFailure::SingularJacobian)?;
+        if !delta.iter().all(|d| d.is_finite()) {
+            return Err(StepFailure::SingularJacobian);
+        }
+        for i in 0..3 {
+            p[i] += delta[i];
+        }
+        *iterations += 1;
+        let size = delta.amax();
+        Ok((size <= self.newton.tol * max_abs(p).max(1e-300), size))
     }
 
     /// μ' = sou(∂S/∂p, p) at the converged p, from the gradient of S there; the residual of
@@ -263,12 +272,7 @@ impl StepMap for BisectionStepper {
     }
 
     fn batch(&self) -> usize {
-        let weights = self.generating.mlp.as_ref().map_or(0, Mlp::n_parameters);
-        if weights >= BATCH_MIN_PARAMETERS {
-            BISECTION_BATCH
-        } else {
-            1
-        }
+        batch_size(&self.generating)
     }
 
     /// The Newton solves of the batch in lockstep: each round evaluates S at the momenta still
