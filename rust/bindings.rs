@@ -2,21 +2,28 @@
 //! around batch work and turns core errors into Python exceptions.
 
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use numpy::ndarray::{Array1, Array2, Array3, Ix1, Ix2, Ix3};
-use numpy::{IntoPyArray, PyArray, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    IntoPyArray, PyArray, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{
     PyFileNotFoundError, PyMemoryError, PyOSError, PyRuntimeError, PyValueError,
 };
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::classical::{ClassicalMethod, RigidBody};
+use crate::classical::{ClassicalMethod, HeavyTop, LieMethod, LieStepper, RigidBody};
 use crate::error::CoreError;
+use crate::groupoid::LieAlgebra;
 use crate::model::{Model, FORMAT};
 use crate::rollout::{n_records, Rollout, TrajectoryInfo};
 use crate::stepper::{batch_size, NewtonOptions, StepMap};
+use crate::system::{Hamiltonian, LiePoisson};
+use crate::{with_dim, MAX_DIM};
 
 impl From<CoreError> for PyErr {
     fn from(e: CoreError) -> PyErr {
@@ -31,8 +38,38 @@ impl From<CoreError> for PyErr {
 /// A float64 NumPy array owned by Python.
 type Array<'py, D> = Bound<'py, PyArray<f64, D>>;
 
-/// Largest trajectory array a call may allocate (16 GiB of float64).
-const MAX_OUTPUT_BYTES: usize = 16 << 30;
+/// Cap on what one call may allocate where the available memory cannot be read.
+const FALLBACK_MAX_BYTES: usize = 16 << 30;
+
+/// Fraction of the available memory one call may plan to take.
+const MEMORY_SHARE: f64 = 0.8;
+
+/// MemAvailable from /proc/meminfo, in bytes; None where it cannot be read.
+fn available_bytes() -> Option<usize> {
+    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = info.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: usize = line.split_whitespace().nth(1)?.parse().ok()?;
+    kib.checked_mul(1024)
+}
+
+/// Refuses, with MemoryError, a call whose output of `numbers` float64 plus `extra` bytes of
+/// working memory would not fit in the memory available now; before anything is allocated.
+fn check_output_bytes(numbers: usize, extra: usize) -> PyResult<()> {
+    let need = numbers.saturating_mul(8).saturating_add(extra);
+    let limit = available_bytes()
+        .map(|a| (a as f64 * MEMORY_SHARE) as usize)
+        .unwrap_or(FALLBACK_MAX_BYTES);
+    if need > limit {
+        let gib = |b: usize| b as f64 / f64::from(1u32 << 30);
+        return Err(PyMemoryError::new_err(format!(
+            "this call needs about {:.2} GiB (output and working memory) but only {:.2} GiB \
+             can be used now; raise `every`, or split the batch",
+            gib(need),
+            gib(limit)
+        )));
+    }
+    Ok(())
+}
 
 /// Runs `f` with the GIL released; a panic becomes a RuntimeError instead of crossing into Python.
 fn detached<T: Send>(
@@ -44,21 +81,47 @@ fn detached<T: Send>(
         .map_err(PyErr::from)
 }
 
-/// An (n, 3) float64 array as rows of 3; the caller has made it C-contiguous.
-fn states(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
+/// An (n, N) float64 array as rows of N.
+fn states<const N: usize>(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; N]>> {
     let shape = a.shape();
-    if shape[1] != 3 {
+    if shape[1] != N {
         return Err(PyValueError::new_err(format!(
-            "{what} must have shape (n, 3), got ({}, {})",
+            "{what} must have shape (n, {N}), got ({}, {})",
             shape[0], shape[1]
         )));
     }
-    let view = a.as_array();
-    Ok(view
-        .rows()
-        .into_iter()
-        .map(|r| [r[0], r[1], r[2]])
-        .collect())
+    let mut rows = Vec::new();
+    rows.try_reserve_exact(shape[0])
+        .map_err(|_| PyMemoryError::new_err(format!("cannot allocate {} states", shape[0])))?;
+    rows.extend(
+        a.as_array()
+            .rows()
+            .into_iter()
+            .map(|r| std::array::from_fn(|i| r[i])),
+    );
+    Ok(rows)
+}
+
+fn dim_error(dim: usize) -> PyErr {
+    PyValueError::new_err(format!("dimension {dim} is not supported (1 to {MAX_DIM})"))
+}
+
+/// Set in a child process after fork(): rayon's thread pool does not survive a fork (its
+/// threads are gone but its state says they exist, so a parallel rollout would wait forever).
+/// A forked child runs its rollouts on the calling thread instead; the result is the same bit
+/// for bit, since chunks never depend on the thread count.
+static FORKED: AtomicBool = AtomicBool::new(false);
+
+/// Called by `os.register_at_fork(after_in_child=...)`.
+#[pyfunction]
+fn _after_fork_in_child() {
+    FORKED.store(true, Ordering::SeqCst);
+}
+
+/// Whether rollouts in this process run serially (a forked child).
+#[pyfunction]
+fn serial_rollouts() -> bool {
+    FORKED.load(Ordering::SeqCst)
 }
 
 /// A generating function loaded from a model file.
@@ -83,6 +146,21 @@ impl PyModel {
         Ok(PyModel { inner })
     }
 
+    /// The dimension N of the model's Lie algebra (3 for the rigid body).
+    #[getter]
+    fn dim(&self) -> usize {
+        self.inner.dim
+    }
+
+    /// The structure constants c[i, j, k] of the model's algebra, shape (N, N, N).
+    #[getter]
+    fn structure_constants<'py>(&self, py: Python<'py>) -> PyResult<Array<'py, Ix3>> {
+        let n = self.inner.dim;
+        Array3::from_shape_vec((n, n, n), self.inner.structure_constants.clone())
+            .map(|a| a.into_pyarray(py))
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))
+    }
+
     /// The file's metadata, as strings.
     #[getter]
     fn metadata<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
@@ -100,91 +178,116 @@ impl PyModel {
 
     #[getter]
     fn mlp_power(&self) -> u32 {
-        self.inner.generating.mlp_power
+        self.inner.mlp_power
     }
 
     /// Hidden layer widths of the MLP (empty without one).
     #[getter]
     fn widths(&self) -> Vec<usize> {
-        self.inner
-            .generating
-            .mlp
-            .as_ref()
-            .map_or_else(Vec::new, |m| {
-                m.layers[..m.layers.len() - 1]
-                    .iter()
-                    .map(|l| l.n_out)
-                    .collect()
-            })
+        self.inner.mlp.as_ref().map_or_else(Vec::new, |m| {
+            m.layers[..m.layers.len() - 1]
+                .iter()
+                .map(|l| l.n_out)
+                .collect()
+        })
     }
 
     #[getter]
     fn n_parameters(&self) -> usize {
-        self.inner
-            .generating
-            .mlp
-            .as_ref()
-            .map_or(0, |m| m.n_parameters())
+        self.inner.mlp.as_ref().map_or(0, |m| m.n_parameters())
     }
 
     /// Trajectories a rollout solves together in batched passes (1: one at a time).
     #[getter]
-    fn batch(&self) -> usize {
-        batch_size(&self.inner.generating)
+    fn batch(&self) -> PyResult<usize> {
+        with_dim!(self.inner.dim, N => Ok(batch_size(&self.inner.generating::<N>()?)),
+            Err(dim_error(self.inner.dim)))
     }
 
     #[getter]
     fn n_polynomial_terms(&self) -> usize {
-        self.inner.generating.polynomial.terms.len()
+        self.inner.n_polynomial_terms()
     }
 
-    /// S, ∂S/∂p and ∂²S/∂p² at time t for p of shape (n, 3): arrays (n,), (n, 3), (n, 3, 3).
+    /// S, ∂S/∂p and ∂²S/∂p² at time t for p of shape (n, N): arrays (n,), (n, N), (n, N, N).
     fn derivatives<'py>(
         &self,
         py: Python<'py>,
         t: f64,
         p: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
-        let p = states(&p, "p")?;
-        let g = &self.inner.generating;
-        let (s, grad, hess) = detached(py, || {
-            let mut ws = g.workspace();
-            let n = p.len();
-            let (mut s, mut grad, mut hess) = (
-                Vec::with_capacity(n),
-                Vec::with_capacity(3 * n),
-                Vec::with_capacity(9 * n),
-            );
-            for q in &p {
-                let jet = g.jet(t, q, &mut ws);
-                s.push(jet.0[0]);
-                grad.extend(jet.grad());
-                hess.extend(jet.hess().iter().flatten());
-            }
-            Ok((s, grad, hess))
-        })?;
-        let n = p.len();
-        let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
-        Ok((
-            Array1::from_vec(s).into_pyarray(py),
-            Array2::from_shape_vec((n, 3), grad)
-                .map_err(shape_err)?
-                .into_pyarray(py),
-            Array3::from_shape_vec((n, 3, 3), hess)
-                .map_err(shape_err)?
-                .into_pyarray(py),
-        ))
+        with_dim!(self.inner.dim, N => self.derivatives_n::<N>(py, t, p), Err(dim_error(self.inner.dim)))
     }
 
-    /// S and ∂S/∂t at (t, p) for p of shape (n, 3): arrays (n,), (n,).
+    /// S and ∂S/∂t at (t, p) for p of shape (n, N): arrays (n,), (n,).
     fn time_derivative<'py>(
         &self,
         py: Python<'py>,
         t: f64,
         p: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix1>)> {
-        let p = states(&p, "p")?;
-        let g = &self.inner.generating;
+        with_dim!(self.inner.dim, N => self.time_derivative_n::<N>(py, t, p), Err(dim_error(self.inner.dim)))
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Model(dim={}, chart={:?}, polynomial_terms={}, mlp_parameters={}, mlp_power={})",
+            self.inner.dim,
+            self.inner.chart.name(),
+            self.n_polynomial_terms(),
+            self.n_parameters(),
+            self.inner.mlp_power
+        )
+    }
+}
+
+impl PyModel {
+    fn derivatives_n<'py, const N: usize>(
+        &self,
+        py: Python<'py>,
+        t: f64,
+        p: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
+        let p = states::<N>(&p, "p")?;
+        let g = self.inner.generating::<N>()?;
+        let n = p.len();
+        check_output_bytes(n.saturating_mul(1 + N + N * N), 0)?;
+        let (s, grad, hess) = detached(py, || {
+            let mut ws = g.workspace();
+            let (mut s, mut grad, mut hess) = (
+                Vec::with_capacity(n),
+                Vec::with_capacity(N * n),
+                Vec::with_capacity(N * N * n),
+            );
+            for q in &p {
+                let jet = g.jet(t, q, &mut ws);
+                s.push(jet.v);
+                grad.extend(jet.grad());
+                hess.extend(jet.hess().iter().flatten());
+            }
+            Ok((s, grad, hess))
+        })?;
+        let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
+        Ok((
+            Array1::from_vec(s).into_pyarray(py),
+            Array2::from_shape_vec((n, N), grad)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+            Array3::from_shape_vec((n, N, N), hess)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+        ))
+    }
+
+    fn time_derivative_n<'py, const N: usize>(
+        &self,
+        py: Python<'py>,
+        t: f64,
+        p: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix1>)> {
+        let p = states::<N>(&p, "p")?;
+        let g = self.inner.generating::<N>()?;
+        check_output_bytes(p.len().saturating_mul(2), 0)?;
         let (s, dt): (Vec<f64>, Vec<f64>) = detached(py, || {
             let mut ws = g.workspace();
             Ok(p.iter()
@@ -195,16 +298,6 @@ impl PyModel {
             Array1::from_vec(s).into_pyarray(py),
             Array1::from_vec(dt).into_pyarray(py),
         ))
-    }
-
-    fn __repr__(&self) -> String {
-        format!(
-            "Model(chart={:?}, polynomial_terms={}, mlp_parameters={}, mlp_power={})",
-            self.inner.chart.name(),
-            self.n_polynomial_terms(),
-            self.n_parameters(),
-            self.inner.generating.mlp_power
-        )
     }
 }
 
@@ -235,24 +328,38 @@ fn info_dict<'py>(py: Python<'py>, info: &[TrajectoryInfo]) -> PyResult<Bound<'p
     Ok(d)
 }
 
-/// Records per trajectory and numbers in the (n, records, 3) output of a rollout; refuses
-/// outputs over MAX_OUTPUT_BYTES before anything is allocated.
-fn output_size(n: usize, n_steps: usize, every: usize) -> PyResult<(usize, usize)> {
+/// Records per trajectory and numbers in the (n, records, N) output of a rollout, and a check
+/// that the output, the rollout's own state and every thread's workspace fit in memory.
+fn output_size<const N: usize>(
+    n: usize,
+    n_steps: usize,
+    every: usize,
+    workspace_bytes: usize,
+) -> PyResult<(usize, usize)> {
     if every == 0 {
         return Err(PyValueError::new_err("every must be at least 1"));
     }
     let records = n_records(n_steps, every);
     let len = n
         .checked_mul(records)
-        .and_then(|x| x.checked_mul(3))
-        .filter(|&x| x.saturating_mul(8) <= MAX_OUTPUT_BYTES)
+        .and_then(|x| x.checked_mul(N))
         .ok_or_else(|| {
             PyMemoryError::new_err(format!(
-                "the output ({n} trajectories x {records} states x 3) exceeds {} GiB; \
-                 raise `every` or split the batch",
-                MAX_OUTPUT_BYTES >> 30
+                "the output ({n} trajectories x {records} states x {N}) is too large to index; \
+                 raise `every` or split the batch"
             ))
         })?;
+    let threads = if FORKED.load(Ordering::SeqCst) {
+        1
+    } else {
+        rayon::current_num_threads() + 1
+    };
+    // Per trajectory: its current state, its diagnostics, and the returned diagnostic arrays.
+    let per_trajectory = 8 * N + std::mem::size_of::<TrajectoryInfo>() + 6 * 8;
+    let extra = n
+        .saturating_mul(per_trajectory)
+        .saturating_add(threads.saturating_mul(workspace_bytes));
+    check_output_bytes(len, extra)?;
     Ok((records, len))
 }
 
@@ -260,41 +367,42 @@ fn output_size(n: usize, n_steps: usize, every: usize) -> PyResult<(usize, usize
 /// step of every trajectory, the smallest segment).
 const SEGMENT_SECONDS: f64 = 0.05;
 
-/// Trajectory-steps in the first segment, before its duration is known.
-const FIRST_SEGMENT_WORK: usize = 1 << 12;
-
-/// Runs a rollout of `stepper` into a new (n, records, 3) array, in segments with the GIL
+/// Runs a rollout of `stepper` into a new (n, records, N) array, in segments with the GIL
 /// released. Between segments it re-attaches and calls `py.check_signals()`, so Ctrl-C raises
-/// KeyboardInterrupt within about SEGMENT_SECONDS instead of at the end. Segment sizes adapt to
-/// the measured speed; the result does not depend on them (see [`Rollout`]).
-fn run_rollout<'py, S: StepMap>(
+/// KeyboardInterrupt within about SEGMENT_SECONDS instead of at the end. The first segment is
+/// one step, whatever the model costs; later ones are sized from the measured speed. The result
+/// does not depend on the segmentation (see [`Rollout`]).
+fn run_rollout<'py, const N: usize, S: StepMap<N>>(
     py: Python<'py>,
     stepper: &S,
-    mu0: &[[f64; 3]],
+    mu0: &[[f64; N]],
     h: f64,
     n_steps: usize,
     every: usize,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
-    // Refuses an oversized output before anything is allocated, and one the system cannot
-    // give with MemoryError rather than the abort of a failed infallible allocation.
-    let (records, len) = output_size(mu0.len(), n_steps, every)?;
+    // Refuses what cannot fit before anything is allocated, and an allocation the system
+    // refuses anyway becomes MemoryError rather than the abort of an infallible allocation.
+    let (records, len) = output_size::<N>(mu0.len(), n_steps, every, stepper.workspace_bytes())?;
     let mut out: Vec<f64> = Vec::new();
     out.try_reserve_exact(len).map_err(|_| {
         PyMemoryError::new_err(format!(
-            "cannot allocate the output ({} trajectories x {records} states x 3 float64, \
+            "cannot allocate the output ({} trajectories x {records} states x {N} float64, \
              {:.1} GiB); raise `every` or split the batch",
             mu0.len(),
             (len as f64) * 8.0 / f64::from(1u32 << 30)
         ))
     })?;
+    let serial = FORKED.load(Ordering::SeqCst);
     let mut rollout = detached(py, || {
         out.resize(len, 0.0);
         Rollout::start(mu0, h, n_steps, every, &mut out)
     })?;
-    let mut segment = (FIRST_SEGMENT_WORK / mu0.len().max(1)).max(1);
+    let mut segment = 1;
     while !rollout.is_finished() {
         let start = Instant::now();
-        detached(py, || rollout.advance(stepper, segment, &mut out))?;
+        detached(py, || {
+            rollout.advance_with(stepper, segment, &mut out, !serial)
+        })?;
         py.check_signals()?;
         // Rescale towards SEGMENT_SECONDS, growing at most 8× at a time so that a segment
         // timed while the machine was briefly idle cannot overshoot by much.
@@ -307,15 +415,15 @@ fn run_rollout<'py, S: StepMap>(
         segment = ((segment as f64 * factor) as usize).max(1);
     }
     let info = rollout.into_info();
-    let traj = Array3::from_shape_vec((mu0.len(), records, 3), out)
+    let traj = Array3::from_shape_vec((mu0.len(), records, N), out)
         .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
     Ok((traj.into_pyarray(py), info_dict(py, &info)?))
 }
 
-/// Rolls out the bisection integrator of `model` from each row of `mu0` (n, 3). `simplified`
+/// Rolls out the bisection integrator of `model` from each row of `mu0` (n, N). `simplified`
 /// lets batched steps reuse the Newton Jacobian (see `NewtonOptions::simplified`).
 ///
-/// Returns the trajectories (n, n_steps // every + 1, 3) and a dict of per-trajectory arrays.
+/// Returns the trajectories (n, n_steps // every + 1, N) and a dict of per-trajectory arrays.
 /// Ctrl-C interrupts it (KeyboardInterrupt) within about SEGMENT_SECONDS.
 #[pyfunction]
 #[pyo3(signature = (model, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50, simplified=true))]
@@ -331,13 +439,15 @@ fn rollout_model<'py>(
     max_iter: u32,
     simplified: bool,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
-    let mu0 = states(&mu0, "mu0")?;
     let newton = NewtonOptions {
         simplified,
         ..NewtonOptions::validated(tol, max_iter)?
     };
-    let stepper = model.inner.stepper(newton);
-    run_rollout(py, &stepper, &mu0, h, n_steps, every)
+    with_dim!(model.inner.dim, N => {
+        let mu0 = states::<N>(&mu0, "mu0")?;
+        let stepper = model.inner.stepper::<N>(newton)?;
+        run_rollout(py, &stepper, &mu0, h, n_steps, every)
+    }, Err(dim_error(model.inner.dim)))
 }
 
 /// Rolls out the classical integrator `name` (rk4, midpoint, splitting, splitting4, dmv) for the
@@ -362,10 +472,75 @@ fn rollout_classical<'py>(
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     let method = ClassicalMethod::from_name(name)?;
     let body = RigidBody::new(inertia)?;
-    let mu0 = states(&mu0, "mu0")?;
+    let mu0 = states::<3>(&mu0, "mu0")?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let stepper = method.stepper(body, newton);
     run_rollout(py, &stepper, &mu0, h, n_steps, every)
+}
+
+/// Heavy-top parameters for the splitting integrator: (inertia, mgl, centre of mass).
+type HeavyTopParameters = ([f64; 3], f64, [f64; 3]);
+
+/// Rolls out the classical integrator `name` (rk4, midpoint; splitting for the heavy top) of
+/// the Lie–Poisson system with structure constants `c` (N, N, N) and polynomial Hamiltonian
+/// Σ coeffs[m] Π μ_i^powers[m, i] (powers int64 (M, N), coeffs (M,)), from each row of `mu0`
+/// (n, N). `heavy_top` = (inertia, mgl, com) selects the heavy top's splitting.
+#[pyfunction]
+#[pyo3(signature = (name, c, powers, coeffs, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50, heavy_top=None))]
+#[allow(clippy::too_many_arguments)]
+fn rollout_lie_poisson<'py>(
+    py: Python<'py>,
+    name: &str,
+    c: PyReadonlyArray3<'py, f64>,
+    powers: PyReadonlyArray2<'py, i64>,
+    coeffs: PyReadonlyArray1<'py, f64>,
+    mu0: PyReadonlyArray2<'py, f64>,
+    h: f64,
+    n_steps: usize,
+    every: usize,
+    tol: f64,
+    max_iter: u32,
+    heavy_top: Option<HeavyTopParameters>,
+) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+    let method = LieMethod::from_name(name)?;
+    let newton = NewtonOptions::validated(tol, max_iter)?;
+    let shape = c.shape();
+    let dim = shape[0];
+    if shape[1] != dim || shape[2] != dim {
+        return Err(PyValueError::new_err(format!(
+            "structure constants must have shape (N, N, N), got {shape:?}"
+        )));
+    }
+    if powers.shape()[1] != dim || powers.shape()[0] != coeffs.shape()[0] {
+        return Err(PyValueError::new_err(format!(
+            "the Hamiltonian needs powers of shape (M, {dim}) and coeffs of shape (M,), got {:?} \
+             and {:?}",
+            powers.shape(),
+            coeffs.shape()
+        )));
+    }
+    let top = heavy_top
+        .map(|(i, mgl, com)| HeavyTop::new(i, mgl, com))
+        .transpose()?;
+    let (c, powers, coeffs) = (c.as_array(), powers.as_array(), coeffs.as_array());
+    with_dim!(dim, N => {
+        let algebra = LieAlgebra::<N>::new(std::array::from_fn(|i| {
+            std::array::from_fn(|j| std::array::from_fn(|k| c[[i, j, k]]))
+        }))?;
+        let mut terms = Vec::with_capacity(coeffs.len());
+        for (row, &coeff) in powers.rows().into_iter().zip(coeffs.iter()) {
+            if let Some(&bad) = row.iter().find(|&&e| !(0..=64).contains(&e)) {
+                return Err(PyValueError::new_err(format!(
+                    "Hamiltonian exponent {bad} is outside 0..=64"
+                )));
+            }
+            terms.push((std::array::from_fn(|i| row[i] as u32), coeff));
+        }
+        let system = LiePoisson { algebra, hamiltonian: Hamiltonian::new(terms)? };
+        let stepper = LieStepper::new(method, system, top, newton)?;
+        let mu0 = states::<N>(&mu0, "mu0")?;
+        run_rollout(py, &stepper, &mu0, h, n_steps, every)
+    }, Err(dim_error(dim)))
 }
 
 #[pymodule]
@@ -373,6 +548,10 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyModel>()?;
     m.add_function(wrap_pyfunction!(rollout_model, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_classical, m)?)?;
+    m.add_function(wrap_pyfunction!(rollout_lie_poisson, m)?)?;
+    m.add_function(wrap_pyfunction!(_after_fork_in_child, m)?)?;
+    m.add_function(wrap_pyfunction!(serial_rollouts, m)?)?;
+    m.add("MAX_DIM", MAX_DIM)?;
     m.add("MODEL_FORMAT", FORMAT)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

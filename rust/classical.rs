@@ -1,7 +1,11 @@
-//! Classical baseline integrators for the free rigid body μ̇ = μ × (μ/I) on so(3)*.
+//! Classical baseline integrators: RK4 and the implicit midpoint rule for any Lie–Poisson
+//! system, the free rigid body's splittings and discrete Moser–Veselov, and the heavy top's
+//! kinetic/potential splitting.
 //!
 //! They are not bisection methods, but implement [`StepMap`] like [`BisectionStepper`], so one
 //! [`rollout`] drives them all and timings compare like for like. None allocates per step.
+//!
+//! Rigid body (so(3)*):
 //!
 //! | method | struct | order | Poisson |
 //! |---|---|---|---|
@@ -11,13 +15,17 @@
 //! | `splitting4` | [`Splitting4`] (Suzuki, 5 Strang stages) | 4 | yes |
 //! | `dmv` | [`MoserVeselov`] | 2 | yes (keeps C and H to round-off) |
 //!
+//! Any Lie–Poisson system ([`LieMethod`]): `rk4` and `midpoint` (Poisson for quadratic H), and
+//! for the heavy top `splitting` ([`HeavyTopSplitting`], order 2, Poisson).
+//!
 //! [`BisectionStepper`]: crate::stepper::BisectionStepper
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Const, DimMin, Matrix3, SMatrix, SVector, Vector3};
 
 use crate::error::{CoreError, StepFailure};
 use crate::rollout::{rollout, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepMap, StepStats};
+use crate::system::{LiePoisson, VectorField};
 
 /// A free rigid body: principal moments of inertia I (any order, all finite and > 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -87,14 +95,27 @@ fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
     ]
 }
 
-#[inline]
-fn axpy(a: f64, x: &[f64; 3], y: &[f64; 3]) -> [f64; 3] {
-    [y[0] + a * x[0], y[1] + a * x[1], y[2] + a * x[2]]
+impl VectorField<3> for RigidBody {
+    #[inline]
+    fn field(&self, mu: &[f64; 3]) -> [f64; 3] {
+        self.vector_field(mu)
+    }
+
+    /// d/dμ [μ × (μ/I)] = [μ]× diag(1/I) − [μ/I]×.
+    #[inline]
+    fn jacobian(&self, mu: &[f64; 3]) -> Matrix3<f64> {
+        hat(mu) * Matrix3::from_diagonal(&Vector3::from(self.inv)) - hat(&self.velocity(mu))
+    }
 }
 
 #[inline]
-fn max_abs(a: &[f64; 3]) -> f64 {
-    a[0].abs().max(a[1].abs()).max(a[2].abs())
+fn axpy<const N: usize>(a: f64, x: &[f64; N], y: &[f64; N]) -> [f64; N] {
+    std::array::from_fn(|i| y[i] + a * x[i])
+}
+
+#[inline]
+fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
+    a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
 }
 
 /// The matrix of v ↦ a × v.
@@ -105,7 +126,7 @@ fn hat(a: &[f64; 3]) -> Matrix3<f64> {
 
 /// The stats of an explicit step, or NonFinite if it overflowed.
 #[inline]
-fn explicit_result(mu: &[f64; 3]) -> Result<StepStats, StepFailure> {
+fn explicit_result<const N: usize>(mu: &[f64; N]) -> Result<StepStats, StepFailure> {
     if mu.iter().all(|v| v.is_finite()) {
         Ok(StepStats::default())
     } else {
@@ -115,35 +136,41 @@ fn explicit_result(mu: &[f64; 3]) -> Result<StepStats, StepFailure> {
 
 /// Solves J δ = −f for a Newton update; a singular or overflowing solve is a step failure.
 #[inline]
-fn newton_update(j: Matrix3<f64>, f: &[f64; 3]) -> Result<[f64; 3], StepFailure> {
+fn newton_update<const N: usize>(
+    j: SMatrix<f64, N, N>,
+    f: &[f64; N],
+) -> Result<[f64; N], StepFailure>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
     let d = j
         .lu()
-        .solve(&Vector3::new(-f[0], -f[1], -f[2]))
+        .solve(&SVector::<f64, N>::from_fn(|i, _| -f[i]))
         .ok_or(StepFailure::SingularJacobian)?;
     if !d.iter().all(|v| v.is_finite()) {
         return Err(StepFailure::SingularJacobian);
     }
-    Ok([d[0], d[1], d[2]])
+    Ok(std::array::from_fn(|i| d[i]))
 }
 
 /// Classical explicit Runge–Kutta of order 4. Not Poisson: C and H drift.
-#[derive(Clone, Copy, Debug)]
-pub struct Rk4 {
-    pub body: RigidBody,
+#[derive(Clone, Debug)]
+pub struct Rk4<F> {
+    pub system: F,
 }
 
-impl StepMap for Rk4 {
+impl<const N: usize, F: VectorField<N>> StepMap<N> for Rk4<F> {
     type Workspace = ();
 
     fn workspace(&self) {}
 
-    fn step(&self, h: f64, mu: &mut [f64; 3], _: &mut ()) -> Result<StepStats, StepFailure> {
-        let f = |m: &[f64; 3]| self.body.vector_field(m);
+    fn step(&self, h: f64, mu: &mut [f64; N], _: &mut ()) -> Result<StepStats, StepFailure> {
+        let f = |m: &[f64; N]| self.system.field(m);
         let k1 = f(mu);
         let k2 = f(&axpy(0.5 * h, &k1, mu));
         let k3 = f(&axpy(0.5 * h, &k2, mu));
         let k4 = f(&axpy(h, &k3, mu));
-        for i in 0..3 {
+        for i in 0..N {
             mu[i] += h / 6.0 * (k1[i] + 2.0 * (k2[i] + k3[i]) + k4[i]);
         }
         explicit_result(mu)
@@ -152,38 +179,40 @@ impl StepMap for Rk4 {
 
 /// Implicit midpoint μ' = μ + h f((μ + μ')/2), order 2.
 ///
-/// Poisson here: it keeps every quadratic invariant, so C = |μ|² and H, up to the Newton tolerance.
-/// Newton solves for the midpoint m = μ + (h/2) f(m) with the exact Jacobian
-/// I − (h/2)([m]× diag(1/I) − [m/I]×).
-#[derive(Clone, Copy, Debug)]
-pub struct ImplicitMidpoint {
-    pub body: RigidBody,
+/// It keeps every quadratic invariant: for the rigid body C = |μ|² and H, up to the Newton
+/// tolerance, and for any Lie–Poisson system its quadratic Casimirs (a Poisson map when H is
+/// quadratic). Newton solves for the midpoint m = μ + (h/2) f(m) with the exact Jacobian
+/// I − (h/2) ∂f/∂μ(m).
+#[derive(Clone, Debug)]
+pub struct ImplicitMidpoint<F> {
+    pub system: F,
     pub newton: NewtonOptions,
 }
 
-impl StepMap for ImplicitMidpoint {
+impl<const N: usize, F: VectorField<N>> StepMap<N> for ImplicitMidpoint<F>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
     type Workspace = ();
 
     fn workspace(&self) {}
 
-    fn step(&self, h: f64, mu: &mut [f64; 3], _: &mut ()) -> Result<StepStats, StepFailure> {
-        let body = &self.body;
+    fn step(&self, h: f64, mu: &mut [f64; N], _: &mut ()) -> Result<StepStats, StepFailure> {
+        let body = &self.system;
         let mu0 = *mu;
         let half = 0.5 * h;
         // Start at the explicit Euler midpoint: one Newton update fewer than starting at μ.
-        let mut m = axpy(half, &body.vector_field(&mu0), &mu0);
+        let mut m = axpy(half, &body.field(&mu0), &mu0);
         let mut iterations = 0;
         loop {
             if iterations >= self.newton.max_iter {
                 return Err(StepFailure::NotConverged);
             }
-            let fm = body.vector_field(&m);
-            let r: [f64; 3] = std::array::from_fn(|i| m[i] - mu0[i] - half * fm[i]);
-            // d/dm [m × (m/I)] = [m]× diag(1/I) − [m/I]×.
-            let df = hat(&m) * Matrix3::from_diagonal(&Vector3::from(body.inv))
-                - hat(&body.velocity(&m));
-            let delta = newton_update(Matrix3::identity() - half * df, &r)?;
-            for i in 0..3 {
+            let fm = body.field(&m);
+            let r: [f64; N] = std::array::from_fn(|i| m[i] - mu0[i] - half * fm[i]);
+            let df = body.jacobian(&m);
+            let delta = newton_update(SMatrix::identity() - half * df, &r)?;
+            for i in 0..N {
                 m[i] += delta[i];
             }
             iterations += 1;
@@ -191,8 +220,8 @@ impl StepMap for ImplicitMidpoint {
                 break;
             }
         }
-        let fm = body.vector_field(&m);
-        let residual = max_abs(&std::array::from_fn(|i| m[i] - mu0[i] - half * fm[i]));
+        let fm = body.field(&m);
+        let residual = max_abs::<N>(&std::array::from_fn(|i| m[i] - mu0[i] - half * fm[i]));
         // μ + h f(m) rather than 2m − μ: the increment carries the rounding, not μ.
         *mu = axpy(h, &fm, &mu0);
         if !mu.iter().all(|v| v.is_finite()) {
@@ -246,7 +275,7 @@ impl Splitting4 {
     }
 }
 
-impl<const N: usize> StepMap for SplittingComposition<N> {
+impl<const N: usize> StepMap<3> for SplittingComposition<N> {
     type Workspace = ();
 
     fn workspace(&self) {}
@@ -295,7 +324,7 @@ impl MoserVeselov {
     }
 }
 
-impl StepMap for MoserVeselov {
+impl StepMap<3> for MoserVeselov {
     type Workspace = ();
 
     fn workspace(&self) {}
@@ -408,8 +437,8 @@ impl ClassicalMethod {
 /// A classical integrator chosen at run time (by name), itself a [`StepMap`].
 #[derive(Clone, Debug)]
 pub enum ClassicalStepper {
-    Rk4(Rk4),
-    Midpoint(ImplicitMidpoint),
+    Rk4(Rk4<RigidBody>),
+    Midpoint(ImplicitMidpoint<RigidBody>),
     Splitting(Splitting),
     Splitting4(Splitting4),
     Dmv(MoserVeselov),
@@ -419,10 +448,11 @@ impl ClassicalMethod {
     /// The integrator for `body`; `newton` matters only for the implicit ones.
     pub fn stepper(self, body: RigidBody, newton: NewtonOptions) -> ClassicalStepper {
         match self {
-            ClassicalMethod::Rk4 => ClassicalStepper::Rk4(Rk4 { body }),
-            ClassicalMethod::Midpoint => {
-                ClassicalStepper::Midpoint(ImplicitMidpoint { body, newton })
-            }
+            ClassicalMethod::Rk4 => ClassicalStepper::Rk4(Rk4 { system: body }),
+            ClassicalMethod::Midpoint => ClassicalStepper::Midpoint(ImplicitMidpoint {
+                system: body,
+                newton,
+            }),
             ClassicalMethod::Splitting => ClassicalStepper::Splitting(Splitting::strang(body)),
             ClassicalMethod::Splitting4 => ClassicalStepper::Splitting4(Splitting4::suzuki(body)),
             ClassicalMethod::Dmv => ClassicalStepper::Dmv(MoserVeselov::new(body, newton)),
@@ -430,7 +460,7 @@ impl ClassicalMethod {
     }
 }
 
-impl StepMap for ClassicalStepper {
+impl StepMap<3> for ClassicalStepper {
     type Workspace = ();
 
     fn workspace(&self) {}
@@ -462,6 +492,169 @@ pub fn rollout_classical(
     rollout(&method.stepper(body, newton), mu0, h, n_steps, every, out)
 }
 
+/// The heavy top on se(3)*, μ = (M, Γ), H = ½ Σ Mᵢ²/Iᵢ + mgl χ·Γ:
+/// Ṁ = M × Ω + mgl Γ × χ, Γ̇ = Γ × Ω with Ω = M/I.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HeavyTop {
+    pub body: RigidBody,
+    /// mgl · χ: the weight times the centre of mass in the body frame.
+    pub torque_arm: [f64; 3],
+}
+
+impl HeavyTop {
+    pub fn new(inertia: [f64; 3], mgl: f64, com: [f64; 3]) -> Result<Self, CoreError> {
+        if !(mgl.is_finite() && com.iter().all(|v| v.is_finite())) {
+            return Err(CoreError::Invalid(format!(
+                "mgl and the centre of mass must be finite, got {mgl} and {com:?}"
+            )));
+        }
+        Ok(HeavyTop {
+            body: RigidBody::new(inertia)?,
+            torque_arm: com.map(|c| mgl * c),
+        })
+    }
+
+    /// Exact flow for time t of Hᵢ = Mᵢ²/(2Iᵢ): M and Γ turn about eᵢ by the same angle.
+    #[inline]
+    fn axis_flow(&self, i: usize, t: f64, mu: &mut [f64; 6]) {
+        let (a, b) = ((i + 1) % 3, (i + 2) % 3);
+        let (s, c) = (t * mu[i] * self.body.inv[i]).sin_cos();
+        for off in [0, 3] {
+            let (x, y) = (mu[off + a], mu[off + b]);
+            mu[off + a] = c * x + s * y;
+            mu[off + b] = c * y - s * x;
+        }
+    }
+
+    /// Exact flow for time t of the potential mgl χ·Γ: Γ fixed, M += t mgl Γ × χ.
+    #[inline]
+    fn potential_flow(&self, t: f64, mu: &mut [f64; 6]) {
+        let g = [mu[3], mu[4], mu[5]];
+        let d = cross(&g, &self.torque_arm);
+        for i in 0..3 {
+            mu[i] += t * d[i];
+        }
+    }
+}
+
+/// Strang splitting of the heavy top into its kinetic and potential parts, order 2:
+/// V(h/2) ∘ K(h) ∘ V(h/2), with the kinetic flow K itself the rigid body's Strang splitting
+/// over the three axes. Every sub-flow is exact, so the step is a Poisson map and keeps both
+/// Casimirs |Γ|² and M·Γ to round-off.
+#[derive(Clone, Copy, Debug)]
+pub struct HeavyTopSplitting {
+    pub top: HeavyTop,
+}
+
+impl StepMap<6> for HeavyTopSplitting {
+    type Workspace = ();
+
+    fn workspace(&self) {}
+
+    fn step(&self, h: f64, mu: &mut [f64; 6], _: &mut ()) -> Result<StepStats, StepFailure> {
+        let top = &self.top;
+        top.potential_flow(0.5 * h, mu);
+        top.axis_flow(0, 0.5 * h, mu);
+        top.axis_flow(1, 0.5 * h, mu);
+        top.axis_flow(2, h, mu);
+        top.axis_flow(1, 0.5 * h, mu);
+        top.axis_flow(0, 0.5 * h, mu);
+        top.potential_flow(0.5 * h, mu);
+        explicit_result(mu)
+    }
+}
+
+/// The classical integrators of a general Lie–Poisson system, by name.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LieMethod {
+    Rk4,
+    Midpoint,
+    /// The heavy top's kinetic/potential splitting; needs [`HeavyTop`] parameters.
+    Splitting,
+}
+
+impl LieMethod {
+    pub const ALL: [LieMethod; 3] = [LieMethod::Rk4, LieMethod::Midpoint, LieMethod::Splitting];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            LieMethod::Rk4 => "rk4",
+            LieMethod::Midpoint => "midpoint",
+            LieMethod::Splitting => "splitting",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Result<Self, CoreError> {
+        Self::ALL
+            .into_iter()
+            .find(|m| m.name() == name)
+            .ok_or_else(|| {
+                let names: Vec<_> = Self::ALL.iter().map(|m| m.name()).collect();
+                CoreError::Invalid(format!(
+                    "unknown classical integrator {name:?} for a Lie–Poisson system; valid \
+                     names: {}",
+                    names.join(", ")
+                ))
+            })
+    }
+}
+
+/// A classical integrator of a Lie–Poisson system chosen at run time.
+#[derive(Clone, Debug)]
+pub enum LieStepper<const N: usize> {
+    Rk4(Rk4<LiePoisson<N>>),
+    Midpoint(ImplicitMidpoint<LiePoisson<N>>),
+    /// Only for N = 6 (the heavy top); built by [`LieStepper::new`] alone.
+    HeavyTop(HeavyTopSplitting),
+}
+
+impl<const N: usize> LieStepper<N> {
+    /// The integrator `method` for `system`; `heavy_top` carries the parameters the splitting
+    /// needs (it must describe the same system).
+    pub fn new(
+        method: LieMethod,
+        system: LiePoisson<N>,
+        heavy_top: Option<HeavyTop>,
+        newton: NewtonOptions,
+    ) -> Result<Self, CoreError> {
+        Ok(match method {
+            LieMethod::Rk4 => LieStepper::Rk4(Rk4 { system }),
+            LieMethod::Midpoint => LieStepper::Midpoint(ImplicitMidpoint { system, newton }),
+            LieMethod::Splitting => {
+                match heavy_top {
+                    Some(top) if N == 6 => LieStepper::HeavyTop(HeavyTopSplitting { top }),
+                    _ => return Err(CoreError::Invalid(
+                        "the splitting integrator is defined for the rigid body and the heavy top \
+                         only"
+                            .into(),
+                    )),
+                }
+            }
+        })
+    }
+}
+
+impl<const N: usize> StepMap<N> for LieStepper<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    type Workspace = ();
+
+    fn workspace(&self) {}
+
+    #[inline]
+    fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut ()) -> Result<StepStats, StepFailure> {
+        match self {
+            LieStepper::Rk4(s) => s.step(h, mu, ws),
+            LieStepper::Midpoint(s) => s.step(h, mu, ws),
+            LieStepper::HeavyTop(s) => match <&mut [f64; 6]>::try_from(&mut mu[..]) {
+                Ok(m) => s.step(h, m, ws),
+                Err(_) => Err(StepFailure::NonFinite),
+            },
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -483,14 +676,17 @@ mod tests {
 
     fn stepper(method: ClassicalMethod, body: RigidBody) -> Step {
         let newton = NewtonOptions::default();
-        fn boxed<S: StepMap<Workspace = ()> + 'static>(s: S) -> Step {
+        fn boxed<S: StepMap<3, Workspace = ()> + 'static>(s: S) -> Step {
             Box::new(move |h, mu| {
                 s.step(h, mu, &mut ()).unwrap();
             })
         }
         match method {
-            ClassicalMethod::Rk4 => boxed(Rk4 { body }),
-            ClassicalMethod::Midpoint => boxed(ImplicitMidpoint { body, newton }),
+            ClassicalMethod::Rk4 => boxed(Rk4 { system: body }),
+            ClassicalMethod::Midpoint => boxed(ImplicitMidpoint {
+                system: body,
+                newton,
+            }),
             ClassicalMethod::Splitting => boxed(Splitting::strang(body)),
             ClassicalMethod::Splitting4 => boxed(Splitting4::suzuki(body)),
             ClassicalMethod::Dmv => boxed(MoserVeselov::new(body, newton)),
@@ -499,7 +695,7 @@ mod tests {
 
     /// The flow over time t by `n` RK4 steps: the reference for local errors.
     fn fine(body: RigidBody, mu: [f64; 3], t: f64, n: usize) -> [f64; 3] {
-        let rk = Rk4 { body };
+        let rk = Rk4 { system: body };
         let mut m = mu;
         for _ in 0..n {
             rk.step(t / n as f64, &mut m, &mut ()).unwrap();
@@ -675,7 +871,7 @@ mod tests {
         let tight = NewtonOptions::validated(1e-12, 1).unwrap();
         let mut mu = [1.0, 1.0, 2.0];
         let r = ImplicitMidpoint {
-            body: b,
+            system: b,
             newton: tight,
         }
         .step(0.1, &mut mu, &mut ());

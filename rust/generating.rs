@@ -1,27 +1,35 @@
 //! Generating functions S(t, p) = P(t, p) + t^m · N(t, p).
 //!
-//! P is a sparse polynomial (exact Taylor terms, or −tH) and N a tanh MLP with inputs (t, p).
-//! A step only needs ∂S/∂p and ∂²S/∂p² at fixed t = h; both come out of one forward-mode pass.
+//! P is a sparse polynomial (exact Taylor terms, or −tH) and N a tanh MLP with inputs (t, p),
+//! p ∈ R^N for a Lie algebra of dimension N (a const generic: N = 3 for the rigid body, 6 for the
+//! heavy top). A step only needs ∂S/∂p and ∂²S/∂p² at fixed t = h; both come out of one
+//! forward-mode pass.
 
-use crate::dual::{Dual1, Jet2, Scalar, Variable, PAIRS};
+use crate::dual::{Dual1, Jet2, Scalar, Variable};
 use crate::error::CoreError;
 use crate::kernel;
 
 /// Most trajectories one batched evaluation takes.
 pub const MAX_BATCH: usize = 32;
 
-/// One monomial c · t^k p₁^a p₂^b p₃^c.
+/// One monomial c · t^k p₁^e₁ ⋯ p_N^e_N.
 #[derive(Clone, Debug, PartialEq)]
-pub struct Monomial {
+pub struct Monomial<const N: usize> {
     pub t_power: u32,
-    pub p_powers: [u32; 3],
+    pub p_powers: [u32; N],
     pub coeff: f64,
 }
 
 /// A sparse polynomial in (t, p).
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Polynomial {
-    pub terms: Vec<Monomial>,
+#[derive(Clone, Debug, PartialEq)]
+pub struct Polynomial<const N: usize> {
+    pub terms: Vec<Monomial<N>>,
+}
+
+impl<const N: usize> Default for Polynomial<N> {
+    fn default() -> Self {
+        Polynomial { terms: Vec::new() }
+    }
 }
 
 /// (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) without negative powers.
@@ -38,42 +46,47 @@ fn power_jet(x: f64, n: u32) -> [f64; 3] {
     }
 }
 
-impl Polynomial {
+impl<const N: usize> Polynomial<N> {
     /// P(t, ·) with its p-gradient and p-Hessian, in closed form.
-    pub fn jet(&self, t: f64, p: &[f64; 3]) -> Jet2 {
-        let mut out = [0.0; 10];
+    pub fn jet(&self, t: f64, p: &[f64; N]) -> Jet2<N> {
+        let mut out = Jet2::<N>::default();
         for m in &self.terms {
             let c = m.coeff * t.powi(m.t_power as i32);
-            let j = [
-                power_jet(p[0], m.p_powers[0]),
-                power_jet(p[1], m.p_powers[1]),
-                power_jet(p[2], m.p_powers[2]),
-            ];
+            let j: [[f64; 3]; N] = std::array::from_fn(|i| power_jet(p[i], m.p_powers[i]));
             // ∂/∂p_i picks the derivative factor of variable i, the value of the others.
-            let factor = |d: [usize; 3]| c * j[0][d[0]] * j[1][d[1]] * j[2][d[2]];
-            out[0] += factor([0, 0, 0]);
-            for i in 0..3 {
-                let mut d = [0; 3];
+            let factor = |d: [usize; N]| {
+                let mut f = c;
+                for i in 0..N {
+                    f *= j[i][d[i]];
+                }
+                f
+            };
+            out.v += factor([0; N]);
+            for i in 0..N {
+                let mut d = [0; N];
                 d[i] = 1;
-                out[1 + i] += factor(d);
+                out.g[i] += factor(d);
             }
-            for (k, &(a, b)) in PAIRS.iter().enumerate() {
-                let mut d = [0; 3];
-                d[a] += 1;
-                d[b] += 1;
-                out[4 + k] += factor(d);
+            for a in 0..N {
+                for b in a..N {
+                    let mut d = [0; N];
+                    d[a] += 1;
+                    d[b] += 1;
+                    out.h[a][b] += factor(d);
+                }
             }
         }
-        Jet2(out)
+        out
     }
 
     /// P(t, p) and ∂P/∂t.
-    pub fn value_and_time_derivative(&self, t: f64, p: &[f64; 3]) -> (f64, f64) {
+    pub fn value_and_time_derivative(&self, t: f64, p: &[f64; N]) -> (f64, f64) {
         let (mut v, mut dt) = (0.0, 0.0);
         for m in &self.terms {
-            let pp = p[0].powi(m.p_powers[0] as i32)
-                * p[1].powi(m.p_powers[1] as i32)
-                * p[2].powi(m.p_powers[2] as i32);
+            let mut pp = 1.0;
+            for i in 0..N {
+                pp *= p[i].powi(m.p_powers[i] as i32);
+            }
             v += m.coeff * t.powi(m.t_power as i32) * pp;
             if m.t_power > 0 {
                 dt += m.coeff * m.t_power as f64 * t.powi(m.t_power as i32 - 1) * pp;
@@ -158,22 +171,25 @@ impl Layer {
     }
 }
 
-/// A tanh MLP R⁴ → R with inputs (t, p₁, p₂, p₃); tanh after every layer but the last.
+/// A tanh MLP R^{1+N} → R with inputs (t, p₁, …, p_N); tanh after every layer but the last.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mlp {
     pub layers: Vec<Layer>,
 }
 
 impl Mlp {
+    /// Checks that consecutive layers fit and that the network has one output; the number of
+    /// inputs is checked against the system by [`GeneratingFunction::new`].
     pub fn new(layers: Vec<Layer>) -> Result<Self, CoreError> {
-        let first = layers
-            .first()
-            .ok_or_else(|| CoreError::Format("an MLP needs at least one layer".into()))?;
-        if first.n_in != 4 {
-            return Err(CoreError::Format(format!(
-                "the first layer must take 4 inputs (t, p1, p2, p3), it takes {}",
-                first.n_in
-            )));
+        if layers.is_empty() {
+            return Err(CoreError::Format("an MLP needs at least one layer".into()));
+        }
+        if let Some((i, _)) = layers
+            .iter()
+            .enumerate()
+            .find(|(_, l)| l.n_in == 0 || l.n_out == 0)
+        {
+            return Err(CoreError::Format(format!("layer {i} has zero width")));
         }
         for (i, w) in layers.windows(2).enumerate() {
             if w[0].n_out != w[1].n_in {
@@ -185,7 +201,7 @@ impl Mlp {
                 )));
             }
         }
-        let last = layers.last().unwrap();
+        let last = &layers[layers.len() - 1];
         if last.n_out != 1 {
             return Err(CoreError::Format(format!(
                 "the last layer must have 1 output, it has {}",
@@ -193,6 +209,11 @@ impl Mlp {
             )));
         }
         Ok(Mlp { layers })
+    }
+
+    /// Inputs of the first layer (1 + N: time and momentum).
+    pub fn n_inputs(&self) -> usize {
+        self.layers[0].n_in
     }
 
     /// Widest layer: the size of each workspace buffer.
@@ -211,10 +232,10 @@ impl Mlp {
             .sum()
     }
 
-    /// N(inputs) for any scalar type, using `a` and `b` (each ≥ `max_width`) as scratch.
-    fn eval<T: Scalar>(&self, inputs: [T; 4], a: &mut [T], b: &mut [T]) -> T {
-        a[..4].copy_from_slice(&inputs);
-        let mut width = 4;
+    /// N(inputs) for any scalar type; the inputs are `a[..n_inputs]`, and `a` and `b` (each ≥
+    /// `max_width`) are scratch.
+    fn eval<T: Scalar>(&self, a: &mut [T], b: &mut [T]) -> T {
+        let mut width = self.n_inputs();
         let n = self.layers.len();
         let (mut src, mut dst) = (a, b);
         for (i, layer) in self.layers.iter().enumerate() {
@@ -230,10 +251,10 @@ impl Mlp {
         src[0]
     }
 
-    /// N and its gradient with respect to the 4 inputs for `n` trajectories: one pass of values
+    /// N and its gradient with respect to its inputs for `n` trajectories: one pass of values
     /// forward (keeping every layer's activations in `acts`) and one of adjoints back, 4 flops
-    /// per weight against forward mode's 8. Inputs are rows 0..4 of `acts` (`n` columns);
-    /// returns the output row, and the input adjoints in rows 0..4 of `a` or `b`.
+    /// per weight against forward mode's 2(1+N). Inputs are rows 0..n_inputs of `acts` (`n`
+    /// columns); returns the output row, and the input adjoints in rows 0..n_inputs of `a` or `b`.
     fn value_and_input_gradient<'a>(
         &self,
         n: usize,
@@ -269,18 +290,18 @@ impl Mlp {
             }
             std::mem::swap(&mut delta, &mut g);
         }
-        (&out[..n], &delta[..4 * n])
+        (&out[..n], &delta[..self.n_inputs() * n])
     }
 
     /// Rows of activations `value_and_input_gradient` keeps per trajectory: the inputs and
     /// every layer's output.
     fn activation_rows(&self) -> usize {
-        4 + self.layers.iter().map(|l| l.n_out).sum::<usize>()
+        self.n_inputs() + self.layers.iter().map(|l| l.n_out).sum::<usize>()
     }
 
-    /// N for `n` trajectories at once. The inputs are rows 0..4 of `a` (`T::COMPONENTS · n`
-    /// columns each, component-major); returns the output row, in `a` or `b`.
-    fn eval_batch<'a, T: Variable>(
+    /// N for `n` trajectories at once. The inputs are rows 0..n_inputs of `a` (`K · n` columns
+    /// each, K = `T::COMPONENTS`, component-major); returns the output row, in `a` or `b`.
+    fn eval_batch<'a, const N: usize, T: Variable<N>>(
         &self,
         n: usize,
         a: &'a mut [f64],
@@ -302,25 +323,56 @@ impl Mlp {
 
 /// Scratch memory for one evaluation at a time; allocated once per worker, never per step.
 #[derive(Clone, Debug)]
-pub struct Workspace {
-    jet_a: Vec<Jet2>,
-    jet_b: Vec<Jet2>,
-    d1_a: Vec<Dual1>,
-    d1_b: Vec<Dual1>,
-    /// Two (widest layer × 10·MAX_BATCH) activation buffers for batched passes.
+pub struct Workspace<const N: usize> {
+    jet_a: Vec<Jet2<N>>,
+    jet_b: Vec<Jet2<N>>,
+    d1_a: Vec<Dual1<N>>,
+    d1_b: Vec<Dual1<N>>,
+    /// Two (widest layer × COMPONENTS·MAX_BATCH) activation buffers for batched passes.
     batch_a: Vec<f64>,
     batch_b: Vec<f64>,
     /// Every layer's activations for MAX_BATCH trajectories, kept for the reverse pass.
     acts: Vec<f64>,
 }
 
+impl<const N: usize> Workspace<N> {
+    /// Bytes a workspace for `generating` takes, computed without allocating it (the bindings
+    /// check it against the memory available before a rollout creates one per thread).
+    pub fn bytes(generating: &GeneratingFunction<N>) -> usize {
+        let (singles, batch, acts) = Self::sizes(generating);
+        singles
+            .saturating_mul(
+                2 * std::mem::size_of::<Jet2<N>>() + 2 * std::mem::size_of::<Dual1<N>>(),
+            )
+            .saturating_add(batch.saturating_mul(16))
+            .saturating_add(acts.saturating_mul(8))
+    }
+
+    /// Elements of the single-trajectory buffers, of each batch buffer, and of `acts`.
+    fn sizes(generating: &GeneratingFunction<N>) -> (usize, usize, usize) {
+        let mlp = generating.mlp.as_ref();
+        let w = mlp.map_or(0, Mlp::max_width).max(N + 1);
+        let batch = if mlp.is_some() {
+            w.saturating_mul(<Jet2<N> as Variable<N>>::COMPONENTS)
+                .saturating_mul(MAX_BATCH)
+        } else {
+            0
+        };
+        let acts = mlp
+            .map_or(0, Mlp::activation_rows)
+            .saturating_mul(MAX_BATCH);
+        (w, batch, acts)
+    }
+}
+
 /// What the MLP sees.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum MlpInputs {
-    /// N(t, p): the MLP takes (t, p₁, p₂, p₃) as they are (the paper's ansatz).
+    /// N(t, p): the MLP takes (t, p₁, …, p_N) as they are (the paper's ansatz).
     Plain,
     /// |p|^(m+1) · N(|p| t, p/|p|): the scaling S(t, λp) = λ S(λt, p) of every quadratic
-    /// Hamiltonian is built in, so the MLP only learns a function on [0, τ_max] × S².
+    /// Hamiltonian on a Lie–Poisson space is built in, so the MLP only learns a function on
+    /// [0, τ_max] × S^{N−1}.
     Homogeneous,
 }
 
@@ -341,18 +393,22 @@ impl MlpInputs {
     }
 }
 
+/// The MLP's inputs at one (t, p): the time input, the N momentum inputs and the factor that
+/// multiplies the MLP's output.
+type Inputs<T, const N: usize> = (T, [T; N], T);
+
 /// S(t, p) = P(t, p) + t^m N(t, p). S(0, ·) = 0 holds by construction (k ≥ 1, m ≥ 1).
 #[derive(Clone, Debug, PartialEq)]
-pub struct GeneratingFunction {
-    pub polynomial: Polynomial,
+pub struct GeneratingFunction<const N: usize> {
+    pub polynomial: Polynomial<N>,
     pub mlp: Option<Mlp>,
     pub mlp_power: u32,
     pub inputs: MlpInputs,
 }
 
-impl GeneratingFunction {
+impl<const N: usize> GeneratingFunction<N> {
     pub fn new(
-        polynomial: Polynomial,
+        polynomial: Polynomial<N>,
         mlp: Option<Mlp>,
         mlp_power: u32,
         inputs: MlpInputs,
@@ -369,10 +425,19 @@ impl GeneratingFunction {
                 m.coeff
             )));
         }
-        if mlp.is_some() && mlp_power == 0 {
-            return Err(CoreError::Format(
-                "mlp_power must be at least 1 so that S(0, p) = 0".into(),
-            ));
+        if let Some(mlp) = &mlp {
+            if mlp.n_inputs() != N + 1 {
+                return Err(CoreError::Format(format!(
+                    "the first layer must take {} inputs (t and p in R^{N}), it takes {}",
+                    N + 1,
+                    mlp.n_inputs()
+                )));
+            }
+            if mlp_power == 0 {
+                return Err(CoreError::Format(
+                    "mlp_power must be at least 1 so that S(0, p) = 0".into(),
+                ));
+            }
         }
         Ok(GeneratingFunction {
             polynomial,
@@ -382,13 +447,8 @@ impl GeneratingFunction {
         })
     }
 
-    pub fn workspace(&self) -> Workspace {
-        let w = self.mlp.as_ref().map_or(0, Mlp::max_width).max(4);
-        let batch = if self.mlp.is_some() {
-            w * 10 * MAX_BATCH
-        } else {
-            0
-        };
+    pub fn workspace(&self) -> Workspace<N> {
+        let (w, batch, acts) = Workspace::sizes(self);
         Workspace {
             jet_a: vec![Jet2::default(); w],
             jet_b: vec![Jet2::default(); w],
@@ -396,36 +456,42 @@ impl GeneratingFunction {
             d1_b: vec![Dual1::default(); w],
             batch_a: vec![0.0; batch],
             batch_b: vec![0.0; batch],
-            acts: vec![0.0; self.mlp.as_ref().map_or(0, Mlp::activation_rows) * MAX_BATCH],
+            acts: vec![0.0; acts],
         }
     }
 
     /// S(t, p), ∂S/∂p and ∂²S/∂p² at fixed t, exactly (forward mode).
-    pub fn jet(&self, t: f64, p: &[f64; 3], ws: &mut Workspace) -> Jet2 {
+    pub fn jet(&self, t: f64, p: &[f64; N], ws: &mut Workspace<N>) -> Jet2<N> {
         self.derivatives(t, p, &mut ws.jet_a, &mut ws.jet_b)
     }
 
-    /// S(t, p) and ∂S/∂p only: the cheaper pass (4 components instead of 10) for when the
-    /// Hessian is not needed, such as the final evaluation of a Newton solve.
-    pub fn gradient(&self, t: f64, p: &[f64; 3], ws: &mut Workspace) -> Dual1 {
+    /// S(t, p) and ∂S/∂p only: the cheaper pass (1 + N components instead of
+    /// 1 + N + N(N+1)/2) for when the Hessian is not needed, such as the final evaluation of a
+    /// Newton solve.
+    pub fn gradient(&self, t: f64, p: &[f64; N], ws: &mut Workspace<N>) -> Dual1<N> {
         self.derivatives(t, p, &mut ws.d1_a, &mut ws.d1_b)
     }
 
     /// `jet` for up to [`MAX_BATCH`] momenta at once: `out[j]` is the jet at `p[j]`. Each layer
     /// of the MLP is one matrix–matrix product over the batch.
-    pub fn jets(&self, t: f64, p: &[[f64; 3]], out: &mut [Jet2], ws: &mut Workspace) {
+    pub fn jets(&self, t: f64, p: &[[f64; N]], out: &mut [Jet2<N>], ws: &mut Workspace<N>) {
         self.derivatives_batch(t, p, out, ws);
     }
 
     /// `gradient` for up to [`MAX_BATCH`] momenta at once.
-    pub fn gradients(&self, t: f64, p: &[[f64; 3]], out: &mut [Dual1], ws: &mut Workspace) {
+    pub fn gradients(&self, t: f64, p: &[[f64; N]], out: &mut [Dual1<N>], ws: &mut Workspace<N>) {
         self.derivatives_batch(t, p, out, ws);
     }
 
     /// S and ∂S/∂p for up to [`MAX_BATCH`] momenta, with the MLP differentiated in reverse
-    /// mode: half the flops of [`GeneratingFunction::gradients`], the same numbers to
-    /// round-off.
-    pub fn gradients_reverse(&self, t: f64, p: &[[f64; 3]], out: &mut [Dual1], ws: &mut Workspace) {
+    /// mode: fewer flops than [`GeneratingFunction::gradients`], the same numbers to round-off.
+    pub fn gradients_reverse(
+        &self,
+        t: f64,
+        p: &[[f64; N]],
+        out: &mut [Dual1<N>],
+        ws: &mut Workspace<N>,
+    ) {
         let n = p.len();
         assert!(n <= MAX_BATCH && out.len() == n, "batch of {n} momenta");
         for (o, pj) in out.iter_mut().zip(p) {
@@ -434,21 +500,23 @@ impl GeneratingFunction {
         let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
             return;
         };
-        let mut inputs = [None; MAX_BATCH];
+        let mut inputs: [Option<Inputs<Dual1<N>, N>>; MAX_BATCH] = [None; MAX_BATCH];
         for (j, pj) in p.iter().enumerate() {
-            inputs[j] = self.mlp_inputs::<Dual1>(t, pj);
-            for i in 0..4 {
-                ws.acts[i * n + j] = inputs[j].map_or(0.0, |(x, _)| x[i].v);
+            inputs[j] = self.mlp_inputs::<Dual1<N>>(t, pj);
+            let (t_in, p_in) = inputs[j].map_or((0.0, [0.0; N]), |(a, b, _)| (a.v, b.map(|x| x.v)));
+            ws.acts[j] = t_in;
+            for i in 0..N {
+                ws.acts[(1 + i) * n + j] = p_in[i];
             }
         }
         let (value, adjoint) =
             mlp.value_and_input_gradient(n, &mut ws.acts, &mut ws.batch_a, &mut ws.batch_b);
         for (j, (o, inp)) in out.iter_mut().zip(&inputs[..n]).enumerate() {
-            if let Some((x, f)) = inp {
+            if let Some((t_in, p_in, f)) = inp {
                 // Chain rule through the input map: ∂N/∂p = Σᵢ ∂N/∂inᵢ · ∂inᵢ/∂p.
                 let mut nd = Dual1::cst(value[j]);
-                for (i, xi) in x.iter().enumerate() {
-                    for c in 0..3 {
+                for (i, xi) in std::iter::once(t_in).chain(p_in).enumerate() {
+                    for c in 0..N {
                         nd.g[c] += adjoint[i * n + j] * xi.g[c];
                     }
                 }
@@ -460,46 +528,52 @@ impl GeneratingFunction {
     /// The MLP's inputs at (t, p) with p seeded as the dual variables of `T`, and the factor
     /// that multiplies its output; None where the MLP term vanishes identically.
     #[inline]
-    fn mlp_inputs<T: Variable>(&self, t: f64, p: &[f64; 3]) -> Option<([T; 4], T)> {
+    fn mlp_inputs<T: Variable<N>>(&self, t: f64, p: &[f64; N]) -> Option<Inputs<T, N>> {
         let tm = t.powi(self.mlp_power as i32);
-        let pj = [
-            T::variable(p[0], 0),
-            T::variable(p[1], 1),
-            T::variable(p[2], 2),
-        ];
+        let pj: [T; N] = std::array::from_fn(|i| T::variable(p[i], i));
         match self.inputs {
-            MlpInputs::Plain => Some(([T::cst(t), pj[0], pj[1], pj[2]], T::cst(tm))),
+            MlpInputs::Plain => Some((T::cst(t), pj, T::cst(tm))),
             MlpInputs::Homogeneous => {
-                let r2 = pj[0] * pj[0] + pj[1] * pj[1] + pj[2] * pj[2];
+                let mut r2 = pj[0] * pj[0];
+                for q in &pj[1..] {
+                    r2 = r2 + *q * *q;
+                }
                 // At p = 0 the term and its derivatives up to order m ≥ 1 vanish.
                 if r2.value() <= 0.0 {
                     return None;
                 }
                 let r = r2.sqrt();
                 let inv = r.recip();
-                let inputs = [r.scale(t), pj[0] * inv, pj[1] * inv, pj[2] * inv];
-                Some((inputs, r.powi(self.mlp_power as i32 + 1).scale(tm)))
+                Some((
+                    r.scale(t),
+                    pj.map(|q| q * inv),
+                    r.powi(self.mlp_power as i32 + 1).scale(tm),
+                ))
             }
         }
     }
 
     /// S at fixed t with p seeded as the dual variables of `T`.
-    fn derivatives<T: Variable>(&self, t: f64, p: &[f64; 3], a: &mut [T], b: &mut [T]) -> T {
+    fn derivatives<T: Variable<N>>(&self, t: f64, p: &[f64; N], a: &mut [T], b: &mut [T]) -> T {
         let s = T::from_jet(&self.polynomial.jet(t, p));
         match (&self.mlp, self.mlp_inputs::<T>(t, p)) {
-            (Some(mlp), Some((inputs, factor))) => s + mlp.eval(inputs, a, b) * factor,
+            (Some(mlp), Some((t_in, p_in, factor))) => {
+                a[0] = t_in;
+                a[1..=N].copy_from_slice(&p_in);
+                s + mlp.eval(a, b) * factor
+            }
             _ => s,
         }
     }
 
     /// `derivatives` for a batch: the per-trajectory inputs and outputs of the MLP are mapped
     /// one at a time, the MLP itself runs on all of them together.
-    fn derivatives_batch<T: Variable>(
+    fn derivatives_batch<T: Variable<N>>(
         &self,
         t: f64,
-        p: &[[f64; 3]],
+        p: &[[f64; N]],
         out: &mut [T],
-        ws: &mut Workspace,
+        ws: &mut Workspace<N>,
     ) {
         let n = p.len();
         assert!(n <= MAX_BATCH && out.len() == n, "batch of {n} momenta");
@@ -513,16 +587,15 @@ impl GeneratingFunction {
         let mut factors = [None; MAX_BATCH];
         for (j, pj) in p.iter().enumerate() {
             let inputs = self.mlp_inputs::<T>(t, pj);
-            for i in 0..4 {
-                for c in 0..T::COMPONENTS {
-                    // A vanishing term still gets finite inputs; its output is not used.
-                    ws.batch_a[i * cols + c * n + j] =
-                        inputs.map_or(0.0, |(x, _)| x[i].component(c));
-                }
+            // A vanishing term still gets finite (zero) inputs; its output is not used.
+            let zero = T::cst(0.0);
+            let (t_in, p_in) = inputs.map_or((zero, [zero; N]), |(a, b, _)| (a, b));
+            for (i, x) in std::iter::once(&t_in).chain(&p_in).enumerate() {
+                x.components(|c, v| ws.batch_a[i * cols + c * n + j] = v);
             }
-            factors[j] = inputs.map(|(_, f)| f);
+            factors[j] = inputs.map(|(_, _, f)| f);
         }
-        let row = mlp.eval_batch::<T>(n, &mut ws.batch_a, &mut ws.batch_b);
+        let row = mlp.eval_batch::<N, T>(n, &mut ws.batch_a, &mut ws.batch_b);
         for (j, (o, f)) in out.iter_mut().zip(&factors).enumerate() {
             if let Some(f) = f {
                 *o = *o + T::from_components(|c| row[c * n + j]) * *f;
@@ -534,43 +607,31 @@ impl GeneratingFunction {
     pub fn value_and_time_derivative(
         &self,
         t: f64,
-        p: &[f64; 3],
-        ws: &mut Workspace,
+        p: &[f64; N],
+        ws: &mut Workspace<N>,
     ) -> (f64, f64) {
         let (mut v, mut dt) = self.polynomial.value_and_time_derivative(t, p);
         let Some(mlp) = &self.mlp else { return (v, dt) };
         // Seed the time input as dual variable 0; p enters as constants.
-        let (inputs, factor) = match self.inputs {
-            MlpInputs::Plain => (
-                [
-                    Dual1::var(t, 0),
-                    Dual1::cst(p[0]),
-                    Dual1::cst(p[1]),
-                    Dual1::cst(p[2]),
-                ],
-                1.0,
-            ),
+        let (t_in, p_in, factor) = match self.inputs {
+            MlpInputs::Plain => (Dual1::<N>::var(t, 0), p.map(Dual1::cst), 1.0),
             MlpInputs::Homogeneous => {
-                let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+                let r = p.iter().map(|x| x * x).sum::<f64>().sqrt();
                 if r == 0.0 {
                     return (v, dt);
                 }
-                let tau = Dual1 {
-                    v: r * t,
-                    g: [r, 0.0, 0.0],
-                };
+                let mut tau = Dual1::<N>::var(r * t, 0);
+                tau.g[0] = r;
                 (
-                    [
-                        tau,
-                        Dual1::cst(p[0] / r),
-                        Dual1::cst(p[1] / r),
-                        Dual1::cst(p[2] / r),
-                    ],
+                    tau,
+                    p.map(|x| Dual1::cst(x / r)),
                     r.powi(self.mlp_power as i32 + 1),
                 )
             }
         };
-        let n = mlp.eval(inputs, &mut ws.d1_a, &mut ws.d1_b);
+        ws.d1_a[0] = t_in;
+        ws.d1_a[1..=N].copy_from_slice(&p_in);
+        let n = mlp.eval(&mut ws.d1_a, &mut ws.d1_b);
         let m = self.mlp_power as i32;
         v += factor * t.powi(m) * n.v;
         dt += factor * (t.powi(m) * n.g[0] + f64::from(m) * t.powi(m - 1) * n.v);

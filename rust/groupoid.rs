@@ -1,13 +1,20 @@
-//! The symplectic groupoid T*SO(3) ⇉ so(3)* in a chart of SO(3) near the identity.
+//! The symplectic groupoid T*G ⇉ g* of a Lie algebra g in a chart of G near the identity.
 //!
-//! Coordinates are (x, p) ∈ R³×R³. `sou` is the spatial momentum, `tar` the body one; units are
-//! x = 0. In both charts |sou(x,p)| = |tar(x,p)|, which is why every bisection map keeps the
-//! Casimir |μ|² whatever the generating function is.
+//! Coordinates are (x, p) ∈ g × g* ≅ R^N × R^N; units are x = 0, where sou = tar = p.
+//! - so(3) (the rigid body) has two closed-form charts, Cayley and exponential. `sou` is the
+//!   spatial momentum, `tar` the body one, and |sou(x,p)| = |tar(x,p)|.
+//! - Any other algebra uses the exponential chart, with A = ad_xᵀ:
+//!   sou(x,p) = (ad_x/(e^{ad_x} − 1))ᵀ p = Σ (Bₙ/n!) Aⁿ p and
+//!   tar(x,p) = (ad_x/(1 − e^{−ad_x}))ᵀ p = Σ (Bₙ/n!) (−A)ⁿ p, summed as series (ad_x is
+//!   singular, so never as a quotient). Both lie on one coadjoint orbit, which is why every
+//!   bisection map keeps every Casimir whatever the generating function is.
+
+use std::sync::OnceLock;
 
 use crate::dual::Scalar;
-use crate::error::StepFailure;
+use crate::error::{CoreError, StepFailure};
 
-/// A chart of SO(3) near the identity.
+/// A chart of G near the identity. Cayley exists for so(3) only.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Chart {
     /// Cayley transform: polynomial, no trigonometry.
@@ -92,10 +99,15 @@ impl Chart {
         }
     }
 
-    /// sou(x,p) when `sign = +1`, tar(x,p) when `sign = −1`: the charts differ from each other
-    /// only in the sign of the ½ x×p term.
+    /// The so(3) closed forms: sou(x,p) when `sign = +1`, tar(x,p) when `sign = −1`; the two
+    /// differ only in the sign of the ½ x×p term.
     #[inline(always)]
-    fn apply<T: Scalar>(self, x: &[T; 3], p: &[T; 3], sign: f64) -> Result<[T; 3], StepFailure> {
+    fn apply_so3<T: Scalar>(
+        self,
+        x: &[T; 3],
+        p: &[T; 3],
+        sign: f64,
+    ) -> Result<[T; 3], StepFailure> {
         let xp = cross(x, p);
         let mut out = [p[0], p[1], p[2]];
         match self {
@@ -123,13 +135,261 @@ impl Chart {
         Ok(out)
     }
 
-    /// Source map: the spatial momentum of the covector with chart coordinates (x, p).
+    /// Source map of so(3)*: the spatial momentum of the covector with coordinates (x, p).
     pub fn sou<T: Scalar>(self, x: &[T; 3], p: &[T; 3]) -> Result<[T; 3], StepFailure> {
+        self.apply_so3(x, p, 1.0)
+    }
+
+    /// Target map of so(3)*: the body momentum of the covector with coordinates (x, p).
+    pub fn tar<T: Scalar>(self, x: &[T; 3], p: &[T; 3]) -> Result<[T; 3], StepFailure> {
+        self.apply_so3(x, p, -1.0)
+    }
+}
+
+/// Most terms of the Bernoulli series summed before a step is refused as beyond the chart: the
+/// terms shrink like (ρ/2π)ⁿ for ρ the spectral radius of ad_x, so this reaches round-off up to
+/// ρ ≈ 0.85 · 2π.
+pub const MAX_SERIES_TERMS: usize = 240;
+
+/// Bₙ/n! for n = 0 … MAX_SERIES_TERMS (B₁ = −½, odd n > 1 vanish). B₂ₖ/(2k)! =
+/// (−1)^{k+1} 2ζ(2k)/(2π)^{2k}; the first twelve are exact ratios (as in C_SERIES).
+fn bernoulli_over_factorial() -> &'static [f64; MAX_SERIES_TERMS + 1] {
+    static TABLE: OnceLock<[f64; MAX_SERIES_TERMS + 1]> = OnceLock::new();
+    TABLE.get_or_init(|| {
+        let mut b = [0.0; MAX_SERIES_TERMS + 1];
+        b[0] = 1.0;
+        b[1] = -0.5;
+        let two_pi = 2.0 * std::f64::consts::PI;
+        for k in 1..=MAX_SERIES_TERMS / 2 {
+            let magnitude = match C_SERIES.get(k - 1) {
+                Some(&c) => c,
+                None => {
+                    let zeta: f64 = (1..=12).map(|m| f64::from(m).powi(-2 * k as i32)).sum();
+                    2.0 * zeta / two_pi.powi(2 * k as i32)
+                }
+            };
+            b[2 * k] = if k % 2 == 1 { magnitude } else { -magnitude };
+        }
+        b
+    })
+}
+
+/// A Lie algebra of dimension N by its structure constants, [e_i, e_j] = Σ_k c[i][j][k] e_k.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LieAlgebra<const N: usize> {
+    c: [[[f64; N]; N]; N],
+    /// c is exactly the Levi-Civita symbol: so(3), with its closed-form charts.
+    so3: bool,
+}
+
+impl<const N: usize> LieAlgebra<N> {
+    /// Checks antisymmetry and the Jacobi identity (to a tolerance relative to max |c|).
+    pub fn new(c: [[[f64; N]; N]; N]) -> Result<Self, CoreError> {
+        let invalid = |m: String| Err(CoreError::Invalid(m));
+        let scale = c
+            .iter()
+            .flatten()
+            .flatten()
+            .fold(0.0f64, |m, v| m.max(v.abs()));
+        if !scale.is_finite() {
+            return invalid("structure constants must be finite".into());
+        }
+        let tol = 1e-12 * scale.max(1.0);
+        for i in 0..N {
+            for j in 0..N {
+                for k in 0..N {
+                    if (c[i][j][k] + c[j][i][k]).abs() > tol {
+                        return invalid(format!(
+                            "structure constants are not antisymmetric: c[{i},{j},{k}] = {} but \
+                             c[{j},{i},{k}] = {}",
+                            c[i][j][k], c[j][i][k]
+                        ));
+                    }
+                }
+            }
+        }
+        // Jacobi: Σ_l c[i][j][l] c[l][k][m] + cyclic = 0.
+        let tol2 = 1e-12 * scale.max(1.0).powi(2);
+        for i in 0..N {
+            for j in 0..N {
+                for k in 0..N {
+                    for m in 0..N {
+                        let s: f64 = (0..N)
+                            .map(|l| {
+                                c[i][j][l] * c[l][k][m]
+                                    + c[j][k][l] * c[l][i][m]
+                                    + c[k][i][l] * c[l][j][m]
+                            })
+                            .sum();
+                        if s.abs() > tol2 {
+                            return invalid(format!(
+                                "structure constants violate the Jacobi identity at \
+                                 (e{i}, e{j}, e{k}), component {m}: {s:e}"
+                            ));
+                        }
+                    }
+                }
+            }
+        }
+        let so3 = N == 3
+            && (0..3).all(|i| (0..3).all(|j| (0..3).all(|k| c[i][j][k] == levi_civita(i, j, k))));
+        Ok(LieAlgebra { c, so3 })
+    }
+
+    /// so(3) when N = 3 (c = ε); an error for other N.
+    pub fn so3() -> Result<Self, CoreError> {
+        if N != 3 {
+            return Err(CoreError::Invalid(format!(
+                "so(3) has dimension 3, not {N}"
+            )));
+        }
+        let mut c = [[[0.0; N]; N]; N];
+        for (i, ci) in c.iter_mut().enumerate() {
+            for (j, cij) in ci.iter_mut().enumerate() {
+                for (k, v) in cij.iter_mut().enumerate() {
+                    *v = levi_civita(i, j, k);
+                }
+            }
+        }
+        LieAlgebra::new(c)
+    }
+
+    pub fn structure_constants(&self) -> &[[[f64; N]; N]; N] {
+        &self.c
+    }
+
+    pub fn is_so3(&self) -> bool {
+        self.so3
+    }
+
+    /// A v with A = ad_xᵀ: (A v)_j = Σ_{i,k} c[i][j][k] x_i v_k.
+    #[inline]
+    pub fn ad_transpose_apply<T: Scalar>(&self, x: &[T; N], v: &[T; N]) -> [T; N] {
+        let a = self.ad_transpose(x);
+        apply(&a, v)
+    }
+
+    /// The matrix ad_xᵀ, (ad_xᵀ)_{jk} = Σ_i c[i][j][k] x_i.
+    #[inline]
+    fn ad_transpose<T: Scalar>(&self, x: &[T; N]) -> [[T; N]; N] {
+        let mut a = [[T::cst(0.0); N]; N];
+        for (i, xi) in x.iter().enumerate() {
+            for j in 0..N {
+                for k in 0..N {
+                    let c = self.c[i][j][k];
+                    if c != 0.0 {
+                        a[j][k] = xi.mul_add(c, a[j][k]);
+                    }
+                }
+            }
+        }
+        a
+    }
+}
+
+fn levi_civita(i: usize, j: usize, k: usize) -> f64 {
+    match (i, j, k) {
+        (0, 1, 2) | (1, 2, 0) | (2, 0, 1) => 1.0,
+        (0, 2, 1) | (2, 1, 0) | (1, 0, 2) => -1.0,
+        _ => 0.0,
+    }
+}
+
+#[inline(always)]
+fn apply<T: Scalar, const N: usize>(a: &[[T; N]; N], v: &[T; N]) -> [T; N] {
+    std::array::from_fn(|j| {
+        let mut s = a[j][0] * v[0];
+        for k in 1..N {
+            s = s + a[j][k] * v[k];
+        }
+        s
+    })
+}
+
+/// The groupoid T*G ⇉ g* in a chart: the source and target maps a bisection step needs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Groupoid<const N: usize> {
+    pub algebra: LieAlgebra<N>,
+    pub chart: Chart,
+}
+
+impl<const N: usize> Groupoid<N> {
+    /// The Cayley chart exists for so(3) only.
+    pub fn new(algebra: LieAlgebra<N>, chart: Chart) -> Result<Self, CoreError> {
+        if chart == Chart::Cayley && !algebra.is_so3() {
+            return Err(CoreError::Invalid(
+                "the Cayley chart is available for so(3) only; use the exp chart".into(),
+            ));
+        }
+        Ok(Groupoid { algebra, chart })
+    }
+
+    /// so(3) in `chart` (N must be 3).
+    pub fn so3(chart: Chart) -> Result<Self, CoreError> {
+        Groupoid::new(LieAlgebra::so3()?, chart)
+    }
+
+    #[inline(always)]
+    fn apply<T: Scalar>(&self, x: &[T; N], p: &[T; N], sign: f64) -> Result<[T; N], StepFailure> {
+        if self.algebra.so3 {
+            // N = 3 here; the conversions compile away.
+            if let (Ok(x3), Ok(p3)) = (<&[T; 3]>::try_from(&x[..]), <&[T; 3]>::try_from(&p[..])) {
+                let s = self.chart.apply_so3(x3, p3, sign)?;
+                let mut out = *p;
+                out.copy_from_slice(&s);
+                return Ok(out);
+            }
+        }
+        self.exp_series(x, p, sign)
+    }
+
+    /// Σ (Bₙ/n!) (sign · A)ⁿ p with A = ad_xᵀ, until two consecutive non-zero terms are below
+    /// round-off in every component (value and derivatives).
+    #[inline]
+    fn exp_series<T: Scalar>(
+        &self,
+        x: &[T; N],
+        p: &[T; N],
+        sign: f64,
+    ) -> Result<[T; N], StepFailure> {
+        let b = bernoulli_over_factorial();
+        let a = self.algebra.ad_transpose(x);
+        let size = |v: &[T; N]| v.iter().fold(0.0f64, |m, t| m.max(t.max_abs()));
+        let mut term = *p;
+        let mut out = *p;
+        let mut small = 0;
+        for (n, &bn) in b.iter().enumerate().skip(1) {
+            term = apply(&a, &term);
+            if bn == 0.0 {
+                continue;
+            }
+            let c = if n % 2 == 1 { sign * bn } else { bn };
+            for (o, t) in out.iter_mut().zip(&term) {
+                *o = t.mul_add(c, *o);
+            }
+            let t = size(&term) * bn.abs();
+            if !t.is_finite() {
+                return Err(StepFailure::NonFinite);
+            }
+            if t <= 1e-17 * size(&out) {
+                small += 1;
+                if small == 2 {
+                    return Ok(out);
+                }
+            } else {
+                small = 0;
+            }
+        }
+        Err(StepFailure::ChartSingular)
+    }
+
+    /// Source map: the momentum sou(x, p) ∈ g*.
+    pub fn sou<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
         self.apply(x, p, 1.0)
     }
 
-    /// Target map: the body momentum of the covector with chart coordinates (x, p).
-    pub fn tar<T: Scalar>(self, x: &[T; 3], p: &[T; 3]) -> Result<[T; 3], StepFailure> {
+    /// Target map: the momentum tar(x, p) ∈ g*.
+    pub fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
         self.apply(x, p, -1.0)
     }
 }
@@ -184,7 +444,7 @@ mod tests {
     fn exp_chart_jacobian_matches_dual_derivative_of_components() {
         let x = [0.5, -0.4, 0.9];
         let p = [1.0, 2.0, -0.5];
-        let xd = [
+        let xd: [Dual1<3>; 3] = [
             Dual1::var(x[0], 0),
             Dual1::var(x[1], 1),
             Dual1::var(x[2], 2),

@@ -1,12 +1,16 @@
 //! Model files: one safetensors file holding a generating function and its metadata.
 //!
-//! Tensors (all little-endian; float64 unless stated):
-//! - `poly.powers` int64 (n, 4), rows (k, a, b, c) for t^k p₁^a p₂^b p₃^c, and `poly.coeffs` (n,);
-//! - `mlp.{i}.weight` (out, in) and `mlp.{i}.bias` (out,), i = 0, 1, …; inputs (t, p₁, p₂, p₃),
+//! Tensors (all little-endian; float64 unless stated), for a Lie algebra of dimension N:
+//! - `algebra.structure_constants` (N, N, N), c[i][j][k] with [e_i, e_j] = Σ_k c[i][j][k] e_k;
+//!   optional for N = 3, where its absence means so(3) (files written before other algebras);
+//! - `poly.powers` int64 (n, 1 + N), rows (k, e₁, …, e_N) for t^k p₁^e₁ ⋯ p_N^e_N, and
+//!   `poly.coeffs` (n,);
+//! - `mlp.{i}.weight` (out, in) and `mlp.{i}.bias` (out,), i = 0, 1, …; inputs (t, p₁, …, p_N),
 //!   tanh after every layer but the last, one output.
 //!
-//! Metadata (strings): `format` = [`FORMAT`], `chart` (`cayley` | `exp`); with an MLP also
-//! `mlp_power` (m ≥ 1) and `mlp_inputs` (`t,p` | `homogeneous`, see [`MlpInputs`]). Other keys (system, inertia, training record, …) are kept for the caller.
+//! Metadata (strings): `format` = [`FORMAT`], `chart` (`cayley` | `exp`; cayley for so(3) only);
+//! with an MLP also `mlp_power` (m ≥ 1) and `mlp_inputs` (`t,p` | `homogeneous`, see
+//! [`MlpInputs`]). Other keys (system, training record, …) are kept for the caller.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -15,8 +19,9 @@ use safetensors::{Dtype, SafeTensors};
 
 use crate::error::CoreError;
 use crate::generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
-use crate::groupoid::Chart;
+use crate::groupoid::{Chart, Groupoid, LieAlgebra};
 use crate::stepper::{BisectionStepper, NewtonOptions};
+use crate::{with_dim, MAX_DIM};
 
 /// The format tag every model file carries.
 pub const FORMAT: &str = "poisson_rs.generating/1";
@@ -39,11 +44,22 @@ fn layer_index(name: &str) -> Option<usize> {
     canonical.then(|| digits.parse().ok()).flatten()
 }
 
-/// A loaded model: its generating function, chart and metadata.
+/// One polynomial term as read: (t-power, p-powers, coefficient).
+type RawMonomial = (u32, Vec<u32>, f64);
+
+/// A loaded, validated model of any dimension N ≤ [`MAX_DIM`]. [`Model::stepper`] turns it into
+/// the N-dimensional (monomorphised) integrator.
 #[derive(Clone, Debug)]
 pub struct Model {
-    pub generating: GeneratingFunction,
+    /// The dimension N of the Lie algebra.
+    pub dim: usize,
     pub chart: Chart,
+    /// c[i][j][k] flattened row-major, N³ numbers.
+    pub structure_constants: Vec<f64>,
+    terms: Vec<RawMonomial>,
+    pub mlp: Option<Mlp>,
+    pub mlp_power: u32,
+    pub inputs: MlpInputs,
     pub metadata: HashMap<String, String>,
 }
 
@@ -73,7 +89,7 @@ fn read_f64(st: &SafeTensors<'_>, name: &str) -> Result<(Vec<usize>, Vec<f64>), 
     Ok((t.shape().to_vec(), v))
 }
 
-fn read_polynomial(st: &SafeTensors<'_>) -> Result<Polynomial, CoreError> {
+fn read_polynomial(st: &SafeTensors<'_>) -> Result<(usize, Vec<RawMonomial>), CoreError> {
     let powers = st
         .tensor("poly.powers")
         .map_err(|e| format_err(format!("tensor poly.powers: {e}")))?;
@@ -84,11 +100,13 @@ fn read_polynomial(st: &SafeTensors<'_>) -> Result<Polynomial, CoreError> {
         )));
     }
     let shape = powers.shape();
-    if shape.len() != 2 || shape[1] != 4 {
+    if shape.len() != 2 || !(2..=MAX_DIM + 1).contains(&shape[1]) {
         return Err(format_err(format!(
-            "tensor poly.powers must have shape (n, 4), found {shape:?}"
+            "tensor poly.powers must have shape (n, 1 + N) with 1 <= N <= {MAX_DIM}, found \
+             {shape:?}"
         )));
     }
+    let width = shape[1];
     let raw: Vec<i64> = powers
         .data()
         .chunks_exact(8)
@@ -106,19 +124,34 @@ fn read_polynomial(st: &SafeTensors<'_>) -> Result<Polynomial, CoreError> {
         )));
     }
     let mut terms = Vec::with_capacity(coeffs.len());
-    for (row, &coeff) in raw.chunks_exact(4).zip(&coeffs) {
+    for (row, &coeff) in raw.chunks_exact(width).zip(&coeffs) {
         if let Some(&bad) = row.iter().find(|&&e| !(0..=MAX_POWER).contains(&e)) {
             return Err(format_err(format!(
                 "poly.powers holds exponent {bad}, outside 0..={MAX_POWER}"
             )));
         }
-        terms.push(Monomial {
-            t_power: row[0] as u32,
-            p_powers: [row[1] as u32, row[2] as u32, row[3] as u32],
+        terms.push((
+            row[0] as u32,
+            row[1..].iter().map(|&e| e as u32).collect(),
             coeff,
-        });
+        ));
     }
-    Ok(Polynomial { terms })
+    Ok((width - 1, terms))
+}
+
+/// The structure constants, if the file holds them: (N, N, N) float64.
+fn read_algebra(st: &SafeTensors<'_>) -> Result<Option<(usize, Vec<f64>)>, CoreError> {
+    if !st.names().contains(&"algebra.structure_constants") {
+        return Ok(None);
+    }
+    let (shape, c) = read_f64(st, "algebra.structure_constants")?;
+    match shape[..] {
+        [a, b, d] if a == b && b == d && (1..=MAX_DIM).contains(&a) => Ok(Some((a, c))),
+        _ => Err(format_err(format!(
+            "algebra.structure_constants must have shape (N, N, N) with 1 <= N <= {MAX_DIM}, \
+             found {shape:?}"
+        ))),
+    }
 }
 
 fn read_mlp(st: &SafeTensors<'_>, n_layers: usize) -> Result<Mlp, CoreError> {
@@ -165,29 +198,57 @@ impl Model {
         let mut n_layers = 0;
         let mut has_poly = false;
         for name in st.names() {
-            if name == "poly.powers" || name == "poly.coeffs" {
-                has_poly = true;
-            } else if let Some(i) = layer_index(name).filter(|&i| i < MAX_LAYERS) {
-                n_layers = n_layers.max(i + 1);
-            } else {
-                return Err(format_err(format!("unexpected tensor '{name}'")));
+            match name {
+                "poly.powers" | "poly.coeffs" => has_poly = true,
+                "algebra.structure_constants" => {}
+                _ => match layer_index(name).filter(|&i| i < MAX_LAYERS) {
+                    Some(i) => n_layers = n_layers.max(i + 1),
+                    None => return Err(format_err(format!("unexpected tensor '{name}'"))),
+                },
             }
         }
-        let polynomial = if has_poly {
-            read_polynomial(&st)?
+        let algebra = read_algebra(&st)?;
+        let (poly_dim, terms) = if has_poly {
+            let (d, t) = read_polynomial(&st)?;
+            (Some(d), t)
         } else {
-            Polynomial::default()
+            (None, Vec::new())
         };
         let mlp = if n_layers > 0 {
             Some(read_mlp(&st, n_layers)?)
         } else {
             None
         };
-        if polynomial.terms.is_empty() && mlp.is_none() {
+        if terms.is_empty() && mlp.is_none() {
             return Err(format_err(
                 "the file holds neither polynomial terms nor an MLP",
             ));
         }
+        // The dimension, from every tensor that states it; they must agree.
+        let mlp_dim = mlp.as_ref().map(|m| m.n_inputs().saturating_sub(1));
+        let algebra_dim = algebra.as_ref().map(|(d, _)| *d);
+        let dim = algebra_dim.or(poly_dim).or(mlp_dim).unwrap_or(3);
+        for (what, d) in [("poly.powers", poly_dim), ("the first MLP layer", mlp_dim)] {
+            if let Some(d) = d.filter(|&d| d != dim) {
+                return Err(format_err(format!(
+                    "{what} is for dimension {d} but the model's algebra has dimension {dim}"
+                )));
+            }
+        }
+        if !(1..=MAX_DIM).contains(&dim) {
+            return Err(format_err(format!(
+                "dimension {dim} is outside 1..={MAX_DIM}"
+            )));
+        }
+        let structure_constants = match algebra {
+            Some((_, c)) => c,
+            None if dim == 3 => so3_constants(),
+            None => {
+                return Err(format_err(format!(
+                    "a model of dimension {dim} needs the tensor algebra.structure_constants"
+                )))
+            }
+        };
         let mlp_power = match (&mlp, metadata.get("mlp_power")) {
             (None, _) => 0,
             (Some(_), None) => return Err(format_err("metadata key 'mlp_power' is missing")),
@@ -208,12 +269,22 @@ impl Model {
                 format_err(format!("unknown mlp_inputs '{s}' (t,p or homogeneous)"))
             })?,
         };
-        let generating = GeneratingFunction::new(polynomial, mlp, mlp_power, inputs)?;
-        Ok(Model {
-            generating,
+        let model = Model {
+            dim,
             chart,
+            structure_constants,
+            terms,
+            mlp,
+            mlp_power,
+            inputs,
             metadata,
-        })
+        };
+        // Builds the typed pieces once, so every check runs at load time.
+        with_dim!(dim, N => {
+            model.generating::<N>()?;
+            model.groupoid::<N>().map_err(|e| format_err(e.to_string()))?;
+        }, unreachable_dim(dim)?);
+        Ok(model)
     }
 
     /// Reads and parses a model file.
@@ -225,12 +296,76 @@ impl Model {
         Model::from_bytes(&bytes)
     }
 
-    /// The model's integrator with the given Newton settings.
-    pub fn stepper(&self, newton: NewtonOptions) -> BisectionStepper {
-        BisectionStepper {
-            generating: self.generating.clone(),
-            chart: self.chart,
-            newton,
-        }
+    /// The generating function, for dimension N = `self.dim`.
+    pub fn generating<const N: usize>(&self) -> Result<GeneratingFunction<N>, CoreError> {
+        self.check_dim::<N>()?;
+        let terms = self
+            .terms
+            .iter()
+            .map(|(k, e, c)| Monomial {
+                t_power: *k,
+                p_powers: std::array::from_fn(|i| e[i]),
+                coeff: *c,
+            })
+            .collect();
+        GeneratingFunction::new(
+            Polynomial { terms },
+            self.mlp.clone(),
+            self.mlp_power,
+            self.inputs,
+        )
     }
+
+    /// The groupoid (algebra and chart), for dimension N = `self.dim`.
+    pub fn groupoid<const N: usize>(&self) -> Result<Groupoid<N>, CoreError> {
+        self.check_dim::<N>()?;
+        let c = &self.structure_constants;
+        let algebra = LieAlgebra::new(std::array::from_fn(|i| {
+            std::array::from_fn(|j| std::array::from_fn(|k| c[(i * N + j) * N + k]))
+        }))?;
+        Groupoid::new(algebra, self.chart)
+    }
+
+    /// The model's integrator with the given Newton settings, for dimension N = `self.dim`.
+    pub fn stepper<const N: usize>(
+        &self,
+        newton: NewtonOptions,
+    ) -> Result<BisectionStepper<N>, CoreError> {
+        Ok(BisectionStepper {
+            generating: self.generating::<N>()?,
+            groupoid: self.groupoid::<N>()?,
+            newton,
+        })
+    }
+
+    /// Terms of the polynomial part.
+    pub fn n_polynomial_terms(&self) -> usize {
+        self.terms.len()
+    }
+
+    fn check_dim<const N: usize>(&self) -> Result<(), CoreError> {
+        if N != self.dim || self.structure_constants.len() != N * N * N {
+            return Err(CoreError::Invalid(format!(
+                "the model has dimension {}, not {N}",
+                self.dim
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The Levi-Civita symbol, flattened: so(3).
+fn so3_constants() -> Vec<f64> {
+    let mut c = vec![0.0; 27];
+    for (i, j, k) in [(0, 1, 2), (1, 2, 0), (2, 0, 1)] {
+        c[(i * 3 + j) * 3 + k] = 1.0;
+        c[(j * 3 + i) * 3 + k] = -1.0;
+    }
+    c
+}
+
+fn unreachable_dim(dim: usize) -> Result<(), CoreError> {
+    Err(format_err(format!(
+        "dimension {dim} is outside 1..={MAX_DIM}"
+    )))
 }

@@ -42,7 +42,8 @@ impl Default for TrajectoryInfo {
 
 /// Number of stored states: steps 0, every, 2·every, … ≤ n_steps.
 pub fn n_records(n_steps: usize, every: usize) -> usize {
-    n_steps / every + 1
+    // Saturates rather than overflowing: a count that large fails the buffer-size checks.
+    (n_steps / every.max(1)).saturating_add(1)
 }
 
 /// Checks the scalar arguments of a rollout.
@@ -58,14 +59,22 @@ pub fn check_arguments(h: f64, every: usize) -> Result<(), CoreError> {
     Ok(())
 }
 
-/// Rows of 3 numbers per stored state and the check that `out` holds (n, n_records, 3).
-fn check_buffer(n: usize, n_steps: usize, every: usize, out: &[f64]) -> Result<usize, CoreError> {
-    let row = 3 * n_records(n_steps, every);
-    if out.len() != n * row {
+/// Numbers per trajectory (N per stored state) and the check that `out` holds
+/// (n, n_records, N).
+fn check_buffer<const N: usize>(
+    n: usize,
+    n_steps: usize,
+    every: usize,
+    out: &[f64],
+) -> Result<usize, CoreError> {
+    let row = n_records(n_steps, every)
+        .checked_mul(N)
+        .ok_or_else(|| CoreError::Invalid(format!("{n_steps} steps overflow the record count")))?;
+    if Some(out.len()) != n.checked_mul(row) {
         return Err(CoreError::Invalid(format!(
             "output buffer holds {} numbers, {} needed",
             out.len(),
-            n * row
+            n.saturating_mul(row)
         )));
     }
     Ok(row)
@@ -78,35 +87,35 @@ fn check_buffer(n: usize, n_steps: usize, every: usize, out: &[f64]) -> Result<u
 /// one segment of all the steps (each trajectory sees the same sequence of `step` calls). The
 /// bindings use this to return to Python between segments and notice Ctrl-C.
 #[derive(Clone, Debug)]
-pub struct Rollout {
+pub struct Rollout<const N: usize> {
     h: f64,
     n_steps: usize,
     every: usize,
     /// Steps taken so far by every live trajectory.
     steps_done: usize,
-    mu: Vec<[f64; 3]>,
+    mu: Vec<[f64; N]>,
     info: Vec<TrajectoryInfo>,
 }
 
-impl Rollout {
+impl<const N: usize> Rollout<N> {
     /// Checks the arguments and writes the initial states into record 0 of `out`
-    /// (length n · n_records(n_steps, every) · 3, laid out as (n, n_records, 3)).
+    /// (length n · n_records(n_steps, every) · N, laid out as (n, n_records, N)).
     pub fn start(
-        mu0: &[[f64; 3]],
+        mu0: &[[f64; N]],
         h: f64,
         n_steps: usize,
         every: usize,
         out: &mut [f64],
     ) -> Result<Self, CoreError> {
         check_arguments(h, every)?;
-        let row = check_buffer(mu0.len(), n_steps, every, out)?;
+        let row = check_buffer::<N>(mu0.len(), n_steps, every, out)?;
         if let Some(bad) = mu0.iter().position(|m| !m.iter().all(|v| v.is_finite())) {
             return Err(CoreError::Invalid(format!(
                 "initial state {bad} is not finite"
             )));
         }
         for (o, m) in out.chunks_exact_mut(row).zip(mu0) {
-            o[..3].copy_from_slice(m);
+            o[..N].copy_from_slice(m);
         }
         Ok(Rollout {
             h,
@@ -131,28 +140,51 @@ impl Rollout {
     /// Advances every live trajectory by up to `max_steps` steps (fewer at the end), writing the
     /// records that fall in this segment into `out` (the buffer given to [`Rollout::start`]).
     /// Returns the number of steps taken.
-    pub fn advance<S: StepMap>(
+    pub fn advance<S: StepMap<N>>(
         &mut self,
         stepper: &S,
         max_steps: usize,
         out: &mut [f64],
     ) -> Result<usize, CoreError> {
-        let row = check_buffer(self.mu.len(), self.n_steps, self.every, out)?;
+        self.advance_with(stepper, max_steps, out, true)
+    }
+
+    /// [`Rollout::advance`], on rayon's pool when `parallel`, else on the calling thread (as in
+    /// a forked child, where the pool's threads are gone). The chunks are the same either way,
+    /// so the result is bit-identical.
+    pub fn advance_with<S: StepMap<N>>(
+        &mut self,
+        stepper: &S,
+        max_steps: usize,
+        out: &mut [f64],
+        parallel: bool,
+    ) -> Result<usize, CoreError> {
+        let row = check_buffer::<N>(self.mu.len(), self.n_steps, self.every, out)?;
         let steps = max_steps.min(self.n_steps - self.steps_done);
         let (h, every, first) = (self.h, self.every, self.steps_done);
         if steps > 0 && !self.mu.is_empty() {
             // Fixed chunks of `batch` consecutive trajectories: which trajectories share a
             // batched solve never depends on the thread count.
             let batch = stepper.batch().clamp(1, MAX_BATCH);
-            out.par_chunks_mut(row * batch)
-                .zip(self.mu.par_chunks_mut(batch))
-                .zip(self.info.par_chunks_mut(batch))
-                .for_each_init(
-                    || stepper.workspace(),
-                    |ws, ((o, mu), info)| {
-                        advance_chunk(stepper, ws, mu, info, h, first..first + steps, every, o);
-                    },
-                );
+            let chunk = |ws: &mut S::Workspace,
+                         ((o, mu), info): (
+                (&mut [f64], &mut [[f64; N]]),
+                &mut [TrajectoryInfo],
+            )| {
+                advance_chunk(stepper, ws, mu, info, h, first..first + steps, every, o);
+            };
+            if parallel {
+                out.par_chunks_mut(row * batch)
+                    .zip(self.mu.par_chunks_mut(batch))
+                    .zip(self.info.par_chunks_mut(batch))
+                    .for_each_init(|| stepper.workspace(), chunk);
+            } else {
+                let mut ws = stepper.workspace();
+                out.chunks_mut(row * batch)
+                    .zip(self.mu.chunks_mut(batch))
+                    .zip(self.info.chunks_mut(batch))
+                    .for_each(|c| chunk(&mut ws, c));
+            }
         }
         self.steps_done += steps;
         Ok(steps)
@@ -169,12 +201,12 @@ impl Rollout {
 }
 
 /// Takes the global steps `steps` (state k → k+1 for k in the range) of a chunk of
-/// trajectories, writing their records into their rows of `out` (n_records × 3 each).
+/// trajectories, writing their records into their rows of `out` (n_records × N each).
 #[allow(clippy::too_many_arguments)]
-fn advance_chunk<S: StepMap>(
+fn advance_chunk<const N: usize, S: StepMap<N>>(
     stepper: &S,
     ws: &mut S::Workspace,
-    mu: &mut [[f64; 3]],
+    mu: &mut [[f64; N]],
     info: &mut [TrajectoryInfo],
     h: f64,
     steps: std::ops::Range<usize>,
@@ -205,8 +237,8 @@ fn advance_chunk<S: StepMap>(
                     info.max_newton_iterations = info.max_newton_iterations.max(stats.iterations);
                     info.max_residual = info.max_residual.max(stats.residual);
                     if (k + 1) % every == 0 {
-                        let r = 3 * ((k + 1) / every);
-                        o[r..r + 3].copy_from_slice(&mu[i]);
+                        let r = N * ((k + 1) / every);
+                        o[r..r + N].copy_from_slice(&mu[i]);
                     }
                 }
                 Err(failure) => {
@@ -216,7 +248,7 @@ fn advance_chunk<S: StepMap>(
                     info[i].failed_step = k as i64;
                     info[i].failure = Some(failure);
                     let next = (k + 1).div_ceil(every);
-                    o[3 * next..].fill(f64::NAN);
+                    o[N * next..].fill(f64::NAN);
                 }
             }
         }
@@ -226,10 +258,10 @@ fn advance_chunk<S: StepMap>(
 /// Rolls out every initial state for `n_steps` steps of size `h`, keeping every `every`-th state:
 /// a [`Rollout`] advanced in one segment.
 ///
-/// `out` has length n · n_records(n_steps, every) · 3, laid out as (n, n_records, 3).
-pub fn rollout<S: StepMap>(
+/// `out` has length n · n_records(n_steps, every) · N, laid out as (n, n_records, N).
+pub fn rollout<const N: usize, S: StepMap<N>>(
     stepper: &S,
-    mu0: &[[f64; 3]],
+    mu0: &[[f64; N]],
     h: f64,
     n_steps: usize,
     every: usize,

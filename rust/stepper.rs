@@ -1,12 +1,13 @@
 //! One step of a bisection integrator: solve tar(∂S/∂p(h,p), p) = μ for p by Newton, then
-//! μ' = sou(∂S/∂p(h,p), p).
+//! μ' = sou(∂S/∂p(h,p), p). Generic over the dimension N of the Lie algebra; the Newton
+//! Jacobian is an N×N nalgebra matrix on the stack.
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Const, DimMin, SMatrix, SVector};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Mlp, Workspace, MAX_BATCH};
-use crate::groupoid::Chart;
+use crate::groupoid::Groupoid;
 
 /// Newton settings. The defaults converge to round-off, so the Casimir is kept to round-off.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -71,11 +72,15 @@ pub type StepResult = Result<StepStats, StepFailure>;
 
 /// A map μ ↦ μ' that advances one step of size h. Implemented by every integrator so a rollout
 /// is written once.
-pub trait StepMap: Sync {
+pub trait StepMap<const N: usize>: Sync {
     type Workspace: Send;
     fn workspace(&self) -> Self::Workspace;
+    /// Bytes one workspace takes (the rollout makes one per thread).
+    fn workspace_bytes(&self) -> usize {
+        0
+    }
     /// Advances `mu` in place.
-    fn step(&self, h: f64, mu: &mut [f64; 3], ws: &mut Self::Workspace) -> StepResult;
+    fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut Self::Workspace) -> StepResult;
 
     /// Trajectories a rollout hands to [`StepMap::step_batch`] together (at most
     /// [`MAX_BATCH`]); the chunks are fixed by position, never by the thread count.
@@ -88,7 +93,7 @@ pub trait StepMap: Sync {
     fn step_batch(
         &self,
         h: f64,
-        mu: &mut [[f64; 3]],
+        mu: &mut [[f64; N]],
         live: &[bool],
         results: &mut [StepResult],
         ws: &mut Self::Workspace,
@@ -98,10 +103,10 @@ pub trait StepMap: Sync {
 }
 
 /// [`StepMap::step_batch`] one trajectory at a time.
-fn step_each<S: StepMap + ?Sized>(
+fn step_each<const N: usize, S: StepMap<N> + ?Sized>(
     stepper: &S,
     h: f64,
-    mu: &mut [[f64; 3]],
+    mu: &mut [[f64; N]],
     live: &[bool],
     results: &mut [StepResult],
     ws: &mut S::Workspace,
@@ -115,9 +120,9 @@ fn step_each<S: StepMap + ?Sized>(
 
 /// The bisection integrator of a generating function in a chart.
 #[derive(Clone, Debug)]
-pub struct BisectionStepper {
-    pub generating: GeneratingFunction,
-    pub chart: Chart,
+pub struct BisectionStepper<const N: usize> {
+    pub generating: GeneratingFunction<N>,
+    pub groupoid: Groupoid<N>,
     pub newton: NewtonOptions,
 }
 
@@ -130,13 +135,13 @@ const BISECTION_BATCH: usize = 16;
 /// faster batched, the 253,501-parameter paper-sized one is 2.5× faster.
 const BATCH_MIN_PARAMETERS: usize = 1000;
 
-fn max_abs(a: &[f64; 3]) -> f64 {
-    a[0].abs().max(a[1].abs()).max(a[2].abs())
+fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
+    a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
 }
 
 /// Trajectories per batched solve for a generating function: [`BISECTION_BATCH`] for MLPs of
 /// [`BATCH_MIN_PARAMETERS`] or more, else 1 (one at a time).
-pub fn batch_size(generating: &GeneratingFunction) -> usize {
+pub fn batch_size<const N: usize>(generating: &GeneratingFunction<N>) -> usize {
     let weights = generating.mlp.as_ref().map_or(0, Mlp::n_parameters);
     if weights >= BATCH_MIN_PARAMETERS {
         BISECTION_BATCH
@@ -145,27 +150,33 @@ pub fn batch_size(generating: &GeneratingFunction) -> usize {
     }
 }
 
-impl BisectionStepper {
+/// The Newton Jacobian of an N-dimensional step.
+type Jacobian<const N: usize> = SMatrix<f64, N, N>;
+
+impl<const N: usize> BisectionStepper<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
     /// One Newton update of p for tar(∂S/∂p(h,p), p) = μ from the jet of S at p, keeping its
     /// Jacobian. Returns whether the update met the tolerance and |δ|∞.
     #[inline]
     fn newton_update(
         &self,
-        jet: &Jet2,
-        target: &[f64; 3],
-        p: &mut [f64; 3],
+        jet: &Jet2<N>,
+        target: &[f64; N],
+        p: &mut [f64; N],
         iterations: &mut u32,
-        jacobian: &mut Matrix3<f64>,
+        jacobian: &mut Jacobian<N>,
     ) -> Result<(bool, f64), StepFailure> {
         if !jet.is_finite() {
             return Err(StepFailure::NonFinite);
         }
         let (g, hs) = (jet.grad(), jet.hess());
         // x(p) = ∇S(p) carries the Hessian as its derivative; p carries the identity.
-        let x: [Dual1; 3] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
-        let pd: [Dual1; 3] = std::array::from_fn(|i| Dual1::var(p[i], i));
-        let t = self.chart.tar(&x, &pd)?;
-        *jacobian = Matrix3::from_fn(|r, c| t[r].g[c]);
+        let x: [Dual1<N>; N] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
+        let pd: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(p[i], i));
+        let t = self.groupoid.tar(&x, &pd)?;
+        *jacobian = Jacobian::from_fn(|r, c| t[r].g[c]);
         self.update(&t.map(|ti| ti.v), jacobian, target, p, iterations)
     }
 
@@ -174,16 +185,16 @@ impl BisectionStepper {
     #[inline]
     fn simplified_update(
         &self,
-        grad: &Dual1,
-        target: &[f64; 3],
-        p: &mut [f64; 3],
+        grad: &Dual1<N>,
+        target: &[f64; N],
+        p: &mut [f64; N],
         iterations: &mut u32,
-        jacobian: &Matrix3<f64>,
+        jacobian: &Jacobian<N>,
     ) -> Result<(bool, f64), StepFailure> {
         if !grad.is_finite() {
             return Err(StepFailure::NonFinite);
         }
-        let t = self.chart.tar(&grad.g, p)?;
+        let t = self.groupoid.tar(&grad.g, p)?;
         self.update(&t, jacobian, target, p, iterations)
     }
 
@@ -192,16 +203,16 @@ impl BisectionStepper {
     #[inline]
     fn update(
         &self,
-        tar: &[f64; 3],
-        jacobian: &Matrix3<f64>,
-        target: &[f64; 3],
-        p: &mut [f64; 3],
+        tar: &[f64; N],
+        jacobian: &Jacobian<N>,
+        target: &[f64; N],
+        p: &mut [f64; N],
         iterations: &mut u32,
     ) -> Result<(bool, f64), StepFailure> {
         if *iterations >= self.newton.max_iter {
             return Err(StepFailure::NotConverged);
         }
-        let f = Vector3::new(target[0] - tar[0], target[1] - tar[1], target[2] - tar[2]);
+        let f = SVector::<f64, N>::from_fn(|i, _| target[i] - tar[i]);
         let delta = jacobian
             .lu()
             .solve(&f)
@@ -209,8 +220,8 @@ impl BisectionStepper {
         if !delta.iter().all(|d| d.is_finite()) {
             return Err(StepFailure::SingularJacobian);
         }
-        for i in 0..3 {
-            p[i] += delta[i];
+        for (pi, d) in p.iter_mut().zip(delta.iter()) {
+            *pi += d;
         }
         *iterations += 1;
         let size = delta.amax();
@@ -222,19 +233,19 @@ impl BisectionStepper {
     #[inline]
     fn finish(
         &self,
-        grad: &Dual1,
-        target: &[f64; 3],
-        p: &[f64; 3],
+        grad: &Dual1<N>,
+        target: &[f64; N],
+        p: &[f64; N],
         iterations: u32,
-        mu: &mut [f64; 3],
+        mu: &mut [f64; N],
     ) -> StepResult {
         if !grad.is_finite() {
             return Err(StepFailure::NonFinite);
         }
         let x = grad.g;
-        let t = self.chart.tar(&x, p)?;
-        let f = [t[0] - target[0], t[1] - target[1], t[2] - target[2]];
-        let out = self.chart.sou(&x, p)?;
+        let t = self.groupoid.tar(&x, p)?;
+        let f: [f64; N] = std::array::from_fn(|i| t[i] - target[i]);
+        let out = self.groupoid.sou(&x, p)?;
         if !out.iter().all(|v| v.is_finite()) {
             return Err(StepFailure::NonFinite);
         }
@@ -246,18 +257,25 @@ impl BisectionStepper {
     }
 }
 
-impl StepMap for BisectionStepper {
-    type Workspace = Workspace;
+impl<const N: usize> StepMap<N> for BisectionStepper<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    type Workspace = Workspace<N>;
 
-    fn workspace(&self) -> Workspace {
+    fn workspace(&self) -> Workspace<N> {
         self.generating.workspace()
     }
 
-    fn step(&self, h: f64, mu: &mut [f64; 3], ws: &mut Workspace) -> StepResult {
+    fn workspace_bytes(&self) -> usize {
+        Workspace::bytes(&self.generating)
+    }
+
+    fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
         let target = *mu;
         let mut p = target;
         let mut iterations = 0;
-        let mut jacobian = Matrix3::zeros();
+        let mut jacobian = Jacobian::zeros();
         loop {
             let jet = self.generating.jet(h, &p, ws);
             if self
@@ -281,19 +299,19 @@ impl StepMap for BisectionStepper {
     fn step_batch(
         &self,
         h: f64,
-        mu: &mut [[f64; 3]],
+        mu: &mut [[f64; N]],
         live: &[bool],
         results: &mut [StepResult],
-        ws: &mut Workspace,
+        ws: &mut Workspace<N>,
     ) {
         if self.batch() == 1 {
             return step_each(self, h, mu, live, results, ws);
         }
         let n = mu.len();
         assert!(n <= MAX_BATCH, "batch of {n} trajectories");
-        let mut p = [[0.0; 3]; MAX_BATCH];
+        let mut p = [[0.0; N]; MAX_BATCH];
         let mut iterations = [0u32; MAX_BATCH];
-        let mut jacobian = [Matrix3::zeros(); MAX_BATCH];
+        let mut jacobian = [Jacobian::zeros(); MAX_BATCH];
         // Whether the next update needs a fresh Jacobian, and the size of the last update.
         let mut refresh = [true; MAX_BATCH];
         let mut last = [f64::INFINITY; MAX_BATCH];
@@ -307,12 +325,12 @@ impl StepMap for BisectionStepper {
         }
         // Gathered momenta of the jet and gradient passes, their results and their owners.
         let (mut pj, mut jets, mut jet_of) = (
-            [[0.0; 3]; MAX_BATCH],
+            [[0.0; N]; MAX_BATCH],
             [Jet2::default(); MAX_BATCH],
             [0; MAX_BATCH],
         );
         let (mut pg, mut grads, mut grad_of) = (
-            [[0.0; 3]; MAX_BATCH],
+            [[0.0; N]; MAX_BATCH],
             [Dual1::default(); MAX_BATCH],
             [0; MAX_BATCH],
         );

@@ -17,7 +17,7 @@ use safetensors::{serialize, Dtype};
 use crate::dual::{Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
-use crate::groupoid::Chart;
+use crate::groupoid::{Chart, Groupoid};
 use crate::model::{Model, FORMAT};
 use crate::rollout::{n_records, rollout, TrajectoryInfo};
 use crate::stepper::{BisectionStepper, NewtonOptions, StepMap, StepStats};
@@ -97,7 +97,7 @@ fn sub(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
 }
 
 /// −t H(p) = −t Σ pᵢ²/(2 Iᵢ) as monomials.
-fn minus_t_h() -> Vec<Monomial> {
+fn minus_t_h() -> Vec<Monomial<3>> {
     (0..3)
         .map(|i| {
             let mut p_powers = [0; 3];
@@ -112,7 +112,7 @@ fn minus_t_h() -> Vec<Monomial> {
 }
 
 /// The Taylor K = 3 generating function t S₁ + t³ S₃ for I = (1.5, 2, 2.5), Cayley chart.
-fn taylor3() -> Vec<Monomial> {
+fn taylor3() -> Vec<Monomial<3>> {
     let mut terms = minus_t_h();
     let s3: [([u32; 3], f64); 6] = [
         ([4, 0, 0], -2.0 / 81.0),
@@ -166,7 +166,7 @@ fn random_terms(
     t_powers: (u32, u32),
     max_p: u32,
     scale: f64,
-) -> Vec<Monomial> {
+) -> Vec<Monomial<3>> {
     (0..n)
         .map(|_| Monomial {
             t_power: t_powers.0 + rng.below((t_powers.1 - t_powers.0 + 1) as usize) as u32,
@@ -178,7 +178,7 @@ fn random_terms(
 
 /// −tH plus small random polynomial terms plus t^m · (random MLP): a "random S" that a step of
 /// h ≈ 0.1 can still solve for states of radius ≤ 4.
-fn random_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction {
+fn random_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction<3> {
     let mut terms = minus_t_h();
     terms.extend(random_terms(rng, 4, (2, 4), 3, 0.02));
     let mlp = random_mlp(rng, 12, 1.0);
@@ -187,22 +187,22 @@ fn random_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction {
 }
 
 /// Like [`random_generating`] with two hidden layers of 40: wide enough for the batched path.
-fn wide_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction {
+fn wide_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction<3> {
     let mlp = mlp_with_widths(rng, &[4, 40, 40, 1], 1.0);
     let mut terms = minus_t_h();
     terms.extend(random_terms(rng, 4, (2, 4), 3, 0.02));
     GeneratingFunction::new(Polynomial { terms }, Some(mlp), 3, inputs).unwrap()
 }
 
-fn stepper(generating: GeneratingFunction, chart: Chart) -> BisectionStepper {
+fn stepper(generating: GeneratingFunction<3>, chart: Chart) -> BisectionStepper<3> {
     BisectionStepper {
         generating,
-        chart,
+        groupoid: Groupoid::so3(chart).unwrap(),
         newton: NewtonOptions::default(),
     }
 }
 
-fn hamiltonian_stepper(chart: Chart) -> BisectionStepper {
+fn hamiltonian_stepper(chart: Chart) -> BisectionStepper<3> {
     let gf = GeneratingFunction::new(Polynomial { terms: minus_t_h() }, None, 0, MlpInputs::Plain)
         .unwrap();
     stepper(gf, chart)
@@ -341,7 +341,7 @@ fn homogeneous_inputs_scale_correctly() {
         let lp = p.map(|v| lambda * v);
         let a = gf.jet(t, &lp, &mut ws);
         let b = gf.jet(lambda * t, &p, &mut ws);
-        let tol = 1e-13 * (1.0 + b.0.iter().map(|x| x.abs()).fold(0.0, f64::max));
+        let tol = 1e-13 * (1.0 + b.max_abs());
         assert!(
             (a.value() - lambda * b.value()).abs() < tol * lambda,
             "case {case}: value"
@@ -391,7 +391,7 @@ fn polynomial_jet_matches_central_differences() {
         let t = rng.range(0.1, 1.2);
         let p = rng.vec3(-1.5, 1.5);
         let jet = gf.jet(t, &p, &mut ws);
-        let scale = 1.0 + jet.0.iter().map(|x| x.abs()).fold(0.0, f64::max);
+        let scale = 1.0 + jet.max_abs();
         let value = |q: [f64; 3]| gf.polynomial.value_and_time_derivative(t, &q).0;
         for i in 0..3 {
             let fd = richardson(
@@ -440,7 +440,7 @@ fn charts_on_jets_match_central_differences() {
         for r in [0.05, 0.5, 0.99, 1.01, 2.0, 4.5] {
             let x0 = rng.sphere(r);
             let p = rng.vec3(-2.0, 2.0);
-            let xj: [Jet2; 3] = std::array::from_fn(|i| Jet2::var(x0[i], i));
+            let xj: [Jet2<3>; 3] = std::array::from_fn(|i| Jet2::var(x0[i], i));
             let pj = p.map(Jet2::cst);
             for (which, sign) in [("sou", 1.0), ("tar", -1.0)] {
                 let eval = |x: [f64; 3]| {
@@ -458,7 +458,7 @@ fn charts_on_jets_match_central_differences() {
                 let f0 = eval(x0);
                 for k in 0..3 {
                     assert!((out[k].value() - f0[k]).abs() < 1e-14 * (1.0 + f0[k].abs()));
-                    let scale = 1.0 + out[k].0.iter().map(|x| x.abs()).fold(0.0, f64::max);
+                    let scale = 1.0 + out[k].max_abs();
                     for i in 0..3 {
                         for j in i..3 {
                             let fd = richardson(
@@ -500,8 +500,8 @@ fn cayley_newton_jacobian_matches_closed_form() {
         let p = rng.sphere(r);
         let jet = gf.jet(h, &p, &mut ws);
         let (x, hs) = (jet.grad(), jet.hess());
-        let xd: [Dual1; 3] = std::array::from_fn(|i| Dual1 { v: x[i], g: hs[i] });
-        let pd: [Dual1; 3] = std::array::from_fn(|i| Dual1::var(p[i], i));
+        let xd: [Dual1<3>; 3] = std::array::from_fn(|i| Dual1 { v: x[i], g: hs[i] });
+        let pd: [Dual1<3>; 3] = std::array::from_fn(|i| Dual1::var(p[i], i));
         let t = Chart::Cayley.tar(&xd, &pd).unwrap();
         // J = (I − ½ x̂ + ¼ x xᵀ) + (½ p̂ + ¼ (x pᵀ + (x·p) I)) · Hs
         let hat = |v: &[f64; 3]| [[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]];
@@ -814,7 +814,7 @@ fn rollout_reports_newton_failure_per_trajectory() {
 /// `failed_step`, the NaN fill and the statistics exactly.
 struct FailAtFive;
 
-impl StepMap for FailAtFive {
+impl StepMap<3> for FailAtFive {
     type Workspace = ();
     fn workspace(&self) {}
     fn step(&self, _h: f64, mu: &mut [f64; 3], _ws: &mut ()) -> Result<StepStats, StepFailure> {
@@ -886,7 +886,7 @@ fn rollout_failure_bookkeeping_is_exact() {
 
 fn rollout_in_pool(
     threads: usize,
-    st: &BisectionStepper,
+    st: &BisectionStepper<3>,
     mu0: &[[f64; 3]],
     h: f64,
     n_steps: usize,
@@ -1058,7 +1058,7 @@ fn metadata(chart: &str, mlp: Option<(u32, MlpInputs)>) -> HashMap<String, Strin
     m
 }
 
-fn polynomial_tensors(poly: &Polynomial) -> Vec<Tensor> {
+fn polynomial_tensors(poly: &Polynomial<3>) -> Vec<Tensor> {
     let n = poly.terms.len();
     let powers: Vec<i64> = poly
         .terms
@@ -1092,7 +1092,7 @@ fn mlp_tensors(mlp: &Mlp) -> Vec<Tensor> {
         .collect()
 }
 
-fn generating_tensors(gf: &GeneratingFunction) -> Vec<Tensor> {
+fn generating_tensors(gf: &GeneratingFunction<3>) -> Vec<Tensor> {
     let mut t = polynomial_tensors(&gf.polynomial);
     if let Some(mlp) = &gf.mlp {
         t.extend(mlp_tensors(mlp));
@@ -1101,7 +1101,7 @@ fn generating_tensors(gf: &GeneratingFunction) -> Vec<Tensor> {
 }
 
 /// A valid model: −tH + small terms + t^m MLP.
-fn valid_model(seed: u64) -> (GeneratingFunction, Vec<Tensor>, HashMap<String, String>) {
+fn valid_model(seed: u64) -> (GeneratingFunction<3>, Vec<Tensor>, HashMap<String, String>) {
     let mut rng = Rng::new(seed);
     let gf = random_generating(&mut rng, MlpInputs::Plain);
     let tensors = generating_tensors(&gf);
@@ -1143,30 +1143,36 @@ fn model_round_trips_through_safetensors() {
         );
         let model = Model::from_bytes(&bytes).unwrap();
         assert_eq!(model.chart, chart);
-        assert_eq!(model.generating.inputs, inputs);
-        assert_eq!(model.generating, gf);
+        assert_eq!(model.generating::<3>().unwrap().inputs, inputs);
+        assert_eq!(model.generating::<3>().unwrap(), gf);
         assert_eq!(model.metadata["system"], "rigid_body");
         assert_eq!(model.metadata["inertia"], "[1.5, 2.0, 2.5]");
         // It evaluates bit-for-bit like the directly built one.
-        let (mut w1, mut w2) = (gf.workspace(), model.generating.workspace());
+        let (mut w1, mut w2) = (gf.workspace(), model.generating::<3>().unwrap().workspace());
         for _ in 0..20 {
             let t = rng.range(0.0, 1.0);
             let p = rng.vec3(-3.0, 3.0);
-            let (a, b) = (gf.jet(t, &p, &mut w1), model.generating.jet(t, &p, &mut w2));
+            let (a, b) = (
+                gf.jet(t, &p, &mut w1),
+                model.generating::<3>().unwrap().jet(t, &p, &mut w2),
+            );
             assert!(a
-                .0
+                .flat()
                 .iter()
-                .zip(&b.0)
+                .zip(&b.flat())
                 .all(|(x, y)| x.to_bits() == y.to_bits()));
             let (a, b) = (
                 gf.value_and_time_derivative(t, &p, &mut w1),
-                model.generating.value_and_time_derivative(t, &p, &mut w2),
+                model
+                    .generating::<3>()
+                    .unwrap()
+                    .value_and_time_derivative(t, &p, &mut w2),
             );
             assert_eq!(a.0.to_bits(), b.0.to_bits());
             assert_eq!(a.1.to_bits(), b.1.to_bits());
         }
         // Its stepper steps like the directly built one.
-        let st = model.stepper(NewtonOptions::default());
+        let st = model.stepper::<3>(NewtonOptions::default()).unwrap();
         let direct = stepper(gf, chart);
         let mu0 = [1.0, 1.0, 2.0];
         let (mut a, mut b) = (mu0, mu0);
@@ -1179,8 +1185,8 @@ fn model_round_trips_through_safetensors() {
     let poly = Polynomial { terms: taylor3() };
     let bytes = serialize_tensors(&polynomial_tensors(&poly), Some(metadata("cayley", None)));
     let model = Model::from_bytes(&bytes).unwrap();
-    assert_eq!(model.generating.polynomial, poly);
-    assert!(model.generating.mlp.is_none());
+    assert_eq!(model.generating::<3>().unwrap().polynomial, poly);
+    assert!(model.generating::<3>().unwrap().mlp.is_none());
     let mut rng = Rng::new(0x5EED_0044);
     let mlp = random_mlp(&mut rng, 8, 1.0);
     let bytes = serialize_tensors(
@@ -1188,9 +1194,9 @@ fn model_round_trips_through_safetensors() {
         Some(metadata("exp", Some((3, MlpInputs::Plain)))),
     );
     let model = Model::from_bytes(&bytes).unwrap();
-    assert_eq!(model.generating.mlp.as_ref(), Some(&mlp));
-    assert_eq!(model.generating.mlp_power, 3);
-    assert!(model.generating.polynomial.terms.is_empty());
+    assert_eq!(model.generating::<3>().unwrap().mlp.as_ref(), Some(&mlp));
+    assert_eq!(model.generating::<3>().unwrap().mlp_power, 3);
+    assert!(model.generating::<3>().unwrap().polynomial.terms.is_empty());
 }
 
 #[test]
@@ -1205,7 +1211,10 @@ fn model_from_file_round_trip_and_missing_path() {
     let loaded = Model::from_file(&path);
     std::fs::remove_file(&path).unwrap();
     let from_bytes = Model::from_bytes(&bytes).unwrap();
-    assert_eq!(loaded.unwrap().generating, from_bytes.generating);
+    assert_eq!(
+        loaded.unwrap().generating::<3>().unwrap(),
+        from_bytes.generating::<3>().unwrap()
+    );
 
     let missing = dir.join("poisson_rs_test_this_file_does_not_exist.safetensors");
     match Model::from_file(&missing) {
@@ -1367,7 +1376,13 @@ fn model_rejects_bad_metadata() {
             &format!("mlp_power {bad:?}"),
         );
     }
-    assert!(Model::from_bytes(&with(&|_| {})).unwrap().generating == gf);
+    assert!(
+        Model::from_bytes(&with(&|_| {}))
+            .unwrap()
+            .generating::<3>()
+            .unwrap()
+            == gf
+    );
 }
 
 #[test]
@@ -1413,7 +1428,7 @@ fn model_rejects_bad_polynomials() {
             ],
             Some(meta.clone()),
         ),
-        "shape (n, 4)",
+        "needs the tensor algebra.structure_constants",
         "powers of shape (2, 3)",
     );
     expect_format_error(
@@ -1530,7 +1545,7 @@ fn model_rejects_bad_mlps() {
     // First layer not taking 4 inputs; last layer not 1 output.
     expect_format_error(
         &file(vec![layer(0, 8, 3, 0.1), layer(1, 1, 8, 0.1)]),
-        "must take 4 inputs",
+        "needs the tensor algebra.structure_constants",
         "first layer with 3 inputs",
     );
     expect_format_error(
@@ -1625,10 +1640,13 @@ fn model_huge_mlp_power_is_refused_or_correct() {
     match Model::from_bytes(&bytes) {
         Err(CoreError::Format(m)) => assert!(m.contains("mlp_power"), "{m}"),
         Ok(model) => {
-            let mut ws = model.generating.workspace();
+            let mut ws = model.generating::<3>().unwrap().workspace();
             let p = [1.0, 1.0, 2.0];
-            let jet = model.generating.jet(0.5, &p, &mut ws);
-            let (v, dt) = model.generating.value_and_time_derivative(0.5, &p, &mut ws);
+            let jet = model.generating::<3>().unwrap().jet(0.5, &p, &mut ws);
+            let (v, dt) = model
+                .generating::<3>()
+                .unwrap()
+                .value_and_time_derivative(0.5, &p, &mut ws);
             assert!(
                 jet.is_finite() && v.is_finite() && dt.is_finite(),
                 "jet {jet:?} v {v} dt {dt}"
@@ -1763,7 +1781,7 @@ fn model_rejects_huge_layer_index() {
 
 /// Runs `rollout` as a [`crate::rollout::Rollout`] advanced in segments of the given sizes
 /// (cycled), checking the step bookkeeping on the way.
-fn rollout_in_segments<S: StepMap>(
+fn rollout_in_segments<S: StepMap<3>>(
     st: &S,
     mu0: &[[f64; 3]],
     h: f64,
@@ -2102,16 +2120,16 @@ fn batched_derivatives_match_single_ones() {
                 for j in 0..n {
                     let single = gf.jet(0.1, &p[j], &mut ws);
                     let g = gf.gradient(0.1, &p[j], &mut ws);
-                    let scale = single.0.iter().fold(1.0_f64, |m, v| m.max(v.abs()));
+                    let scale = single.flat().iter().fold(1.0_f64, |m, v| m.max(v.abs()));
                     for c in 0..10 {
                         assert!(
-                            (jets[j].0[c] - single.0[c]).abs() <= 1e-13 * scale,
+                            (jets[j].flat()[c] - single.flat()[c]).abs() <= 1e-13 * scale,
                             "{inputs:?} n={n} j={j} c={c}: {} vs {}",
-                            jets[j].0[c],
-                            single.0[c]
+                            jets[j].flat()[c],
+                            single.flat()[c]
                         );
                     }
-                    assert!((reverse[j].v - single.0[0]).abs() <= 1e-13 * scale);
+                    assert!((reverse[j].v - single.flat()[0]).abs() <= 1e-13 * scale);
                     for c in 0..3 {
                         assert!(
                             (reverse[j].g[c] - g.g[c]).abs() <= 1e-13 * scale,
@@ -2120,7 +2138,7 @@ fn batched_derivatives_match_single_ones() {
                             g
                         );
                         assert!((grads[j].g[c] - g.g[c]).abs() <= 1e-13 * scale);
-                        assert!((grads[j].g[c] - jets[j].0[1 + c]).abs() <= 1e-13 * scale);
+                        assert!((grads[j].g[c] - jets[j].g[c]).abs() <= 1e-13 * scale);
                     }
                 }
             }
