@@ -19,8 +19,8 @@ use criterion::{
     criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput,
 };
 use poisson_rs::{
-    kernel, rollout, BisectionStepper, Chart, GeneratingFunction, Layer, Mlp, MlpInputs, Model,
-    Monomial, NewtonOptions, Polynomial, StepMap,
+    kernel, rollout, BisectionStepper, Chart, GeneratingFunction, Groupoid, Layer, Mlp, MlpInputs,
+    Model, Monomial, NewtonOptions, Polynomial, StepMap,
 };
 
 /// Step size of the paper's scene.
@@ -59,7 +59,7 @@ impl Rng {
 }
 
 /// t S₁ + t³ S₃ for I = (1.5, 2, 2.5), Cayley chart (DESIGN.md §1).
-fn taylor3() -> Polynomial {
+fn taylor3() -> Polynomial<3> {
     let terms: [(u32, [u32; 3], f64); 9] = [
         (1, [2, 0, 0], -1.0 / 3.0),
         (1, [0, 2, 0], -1.0 / 4.0),
@@ -84,7 +84,7 @@ fn taylor3() -> Polynomial {
 }
 
 /// Taylor K=3 + t⁵ · MLP 4 → 32 → 32 → 1 with Xavier-uniform weights (seed 42).
-fn random_model() -> BisectionStepper {
+fn random_model() -> BisectionStepper<3> {
     let mut rng = Rng(42);
     let widths = [4, 32, 32, 1];
     let layers = widths
@@ -101,19 +101,20 @@ fn random_model() -> BisectionStepper {
     let generating = GeneratingFunction::new(taylor3(), Some(mlp), 5, MlpInputs::Plain).unwrap();
     BisectionStepper {
         generating,
-        chart: Chart::Cayley,
+        groupoid: Groupoid::so3(Chart::Cayley).unwrap(),
         newton: NewtonOptions::default(),
     }
 }
 
 /// The shipped 500-250-250-250 `paper` model, or a seeded random stand-in of that size.
-fn paper_stepper(newton: NewtonOptions) -> BisectionStepper {
+fn paper_stepper(newton: NewtonOptions) -> BisectionStepper<3> {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("python/poisson_rs/models/paper.safetensors");
     if path.exists() {
         return Model::from_file(&path)
             .expect("the paper model file does not load")
-            .stepper(newton);
+            .stepper::<3>(newton)
+            .expect("the paper model is three-dimensional");
     }
     println!("paper model not found; using a seeded random 500-250-250-250 stand-in");
     let mut rng = Rng(43);
@@ -133,7 +134,7 @@ fn paper_stepper(newton: NewtonOptions) -> BisectionStepper {
     let generating = GeneratingFunction::new(terms, Some(mlp), 1, MlpInputs::Plain).unwrap();
     BisectionStepper {
         generating,
-        chart: Chart::Cayley,
+        groupoid: Groupoid::so3(Chart::Cayley).unwrap(),
         newton,
     }
 }
@@ -192,25 +193,27 @@ fn bench_paper(c: &mut Criterion) {
     group.finish();
 }
 
-fn load_stepper() -> BisectionStepper {
-    static STEPPER: OnceLock<BisectionStepper> = OnceLock::new();
+fn load_stepper() -> BisectionStepper<3> {
+    static STEPPER: OnceLock<BisectionStepper<3>> = OnceLock::new();
     STEPPER.get_or_init(load_stepper_once).clone()
 }
 
-fn load_stepper_once() -> BisectionStepper {
+fn load_stepper_once() -> BisectionStepper<3> {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("python/poisson_rs/models/default.safetensors");
     if path.exists() {
         let model = Model::from_file(&path).expect("the default model file does not load");
-        let n = model.generating.mlp.as_ref().map_or(0, Mlp::n_parameters);
+        let n = model.mlp.as_ref().map_or(0, Mlp::n_parameters);
         println!(
             "bench model: {} (chart {}, {} MLP parameters, {} polynomial terms)",
             path.display(),
             model.chart.name(),
             n,
-            model.generating.polynomial.terms.len()
+            model.n_polynomial_terms()
         );
-        model.stepper(NewtonOptions::default())
+        model
+            .stepper::<3>(NewtonOptions::default())
+            .expect("a rigid-body model")
     } else {
         println!(
             "bench model: {} not found; using a seeded random stand-in \

@@ -5,6 +5,13 @@
 //! once and differentiated by evaluation. N is a const generic, so the rigid body's N = 3 is as
 //! fast as hand-unrolled code.
 
+// Index loops over small fixed-size vectors and matrices read as the formulas they implement.
+#![allow(
+    clippy::needless_range_loop,
+    clippy::suspicious_arithmetic_impl,
+    clippy::field_reassign_with_default
+)]
+
 use std::ops::{Add, Mul, Neg, Sub};
 
 /// The arithmetic the generic code needs.

@@ -5,6 +5,9 @@
 //! heavy top). A step only needs ∂S/∂p and ∂²S/∂p² at fixed t = h; both come out of one
 //! forward-mode pass.
 
+// Index loops over small fixed-size vectors and matrices read as the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
 use crate::dual::{Dual1, Jet2, Scalar, Variable};
 use crate::error::CoreError;
 use crate::kernel;

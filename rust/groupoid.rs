@@ -9,6 +9,9 @@
 //!   singular, so never as a quotient). Both lie on one coadjoint orbit, which is why every
 //!   bisection map keeps every Casimir whatever the generating function is.
 
+// Index loops over small fixed-size vectors and matrices read as the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
 use std::sync::OnceLock;
 
 use crate::dual::Scalar;
@@ -346,7 +349,7 @@ impl<const N: usize> Groupoid<N> {
     /// Σ (Bₙ/n!) (sign · A)ⁿ p with A = ad_xᵀ, until two consecutive non-zero terms are below
     /// round-off in every component (value and derivatives).
     #[inline]
-    fn exp_series<T: Scalar>(
+    pub(crate) fn exp_series<T: Scalar>(
         &self,
         x: &[T; N],
         p: &[T; N],

@@ -80,6 +80,12 @@ fn check_buffer<const N: usize>(
     Ok(row)
 }
 
+/// One chunk of a rollout: its output rows, its states and its diagnostics.
+type Chunk<'a, const N: usize> = (
+    (&'a mut [f64], &'a mut [[f64; N]]),
+    &'a mut [TrajectoryInfo],
+);
+
 /// A batch rollout that can be advanced a segment of steps at a time.
 ///
 /// It carries each trajectory's current state and [`TrajectoryInfo`] between segments and writes
@@ -166,11 +172,7 @@ impl<const N: usize> Rollout<N> {
             // Fixed chunks of `batch` consecutive trajectories: which trajectories share a
             // batched solve never depends on the thread count.
             let batch = stepper.batch().clamp(1, MAX_BATCH);
-            let chunk = |ws: &mut S::Workspace,
-                         ((o, mu), info): (
-                (&mut [f64], &mut [[f64; N]]),
-                &mut [TrajectoryInfo],
-            )| {
+            let chunk = |ws: &mut S::Workspace, ((o, mu), info): Chunk<'_, N>| {
                 advance_chunk(stepper, ws, mu, info, h, first..first + steps, every, o);
             };
             if parallel {
