@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from collections.abc import Sequence
@@ -12,7 +13,15 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure  # the OO API: no pyplot state, no display backend
 
+from .files import atomic_write_bytes
 from .scene import Run, SceneResult
+
+
+def _savefig(fig: Figure, path: Path, **kwargs: Any) -> Path:
+    """Renders ``fig`` as PNG and writes it atomically (only over a regular file or a new path)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", **kwargs)
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 def _save_with_legend(
@@ -22,19 +31,17 @@ def _save_with_legend(
     fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    return path
+    return _savefig(fig, path, dpi=110)
 
 
 def write_rows(rows: Sequence[dict[str, Any]], path: Path) -> None:
     """Writes dict rows as CSV and the same rows as JSON (``path`` with suffix .json)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    path.with_suffix(".json").write_text(json.dumps(list(rows), indent=1))
+    f = io.StringIO(newline="")
+    w = csv.DictWriter(f, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_bytes(path, f.getvalue().encode())
+    atomic_write_bytes(path.with_suffix(".json"), json.dumps(list(rows), indent=1).encode())
 
 
 def paper_figure_2(scene: SceneResult, run: Run, path: Path, max_points: int = 4000) -> Path:
@@ -54,8 +61,7 @@ def paper_figure_2(scene: SceneResult, run: Run, path: Path, max_points: int = 4
         ax.legend(loc="upper left")
     fig.suptitle(f"{len(scene.times) - 1} steps of h = {scene.h}")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return path
+    return _savefig(fig, path, dpi=110)
 
 
 def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
@@ -81,8 +87,7 @@ def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
             ax.grid(True, which="major", alpha=0.3)
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return path
+    return _savefig(fig, path, dpi=110)
 
 
 def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
@@ -90,21 +95,19 @@ def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> P
     cols = ["state", "step", "t", "exact_1", "exact_2", "exact_3"]
     for run in runs:
         cols += [f"{run.name}_{c}" for c in ("1", "2", "3", "error", "H", "C")]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(cols)
-        blocks = [
-            (scene.errors(r), scene.body.hamiltonian(r.traj), scene.body.casimir(r.traj))
-            for r in runs
-        ]
-        for i in range(len(scene.states)):
-            for k, t in enumerate(scene.times):
-                row: list[Any] = [i, k, f"{t:.6g}", *(f"{v:.17g}" for v in scene.exact[i, k])]
-                for r, (e, hh, cc) in zip(runs, blocks, strict=True):
-                    row += [f"{v:.17g}" for v in (*r.traj[i, k], e[i, k], hh[i, k], cc[i, k])]
-                w.writerow(row)
-    return path
+    f = io.StringIO(newline="")
+    w = csv.writer(f)
+    w.writerow(cols)
+    blocks = [
+        (scene.errors(r), scene.body.hamiltonian(r.traj), scene.body.casimir(r.traj)) for r in runs
+    ]
+    for i in range(len(scene.states)):
+        for k, t in enumerate(scene.times):
+            row: list[Any] = [i, k, f"{t:.6g}", *(f"{v:.17g}" for v in scene.exact[i, k])]
+            for r, (e, hh, cc) in zip(runs, blocks, strict=True):
+                row += [f"{v:.17g}" for v in (*r.traj[i, k], e[i, k], hh[i, k], cc[i, k])]
+            w.writerow(row)
+    return atomic_write_bytes(path, f.getvalue().encode())
 
 
 # --- Work–precision charts (``poisson-rs chart``; numbers from poisson_rs.workprecision) ---
@@ -300,8 +303,7 @@ def stability_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
             shrink=0.8,
             label="log₁₀ |μ(T) − μ_exact(T)| / |μ₀|  (× = Newton failure)",
         )
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    return path
+    return _savefig(fig, path, dpi=110, bbox_inches="tight")
 
 
 def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
@@ -337,8 +339,7 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
     axes[0].legend(fontsize=8)
     fig.suptitle("Where methods break (× at the top: Newton failed for some state)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return path
+    return _savefig(fig, path, dpi=110)
 
 
 # --- Size against accuracy and speed (``poisson-rs sweep``; numbers from poisson_rs.sweep) ---
