@@ -4,9 +4,12 @@ code, settings and outputs are checked before the work, training reports its bas
 from __future__ import annotations
 
 import os
+import shlex
+import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 from conftest import build_generating
@@ -236,3 +239,147 @@ def test_train_help_shows_every_default():
     assert "paper preset: 0.0001" in helps["lr"]
     text = sub.choices["train"].format_help()
     assert "(default: 0.003" in text
+
+
+# --- DOP853: bounded work ---------------------------------------------------------------------
+
+
+def test_dop853_fails_fast_on_overflowing_states():
+    t0 = time.perf_counter()
+    with pytest.raises(RuntimeError, match="non-finite"):
+        pr.dop853_solution(pr.RigidBody(), [1e200, 1e200, 1e200], [1.0])
+    assert time.perf_counter() - t0 < 1.0
+
+
+def test_dop853_work_is_bounded(monkeypatch: Any):
+    from poisson_rs import reference
+
+    # The budget scaled down so that the test is fast; |mu| = 1e10 needs ~1e10 times more steps.
+    monkeypatch.setattr(reference, "_DOP853_MAX_STEPS", 2000, raising=False)
+    dop = pr.classical(pr.RigidBody(), "dop853")
+    t0 = time.perf_counter()
+    with pytest.raises(RuntimeError, match="budget"):
+        pr.integrate(dop, [1e10, 2e10, 3e10], 0.1, 100)
+    assert time.perf_counter() - t0 < 3.0
+    # Ordinary states stay within it.
+    assert np.isfinite(pr.integrate(dop, [1.0, 1.0, 2.0], 0.1, 100)).all()
+
+
+# --- smaller validation gaps ------------------------------------------------------------------
+
+
+def test_load_model_refuses_fifos_and_devices(tmp_path: Path):
+    fifo = tmp_path / "m.safetensors"
+    os.mkfifo(fifo)
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match="FIFO"):
+        pr.load_model(fifo)  # would block forever on the open
+    with pytest.raises(ValueError, match="character device"):
+        pr.load_model("/dev/zero")  # would read until the memory runs out
+    assert time.perf_counter() - t0 < 1.0
+
+
+def test_load_model_lists_the_shipped_names():
+    with pytest.raises(FileNotFoundError, match=r"shipped models: .*default"):
+        pr.load_model("nope")
+
+
+def test_overflowing_h_max_does_not_turn_the_strict_check_off(tmp_path: Path):
+    from safetensors.numpy import load_file, save_file
+
+    path = _save(tmp_path / "m.safetensors")
+    tensors = load_file(str(path))
+    from safetensors import safe_open
+
+    with safe_open(str(path), "np") as f:
+        meta = dict(f.metadata())
+    save_file(tensors, str(path), metadata={**meta, "h_max": "1e400"})
+    with pytest.raises(ValueError, match="h_max"):
+        pr.load_model(path)
+
+
+def test_torch_step_checks_h(tmp_path: Path):
+    model = pr.load_model(_save(tmp_path / "m.safetensors"))
+    mu = torch.tensor([[1.0, 1.0, 2.0]])
+    for bad, err in ((-0.1, ValueError), (float("nan"), ValueError), ("0.1", TypeError)):
+        with pytest.raises(err, match="h must"):
+            model.torch_step(mu, bad)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="h must"):
+        model.torch_step(mu, True)
+
+
+def test_integrate_refuses_masked_arrays():
+    mu0 = np.ma.masked_array([[1.0, 1.0, 2.0], [9.0, 9.0, 9.0]], mask=[[0, 0, 0], [1, 1, 1]])
+    with pytest.raises(TypeError, match="masked array"):
+        pr.integrate(pr.taylor_integrator(), mu0, 0.1, 2)
+
+
+def test_warnings_name_the_model_and_the_reason(tmp_path: Path):
+    model = pr.load_model(_save(tmp_path / "mine.safetensors"))
+    with pytest.warns(RuntimeWarning, match=r"'mine'.*outside the training domain"):
+        pr.integrate(model, [10.0, 0.0, 0.0], 0.1, 1, on_failure="ignore")
+    codes = "|".join(pr.FAILURE_CODES.values())
+    with pytest.warns(RuntimeWarning, match=rf"'taylor3-exp'.*failed .*: ({codes})\)"):
+        pr.integrate(pr.taylor_integrator(order=3, chart="exp"), [300.0, 0.0, 1.0], 2.0, 5)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        (b"\xff\xfe\x00binary", "not UTF-8"),
+        (
+            b"[system]\ninertia = [1.5, 2.0, 2.5]\n[states]\nshell = {r_min = 1, r_max = 2, "
+            b"n = 100000000000}\n[steps]\nh = 0.1\nhorizon = 1.0\n[target]\nerror = 0.1\n",
+            "states",
+        ),
+        (
+            b"[system]\ninertia = [1.5, 2.0, 2.5]\n[states]\npoints = [[1.0, 1.0, 2.0]]\n"
+            b"[steps]\nh = 0.1\nhorizon = 1e12\n[target]\nerror = 0.1\n",
+            "memory",
+        ),
+        (
+            b"[system]\ninertia = [1.5, 2.0, 2.5]\n[states]\npoints = [[1e300, 1.0, 2.0]]\n"
+            b"[steps]\nh = 0.1\nhorizon = 1.0\n[target]\nerror = 0.1\n",
+            "r_max",
+        ),
+    ],
+    ids=["binary", "huge-shell", "huge-horizon", "huge-point"],
+)
+def test_bad_scene_files_are_refused_up_front(tmp_path: Path, text: bytes, match: str):
+    from poisson_rs.scenes import load_scene
+
+    path = tmp_path / "s.toml"
+    path.write_bytes(text)
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match=match):
+        load_scene(path)
+    assert time.perf_counter() - t0 < 1.0
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="FIFO"):
+        load_scene(fifo)
+
+
+# --- CLI frictions ----------------------------------------------------------------------------
+
+
+def test_models_prints_runnable_relative_commands(capsys: Any):
+    assert cli.main(["models"]) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if "command:" in x]
+    assert lines and all("/root/" not in x and "add --" not in x for x in lines)
+    for line in lines:
+        words = shlex.split(line.split("command:", 1)[1])
+        out = words[words.index("--out") + 1]
+        assert not os.path.isabs(out) and "/" not in out
+        assert cli.build_parser().parse_args(words[1:]).command == "train"  # it parses
+
+
+def test_demo_rows_are_not_doubled(tmp_path: Path, capsys: Any):
+    argv = ["demo", "--steps", "100", "--no-paper", "--out", str(tmp_path)]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    rows = [x for x in out.splitlines() if x.startswith(("learned:", "taylor"))]
+    assert len(rows) == len(set(rows)) == 4 * 2  # 4 methods × 2 states, once each
+    # And the step-size message points at a flag that exists.
+    assert cli.main([*argv, "--h", "0.2"]) == 2
+    assert "--no-strict" in capsys.readouterr().err

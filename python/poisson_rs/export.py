@@ -155,6 +155,9 @@ def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
         raise ValueError(f"model metadata has a malformed number: {e}") from e
     if not meta["h_max"] > 0:
         raise ValueError(f"metadata 'h_max' must be a positive number, got {raw['h_max']!r}")
+    if math.isinf(meta["h_max"]) and raw["h_max"].strip().lower() not in ("inf", "+inf"):
+        # "1e400" overflows to inf, which would turn the strict step-size check off.
+        raise ValueError(f"metadata 'h_max' overflows float64: {raw['h_max']!r}")
     widths = _json(raw, "widths")
     if not isinstance(widths, list) or not all(isinstance(w, int) and w > 0 for w in widths):
         raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")

@@ -313,6 +313,16 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
                 f"scene key 'steps.horizon' = {horizon} must be a whole number of steps h = {h}"
             )
 
+    n_states = len(points) + (shell.n if shell is not None else 0)
+    if n_states > _MAX_SCENE_STATES:
+        raise ValueError(f"scene has {n_states} states, more than {_MAX_SCENE_STATES}")
+    records = n_states * sum(round(horizon / h) + 1 for h in hs)
+    if records > _MAX_SCENE_RECORDS:
+        raise ValueError(
+            f"scene key 'steps.horizon' = {horizon}: {records} recorded states (states × steps) "
+            f"would not fit in memory (at most {_MAX_SCENE_RECORDS})"
+        )
+
     tgt = _table(data, "target", _SECTION_KEYS["target"])
     if not tgt:
         raise ValueError("scene key 'target' needs at least one of error, energy, newton")
@@ -356,13 +366,25 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
 def load_scene(path: str | Path) -> Scene:
     """Reads and validates a scene file. Raises FileNotFoundError, or ValueError naming the key
     (or the TOML syntax error)."""
-    path = Path(path)
+    from .files import check_input_file
+
+    path = check_input_file(path, max_bytes=_MAX_SCENE_BYTES, what="scene file")
     with path.open("rb") as f:
         try:
             data = tomllib.load(f)
         except tomllib.TOMLDecodeError as e:
             raise ValueError(f"scene file {path} is not valid TOML: {e}") from e
+        except UnicodeDecodeError:
+            raise ValueError(f"scene file {path} is not UTF-8 text (a binary file?)") from None
     return parse_scene(data, name=path.stem, path=path)
+
+
+#: Largest scene file read (a scene is a few hundred bytes of TOML).
+_MAX_SCENE_BYTES = 1 << 20
+#: Most states a scene may hold, and most recorded states (states × steps, all step sizes) its
+#: evaluation keeps: 10⁸ states of 3 float64 are 2.4 GB.
+_MAX_SCENE_STATES = 100_000
+_MAX_SCENE_RECORDS = 100_000_000
 
 
 # ---------------------------------------------------------------------------------------------
