@@ -383,3 +383,34 @@ def test_demo_rows_are_not_doubled(tmp_path: Path, capsys: Any):
     # And the step-size message points at a flag that exists.
     assert cli.main([*argv, "--h", "0.2"]) == 2
     assert "--no-strict" in capsys.readouterr().err
+
+
+# --- figures ----------------------------------------------------------------------------------
+
+
+def test_scene_figures_colour_methods_by_name_and_state_the_system(
+    tmp_path: Path, monkeypatch: Any
+):
+    from poisson_rs.scene import run_scene
+
+    figs: list[Figure] = []
+    real = charts._savefig
+
+    def keep(fig: Figure, path: Path, **kwargs: Any) -> Path:
+        figs.append(fig)
+        return real(fig, path, **kwargs)
+
+    monkeypatch.setattr(charts, "_savefig", keep)
+    body = pr.RigidBody((1.0, 2.0, 3.0))
+    methods = {"taylor3-cayley": pr.taylor_integrator(body, 3), "rk4": pr.classical(body, "rk4")}
+    scene = run_scene(methods, body, np.array([[1.0, 1.0, 2.0]]), 0.1, 5)
+    colours = []
+    for order in (scene.runs, scene.runs[::-1]):
+        charts.paper_figure_3(scene, order, tmp_path / "f3.png")
+        fig = figs[-1]
+        colours.append({ln.get_label(): ln.get_color() for ln in fig.axes[0].get_lines()})
+        assert fig.legends and "I = (1.0, 2.0, 3.0)" in fig.get_suptitle()
+    assert colours[0] == colours[1]
+    assert colours[0]["rk4"] == charts.method_style("rk4")["color"]
+    charts.paper_figure_2(scene, scene.runs[0], tmp_path / "f2.png")
+    assert "I = (1.0, 2.0, 3.0)" in figs[-1].get_suptitle()

@@ -59,24 +59,37 @@ def paper_figure_2(scene: SceneResult, run: Run, path: Path, max_points: int = 4
         ax.set_ylabel("μ₂")
         ax.set_zlabel("μ₃")
         ax.legend(loc="upper left")
-    fig.suptitle(f"{len(scene.times) - 1} steps of h = {scene.h}")
+    fig.suptitle(f"{_system(scene)}: {len(scene.times) - 1} steps of h = {scene.h}")
     fig.tight_layout()
     return _savefig(fig, path, dpi=110)
+
+
+def _system(scene: SceneResult) -> str:
+    """The system a scene integrates, for figure titles."""
+    return f"free rigid body, I = {tuple(float(i) for i in scene.body.inertia)}"
+
+
+def _line_style(name: str) -> dict[str, Any]:
+    """Colour and dash of a run in the scene figures: :func:`method_style`'s, by name, so a method
+    keeps its colour whatever the other runs."""
+    st = method_style(name)
+    return {"color": st["color"], "ls": st["ls"]}
 
 
 def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
     """Fig. 3: |μ − μ_exact|, relative energy error and relative Casimir error against step."""
     n = len(scene.states)
-    fig = Figure(figsize=(6 * n, 9))
+    fig = Figure(figsize=(6 * n + 2, 9), layout="constrained")
     axes = fig.subplots(3, n, sharex=True, squeeze=False)
     steps = np.arange(len(scene.times))
     for run in runs:
         err, dh, dc = scene.errors(run), scene.energy_drift(run), scene.casimir_drift(run)
         for i in range(n):
             # Log scales: zero values (step 0) are dropped by matplotlib.
-            axes[0, i].loglog(steps[1:], err[i, 1:], lw=0.8, label=run.name)
-            axes[1, i].loglog(steps[1:], dh[i, 1:] + 1e-17, lw=0.8, label=run.name)
-            axes[2, i].loglog(steps[1:], dc[i, 1:] + 1e-17, lw=0.8, label=run.name)
+            st = _line_style(run.name)
+            axes[0, i].loglog(steps[1:], err[i, 1:], lw=0.8, label=run.name, **st)
+            axes[1, i].loglog(steps[1:], dh[i, 1:] + 1e-17, lw=0.8, label=run.name, **st)
+            axes[2, i].loglog(steps[1:], dc[i, 1:] + 1e-17, lw=0.8, label=run.name, **st)
     for i in range(n):
         axes[0, i].set_title(f"μ₀ = {tuple(float(v) for v in scene.states[i])}")
         axes[0, i].set_ylabel("|μ − μ_exact|")
@@ -85,9 +98,9 @@ def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
         axes[2, i].set_xlabel(f"step (h = {scene.h})")
         for ax in axes[:, i]:
             ax.grid(True, which="major", alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    fig.tight_layout()
-    return _savefig(fig, path, dpi=110)
+    # One figure-level legend: it covers every panel.
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    return _save_with_legend(fig, path, handles, labels, f"{_system(scene)}, h = {scene.h}")
 
 
 def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
@@ -309,7 +322,7 @@ def stability_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
 def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
     """Worst relative error at T, worst |ΔH|/H and worst |ΔC|/C over the states against h, per
     method; a step size where Newton failed for some state is marked × at the top."""
-    fig = Figure(figsize=(15, 4.5))
+    fig = Figure(figsize=(15, 4.5), layout="constrained")
     axes = fig.subplots(1, 3)
     keys = [
         ("rel_error", "worst |μ(T) − μ_exact(T)| / |μ₀|"),
@@ -326,7 +339,9 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
             for h in hs:
                 vals = [float(r[key]) for r in mine if float(r["h"]) == h and r["converged"]]
                 worst.append(max(vals) + 1e-17 if vals else np.nan)
-            (line,) = ax.loglog(hs, worst, marker="o", ms=3, lw=1, label=method)
+            (line,) = ax.loglog(
+                hs, worst, marker="o", ms=3, lw=1, label=method, color=method_style(method)["color"]
+            )
         marks += [(h, line.get_color()) for h, f in zip(hs, failed, strict=True) if f]
     for ax in axes:
         top = ax.get_ylim()[1]
@@ -336,9 +351,8 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
         ax.set_xlabel("step size h")
         ax.set_ylabel(label)
         ax.grid(True, which="major", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right center", fontsize=8)
     fig.suptitle("Where methods break (× at the top: Newton failed for some state)")
-    fig.tight_layout()
     return _savefig(fig, path, dpi=110)
 
 
