@@ -13,6 +13,7 @@ function S(t, p) that solves a Hamilton–Jacobi equation; S is learned in torch
 from __future__ import annotations
 
 from .integrators import (
+    FAILURE_CODES,
     BisectionIntegrator,
     ClassicalIntegrator,
     LearnedIntegrator,
@@ -29,6 +30,7 @@ from .reference import RigidBody, dop853_solution, exact_solution
 __version__ = "0.1.0"
 
 __all__ = [
+    "FAILURE_CODES",
     "BisectionIntegrator",
     "ClassicalIntegrator",
     "LearnedIntegrator",

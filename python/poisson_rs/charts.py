@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from collections.abc import Sequence
@@ -12,7 +13,15 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure  # the OO API: no pyplot state, no display backend
 
+from .files import atomic_write_bytes
 from .scene import Run, SceneResult
+
+
+def _savefig(fig: Figure, path: Path, **kwargs: Any) -> Path:
+    """Renders ``fig`` as PNG and writes it atomically (only over a regular file or a new path)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", **kwargs)
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 def _save_with_legend(
@@ -22,19 +31,17 @@ def _save_with_legend(
     fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    return path
+    return _savefig(fig, path, dpi=110)
 
 
 def write_rows(rows: Sequence[dict[str, Any]], path: Path) -> None:
     """Writes dict rows as CSV and the same rows as JSON (``path`` with suffix .json)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    path.with_suffix(".json").write_text(json.dumps(list(rows), indent=1))
+    f = io.StringIO(newline="")
+    w = csv.DictWriter(f, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_bytes(path, f.getvalue().encode())
+    atomic_write_bytes(path.with_suffix(".json"), json.dumps(list(rows), indent=1).encode())
 
 
 def paper_figure_2(scene: SceneResult, run: Run, path: Path, max_points: int = 4000) -> Path:
@@ -52,25 +59,37 @@ def paper_figure_2(scene: SceneResult, run: Run, path: Path, max_points: int = 4
         ax.set_ylabel("μ₂")
         ax.set_zlabel("μ₃")
         ax.legend(loc="upper left")
-    fig.suptitle(f"{len(scene.times) - 1} steps of h = {scene.h}")
+    fig.suptitle(f"{_system(scene)}: {len(scene.times) - 1} steps of h = {scene.h}")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return path
+    return _savefig(fig, path, dpi=110)
+
+
+def _system(scene: SceneResult) -> str:
+    """The system a scene integrates, for figure titles."""
+    return f"free rigid body, I = {tuple(float(i) for i in scene.body.inertia)}"
+
+
+def _line_style(name: str) -> dict[str, Any]:
+    """Colour and dash of a run in the scene figures: :func:`method_style`'s, by name, so a method
+    keeps its colour whatever the other runs."""
+    st = method_style(name)
+    return {"color": st["color"], "ls": st["ls"]}
 
 
 def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
     """Fig. 3: |μ − μ_exact|, relative energy error and relative Casimir error against step."""
     n = len(scene.states)
-    fig = Figure(figsize=(6 * n, 9))
+    fig = Figure(figsize=(6 * n + 2, 9), layout="constrained")
     axes = fig.subplots(3, n, sharex=True, squeeze=False)
     steps = np.arange(len(scene.times))
     for run in runs:
         err, dh, dc = scene.errors(run), scene.energy_drift(run), scene.casimir_drift(run)
         for i in range(n):
             # Log scales: zero values (step 0) are dropped by matplotlib.
-            axes[0, i].loglog(steps[1:], err[i, 1:], lw=0.8, label=run.name)
-            axes[1, i].loglog(steps[1:], dh[i, 1:] + 1e-17, lw=0.8, label=run.name)
-            axes[2, i].loglog(steps[1:], dc[i, 1:] + 1e-17, lw=0.8, label=run.name)
+            st = _line_style(run.name)
+            axes[0, i].loglog(steps[1:], err[i, 1:], lw=0.8, label=run.name, **st)
+            axes[1, i].loglog(steps[1:], dh[i, 1:] + 1e-17, lw=0.8, label=run.name, **st)
+            axes[2, i].loglog(steps[1:], dc[i, 1:] + 1e-17, lw=0.8, label=run.name, **st)
     for i in range(n):
         axes[0, i].set_title(f"μ₀ = {tuple(float(v) for v in scene.states[i])}")
         axes[0, i].set_ylabel("|μ − μ_exact|")
@@ -79,10 +98,9 @@ def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
         axes[2, i].set_xlabel(f"step (h = {scene.h})")
         for ax in axes[:, i]:
             ax.grid(True, which="major", alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return path
+    # One figure-level legend: it covers every panel.
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    return _save_with_legend(fig, path, handles, labels, f"{_system(scene)}, h = {scene.h}")
 
 
 def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
@@ -90,21 +108,19 @@ def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> P
     cols = ["state", "step", "t", "exact_1", "exact_2", "exact_3"]
     for run in runs:
         cols += [f"{run.name}_{c}" for c in ("1", "2", "3", "error", "H", "C")]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(cols)
-        blocks = [
-            (scene.errors(r), scene.body.hamiltonian(r.traj), scene.body.casimir(r.traj))
-            for r in runs
-        ]
-        for i in range(len(scene.states)):
-            for k, t in enumerate(scene.times):
-                row: list[Any] = [i, k, f"{t:.6g}", *(f"{v:.17g}" for v in scene.exact[i, k])]
-                for r, (e, hh, cc) in zip(runs, blocks, strict=True):
-                    row += [f"{v:.17g}" for v in (*r.traj[i, k], e[i, k], hh[i, k], cc[i, k])]
-                w.writerow(row)
-    return path
+    f = io.StringIO(newline="")
+    w = csv.writer(f)
+    w.writerow(cols)
+    blocks = [
+        (scene.errors(r), scene.body.hamiltonian(r.traj), scene.body.casimir(r.traj)) for r in runs
+    ]
+    for i in range(len(scene.states)):
+        for k, t in enumerate(scene.times):
+            row: list[Any] = [i, k, f"{t:.6g}", *(f"{v:.17g}" for v in scene.exact[i, k])]
+            for r, (e, hh, cc) in zip(runs, blocks, strict=True):
+                row += [f"{v:.17g}" for v in (*r.traj[i, k], e[i, k], hh[i, k], cc[i, k])]
+            w.writerow(row)
+    return atomic_write_bytes(path, f.getvalue().encode())
 
 
 # --- Work–precision charts (``poisson-rs chart``; numbers from poisson_rs.workprecision) ---
@@ -300,14 +316,13 @@ def stability_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
             shrink=0.8,
             label="log₁₀ |μ(T) − μ_exact(T)| / |μ₀|  (× = Newton failure)",
         )
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    return path
+    return _savefig(fig, path, dpi=110, bbox_inches="tight")
 
 
 def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
     """Worst relative error at T, worst |ΔH|/H and worst |ΔC|/C over the states against h, per
     method; a step size where Newton failed for some state is marked × at the top."""
-    fig = Figure(figsize=(15, 4.5))
+    fig = Figure(figsize=(15, 4.5), layout="constrained")
     axes = fig.subplots(1, 3)
     keys = [
         ("rel_error", "worst |μ(T) − μ_exact(T)| / |μ₀|"),
@@ -324,7 +339,9 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
             for h in hs:
                 vals = [float(r[key]) for r in mine if float(r["h"]) == h and r["converged"]]
                 worst.append(max(vals) + 1e-17 if vals else np.nan)
-            (line,) = ax.loglog(hs, worst, marker="o", ms=3, lw=1, label=method)
+            (line,) = ax.loglog(
+                hs, worst, marker="o", ms=3, lw=1, label=method, color=method_style(method)["color"]
+            )
         marks += [(h, line.get_color()) for h, f in zip(hs, failed, strict=True) if f]
     for ax in axes:
         top = ax.get_ylim()[1]
@@ -334,11 +351,9 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
         ax.set_xlabel("step size h")
         ax.set_ylabel(label)
         ax.grid(True, which="major", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right center", fontsize=8)
     fig.suptitle("Where methods break (× at the top: Newton failed for some state)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return path
+    return _savefig(fig, path, dpi=110)
 
 
 # --- Size against accuracy and speed (``poisson-rs sweep``; numbers from poisson_rs.sweep) ---

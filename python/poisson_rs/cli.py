@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
+import os
 import shlex
 import sys
 from collections.abc import Callable, Sequence
@@ -23,11 +25,56 @@ def _table(rows: Sequence[dict[str, Any]], cols: Sequence[str]) -> str:
     return "\n".join([line, "-" * len(line), *body])
 
 
+#: Files ``demo`` writes in its folder, checked before any work.
+DEMO_OUTPUTS = (
+    "fig2_orbits.png",
+    "fig3_errors.png",
+    "trajectories.csv",
+    "metrics.csv",
+    "metrics.json",
+)
+STABILITY_OUTPUTS = (
+    "stability.csv",
+    "stability.json",
+    "stability_map.png",
+    "stability_summary.png",
+    "first_failures.csv",
+    "first_failures.json",
+)
+CHART_OUTPUTS = (
+    "workprecision.csv",
+    "workprecision.json",
+    "long_run_energy.csv",
+    "long_run_energy.json",
+    "workprecision_error.png",
+    "workprecision_energy.png",
+    "long_run_energy.png",
+)
+
+
+def _check_positive(**values: float) -> None:
+    """ValueError naming the first option that is not a finite number > 0."""
+    for name, v in values.items():
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"--{name.replace('_', '-')} must be a finite number > 0, got {v}")
+
+
+def _default_threads() -> int:
+    """Torch threads when --threads is not given: 1 on a machine with at most 2 cores (shared
+    with other work, where more threads only contend), else torch's own default."""
+    import torch
+
+    return 1 if (os.cpu_count() or 1) <= 2 else torch.get_num_threads()
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from . import charts
+    from .files import check_outputs
     from .integrators import list_models, load_model, taylor_integrator
     from .scene import PAPER_STATES, run_scene
 
+    _check_positive(h=args.h, steps=args.steps)
+    check_outputs(args.out, DEMO_OUTPUTS)
     model = load_model(args.model)
     body = model.body
     methods = {
@@ -43,14 +90,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"model: {model!r}")
     print(f"scene: I = {body.inertia}, states {PAPER_STATES.tolist()}")
     print(f"       {args.steps} steps of h = {args.h}")
-    scene = run_scene(methods, body, PAPER_STATES, args.h, args.steps)
+    scene = run_scene(methods, body, PAPER_STATES, args.h, args.steps, strict=args.strict)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     learned = scene.runs[0]
     charts.paper_figure_2(scene, learned, out / "fig2_orbits.png")
     charts.paper_figure_3(scene, scene.runs, out / "fig3_errors.png")
     charts.write_trajectories(scene, scene.runs, out / "trajectories.csv")
-    rows = scene.metrics(horizons=(10.0, args.h * args.steps))
+    # One row per distinct step index: h·steps = 10 would list every row twice.
+    horizons = {round(t / args.h): t for t in (10.0, args.h * args.steps)}
+    rows = scene.metrics(horizons=tuple(horizons.values()))
     charts.write_rows(rows, out / "metrics.csv")
     print(
         _table(rows, ["method", "state", "T", "error", "max_rel_dH", "max_rel_dC", "steps_per_s"])
@@ -63,7 +112,25 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
-    from .train import PRESETS, TrainConfig, save_result, train
+    import torch
+
+    from .files import check_output_path
+    from .train import PRESETS, TrainConfig, baseline_rms, save_result, train
+
+    # Every check before any work: a bad output would otherwise fail after the training.
+    check_output_path(args.out)
+    if args.checkpoint is not None:
+        check_output_path(args.checkpoint)
+    if args.checkpoint_every < 1:
+        raise ValueError(f"--checkpoint-every must be >= 1, got {args.checkpoint_every}")
+    if args.max_seconds is not None:
+        _check_positive(max_seconds=args.max_seconds)
+    threads = _default_threads() if args.threads is None else args.threads
+    if threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {threads}")
+    torch.set_num_threads(threads)
+    # Read when rayon's pool starts, at the first rollout (scene evaluations).
+    os.environ.setdefault("RAYON_NUM_THREADS", str(threads))
 
     flags: dict[str, Any] = {}
     for f in dataclasses.fields(TrainConfig):
@@ -88,6 +155,7 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
             command=command,
             name=args.name,
             overrides=flags,
+            max_seconds=args.max_seconds,
         )
         met = json.loads(load_model(path).metadata["target_met"])
         print(f"scene target {'met' if met else 'NOT met'} -> {path}")
@@ -98,20 +166,32 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
     except ValueError as e:
         print(f"poisson-rs train: {e}", file=sys.stderr)
         return 2
-    print(f"training: {cfg}")
+    print(f"training: {cfg} on {threads} torch thread(s)")
+    print(
+        f"baseline: the Taylor terms alone (K = {cfg.taylor_order}, no network) have validation "
+        f"RMS residual {baseline_rms(cfg):.3e}"
+    )
     result = train(
         cfg,
         checkpoint=args.checkpoint,
         checkpoint_every=args.checkpoint_every,
         resume=args.resume,
         progress=not args.no_progress,
+        max_seconds=args.max_seconds,
     )
+    if result.timed_out:
+        print(f"stopped after {result.iterations_run} iterations: --max-seconds reached")
+    if not math.isfinite(result.final_loss):
+        raise ValueError(
+            f"training diverged (final loss {result.final_loss}); nothing written to {args.out}"
+        )
     name = args.name or Path(args.out).stem
     path = save_result(result, args.out, name=name, command=command)
-    its = max(cfg.iterations, 1)
+    its = max(result.iterations_run, 1)
     print(
         f"final loss {result.final_loss:.3e}, "
-        f"validation RMS residual {result.validation_rms:.3e}, "
+        f"validation RMS residual {result.validation_rms:.3e} "
+        f"(Taylor terms alone: {result.baseline_rms:.3e}), "
         f"{result.seconds:.1f} s ({result.seconds / its:.4f} s/iteration) -> {path}"
     )
     return 0
@@ -179,10 +259,15 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     import torch
 
     from . import charts
+    from .files import check_output_path, check_outputs
     from .sweep import FAST, medians, run_sweep
 
     out = Path(args.out)
     png = out / f"{args.stem}.png"
+    stems = (args.stem, f"{args.stem}_medians")
+    check_outputs(out, [f"{args.stem}.png", *(f"{x}.{e}" for x in stems for e in ("csv", "json"))])
+    if args.models_out is not None:
+        check_output_path(args.models_out, kind="dir")
     if args.replot is not None:
         rows = json.loads(Path(args.replot).read_text())
         charts.sweep_figure(rows, png, title=args.title or _sweep_title(rows))
@@ -240,16 +325,35 @@ def cmd_models(args: argparse.Namespace) -> int:
     for name in list_models():
         m = load_model(name)
         md = m.metadata
-        print(f"{name}: {m!r}\n  command: {md.get('command', '?')}\n  seed: {md.get('seed', '?')}")
         try:
             recorded = json.loads(md.get("config", "{}"))
         except ValueError:
             recorded = {}
-        if isinstance(recorded, dict) and recorded and "derivatives" not in recorded:
-            # Recorded before the option existed, i.e. trained with nested autograd; the default
-            # is now the reverse pass, whose weights end ~1e-14 away.
-            print("  derivatives: autograd (add --derivatives autograd to the command)")
+        command = _runnable_command(md.get("command", "?"), recorded, name)
+        print(f"{name}: {m!r}\n  command: {command}\n  seed: {md.get('seed', '?')}")
     return 0
+
+
+def _runnable_command(command: str, recorded: Any, name: str) -> str:
+    """The recorded training command as one to run here: ``--out`` a relative ``NAME.safetensors``
+    (not the training machine's path), plus the options added since the model was trained whose
+    new defaults would train another model."""
+    try:
+        words = shlex.split(command)
+    except ValueError:
+        return command
+    if words[:2] != ["poisson-rs", "train"]:
+        return command
+    if "--out" in words[:-1]:
+        words[words.index("--out") + 1] = f"{name}.safetensors"
+    if isinstance(recorded, dict) and recorded:
+        # Recorded before the option existed: trained with nested autograd (the default is now
+        # the reverse pass, whose weights end ~1e-14 away) and from a Xavier-uniform network.
+        if "derivatives" not in recorded and "--derivatives" not in words:
+            words += ["--derivatives", "autograd"]
+        if "init" not in recorded and "--init" not in words:
+            words += ["--init", "xavier"]
+    return shlex.join(words)
 
 
 def _level_summary(rows: Sequence[dict[str, Any]], levels: Sequence[float]) -> list[str]:
@@ -287,8 +391,11 @@ def _level_summary(rows: Sequence[dict[str, Any]], levels: Sequence[float]) -> l
 def cmd_chart(args: argparse.Namespace) -> int:
     import os
 
+    from .files import check_outputs
+
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    check_outputs(args.out, CHART_OUTPUTS)
     # Rayon reads this when its pool starts, at the first rollout, which is still to come (in a
     # process that already stepped, the pool keeps its size). One thread measures each method's
     # cost on one core, as DOP853 (SciPy, serial) runs anyway, and keeps the timings steady when
@@ -365,8 +472,11 @@ def _chart(args: argparse.Namespace) -> int:
 
 def cmd_stability(args: argparse.Namespace) -> int:
     from . import charts
+    from .files import check_outputs
     from .stability import QUICK_STEP_SIZES, STEP_SIZES, first_failures, stability_map
 
+    _check_positive(horizon=args.horizon, threshold=args.threshold)
+    check_outputs(args.out, STABILITY_OUTPUTS)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     steps = QUICK_STEP_SIZES if args.quick else STEP_SIZES
@@ -388,6 +498,49 @@ def _progress(args: argparse.Namespace) -> Callable[[str], None] | None:
     return lambda msg: print(f"  {msg}", file=sys.stderr, flush=True)
 
 
+#: Help for the ``train`` options that have none inline; _document_train_flags adds defaults.
+_TRAIN_HELP = {
+    "preset": "named configuration the other options override",
+    "inertia": "principal moments of inertia I1 I2 I3",
+    "chart": "chart of the symplectic groupoid",
+    "domain": "training domain of the momenta p",
+    "r_min": "inner radius of the shell domain",
+    "r_max": "outer radius of the shell domain",
+    "half_width": "half width of the cube domain",
+    "batch": "training points per Adam iteration",
+    "iterations": "Adam iterations",
+    "lr": "Adam learning rate",
+    "schedule": "learning-rate schedule (cosine: decay to 1%% of --lr)",
+    "seed": "random seed (initialisation and points)",
+    "dtype": "floating-point type of training",
+    "checkpoint_every": "iterations between two checkpoints",
+    "no_progress": "no progress bar",
+}
+
+
+def _document_train_flags(t: argparse.ArgumentParser) -> None:
+    """Gives every ``train`` option a help text that shows its default: the TrainConfig default
+    (and the paper preset's, where it differs), since the flags themselves default to None."""
+    from .train import PRESETS, TrainConfig
+
+    defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
+    for action in t._actions:
+        if action.dest in ("help", "out", "scene", "name", "resume", "checkpoint"):
+            continue
+        text = action.help or _TRAIN_HELP.get(action.dest, "")
+        if "default" in text:
+            action.help = text
+            continue
+        if action.dest in defaults:
+            shown = defaults[action.dest]
+            paper = PRESETS["paper"].get(action.dest, shown)
+            extra = f"; paper preset: {paper}" if paper != shown else ""
+            text += f" (default: {'none' if shown is None else shown}{extra})"
+        elif action.default not in (None, False):
+            text += " (default: %(default)s)"
+        action.help = text.strip()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="poisson-rs", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -402,6 +555,12 @@ def build_parser() -> argparse.ArgumentParser:
         dest="with_paper",
         action="store_false",
         help="skip the shipped paper-configuration model (its 253k-parameter rollout is slow)",
+    )
+    d.add_argument(
+        "--no-strict",
+        dest="strict",
+        action="store_false",
+        help="let learned models step beyond the h_max they were trained for (extrapolate)",
     )
 
     t = sub.add_parser("train", help="train a generating function on the HJ residual")
@@ -464,6 +623,26 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--checkpoint-every", dest="checkpoint_every", type=int, default=500)
     t.add_argument("--resume", action="store_true", help="continue from --checkpoint")
     t.add_argument("--no-progress", dest="no_progress", action="store_true")
+    t.add_argument(
+        "--init",
+        choices=["zero", "xavier"],
+        help="network start: zero output (training starts from the Taylor terms) or "
+        "Xavier-uniform in every layer (the paper; models recorded without this option)",
+    )
+    t.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads (default: 1 on a machine with <= 2 cores, else torch's default)",
+    )
+    t.add_argument(
+        "--max-seconds",
+        dest="max_seconds",
+        type=float,
+        default=None,
+        help="stop training after this wall time and save the model reached (default: no limit)",
+    )
+    _document_train_flags(t)
 
     sub.add_parser("models", help="list the shipped models and how they were trained")
 

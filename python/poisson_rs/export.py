@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .files import atomic_write_bytes
+
 if TYPE_CHECKING:
     from .generating import GeneratingFunction
 
@@ -78,6 +80,17 @@ def model_bytes(
     return save(tensors, metadata=meta)
 
 
+def _check_finite_model(s_fn: GeneratingFunction, path: str | os.PathLike[str]) -> None:
+    """ValueError when a coefficient or weight is NaN or infinite (a diverged training run):
+    such a file would only be refused when loaded."""
+    arrays = [s_fn.coeffs.detach().cpu().numpy()]
+    arrays += [a for layer in s_fn.exported_layers() for a in layer]
+    if not all(np.isfinite(a).all() for a in arrays):
+        raise ValueError(
+            f"the model has NaN or infinite weights (training diverged?); {path} not written"
+        )
+
+
 def save_model(
     s_fn: GeneratingFunction,
     path: str | os.PathLike[str],
@@ -89,6 +102,7 @@ def save_model(
     record: Mapping[str, Any] | None = None,
 ) -> Path:
     """Writes a torch generating function to ``path`` atomically (never a half-written file)."""
+    _check_finite_model(s_fn, path)
     data = model_bytes(
         powers=s_fn.powers.cpu().numpy(),
         coeffs=s_fn.coeffs.detach().cpu().numpy(),
@@ -102,17 +116,8 @@ def save_model(
         taylor_order=taylor_order,
         record=record,
     )
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # Write beside the target, then rename: readers never see a half-written file.
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    # Beside the target, then renamed; only over a regular file (not a device, FIFO or link).
+    return atomic_write_bytes(path, data)
 
 
 def _json(meta: Mapping[str, str], key: str) -> Any:
@@ -150,6 +155,9 @@ def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
         raise ValueError(f"model metadata has a malformed number: {e}") from e
     if not meta["h_max"] > 0:
         raise ValueError(f"metadata 'h_max' must be a positive number, got {raw['h_max']!r}")
+    if math.isinf(meta["h_max"]) and raw["h_max"].strip().lower() not in ("inf", "+inf"):
+        # "1e400" overflows to inf, which would turn the strict step-size check off.
+        raise ValueError(f"metadata 'h_max' overflows float64: {raw['h_max']!r}")
     widths = _json(raw, "widths")
     if not isinstance(widths, list) or not all(isinstance(w, int) and w > 0 for w in widths):
         raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 
 from . import _core
 from .export import load_generating, model_bytes, parse_metadata
+from .files import check_input_file
 from .groupoid import sou
 from .reference import RigidBody
 
@@ -27,6 +28,16 @@ if TYPE_CHECKING:
 
 MODELS_PACKAGE = "poisson_rs.models"
 DEFAULT_MODEL = "default"
+#: Largest model file read (the paper's 253k-parameter model takes 2 MB).
+MAX_MODEL_BYTES = 1 << 30
+
+
+def _check_step(h: Any) -> None:
+    """TypeError unless h is a real number (not a bool), ValueError unless finite and > 0."""
+    if isinstance(h, bool) or not isinstance(h, numbers.Real):
+        raise TypeError(f"h must be a real number, got {type(h).__name__}")
+    if not (math.isfinite(h) and h > 0):
+        raise ValueError(f"h must be finite and > 0, got {h}")
 
 
 #: Meaning of :attr:`RolloutInfo.failure_code` (0: no failure).
@@ -94,6 +105,8 @@ class BisectionIntegrator:
         if isinstance(source, bytes):
             self._core = _core.Model.from_bytes(source)
         else:
+            # A FIFO would block the read and /dev/zero fill the memory: a bounded regular file.
+            check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
             self._core = _core.Model.load(str(source))
         self.metadata: dict[str, Any] = parse_metadata(self._core.metadata)
         if tuple(self._core.widths) != self.metadata["widths"]:
@@ -156,6 +169,7 @@ class BisectionIntegrator:
 
         from .generating import bisection_step
 
+        _check_step(h)
         mu = torch.as_tensor(mu, dtype=torch.float64)
         return bisection_step(
             self.generating, mu, h, chart=self.chart, tol=self.tol, max_iter=self.max_iter
@@ -257,6 +271,11 @@ def load_model(
         raise TypeError(f"path must be a str, a path or None, got {type(path).__name__}")
     if isinstance(path, str) and path in list_models():
         path = str(resources.files(MODELS_PACKAGE).joinpath(f"{path}.safetensors"))
+    elif not os.path.lexists(path):
+        raise FileNotFoundError(
+            f"no model file {os.fspath(path)!r}, and no shipped model of that name; shipped "
+            f"models: {', '.join(list_models())}"
+        )
     return LearnedIntegrator(Path(path), tol=tol, max_iter=max_iter, newton=newton)
 
 
@@ -347,6 +366,12 @@ def _describe_domain(domain: Mapping[str, Any]) -> str:
 
 def _as_states(mu0: Any, what: str = "mu0") -> tuple[np.ndarray, bool]:
     """(n, 3) C-contiguous float64 copy of an array-like of states, and whether it was one state."""
+    if isinstance(mu0, np.ma.MaskedArray):
+        # np.asarray would drop the mask and step the masked values as if they were data.
+        raise TypeError(
+            f"{what} is a numpy masked array, whose mask would be ignored; pass plain data "
+            "(e.g. the unmasked rows, or .filled(value))"
+        )
     arr = np.asarray(mu0)
     if arr.dtype == object or arr.dtype.kind not in "fiu":
         raise TypeError(f"{what} must be an array of real numbers, got dtype {arr.dtype}")
@@ -447,7 +472,7 @@ def integrate(
         if strict and math.isfinite(stepper.h_max) and h > stepper.h_max:
             raise ValueError(
                 f"h = {h} exceeds h_max = {stepper.h_max}, the largest step {stepper.name!r} "
-                "was trained for; pass strict=False to extrapolate"
+                "was trained for; pass strict=False to extrapolate (poisson-rs demo: --no-strict)"
             )
     traj, raw = stepper._rollout(arr, float(h), int(n_steps), int(every))
     # Vectorised over the recorded states: cheap next to the rollout that made them.
@@ -458,24 +483,33 @@ def integrate(
         assert domain is not None
         n_traj = int((out_of_domain > 0).sum())
         warnings.warn(
-            f"{n_outside} recorded states of {n_traj} of {len(out_of_domain)} trajectories lie "
-            f"outside the training domain ({_describe_domain(domain)}); the model extrapolates "
-            "there (see info.out_of_domain and hj_residual)",
+            f"{_stepper_name(stepper)}: {n_outside} recorded states of {n_traj} of "
+            f"{len(out_of_domain)} trajectories lie outside the training domain "
+            f"({_describe_domain(domain)}); the model extrapolates there (see "
+            "info.out_of_domain and hj_residual)",
             RuntimeWarning,
             stacklevel=2,
         )
     n_failed = int((~info.converged).sum())
     if n_failed and on_failure != "ignore":
         first = int(np.flatnonzero(~info.converged)[0])
+        code = int(info.failure_code[first])
         msg = (
-            f"{n_failed} of {len(info.converged)} trajectories failed (first: trajectory {first} "
-            f"at step {int(info.failed_step[first])}); their later states are NaN"
+            f"{_stepper_name(stepper)}: {n_failed} of {len(info.converged)} trajectories failed "
+            f"(first: trajectory {first} at step {int(info.failed_step[first])}: "
+            f"{FAILURE_CODES.get(code, f'code {code}')}); their later states are NaN"
         )
         if on_failure == "raise":
             raise RuntimeError(msg)
         warnings.warn(msg, RuntimeWarning, stacklevel=2)
     out = traj[0] if single else traj
     return (out, info) if return_info else out
+
+
+def _stepper_name(stepper: Any) -> str:
+    """How warnings name an integrator: its name ("learned" model, Taylor, classical method)."""
+    name = getattr(stepper, "name", None)
+    return f"{type(stepper).__name__} {name!r}" if name else type(stepper).__name__
 
 
 #: Order of accuracy and whether the step is a Poisson map, for each classical integrator.

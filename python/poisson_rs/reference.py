@@ -416,16 +416,32 @@ def dop853_solution(
     ValueError
         If mu0 or times has the wrong shape or contains NaN/inf.
     RuntimeError
-        If the integrator fails.
+        If the integrator fails, or a trajectory would take more than 200,000 steps (about
+        2.4 million right-hand sides, a minute in Python): the cost grows with |μ|·T, and states
+        like |μ| = 1e10 would otherwise never return. Non-finite values (overflow of |μ|²) fail
+        at once.
     """
     from scipy.integrate import solve_ivp
 
     states, t, single = _check_inputs(body, mu0, times)
     j1, j2, j3 = (1.0 / v for v in body.inertia)
+    # Work bound, in right-hand sides (DOP853 takes 12 per step); module-level override for tests.
+    max_rhs = 12 * int(globals().get("_DOP853_MAX_STEPS", 200_000))
+    calls = [0]
+
+    class _Abort(Exception):
+        """Raised from the right-hand side to stop solve_ivp: over budget or non-finite."""
 
     def rhs(_t: float, y: FloatArray) -> FloatArray:
+        calls[0] += 1
+        if calls[0] > max_rhs:
+            raise _Abort(f"over the budget of {max_rhs // 12} steps (|mu|*T too large)")
         w1, w2, w3 = y[0] * j1, y[1] * j2, y[2] * j3
-        return np.array([y[1] * w3 - y[2] * w2, y[2] * w1 - y[0] * w3, y[0] * w2 - y[1] * w1])
+        with np.errstate(over="ignore", invalid="ignore"):
+            f = np.array([y[1] * w3 - y[2] * w2, y[2] * w1 - y[0] * w3, y[0] * w2 - y[1] * w1])
+        if not np.isfinite(f).all():
+            raise _Abort("non-finite right-hand side (|mu| too large for float64)")
+        return f
 
     out = np.empty((states.shape[0], t.size, 3))
     out[:, t == 0.0, :] = states[:, None, :]
@@ -439,15 +455,19 @@ def dop853_solution(
             branches.append((idx, sign * t_eval, inverse))
     for k, y0 in enumerate(states):
         for idx, t_eval, inverse in branches:
-            sol = solve_ivp(
-                rhs,
-                (0.0, t_eval[-1]),
-                y0,
-                method="DOP853",
-                t_eval=t_eval,
-                rtol=rtol,
-                atol=atol,
-            )
+            calls[0] = 0
+            try:
+                sol = solve_ivp(
+                    rhs,
+                    (0.0, t_eval[-1]),
+                    y0,
+                    method="DOP853",
+                    t_eval=t_eval,
+                    rtol=rtol,
+                    atol=atol,
+                )
+            except _Abort as e:
+                raise RuntimeError(f"DOP853 failed for trajectory {k}: {e}") from None
             if not sol.success:
                 raise RuntimeError(f"DOP853 failed for trajectory {k}: {sol.message}")
             out[k, idx, :] = sol.y.T[inverse]

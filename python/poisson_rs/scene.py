@@ -87,8 +87,11 @@ def run_scene(
     states: np.ndarray = PAPER_STATES,
     h: float = PAPER_H,
     n_steps: int = PAPER_STEPS,
+    *,
+    strict: bool = True,
 ) -> SceneResult:
-    """Rolls every method out from ``states`` and computes the exact solution alongside."""
+    """Rolls every method out from ``states`` and computes the exact solution alongside;
+    ``strict=False`` lets learned models step beyond their h_max (see ``integrate``)."""
     body = RigidBody() if body is None else body
     times = h * np.arange(n_steps + 1)
     result = SceneResult(
@@ -96,6 +99,8 @@ def run_scene(
     )
     for name, method in methods.items():
         t0 = time.perf_counter()
-        traj, info = integrate(method, states, h, n_steps, return_info=True, on_failure="warn")
+        traj, info = integrate(
+            method, states, h, n_steps, return_info=True, on_failure="warn", strict=strict
+        )
         result.runs.append(Run(name, traj, time.perf_counter() - t0, info))
     return result

@@ -313,6 +313,16 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
                 f"scene key 'steps.horizon' = {horizon} must be a whole number of steps h = {h}"
             )
 
+    n_states = len(points) + (shell.n if shell is not None else 0)
+    if n_states > _MAX_SCENE_STATES:
+        raise ValueError(f"scene has {n_states} states, more than {_MAX_SCENE_STATES}")
+    records = n_states * sum(round(horizon / h) + 1 for h in hs)
+    if records > _MAX_SCENE_RECORDS:
+        raise ValueError(
+            f"scene key 'steps.horizon' = {horizon}: {records} recorded states (states × steps) "
+            f"would not fit in memory (at most {_MAX_SCENE_RECORDS})"
+        )
+
     tgt = _table(data, "target", _SECTION_KEYS["target"])
     if not tgt:
         raise ValueError("scene key 'target' needs at least one of error, energy, newton")
@@ -356,13 +366,25 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
 def load_scene(path: str | Path) -> Scene:
     """Reads and validates a scene file. Raises FileNotFoundError, or ValueError naming the key
     (or the TOML syntax error)."""
-    path = Path(path)
+    from .files import check_input_file
+
+    path = check_input_file(path, max_bytes=_MAX_SCENE_BYTES, what="scene file")
     with path.open("rb") as f:
         try:
             data = tomllib.load(f)
         except tomllib.TOMLDecodeError as e:
             raise ValueError(f"scene file {path} is not valid TOML: {e}") from e
+        except UnicodeDecodeError:
+            raise ValueError(f"scene file {path} is not UTF-8 text (a binary file?)") from None
     return parse_scene(data, name=path.stem, path=path)
+
+
+#: Largest scene file read (a scene is a few hundred bytes of TOML).
+_MAX_SCENE_BYTES = 1 << 20
+#: Most states a scene may hold, and most recorded states (states × steps, all step sizes) its
+#: evaluation keeps: 10⁸ states of 3 float64 are 2.4 GB.
+_MAX_SCENE_STATES = 100_000
+_MAX_SCENE_RECORDS = 100_000_000
 
 
 # ---------------------------------------------------------------------------------------------
@@ -517,6 +539,7 @@ def train_scene(
     command: str | None = None,
     name: str | None = None,
     overrides: Mapping[str, Any] | None = None,
+    max_seconds: float | None = None,
 ) -> Path:
     """Trains a model for the scene file ``path`` until its target is met on the scene's states
     (or the configured iterations run out) and writes it to ``out``.
@@ -527,20 +550,36 @@ def train_scene(
     ``scene_target``, ``target_met``, ``scene_result`` (the exported model's :func:`summary`),
     ``iterations_run``, ``stopped_early`` and ``command`` (default:
     ``poisson-rs train --scene PATH --out OUT``); ``name`` defaults to the stem of ``out``.
-    ``progress`` shows a progress bar and prints one line per evaluation. Returns ``out``.
+    ``progress`` shows a progress bar and prints one line per evaluation, and the scene error of
+    the Taylor terms alone (no network) before and after. ``max_seconds`` ends training after that
+    wall time (see :func:`~poisson_rs.train.train`). Returns ``out``.
     """
+    from .files import check_output_path
     from .train import export_bytes, save_result, train
 
+    check_output_path(out)
     scene = load_scene(path)
     cfg = derive_config(scene, **dict(overrides or {}))
     cfg.validate()
+    baseline = summary(evaluate(BisectionIntegrator(export_bytes(_bare(cfg), cfg)), scene))
+    if progress:
+        print(
+            f"scene {scene.name}: baseline, the Taylor terms alone (K = {cfg.taylor_order}): "
+            f"error {baseline['error']:.3e}, max dH/H {baseline['energy']:.3e}"
+        )
     log: Callable[[str], None] | None = None
     if progress:
         from tqdm.auto import tqdm
 
         log = tqdm.write
     stopper = TargetStop(scene, cfg, log=log)
-    result = train(cfg, progress=progress, evaluate_every=scene.evaluate_every, stop=stopper)
+    result = train(
+        cfg,
+        progress=progress,
+        evaluate_every=scene.evaluate_every,
+        stop=stopper,
+        max_seconds=max_seconds,
+    )
     # Measured on the exported float64 model: exactly the file that is written.
     final = evaluate(BisectionIntegrator(export_bytes(result.model, cfg)), scene)
     if command is None:
@@ -554,6 +593,7 @@ def train_scene(
         "iterations_run": result.iterations_run,
         "stopped_early": result.stopped_early,
         "evaluations": len(stopper.history),
+        "scene_baseline": baseline,
     }
     saved = save_result(result, out, name=name or Path(out).stem, command=command, extra=extra)
     if progress:
@@ -561,6 +601,17 @@ def train_scene(
         print(
             f"scene {scene.name}: target {verdict} after {result.iterations_run} iterations "
             f"({result.seconds:.1f} s): error {final['error']:.3e}, max dH/H "
-            f"{final['energy']:.3e}, converged {final['converged']} -> {saved}"
+            f"{final['energy']:.3e}, converged {final['converged']} (Taylor terms alone: error "
+            f"{baseline['error']:.3e}) -> {saved}"
         )
     return saved
+
+
+def _bare(cfg: TrainConfig) -> GeneratingFunction:
+    """The configuration's generating function with the network's output zeroed: its exact
+    Taylor terms alone, in the same file format (domain, h_max) as the trained model."""
+    from .train import _zero_output, build_model
+
+    s_fn = build_model(cfg)
+    _zero_output(s_fn)
+    return s_fn

@@ -10,8 +10,10 @@ trajectory pairs (μ_k, μ_{k+1}) at step h, and L-BFGS polishes the weights aft
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
+import io
 import json
 import math
 import time
@@ -25,6 +27,7 @@ import torch
 from torch import Tensor
 
 from .export import model_bytes, save_model
+from .files import atomic_write_bytes, check_input_file, check_output_path
 from .generating import (
     MLP_INPUTS,
     GeneratingFunction,
@@ -97,6 +100,10 @@ class TrainConfig:
     """Standard deviation of the Gaussian offset of a scene point, relative to its |μ|."""
     sampling_horizon: float = 10.0
     """Time span of the orbits that "scene" sampling follows (time units)."""
+    init: str = "zero"
+    """How the network starts: "zero" (last layer's weight and bias zero, so S starts as the
+    exact Taylor terms and training improves on the series) or "xavier" (every layer
+    Xavier-uniform: the paper's, and how models recorded without this field were trained)."""
 
     def resolved_mlp_power(self) -> int:
         if self.mlp_power is not None:
@@ -114,6 +121,7 @@ class TrainConfig:
             raise ValueError(f"need 0 <= r_min < r_max, got {self.r_min}, {self.r_max}")
         if self.domain == "cube" and not self.half_width > 0:
             raise ValueError(f"half_width must be > 0, got {self.half_width}")
+        self._validate_numbers()
         checks = [
             ("h_max", self.h_max > 0),
             ("batch", self.batch >= 1),
@@ -140,9 +148,52 @@ class TrainConfig:
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         check_hj_derivatives(self.derivatives)
+        if self.init not in INIT:
+            raise ValueError(f"init must be one of {INIT}, got {self.init!r}")
         self._validate_sampling()
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise ValueError("device 'cuda' requested but torch sees no CUDA device")
+        try:
+            torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise ValueError(
+                f"device must be a torch device (cpu, cuda, cuda:0, ...), got {self.device!r}"
+            ) from None
+
+    def _validate_numbers(self) -> None:
+        """Types, finiteness and sane ranges: an inf or absurd setting would train to NaN and
+        report success. Lengths and times are bounded so that r_max³ and the loss (~|p|⁴) stay
+        finite in float64; sizes so that a batch fits in memory."""
+        reals = {
+            "h_max": self.h_max,
+            "lr": self.lr,
+            "r_min": self.r_min,
+            "r_max": self.r_max,
+            "half_width": self.half_width,
+        }
+        for name, v in reals.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"invalid {name}: {v!r} (must be a finite number)")
+            if abs(v) > _MAX_MAGNITUDE:
+                raise ValueError(f"invalid {name}: {v!r} (must not exceed {_MAX_MAGNITUDE:g})")
+        ints = {
+            "batch": (self.batch, _MAX_POINTS),
+            "iterations": (self.iterations, 10**9),
+            "taylor_order": (self.taylor_order, 15),
+            "seed": (self.seed, 2**63 - 1),
+        }
+        if self.n_points is not None:
+            ints["n_points"] = (self.n_points, _MAX_POINTS)
+        if self.mlp_power is not None:
+            ints["mlp_power"] = (self.mlp_power, 64)
+        for name, (v, high) in ints.items():
+            if not _is_int(v) or not 0 <= v <= high:
+                raise ValueError(f"invalid {name}: {v!r} (must be an integer in [0, {high}])")
+        if not all(_is_int(w) and 1 <= w <= _MAX_WIDTH for w in self.widths):
+            raise ValueError(f"invalid widths: {self.widths!r} (integers in [1, {_MAX_WIDTH}])")
+        for mu in self.sampling_states:
+            if any(isinstance(v, (int, float)) and abs(v) > _MAX_MAGNITUDE for v in mu):
+                raise ValueError(f"sampling_states must not exceed {_MAX_MAGNITUDE:g}, got {mu!r}")
 
     def _validate_sampling(self) -> None:
         if self.sampling not in SAMPLING:
@@ -174,6 +225,15 @@ class TrainConfig:
 
 #: Values of ``TrainConfig.sampling``.
 SAMPLING = ("uniform", "scene")
+#: Values of ``TrainConfig.init``.
+INIT = ("zero", "xavier")
+
+#: Largest |value| of a length or time setting (r_max, h_max, ...): r_max³ and |p|⁴ stay finite.
+_MAX_MAGNITUDE = 1e50
+#: Largest batch or point pool: 10⁷ points × 4 inputs × 8 bytes, times the layers, fits in memory.
+_MAX_POINTS = 10_000_000
+#: Largest hidden layer width.
+_MAX_WIDTH = 100_000
 
 #: Named configurations. "paper" is the paper's setting, exactly where it is stated.
 PRESETS: dict[str, dict[str, Any]] = {
@@ -197,6 +257,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         # Not the paper's choice but ours: nested autograd is the faster on the GPU this preset
         # is trained on (README, Performance), and it is how the shipped model was trained.
         "derivatives": "autograd",
+        "init": "xavier",
     },
 }
 
@@ -433,13 +494,19 @@ class TrainResult:
     iterations_run: int = 0
     """Adam iterations actually taken (fewer than ``config.iterations`` after an early stop)."""
     stopped_early: bool = False
-    """True when ``train(stop=...)`` asked to stop before the last iteration."""
+    """True when ``train(stop=...)`` asked to stop before the last iteration, or
+    ``max_seconds`` ran out (``timed_out``)."""
     lbfgs_losses: list[float] = field(default_factory=list)
     """HJ loss (absolute units) at every L-BFGS loss evaluation, line-search trials included."""
     lbfgs_iterations_run: int = 0
     """L-BFGS iterations actually taken (fewer than asked once it converges)."""
     data_rms: float = float("nan")
     """Root of the data loss (relative one-step error) on the training pairs; NaN without data."""
+    baseline_rms: float = float("nan")
+    """``validation_rms`` of the exact Taylor terms alone (the network's output set to zero):
+    what training has to improve on."""
+    timed_out: bool = False
+    """True when ``train(max_seconds=...)`` ended the run before its last iteration."""
 
     @property
     def final_loss(self) -> float:
@@ -450,9 +517,69 @@ class TrainResult:
 
 
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+#: Largest checkpoint file read back (the paper preset's model and Adam state take ~6 MB).
+_MAX_CHECKPOINT_BYTES = 1 << 30
+
+
+def _load_checkpoint(path: Path) -> dict[str, Any]:
+    """A checkpoint read with ``weights_only=True``: tensors, dicts, lists, numbers and strings
+    only, so a crafted file cannot run code. Raises ValueError naming the file when it is not a
+    readable checkpoint (truncated, garbage, foreign objects, missing entries)."""
+    check_input_file(path, max_bytes=_MAX_CHECKPOINT_BYTES, what="checkpoint")
+    try:
+        state = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as e:  # UnpicklingError, RuntimeError (bad zip), EOFError, ...
+        why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"checkpoint {path} is not a readable training checkpoint: {why}") from e
+    keys = ("config", "model", "optimizer", "generator", "iteration", "losses", "seconds")
+    if not isinstance(state, dict) or any(k not in state for k in keys):
+        raise ValueError(f"checkpoint {path} lacks the entries {', '.join(keys)}")
+    if not _is_int(state["iteration"]) or state["iteration"] < 0:
+        raise ValueError(f"checkpoint {path} holds a bad iteration {state['iteration']!r}")
+    return state
+
+
+def _check_train_options(checkpoint_every: Any, max_seconds: Any) -> None:
+    """ValueError unless checkpoint_every is an integer >= 1 and max_seconds None or > 0."""
+    if not _is_int(checkpoint_every) or checkpoint_every < 1:
+        raise ValueError(f"checkpoint_every must be an integer >= 1, got {checkpoint_every!r}")
+    if max_seconds is not None and (
+        isinstance(max_seconds, bool)
+        or not isinstance(max_seconds, (int, float))
+        or not max_seconds > 0
+        or math.isnan(max_seconds)
+    ):
+        raise ValueError(f"max_seconds must be a number > 0, got {max_seconds!r}")
+
+
+def _zero_output(s_fn: GeneratingFunction) -> None:
+    """Sets the last layer's weight and bias to zero: the network adds nothing, S is the series."""
+    if s_fn.n_parameters():
+        with torch.no_grad():
+            s_fn.linears[-1].weight.zero_()
+            s_fn.linears[-1].bias.zero_()
+
+
+def _baseline_rms(s_fn: GeneratingFunction, cfg: TrainConfig, t: Tensor, p: Tensor) -> float:
+    """Root of the HJ loss at (t, p) of the same Taylor terms without the network."""
+    bare = copy.deepcopy(s_fn)
+    _zero_output(bare)
+    return float(_loss(bare, cfg, t, p, create_graph=False).detach().sqrt())
+
+
+def baseline_rms(cfg: TrainConfig) -> float:
+    """``TrainResult.baseline_rms`` before training: the validation RMS HJ residual of the
+    configuration's exact Taylor terms without the network (0 terms: S = 0)."""
+    cfg.validate()
+    dtype = getattr(torch, cfg.dtype)
+    vgen = torch.Generator().manual_seed(cfg.seed + 7919)
+    tv, pv = _sample_domain(cfg, 8192, vgen, dtype, cfg.device)
+    return _baseline_rms(build_model(cfg), cfg, tv, pv)
 
 
 def train(
@@ -467,6 +594,7 @@ def train(
     evaluate_every: int = 0,
     stop: Callable[[int, GeneratingFunction], bool] | None = None,
     data: tuple[np.ndarray, np.ndarray] | None = None,
+    max_seconds: float | None = None,
 ) -> TrainResult:
     """Trains a generating function on the HJ residual with Adam, then L-BFGS if
     ``cfg.lbfgs_iterations`` > 0.
@@ -485,8 +613,18 @@ def train(
     ``stop`` the run is exactly the plain one; an early stop also skips L-BFGS.
 
     Checkpoints cover the Adam phase; resuming re-runs L-BFGS from the final Adam state.
+
+    ``max_seconds`` ends Adam cleanly once that much wall time has passed (``timed_out``; no
+    L-BFGS then); the result is the model at that point. With ``cfg.init = "zero"`` the network
+    starts at zero output, so training starts from the Taylor terms, whose residual is reported
+    as ``baseline_rms``. Raises ValueError when the loss is not finite at the start (a
+    domain too large for the dtype).
     """
     cfg.validate()
+    _check_train_options(checkpoint_every, max_seconds)
+    if checkpoint is not None:
+        # Before any work: a checkpoint that cannot be written would fail only at its first save.
+        check_output_path(checkpoint)
     if stop is not None and (
         isinstance(evaluate_every, bool)
         or not isinstance(evaluate_every, int)
@@ -496,6 +634,8 @@ def train(
     dtype = getattr(torch, cfg.dtype)
     pairs = _data_pairs(cfg, data, dtype)
     s_fn = build_model(cfg)
+    if cfg.init == "zero":
+        _zero_output(s_fn)
     opt = torch.optim.Adam(s_fn.mlp.parameters(), lr=cfg.lr)
     # Adam divides by sqrt(v) + eps with eps = 1e-8: when exact Taylor terms leave a residual of
     # 1e-5, raw gradients sit below eps and training stalls. Optimise the loss relative to its
@@ -504,7 +644,12 @@ def train(
     pgen = torch.Generator().manual_seed(cfg.seed + 104729)
     tp, pp = sample_points(cfg, min(cfg.batch, 4096), pgen, dtype, cfg.device)
     loss_scale = float(_loss(s_fn, cfg, tp, pp, create_graph=False).detach())
-    if not (math.isfinite(loss_scale) and loss_scale > 0):
+    if not math.isfinite(loss_scale):
+        raise ValueError(
+            f"the HJ loss is {loss_scale} before training: the domain (r_max/half_width, h_max = "
+            f"{cfg.h_max}) is too large for {cfg.dtype}"
+        )
+    if not loss_scale > 0:
         loss_scale = 1.0
     h_data = cfg.resolved_data_h()
     data_scale = 1.0
@@ -542,7 +687,7 @@ def train(
     if resume:
         if ckpt is None or not ckpt.exists():
             raise FileNotFoundError(f"no checkpoint to resume from at {ckpt}")
-        state = torch.load(ckpt, weights_only=False)
+        state = _load_checkpoint(ckpt)
         if state["config"] != dataclasses.asdict(cfg):
             raise ValueError("the checkpoint was written by a different configuration")
         s_fn.load_state_dict(state["model"])
@@ -557,9 +702,14 @@ def train(
 
         bar = tqdm(total=cfg.iterations, initial=start, desc="train", unit="it", leave=True)
     t0 = time.perf_counter() - elapsed
+    wall0, timed_out = time.perf_counter(), False
     # A model without parameters skips training (start = iterations above) and took no step.
     done, stopped_early = (start if s_fn.n_parameters() else 0), False
     for i in range(start, cfg.iterations):
+        if max_seconds is not None and time.perf_counter() - wall0 >= max_seconds:
+            # Between iterations: the model is a consistent Adam state, saved as it is.
+            timed_out = stopped_early = True
+            break
         for g in opt.param_groups:
             g["lr"] = lr_at(i)
         if pool is None:
@@ -614,6 +764,7 @@ def train(
     # Uniform over the domain whatever the sampling, so the residual compares across runs.
     tv, pv = _sample_domain(cfg, 8192, vgen, dtype, cfg.device)
     rms = float(_loss(s_fn, cfg, tv, pv, create_graph=False).detach().sqrt())
+    baseline = _baseline_rms(s_fn, cfg, tv, pv)
     drms = (
         float(data_loss(s_fn, *pairs, h_data).detach().sqrt())
         if pairs is not None
@@ -630,6 +781,8 @@ def train(
         lbfgs_losses,
         lbfgs_done,
         drms,
+        baseline,
+        timed_out,
     )
 
 
