@@ -63,7 +63,7 @@ fn check_output_bytes(numbers: usize, extra: usize) -> PyResult<()> {
         let gib = |b: usize| b as f64 / f64::from(1u32 << 30);
         return Err(PyMemoryError::new_err(format!(
             "this call needs about {:.2} GiB (output and working memory) but only {:.2} GiB \
-             can be used now; raise `every`, or split the batch",
+             can be used now; raise `every` or split the batch",
             gib(need),
             gib(limit)
         )));

@@ -386,8 +386,8 @@ TENSOR_MUTATIONS = [
     pytest.param(lambda t: {"extra": np.zeros(2)}, "unexpected tensor", id="stray-tensor"),
     pytest.param(
         lambda t: {"poly.powers": t["poly.powers"][:, :3].copy()},
-        r"\(n, 4\)",
-        id="powers-not-n-by-4",
+        "poly.powers is for dimension 2",
+        id="powers-of-another-dimension",
     ),
     pytest.param(
         lambda t: {"poly.coeffs": t["poly.coeffs"][:-1].copy()}, "rows", id="coeffs-too-short"

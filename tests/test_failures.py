@@ -422,8 +422,8 @@ def test_corrupt_weight_files_are_value_errors(default_model: pr.LearnedIntegrat
         path.write_bytes(data)
         with pytest.raises(ValueError):
             pr.load_model(path)
-    # A directory is not a model either: an OSError, not a crash.
-    with pytest.raises(OSError):
+    # A directory is not a model either: a clear ValueError, not a crash.
+    with pytest.raises(ValueError, match="not a regular file"):
         pr.load_model(tmp_path)
 
 

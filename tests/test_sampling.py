@@ -161,6 +161,6 @@ def test_cli_refuses_scene_sampling_without_states(
     assert "sampling_states" in capsys.readouterr().err
     bad = ["train", "--sampling", "scene", "--sampling-states", "1", "1", "--out", out]
     assert main(bad) == 2
-    assert "3 numbers each" in capsys.readouterr().err
+    assert "3 numbers for each state" in capsys.readouterr().err
     assert main(["train", "--sampling-fraction", "2", "--out", out]) == 2
     assert not Path(out).exists()

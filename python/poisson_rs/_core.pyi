@@ -6,7 +6,14 @@ import numpy as np
 import numpy.typing as npt
 
 MODEL_FORMAT: str
+MAX_DIM: int
 __version__: str
+
+def _after_fork_in_child() -> None:
+    """Marks this process as a forked child: its rollouts run serially from now on."""
+
+def serial_rollouts() -> bool:
+    """Whether rollouts in this process run serially (a forked child)."""
 
 class Model:
     """A generating function loaded from a model file (validated on load)."""
@@ -15,6 +22,12 @@ class Model:
     def load(path: str | PathLike[str]) -> Model: ...
     @staticmethod
     def from_bytes(data: bytes) -> Model: ...
+    @property
+    def dim(self) -> int:
+        """Dimension N of the model's Lie algebra (3 for the rigid body)."""
+    @property
+    def structure_constants(self) -> npt.NDArray[np.float64]:
+        """c[i, j, k] of the model's algebra, shape (N, N, N)."""
     @property
     def metadata(self) -> dict[str, str]: ...
     @property
@@ -47,14 +60,15 @@ def rollout_model(
     max_iter: int = 50,
     simplified: bool = True,
 ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
-    """Trajectories (n, n_steps // every + 1, 3) and per-trajectory diagnostics (n,).
+    """Trajectories (n, n_steps // every + 1, N) and per-trajectory diagnostics (n,).
 
     ``simplified``: batched steps (``model.batch > 1``) reuse the Newton Jacobian while the
     updates contract fast enough; the result agrees with full Newton to ``tol``.
 
     Runs in segments of about 50 ms with the GIL released, checking for signals in between
     (Ctrl-C raises KeyboardInterrupt); the result does not depend on the segmentation. An output
-    over 16 GiB, or one that cannot be allocated, raises MemoryError before any step.
+    that, with every thread's workspace, does not fit in the memory available, or that cannot be
+    allocated, raises MemoryError before any step. In a forked child the rollout runs serially.
     """
 
 def rollout_classical(
@@ -68,3 +82,20 @@ def rollout_classical(
     max_iter: int = 50,
 ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
     """As :func:`rollout_model`, for the classical method ``name``."""
+
+def rollout_lie_poisson(
+    name: str,
+    c: npt.NDArray[np.float64],
+    powers: npt.NDArray[np.int64],
+    coeffs: npt.NDArray[np.float64],
+    mu0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-12,
+    max_iter: int = 50,
+    heavy_top: tuple[tuple[float, float, float], float, tuple[float, float, float]] | None = None,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    """As :func:`rollout_classical`, for the Lie–Poisson system with structure constants ``c``
+    (N, N, N) and Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: "rk4", "midpoint", or "splitting"
+    with ``heavy_top`` = (inertia, mgl, com)."""

@@ -11,7 +11,10 @@ import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .systems import LiePoissonSystem
 
 
 def _table(rows: Sequence[dict[str, Any]], cols: Sequence[str]) -> str:
@@ -139,8 +142,21 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
             flags[f.name] = tuple(v) if isinstance(v, list) else v
     if args.n_points == 0:
         flags["n_points"] = None
+    dim = 3
+    if "system" in flags:
+        try:
+            system = _system_spec(flags["system"])
+        except (OSError, ValueError) as e:
+            print(f"poisson-rs train: --system: {e}", file=sys.stderr)
+            return 2
+        flags["system"] = system.to_dict()
+        dim = system.dim
+        if "chart" not in flags and not system.algebra.is_so3():
+            flags["chart"] = "exp"
+        if "inputs" not in flags and not system.polynomial.is_homogeneous(2):
+            flags["inputs"] = "t,p"
     if "sampling_states" in flags:
-        flags["sampling_states"] = _triples(flags["sampling_states"], "--sampling-states")
+        flags["sampling_states"] = _vectors(flags["sampling_states"], dim, "--sampling-states")
     command = "poisson-rs " + shlex.join(argv)
     if args.scene is not None:
         import json
@@ -199,10 +215,45 @@ def cmd_train(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
 def _triples(values: Sequence[float], flag: str) -> tuple[tuple[float, float, float], ...]:
     """A flat list x y z x y z ... as 3-vectors; ValueError unless its length is a multiple of 3."""
-    if not values or len(values) % 3:
-        raise ValueError(f"{flag} needs x y z for each state (3 numbers each), got {len(values)}")
-    it = iter(float(v) for v in values)
-    return tuple(zip(it, it, it, strict=True))
+    return _vectors(values, 3, flag)  # type: ignore[return-value]
+
+
+def _vectors(values: Sequence[float], dim: int, flag: str) -> tuple[tuple[float, ...], ...]:
+    """A flat list of numbers as dim-vectors; ValueError unless its length is a multiple of dim."""
+    if not values or len(values) % dim:
+        raise ValueError(f"{flag} needs {dim} numbers for each state, got {len(values)} numbers")
+    flat = [float(v) for v in values]
+    return tuple(tuple(flat[i : i + dim]) for i in range(0, len(flat), dim))
+
+
+#: Systems ``train --system`` knows by name (a JSON file of ``system.to_dict()`` gives any other).
+NAMED_SYSTEMS = ("rigid-body", "heavy-top")
+
+
+def _system_spec(spec: str) -> LiePoissonSystem:
+    """A system from a name in NAMED_SYSTEMS or a JSON file holding ``system.to_dict()``."""
+    import json
+
+    from .systems import HeavyTop, LiePoissonSystem, RigidBody
+
+    if spec == "rigid-body":
+        return RigidBody()
+    if spec == "heavy-top":
+        return HeavyTop()
+    path = Path(spec)
+    if not path.is_file():
+        raise ValueError(
+            f"{spec!r} is neither a known system ({', '.join(NAMED_SYSTEMS)}) nor a JSON file"
+        )
+    if path.stat().st_size > 1 << 20:
+        raise ValueError(f"{spec} is over 1 MiB; a system description is a few lines of JSON")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{spec} is not a JSON system description ({e})") from e
+    if not isinstance(data, dict):
+        raise ValueError(f"{spec} must hold a JSON object (a system's to_dict())")
+    return LiePoissonSystem.from_dict(data)
 
 
 def _sampling_flags(p: argparse.ArgumentParser) -> None:
@@ -572,7 +623,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     t.add_argument("--out", required=True, help="model file to write (.safetensors)")
     t.add_argument("--name", default=None, help="model name recorded in the file")
-    t.add_argument("--inertia", type=float, nargs=3, metavar="I")
+    t.add_argument(
+        "--inertia", type=float, nargs=3, metavar="I", help="the rigid body's principal moments"
+    )
+    t.add_argument(
+        "--system",
+        default=None,
+        help="the Lie–Poisson system: rigid-body (default), heavy-top (I = (1, 1.5, 2), "
+        "mgl = 0.981, χ = (0, 0, 1)), or a JSON file of LiePoissonSystem.to_dict(); other "
+        "systems default to the exp chart and, unless H is homogeneous quadratic, 't,p' inputs",
+    )
     t.add_argument("--chart", choices=["cayley", "exp"])
     t.add_argument("--widths", type=int, nargs="*", metavar="W", help="hidden layer widths")
     t.add_argument("--inputs", choices=["t,p", "homogeneous"], help="MLP ansatz")
@@ -606,7 +666,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         nargs="+",
         metavar="X",
-        help="initial states whose orbits scene sampling follows: x y z [x y z ...]",
+        help="initial states whose orbits scene sampling follows: dim numbers each",
     )
     t.add_argument(
         "--sampling-horizon", dest="sampling_horizon", type=float, help="orbit time span (10)"

@@ -1,14 +1,18 @@
 """Model files: a generating function and its provenance in one safetensors file.
 
-Layout (all tensors float64 except ``poly.powers``, int64):
+Layout (all tensors float64 except ``poly.powers``, int64), for a system on g* ≅ Rⁿ:
 
-- ``poly.powers`` (n, 4), rows (k, a, b, c) for t^k p₁^a p₂^b p₃^c; ``poly.coeffs`` (n,);
-- ``mlp.{i}.weight`` (out, in), ``mlp.{i}.bias`` (out,): inputs (t, p₁, p₂, p₃), tanh between
+- ``algebra.structure_constants`` (n, n, n): c[i, j, k] with [e_i, e_j] = Σ_k c[i, j, k] e_k;
+- ``poly.powers`` (m, 1 + n), rows (k, e₁, …, e_n) for t^k p₁^e₁ ⋯ p_n^e_n; ``poly.coeffs`` (m,);
+- ``mlp.{i}.weight`` (out, in), ``mlp.{i}.bias`` (out,): inputs (t, p₁, …, p_n), tanh between
   layers, one output; input and output scales are folded in.
 
 Metadata (strings; JSON where structured): ``format``, ``chart``, ``mlp_power``, ``mlp_inputs``,
-``widths``, ``taylor_order``, ``system``, ``inertia``, ``h_max``, ``domain``, ``final_loss``,
-``command``, ``seed``, ``train_seconds``, ``package_version``, ``name``.
+``widths``, ``taylor_order``, ``system`` (the system's ``to_dict()``: algebra, Hamiltonian and
+parameters, so :func:`poisson_rs.load_model` rebuilds it), ``inertia`` (rigid bodies), ``h_max``,
+``domain``, ``final_loss``, ``command``, ``seed``, ``train_seconds``, ``package_version``,
+``name``. Files written before other systems existed say ``system = "rigid_body"`` and give the
+body by ``inertia``; they still load.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .files import atomic_write_bytes
+from .systems import LiePoissonSystem, RigidBody
 
 if TYPE_CHECKING:
     from .generating import GeneratingFunction
@@ -32,7 +37,21 @@ _CHARTS = ("cayley", "exp")
 
 FORMAT = "poisson_rs.generating/1"
 PACKAGE_VERSION = "0.1.0"
-_REQUIRED = ("format", "chart", "mlp_power", "widths", "system", "inertia", "h_max", "domain")
+_REQUIRED = ("format", "chart", "mlp_power", "widths", "system", "h_max", "domain")
+
+
+def resolve_system(
+    system: LiePoissonSystem | None, inertia: Sequence[float] | None
+) -> LiePoissonSystem:
+    """The system a writer was given: ``system``, or the rigid body of ``inertia`` (one of the two,
+    not both)."""
+    if (system is None) == (inertia is None):
+        raise TypeError("give exactly one of system and inertia")
+    if system is None:
+        return RigidBody(tuple(inertia))  # type: ignore[arg-type]
+    if not isinstance(system, LiePoissonSystem):
+        raise TypeError(f"system must be a LiePoissonSystem, got {type(system).__name__}")
+    return system
 
 
 def model_bytes(
@@ -42,20 +61,25 @@ def model_bytes(
     layers: Sequence[tuple[np.ndarray, np.ndarray]],
     mlp_power: int,
     chart: str,
-    inertia: Sequence[float],
+    system: LiePoissonSystem | None = None,
+    inertia: Sequence[float] | None = None,
     mlp_inputs: str = "t,p",
     h_max: float,
     domain: Mapping[str, Any],
     taylor_order: int = 0,
     record: Mapping[str, Any] | None = None,
 ) -> bytes:
-    """The bytes of a model file: polynomial terms, MLP layers (weight (out, in), bias (out,))
-    and metadata. ``record`` holds provenance (final_loss, command, seed, train_seconds, name,
-    ...); non-string values are stored as JSON.
+    """The bytes of a model file: polynomial terms, MLP layers (weight (out, in), bias (out,)),
+    the system's structure constants and metadata. ``system`` (or, for a rigid body, its
+    ``inertia``) names what the model integrates. ``record`` holds provenance (final_loss,
+    command, seed, train_seconds, name, ...); non-string values are stored as JSON.
     """
     from safetensors.numpy import save
 
-    tensors: dict[str, np.ndarray] = {}
+    system = resolve_system(system, inertia)
+    tensors: dict[str, np.ndarray] = {
+        "algebra.structure_constants": np.ascontiguousarray(system.algebra.c, dtype=np.float64)
+    }
     if len(coeffs):
         tensors["poly.powers"] = np.ascontiguousarray(powers, dtype=np.int64)
         tensors["poly.coeffs"] = np.ascontiguousarray(coeffs, dtype=np.float64)
@@ -69,14 +93,15 @@ def model_bytes(
         "mlp_inputs": mlp_inputs,
         "widths": json.dumps([int(w.shape[0]) for w, _ in layers[:-1]]),
         "taylor_order": str(int(taylor_order)),
-        "system": "rigid_body",
-        "inertia": json.dumps([float(i) for i in inertia]),
+        "system": json.dumps(system.to_dict()),
         "h_max": repr(float(h_max)),
         "domain": json.dumps(dict(domain)),
         "package_version": PACKAGE_VERSION,
     }
     for k, v in (record or {}).items():
         meta[k] = v if isinstance(v, str) else json.dumps(v)
+    if isinstance(system, RigidBody):
+        meta["inertia"] = json.dumps([float(i) for i in system.inertia])
     return save(tensors, metadata=meta)
 
 
@@ -95,7 +120,8 @@ def save_model(
     s_fn: GeneratingFunction,
     path: str | os.PathLike[str],
     *,
-    inertia: Sequence[float],
+    system: LiePoissonSystem | None = None,
+    inertia: Sequence[float] | None = None,
     h_max: float,
     domain: Mapping[str, Any],
     taylor_order: int = 0,
@@ -110,6 +136,7 @@ def save_model(
         mlp_power=s_fn.mlp_power,
         mlp_inputs=s_fn.inputs,
         chart=s_fn.chart,
+        system=system,
         inertia=inertia,
         h_max=h_max,
         domain=domain,
@@ -134,19 +161,42 @@ def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
         raise ValueError(f"model metadata lacks {', '.join(missing)}")
     if raw["format"] != FORMAT:
         raise ValueError(f"model format is {raw['format']!r}, expected {FORMAT!r}")
-    if raw["system"] != "rigid_body":
-        raise ValueError(f"unsupported system {raw['system']!r}; only 'rigid_body' is known")
     meta: dict[str, Any] = dict(raw)
     if raw["chart"] not in _CHARTS:
         raise ValueError(f"unknown chart {raw['chart']!r}; expected one of {_CHARTS}")
-    inertia = _json(raw, "inertia")
-    if (
-        not isinstance(inertia, list)
-        or len(inertia) != 3
-        or not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in inertia)
-    ):
-        raise ValueError(f"metadata 'inertia' must be 3 positive numbers, got {raw['inertia']!r}")
-    meta["inertia"] = tuple(float(v) for v in inertia)
+    inertia: tuple[float, ...] | None = None
+    if "inertia" in raw:
+        values = _json(raw, "inertia")
+        if (
+            not isinstance(values, list)
+            or len(values) != 3
+            or not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in values)
+        ):
+            raise ValueError(
+                f"metadata 'inertia' must be 3 positive numbers, got {raw['inertia']!r}"
+            )
+        inertia = tuple(float(v) for v in values)
+    if raw["system"] == "rigid_body":
+        # Written before other systems existed: the body is given by its inertia.
+        if inertia is None:
+            raise ValueError("model metadata lacks inertia")
+        meta["system"] = RigidBody(inertia)  # type: ignore[arg-type]
+    else:
+        spec = _json(raw, "system")
+        if not isinstance(spec, dict):
+            raise ValueError(f"metadata 'system' must describe a system, got {raw['system']!r}")
+        try:
+            meta["system"] = LiePoissonSystem.from_dict(spec)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"metadata 'system' does not describe a valid system: {e}") from e
+    if isinstance(meta["system"], RigidBody):
+        if inertia is not None and inertia != meta["system"].inertia:
+            raise ValueError(
+                f"metadata 'inertia' {list(inertia)} disagrees with 'system' {meta['system']!r}"
+            )
+        meta["inertia"] = meta["system"].inertia
+    elif inertia is not None:
+        raise ValueError(f"metadata 'inertia' given for {meta['system']!r}, not a rigid body")
     try:
         meta["h_max"] = float(raw["h_max"])
         meta["mlp_power"] = int(raw["mlp_power"])
@@ -192,6 +242,7 @@ def load_generating(
         )
     if not n_layers and meta["widths"]:
         raise ValueError(f"metadata 'widths' says {list(meta['widths'])} but there is no MLP")
+    system: LiePoissonSystem = meta["system"]
     s_fn = GeneratingFunction(
         widths,
         mlp_power=meta["mlp_power"] if n_layers else 1,
@@ -199,6 +250,7 @@ def load_generating(
         coeffs=tensors.get("poly.coeffs"),
         chart=meta["chart"],
         inputs=meta.get("mlp_inputs", "t,p"),
+        algebra=system.algebra,
     )
     with torch.no_grad():
         for i, layer in enumerate(s_fn.linears):

@@ -1,19 +1,24 @@
 """Generating functions S(t, p) = P(t, p) + t^m · N(t, p) in torch, and their bisection step map.
 
 P is a sparse polynomial (exact Taylor terms from :mod:`poisson_rs.taylor`, or −tH); N is a tanh
-MLP with inputs (t, p₁, p₂, p₃). S(0, ·) = 0 holds by construction: every term of P carries a
-positive power of t, and m ≥ 1.
+MLP with inputs (t, p₁, …, p_n), p ∈ g* ≅ Rⁿ for a Lie algebra g of dimension n (3 for the rigid
+body). S(0, ·) = 0 holds by construction: every term of P carries a positive power of t, and
+m ≥ 1.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from .groupoid import check_chart, sou, tar
+
+if TYPE_CHECKING:
+    from .systems import LieAlgebra
 
 MLP_INPUTS: tuple[str, ...] = ("t,p", "homogeneous")
 
@@ -33,15 +38,17 @@ class GeneratingFunction(nn.Module):
     mlp_power:
         m ≥ 1, the power of t multiplying the MLP.
     powers, coeffs:
-        Polynomial part: int array (n, 4) of rows (k, a, b, c) for t^k p₁^a p₂^b p₃^c with k ≥ 1,
-        and float array (n,).
+        Polynomial part: int array (m, 1 + n) of rows (k, e₁, …, e_n) for t^k p₁^e₁ ⋯ p_n^e_n
+        with k ≥ 1, and float array (m,).
     inputs:
         "t,p" or "homogeneous" (see above).
     chart:
-        Groupoid chart the function is meant for ("cayley" or "exp"); stored, not used here.
+        Groupoid chart the function is meant for ("cayley" or "exp"); used by the step map.
     input_scale:
-        (4,) scales applied to (t, p₁, p₂, p₃) before the MLP; folded into the first layer on
-        export.
+        (1 + n,) scales applied to (t, p₁, …, p_n) before the MLP; folded into the first layer
+        on export.
+    algebra:
+        The Lie algebra of the groupoid (None: so(3)); its dimension n is the momentum's.
     output_scale:
         Scale of the MLP output; folded into the last layer on export.
     """
@@ -55,12 +62,24 @@ class GeneratingFunction(nn.Module):
         coeffs: np.ndarray | None = None,
         chart: str = "cayley",
         inputs: str = "t,p",
-        input_scale: Sequence[float] = (1.0, 1.0, 1.0, 1.0),
+        input_scale: Sequence[float] | None = None,
         output_scale: float = 1.0,
         dtype: torch.dtype = torch.float64,
+        algebra: LieAlgebra | None = None,
     ) -> None:
         super().__init__()
+        self.algebra = None if algebra is None or algebra.is_so3() else algebra
+        self.dim = 3 if algebra is None else int(algebra.dim)
+        if self.algebra is not None and chart != "exp":
+            raise ValueError(
+                f"the {chart!r} chart exists for so(3) only; use chart='exp' for {algebra!r}"
+            )
         self.chart = check_chart(chart)
+        n_in = 1 + self.dim
+        if input_scale is None:
+            input_scale = (1.0,) * n_in
+        if len(input_scale) != n_in:
+            raise ValueError(f"input_scale must have {n_in} entries, got {len(input_scale)}")
         if inputs not in MLP_INPUTS:
             raise ValueError(f"inputs must be one of {MLP_INPUTS}, got {inputs!r}")
         self.inputs = inputs
@@ -71,15 +90,14 @@ class GeneratingFunction(nn.Module):
             raise ValueError(f"mlp_power must be >= 1 so that S(0, p) = 0, got {mlp_power}")
         self.widths = widths
         self.mlp_power = int(mlp_power)
-        powers_t = torch.as_tensor(
-            np.zeros((0, 4), dtype=np.int64) if powers is None else np.asarray(powers, np.int64)
-        )
+        raw = np.zeros((0, n_in), np.int64) if powers is None else np.asarray(powers, np.int64)
+        powers_t = torch.as_tensor(raw.reshape(0, n_in) if raw.size == 0 else raw)
         coeffs_t = torch.as_tensor(
             np.zeros(0) if coeffs is None else np.asarray(coeffs, np.float64), dtype=dtype
         )
-        if powers_t.ndim != 2 or powers_t.shape[1] != 4 or coeffs_t.shape != powers_t.shape[:1]:
+        if powers_t.ndim != 2 or powers_t.shape[1] != n_in or coeffs_t.shape != powers_t.shape[:1]:
             raise ValueError(
-                f"powers must be (n, 4) and coeffs (n,), got {tuple(powers_t.shape)} and "
+                f"powers must be (m, {n_in}) and coeffs (m,), got {tuple(powers_t.shape)} and "
                 f"{tuple(coeffs_t.shape)}"
             )
         if len(powers_t) and (powers_t[:, 0] < 1).any():
@@ -91,7 +109,6 @@ class GeneratingFunction(nn.Module):
         self.register_buffer("input_scale", torch.tensor(list(input_scale), dtype=dtype))
         self.register_buffer("output_scale", torch.tensor(float(output_scale), dtype=dtype))
         layers: list[nn.Module] = []
-        n_in = 4
         for w in widths:
             layers += [nn.Linear(n_in, w, dtype=dtype), nn.Tanh()]
             n_in = w
@@ -111,7 +128,7 @@ class GeneratingFunction(nn.Module):
         return sum(p.numel() for p in self.mlp.parameters())
 
     def polynomial(self, t: Tensor, p: Tensor) -> Tensor:
-        """P(t, p) for t (B,) and p (B, 3) → (B,)."""
+        """P(t, p) for t (B,) and p (B, n) → (B,)."""
         if len(self.coeffs) == 0:
             return torch.zeros_like(t)
         # Integer powers by repeated products, then gathered: ``p ** k`` with a tensor exponent
@@ -126,16 +143,13 @@ class GeneratingFunction(nn.Module):
             return torch.stack(cols, dim=1)  # (B, top + 1)
 
         k = self.powers
-        mono = (
-            table(t)[:, k[:, 0]]
-            * table(p[:, 0])[:, k[:, 1]]
-            * table(p[:, 1])[:, k[:, 2]]
-            * table(p[:, 2])[:, k[:, 3]]
-        )
+        mono = table(t)[:, k[:, 0]]
+        for i in range(self.dim):
+            mono = mono * table(p[:, i])[:, k[:, 1 + i]]
         return mono @ self.coeffs
 
     def forward(self, t: Tensor, p: Tensor) -> Tensor:
-        """S(t, p) for t (B,) and p (B, 3) → (B,)."""
+        """S(t, p) for t (B,) and p (B, n) → (B,)."""
         s = self.polynomial(t, p)
         if not self.widths:
             return s
@@ -165,12 +179,14 @@ class GeneratingFunction(nn.Module):
 
 
 def derivatives(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """S, ∂S/∂p and ∂²S/∂p² by autograd, for t (B,) and p (B, 3): (B,), (B, 3), (B, 3, 3)."""
+    """S, ∂S/∂p and ∂²S/∂p² by autograd, for t (B,) and p (B, n): (B,), (B, n), (B, n, n)."""
     p = p.detach().requires_grad_(True)
     with torch.enable_grad():
         s = s_fn(t, p)
         (g,) = torch.autograd.grad(s.sum(), p, create_graph=True)
-        rows = [torch.autograd.grad(g[:, i].sum(), p, retain_graph=True)[0] for i in range(3)]
+        rows = [
+            torch.autograd.grad(g[:, i].sum(), p, retain_graph=True)[0] for i in range(p.shape[1])
+        ]
     return s.detach(), g.detach(), torch.stack(rows, dim=1).detach()
 
 
@@ -188,33 +204,36 @@ def check_hj_derivatives(method: str) -> str:
 
 
 def polynomial_gradient(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> Tensor:
-    """∂P/∂(t, p₁, p₂, p₃) of the polynomial part in closed form, for t (B,) and p (B, 3) →
-    (B, 4). Constant in the MLP parameters (the coefficients are buffers)."""
+    """∂P/∂(t, p₁, …, p_n) of the polynomial part in closed form, for t (B,) and p (B, n) →
+    (B, 1 + n). Constant in the MLP parameters (the coefficients are buffers)."""
     if len(s_fn.coeffs) == 0:
-        return torch.zeros(t.shape[0], 4, dtype=t.dtype, device=t.device)
-    k = s_fn.powers.to(t.dtype)  # (n, 4)
-    x = torch.cat([t[:, None], p], dim=1)[:, None, :]  # (B, 1, 4)
+        return torch.zeros(t.shape[0], 1 + p.shape[1], dtype=t.dtype, device=t.device)
+    k = s_fn.powers.to(t.dtype)  # (m, 1 + n)
+    x = torch.cat([t[:, None], p], dim=1)[:, None, :]  # (B, 1, 1 + n)
     # Tensor powers rather than ``polynomial``'s table of products: no data-dependent size (which
     # would break a torch.compile graph), and nothing differentiates this gradient in x, where
     # ``x ** k`` would have NaN second derivatives at 0.
-    f = x**k  # (B, n, 4): x_j^k_j
+    f = x**k  # (B, m, 1 + n): x_j^k_j
     df = k * x ** (k - 1.0).clamp_min(0.0)  # k_j x_j^(k_j − 1); the clamp keeps 0⁻¹ out
-    a, b, c, d = f.unbind(-1)
-    # Products of the other three factors, written out rather than divided out (x_j may be 0).
-    others = torch.stack([b * c * d, a * c * d, a * b * d, a * b * c], dim=-1)
-    return torch.einsum("bnj,n->bj", df * others, s_fn.coeffs)
+    # Products of the other factors from prefix and suffix products, rather than divided out
+    # (x_j may be 0).
+    ones = torch.ones_like(f[..., :1])
+    before = torch.cumprod(torch.cat([ones, f[..., :-1]], dim=-1), dim=-1)
+    after = torch.cumprod(torch.cat([ones, f.flip(-1)[..., :-1]], dim=-1), dim=-1).flip(-1)
+    return torch.einsum("bnj,n->bj", df * before * after, s_fn.coeffs)
 
 
 def mlp_input(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, Tensor | None]:
-    """The MLP input before ``input_scale``, z (B, 4), and its Jacobian rows ∂z/∂t, ∂z/∂p₁..₃ as
-    (B, 4, 4), or None for ``inputs="t,p"`` where z = (t, p) and the Jacobian is the identity."""
+    """The MLP input before ``input_scale``, z (B, 1 + n), and its Jacobian rows ∂z/∂t, ∂z/∂p₁..ₙ
+    as (B, 1 + n, 1 + n), or None for ``inputs="t,p"`` where z = (t, p) and the Jacobian is the
+    identity."""
     if s_fn.inputs == "t,p":
         return torch.cat([t[:, None], p], dim=1), None
     r = (p * p).sum(1).clamp_min(1e-300).sqrt()  # clamped as in GeneratingFunction.forward
     u = p / r[:, None]
     z = torch.cat([(r * t)[:, None], u], dim=1)
     # z = (r t, p/r): rows ∂z/∂t = (r, 0, 0, 0) and ∂z/∂p_k = (t u_k, (δ_ik − u_i u_k)/r).
-    eye = torch.eye(3, dtype=t.dtype, device=t.device)
+    eye = torch.eye(p.shape[1], dtype=t.dtype, device=t.device)
     row_t = torch.cat([r[:, None], torch.zeros_like(p)], dim=1)[:, None, :]
     rows_p = torch.cat(
         [(t[:, None] * u)[:, :, None], (eye - u[:, :, None] * u[:, None, :]) / r[:, None, None]],
@@ -226,7 +245,7 @@ def mlp_input(s_fn: GeneratingFunction, t: Tensor, p: Tensor) -> tuple[Tensor, T
 def assemble_derivatives(
     s_fn: GeneratingFunction, t: Tensor, p: Tensor, o: Tensor, do: Tensor
 ) -> tuple[Tensor, Tensor]:
-    """∂S/∂t (B,) and ∂S/∂p (B, 3) from the raw MLP output o (B,) and its gradient do (B, 4) in
+    """∂S/∂t (B,) and ∂S/∂p (B, n) from the raw MLP output o (B,) and its gradient do (B, 1 + n) in
     (t, p): the product rule through t^m, the output scale and, if homogeneous, |p|^(m+1); plus
     the polynomial's closed-form gradient."""
     g = polynomial_gradient(s_fn, t, p)
@@ -247,8 +266,9 @@ def assemble_derivatives(
 def first_layer(
     s_fn: GeneratingFunction, t: Tensor, p: Tensor
 ) -> tuple[Tensor, Tensor, Tensor | None]:
-    """The MLP's first pre-activation (B, H), its weight with the input scale folded in (H, 4),
-    and the Jacobian rows of its input (B, 4, 4), None for inputs "t,p" (see :func:`mlp_input`):
+    """The MLP's first pre-activation (B, H), its weight with the input scale folded in (H, 1 + n),
+    and the Jacobian rows of its input (B, 1 + n, 1 + n), None for inputs "t,p" (see
+    :func:`mlp_input`):
     where every hand-written derivative pass through the MLP starts."""
     first = s_fn.linears[0]
     w0 = first.weight * s_fn.input_scale
@@ -275,7 +295,7 @@ def _hj_derivatives_reverse(
     for a, layer in zip(reversed(acts), reversed(lin[:-1]), strict=True):
         w = w0 if layer is lin[0] else layer.weight
         g = ((1.0 - a * a) * g) @ w  # through tanh (tanh' = 1 − tanh²), then the layer below
-    do = g if jac is None else (jac @ g[:, :, None])[..., 0]  # (B, 4): ∂o/∂(t, p)
+    do = g if jac is None else (jac @ g[:, :, None])[..., 0]  # (B, 1 + n): ∂o/∂(t, p)
     return assemble_derivatives(s_fn, t, p, h[:, 0], do)
 
 
@@ -287,7 +307,7 @@ def hj_derivatives(
     method: str = "reverse",
     create_graph: bool = True,
 ) -> tuple[Tensor, Tensor]:
-    """∂S/∂t and ∂S/∂p at t (B,) [time] and p (B, 3) [momentum] → (B,) and (B, 3), for any
+    """∂S/∂t and ∂S/∂p at t (B,) [time] and p (B, n) [momentum] → (B,) and (B, n), for any
     :class:`GeneratingFunction` (chart, polynomial part, MLP inputs and power, or no MLP).
 
     ``create_graph=True`` keeps them differentiable in the MLP parameters, so that a loss built
@@ -318,11 +338,13 @@ def newton_system(
 ) -> tuple[Tensor, Tensor]:
     """F(p) = tar(∂S/∂p(t, p), p) − μ and its Jacobian dF/dp by autograd through ∂S/∂p (so the
     Hessian of S enters exactly). ``p`` must be a leaf requiring grad; F keeps its graph (to p and
-    the weights), the Jacobian is detached. t (B,), p and mu (B, 3) → F (B, 3), J (B, 3, 3)."""
+    the weights), the Jacobian is detached. t (B,), p and mu (B, n) → F (B, n), J (B, n, n)."""
     with torch.enable_grad():
         (x,) = torch.autograd.grad(s_fn(t, p).sum(), p, create_graph=True)
-        f = tar(chart, x, p) - mu
-        rows = [torch.autograd.grad(f[:, i].sum(), p, retain_graph=True)[0] for i in range(3)]
+        f = tar(chart, x, p, algebra=s_fn.algebra) - mu
+        rows = [
+            torch.autograd.grad(f[:, i].sum(), p, retain_graph=True)[0] for i in range(p.shape[1])
+        ]
     return f, torch.stack(rows, dim=1).detach()
 
 
@@ -336,7 +358,7 @@ def solve_momentum(
     max_iter: int = 50,
 ) -> tuple[Tensor, Tensor]:
     """Newton for p with tar(∂S/∂p(h, p), p) = μ from p = μ, untracked. Stops per state once the
-    update satisfies |δ|∞ ≤ tol·|p|∞ (the Rust core's rule). mu (B, 3) → (p (B, 3) detached,
+    update satisfies |δ|∞ ≤ tol·|p|∞ (the Rust core's rule). mu (B, n) → (p (B, n) detached,
     converged (B,) bool)."""
     chart = check_chart(chart or s_fn.chart)
     mu = mu.detach()
@@ -365,7 +387,7 @@ def bisection_step(
 ) -> Tensor:
     """One bisection step μ ↦ sou(∂S/∂p(h, p), p) with tar(∂S/∂p(h, p), p) = μ, in pure torch
     (Newton by :func:`solve_momentum`). States that do not converge within ``max_iter`` come back
-    as NaN. mu: (B, 3) float64 → (B, 3).
+    as NaN. mu: (B, n) float64 → (B, n).
     """
     chart = check_chart(chart or s_fn.chart)
     p, done = solve_momentum(s_fn, mu, h, chart=chart, tol=tol, max_iter=max_iter)
@@ -373,5 +395,5 @@ def bisection_step(
     pv = p.requires_grad_(True)
     with torch.enable_grad():
         (x,) = torch.autograd.grad(s_fn(t, pv).sum(), pv)
-    out = sou(chart, x, p).detach()
+    out = sou(chart, x, p, algebra=s_fn.algebra).detach()
     return torch.where(done[:, None], out, torch.full_like(out, float("nan")))

@@ -1,4 +1,5 @@
-"""Integrators behind one ``integrate()``: the learned bisection integrator, stepped in Rust."""
+"""Integrators behind one ``integrate()``: bisection integrators (learned or Taylor) and the
+classical baselines, for any Lie–Poisson system, stepped in Rust."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from . import _core
 from .export import load_generating, model_bytes, parse_metadata
 from .files import check_input_file
 from .groupoid import sou
-from .reference import RigidBody
+from .systems import LiePoissonSystem, RigidBody
 
 if TYPE_CHECKING:
     import torch
@@ -72,7 +73,10 @@ class RolloutInfo:
 
 
 class Stepper(Protocol):
-    """Anything ``integrate()`` can drive: a rollout of (n, 3) float64 initial states."""
+    """Anything ``integrate()`` can drive: a rollout of (n, dim) float64 initial states."""
+
+    @property
+    def dim(self) -> int: ...
 
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
@@ -109,6 +113,14 @@ class BisectionIntegrator:
             check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
             self._core = _core.Model.load(str(source))
         self.metadata: dict[str, Any] = parse_metadata(self._core.metadata)
+        system: LiePoissonSystem = self.metadata["system"]
+        if system.dim != self._core.dim or not np.array_equal(
+            system.algebra.c, self._core.structure_constants
+        ):
+            raise ValueError(
+                f"metadata 'system' ({system!r}) does not match the structure constants of the "
+                f"file's tensors (dimension {self._core.dim})"
+            )
         if tuple(self._core.widths) != self.metadata["widths"]:
             raise ValueError(
                 f"metadata 'widths' says {list(self.metadata['widths'])} but the tensors hold "
@@ -134,8 +146,22 @@ class BisectionIntegrator:
         return str(self.metadata["chart"])
 
     @property
+    def system(self) -> LiePoissonSystem:
+        """The Lie–Poisson system the model integrates (from its file)."""
+        return self.metadata["system"]  # type: ignore[no-any-return]
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the system's phase space g*."""
+        return int(self._core.dim)
+
+    @property
     def body(self) -> RigidBody:
-        return RigidBody(self.metadata["inertia"])
+        """The rigid body the model integrates; TypeError for another system."""
+        system = self.system
+        if not isinstance(system, RigidBody):
+            raise TypeError(f"{self.name!r} integrates {system!r}, not a rigid body")
+        return system
 
     @property
     def h_max(self) -> float:
@@ -164,7 +190,7 @@ class BisectionIntegrator:
         return self._generating
 
     def torch_step(self, mu: torch.Tensor, h: float) -> torch.Tensor:
-        """The step map in pure torch (autograd Newton), float64. mu: (B, 3) → (B, 3)."""
+        """The step map in pure torch (autograd Newton), float64. mu: (B, n) → (B, n)."""
         import torch
 
         from .generating import bisection_step
@@ -176,8 +202,9 @@ class BisectionIntegrator:
         )
 
     def derivatives(self, t: float, p: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """S, ∂S/∂p, ∂²S/∂p² from the Rust core (forward mode). p: (n, 3) → (n,), (n,3), (n,3,3)."""
-        return self._core.derivatives(float(t), _as_states(p, "p")[0])
+        """S, ∂S/∂p, ∂²S/∂p² from the Rust core (forward mode).
+        p: (B, n) → (B,), (B, n), (B, n, n)."""
+        return self._core.derivatives(float(t), _as_states(p, "p", self.dim)[0])
 
     def hj_residual(self, mu: ArrayLike, h: float) -> np.ndarray:
         """The model's Hamilton–Jacobi residual at (h, p = μ), relative to H(μ).
@@ -187,9 +214,9 @@ class BisectionIntegrator:
         can be trusted near μ (e.g. along a trajectory). Derivatives come from the Rust core,
         sou from a NumPy copy of the chart map.
 
-        mu: (..., 3) states; h: time, finite and >= 0. Returns (...,) float64, signed, r/H(μ)
-        (r itself where H(μ) = 0, i.e. μ = 0). Non-finite states, and states whose
-        |∂S/∂p| reaches the exponential chart's singularity, give NaN.
+        mu: (..., n) states; h: time, finite and >= 0. Returns (...,) float64, signed, r/|H(μ)|
+        (r itself where H(μ) = 0). Non-finite states, and states whose ∂S/∂p reaches the
+        exponential chart's singularity, give NaN.
         """
         if isinstance(h, bool) or not isinstance(h, numbers.Real):
             raise TypeError(f"h must be a real number, got {type(h).__name__}")
@@ -198,17 +225,20 @@ class BisectionIntegrator:
         arr = np.asarray(mu)
         if arr.dtype == object or arr.dtype.kind not in "fiu":
             raise TypeError(f"mu must be an array of real numbers, got dtype {arr.dtype}")
-        if arr.ndim == 0 or arr.shape[-1] != 3:
-            raise ValueError(f"mu must have shape (..., 3), got {arr.shape}")
-        p = np.ascontiguousarray(arr.reshape(-1, 3), dtype=np.float64)
+        n = self.dim
+        if arr.ndim == 0 or arr.shape[-1] != n:
+            raise ValueError(f"mu must have shape (..., {n}), got {arr.shape}")
+        p = np.ascontiguousarray(arr.reshape(-1, n), dtype=np.float64)
         out = np.full(len(p), np.nan)
         ok = np.isfinite(p).all(axis=1)
         q = np.ascontiguousarray(p[ok])
         _, grad, _ = self._core.derivatives(float(h), q)
         _, s_t = self._core.time_derivative(float(h), q)
-        body = self.body
-        r = s_t + body.hamiltonian(sou(self.chart, grad, q))
-        energy = body.hamiltonian(q)
+        system = self.system
+        algebra = None if system.algebra.is_so3() else system.algebra
+        with np.errstate(invalid="ignore", over="ignore"):
+            r = s_t + system.hamiltonian(sou(self.chart, grad, q, algebra=algebra))
+        energy = np.abs(system.hamiltonian(q))
         out[ok] = r / np.where(energy > 0, energy, 1.0)
         return out.reshape(arr.shape[:-1])
 
@@ -228,8 +258,8 @@ class BisectionIntegrator:
 
     def __repr__(self) -> str:
         return (
-            f"{type(self).__name__}(name={self.name!r}, chart={self.chart!r}, "
-            f"parameters={self.n_parameters}, h_max={self.h_max})"
+            f"{type(self).__name__}(name={self.name!r}, system={self.system!r}, "
+            f"chart={self.chart!r}, parameters={self.n_parameters}, h_max={self.h_max})"
         )
 
 
@@ -280,33 +310,37 @@ def load_model(
 
 
 def taylor_integrator(
-    body: RigidBody | None = None,
+    body: LiePoissonSystem | None = None,
     order: int = 3,
-    chart: str = "cayley",
+    chart: str | None = None,
     *,
     tol: float = 1e-12,
     max_iter: int = 50,
 ) -> TaylorIntegrator:
-    """The Taylor-in-t integrator, S = Σ_{k≤order} t^k S_k with the S_k exact (order ≥ 1).
+    """The Taylor-in-t integrator, S = Σ_{k≤order} t^k S_k with the S_k exact (order ≥ 1), for
+    any Lie–Poisson system ``body`` (default: the paper's rigid body).
 
-    Its order of accuracy is ``order``, or ``order + 1`` where S_{order+1} vanishes (odd orders
-    in the Cayley chart).
+    ``chart``: "cayley" (so(3) only; the default there) or "exp" (any algebra; the default
+    elsewhere). Its order of accuracy is ``order``, or ``order + 1`` where S_{order+1} vanishes
+    (odd orders for a quadratic Hamiltonian).
     """
-    from .taylor import taylor_terms
+    from .taylor import system_taylor_terms
 
     body = RigidBody() if body is None else body
-    if not isinstance(body, RigidBody):
-        raise TypeError(f"body must be a RigidBody, got {type(body).__name__}")
+    if not isinstance(body, LiePoissonSystem):
+        raise TypeError(f"body must be a LiePoissonSystem, got {type(body).__name__}")
     if isinstance(order, bool) or not isinstance(order, numbers.Integral) or order < 1:
         raise ValueError(f"order must be an integer >= 1, got {order!r}")
-    powers, coeffs = taylor_terms(body.inertia, int(order), chart)
+    if chart is None:
+        chart = "cayley" if body.algebra.is_so3() else "exp"
+    powers, coeffs = system_taylor_terms(body, int(order), chart)
     data = model_bytes(
         powers=powers,
         coeffs=coeffs,
         layers=[],
         mlp_power=1,
         chart=chart,
-        inertia=body.inertia,
+        system=body,
         h_max=float("inf"),
         domain={"kind": "all"},
         taylor_order=int(order),
@@ -341,21 +375,33 @@ def _check_domain(domain: Mapping[str, Any]) -> dict[str, Any]:
     return dict(domain)
 
 
+#: Trajectory-states per block of :func:`count_out_of_domain`: its temporaries stay a few MB
+#: whatever the size of the rollout.
+_DOMAIN_BLOCK = 1 << 16
+
+
 def count_out_of_domain(domain: Mapping[str, Any] | None, traj: np.ndarray) -> np.ndarray:
-    """States of ``traj`` (n, records, 3) outside a training ``domain``, per trajectory: (n,) int64.
+    """States of ``traj`` (n, records, dim) outside a training ``domain``, per trajectory: (n,)
+    int64.
 
     Shell: |μ| outside [r_min, r_max]; cube: some |μᵢ| > half_width; "all" or None: none.
-    NaN states (after a Newton failure) compare false and are not counted.
+    NaN states (after a Newton failure) compare false and are not counted. Works through the
+    trajectory in blocks, so its memory does not grow with the output.
     """
     kind = None if domain is None else domain.get("kind")
-    if domain is None or kind not in ("shell", "cube"):
-        return np.zeros(traj.shape[0], dtype=np.int64)
-    if kind == "shell":
-        r = np.linalg.norm(traj, axis=-1)
-        outside = (r < domain["r_min"]) | (r > domain["r_max"])
-    else:
-        outside = (np.abs(traj) > domain["half_width"]).any(axis=-1)
-    return outside.sum(axis=1, dtype=np.int64)
+    counts = np.zeros(traj.shape[0], dtype=np.int64)
+    if domain is None or kind not in ("shell", "cube") or traj.size == 0:
+        return counts
+    rows = max(1, _DOMAIN_BLOCK // max(1, traj.shape[1]))
+    for start in range(0, traj.shape[0], rows):
+        block = traj[start : start + rows]
+        if kind == "shell":
+            r2 = np.einsum("nrd,nrd->nr", block, block)
+            outside = (r2 < domain["r_min"] ** 2) | (r2 > domain["r_max"] ** 2)
+        else:
+            outside = (np.abs(block) > domain["half_width"]).any(axis=-1)
+        counts[start : start + rows] = outside.sum(axis=1, dtype=np.int64)
+    return counts
 
 
 def _describe_domain(domain: Mapping[str, Any]) -> str:
@@ -364,8 +410,9 @@ def _describe_domain(domain: Mapping[str, Any]) -> str:
     return f"the cube |mu_i| <= {domain['half_width']:g}"
 
 
-def _as_states(mu0: Any, what: str = "mu0") -> tuple[np.ndarray, bool]:
-    """(n, 3) C-contiguous float64 copy of an array-like of states, and whether it was one state."""
+def _as_states(mu0: Any, what: str = "mu0", dim: int = 3) -> tuple[np.ndarray, bool]:
+    """(n, dim) C-contiguous float64 copy of an array-like of states, and whether it was one
+    state."""
     if isinstance(mu0, np.ma.MaskedArray):
         # np.asarray would drop the mask and step the masked values as if they were data.
         raise TypeError(
@@ -375,13 +422,13 @@ def _as_states(mu0: Any, what: str = "mu0") -> tuple[np.ndarray, bool]:
     arr = np.asarray(mu0)
     if arr.dtype == object or arr.dtype.kind not in "fiu":
         raise TypeError(f"{what} must be an array of real numbers, got dtype {arr.dtype}")
-    if arr.shape == (3,):
+    if arr.shape == (dim,):
         single = True
         arr = arr[None, :]
-    elif arr.ndim == 2 and arr.shape[1] == 3:
+    elif arr.ndim == 2 and arr.shape[1] == dim:
         single = False
     else:
-        raise ValueError(f"{what} must have shape (3,) or (n, 3), got {arr.shape}")
+        raise ValueError(f"{what} must have shape ({dim},) or (n, {dim}), got {arr.shape}")
     arr = np.ascontiguousarray(arr, dtype=np.float64)
     if not np.isfinite(arr).all():
         raise ValueError(f"{what} holds NaN or infinite values")
@@ -432,7 +479,8 @@ def integrate(
     Parameters
     ----------
     stepper: an integrator, e.g. from :func:`load_model`.
-    mu0: (3,) or (n, 3) array-like of angular momenta.
+    mu0: (dim,) or (n, dim) array-like of states in g* (angular momenta for the rigid body, dim
+        = 3; (M, Γ) for the heavy top, dim = 6).
     h: step size (time units), finite and > 0.
     n_steps: number of steps, >= 0.
     every: keep states 0, every, 2·every, ... (bounds memory on long horizons).
@@ -444,7 +492,8 @@ def integrate(
 
     Returns
     -------
-    float64 array (n_steps // every + 1, 3) for one state, (n, n_steps // every + 1, 3) for n.
+    float64 array (n_steps // every + 1, dim) for one state, (n, n_steps // every + 1, dim) for
+    n.
 
     A model that records its training domain (a shell or a cube of states) is checked against
     it: ``info.out_of_domain`` counts, per trajectory, the recorded states (only the kept ones,
@@ -454,7 +503,7 @@ def integrate(
     """
     if not hasattr(stepper, "_rollout"):
         raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
-    arr, single = _as_states(mu0)
+    arr, single = _as_states(mu0, dim=int(getattr(stepper, "dim", 3)))
     if isinstance(h, bool) or not isinstance(h, numbers.Real):
         raise TypeError(f"h must be a real number, got {type(h).__name__}")
     if not (np.isfinite(h) and h > 0):
@@ -512,7 +561,8 @@ def _stepper_name(stepper: Any) -> str:
     return f"{type(stepper).__name__} {name!r}" if name else type(stepper).__name__
 
 
-#: Order of accuracy and whether the step is a Poisson map, for each classical integrator.
+#: Order of accuracy and whether the step is a Poisson map, for each classical integrator of the
+#: rigid body.
 CLASSICAL_METHODS: dict[str, tuple[int, bool]] = {
     "rk4": (4, False),
     "midpoint": (2, True),
@@ -522,13 +572,34 @@ CLASSICAL_METHODS: dict[str, tuple[int, bool]] = {
     "dop853": (8, False),
 }
 
+#: The same for any other Lie–Poisson system ("splitting": the heavy top only). The implicit
+#: midpoint rule keeps quadratic Casimirs and is a Poisson map for quadratic Hamiltonians only.
+LIE_POISSON_METHODS: dict[str, tuple[int, bool]] = {
+    "rk4": (4, False),
+    "midpoint": (2, False),
+    "splitting": (2, True),
+    "dop853": (8, False),
+}
+
+
+def classical_methods(system: LiePoissonSystem) -> list[str]:
+    """Names of the classical integrators available for ``system``."""
+    from .systems import HeavyTop
+
+    if isinstance(system, RigidBody):
+        return list(CLASSICAL_METHODS)
+    names = list(LIE_POISSON_METHODS)
+    if not isinstance(system, HeavyTop):
+        names.remove("splitting")
+    return names
+
 
 class ClassicalIntegrator:
-    """A classical baseline for the free rigid body μ̇ = μ × (μ/I), driven by :func:`integrate`.
+    """A classical baseline for a Lie–Poisson system, driven by :func:`integrate`.
 
     Build one with :func:`classical`. Every method but "dop853" takes fixed steps of size ``h`` in
     the Rust core, through the same parallel rollout as the bisection integrators, so timings
-    compare like for like:
+    compare like for like. For the rigid body μ̇ = μ × (μ/I):
 
     - "rk4": classical explicit Runge–Kutta, order 4; not Poisson (C and H drift).
     - "midpoint": implicit midpoint, order 2, Newton with the exact Jacobian; keeps C and H up
@@ -543,20 +614,27 @@ class ClassicalIntegrator:
       trajectory at a time, in Python) with rtol = atol = ``tol``. It chooses its own steps:
       ``h`` sets only where the output is sampled (t = k·h), not the accuracy or the cost.
 
-    ``tol`` and ``max_iter`` set the Newton solve of "midpoint" and "dmv" (relative update
+    For any other system: "rk4", "midpoint" (exact Jacobian by forward-mode dual numbers; keeps
+    quadratic Casimirs), "dop853" (:func:`~poisson_rs.reference.reference_solution` with rtol =
+    atol = ``tol``), and for the heavy top "splitting": Strang's V(h/2) K(h) V(h/2) of the
+    potential flow (Γ fixed, Ṁ = mgl Γ × χ, exact) and the kinetic flow (the rigid body's
+    splitting, turning M and Γ together); order 2, keeps |Γ|² and M·Γ to round-off.
+
+    ``tol`` and ``max_iter`` set the Newton solve of the implicit methods (relative update
     tolerance and iteration cap, as for the bisection integrators); for "dop853" ``tol`` is its
     rtol and atol.
     """
 
     def __init__(
-        self, body: RigidBody, name: str, *, tol: float = 1e-12, max_iter: int = 50
+        self, body: LiePoissonSystem, name: str, *, tol: float = 1e-12, max_iter: int = 50
     ) -> None:
-        if not isinstance(body, RigidBody):
-            raise TypeError(f"body must be a RigidBody, got {type(body).__name__}")
-        if not (isinstance(name, str) and name in CLASSICAL_METHODS):
+        if not isinstance(body, LiePoissonSystem):
+            raise TypeError(f"body must be a LiePoissonSystem, got {type(body).__name__}")
+        names = classical_methods(body)
+        if not (isinstance(name, str) and name in names):
             raise ValueError(
-                f"unknown classical integrator {name!r}; valid names: "
-                f"{', '.join(CLASSICAL_METHODS)}"
+                f"unknown classical integrator {name!r} for {body!r}; valid names: "
+                f"{', '.join(names)}"
             )
         if isinstance(tol, bool) or not (isinstance(tol, numbers.Real) and 0 < tol < 1):
             raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
@@ -568,32 +646,73 @@ class ClassicalIntegrator:
         self.max_iter = int(max_iter)
 
     @property
+    def system(self) -> LiePoissonSystem:
+        return self.body
+
+    @property
+    def dim(self) -> int:
+        return int(self.body.dim)
+
+    def _table(self) -> dict[str, tuple[int, bool]]:
+        return CLASSICAL_METHODS if isinstance(self.body, RigidBody) else LIE_POISSON_METHODS
+
+    @property
     def order(self) -> int:
         """Order of accuracy (8 for DOP853, whose error is set by ``tol`` rather than h)."""
-        return CLASSICAL_METHODS[self.name][0]
+        return self._table()[self.name][0]
 
     @property
     def poisson(self) -> bool:
-        """Whether a step is a Poisson map (keeps the Casimir |μ|² to round-off)."""
-        return CLASSICAL_METHODS[self.name][1]
+        """Whether a step is a Poisson map (keeps every Casimir to round-off)."""
+        return self._table()[self.name][1]
 
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        from .systems import HeavyTop
+
+        body = self.body
         if self.name != "dop853":
-            return _core.rollout_classical(
-                self.name, self.body.inertia, mu0, h, n_steps, every, self.tol, self.max_iter
+            if isinstance(body, RigidBody):
+                return _core.rollout_classical(
+                    self.name, body.inertia, mu0, h, n_steps, every, self.tol, self.max_iter
+                )
+            powers, coeffs = body.polynomial.to_arrays()
+            top = (
+                (body.inertia, body.mgl, body.com)
+                if isinstance(body, HeavyTop) and self.name == "splitting"
+                else None
             )
-        from .reference import dop853_solution
+            return _core.rollout_lie_poisson(
+                self.name,
+                np.ascontiguousarray(body.algebra.c),
+                powers,
+                coeffs,
+                mu0,
+                h,
+                n_steps,
+                every,
+                self.tol,
+                self.max_iter,
+                top,
+            )
+        from .reference import dop853_solution, reference_solution
 
         times = h * np.arange(0, n_steps + 1, every, dtype=np.float64)
-        traj = dop853_solution(self.body, mu0, times, rtol=self.tol, atol=self.tol)
+        if isinstance(body, RigidBody):
+            traj = dop853_solution(body, mu0, times, rtol=self.tol, atol=self.tol)
+        else:
+            traj = reference_solution(body, mu0, times, rtol=self.tol, atol=self.tol)
         n = mu0.shape[0]
-        # Same keys and dtypes as the Rust rollout's; a DOP853 failure raises instead.
+        # Same keys and dtypes as the Rust rollout's; a trajectory DOP853 could not finish is
+        # NaN from there on and reported like a failed step.
+        finite = np.isfinite(traj).all(axis=-1)
+        converged = finite.all(axis=1)
+        first_bad = np.where(converged, -1, np.argmin(finite, axis=1) * every - 1)
         info = {
-            "converged": np.ones(n, dtype=bool),
-            "failed_step": np.full(n, -1, dtype=np.int64),
-            "failure_code": np.zeros(n, dtype=np.int8),
+            "converged": converged,
+            "failed_step": first_bad.astype(np.int64),
+            "failure_code": np.where(converged, 0, 1).astype(np.int8),
             "newton_iterations": np.zeros(n, dtype=np.uint64),
             "max_newton_iterations": np.zeros(n, dtype=np.uint32),
             "max_residual": np.zeros(n, dtype=np.float64),
@@ -602,19 +721,22 @@ class ClassicalIntegrator:
 
     def __repr__(self) -> str:
         return (
-            f"{type(self).__name__}(name={self.name!r}, inertia={self.body.inertia}, "
+            f"{type(self).__name__}(name={self.name!r}, system={self.body!r}, "
             f"order={self.order}, poisson={self.poisson})"
         )
 
 
 def classical(
-    body: RigidBody, name: str, *, tol: float = 1e-12, max_iter: int = 50
+    body: LiePoissonSystem, name: str, *, tol: float = 1e-12, max_iter: int = 50
 ) -> ClassicalIntegrator:
-    """A classical baseline integrator for ``body``, usable with :func:`integrate`.
+    """A classical baseline integrator for the Lie–Poisson system ``body``, usable with
+    :func:`integrate`.
 
-    ``name`` is one of "rk4", "midpoint", "splitting", "splitting4", "dmv" (fixed step h, Rust)
-    or "dop853" (adaptive, SciPy; h only spaces the output). See :class:`ClassicalIntegrator`.
-    Raises TypeError for a body that is not a RigidBody, ValueError for an unknown name.
+    ``name`` is one of :func:`classical_methods` ``(body)``: for the rigid body "rk4",
+    "midpoint", "splitting", "splitting4", "dmv" (fixed step h, Rust) or "dop853" (adaptive,
+    SciPy; h only spaces the output); for other systems "rk4", "midpoint", "dop853", and
+    "splitting" for the heavy top. See :class:`ClassicalIntegrator`. Raises TypeError for a body
+    that is not a LiePoissonSystem, ValueError for an unknown name.
 
     >>> import poisson_rs as pr
     >>> rk4 = pr.classical(pr.RigidBody(), "rk4")

@@ -18,23 +18,47 @@ so S₁ = −H and every S_k is a homogeneous polynomial of degree k + 1 in p (x
 the series of c in |x|² truncates at each order). The coefficients are computed exactly with
 ``fractions.Fraction``; :func:`taylor_terms` exports them as the flat (powers, coeffs) arrays
 consumed by the Rust core and the torch module.
+
+:func:`lie_taylor_coefficients` does the same for any polynomial Hamiltonian on the dual g* of any
+Lie algebra given by its structure constants, in the exponential chart of T*G, where
+
+    sou(x, p) = (ad_x/(e^{ad_x} − 1))ᵀ p = Σ_n (B_n/n!) Aⁿ p,   A = ad_xᵀ,
+    (A v)_j = Σ_{i,k} c[i,j,k] x_i v_k,   B_n = 1, −1/2, 1/12, 0, −1/720, ...
+
+On so(3) (c = Levi-Civita) this is the "exp" chart above: A p = −x×p.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from fractions import Fraction
+from typing import Any
 
 import numpy as np
 
-__all__ = ["CHARTS", "MAX_ORDER", "evaluate_terms", "taylor_coefficients", "taylor_terms"]
+__all__ = [
+    "CHARTS",
+    "MAX_ORDER",
+    "MAX_WORK",
+    "evaluate_terms",
+    "lie_taylor_coefficients",
+    "lie_taylor_terms",
+    "system_taylor_terms",
+    "taylor_coefficients",
+    "taylor_terms",
+]
 
 #: Largest supported truncation order (S_15 has degree 16 and 153 monomials; exact arithmetic
 #: stays well under a second up to here).
 MAX_ORDER = 15
 #: Supported groupoid charts.
 CHARTS = ("cayley", "exp")
+
+#: Budget of exact coefficient products (one monomial times one monomial) for
+#: :func:`lie_taylor_coefficients`; about 10 s of pure-Python big-integer work. Exceeding it
+#: raises a ValueError naming the order that is too large, instead of running for minutes.
+MAX_WORK = 20_000_000
 
 Exponent = tuple[int, int, int]
 
@@ -285,29 +309,393 @@ def taylor_terms(
     return powers, np.array(vals, dtype=np.float64)
 
 
+# ---------------------------------------------------------------------------------------------
+# Any Lie–Poisson system: structure constants + polynomial Hamiltonian, exponential chart
+# ---------------------------------------------------------------------------------------------
+
+GeneralExponent = tuple[int, ...]
+
+
+class _QPoly:
+    """Exact sparse polynomial Σ_e num[e] pᵉ / den with integer numerators.
+
+    An exponent vector is packed into one int (``width`` bits per variable), so a monomial
+    product is one integer addition; a shared denominator keeps the inner loops on Python ints,
+    which is an order of magnitude faster than ``Fraction`` arithmetic term by term.
+    """
+
+    __slots__ = ("den", "num")
+
+    def __init__(self, num: dict[int, int], den: int = 1) -> None:
+        self.num = num
+        self.den = den
+
+
+_ZERO = _QPoly({})
+
+
+class _Work:
+    """Counts monomial products against :data:`MAX_WORK`; names the order that is too large."""
+
+    __slots__ = ("done", "k", "order")
+
+    def __init__(self, order: int) -> None:
+        self.done = 0
+        self.k = 1
+        self.order = order
+
+    def charge(self, n: int) -> None:
+        self.done += n
+        if self.done > MAX_WORK:
+            raise ValueError(
+                f"order {self.order} is too large for this system: computing S_{self.k} exceeds "
+                f"the exact-arithmetic budget of {MAX_WORK} monomial products; use order <= "
+                f"{self.k - 1} (or a Hamiltonian with fewer or lower-degree terms)"
+            )
+
+
+def _combo(parts: list[tuple[Fraction, _QPoly, _QPoly | None]], work: _Work) -> _QPoly:
+    """Σ s·a·b over ``parts`` (b = None means the factor 1), reduced to lowest terms."""
+    parts = [(s, a, b) for s, a, b in parts if s and a.num and (b is None or b.num)]
+    if not parts:
+        return _ZERO
+    dens = [s.denominator * a.den * (1 if b is None else b.den) for s, a, b in parts]
+    den = math.lcm(*dens)
+    out: dict[int, int] = {}
+    get = out.get
+    for (s, a, b), d in zip(parts, dens, strict=True):
+        mult = s.numerator * (den // d)
+        if b is None:
+            for e, c in a.num.items():
+                out[e] = get(e, 0) + mult * c
+            continue
+        work.charge(len(a.num) * len(b.num))
+        for ea, ca in a.num.items():
+            ca *= mult
+            for eb, cb in b.num.items():
+                e = ea + eb
+                out[e] = get(e, 0) + ca * cb
+    out = {e: c for e, c in out.items() if c}
+    if not out:
+        return _ZERO
+    g = math.gcd(den, *out.values())
+    if g > 1:
+        out = {e: c // g for e, c in out.items()}
+        den //= g
+    return _QPoly(out, den)
+
+
+def _qdiff(f: _QPoly, i: int, width: int) -> _QPoly:
+    """∂f/∂p_i on packed exponents."""
+    shift, mask = i * width, (1 << width) - 1
+    out = {}
+    for e, c in f.num.items():
+        a = (e >> shift) & mask
+        if a:
+            out[e - (1 << shift)] = c * a
+    if not out:
+        return _ZERO
+    g = math.gcd(f.den, *out.values())
+    return _QPoly({e: c // g for e, c in out.items()}, f.den // g)
+
+
+def _unpack(e: int, n: int, width: int) -> GeneralExponent:
+    mask = (1 << width) - 1
+    return tuple((e >> (i * width)) & mask for i in range(n))
+
+
+def _exact(v: object, what: str) -> Fraction:
+    """Exact rational value of a finite real number (floats converted bit for bit)."""
+    if isinstance(v, (bool, np.bool_)):
+        raise ValueError(f"{what} must be a real number, got {v!r}")
+    if isinstance(v, (int, np.integer, Fraction)):
+        return Fraction(int(v)) if not isinstance(v, Fraction) else v
+    try:
+        f = float(v)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what} must be a real number, got {v!r}") from exc
+    if not math.isfinite(f):
+        raise ValueError(f"{what} must be finite, got {f}")
+    return Fraction(f)
+
+
+def _validate_lie(
+    structure_constants: object, hamiltonian: object, order: int
+) -> tuple[int, dict[tuple[int, int, int], Fraction], dict[GeneralExponent, Fraction]]:
+    """Checks the inputs of :func:`lie_taylor_coefficients`.
+
+    Returns:
+        n, the nonzero structure constants {(i, j, k): c[i,j,k]} (exact), and the nonzero terms of
+        H {exponent tuple of length n: coefficient} (exact).
+    """
+    try:
+        c = np.asarray(structure_constants, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"structure_constants must be a real array of shape (n, n, n): {exc}"
+        ) from exc
+    if c.ndim != 3 or c.shape[0] == 0 or not c.shape[0] == c.shape[1] == c.shape[2]:
+        raise ValueError(f"structure_constants must have shape (n, n, n), n >= 1, got {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise ValueError("structure_constants must be finite")
+    n = c.shape[0]
+    scale = float(np.max(np.abs(c))) if c.size else 0.0
+    # The bracket must be a Lie bracket, else sou is not the source map of a groupoid. The
+    # tolerances allow constants obtained by a floating-point change of basis.
+    if np.max(np.abs(c + c.transpose(1, 0, 2)), initial=0.0) > 1e-12 * scale:
+        raise ValueError("structure_constants must be antisymmetric: c[i,j,k] = -c[j,i,k]")
+
+    # Jacobi on a few seeded random triples: O(n³) each, unlike the O(n⁵) full tensor, and a
+    # violation survives a random triple with probability 1.
+    def br(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return np.einsum("ijk,i,j->k", c, u, v)
+
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        x, y, z = rng.standard_normal((3, n))
+        jac = br(x, br(y, z)) + br(y, br(z, x)) + br(z, br(x, y))
+        if np.max(np.abs(jac)) > 1e-10 * scale**2 * n**2:
+            raise ValueError("structure_constants violate the Jacobi identity")
+    if isinstance(order, bool) or not isinstance(order, (int, np.integer)):
+        raise ValueError(f"order must be an int, got {type(order).__name__}")
+    if not 1 <= order <= MAX_ORDER:
+        raise ValueError(f"order must satisfy 1 <= order <= {MAX_ORDER}, got {order}")
+    if not isinstance(hamiltonian, Mapping):
+        raise ValueError(
+            "hamiltonian must be a mapping {exponent tuple of length n: coefficient}, "
+            f"got {type(hamiltonian).__name__}"
+        )
+    terms: dict[GeneralExponent, Fraction] = {}
+    for key, val in hamiltonian.items():
+        if not isinstance(key, tuple) or len(key) != n:
+            raise ValueError(
+                f"hamiltonian keys must be exponent tuples of length n = {n}, got {key!r}"
+            )
+        if not all(
+            isinstance(a, (int, np.integer)) and not isinstance(a, (bool, np.bool_)) and a >= 0
+            for a in key
+        ):
+            raise ValueError(f"hamiltonian exponents must be non-negative ints, got {key!r}")
+        e = tuple(int(a) for a in key)
+        coef = _exact(val, f"hamiltonian coefficient of {e}")
+        if coef:
+            terms[e] = terms.get(e, Fraction(0)) + coef
+    consts = {
+        (i, j, k): Fraction(float(c[i, j, k])) for i, j, k in zip(*np.nonzero(c), strict=True)
+    }
+    return n, consts, {e: v for e, v in terms.items() if v}
+
+
+def lie_taylor_coefficients(
+    structure_constants: object, hamiltonian: Mapping[tuple[int, ...], float], order: int
+) -> list[dict[GeneralExponent, Fraction]]:
+    """Exact Taylor coefficients S_1..S_K of the generating function on any Lie–Poisson g*.
+
+    Solves ∂S/∂t + H(sou(∂S/∂p, p)) = 0, S(0, p) = 0, in the exponential chart of T*G, where
+    sou(x, p) = (ad_x/(e^{ad_x} − 1))ᵀ p, for a polynomial Hamiltonian (any degree, not
+    necessarily homogeneous). On so(3) with H = ½ Σ pᵢ²/Iᵢ it equals
+    ``taylor_coefficients(inertia, order, "exp")``.
+
+    Args:
+        structure_constants: array-like (n, n, n), [e_i, e_j] = Σ_k c[i,j,k] e_k; finite,
+            antisymmetric in (i, j) and satisfying the Jacobi identity.
+        hamiltonian: {exponent tuple (a_1..a_n): coefficient} for H(p) = Σ coef · Π p_i^{a_i}.
+            Coefficients are finite reals: floats are converted exactly with ``Fraction(float)``,
+            ints and Fractions are used as they are (so 1/3 can be given exactly).
+        order: truncation order K, 1 <= K <= MAX_ORDER.
+
+    Returns:
+        List of length K; entry k−1 maps exponent tuples (length n) to the exact coefficient of
+        that monomial in S_k (zeros omitted, keys sorted).
+
+    Raises:
+        ValueError: on invalid inputs, or when the exact computation would exceed MAX_WORK
+            monomial products (the message names the order that is too large).
+    """
+    n, consts, h_terms = _validate_lie(structure_constants, hamiltonian, order)
+    work = _Work(order)
+    # Degree bound: deg S_k <= k(d − 1) + 1 for deg H = d, and every intermediate polynomial up
+    # to [t^{K−1}] H(σ) obeys the same bound, so `width` bits per variable never overflow.
+    d = max((sum(e) for e in h_terms), default=0)
+    width = max(1, order * (d - 1) + 1).bit_length() + 1
+    one = Fraction(1)
+    p_vec = [_QPoly({1 << (i * width): 1}) for i in range(n)]
+    # Series in t are lists indexed by the power of t; coefficient m of every series needs only
+    # X_1..X_m, so each order adds one coefficient instead of recomputing truncated series.
+    bern = _bernoulli(order)
+    weights = [bern[m] / math.factorial(m) for m in range(order + 1)]
+    # mats[j][a][b] = (A_j)_{ab} = Σ_i c[i,a,b] X_{j,i}, with X_j = ∇S_j (mats[0] unused).
+    mats: list[list[list[_QPoly]]] = [[]]
+    by_entry: dict[tuple[int, int], list[tuple[int, Fraction]]] = {}
+    for (i, a, b), val in consts.items():
+        by_entry.setdefault((a, b), []).append((i, val))
+    # w[r][m − r] = [t^m] A^r p (A = O(t), so A^r p starts at t^r); w[0] = [p].
+    w: list[list[list[_QPoly]]] = [[p_vec]]
+    sigma: list[list[_QPoly]] = [p_vec]  # σ_m = [t^m] sou as a vector of n polynomials
+    # H(σ) monomial by monomial; a monomial is the sorted tuple of its variables with
+    # multiplicity, and prods[f][m] = [t^m] Π_{i ∈ f} σ_i shares work between common prefixes.
+    factors = {e: tuple(i for i, a in enumerate(e) for _ in range(a)) for e in h_terms}
+    prefixes = sorted({f[:r] for f in factors.values() for r in range(2, len(f) + 1)}, key=len)
+    prods: dict[tuple[int, ...], list[_QPoly]] = {(): [_QPoly({0: 1})]}
+
+    coeffs: list[_QPoly] = []
+    for k in range(1, order + 1):
+        work.k = k
+        m = k - 1
+        if m >= 1:
+            x_m = [_qdiff(coeffs[m - 1], i, width) for i in range(n)]
+            mats.append(
+                [
+                    [
+                        _combo([(v, x_m[i], None) for i, v in by_entry.get((a, b), [])], work)
+                        for b in range(n)
+                    ]
+                    for a in range(n)
+                ]
+            )
+            # [t^m] A^r p = Σ_{j=1}^{m−r+1} A_j [t^{m−j}] A^{r−1} p, stored as w[r][m − r]
+            # (A^0 p = p has only its t^0 coefficient, so r = 1 takes j = m alone). On the last
+            # order the odd powers r >= 3 (B_r = 0) are not needed for later ones, so skip them.
+            w.append([])
+            for r in range(1, m + 1):
+                js = range(m, m + 1) if r == 1 else range(1, m - r + 2)
+                if k == order and r >= 3 and r % 2:
+                    w[r].append([_ZERO] * n)
+                    continue
+                w[r].append(
+                    [
+                        _combo(
+                            [
+                                (one, mats[j][a][b], w[r - 1][m - j - (r - 1)][b])
+                                for j in js
+                                for b in range(n)
+                            ],
+                            work,
+                        )
+                        for a in range(n)
+                    ]
+                )
+            sigma.append(
+                [
+                    _combo([(weights[r], w[r][m - r][a], None) for r in range(1, m + 1)], work)
+                    for a in range(n)
+                ]
+            )
+        for f in prefixes:
+            head = prods[f[:-1]] if len(f) > 2 else [sg[f[0]] for sg in sigma]
+            prods.setdefault(f, []).append(
+                _combo([(one, head[a], sigma[m - a][f[-1]]) for a in range(m + 1)], work)
+            )
+        parts: list[tuple[Fraction, _QPoly, _QPoly | None]] = []
+        for e, h in h_terms.items():
+            f = factors[e]
+            if len(f) == 0:
+                if m == 0:
+                    parts.append((h, prods[()][0], None))
+            elif len(f) == 1:
+                parts.append((h, sigma[m][f[0]], None))
+            else:
+                parts.append((h, prods[f][m], None))
+        # k S_k = −[t^{k−1}] H(σ)
+        coeffs.append(_combo([(Fraction(-1, k), _combo(parts, work), None)], work))
+    return [
+        dict(sorted((_unpack(e, n, width), Fraction(c, s.den)) for e, c in s.num.items()))
+        for s in coeffs
+    ]
+
+
+def lie_taylor_terms(
+    structure_constants: object, hamiltonian: Mapping[tuple[int, ...], float], order: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Truncated S(t, p) = Σ_{k=1}^{order} tᵏ S_k(p) of :func:`lie_taylor_coefficients`, flat.
+
+    Returns:
+        powers: int64 array (n_terms, 1 + n); row (k, e_1..e_n) stands for tᵏ Π p_i^{e_i}.
+        coeffs: float64 array (n_terms,), the coefficients rounded to double.
+        Zero terms are dropped; rows are sorted lexicographically.
+    """
+    exact = lie_taylor_coefficients(structure_constants, hamiltonian, order)
+    n = np.asarray(structure_constants, dtype=np.float64).shape[0]
+    # Each S_k is already sorted by exponent, so rows come out sorted by (k, e_1..e_n).
+    rows = [(k, *e) for k, s_k in enumerate(exact, start=1) for e in s_k]
+    vals = [float(c) for s_k in exact for c in s_k.values()]
+    return np.array(rows, dtype=np.int64).reshape(-1, 1 + n), np.array(vals, dtype=np.float64)
+
+
+def _levi_civita_constants(c: np.ndarray) -> bool:
+    eps = np.zeros((3, 3, 3))
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        eps[i, j, k], eps[j, i, k] = 1.0, -1.0
+    return c.shape == (3, 3, 3) and bool(np.array_equal(c, eps))
+
+
+def system_taylor_terms(
+    system: Any, order: int, chart: str = "exp"
+) -> tuple[np.ndarray, np.ndarray]:
+    """Taylor terms (powers (n_terms, 1 + n), coeffs (n_terms,)) for a Lie–Poisson system.
+
+    ``system`` needs ``algebra.c`` (structure constants (n, n, n)) and ``polynomial.terms``
+    ({exponent tuple: coefficient}), as :class:`poisson_rs.systems.LiePoissonSystem` has. A
+    rigid body on so(3) (H = Σ w_i p_i², w_i > 0, nothing else) goes through
+    :func:`taylor_terms` with I_i = 1/(2 w_i), or the ``inertia`` attribute when there is one,
+    so the old exact 1/I_i and the Cayley chart are kept; every other system uses
+    :func:`lie_taylor_terms`, which only has the exponential chart.
+
+    Raises:
+        ValueError: on a bad chart or order, a chart the system does not support, or invalid
+            structure constants or Hamiltonian.
+    """
+    if chart not in CHARTS:
+        raise ValueError(f"chart must be one of {CHARTS}, got {chart!r}")
+    c = np.asarray(system.algebra.c, dtype=np.float64)
+    terms = {tuple(int(a) for a in e): v for e, v in system.polynomial.terms.items() if v}
+    inertia = getattr(system, "inertia", None)
+    if inertia is None and _levi_civita_constants(c):
+        diag = [(2, 0, 0), (0, 2, 0), (0, 0, 2)]
+        if set(terms) == set(diag) and all(float(terms[e]) > 0 for e in diag):
+            inertia = tuple(1 / (2 * float(terms[e])) for e in diag)
+    if inertia is not None and _levi_civita_constants(c):
+        return taylor_terms(inertia, order, chart)
+    if chart != "exp":
+        raise ValueError(
+            f"chart {chart!r} is only available for the rigid body on so(3); use 'exp' here"
+        )
+    return lie_taylor_terms(c, terms, order)
+
+
 def evaluate_terms(
     powers: np.ndarray, coeffs: np.ndarray, t: np.ndarray | float, p: np.ndarray
 ) -> np.ndarray:
-    """Evaluate Σ_n coeffs[n] t^k p1^a p2^b p3^c with (k, a, b, c) = powers[n].
+    """Evaluate Σ_m coeffs[m] tᵏ Π_i p_i^{e_i} with (k, e_1..e_n) = powers[m], for any n.
 
     Args:
-        powers: int array (n_terms, 4).
+        powers: int array (n_terms, 1 + n), as returned by :func:`taylor_terms` (n = 3) or
+            :func:`lie_taylor_terms`.
         coeffs: float array (n_terms,).
         t: times, shape (...,) (broadcast against p's leading shape).
-        p: momenta, shape (..., 3).
+        p: momenta, shape (..., n).
 
     Returns:
         float64 array with the broadcast shape of t and p[..., 0].
+
+    Raises:
+        ValueError: if the shapes of powers, coeffs and p do not agree.
     """
     powers = np.asarray(powers, dtype=np.int64)
     coeffs = np.asarray(coeffs, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)[..., None]
     p = np.asarray(p, dtype=np.float64)
-    # Trailing axis runs over terms; broadcasting handles the batch shape.
-    mono = (
-        t ** powers[:, 0]
-        * p[..., 0:1] ** powers[:, 1]
-        * p[..., 1:2] ** powers[:, 2]
-        * p[..., 2:3] ** powers[:, 3]
-    )
+    if powers.ndim != 2 or powers.shape[1] < 1 or coeffs.shape != (powers.shape[0],):
+        raise ValueError(
+            f"powers must be (n_terms, 1 + n) and coeffs (n_terms,), got {powers.shape} and "
+            f"{coeffs.shape}"
+        )
+    n = powers.shape[1] - 1
+    if p.ndim < 1 or p.shape[-1] != n:
+        raise ValueError(f"p must have shape (..., {n}) to match powers, got {p.shape}")
+    # Trailing axis runs over terms; broadcasting handles the batch shape. Factors multiply left
+    # to right (t, p_1, p_2, ...), as before the generalisation, so n = 3 results are unchanged.
+    mono = t ** powers[:, 0]
+    for i in range(n):
+        mono = mono * p[..., i : i + 1] ** powers[:, 1 + i]
     return mono @ coeffs

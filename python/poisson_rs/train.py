@@ -2,7 +2,8 @@
 
     r(t, p) = ∂S/∂t(t, p) + H(sou(∂S/∂p(t, p), p))
 
-at sampled (t, p), t ∈ [0, h_max] and p in a cube or a spherical shell (the paper's eq. HJML).
+at sampled (t, p), t ∈ [0, h_max] and p in a cube or a spherical shell of g* ≅ Rⁿ (the paper's
+eq. HJML), for any Lie–Poisson system (the rigid body by default).
 
 Optionally (the paper's future work) a data term compares the model's one-step map with
 trajectory pairs (μ_k, μ_{k+1}) at step h, and L-BFGS polishes the weights after Adam.
@@ -37,8 +38,9 @@ from .generating import (
     solve_momentum,
 )
 from .groupoid import check_chart, sou
-from .reference import RigidBody, exact_solution
-from .taylor import evaluate_terms, taylor_terms
+from .reference import exact_solution, reference_solution
+from .systems import LiePoissonSystem, RigidBody
+from .taylor import evaluate_terms, system_taylor_terms
 
 
 def _is_int(v: Any) -> bool:
@@ -50,6 +52,10 @@ class TrainConfig:
     """Everything that determines a training run (and is recorded in the model file)."""
 
     inertia: tuple[float, float, float] = (1.5, 2.0, 2.5)
+    """The rigid body's principal moments, when ``system`` is None."""
+    system: dict[str, Any] | None = None
+    """The Lie–Poisson system as its ``to_dict()`` (``LiePoissonSystem.from_dict`` reads it); None:
+    the rigid body of ``inertia``."""
     chart: str = "cayley"
     widths: tuple[int, ...] = (8, 8)
     inputs: str = "homogeneous"
@@ -110,11 +116,27 @@ class TrainConfig:
             return self.mlp_power
         return 1 if self.taylor_order == 0 else self.taylor_order + 2
 
+    def lie_system(self) -> LiePoissonSystem:
+        """The system trained for: ``system`` decoded, or the rigid body of ``inertia``."""
+        if self.system is None:
+            return RigidBody(tuple(self.inertia))  # type: ignore[arg-type]
+        return LiePoissonSystem.from_dict(self.system)
+
     def validate(self) -> None:
         """Raises ValueError naming the first bad setting."""
         check_chart(self.chart)
         if len(self.inertia) != 3 or not all(math.isfinite(i) and i > 0 for i in self.inertia):
             raise ValueError(f"inertia must be 3 positive numbers, got {self.inertia}")
+        system = self.lie_system()
+        if not system.algebra.is_so3() and self.chart != "exp":
+            raise ValueError(
+                f"the {self.chart!r} chart exists for so(3) only; use chart 'exp' for {system!r}"
+            )
+        if self.inputs == "homogeneous" and not system.polynomial.is_homogeneous(2):
+            raise ValueError(
+                "inputs 'homogeneous' builds in the scaling of a quadratic Hamiltonian; "
+                f"{system!r} is not homogeneous quadratic: use inputs 't,p'"
+            )
         if self.domain not in ("cube", "shell"):
             raise ValueError(f"domain must be 'cube' or 'shell', got {self.domain!r}")
         if self.domain == "shell" and not 0 <= self.r_min < self.r_max:
@@ -193,7 +215,9 @@ class TrainConfig:
             raise ValueError(f"invalid widths: {self.widths!r} (integers in [1, {_MAX_WIDTH}])")
         for mu in self.sampling_states:
             if any(isinstance(v, (int, float)) and abs(v) > _MAX_MAGNITUDE for v in mu):
-                raise ValueError(f"sampling_states must not exceed {_MAX_MAGNITUDE:g}, got {mu!r}")
+                raise ValueError(
+                    f"sampling_states must be finite and not exceed {_MAX_MAGNITUDE:g}, got {mu!r}"
+                )
 
     def _validate_sampling(self) -> None:
         if self.sampling not in SAMPLING:
@@ -210,9 +234,12 @@ class TrainConfig:
             raise ValueError("sampling_states given but sampling is 'uniform' (unused)")
         if self.sampling == "scene" and not states:
             raise ValueError("sampling = 'scene' needs sampling_states (initial states)")
+        dim = self.lie_system().dim
         for mu in states:
-            if len(mu) != 3 or not all(math.isfinite(v) for v in mu) or not any(mu):
-                raise ValueError(f"sampling_states must be non-zero finite 3-vectors, got {mu!r}")
+            if len(mu) != dim or not all(math.isfinite(v) for v in mu) or not any(mu):
+                raise ValueError(
+                    f"sampling_states must be non-zero finite {dim}-vectors, got {mu!r}"
+                )
 
     def resolved_data_h(self) -> float:
         return self.h_max if self.data_h is None else self.data_h
@@ -262,16 +289,28 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-def hamiltonian(inertia: Sequence[float], mu: Tensor) -> Tensor:
-    """H(μ) = ½ Σ μᵢ²/Iᵢ for μ (..., 3) → (...,)."""
+def hamiltonian(system: Sequence[float] | LiePoissonSystem, mu: Tensor) -> Tensor:
+    """H(μ) for μ (..., n) → (...,): ½ Σ μᵢ²/Iᵢ for a rigid body (or its inertia), the system's
+    polynomial otherwise."""
+    if isinstance(system, LiePoissonSystem) and not isinstance(system, RigidBody):
+        return system.hamiltonian(mu)
+    inertia = system.inertia if isinstance(system, RigidBody) else system
     inv = torch.tensor([1.0 / i for i in inertia], dtype=mu.dtype, device=mu.device)
     return 0.5 * (mu * mu * inv).sum(-1)
+
+
+def solution(system: LiePoissonSystem, states: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """The flow of ``system`` from states (m, n) at times: the closed form for a rigid body, a
+    tight DOP853 reference otherwise. → (m, len(times), n)."""
+    if isinstance(system, RigidBody):
+        return exact_solution(system, states, times)
+    return reference_solution(system, states, times)
 
 
 def sample_points(
     cfg: TrainConfig, n: int, gen: torch.Generator, dtype: torch.dtype, device: str
 ) -> tuple[Tensor, Tensor]:
-    """n training points: t (n,) uniform in [0, h_max] and p (n, 3) as ``cfg.sampling`` says
+    """n training points: t (n,) uniform in [0, h_max] and p (n, dim) as ``cfg.sampling`` says
     (uniform in the domain, or partly near the scene's orbits: :func:`_sample_orbits`)."""
     if cfg.sampling == "uniform":
         return _sample_domain(cfg, n, gen, dtype, device)
@@ -291,14 +330,16 @@ _ORBIT_TIMES = 2048
 
 @functools.lru_cache(maxsize=8)
 def _orbit_pool(
-    inertia: tuple[float, float, float],
-    states: tuple[tuple[float, float, float], ...],
+    system_json: str,
+    states: tuple[tuple[float, ...], ...],
     horizon: float,
 ) -> np.ndarray:
     """Points of the exact orbits of ``states`` at evenly spaced times in [0, horizon]:
-    (n_states · _ORBIT_TIMES, 3) float64, computed once per configuration."""
+    (n_states · _ORBIT_TIMES, dim) float64, computed once per configuration."""
+    system = LiePoissonSystem.from_dict(json.loads(system_json))
     times = np.linspace(0.0, horizon, _ORBIT_TIMES)
-    return exact_solution(RigidBody(inertia), np.asarray(states, np.float64), times).reshape(-1, 3)
+    traj = solution(system, np.asarray(states, np.float64), times)
+    return traj.reshape(-1, system.dim)
 
 
 def _sample_orbits(cfg: TrainConfig, n: int, gen: torch.Generator, dtype: torch.dtype) -> Tensor:
@@ -307,34 +348,36 @@ def _sample_orbits(cfg: TrainConfig, n: int, gen: torch.Generator, dtype: torch.
     offset of σ = sampling_noise·|μ|. The offset covers where Newton's p lies: within O(h²)·|μ|
     of the orbit (p ≈ μ(h/2) to first order), and the numerical trajectory's drift off it."""
     states = tuple(tuple(float(v) for v in mu) for mu in cfg.sampling_states)
-    pool = torch.as_tensor(_orbit_pool(tuple(cfg.inertia), states, cfg.sampling_horizon))
+    system_json = json.dumps(cfg.lie_system().to_dict(), sort_keys=True)
+    pool = torch.as_tensor(_orbit_pool(system_json, states, cfg.sampling_horizon))
     idx = torch.randint(len(pool), (n,), generator=gen)
     q = pool[idx].to(dtype)
-    noise = torch.randn(n, 3, generator=gen, dtype=dtype)
+    noise = torch.randn(n, q.shape[1], generator=gen, dtype=dtype)
     return q + cfg.sampling_noise * q.norm(dim=1, keepdim=True) * noise
 
 
 def _sample_domain(
     cfg: TrainConfig, n: int, gen: torch.Generator, dtype: torch.dtype, device: str
 ) -> tuple[Tensor, Tensor]:
-    """n points uniform in the training domain: t (n,) in [0, h_max], p (n, 3) in the cube or
-    shell."""
+    """n points uniform in the training domain: t (n,) in [0, h_max], p (n, dim) in the cube or
+    shell of Rⁿ."""
+    dim = cfg.lie_system().dim
     t = torch.rand(n, generator=gen, dtype=dtype) * cfg.h_max
     if cfg.domain == "cube":
-        p = (2.0 * torch.rand(n, 3, generator=gen, dtype=dtype) - 1.0) * cfg.half_width
+        p = (2.0 * torch.rand(n, dim, generator=gen, dtype=dtype) - 1.0) * cfg.half_width
     else:
-        # Uniform in volume: r³ uniform between r_min³ and r_max³.
-        d = torch.randn(n, 3, generator=gen, dtype=dtype)
+        # Uniform in volume: rⁿ uniform between r_minⁿ and r_maxⁿ.
+        d = torch.randn(n, dim, generator=gen, dtype=dtype)
         d = d / d.norm(dim=1, keepdim=True)
         u = torch.rand(n, 1, generator=gen, dtype=dtype)
-        r = (cfg.r_min**3 + u * (cfg.r_max**3 - cfg.r_min**3)) ** (1.0 / 3.0)
+        r = (cfg.r_min**dim + u * (cfg.r_max**dim - cfg.r_min**dim)) ** (1.0 / dim)
         p = d * r
     return t.to(device), p.to(device)
 
 
 def hj_residual(
     s_fn: GeneratingFunction,
-    inertia: Sequence[float],
+    inertia: Sequence[float] | LiePoissonSystem,
     t: Tensor,
     p: Tensor,
     create_graph: bool,
@@ -342,8 +385,8 @@ def hj_residual(
     derivatives: str = "reverse",
 ) -> Tensor:
     """r = ∂S/∂t + H(sou(∂S/∂p, p)), the derivatives by ``hj_derivatives(method=derivatives)``;
-    differentiable in the MLP parameters if ``create_graph``. t (B,), p (B, 3) → (B,), in units
-    of energy.
+    differentiable in the MLP parameters if ``create_graph``. t (B,), p (B, n) → (B,), in units
+    of energy. ``inertia`` is the system (or, for a rigid body, its moments of inertia).
 
     For a homogeneous S the residual scales as r(t, λp) = λ² r(λt, p).
     """
@@ -353,10 +396,14 @@ def hj_residual(
 
 
 def _residual(
-    s_fn: GeneratingFunction, inertia: Sequence[float], st: Tensor, sp: Tensor, p: Tensor
+    s_fn: GeneratingFunction,
+    system: Sequence[float] | LiePoissonSystem,
+    st: Tensor,
+    sp: Tensor,
+    p: Tensor,
 ) -> Tensor:
     """r = ∂S/∂t + H(sou(∂S/∂p, p)) from the derivatives: (B,), in units of energy."""
-    return st + hamiltonian(inertia, sou(s_fn.chart, sp, p.detach()))
+    return st + hamiltonian(system, sou(s_fn.chart, sp, p.detach(), algebra=s_fn.algebra))
 
 
 def build_model(cfg: TrainConfig) -> GeneratingFunction:
@@ -366,13 +413,15 @@ def build_model(cfg: TrainConfig) -> GeneratingFunction:
     stands in for, S_m, so that the network starts at the right magnitude.
     """
     dtype = getattr(torch, cfg.dtype)
+    system = cfg.lie_system()
+    dim = system.dim
     m = cfg.resolved_mlp_power()
     powers, coeffs = (
-        taylor_terms(cfg.inertia, cfg.taylor_order, cfg.chart)
+        system_taylor_terms(system, cfg.taylor_order, cfg.chart)
         if cfg.taylor_order
-        else (np.zeros((0, 4), np.int64), np.zeros(0))
+        else (np.zeros((0, 1 + dim), np.int64), np.zeros(0))
     )
-    r_scale = cfg.half_width * math.sqrt(3) if cfg.domain == "cube" else cfg.r_max
+    r_scale = cfg.half_width * math.sqrt(dim) if cfg.domain == "cube" else cfg.r_max
     homogeneous = cfg.inputs == "homogeneous"
     # Output scale: RMS over the domain of S_m (the term the MLP replaces first), per unit
     # |p|^(m+1) for the homogeneous ansatz.
@@ -380,7 +429,7 @@ def build_model(cfg: TrainConfig) -> GeneratingFunction:
     # Over the whole domain whatever the sampling: the same configuration starts from the same
     # network under uniform and scene sampling.
     _, p = _sample_domain(cfg, 2048, gen, torch.float64, "cpu")
-    pw, cf = taylor_terms(cfg.inertia, max(m, 1), cfg.chart)
+    pw, cf = system_taylor_terms(system, max(m, 1), cfg.chart)
     sel = pw[:, 0] == m
     out_scale = 1.0
     if sel.any():
@@ -398,9 +447,10 @@ def build_model(cfg: TrainConfig) -> GeneratingFunction:
         coeffs=coeffs,
         chart=cfg.chart,
         inputs=cfg.inputs,
-        input_scale=(t_scale, p_scale, p_scale, p_scale),
+        input_scale=(t_scale, *(p_scale,) * dim),
         output_scale=out_scale,
         dtype=dtype,
+        algebra=system.algebra,
     ).to(cfg.device)
 
 
@@ -411,14 +461,25 @@ def _loss(
     |p|², which makes every point weigh as its image on the unit sphere."""
     st, sp = hj_derivatives(s_fn, t, p, method=cfg.derivatives, create_graph=create_graph)
     with torch.set_grad_enabled(create_graph):
-        return loss_from_derivatives(s_fn, cfg.inertia, st, sp, p)
+        return loss_from_derivatives(s_fn, _loss_system(cfg), st, sp, p)
+
+
+def _loss_system(cfg: TrainConfig) -> Sequence[float] | LiePoissonSystem:
+    """What the loss evaluates H with: a rigid body's inertia (its closed form, as the shipped
+    models were trained), else the system."""
+    return cfg.inertia if cfg.system is None else cfg.lie_system()
 
 
 def loss_from_derivatives(
-    s_fn: GeneratingFunction, inertia: Sequence[float], st: Tensor, sp: Tensor, p: Tensor
+    s_fn: GeneratingFunction,
+    inertia: Sequence[float] | LiePoissonSystem,
+    st: Tensor,
+    sp: Tensor,
+    p: Tensor,
 ) -> Tensor:
-    """The mean squared HJ residual from ∂S/∂t (B,) and ∂S/∂p (B, 3) however they were taken,
-    at momenta p (B, 3); for the homogeneous ansatz each residual is divided by |p|²."""
+    """The mean squared HJ residual from ∂S/∂t (B,) and ∂S/∂p (B, n) however they were taken,
+    at momenta p (B, n); for the homogeneous ansatz each residual is divided by |p|².
+    ``inertia`` is the system (or, for a rigid body, its moments of inertia)."""
     r = _residual(s_fn, inertia, st, sp, p)
     if s_fn.inputs == "homogeneous":
         r = r / (p * p).sum(1)
@@ -426,15 +487,17 @@ def loss_from_derivatives(
 
 
 def data_from_exact(
-    body: RigidBody, states: np.ndarray, h: float, n_steps: int = 1
+    body: LiePoissonSystem, states: np.ndarray, h: float, n_steps: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Trajectory pairs from the exact flow: states (n, 3), step h (time units), n_steps ≥ 1 steps
-    each → (mu_k, mu_k1), both (n·n_steps, 3) float64, μ_{k+1} = exact flow of μ_k over h."""
+    """Trajectory pairs from the exact flow (a tight reference for systems without a closed
+    form): states (m, n), step h (time units), n_steps ≥ 1 steps each → (mu_k, mu_k1), both
+    (m·n_steps, n) float64, μ_{k+1} = the flow of μ_k over h."""
     if not (_is_int(n_steps) and n_steps >= 1):
         raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
-    states = np.asarray(states, dtype=np.float64).reshape(-1, 3)
-    traj = exact_solution(body, states, h * np.arange(n_steps + 1))  # (n, n_steps + 1, 3)
-    return traj[:, :-1].reshape(-1, 3), traj[:, 1:].reshape(-1, 3)
+    dim = body.dim
+    states = np.asarray(states, dtype=np.float64).reshape(-1, dim)
+    traj = solution(body, states, h * np.arange(n_steps + 1))  # (m, n_steps + 1, n)
+    return traj[:, :-1].reshape(-1, dim), traj[:, 1:].reshape(-1, dim)
 
 
 #: Newton cap for the data pairs: a pair that needs more is dropped from the data loss.
@@ -449,7 +512,7 @@ def _differentiable_step(s_fn: GeneratingFunction, mu: Tensor, p: Tensor, h: flo
     Why not freeze p (differentiate through ∂S/∂p only)? Measured against finite differences of
     ``bisection_step`` that gradient is wrong even in sign: a change of S moves tar and sou
     alike, and the frozen-p gradient keeps the part that the Newton solve cancels.
-    mu, p: (B, 3) → (B, 3).
+    mu, p: (B, n) → (B, n).
     """
     t = torch.full((mu.shape[0],), float(h), dtype=mu.dtype, device=mu.device)
     pv = p.detach().requires_grad_(True)
@@ -458,13 +521,13 @@ def _differentiable_step(s_fn: GeneratingFunction, mu: Tensor, p: Tensor, h: flo
         # pv is a leaf: the backward pass only leaves a (discarded) pv.grad behind.
         pt = pv - torch.linalg.solve(jac, f[..., None])[..., 0]
         (xt,) = torch.autograd.grad(s_fn(t, pt).sum(), pt, create_graph=True)
-        return sou(s_fn.chart, xt, pt)
+        return sou(s_fn.chart, xt, pt, algebra=s_fn.algebra)
 
 
 def step_map(s_fn: GeneratingFunction, mu: Tensor, h: float) -> tuple[Tensor, Tensor]:
     """The model's bisection step μ_k ↦ μ_{k+1} = sou(∂S/∂p(h, p), p) with tar(∂S/∂p(h, p), p) =
     μ_k, differentiable in the weights (exactly, see ``_differentiable_step``); the Newton solve
-    itself is not tracked. mu (B, 3) → (μ_{k+1} (B, 3), NaN where not converged; converged (B,))."""
+    itself is not tracked. mu (B, n) → (μ_{k+1} (B, n), NaN where not converged; converged (B,))."""
     p, ok = solve_momentum(s_fn, mu, h, max_iter=_DATA_NEWTON_ITERATIONS)
     out = _differentiable_step(s_fn, mu, torch.where(ok[:, None], p, mu), h)
     return torch.where(ok[:, None], out, torch.full_like(out, float("nan"))), ok
@@ -472,7 +535,7 @@ def step_map(s_fn: GeneratingFunction, mu: Tensor, h: float) -> tuple[Tensor, Te
 
 def data_loss(s_fn: GeneratingFunction, mu_k: Tensor, mu_k1: Tensor, h: float) -> Tensor:
     """Mean of |step_map(μ_k) − μ_{k+1}|² / |μ_k|² (squared relative one-step error, scale-free
-    like the homogeneous HJ loss) over the pairs whose Newton solve converged; (n, 3) each → ()."""
+    like the homogeneous HJ loss) over the pairs whose Newton solve converged; (m, n) each → ()."""
     p, ok = solve_momentum(s_fn, mu_k, h, max_iter=_DATA_NEWTON_ITERATIONS)
     # Failed solves are dropped before the differentiable part: masking their NaNs afterwards
     # would still send 0·NaN = NaN into every weight's gradient.
@@ -789,7 +852,7 @@ def train(
 def _data_pairs(
     cfg: TrainConfig, data: tuple[np.ndarray, np.ndarray] | None, dtype: torch.dtype
 ) -> tuple[Tensor, Tensor] | None:
-    """The data term's pairs as tensors (n, 3) each, or None when it is off."""
+    """The data term's pairs as tensors (m, n) each, or None when it is off."""
     if data is not None and cfg.data_points:
         raise ValueError("pass data=(mu_k, mu_k1) or set data_points, not both")
     if data is None and not cfg.data_points:
@@ -800,12 +863,13 @@ def _data_pairs(
         # Own seed: the data states are independent of the training and validation points.
         gen = torch.Generator().manual_seed(cfg.seed + 15485863)
         _, states = sample_points(cfg, cfg.data_points, gen, torch.float64, "cpu")
-        data = data_from_exact(RigidBody(cfg.inertia), states.numpy(), cfg.resolved_data_h())
+        data = data_from_exact(cfg.lie_system(), states.numpy(), cfg.resolved_data_h())
     if cfg.data_weight == 0:
         raise ValueError("data given but data_weight = 0 (the pairs would be unused)")
     mu_k, mu_k1 = (np.asarray(a, dtype=np.float64) for a in data)
-    if mu_k.ndim != 2 or mu_k.shape[1:] != (3,) or mu_k.shape != mu_k1.shape or not len(mu_k):
-        raise ValueError(f"data must be two (n, 3) arrays, got {mu_k.shape} and {mu_k1.shape}")
+    dim = cfg.lie_system().dim
+    if mu_k.ndim != 2 or mu_k.shape[1:] != (dim,) or mu_k.shape != mu_k1.shape or not len(mu_k):
+        raise ValueError(f"data must be two (n, {dim}) arrays, got {mu_k.shape} and {mu_k1.shape}")
     if not (np.isfinite(mu_k).all() and np.isfinite(mu_k1).all()):
         raise ValueError("data contains NaN or inf")
     return (
@@ -866,7 +930,7 @@ def export_bytes(
         mlp_power=s_fn.mlp_power,
         mlp_inputs=s_fn.inputs,
         chart=s_fn.chart,
-        inertia=cfg.inertia,
+        system=cfg.lie_system(),
         h_max=cfg.h_max,
         domain=cfg.domain_dict(),
         taylor_order=cfg.taylor_order,
@@ -888,7 +952,7 @@ def save_result(
     return save_model(
         result.model,
         path,
-        inertia=cfg.inertia,
+        system=cfg.lie_system(),
         h_max=cfg.h_max,
         domain=cfg.domain_dict(),
         taylor_order=cfg.taylor_order,
