@@ -82,9 +82,14 @@ def main(argv: list[str] | None = None) -> int:
             for core, model in ((_core, new_model), (old, old_model)):
                 steps_per_second(core, model, states, n_steps)  # warm-up
             new_s, old_s = [], []
-            for _ in range(args.repeats):
-                new_s.append(steps_per_second(_core, new_model, states, n_steps))
-                old_s.append(steps_per_second(old, old_model, states, n_steps))
+            for r in range(args.repeats):
+                # Alternate which build goes first: whichever runs second sees a warmer cache.
+                if r % 2:
+                    old_s.append(steps_per_second(old, old_model, states, n_steps))
+                    new_s.append(steps_per_second(_core, new_model, states, n_steps))
+                else:
+                    new_s.append(steps_per_second(_core, new_model, states, n_steps))
+                    old_s.append(steps_per_second(old, old_model, states, n_steps))
             ratio = statistics.median(n / o for n, o in zip(new_s, old_s, strict=True))
             row = {
                 "model": name,

@@ -31,6 +31,12 @@ pub trait Scalar:
     fn mul_add(self, c: f64, acc: Self) -> Self {
         acc + self.scale(c)
     }
+    /// `*self += x * c` in place: the same numbers as [`Scalar::mul_add`], without moving a
+    /// whole jet through every multiply-add of a layer.
+    #[inline(always)]
+    fn add_scaled(&mut self, x: &Self, c: f64) {
+        *self = x.mul_add(c, *self);
+    }
     fn tanh(self) -> Self {
         let v = self.value().tanh();
         let d = 1.0 - v * v;
@@ -194,14 +200,16 @@ pub const fn n_pairs(n: usize) -> usize {
 
 /// Value, gradient and symmetric Hessian with respect to N variables.
 ///
-/// Only the upper triangle `h[i][j]`, i ≤ j, is computed and read; [`Jet2::hess`] mirrors it.
-/// The components, in the order the batched kernel lays them out, are the value, the gradient,
-/// then the upper triangle row by row (for N = 3: v, g0, g1, g2, h00, h01, h02, h11, h12, h22).
+/// The Hessian's upper triangle is stored packed, row by row, in the first N(N+1)/2 entries of
+/// `h` read as a flat array (the rest stays zero): with `#[repr(C)]`, the numbers every operation
+/// touches (value, gradient, packed Hessian) lie contiguous, in the order the batched kernel lays
+/// them out (for N = 3: v, g0, g1, g2, h00, h01, h02, h11, h12, h22). [`Jet2::hess`] unpacks it.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
 pub struct Jet2<const N: usize> {
     pub v: f64,
     pub g: [f64; N],
-    pub h: [[f64; N]; N],
+    h: [[f64; N]; N],
 }
 
 impl<const N: usize> Default for Jet2<N> {
@@ -215,6 +223,9 @@ impl<const N: usize> Default for Jet2<N> {
 }
 
 impl<const N: usize> Jet2<N> {
+    /// Entries of the packed upper triangle.
+    pub const PAIRS: usize = n_pairs(N);
+
     /// The `i`-th independent variable with value `v`.
     pub fn var(v: f64, i: usize) -> Self {
         let mut j = Self::cst(v);
@@ -224,13 +235,25 @@ impl<const N: usize> Jet2<N> {
     pub fn grad(&self) -> [f64; N] {
         self.g
     }
+    /// The packed upper triangle of the Hessian, row by row.
+    #[inline(always)]
+    pub fn packed(&self) -> &[f64] {
+        &self.h.as_flattened()[..Self::PAIRS]
+    }
+    #[inline(always)]
+    pub fn packed_mut(&mut self) -> &mut [f64] {
+        &mut self.h.as_flattened_mut()[..Self::PAIRS]
+    }
     /// The full symmetric Hessian.
     pub fn hess(&self) -> [[f64; N]; N] {
         let mut h = [[0.0; N]; N];
+        let mut k = 0;
+        let packed = self.packed();
         for i in 0..N {
             for j in i..N {
-                h[i][j] = self.h[i][j];
-                h[j][i] = self.h[i][j];
+                h[i][j] = packed[k];
+                h[j][i] = packed[k];
+                k += 1;
             }
         }
         h
@@ -242,16 +265,16 @@ impl<const N: usize> Jet2<N> {
         Variable::<N>::components(self, |_, x| v.push(x));
         v
     }
-    /// Applies `f` to every (upper-triangle) component pair of `self` and `o`.
+    /// Applies `f` to every component pair of `self` and `o`.
     #[inline(always)]
     fn zip_with(self, o: Self, f: impl Fn(f64, f64) -> f64) -> Self {
         let mut r = self;
         r.v = f(self.v, o.v);
         for i in 0..N {
             r.g[i] = f(self.g[i], o.g[i]);
-            for j in i..N {
-                r.h[i][j] = f(self.h[i][j], o.h[i][j]);
-            }
+        }
+        for (x, y) in r.packed_mut().iter_mut().zip(o.packed()) {
+            *x = f(*x, *y);
         }
         r
     }
@@ -291,9 +314,13 @@ impl<const N: usize> Mul for Jet2<N> {
         for i in 0..N {
             r.g[i] = a.v * b.g[i] + b.v * a.g[i];
         }
+        let (ap, bp) = (a.packed(), b.packed());
+        let rp = r.packed_mut();
+        let mut k = 0;
         for i in 0..N {
             for j in i..N {
-                r.h[i][j] = a.v * b.h[i][j] + b.v * a.h[i][j] + a.g[i] * b.g[j] + a.g[j] * b.g[i];
+                rp[k] = a.v * bp[k] + b.v * ap[k] + a.g[i] * b.g[j] + a.g[j] * b.g[i];
+                k += 1;
             }
         }
         r
@@ -318,6 +345,16 @@ impl<const N: usize> Scalar for Jet2<N> {
     fn mul_add(self, c: f64, acc: Self) -> Self {
         acc.zip_with(self, |a, x| a + x * c)
     }
+    #[inline(always)]
+    fn add_scaled(&mut self, x: &Self, c: f64) {
+        self.v += x.v * c;
+        for i in 0..N {
+            self.g[i] += x.g[i] * c;
+        }
+        for (a, b) in self.packed_mut().iter_mut().zip(x.packed()) {
+            *a += b * c;
+        }
+    }
     fn chain(self, f: f64, df: f64, d2f: f64) -> Self {
         let a = &self;
         let mut r = Jet2::default();
@@ -325,32 +362,25 @@ impl<const N: usize> Scalar for Jet2<N> {
         for i in 0..N {
             r.g[i] = df * a.g[i];
         }
+        let ap = a.packed();
+        let rp = r.packed_mut();
+        let mut k = 0;
         for i in 0..N {
             for j in i..N {
-                r.h[i][j] = df * a.h[i][j] + d2f * a.g[i] * a.g[j];
+                rp[k] = df * ap[k] + d2f * a.g[i] * a.g[j];
+                k += 1;
             }
         }
         r
     }
     fn is_finite(&self) -> bool {
-        let mut ok = self.v.is_finite();
-        for i in 0..N {
-            ok &= self.g[i].is_finite();
-            for j in i..N {
-                ok &= self.h[i][j].is_finite();
-            }
-        }
-        ok
+        self.v.is_finite()
+            && self.g.iter().all(|x| x.is_finite())
+            && self.packed().iter().all(|x| x.is_finite())
     }
     fn max_abs(&self) -> f64 {
-        let mut m = self.v.abs();
-        for i in 0..N {
-            m = m.max(self.g[i].abs());
-            for j in i..N {
-                m = m.max(self.h[i][j].abs());
-            }
-        }
-        m
+        let m = self.g.iter().fold(self.v.abs(), |m, x| m.max(x.abs()));
+        self.packed().iter().fold(m, |m, x| m.max(x.abs()))
     }
 }
 
@@ -423,12 +453,8 @@ impl<const N: usize> Variable<N> for Jet2<N> {
         for (i, &g) in self.g.iter().enumerate() {
             f(1 + i, g);
         }
-        let mut c = 1 + N;
-        for i in 0..N {
-            for j in i..N {
-                f(c, self.h[i][j]);
-                c += 1;
-            }
+        for (k, &h) in self.packed().iter().enumerate() {
+            f(1 + N + k, h);
         }
     }
     #[inline(always)]
@@ -437,12 +463,8 @@ impl<const N: usize> Variable<N> for Jet2<N> {
         for i in 0..N {
             r.g[i] = f(1 + i);
         }
-        let mut c = 1 + N;
-        for i in 0..N {
-            for j in i..N {
-                r.h[i][j] = f(c);
-                c += 1;
-            }
+        for (k, h) in r.packed_mut().iter_mut().enumerate() {
+            *h = f(1 + N + k);
         }
         r
     }

@@ -70,12 +70,15 @@ impl<const N: usize> Polynomial<N> {
                 d[i] = 1;
                 out.g[i] += factor(d);
             }
+            let packed = out.packed_mut();
+            let mut k = 0;
             for a in 0..N {
                 for b in a..N {
                     let mut d = [0; N];
                     d[a] += 1;
                     d[b] += 1;
-                    out.h[a][b] += factor(d);
+                    packed[k] += factor(d);
+                    k += 1;
                 }
             }
         }
@@ -165,11 +168,10 @@ impl Layer {
             .iter_mut()
             .zip(self.weight.chunks_exact(self.n_in).zip(&self.bias))
         {
-            let mut acc = T::cst(b);
+            *o = T::cst(b);
             for (xi, &w) in x.iter().zip(row) {
-                acc = xi.mul_add(w, acc);
+                o.add_scaled(xi, w);
             }
-            *o = acc;
         }
     }
 }

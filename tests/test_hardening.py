@@ -183,7 +183,7 @@ def test_cli_checks_outputs_before_the_work(tmp_path: Path, capsys: Any, monkeyp
         raise AssertionError("the work started")
 
     monkeypatch.setattr("poisson_rs.train.train", never)
-    monkeypatch.setattr("poisson_rs.scene.run_scene", never)
+    monkeypatch.setattr("poisson_rs.demo.run_scene", never)
     monkeypatch.setattr("poisson_rs.stability.stability_map", never)
     monkeypatch.setattr("poisson_rs.sweep.run_sweep", never)
     a_file = tmp_path / "file"
@@ -391,7 +391,7 @@ def test_demo_rows_are_not_doubled(tmp_path: Path, capsys: Any):
 def test_scene_figures_colour_methods_by_name_and_state_the_system(
     tmp_path: Path, monkeypatch: Any
 ):
-    from poisson_rs.scene import run_scene
+    from poisson_rs.demo import run_scene
 
     figs: list[Figure] = []
     real = charts._savefig

@@ -15,7 +15,7 @@ import torch
 
 from poisson_rs import RigidBody, exact_solution, integrate, load_model
 from poisson_rs.cli import main
-from poisson_rs.scene import PAPER_STATES
+from poisson_rs.demo import PAPER_STATES
 from poisson_rs.sweep import (
     BASELINES,
     COLUMNS,

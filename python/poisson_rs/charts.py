@@ -14,7 +14,8 @@ import numpy as np
 from matplotlib.figure import Figure  # the OO API: no pyplot state, no display backend
 
 from .files import atomic_write_bytes
-from .scene import Run, SceneResult
+from .demo import Run, SceneResult
+from .systems import HeavyTop, RigidBody
 
 
 def _savefig(fig: Figure, path: Path, **kwargs: Any) -> Path:
@@ -66,7 +67,12 @@ def paper_figure_2(scene: SceneResult, run: Run, path: Path, max_points: int = 4
 
 def _system(scene: SceneResult) -> str:
     """The system a scene integrates, for figure titles."""
-    return f"free rigid body, I = {tuple(float(i) for i in scene.body.inertia)}"
+    body = scene.body
+    if isinstance(body, RigidBody):
+        return f"free rigid body, I = {tuple(float(i) for i in body.inertia)}"
+    if isinstance(body, HeavyTop):
+        return f"heavy top, I = {body.inertia}, mgl = {body.mgl:g}, χ = {body.com}"
+    return repr(body)
 
 
 def _line_style(name: str) -> dict[str, Any]:
@@ -93,8 +99,10 @@ def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
     for i in range(n):
         axes[0, i].set_title(f"μ₀ = {tuple(float(v) for v in scene.states[i])}")
         axes[0, i].set_ylabel("|μ − μ_exact|")
-        axes[1, i].set_ylabel("|H − H₀| / H₀")
-        axes[2, i].set_ylabel("|C − C₀| / C₀")
+        axes[1, i].set_ylabel("|H − H₀| / |H₀|")
+        axes[2, i].set_ylabel(
+            "|C − C₀| / C₀" if isinstance(scene.body, RigidBody) else "max |C − C₀| / |μ₀|²"
+        )
         axes[2, i].set_xlabel(f"step (h = {scene.h})")
         for ax in axes[:, i]:
             ax.grid(True, which="major", alpha=0.3)
@@ -104,15 +112,17 @@ def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
 
 
 def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
-    """CSV with one row per step and state: t, exact μ, and per run μ, error, H, C."""
-    cols = ["state", "step", "t", "exact_1", "exact_2", "exact_3"]
+    """CSV with one row per step and state: t, exact μ, and per run μ, error, H and the largest
+    Casimir drift (C for the rigid body: |C − C₀| / C₀ with C = |μ|²)."""
+    comps = [str(i + 1) for i in range(scene.states.shape[1])]
+    cols = ["state", "step", "t", *(f"exact_{c}" for c in comps)]
     for run in runs:
-        cols += [f"{run.name}_{c}" for c in ("1", "2", "3", "error", "H", "C")]
+        cols += [f"{run.name}_{c}" for c in (*comps, "error", "H", "C")]
     f = io.StringIO(newline="")
     w = csv.writer(f)
     w.writerow(cols)
     blocks = [
-        (scene.errors(r), scene.body.hamiltonian(r.traj), scene.body.casimir(r.traj)) for r in runs
+        (scene.errors(r), scene.body.hamiltonian(r.traj), scene.casimir_drift(r)) for r in runs
     ]
     for i in range(len(scene.states)):
         for k, t in enumerate(scene.times):
@@ -121,6 +131,51 @@ def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> P
                 row += [f"{v:.17g}" for v in (*r.traj[i, k], e[i, k], hh[i, k], cc[i, k])]
             w.writerow(row)
     return atomic_write_bytes(path, f.getvalue().encode())
+
+
+def state_figure(scene: SceneResult, runs: Sequence[Run], path: Path, t_max: float = 50.0) -> Path:
+    """The state's components against time for the first initial state, up to ``t_max``: the
+    reference (solid) and each run (dashed), one panel per block of three components (M and Γ
+    for the heavy top); under them the error, energy and Casimir drifts of every run over the
+    whole rollout, one column per initial state."""
+    dim = scene.states.shape[1]
+    blocks = [range(i, min(i + 3, dim)) for i in range(0, dim, 3)]
+    names = ["M", "Γ"] if isinstance(scene.body, HeavyTop) else ["μ"] * len(blocks)
+    n = len(scene.states)
+    fig = Figure(figsize=(6 * n + 2, 3 * (len(blocks) + 3)), layout="constrained")
+    axes = fig.subplots(len(blocks) + 3, n, squeeze=False)
+    k = min(len(scene.times), int(t_max / scene.h) + 1)
+    t = scene.times[:k]
+    palette = ("tab:blue", "tab:orange", "tab:green")
+    for i in range(n):
+        for b, (block, label) in enumerate(zip(blocks, names, strict=True)):
+            ax = axes[b, i]
+            for j, c in zip(block, palette, strict=False):
+                ax.plot(t, scene.exact[i, :k, j], color=c, lw=1.2, label=f"{label}{j % 3 + 1}")
+                for run in runs:
+                    ax.plot(t, run.traj[i, :k, j], color=c, lw=0.8, ls="--")
+            ax.set_ylabel(f"{label} (reference solid, methods dashed)")
+            ax.legend(loc="upper right", fontsize=7)
+            ax.set_xlabel("t")
+        steps = np.arange(len(scene.times))
+        rows = (scene.errors, scene.energy_drift, scene.casimir_drift)
+        labels = ("|μ − μ_ref|", "|H − H₀| / |H₀|", "max |C − C₀| / |μ₀|²")
+        for r, (f, ylabel) in enumerate(zip(rows, labels, strict=True)):
+            ax = axes[len(blocks) + r, i]
+            for run in runs:
+                ax.loglog(
+                    steps[1:],
+                    f(run)[i, 1:] + 1e-17,
+                    lw=0.8,
+                    label=run.name,
+                    **_line_style(run.name),
+                )
+            ax.set_ylabel(ylabel)
+            ax.grid(True, which="major", alpha=0.3)
+        axes[-1, i].set_xlabel(f"step (h = {scene.h})")
+        axes[0, i].set_title(f"μ₀ = {tuple(float(v) for v in scene.states[i])}")
+    handles, labels = axes[-1, 0].get_legend_handles_labels()
+    return _save_with_legend(fig, path, handles, labels, f"{_system(scene)}, h = {scene.h}")
 
 
 # --- Work–precision charts (``poisson-rs chart``; numbers from poisson_rs.workprecision) ---

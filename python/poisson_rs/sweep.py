@@ -41,7 +41,7 @@ from .integrators import (
     taylor_integrator,
 )
 from .reference import RigidBody, exact_solution
-from .scene import PAPER_STATES
+from .demo import PAPER_STATES
 from .scenes import ShellStates
 
 Row = dict[str, Any]
