@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure  # the OO API: no pyplot state, no display backend
 
-from .files import atomic_write_bytes
 from .demo import Run, SceneResult
+from .files import atomic_write_bytes
 from .systems import HeavyTop, RigidBody
 
 

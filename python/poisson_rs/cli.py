@@ -74,9 +74,9 @@ def _default_threads() -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from . import charts
+    from .demo import PAPER_STATES, run_scene
     from .files import check_outputs
     from .integrators import list_models, load_model, taylor_integrator
-    from .demo import PAPER_STATES, run_scene
 
     _check_positive(h=args.h, steps=args.steps)
     if args.system is not None:

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from .demo import PAPER_STATES
 from .integrators import (
     BisectionIntegrator,
     Stepper,
@@ -41,7 +42,6 @@ from .integrators import (
     taylor_integrator,
 )
 from .reference import RigidBody, exact_solution
-from .demo import PAPER_STATES
 from .scenes import ShellStates
 
 Row = dict[str, Any]
