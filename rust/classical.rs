@@ -14,6 +14,7 @@
 //! | `splitting` | [`Splitting`] (Strang) | 2 | yes |
 //! | `splitting4` | [`Splitting4`] (Suzuki, 5 Strang stages) | 4 | yes |
 //! | `dmv` | [`MoserVeselov`] | 2 | yes (keeps C and H to round-off) |
+//! | `splitting_casimir` | [`CasimirSplitting`] | 2 | yes |
 //!
 //! Any Lie–Poisson system ([`LieMethod`]): `rk4` and `midpoint` (Poisson for quadratic H), and
 //! for the heavy top `splitting` ([`HeavyTopSplitting`], order 2, Poisson).
@@ -296,6 +297,58 @@ impl<const N: usize> StepMap<3> for SplittingComposition<N> {
     }
 }
 
+/// The rigid body's splitting with a Casimir split off first (Fassò 2003; McLachlan 1993):
+/// H = C/(2I_r) + Σ_{i≠r} ½ aᵢ μᵢ², aᵢ = 1/Iᵢ − 1/I_r, C = |μ|². The Casimir's flow is the
+/// identity, so a step is the Strang composition of the two remaining axis flows,
+/// A_j(h/2) A_k(h) A_j(h/2), each an exact rotation with angular speed aᵢ μᵢ. The reference axis r
+/// has the median 1/I, which makes the aᵢ as small as they can be: for a nearly symmetric body
+/// they nearly vanish, and with them the splitting error, where the plain splitting's does not.
+/// Order 2, 3 rotations a step, keeps C to round-off.
+#[derive(Clone, Copy, Debug)]
+pub struct CasimirSplitting {
+    /// The two axes kept, and their coefficients aᵢ.
+    axes: [usize; 2],
+    coeff: [f64; 2],
+}
+
+impl CasimirSplitting {
+    pub fn new(body: RigidBody) -> Self {
+        let inv = body.inv;
+        let mut order = [0, 1, 2];
+        order.sort_by(|&a, &b| inv[a].total_cmp(&inv[b]));
+        let r = order[1];
+        let axes = [order[0], order[2]];
+        CasimirSplitting {
+            axes,
+            coeff: axes.map(|i| inv[i] - inv[r]),
+        }
+    }
+
+    /// Exact flow for time t of ½ a μᵢ²: a rotation about eᵢ by the angle −t a μᵢ.
+    #[inline]
+    fn axis_flow(i: usize, a: f64, t: f64, mu: &mut [f64; 3]) {
+        let (p, q) = ((i + 1) % 3, (i + 2) % 3);
+        let (s, c) = (t * a * mu[i]).sin_cos();
+        let (x, y) = (mu[p], mu[q]);
+        mu[p] = c * x + s * y;
+        mu[q] = c * y - s * x;
+    }
+}
+
+impl StepMap<3> for CasimirSplitting {
+    type Workspace = ();
+
+    fn workspace(&self) {}
+
+    fn step(&self, h: f64, mu: &mut [f64; 3], _: &mut ()) -> Result<StepStats, StepFailure> {
+        let ([j, k], [aj, ak]) = (self.axes, self.coeff);
+        Self::axis_flow(j, aj, 0.5 * h, mu);
+        Self::axis_flow(k, ak, h, mu);
+        Self::axis_flow(j, aj, 0.5 * h, mu);
+        explicit_result(mu)
+    }
+}
+
 /// The discrete Moser–Veselov algorithm (Moser & Veselov 1991), order 2.
 ///
 /// With J = diag(J) and Iᵢ = tr(J) − Jᵢ, the step solves h μ̂ = F J − J Fᵀ for F ∈ SO(3), then
@@ -378,6 +431,25 @@ impl StepMap<3> for MoserVeselov {
     }
 }
 
+/// The method of `all` called `name`, or an error listing the valid names.
+fn by_name<M: Copy>(
+    all: &[M],
+    name_of: fn(M) -> &'static str,
+    name: &str,
+    context: &str,
+) -> Result<M, CoreError> {
+    all.iter()
+        .copied()
+        .find(|&m| name_of(m) == name)
+        .ok_or_else(|| {
+            let names: Vec<_> = all.iter().map(|&m| name_of(m)).collect();
+            CoreError::Invalid(format!(
+                "unknown classical integrator {name:?}{context}; valid names: {}",
+                names.join(", ")
+            ))
+        })
+}
+
 /// The classical integrators by name, for callers that choose at run time.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ClassicalMethod {
@@ -386,15 +458,17 @@ pub enum ClassicalMethod {
     Splitting,
     Splitting4,
     Dmv,
+    CasimirSplitting,
 }
 
 impl ClassicalMethod {
-    pub const ALL: [ClassicalMethod; 5] = [
+    pub const ALL: [ClassicalMethod; 6] = [
         ClassicalMethod::Rk4,
         ClassicalMethod::Midpoint,
         ClassicalMethod::Splitting,
         ClassicalMethod::Splitting4,
         ClassicalMethod::Dmv,
+        ClassicalMethod::CasimirSplitting,
     ];
 
     pub fn name(self) -> &'static str {
@@ -404,20 +478,12 @@ impl ClassicalMethod {
             ClassicalMethod::Splitting => "splitting",
             ClassicalMethod::Splitting4 => "splitting4",
             ClassicalMethod::Dmv => "dmv",
+            ClassicalMethod::CasimirSplitting => "splitting_casimir",
         }
     }
 
     pub fn from_name(name: &str) -> Result<Self, CoreError> {
-        Self::ALL
-            .into_iter()
-            .find(|m| m.name() == name)
-            .ok_or_else(|| {
-                let names: Vec<_> = Self::ALL.iter().map(|m| m.name()).collect();
-                CoreError::Invalid(format!(
-                    "unknown classical integrator {name:?}; valid names: {}",
-                    names.join(", ")
-                ))
-            })
+        by_name(&Self::ALL, Self::name, name, "")
     }
 
     /// Order of accuracy.
@@ -442,6 +508,7 @@ pub enum ClassicalStepper {
     Splitting(Splitting),
     Splitting4(Splitting4),
     Dmv(MoserVeselov),
+    CasimirSplitting(CasimirSplitting),
 }
 
 impl ClassicalMethod {
@@ -456,6 +523,9 @@ impl ClassicalMethod {
             ClassicalMethod::Splitting => ClassicalStepper::Splitting(Splitting::strang(body)),
             ClassicalMethod::Splitting4 => ClassicalStepper::Splitting4(Splitting4::suzuki(body)),
             ClassicalMethod::Dmv => ClassicalStepper::Dmv(MoserVeselov::new(body, newton)),
+            ClassicalMethod::CasimirSplitting => {
+                ClassicalStepper::CasimirSplitting(CasimirSplitting::new(body))
+            }
         }
     }
 }
@@ -473,6 +543,7 @@ impl StepMap<3> for ClassicalStepper {
             ClassicalStepper::Splitting(s) => s.step(h, mu, ws),
             ClassicalStepper::Splitting4(s) => s.step(h, mu, ws),
             ClassicalStepper::Dmv(s) => s.step(h, mu, ws),
+            ClassicalStepper::CasimirSplitting(s) => s.step(h, mu, ws),
         }
     }
 }
@@ -585,17 +656,7 @@ impl LieMethod {
     }
 
     pub fn from_name(name: &str) -> Result<Self, CoreError> {
-        Self::ALL
-            .into_iter()
-            .find(|m| m.name() == name)
-            .ok_or_else(|| {
-                let names: Vec<_> = Self::ALL.iter().map(|m| m.name()).collect();
-                CoreError::Invalid(format!(
-                    "unknown classical integrator {name:?} for a Lie–Poisson system; valid \
-                     names: {}",
-                    names.join(", ")
-                ))
-            })
+        by_name(&Self::ALL, Self::name, name, " for a Lie–Poisson system")
     }
 }
 
@@ -690,6 +751,7 @@ mod tests {
             ClassicalMethod::Splitting => boxed(Splitting::strang(body)),
             ClassicalMethod::Splitting4 => boxed(Splitting4::suzuki(body)),
             ClassicalMethod::Dmv => boxed(MoserVeselov::new(body, newton)),
+            ClassicalMethod::CasimirSplitting => boxed(CasimirSplitting::new(body)),
         }
     }
 

@@ -370,6 +370,10 @@ impl<const N: usize> Workspace<N> {
     }
 }
 
+/// |p|² below which the homogeneous MLP term is taken as zero: its size is |p|^(m+1) ≤ 1e-100
+/// there, while the derivatives of p/|p| (up to |p|⁻³ in the Hessian) would overflow.
+pub const HOMOGENEOUS_MIN_R2: f64 = 1e-100;
+
 /// What the MLP sees.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum MlpInputs {
@@ -543,8 +547,10 @@ impl<const N: usize> GeneratingFunction<N> {
                 for q in &pj[1..] {
                     r2 = r2 + *q * *q;
                 }
-                // At p = 0 the term and its derivatives up to order m ≥ 1 vanish.
-                if r2.value() <= 0.0 {
+                // At p = 0 the term and its derivatives up to order m ≥ 1 vanish; below
+                // |p|² = HOMOGENEOUS_MIN_R2 the term (O(|p|^(m+1))) is far below round-off of S
+                // while 1/|p| and its derivatives overflow, so it is dropped there too.
+                if r2.value() <= HOMOGENEOUS_MIN_R2 {
                     return None;
                 }
                 let r = r2.sqrt();
@@ -621,10 +627,11 @@ impl<const N: usize> GeneratingFunction<N> {
         let (t_in, p_in, factor) = match self.inputs {
             MlpInputs::Plain => (Dual1::<N>::var(t, 0), p.map(Dual1::cst), 1.0),
             MlpInputs::Homogeneous => {
-                let r = p.iter().map(|x| x * x).sum::<f64>().sqrt();
-                if r == 0.0 {
+                let r2 = p.iter().map(|x| x * x).sum::<f64>();
+                if r2 <= HOMOGENEOUS_MIN_R2 {
                     return (v, dt);
                 }
+                let r = r2.sqrt();
                 let mut tau = Dual1::<N>::var(r * t, 0);
                 tau.g[0] = r;
                 (

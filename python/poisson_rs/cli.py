@@ -113,19 +113,26 @@ def cmd_demo(args: argparse.Namespace) -> int:
     learned = scene.runs[0]
     charts.paper_figure_2(scene, learned, out / "fig2_orbits.png")
     charts.paper_figure_3(scene, scene.runs, out / "fig3_errors.png")
-    charts.write_trajectories(scene, scene.runs, out / "trajectories.csv")
-    # One row per distinct step index: h·steps = 10 would list every row twice.
-    horizons = {round(t / args.h): t for t in (10.0, args.h * args.steps)}
-    rows = scene.metrics(horizons=tuple(horizons.values()))
-    charts.write_rows(rows, out / "metrics.csv")
-    print(
-        _table(rows, ["method", "state", "T", "error", "max_rel_dH", "max_rel_dC", "steps_per_s"])
-    )
+    _write_metrics(scene, out, args.h, args.steps)
     failed = [r.name for r in scene.runs if r.info is not None and not r.info.converged.all()]
     if failed:
         print(f"Newton failed in: {', '.join(failed)}")
     print(f"wrote {out}/fig2_orbits.png, fig3_errors.png, metrics.csv/json, trajectories.csv")
     return 0
+
+
+def _write_metrics(scene: Any, out: Path, h: float, steps: int) -> None:
+    """The demo's trajectories and metrics (at T = 10 and at the end) as files, and the table."""
+    from . import charts
+
+    charts.write_trajectories(scene, scene.runs, out / "trajectories.csv")
+    # One row per distinct step index: h·steps = 10 would list every row twice.
+    horizons = {round(t / h): t for t in (10.0, h * steps)}
+    rows = scene.metrics(horizons=tuple(horizons.values()))
+    charts.write_rows(rows, out / "metrics.csv")
+    print(
+        _table(rows, ["method", "state", "T", "error", "max_rel_dH", "max_rel_dC", "steps_per_s"])
+    )
 
 
 #: Files ``demo --system`` writes.
@@ -165,13 +172,7 @@ def _demo_system(args: argparse.Namespace, model: Any = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     charts.state_figure(scene, scene.runs, out / "states_errors.png")
-    charts.write_trajectories(scene, scene.runs, out / "trajectories.csv")
-    horizons = {round(t / args.h): t for t in (10.0, args.h * args.steps)}
-    rows = scene.metrics(horizons=tuple(horizons.values()))
-    charts.write_rows(rows, out / "metrics.csv")
-    print(
-        _table(rows, ["method", "state", "T", "error", "max_rel_dH", "max_rel_dC", "steps_per_s"])
-    )
+    _write_metrics(scene, out, args.h, args.steps)
     print(f"wrote {out}/{', '.join(SYSTEM_DEMO_OUTPUTS)}")
     return 0
 

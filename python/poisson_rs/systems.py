@@ -225,8 +225,7 @@ class LieAlgebra:
         -------
         ndarray or torch.Tensor, shape (..., n, n)
         """
-        x = _as_states(x, self.dim, "x")
-        return _einsum(x, "ijk,...i->...jk", _constant(x, self._c), x)
+        return self.ad(x).swapaxes(-1, -2)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe form: {"name": str | None, "structure_constants": nested lists (n, n, n)}."""
