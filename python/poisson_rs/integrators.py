@@ -107,11 +107,15 @@ class BisectionIntegrator:
             raise ValueError(f"newton must be 'simplified' or 'full', got {newton!r}")
         self._source = source
         if isinstance(source, bytes):
-            self._core = _core.Model.from_bytes(source)
+            data = source
         else:
             # A FIFO would block the read and /dev/zero fill the memory: a bounded regular file.
             check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
-            self._core = _core.Model.load(str(source))
+            data = Path(source).read_bytes()
+        # The bytes the model was built from, read once: a pickle carries them (not the path,
+        # which another machine may lack or a later write may change).
+        self._bytes = data
+        self._core = _core.Model.from_bytes(data)
         self.metadata: dict[str, Any] = parse_metadata(self._core.metadata)
         system: LiePoissonSystem = self.metadata["system"]
         if system.dim != self._core.dim or not np.array_equal(
@@ -131,6 +135,15 @@ class BisectionIntegrator:
         self.max_iter = int(max_iter)
         self.newton = newton
         self._generating: GeneratingFunction | None = None
+        self._stem: str | None = None
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickles as the model-file bytes and the Newton options (and the file's stem, which
+        names a model whose metadata has no name); unpickling checks the bytes as loading does.
+        """
+        stem = self._source.stem if isinstance(self._source, Path) else None
+        options = (self.tol, self.max_iter, self.newton)
+        return (_restore_bisection, (type(self), self._bytes, options, stem))
 
     @property
     def path(self) -> Path | None:
@@ -138,7 +151,10 @@ class BisectionIntegrator:
 
     @property
     def name(self) -> str:
-        default = self._source.stem if isinstance(self._source, Path) else "unnamed"
+        if isinstance(self._source, Path):
+            default = self._source.stem
+        else:
+            default = getattr(self, "_stem", None) or "unnamed"
         return str(self.metadata.get("name", default))
 
     @property
@@ -261,6 +277,19 @@ class BisectionIntegrator:
             f"{type(self).__name__}(name={self.name!r}, system={self.system!r}, "
             f"chart={self.chart!r}, parameters={self.n_parameters}, h_max={self.h_max})"
         )
+
+
+def _restore_bisection(
+    cls: type[BisectionIntegrator],
+    data: bytes,
+    options: tuple[float, int, Literal["simplified", "full"]],
+    stem: str | None,
+) -> BisectionIntegrator:
+    """Unpickles a :class:`BisectionIntegrator` (see its ``__reduce__``)."""
+    tol, max_iter, newton = options
+    stepper = cls(data, tol=tol, max_iter=max_iter, newton=newton)
+    stepper._stem = stem
+    return stepper
 
 
 class LearnedIntegrator(BisectionIntegrator):
@@ -645,6 +674,10 @@ class ClassicalIntegrator:
         self.tol = float(tol)
         self.max_iter = int(max_iter)
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickles as the system, the method's name and the options; unpickling checks them."""
+        return (_restore_classical, (type(self), self.body, self.name, self.tol, self.max_iter))
+
     @property
     def system(self) -> LiePoissonSystem:
         return self.body
@@ -724,6 +757,13 @@ class ClassicalIntegrator:
             f"{type(self).__name__}(name={self.name!r}, system={self.body!r}, "
             f"order={self.order}, poisson={self.poisson})"
         )
+
+
+def _restore_classical(
+    cls: type[ClassicalIntegrator], body: LiePoissonSystem, name: str, tol: float, max_iter: int
+) -> ClassicalIntegrator:
+    """Unpickles a :class:`ClassicalIntegrator` (see its ``__reduce__``)."""
+    return cls(body, name, tol=tol, max_iter=max_iter)
 
 
 def classical(
