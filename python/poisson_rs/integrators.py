@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
+import sys
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -522,7 +523,9 @@ def integrate(
     Returns
     -------
     float64 array (n_steps // every + 1, dim) for one state, (n, n_steps // every + 1, dim) for
-    n.
+    n. A ``dask.array.Array`` mu0 gives a lazy dask array chunked as mu0 along axis 0 (and the
+    info as dask arrays), bit-identical once computed: see
+    :func:`poisson_rs.ensembles.integrate_dask`.
 
     A model that records its training domain (a shell or a cube of states) is checked against
     it: ``info.out_of_domain`` counts, per trajectory, the recorded states (only the kept ones,
@@ -532,6 +535,20 @@ def integrate(
     """
     if not hasattr(stepper, "_rollout"):
         raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
+    if "dask.array" in sys.modules:  # a dask array exists only once dask.array is imported
+        from .ensembles import integrate_dask, is_dask_array
+
+        if is_dask_array(mu0):
+            return integrate_dask(  # type: ignore[return-value]
+                stepper,
+                mu0,
+                h,
+                n_steps,
+                every=every,
+                return_info=return_info,
+                on_failure=on_failure,
+                strict=strict,
+            )
     arr, single = _as_states(mu0, dim=int(getattr(stepper, "dim", 3)))
     if isinstance(h, bool) or not isinstance(h, numbers.Real):
         raise TypeError(f"h must be a real number, got {type(h).__name__}")
