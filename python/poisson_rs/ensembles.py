@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import socket
 import sys
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -254,13 +255,29 @@ def to_zarr(
 def connect(address: str, *, timeout: float = CONNECT_TIMEOUT) -> Client:
     """A ``distributed.Client`` on the scheduler at ``address`` (e.g. "tcp://10.0.0.1:8786").
 
-    Raises ValueError naming the address when it does not answer within ``timeout`` seconds or
-    is malformed, and when ``distributed`` is not installed.
+    Raises ValueError naming the address when it is malformed or does not answer within
+    ``timeout`` seconds, and when ``distributed`` is not installed.
     """
     try:
         from distributed import Client
+        from distributed.comm.addressing import parse_address, parse_host_port
     except ImportError:
         raise ValueError(f"a Dask scheduler needs the distributed extra: {_EXTRA}") from None
+    try:
+        scheme, location = parse_address(address)
+        host, port = parse_host_port(location) if scheme in ("tcp", "tls") else (None, None)
+    except (ValueError, TypeError) as e:
+        raise ValueError(
+            f"{address!r} is not a Dask scheduler address such as tcp://host:8786 ({e})"
+        ) from None
+    if host is not None:
+        # A plain socket first: a Client that fails to connect lingers and complains at exit.
+        try:
+            socket.create_connection((host, port), timeout=timeout).close()
+        except OSError as e:
+            raise ValueError(
+                f"cannot reach a Dask scheduler at {address!r} within {timeout:g} s ({e})"
+            ) from None
     try:
         return Client(address, timeout=timeout, set_as_default=False)
     except (OSError, TimeoutError, ValueError, TypeError) as e:
