@@ -337,7 +337,10 @@ def run_all(
 
     futures = [client.submit(fn, *args, pure=False, **kwargs) for args, kwargs in jobs]
     try:
-        with tqdm(total=len(futures), desc=desc, disable=not progress, file=sys.stderr) as bar:
+        with (
+            client.as_current(),  # as_completed follows the current client's futures
+            tqdm(total=len(futures), desc=desc, disable=not progress, file=sys.stderr) as bar,
+        ):
             for _ in as_completed(futures):
                 bar.update(1)
         return list(client.gather(futures))
