@@ -225,21 +225,32 @@ def test_worker_killed_mid_job_leaves_result_intact(client: Any, tmp_path: Path)
 
 ZARR_SCRIPT = textwrap.dedent(
     """
-    import json, resource, sys
+    import json, sys
     import numpy as np, poisson_rs as pr
     from poisson_rs import ensembles
+
+    def status(key):  # kB in /proc/self/status
+        line = next(x for x in open("/proc/self/status") if x.startswith(key + ":"))
+        return int(line.split()[1]) * 1024
+
     path, n, steps, chunk = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
     rk4 = pr.classical(pr.RigidBody(), "rk4")
     mu0 = np.random.default_rng(7).normal(size=(n, 3))
     ensembles.to_zarr(rk4, mu0[:8], 0.01, 2, path + ".warm", chunk=4)  # imports, pools
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # getrusage's ru_maxrss would carry the parent's peak across fork and exec: the kernel's
+    # high-water mark VmHWM, reset to the current RSS here, measures this write alone.
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+    before = status("VmRSS")
     ensembles.to_zarr(rk4, mu0, 0.01, steps, path, chunk=chunk, compute_kwargs={"num_workers": 2})
-    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(json.dumps({"growth_bytes": (after - before) * 1024}))
+    print(json.dumps({"growth_bytes": status("VmHWM") - before}))
     """
 )
 
 
+@pytest.mark.skipif(
+    not os.access("/proc/self/clear_refs", os.W_OK), reason="needs Linux's peak-RSS reset"
+)
 def test_to_zarr_writes_a_large_ensemble_in_bounded_memory(tmp_path: Path) -> None:
     import zarr
 
@@ -256,8 +267,9 @@ def test_to_zarr_writes_a_large_ensemble_in_bounded_memory(tmp_path: Path) -> No
         timeout=120,
     )
     growth = json.loads(run.stdout.strip().splitlines()[-1])["growth_bytes"]
-    # Peak RSS of the writer grows by a few chunks (4.8 MB each), not by the output.
-    assert growth < full / 4, (growth, full)
+    # The writer's peak RSS grows by a few chunks (4.8 MB each), not by the output (~36 MB
+    # measured, of which Zarr's and the threads' buffers).
+    assert 0 < growth < full / 4, (growth, full)
     group = zarr.open_group(str(path), mode="r")
     assert group["trajectories"].shape == (n, steps + 1, 3)
     assert group.attrs["n_steps"] == steps
