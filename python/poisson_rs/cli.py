@@ -412,12 +412,17 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
         overrides["sampling_states"] = tuple(map(tuple, PAPER_STATES.tolist()))
     t0 = time.perf_counter()
-    rows = run_sweep(
-        overrides=overrides,
-        models_out=args.models_out,
-        progress=None if args.no_progress else lambda m: print(f"  {m}", flush=True),
-        **kwargs,
-    )
+    from .ensembles import scheduler_client
+
+    with scheduler_client(args.scheduler) as client:
+        rows = run_sweep(
+            overrides=overrides,
+            models_out=args.models_out,
+            progress=None if args.no_progress else lambda m: print(f"  {m}", flush=True),
+            client=client,
+            threads=args.threads,
+            **kwargs,
+        )
     charts.write_rows(rows, out / f"{args.stem}.csv")
     med = medians(rows)
     charts.write_rows(med, out / f"{args.stem}_medians.csv")
@@ -539,7 +544,12 @@ def _chart(args: argparse.Namespace) -> int:
     def progress(msg: str) -> None:
         print(f"{time.perf_counter() - t0:6.1f} s  {msg}", flush=True)
 
-    data = run_chart(quick=args.quick, include_paper=not args.no_paper, progress=progress)
+    from .ensembles import scheduler_client
+
+    with scheduler_client(args.scheduler) as client:
+        data = run_chart(
+            quick=args.quick, include_paper=not args.no_paper, progress=progress, client=client
+        )
     charts.write_rows(data.rows, out / "workprecision.csv")
     charts.write_rows(data.long_rows, out / "long_run_energy.csv")
     scenes = "; ".join(f"{s.name}: {s.description}" for s in data.scenes)
@@ -594,7 +604,12 @@ def cmd_stability(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     steps = QUICK_STEP_SIZES if args.quick else STEP_SIZES
-    rows = stability_map(step_sizes=steps, horizon=args.horizon, progress=_progress(args))
+    from .ensembles import scheduler_client
+
+    with scheduler_client(args.scheduler) as client:
+        rows = stability_map(
+            step_sizes=steps, horizon=args.horizon, progress=_progress(args), client=client
+        )
     charts.write_rows(rows, out / "stability.csv")
     charts.stability_figure(rows, out / "stability_map.png")
     charts.stability_summary_figure(rows, out / "stability_summary.png")
@@ -604,6 +619,17 @@ def cmd_stability(args: argparse.Namespace) -> int:
     print(_table(first, ["method", "h_breaks", "how"]))
     print(f"wrote {out}/stability_map.png, stability_summary.png, stability.csv/json")
     return 0
+
+
+def _scheduler_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run the independent jobs on Dask: 'local' (a LocalCluster, one single-threaded "
+        "worker process per core) or a scheduler address such as tcp://host:8786 (default: "
+        "serial, in this process; needs poisson_rs[distributed])",
+    )
 
 
 def _progress(args: argparse.Namespace) -> Callable[[str], None] | None:
@@ -781,6 +807,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--threshold", type=float, default=0.1, help="relative error called broken")
     st.add_argument("--quick", action="store_true", help="two step sizes only (for tests)")
     st.add_argument("--no-progress", dest="no_progress", action="store_true")
+    _scheduler_flag(st)
 
     c = sub.add_parser("chart", help="work–precision charts: error and energy error against cost")
     c.add_argument("--out", default="out/chart", help="output folder (default: out/chart)")
@@ -797,6 +824,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="skip the shipped paper-configuration model (253k parameters, slow)",
     )
+    _scheduler_flag(c)
     sw = sub.add_parser(
         "sweep", help="accuracy against parameter count and rollout speed, over network sizes"
     )
@@ -815,6 +843,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--replot", metavar="JSON", help="redraw the chart from rows saved")
     sw.add_argument("--title", default=None, help="figure title")
     sw.add_argument("--no-progress", dest="no_progress", action="store_true")
+    _scheduler_flag(sw)
     return p
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
+import sys
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -107,11 +108,15 @@ class BisectionIntegrator:
             raise ValueError(f"newton must be 'simplified' or 'full', got {newton!r}")
         self._source = source
         if isinstance(source, bytes):
-            self._core = _core.Model.from_bytes(source)
+            data = source
         else:
             # A FIFO would block the read and /dev/zero fill the memory: a bounded regular file.
             check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
-            self._core = _core.Model.load(str(source))
+            data = Path(source).read_bytes()
+        # The bytes the model was built from, read once: a pickle carries them (not the path,
+        # which another machine may lack or a later write may change).
+        self._bytes = data
+        self._core = _core.Model.from_bytes(data)
         self.metadata: dict[str, Any] = parse_metadata(self._core.metadata)
         system: LiePoissonSystem = self.metadata["system"]
         if system.dim != self._core.dim or not np.array_equal(
@@ -131,6 +136,15 @@ class BisectionIntegrator:
         self.max_iter = int(max_iter)
         self.newton = newton
         self._generating: GeneratingFunction | None = None
+        self._stem: str | None = None
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickles as the model-file bytes and the Newton options (and the file's stem, which
+        names a model whose metadata has no name); unpickling checks the bytes as loading does.
+        """
+        stem = self._source.stem if isinstance(self._source, Path) else None
+        options = (self.tol, self.max_iter, self.newton)
+        return (_restore_bisection, (type(self), self._bytes, options, stem))
 
     @property
     def path(self) -> Path | None:
@@ -138,7 +152,10 @@ class BisectionIntegrator:
 
     @property
     def name(self) -> str:
-        default = self._source.stem if isinstance(self._source, Path) else "unnamed"
+        if isinstance(self._source, Path):
+            default = self._source.stem
+        else:
+            default = getattr(self, "_stem", None) or "unnamed"
         return str(self.metadata.get("name", default))
 
     @property
@@ -261,6 +278,19 @@ class BisectionIntegrator:
             f"{type(self).__name__}(name={self.name!r}, system={self.system!r}, "
             f"chart={self.chart!r}, parameters={self.n_parameters}, h_max={self.h_max})"
         )
+
+
+def _restore_bisection(
+    cls: type[BisectionIntegrator],
+    data: bytes,
+    options: tuple[float, int, Literal["simplified", "full"]],
+    stem: str | None,
+) -> BisectionIntegrator:
+    """Unpickles a :class:`BisectionIntegrator` (see its ``__reduce__``)."""
+    tol, max_iter, newton = options
+    stepper = cls(data, tol=tol, max_iter=max_iter, newton=newton)
+    stepper._stem = stem
+    return stepper
 
 
 class LearnedIntegrator(BisectionIntegrator):
@@ -493,7 +523,9 @@ def integrate(
     Returns
     -------
     float64 array (n_steps // every + 1, dim) for one state, (n, n_steps // every + 1, dim) for
-    n.
+    n. A ``dask.array.Array`` mu0 gives a lazy dask array chunked as mu0 along axis 0 (and the
+    info as dask arrays), bit-identical once computed: see
+    :func:`poisson_rs.ensembles.integrate_dask`.
 
     A model that records its training domain (a shell or a cube of states) is checked against
     it: ``info.out_of_domain`` counts, per trajectory, the recorded states (only the kept ones,
@@ -503,6 +535,20 @@ def integrate(
     """
     if not hasattr(stepper, "_rollout"):
         raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
+    if "dask.array" in sys.modules:  # a dask array exists only once dask.array is imported
+        from .ensembles import integrate_dask, is_dask_array
+
+        if is_dask_array(mu0):
+            return integrate_dask(  # type: ignore[return-value]
+                stepper,
+                mu0,
+                h,
+                n_steps,
+                every=every,
+                return_info=return_info,
+                on_failure=on_failure,
+                strict=strict,
+            )
     arr, single = _as_states(mu0, dim=int(getattr(stepper, "dim", 3)))
     if isinstance(h, bool) or not isinstance(h, numbers.Real):
         raise TypeError(f"h must be a real number, got {type(h).__name__}")
@@ -690,6 +736,10 @@ class ClassicalIntegrator:
         self.tol = float(tol)
         self.max_iter = int(max_iter)
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickles as the system, the method's name and the options; unpickling checks them."""
+        return (_restore_classical, (type(self), self.body, self.name, self.tol, self.max_iter))
+
     @property
     def system(self) -> LiePoissonSystem:
         return self.body
@@ -769,6 +819,13 @@ class ClassicalIntegrator:
             f"{type(self).__name__}(name={self.name!r}, system={self.body!r}, "
             f"order={self.order}, poisson={self.poisson})"
         )
+
+
+def _restore_classical(
+    cls: type[ClassicalIntegrator], body: LiePoissonSystem, name: str, tol: float, max_iter: int
+) -> ClassicalIntegrator:
+    """Unpickles a :class:`ClassicalIntegrator` (see its ``__reduce__``)."""
+    return cls(body, name, tol=tol, max_iter=max_iter)
 
 
 def classical(

@@ -10,13 +10,14 @@ States lie on spheres of several radii, some beyond the default model's training
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
 
 from .integrators import (
     FAILURE_CODES,
+    RolloutInfo,
     Stepper,
     classical,
     integrate,
@@ -85,27 +86,38 @@ def stability_map(
     horizon: float = HORIZON,
     methods: dict[str, Callable[[], Stepper]] | None = None,
     progress: Callable[[str], None] | None = None,
+    client: Any = None,
 ) -> list[Row]:
-    """One row per (method, h, state); see the module docstring for the fields."""
+    """One row per (method, h, state); see the module docstring for the fields.
+
+    ``client``: a ``distributed.Client`` that runs the (method, h) rollouts as futures (a
+    progress bar follows them instead of ``progress``); the rows are the same as in process.
+    """
     body = RigidBody() if body is None else body
     mu0, labels = states(body, radii)
     methods = default_methods(body) if methods is None else methods
     rows: list[Row] = []
+    done: Iterator[tuple[np.ndarray, RolloutInfo]] | None = None
+    if client is not None:
+        from .ensembles import run_all
+
+        jobs = [
+            ((make(), mu0, h, max(1, round(horizon / h))), {})
+            for h in step_sizes
+            for make in methods.values()
+        ]
+        done = iter(run_all(client, _rollout, jobs, desc="stability", progress=bool(progress)))
     for h in step_sizes:
         n_steps = max(1, round(horizon / h))
         T = n_steps * h
         exact = exact_solution(body, mu0, [T])[:, 0]
         for name, make in methods.items():
-            if progress is not None:
-                progress(f"{name} h={h:g}")
-            stepper = make()
-            with warnings.catch_warnings():
-                # Failures and out-of-domain states are recorded in the rows, not warned about.
-                warnings.simplefilter("ignore", RuntimeWarning)
-                # strict=False: the map exists to show models beyond their training h_max.
-                traj, info = integrate(
-                    stepper, mu0, h, n_steps, return_info=True, on_failure="ignore", strict=False
-                )
+            if done is not None:
+                traj, info = next(done)
+            else:
+                if progress is not None:
+                    progress(f"{name} h={h:g}")
+                traj, info = _rollout(make(), mu0, h, n_steps)
             e = body.hamiltonian(traj)
             c = body.casimir(traj)
             for i, label in enumerate(labels):
@@ -130,6 +142,19 @@ def stability_map(
                     }
                 )
     return rows
+
+
+def _rollout(
+    stepper: Stepper, mu0: np.ndarray, h: float, n_steps: int
+) -> tuple[np.ndarray, RolloutInfo]:
+    """One cell of the map (in this process or a worker): (n, n_steps + 1, 3) and the info."""
+    with warnings.catch_warnings():
+        # Failures and out-of-domain states are recorded in the rows, not warned about.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        # strict=False: the map exists to show models beyond their training h_max.
+        return integrate(
+            stepper, mu0, h, n_steps, return_info=True, on_failure="ignore", strict=False
+        )
 
 
 def first_failures(rows: Sequence[Row], threshold: float = 0.1) -> list[Row]:

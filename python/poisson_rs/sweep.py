@@ -26,9 +26,9 @@ import math
 import statistics
 import time
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +43,9 @@ from .integrators import (
 )
 from .reference import RigidBody, exact_solution
 from .scenes import ShellStates
+
+if TYPE_CHECKING:
+    from .train import TrainConfig, TrainResult
 
 Row = dict[str, Any]
 Progress = Callable[[str], None]
@@ -241,6 +244,8 @@ def run_sweep(
     speed_seconds: float = 0.2,
     models_out: str | Path | None = None,
     progress: Progress | None = None,
+    client: Any = None,
+    threads: int = 1,
 ) -> list[Row]:
     """Trains every architecture with every seed and measures it; then the ``shipped`` models
     and (``baselines``) the Taylor series of :data:`BASELINES`. Returns rows (:data:`COLUMNS`),
@@ -251,8 +256,13 @@ def run_sweep(
     ``models_out``: a folder to save each trained model in, as ``{widths}_seed{seed}.safetensors``.
     Everything is checked before the first training run: raises ValueError for no or empty
     architectures, negative or repeated seeds, an unknown shipped model or a bad configuration.
+
+    ``client``: a ``distributed.Client`` that runs each training (and its measurement) as a
+    future, on ``threads`` torch threads in its worker; a progress bar follows them. Same
+    configurations and seeds, so the same models and accuracy columns as the serial run (the
+    timings are the workers').
     """
-    from .train import TrainConfig, export_bytes, save_result, train
+    from .train import TrainConfig, save_result
 
     archs = _check_architectures(architectures)
     seed_list = _check_seeds(seeds)
@@ -278,9 +288,15 @@ def run_sweep(
         cfg.validate()
     out_dir = Path(models_out) if models_out is not None else None
     rows: list[Row] = []
-    for widths, seed, cfg in configs:
-        result = train(cfg, progress=False)
-        model = BisectionIntegrator(export_bytes(result.model, cfg))
+    trained: Iterator[tuple[Row, TrainResult]]
+    if client is None:
+        trained = (_train_row(w, s, cfg, speed_seconds) for w, s, cfg in configs)
+    else:
+        from .ensembles import run_all
+
+        jobs = [((w, s, cfg, speed_seconds, threads), {}) for w, s, cfg in configs]
+        trained = iter(run_all(client, _train_row, jobs, desc="training", progress=bool(progress)))
+    for (widths, seed, _), (row, result) in zip(configs, trained, strict=True):
         name = label(widths)
         if out_dir is not None:
             save_result(
@@ -289,23 +305,6 @@ def run_sweep(
                 name=f"sweep-{name}-seed{seed}",
                 command="poisson_rs.sweep.run_sweep",
             )
-        sampling = cfg.sampling
-        if cfg.sampling == "scene":
-            sampling = f"scene {cfg.sampling_fraction:g}, noise {cfg.sampling_noise:g}"
-        row: Row = {
-            "model": name,
-            "kind": "learned",
-            "widths": name,
-            "depth": len(widths),
-            "seed": seed,
-            "params": model.n_parameters,
-            "sampling": sampling,
-            "iterations": result.iterations_run,
-            "train_seconds": round(result.seconds, 2),
-            "trained_on": "CPU",
-            "validation_rms": result.validation_rms,
-            **measure(model, speed_seconds=speed_seconds),
-        }
         rows.append(row)
         if progress is not None:
             progress(_describe(row))
@@ -353,6 +352,44 @@ def run_sweep(
             if progress is not None:
                 progress(_describe(row))
     return [{k: r[k] for k in COLUMNS} for r in rows]
+
+
+def _train_row(
+    widths: tuple[int, ...],
+    seed: int,
+    cfg: TrainConfig,
+    speed_seconds: float,
+    threads: int | None = None,
+) -> tuple[Row, TrainResult]:
+    """Trains one configuration and measures it (in this process or a worker, there on
+    ``threads`` torch threads): its row and the training result."""
+    from .train import export_bytes, train
+
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+    result = train(cfg, progress=False)
+    model = BisectionIntegrator(export_bytes(result.model, cfg))
+    name = label(widths)
+    sampling = cfg.sampling
+    if cfg.sampling == "scene":
+        sampling = f"scene {cfg.sampling_fraction:g}, noise {cfg.sampling_noise:g}"
+    row: Row = {
+        "model": name,
+        "kind": "learned",
+        "widths": name,
+        "depth": len(widths),
+        "seed": seed,
+        "params": model.n_parameters,
+        "sampling": sampling,
+        "iterations": result.iterations_run,
+        "train_seconds": round(result.seconds, 2),
+        "trained_on": "CPU",
+        "validation_rms": result.validation_rms,
+        **measure(model, speed_seconds=speed_seconds),
+    }
+    return row, result
 
 
 def _describe(row: Row) -> str:

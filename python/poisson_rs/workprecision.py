@@ -19,7 +19,7 @@ import inspect
 import math
 import time
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -396,17 +396,37 @@ def sweep(
     *,
     repeats: bool = True,
     progress: Progress | None = None,
+    client: Any = None,
 ) -> list[Row]:
-    """Work–precision rows for every scene × method × step size (or tolerance). See measure."""
+    """Work–precision rows for every scene × method × step size (or tolerance). See measure.
+
+    ``client``: a ``distributed.Client`` that runs the points as futures, each timed in a
+    worker (one point at a time per worker thread); a progress bar follows them.
+    """
     rows: list[Row] = []
     scenes = list(scenes)
     total, done = len(scenes) * len(methods), 0
+    measured: Iterator[Row] | None = None
+    if client is not None:
+        from .ensembles import run_all
+
+        jobs = []
+        for scene in scenes:
+            for m in methods:
+                for h, n, tol, stepper in _settings(m, steps, scene.T):
+                    exact = exact_solution(scene.body, scene.states, h * np.arange(n + 1))
+                    args = (scene, m.name, m.family, stepper, h, n, exact)
+                    jobs.append((args, {"tol": tol, "repeats": repeats}))
+        measured = iter(run_all(client, measure, jobs, desc="points", progress=bool(progress)))
     for scene in scenes:
         exact_cache: dict[tuple[float, int], np.ndarray] = {}
         for m in methods:
             t0 = time.perf_counter()
             settings = _settings(m, steps, scene.T)
             for h, n, tol, stepper in settings:
+                if measured is not None:
+                    rows.append(next(measured))
+                    continue
                 if (h, n) not in exact_cache:
                     times = h * np.arange(n + 1)
                     exact_cache[h, n] = exact_solution(scene.body, scene.states, times)
@@ -604,10 +624,12 @@ def run_chart(
     quick: bool = False,
     include_paper: bool = True,
     progress: Progress | None = None,
+    client: Any = None,
 ) -> ChartData:
     """The measurements behind ``poisson-rs chart``: sweeps on both scenes and the long run.
 
     ``quick``: a tiny sweep (three step sizes, a few methods, a 2000-step long run) for tests.
+    ``client``: a ``distributed.Client`` for the sweep's points (the long run stays here).
     """
     notes: list[str] = []
     scenes = [paper_scene(), separatrix_scene()]
@@ -617,7 +639,12 @@ def run_chart(
             progress(f"note: {line}")
     overhead = call_overhead(scenes[0], methods[0].stepper)
     rows = sweep(
-        scenes, methods, QUICK_STEPS if quick else FULL_STEPS, repeats=not quick, progress=progress
+        scenes,
+        methods,
+        QUICK_STEPS if quick else FULL_STEPS,
+        repeats=not quick,
+        progress=progress,
+        client=client,
     )
     long_rows = long_run(
         scenes[0],

@@ -1,0 +1,349 @@
+"""Ensembles beyond one process: rollouts of Dask arrays, trajectories to Zarr, a Dask cluster for
+the CLI's ensemble jobs.
+
+- :func:`integrate_dask` (what :func:`~poisson_rs.integrate` calls for a ``dask.array.Array``):
+  a lazy rollout, one Rust rollout per chunk of initial states, in whichever process or worker
+  computes that chunk. Trajectories are independent in the core, so the result is bit-identical
+  to the in-process call whatever the chunking and the number of workers.
+- :func:`to_zarr`: an ensemble written chunk by chunk to a Zarr store, never whole in memory.
+- :func:`scheduler_client` and :func:`run_all`: a ``distributed`` client for ``--scheduler``
+  (``local``: a LocalCluster sized to the machine; else a scheduler address) and independent jobs
+  run on it in order, with a progress bar following the futures.
+
+Dask, ``distributed`` and Zarr are optional (``pip install poisson_rs[distributed]``): this module
+imports them only inside the functions that need them, and ``integrate`` imports it only when
+given a dask array.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import socket
+import sys
+import warnings
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+from .files import check_output_path
+from .integrators import RolloutInfo, Stepper, integrate
+
+if TYPE_CHECKING:
+    import dask.array as da
+    from distributed import Client
+
+#: Trajectories per chunk when :func:`to_zarr` is given a NumPy array.
+DEFAULT_CHUNK = 10_000
+#: Seconds to wait for a scheduler address to answer before giving up.
+CONNECT_TIMEOUT = 10.0
+#: Fields of :class:`~poisson_rs.integrators.RolloutInfo`, in order.
+INFO_FIELDS = (
+    "converged",
+    "failed_step",
+    "failure_code",
+    "newton_iterations",
+    "max_newton_iterations",
+    "max_residual",
+    "out_of_domain",
+)
+
+_EXTRA = "pip install 'poisson_rs[distributed]'"
+
+
+def is_dask_array(x: Any) -> bool:
+    """Whether ``x`` is a ``dask.array.Array``, without importing dask (an array of one cannot
+    exist unless dask.array was imported)."""
+    module = sys.modules.get("dask.array")
+    return module is not None and isinstance(x, module.Array)
+
+
+def _rollout_block(
+    stepper: Stepper,
+    block: np.ndarray,
+    h: float,
+    n_steps: int,
+    every: int,
+    strict: bool,
+    raise_on_failure: bool,
+    offset: int,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """One chunk's rollout, in a worker: (rows, records, dim) and the info fields (rows,).
+
+    Warnings would land in a worker's log, unseen: failures and out-of-domain states are in the
+    info instead. ``offset``: the chunk's first row in the whole array, for the error message.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        traj, info = integrate(
+            stepper,
+            np.asarray(block),
+            h,
+            n_steps,
+            every=every,
+            return_info=True,
+            on_failure="ignore",
+            strict=strict,
+        )
+    if raise_on_failure and not info.converged.all():
+        first = int(np.flatnonzero(~info.converged)[0])
+        raise RuntimeError(
+            f"{stepper!r}: {int((~info.converged).sum())} of {len(info.converged)} trajectories "
+            f"of the chunk at row {offset} failed (first: trajectory {offset + first} at step "
+            f"{int(info.failed_step[first])}); their later states are NaN"
+        )
+    return traj, {k: getattr(info, k) for k in INFO_FIELDS}
+
+
+def integrate_dask(
+    stepper: Stepper,
+    mu0: da.Array,
+    h: float,
+    n_steps: int,
+    *,
+    every: int = 1,
+    return_info: bool = False,
+    on_failure: Literal["warn", "raise", "ignore"] = "warn",
+    strict: bool = True,
+) -> da.Array | tuple[da.Array, RolloutInfo]:
+    """:func:`~poisson_rs.integrate` on a dask array of initial states: a lazy rollout.
+
+    mu0: dask array (n, dim) (or (dim,)) of real numbers, chunked along axis 0 (chunks along
+    axis 1 are merged). Returns a float64 dask array (n, n_steps // every + 1, dim) with mu0's
+    chunks along axis 0, and with ``return_info`` a :class:`~poisson_rs.integrators.RolloutInfo`
+    whose fields are dask arrays (n,) with the same chunks. Computing the trajectories and the
+    info together (``dask.compute(traj, info.converged, ...)``) runs each chunk's rollout once.
+
+    Everything but the states is checked now (h, n_steps, every, h_max); non-finite states raise
+    ValueError when their chunk is computed. Failures are reported in the info:
+    ``on_failure="raise"`` makes a chunk with a failed trajectory raise RuntimeError when
+    computed, "warn" and "ignore" warn nothing (a worker's warnings would go unseen), and
+    out-of-domain states are counted in ``info.out_of_domain`` without a warning.
+
+    Each chunk's task receives the stepper once (a pickle of its model bytes and options, kept
+    once in the graph and shared by every chunk).
+    """
+    import dask
+    import dask.array as da
+
+    dim = int(getattr(stepper, "dim", 3))
+    # The empty call checks every argument but the states, and gives the info's dtypes.
+    _, empty = integrate(
+        stepper,
+        np.empty((0, dim)),
+        h,
+        n_steps,
+        every=every,
+        return_info=True,
+        on_failure=on_failure,
+        strict=strict,
+    )
+    if mu0.dtype == object or mu0.dtype.kind not in "fiu":
+        raise TypeError(f"mu0 must be an array of real numbers, got dtype {mu0.dtype}")
+    single = mu0.shape == (dim,)
+    if single:
+        mu0 = mu0.reshape(1, dim)
+    if mu0.ndim != 2 or mu0.shape[1] != dim:
+        raise ValueError(f"mu0 must have shape ({dim},) or (n, {dim}), got {mu0.shape}")
+    if any(np.isnan(c) for c in mu0.chunks[0]):
+        raise ValueError("mu0 has unknown chunk sizes; call mu0.compute_chunk_sizes() first")
+    if len(mu0.chunks[1]) > 1:
+        mu0 = mu0.rechunk({1: -1})
+    records = int(n_steps) // int(every) + 1
+    token = dask.base.tokenize(pickle.dumps(stepper, protocol=pickle.HIGHEST_PROTOCOL))
+    # One graph node holds the stepper; every chunk's task refers to it by key.
+    shared = dask.delayed(stepper, name=f"poisson-rs-stepper-{token}")
+    run = dask.delayed(_rollout_block, pure=True, nout=2)
+    trajs, infos = [], []
+    offset = 0
+    for block, rows in zip(mu0.to_delayed().ravel(), mu0.chunks[0], strict=True):
+        rows = int(rows)
+        traj_d, info_d = run(
+            shared, block, float(h), int(n_steps), int(every), strict, on_failure == "raise", offset
+        )
+        trajs.append(da.from_delayed(traj_d, shape=(rows, records, dim), dtype=np.float64))
+        infos.append(
+            {
+                k: da.from_delayed(info_d[k], shape=(rows,), dtype=getattr(empty, k).dtype)
+                for k in INFO_FIELDS
+            }
+        )
+        offset += rows
+    if trajs:
+        traj = da.concatenate(trajs, axis=0)
+        fields = {k: da.concatenate([i[k] for i in infos]) for k in INFO_FIELDS}
+    else:  # n = 0: nothing to run
+        traj = da.zeros((0, records, dim), dtype=np.float64)
+        fields = {k: da.from_array(getattr(empty, k)) for k in INFO_FIELDS}
+    info = RolloutInfo(**fields)
+    out = traj[0] if single else traj
+    return (out, info) if return_info else out
+
+
+def to_zarr(
+    stepper: Stepper,
+    mu0: Any,
+    h: float,
+    n_steps: int,
+    path: str | os.PathLike[str],
+    *,
+    every: int = 1,
+    chunk: int | None = None,
+    info: bool = True,
+    strict: bool = True,
+    compute_kwargs: Mapping[str, Any] | None = None,
+) -> Path:
+    """Writes an ensemble's rollout straight to a new Zarr store at ``path``, chunk by chunk.
+
+    mu0: (n, dim) states, a NumPy array-like (cut into chunks of ``chunk`` trajectories,
+    default :data:`DEFAULT_CHUNK`) or a dask array (rechunked to ``chunk`` when given, or when
+    its chunks are irregular). The store holds ``trajectories`` (n, n_steps // every + 1, dim)
+    float64, chunked (chunk, all records, dim), and with ``info`` one (n,) array per
+    :class:`~poisson_rs.integrators.RolloutInfo` field under ``info/``; its attributes record
+    h, n_steps, every and the stepper. Read it back with ``zarr.open_group(path)`` or
+    ``dask.array.from_zarr(path, component="trajectories")``.
+
+    Memory: each chunk is computed, written and released, so the writing process holds about
+    (chunks in flight) × chunk × records × dim × 8 bytes, whatever n. Computes with the current
+    Dask scheduler (a ``distributed.Client`` when one is active, else threads); on a cluster
+    ``path`` must be a location every worker can write. ``path`` must be new (ValueError
+    otherwise; see :func:`~poisson_rs.files.check_output_path`). Returns the path.
+    """
+    import dask
+    import dask.array as da
+    import zarr
+
+    path = check_output_path(path, kind="dir")
+    if os.path.lexists(path):
+        raise ValueError(f"output {path} exists; to_zarr writes a new path only")
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be an integer >= 1, got {chunk!r}")
+    if not is_dask_array(mu0):
+        from .integrators import _as_states
+
+        dim = int(getattr(stepper, "dim", 3))
+        states, _ = _as_states(mu0, dim=dim)
+        mu0 = da.from_array(states, chunks=(chunk or DEFAULT_CHUNK, dim))
+    elif chunk is not None:
+        mu0 = mu0.rechunk({0: chunk})
+    elif len(set(mu0.chunks[0][:-1])) > 1 or mu0.chunks[0][-1] > mu0.chunks[0][0]:
+        mu0 = mu0.rechunk({0: max(mu0.chunks[0])})  # Zarr needs regular chunks
+    traj, rollout_info = integrate_dask(
+        stepper, mu0, h, n_steps, every=every, return_info=True, on_failure="ignore", strict=strict
+    )
+    # Checked again right before writing: the path may have appeared meanwhile.
+    check_output_path(path, kind="dir")
+    group = zarr.open_group(str(path), mode="w-")
+    group.attrs.update(
+        {"h": float(h), "n_steps": int(n_steps), "every": int(every), "stepper": repr(stepper)}
+    )
+    arrays = {"trajectories": traj}
+    if info:
+        arrays.update({f"info/{k}": getattr(rollout_info, k) for k in INFO_FIELDS})
+    stores = [
+        da.to_zarr(a, str(path), component=name, compute=False, mode="a")
+        for name, a in arrays.items()
+    ]
+    # One compute: each chunk's rollout runs once and feeds all its arrays.
+    dask.compute(*stores, **dict(compute_kwargs or {}))
+    return path
+
+
+def connect(address: str, *, timeout: float = CONNECT_TIMEOUT) -> Client:
+    """A ``distributed.Client`` on the scheduler at ``address`` (e.g. "tcp://10.0.0.1:8786").
+
+    Raises ValueError naming the address when it is malformed or does not answer within
+    ``timeout`` seconds, and when ``distributed`` is not installed.
+    """
+    try:
+        from distributed import Client
+        from distributed.comm.addressing import parse_address, parse_host_port
+    except ImportError:
+        raise ValueError(f"a Dask scheduler needs the distributed extra: {_EXTRA}") from None
+    try:
+        scheme, location = parse_address(address)
+        host, port = parse_host_port(location) if scheme in ("tcp", "tls") else (None, None)
+    except (ValueError, TypeError) as e:
+        raise ValueError(
+            f"{address!r} is not a Dask scheduler address such as tcp://host:8786 ({e})"
+        ) from None
+    if host is not None:
+        # A plain socket first: a Client that fails to connect lingers and complains at exit.
+        try:
+            socket.create_connection((host, port), timeout=timeout).close()
+        except OSError as e:
+            raise ValueError(
+                f"cannot reach a Dask scheduler at {address!r} within {timeout:g} s ({e})"
+            ) from None
+    try:
+        return Client(address, timeout=timeout, set_as_default=False)
+    except (OSError, TimeoutError, ValueError, TypeError) as e:
+        raise ValueError(
+            f"cannot reach a Dask scheduler at {address!r} within {timeout:g} s "
+            f"({type(e).__name__}: {e})"
+        ) from None
+
+
+@contextmanager
+def scheduler_client(
+    scheduler: str | None, *, timeout: float = CONNECT_TIMEOUT
+) -> Iterator[Client | None]:
+    """The client of a CLI's ``--scheduler``: None for None (serial, in process); for "local" a
+    LocalCluster of one single-threaded worker process per core (closed on exit), else
+    :func:`connect` to that address. Worker processes of a local cluster inherit this process's
+    environment (RAYON_NUM_THREADS included)."""
+    if scheduler is None:
+        yield None
+        return
+    if scheduler != "local":
+        client = connect(scheduler, timeout=timeout)
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ValueError(f"--scheduler local needs the distributed extra: {_EXTRA}") from None
+    with (
+        LocalCluster(
+            n_workers=os.cpu_count() or 1,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+        ) as cluster,
+        Client(cluster, set_as_default=False) as client,
+    ):
+        yield client
+
+
+def run_all(
+    client: Client,
+    fn: Callable[..., Any],
+    jobs: Sequence[tuple[Sequence[Any], Mapping[str, Any]]],
+    *,
+    desc: str = "jobs",
+    progress: bool = True,
+) -> list[Any]:
+    """``[fn(*args, **kwargs) for args, kwargs in jobs]``, each call a future on ``client``;
+    results in the order of ``jobs``. A tqdm bar (on stderr) follows the futures as they finish.
+    The first job to raise re-raises here; a worker lost mid-job has its job rerun elsewhere."""
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    futures = [client.submit(fn, *args, pure=False, **kwargs) for args, kwargs in jobs]
+    try:
+        with (
+            client.as_current(),  # as_completed follows the current client's futures
+            tqdm(total=len(futures), desc=desc, disable=not progress, file=sys.stderr) as bar,
+        ):
+            for _ in as_completed(futures):
+                bar.update(1)
+        return list(client.gather(futures))
+    finally:
+        for f in futures:
+            f.release()
