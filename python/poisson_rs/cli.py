@@ -525,10 +525,8 @@ def cmd_select(args: argparse.Namespace) -> int:
     import json
 
     from .files import atomic_write_bytes, check_output_path
-    from .reference import exact_solution, reference_solution
     from .scenes import load_scene
     from .select import NoCandidateError, select
-    from .systems import RigidBody
 
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
@@ -544,17 +542,20 @@ def cmd_select(args: argparse.Namespace) -> int:
     T = args.T or (spec.T if spec else scene.horizon)
     h = args.h if args.h is not None else (spec.h if spec else None)
     models = args.models or (list(spec.models) if spec and spec.models else None)
+    _check_positive(budget=args.budget)
     system, mu0 = scene.lie_system, scene.states()
-    # One reference for every target.
-    if isinstance(system, RigidBody):
-        ref = exact_solution(system, mu0, [T])[:, 0]
-    else:
-        ref = reference_solution(system, mu0, [T])[:, 0]
     rows, code = [], 0
     for target in targets:
         try:
             _, _, report = select(
-                system, mu0, T=T, target=target, h=h, models=models, reference=ref
+                system,
+                mu0,
+                T=T,
+                target=target,
+                h=h,
+                models=models,
+                max_steps=args.max_steps,
+                budget_s=args.budget,
             )
         except NoCandidateError as e:
             report, code = e.report, 1
@@ -774,6 +775,16 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--models", nargs="+", help="learned models (default: the shipped ones)")
     se.add_argument("--json", default=None, help="write every candidate's row to this file")
     se.add_argument("--threads", type=int, default=1, help="rayon threads (default 1)")
+    se.add_argument(
+        "--budget", type=float, default=20.0, help="seconds per candidate's ladder (default 20)"
+    )
+    se.add_argument(
+        "--max-steps",
+        dest="max_steps",
+        type=int,
+        default=1 << 20,
+        help="finest rung: most steps to T (default 2^20)",
+    )
 
     st = sub.add_parser("stability", help="stability map: where each method breaks as h grows")
     st.add_argument("--out", default="out/stability", help="output folder")

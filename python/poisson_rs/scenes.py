@@ -345,13 +345,15 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         raise ValueError(f"scene key 'description' must be a string, got {description!r}")
 
     system = _table(data, "system", _SECTION_KEYS["system"])
-    lie_system = _lie_system(system)
-    dim = lie_system.dim
+    if "inertia" not in system and system.get("kind", "rigid_body") == "rigid_body":
+        raise ValueError("scene key 'system.inertia' is missing")
     # A generic system has no inertia: the TrainConfig default stands in (unused with a system).
     inertia = system.get("inertia", [1.5, 2.0, 2.5])
     if not isinstance(inertia, list) or len(inertia) != 3:
         raise ValueError(f"scene key 'system.inertia' must be 3 numbers, got {inertia!r}")
     i1, i2, i3 = (_number(v, "system.inertia") for v in inertia)
+    lie_system = _lie_system(system)
+    dim = lie_system.dim
 
     states = _table(data, "states", _SECTION_KEYS["states"])
     if "points" not in states and "shell" not in states:

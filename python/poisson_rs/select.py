@@ -69,7 +69,7 @@ STALL_RATIO = 2.0
 PRUNE_FACTOR = 100.0
 #: Per-candidate wall-clock budget (seconds): the next rung (about twice the last one's time)
 #: must fit in what is left.
-BUDGET_S = 60.0
+BUDGET_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -100,6 +100,8 @@ class CandidateResult:
     reason: str = ""
     """Why it is not the winner (filled in once every candidate is measured)."""
     winner: bool = False
+    stopped: str = ""
+    """Why the ladder ended short of a pass: "stalled", "budget", "pruned" or "max_steps"."""
     stepper: Stepper | None = field(default=None, repr=False)
 
     @property
@@ -211,6 +213,28 @@ class _Candidate:
     tolerances: dict[float, Stepper] | None = None
     h_max: float = math.inf
     excluded: str = ""
+
+
+#: The last few references computed (a DOP853 run to T = 1000 takes a minute): several targets on
+#: the same states share one.
+_REFERENCES: dict[tuple[Any, ...], tuple[np.ndarray, str]] = {}
+
+
+def _reference(system: LiePoissonSystem, states: np.ndarray, T: float) -> tuple[np.ndarray, str]:
+    """μ_ref(T) for each state, (n, dim), and how it was computed."""
+    from .reference import exact_solution, reference_solution
+
+    key = (system, states.shape, states.tobytes(), T)
+    if key not in _REFERENCES:
+        if isinstance(system, RigidBody):
+            _REFERENCES[key] = (exact_solution(system, states, [T])[:, 0], "exact flow")
+        else:
+            ref = reference_solution(system, states, [T])[:, 0]
+            _REFERENCES[key] = (ref, "DOP853 rtol = atol = 1e-13")
+        while len(_REFERENCES) > 8:
+            del _REFERENCES[next(iter(_REFERENCES))]
+    ref, name = _REFERENCES[key]
+    return ref.copy(), name
 
 
 def _charts(system: LiePoissonSystem) -> tuple[str, ...]:
@@ -365,7 +389,10 @@ def _run_candidate(
                 res.stepper = stepper
                 break
             if trial.seconds * 2 > budget_s or trial.seconds > PRUNE_FACTOR * best_cost:
+                res.stopped = "budget" if trial.seconds * 2 > budget_s else "pruned"
                 break
+        else:
+            res.stopped = "max_steps"
         return res
     assert cand.stepper is not None
     steps = [round(T / h)] if h is not None else _ladder(min(H_START, cand.h_max), T, max_steps)
@@ -384,9 +411,16 @@ def _run_candidate(
         else:
             stalls = 0
         if stalls >= 2:
+            res.stopped = "stalled"
             break
-        if spent + 2 * trial.seconds > budget_s or trial.seconds > PRUNE_FACTOR * best_cost:
+        if trial.seconds > PRUNE_FACTOR * best_cost:
+            res.stopped = "pruned"
             break
+        if spent + 2 * trial.seconds > budget_s:
+            res.stopped = "budget"
+            break
+    else:
+        res.stopped = "max_steps" if h is None else ""
     return res
 
 
@@ -396,7 +430,7 @@ def _explain(res: CandidateResult, winner: CandidateResult | None, target: float
     if p is not None:
         assert winner is not None and winner.passing is not None
         ratio = p.seconds / winner.passing.seconds
-        return f"meets the target but costs {ratio:.1f}x the selected"
+        return f"meets the target but costs {ratio:.3g}x the selected"
     if not res.trials:
         return "not measured"
     last = res.trials[-1]
@@ -408,14 +442,14 @@ def _explain(res: CandidateResult, winner: CandidateResult | None, target: float
     failed = [t for t in res.trials if t.failure]
     if failed:
         why += f"; fails at {len(failed)} step(s) ({failed[0].failure})"
-    if len(res.trials) >= 3 and all(
-        t.error > res.trials[-3].error / STALL_RATIO for t in res.trials[-2:]
-    ):
+    if res.stopped == "stalled":
         why += "; the error stalls (round-off, Newton tolerance or the reference's accuracy)"
-    elif winner is not None and winner.passing is not None:
-        ratio = last.seconds / winner.passing.seconds
-        if ratio > 1:
-            why += f"; stopped at {ratio:.0f}x the selected's cost"
+    elif res.stopped == "pruned" and winner is not None and winner.passing is not None:
+        why += f"; stopped at {last.seconds / winner.passing.seconds:.0f}x the selected's cost"
+    elif res.stopped == "budget":
+        why += f"; stopped at its time budget ({last.seconds:.2g} s for the last rung)"
+    elif res.stopped == "max_steps":
+        why += "; no finer step on the ladder"
     return why
 
 
@@ -492,14 +526,7 @@ def select(
         raise ValueError("mu0 must hold finite, non-zero states")
     states = np.ascontiguousarray(states)
     if reference is None:
-        from .reference import exact_solution, reference_solution
-
-        if isinstance(system, RigidBody):
-            ref = exact_solution(system, states, [T])[:, 0]
-            ref_name = "exact flow"
-        else:
-            ref = reference_solution(system, states, [T])[:, 0]
-            ref_name = "DOP853 rtol = atol = 1e-13"
+        ref, ref_name = _reference(system, states, T)
     else:
         ref = np.asarray(reference, dtype=np.float64).reshape(states.shape)
         ref_name = "given"
