@@ -441,7 +441,7 @@ def _explain(res: CandidateResult, winner: CandidateResult | None, target: float
     why = f"best error {best.error:.2e} at {knob}"
     failed = [t for t in res.trials if t.failure]
     if failed:
-        why += f"; fails at {len(failed)} step(s) ({failed[0].failure})"
+        why += f"; fails at {len(failed)} of the steps tried ({failed[0].failure})"
     if res.stopped == "stalled":
         why += "; the error stalls (round-off, Newton tolerance or the reference's accuracy)"
     elif res.stopped == "pruned" and winner is not None and winner.passing is not None:
