@@ -172,7 +172,8 @@ def run(
 
 
 def figures(rows: list[Row], out: Path) -> list[Path]:
-    """The error, energy and Casimir charts (PNG) from ``rows``."""
+    """The error, energy and Casimir charts (PNG) from ``rows``, one file per scene (the panels
+    of one figure share their y axis, and T = 1000 errors are O(1))."""
     from .charts import work_precision_figure
 
     sys_name = "heavy top I = (1, 1.5, 2), mgl = 0.981, χ = (0, 0, 1)"
@@ -182,13 +183,16 @@ def figures(rows: list[Row], out: Path) -> list[Path]:
         ("max_dC", "max |C − C₀| / |μ₀|², C = |Γ|², M·Γ", "casimirs", "Casimir drift against cost"),
     )
     paths = []
-    for metric, ylabel, stem, title in specs:
-        path = out / f"heavy_top_{stem}.png"
-        work_precision_figure(
-            rows, path, metric=metric, ylabel=ylabel, title=f"{title}: {sys_name}",
-            levels=(1e-3, 1e-6, 1e-9) if metric == "error_T" else (),
-        )  # fmt: skip
-        paths.append(path)
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        srows = [r for r in rows if r["scene"] == scene]
+        for metric, ylabel, stem, title in specs:
+            path = out / f"{scene}_{stem}.png"
+            levels = (1e-3, 1e-6, 1e-9) if metric == "error_T" else ()
+            work_precision_figure(
+                srows, path, metric=metric, ylabel=ylabel, title=f"{title}: {sys_name}",
+                levels=levels,
+            )  # fmt: skip
+            paths.append(path)
     return paths
 
 
@@ -199,7 +203,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="out/heavy_top", help="output folder")
     p.add_argument("--threads", type=int, default=1, help="rayon threads (default 1)")
     p.add_argument("--short", action="store_true", help="the T = 10 scene only")
+    p.add_argument("--replot", metavar="JSON", help="redraw the charts from saved rows")
     args = p.parse_args(argv)
+    if args.replot is not None:
+        import json
+
+        for path in figures(json.loads(Path(args.replot).read_text()), Path(args.out)):
+            print(f"wrote {path}")
+        return 0
     # One rayon thread: cost per trajectory on one core, as DOP853 (SciPy) runs anyway.
     os.environ.setdefault("RAYON_NUM_THREADS", str(args.threads))
     out = Path(args.out)
