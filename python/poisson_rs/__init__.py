@@ -32,6 +32,7 @@ from .integrators import (
     taylor_integrator,
 )
 from .reference import dop853_solution, exact_solution, reference_solution
+from .select import NoCandidateError, SelectionReport, select
 from .systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial, RigidBody
 
 # rayon's thread pool does not survive fork(): a forked child runs its rollouts serially (same
@@ -49,9 +50,11 @@ __all__ = [
     "LearnedIntegrator",
     "LieAlgebra",
     "LiePoissonSystem",
+    "NoCandidateError",
     "Polynomial",
     "RigidBody",
     "RolloutInfo",
+    "SelectionReport",
     "TaylorIntegrator",
     "__version__",
     "classical",
@@ -62,5 +65,6 @@ __all__ = [
     "list_models",
     "load_model",
     "reference_solution",
+    "select",
     "taylor_integrator",
 ]

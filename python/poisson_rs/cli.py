@@ -594,6 +594,60 @@ def _chart(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_select(args: argparse.Namespace) -> int:
+    import json
+
+    from .files import atomic_write_bytes, check_output_path
+    from .scenes import load_scene
+    from .select import NoCandidateError, select
+
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    if args.json is not None:
+        check_output_path(args.json)
+    # As for chart: one rayon thread prices every method on one core, as DOP853 runs anyway.
+    os.environ.setdefault("RAYON_NUM_THREADS", str(args.threads))
+    scene = load_scene(args.scene)
+    spec = scene.select
+    targets = args.target or (spec.targets if spec else None)
+    if not targets:
+        raise ValueError(f"{args.scene}: give --target or a [select] table with a target")
+    T = args.T or (spec.T if spec else scene.horizon)
+    h = args.h if args.h is not None else (spec.h if spec else None)
+    models = args.models or (list(spec.models) if spec and spec.models else None)
+    _check_positive(budget=args.budget)
+    system, mu0 = scene.lie_system, scene.states()
+    rows, code = [], 0
+    for target in targets:
+        try:
+            _, _, report = select(
+                system,
+                mu0,
+                T=T,
+                target=target,
+                h=h,
+                models=models,
+                max_steps=args.max_steps,
+                budget_s=args.budget,
+            )
+        except NoCandidateError as e:
+            report, code = e.report, 1
+            print(report.table())
+            print(f"poisson-rs select: {e}")
+        else:
+            print(report.table())
+            w = report.winner
+            assert w is not None and w.passing is not None
+            knob = f"tol = {w.passing.tol:.0e}" if w.passing.tol else f"h = {w.passing.h:g}"
+            print(f"selected for {target:.0e}: {w.name} at {knob} ({report.seconds:.0f} s)")
+        print()
+        rows += [{"scene": scene.name, **r} for r in report.rows()]
+    if args.json is not None:
+        atomic_write_bytes(Path(args.json), json.dumps(rows, indent=1).encode())
+        print(f"wrote {args.json}")
+    return code
+
+
 def cmd_stability(args: argparse.Namespace) -> int:
     from . import charts
     from .files import check_outputs
@@ -801,6 +855,32 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("models", help="list the shipped models and how they were trained")
 
+    se = sub.add_parser(
+        "select", help="the cheapest integrator and step meeting an error target on a scene"
+    )
+    se.add_argument("scene", help="scene file (TOML); its [select] table gives the defaults")
+    se.add_argument(
+        "--target",
+        type=float,
+        nargs="+",
+        help="max |mu(T) - mu_ref(T)|/|mu0| (one selection per value)",
+    )
+    se.add_argument("--T", type=float, default=None, help="horizon (default: the scene's)")
+    se.add_argument("--h", type=float, default=None, help="measure at this step only")
+    se.add_argument("--models", nargs="+", help="learned models (default: the shipped ones)")
+    se.add_argument("--json", default=None, help="write every candidate's row to this file")
+    se.add_argument("--threads", type=int, default=1, help="rayon threads (default 1)")
+    se.add_argument(
+        "--budget", type=float, default=20.0, help="seconds per candidate's ladder (default 20)"
+    )
+    se.add_argument(
+        "--max-steps",
+        dest="max_steps",
+        type=int,
+        default=1 << 20,
+        help="finest rung: most steps to T (default 2^20)",
+    )
+
     st = sub.add_parser("stability", help="stability map: where each method breaks as h grows")
     st.add_argument("--out", default="out/stability", help="output folder")
     st.add_argument("--horizon", type=float, default=20.0, help="time T of the error (default 20)")
@@ -861,6 +941,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_stability(args)
         if args.command == "sweep":
             return cmd_sweep(args)
+        if args.command == "select":
+            return cmd_select(args)
         return cmd_models(args)
     except (ValueError, FileNotFoundError) as e:
         print(f"poisson-rs {args.command}: {e}", file=sys.stderr)

@@ -8,6 +8,9 @@ A scene is a TOML file::
 
     [system]
     inertia = [1.5, 2.0, 2.5]               # principal moments I₁, I₂, I₃ > 0
+    # kind = "heavy_top"                    # optional: "rigid_body" (default), "heavy_top"
+    # mgl = 0.981                           #   (with inertia, mgl, com) or "lie_poisson" (with
+    # com = [0.0, 0.0, 1.0]                 #   algebra and hamiltonian: a system's to_dict())
 
     [states]                                # at least one of points and shell
     points = [[1.0, 1.0, 2.0], [3.0, 2.0, 0.0]]
@@ -27,6 +30,16 @@ A scene is a TOML file::
     widths = [4]                            #   and margin ([lo, hi] on the |μ| range)
     sampling = "scene"                      # optional: half of each batch near the exact
                                             #   orbits of the scene's states up to its horizon
+
+    [select]                                # optional: what ``poisson-rs select`` looks for
+    target = [1e-3, 1e-6]                   # max |μ(T) − μ_ref(T)|/|μ₀| (relative; one or more)
+    T = 10.0                                # horizon (default: steps.horizon)
+    h = 0.1                                 # optional: measure at this step only
+    models = ["paper_h01"]                  # optional: learned models (default: the shipped ones)
+
+Outside the rigid body, states are ``points`` of the system's dimension (for the heavy top
+(M₁, M₂, M₃, Γ₁, Γ₂, Γ₃)); the reference is DOP853 at rtol = atol = 1e-13, and ``casimir`` is the
+largest |C − C₀|/|μ₀|² over the system's Casimirs (|Γ|² and M·Γ for the heavy top).
 
 The shell states are drawn with their own seed (|μ| uniform in [r_min, r_max], directions
 uniform on the sphere), so they are held out from the training points. Errors are Euclidean
@@ -49,15 +62,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .integrators import BisectionIntegrator, Stepper, integrate
-from .reference import RigidBody, exact_solution
+from .reference import RigidBody, exact_solution, reference_solution
+from .systems import LiePoissonSystem
 
 if TYPE_CHECKING:
     from .generating import GeneratingFunction
     from .train import TrainConfig
 
-_TOP_KEYS = ("name", "description", "system", "states", "steps", "target", "model")
+_TOP_KEYS = ("name", "description", "system", "states", "steps", "target", "model", "select")
 _SECTION_KEYS: dict[str, tuple[str, ...]] = {
-    "system": ("inertia",),
+    "system": ("kind", "inertia", "mgl", "com", "name", "algebra", "hamiltonian"),
+    "select": ("target", "T", "h", "models"),
     "states": ("points", "shell"),
     "steps": ("h", "horizon"),
     "target": ("error", "energy", "newton"),
@@ -138,6 +153,17 @@ class Target:
 
 
 @dataclass(frozen=True)
+class SelectSpec:
+    """The [select] table: what :func:`~poisson_rs.select` is asked on the scene's states."""
+
+    targets: tuple[float, ...]
+    """Relative errors max |μ(T) − μ_ref(T)|/|μ₀| (unit-less), one selection each."""
+    T: float
+    h: float | None = None
+    models: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
 class Scene:
     """A parsed, validated scene file (see the module docstring for the format)."""
 
@@ -155,14 +181,33 @@ class Scene:
     margin: tuple[float, float] = DEFAULT_MARGIN
     description: str = ""
     path: Path | None = None
+    system: LiePoissonSystem | None = None
+    """The system integrated; None (filled in): the rigid body of ``inertia``."""
+    select: SelectSpec | None = None
+
+    def __post_init__(self) -> None:
+        if self.system is None:
+            object.__setattr__(self, "system", RigidBody(self.inertia))
+
+    @property
+    def lie_system(self) -> LiePoissonSystem:
+        """The scene's system (typed: never None after construction)."""
+        assert self.system is not None
+        return self.system
 
     @property
     def body(self) -> RigidBody:
-        return RigidBody(self.inertia)
+        """The scene's rigid body; ValueError for a scene on another system."""
+        if not isinstance(self.system, RigidBody):
+            raise ValueError(
+                f"scene {self.name!r} integrates {self.system!r}; this needs a rigid-body scene"
+            )
+        return self.system
 
     def states(self) -> np.ndarray:
-        """The scene's initial states, points first then the shell's: (n, 3) float64."""
-        parts = [np.asarray(self.points, dtype=np.float64).reshape(-1, 3)]
+        """The scene's initial states, points first then the shell's: (n, dim) float64."""
+        dim = self.lie_system.dim
+        parts = [np.asarray(self.points, dtype=np.float64).reshape(-1, dim)]
         if self.shell is not None:
             parts.append(self.shell.sample())
         return np.concatenate(parts)
@@ -235,6 +280,53 @@ def _model_overrides(raw: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _lie_system(raw: Mapping[str, Any]) -> LiePoissonSystem:
+    """The [system] table as a system: the rigid body unless ``kind`` names another (its
+    ``to_dict()`` keys); ValueError naming 'system' otherwise."""
+    kind = raw.get("kind", "rigid_body")
+    if kind == "rigid_body":
+        extra = [k for k in raw if k not in ("kind", "inertia")]
+        if extra:
+            raise ValueError(
+                f"scene key 'system.{extra[0]}' is not known for the rigid body; set "
+                'system.kind = "heavy_top" or "lie_poisson" for another system'
+            )
+        if "inertia" not in raw:
+            raise ValueError("scene key 'system.inertia' is missing")
+    try:
+        return LiePoissonSystem.from_dict({**raw, "kind": kind})
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"scene key 'system': {e}") from None
+
+
+def _select_spec(raw: Mapping[str, Any], horizon: float) -> SelectSpec | None:
+    """The [select] table checked (None when absent)."""
+    if not raw:
+        return None
+    if "target" not in raw:
+        raise ValueError("scene key 'select.target' is missing")
+    targets = raw["target"] if isinstance(raw["target"], list) else [raw["target"]]
+    if not targets:
+        raise ValueError("scene key 'select.target' must not be an empty list")
+    T = _number(raw.get("T", horizon), "select.T")
+    h = _number(raw["h"], "select.h") if "h" in raw else None
+    if h is not None:
+        n = round(T / h)
+        if n < 1 or abs(n * h - T) > 1e-9 * T:
+            raise ValueError(f"scene key 'select.T' = {T} must be a whole number of steps h = {h}")
+    models = raw.get("models")
+    if models is not None and not (
+        isinstance(models, list) and all(isinstance(m, str) and m for m in models)
+    ):
+        raise ValueError(f"scene key 'select.models' must be a list of model names, got {models!r}")
+    return SelectSpec(
+        tuple(_number(v, "select.target") for v in targets),
+        T,
+        h,
+        None if models is None else tuple(models),
+    )
+
+
 def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None) -> Scene:
     """A Scene from a decoded TOML document; ``name`` is used when the file sets none.
 
@@ -253,12 +345,15 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         raise ValueError(f"scene key 'description' must be a string, got {description!r}")
 
     system = _table(data, "system", _SECTION_KEYS["system"])
-    if "inertia" not in system:
+    if "inertia" not in system and system.get("kind", "rigid_body") == "rigid_body":
         raise ValueError("scene key 'system.inertia' is missing")
-    inertia = system["inertia"]
+    # A generic system has no inertia: the TrainConfig default stands in (unused with a system).
+    inertia = system.get("inertia", [1.5, 2.0, 2.5])
     if not isinstance(inertia, list) or len(inertia) != 3:
         raise ValueError(f"scene key 'system.inertia' must be 3 numbers, got {inertia!r}")
     i1, i2, i3 = (_number(v, "system.inertia") for v in inertia)
+    lie_system = _lie_system(system)
+    dim = lie_system.dim
 
     states = _table(data, "states", _SECTION_KEYS["states"])
     if "points" not in states and "shell" not in states:
@@ -271,14 +366,19 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         )
     for j, pt in enumerate(raw_points):
         key = f"states.points[{j}]"
-        if not isinstance(pt, list) or len(pt) != 3:
-            raise ValueError(f"scene key '{key}' must be 3 numbers, got {pt!r}")
-        x, y, z = (_number(v, key, positive=False) for v in pt)
+        if not isinstance(pt, list) or len(pt) != dim:
+            raise ValueError(f"scene key '{key}' must be {dim} numbers, got {pt!r}")
+        values = tuple(_number(v, key, positive=False) for v in pt)
         # H₀ = 0 there: the relative energy error is undefined (and μ = 0 never moves).
-        if x == y == z == 0.0:
+        if not any(values):
             raise ValueError(f"scene key '{key}' must not be the zero state")
-        points.append((x, y, z))
+        points.append(values)  # type: ignore[arg-type]
     shell = None
+    if "shell" in states and not isinstance(lie_system, RigidBody):
+        raise ValueError(
+            "scene key 'states.shell' samples rigid-body momenta; give 'states.points' for "
+            f"{lie_system!r}"
+        )
     if "shell" in states:
         raw_shell = _table(states, "shell", _SHELL_KEYS, prefix="states.")
         for k in ("r_min", "r_max", "n"):
@@ -342,6 +442,7 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
     margin = model.pop("margin", DEFAULT_MARGIN)
     if not margin[0] <= 1.0 <= margin[1]:
         raise ValueError(f"scene key 'model.margin' must be [lo <= 1, hi >= 1], got {list(margin)}")
+    select = _select_spec(_table(data, "select", _SECTION_KEYS["select"]), horizon)
     scene = Scene(
         name=name,
         inertia=(i1, i2, i3),
@@ -355,6 +456,8 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         margin=margin,
         description=description,
         path=path,
+        system=lie_system,
+        select=select,
     )
     try:
         derive_config(scene).validate()
@@ -402,8 +505,15 @@ def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
     from .train import TrainConfig
 
     r = np.linalg.norm(scene.states(), axis=1)
-    base: dict[str, Any] = {
-        "inertia": scene.inertia,
+    system = scene.lie_system
+    base: dict[str, Any] = {"inertia": scene.inertia}
+    if not isinstance(system, RigidBody):
+        # Other systems: the exp chart (the only one off so(3)) and t,p inputs unless H is
+        # homogeneous quadratic.
+        base.update(system=system.to_dict(), chart="exp")
+        if not system.polynomial.is_homogeneous(2):
+            base["inputs"] = "t,p"
+    base |= {
         "domain": "shell",
         "r_min": float(scene.margin[0] * r.min()),
         "r_max": float(scene.margin[1] * r.max()),
@@ -428,16 +538,27 @@ def evaluate(model: Stepper, scene: Scene, *, strict: bool = True) -> dict[str, 
     trajectory has error and energy inf. ``strict`` is passed on to :func:`integrate` (a learned
     model refuses h beyond its h_max).
     """
-    if isinstance(model, BisectionIntegrator):
+    system = scene.lie_system
+    if isinstance(model, BisectionIntegrator) and not isinstance(system, RigidBody):
+        if model.system != system:
+            raise ValueError(
+                f"the model is for {model.system!r}, the scene {scene.name!r} for {system!r}"
+            )
+    elif isinstance(model, BisectionIntegrator):
         if not np.allclose(model.metadata["inertia"], scene.inertia, rtol=1e-12, atol=0):
             raise ValueError(
                 f"the model is for inertia {model.metadata['inertia']}, "
                 f"the scene {scene.name!r} for {scene.inertia}"
             )
-    body = scene.body
+    body = system
     mu0 = scene.states()
-    exact = exact_solution(body, mu0, [scene.horizon])[:, 0]
-    h0, c0 = body.hamiltonian(mu0), body.casimir(mu0)
+    if isinstance(system, RigidBody):
+        exact = exact_solution(system, mu0, [scene.horizon])[:, 0]
+    else:
+        exact = reference_solution(system, mu0, [scene.horizon])[:, 0]
+    h0, c0 = body.hamiltonian(mu0), _casimirs(system, mu0)
+    # Casimir drift relative to |μ₀|² (for the rigid body, C₀ itself).
+    c_scale = np.einsum("nd,nd->n", mu0, mu0)
     per_h = []
     for h in scene.h:
         with warnings.catch_warnings():
@@ -454,8 +575,8 @@ def evaluate(model: Stepper, scene: Scene, *, strict: bool = True) -> dict[str, 
             )
         err = np.linalg.norm(traj[:, -1] - exact, axis=-1)
         with np.errstate(invalid="ignore"):
-            dh = np.abs(body.hamiltonian(traj) - h0[:, None]).max(axis=1) / h0
-            dc = np.abs(body.casimir(traj) - c0[:, None]).max(axis=1) / c0
+            dh = np.abs(body.hamiltonian(traj) - h0[:, None]).max(axis=1) / np.abs(h0)
+            dc = np.abs(_casimirs(system, traj) - c0[:, None]).max(axis=(1, 2)) / c_scale
         # NaN (after a Newton failure) must fail any threshold: report it as inf.
         bad = ~info.converged | ~np.isfinite(err)
         err, dh, dc = (np.where(bad | ~np.isfinite(a), np.inf, a) for a in (err, dh, dc))
@@ -482,6 +603,12 @@ def evaluate(model: Stepper, scene: Scene, *, strict: bool = True) -> dict[str, 
     }
     result["target_met"] = meets_target(result, scene.target)
     return result
+
+
+def _casimirs(system: LiePoissonSystem, mu: np.ndarray) -> np.ndarray:
+    """The system's Casimirs at μ (..., n) → (..., m); zeros (m = 1) when none is known."""
+    c = system.casimirs(mu)
+    return np.zeros((*np.shape(mu)[:-1], 1)) if c is None else np.asarray(c)
 
 
 def meets_target(result: Mapping[str, Any], target: Target | Scene) -> bool:

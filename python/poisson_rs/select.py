@@ -1,0 +1,584 @@
+"""The cheapest integrator and step that meet an accuracy target on given states: ``select``.
+
+Every candidate the package has for a system is measured on the caller's states, on this
+machine:
+
+- the Taylor-HJ integrators of odd order K = 1, 3, 5, 7 in every chart the system has (Cayley and
+  exp on so(3), exp elsewhere);
+- the classical methods of :func:`~poisson_rs.classical_methods` (fixed step h);
+- DOP853 (adaptive): h only spaces its output, so its knob is its tolerance rtol = atol, swept
+  over 1e-3 … 1e-11 (two decades above the reference's own 1e-13, which it would otherwise match
+  by construction);
+- the learned models (shipped ones, or those passed in) trained for this very system, at steps no
+  larger than their h_max, and only when every initial state lies in their training domain and
+  no recorded state of the rollout leaves it.
+
+Each fixed-step candidate walks a ladder of steps h = T/n, n = n₀·2^k (coarse to fine), and stops
+at the first h that meets the target: its cheapest passing h, since the cost of a fixed-step
+rollout grows with its number of steps. Error: max over the states of |μ(T) − μ_ref(T)| / |μ₀|
+against :func:`~poisson_rs.exact_solution` (rigid body) or
+:func:`~poisson_rs.reference_solution` (DOP853, rtol = atol = 1e-13). A rung where a Newton solve
+fails, a state turns non-finite or a learned model leaves its domain does not pass. Cost: the
+measured wall time of ``integrate`` on all the states to T (best of several calls when one is
+short), not a formula.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .integrators import (
+    FAILURE_CODES,
+    BisectionIntegrator,
+    Stepper,
+    _describe_domain,
+    classical,
+    classical_methods,
+    count_out_of_domain,
+    integrate,
+    list_models,
+    load_model,
+    taylor_integrator,
+)
+from .systems import LiePoissonSystem, RigidBody
+
+__all__ = ["CandidateResult", "NoCandidateError", "SelectionReport", "Trial", "select"]
+
+#: Taylor-HJ orders tried (odd: for a quadratic H the even terms vanish).
+ORDERS = (1, 3, 5, 7)
+#: Coarsest step of the ladder (time units); a learned model starts at its h_max if smaller.
+H_START = 1.0
+#: Finest rung: at most this many steps to T.
+MAX_STEPS = 1 << 20
+#: DOP853 tolerances tried (rtol = atol), loosest first.
+DOP853_TOLERANCES = tuple(10.0**-k for k in range(3, 12))
+#: A rung whose error is not at least this many times below the previous one's has stalled
+#: (round-off, Newton tolerance, or the reference's own error); two stalls in a row end a ladder.
+STALL_RATIO = 2.0
+#: A ladder also ends once a rung costs this many times the cheapest passing candidate so far:
+#: its finer rungs cannot win.
+PRUNE_FACTOR = 100.0
+#: Per-candidate wall-clock budget (seconds): the next rung (about twice the last one's time)
+#: must fit in what is left.
+BUDGET_S = 20.0
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One rung of a ladder: a step h (or a tolerance) measured on every state."""
+
+    h: float
+    tol: float | None
+    error: float
+    """max |μ(T) − μ_ref(T)| / |μ₀| over the states; inf when a trajectory failed."""
+    seconds: float
+    """Wall time of ``integrate`` on all the states to T (best of the timed calls)."""
+    passed: bool
+    failure: str = ""
+    """Why a rung fails apart from its error: Newton failure, non-finite state, left domain."""
+
+
+@dataclass
+class CandidateResult:
+    """One candidate's outcome: its cheapest passing rung, or why it has none."""
+
+    name: str
+    family: str
+    """"taylor", "classical", "adaptive" (DOP853) or "learned"."""
+    trials: list[Trial] = field(default_factory=list)
+    excluded: str = ""
+    """Why the candidate was never measured (other system, outside its domain, h > h_max)."""
+    reason: str = ""
+    """Why it is not the winner (filled in once every candidate is measured)."""
+    winner: bool = False
+    stopped: str = ""
+    """Why the ladder ended short of a pass: "stalled", "budget", "pruned" or "max_steps"."""
+    stepper: Stepper | None = field(default=None, repr=False)
+
+    @property
+    def passing(self) -> Trial | None:
+        """The cheapest passing rung (the ladder stops at the first one), or None."""
+        return next((t for t in self.trials if t.passed), None)
+
+    @property
+    def best(self) -> Trial | None:
+        """The rung with the smallest error, passing or not (None: nothing measured)."""
+        finite = [t for t in self.trials if math.isfinite(t.error)]
+        return min(finite, key=lambda t: t.error) if finite else None
+
+
+@dataclass
+class SelectionReport:
+    """What :func:`select` measured; ``str(report)`` is the table."""
+
+    system: LiePoissonSystem
+    T: float
+    target: float
+    n_states: int
+    reference: str
+    results: list[CandidateResult]
+    seconds: float = 0.0
+    """Wall time of the whole selection."""
+
+    @property
+    def winner(self) -> CandidateResult | None:
+        return next((r for r in self.results if r.winner), None)
+
+    def rows(self) -> list[dict[str, Any]]:
+        """One JSON-ready dict per candidate (h, error, seconds of its cheapest passing rung)."""
+        out = []
+        for r in self.results:
+            p = r.passing
+            best = r.best
+            out.append(
+                {
+                    "candidate": r.name,
+                    "family": r.family,
+                    "winner": r.winner,
+                    "h": p.h if p else None,
+                    "tol": p.tol if p else None,
+                    "error": p.error if p else None,
+                    "seconds": p.seconds if p else None,
+                    "best_error": best.error if best else None,
+                    "rungs": len(r.trials),
+                    "reason": r.excluded or r.reason,
+                    "T": self.T,
+                    "target": self.target,
+                    "n_states": self.n_states,
+                }
+            )
+        return out
+
+    def table(self) -> str:
+        """The report as a fixed-width table, winner marked with '*'."""
+        head = ["", "candidate", "h / tol", "error", "cost [s]", "note"]
+        cells = []
+        for r in self.results:
+            p = r.passing
+            if p is None:
+                knob, err, cost = "-", "-", "-"
+            else:
+                knob = f"tol={p.tol:.0e}" if p.tol is not None else f"{p.h:.6g}"
+                err, cost = f"{p.error:.2e}", f"{p.seconds:.2e}"
+            note = "selected" if r.winner else (r.excluded or r.reason)
+            cells.append(["*" if r.winner else "", r.name, knob, err, cost, note])
+        widths = [max(len(h), *(len(c[i]) for c in cells)) for i, h in enumerate(head)]
+        widths[-1] = len(head[-1])  # the last column is left ragged
+        fmt = lambda row: "  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True))  # noqa: E731
+        name = type(self.system).__name__
+        lines = [
+            f"select: {name} {_params(self.system)}, {self.n_states} states, T = {self.T:g}, "
+            f"target max |mu(T) - mu_ref(T)|/|mu0| <= {self.target:.0e} (reference: "
+            f"{self.reference}); cost = wall time of integrate() on all states to T",
+            fmt(head).rstrip(),
+            "-" * (sum(widths[:-1]) + 2 * (len(widths) - 1) + 4),
+            *(fmt(c).rstrip() for c in cells),
+        ]
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.table()
+
+
+class NoCandidateError(ValueError):
+    """No candidate meets the target; ``report`` holds what was measured."""
+
+    def __init__(self, message: str, report: SelectionReport) -> None:
+        super().__init__(message)
+        self.report = report
+
+
+def _params(system: LiePoissonSystem) -> str:
+    d = system.to_dict()
+    keys = [k for k in ("inertia", "mgl", "com") if k in d]
+    if not keys:
+        return f"(dim {system.dim})"
+    return "(" + ", ".join(f"{k} = {d[k]}" for k in keys) + ")"
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    name: str
+    family: str
+    stepper: Stepper | None = None
+    tolerances: dict[float, Stepper] | None = None
+    h_max: float = math.inf
+    excluded: str = ""
+
+
+#: The last few references computed (a DOP853 run to T = 1000 takes a minute): several targets on
+#: the same states share one.
+_REFERENCES: dict[tuple[Any, ...], tuple[np.ndarray, str]] = {}
+
+
+def _reference(system: LiePoissonSystem, states: np.ndarray, T: float) -> tuple[np.ndarray, str]:
+    """μ_ref(T) for each state, (n, dim), and how it was computed."""
+    from .reference import exact_solution, reference_solution
+
+    key = (system, states.shape, states.tobytes(), T)
+    if key not in _REFERENCES:
+        if isinstance(system, RigidBody):
+            _REFERENCES[key] = (exact_solution(system, states, [T])[:, 0], "exact flow")
+        else:
+            ref = reference_solution(system, states, [T])[:, 0]
+            _REFERENCES[key] = (ref, "DOP853 rtol = atol = 1e-13")
+        while len(_REFERENCES) > 8:
+            del _REFERENCES[next(iter(_REFERENCES))]
+    ref, name = _REFERENCES[key]
+    return ref.copy(), name
+
+
+def _charts(system: LiePoissonSystem) -> tuple[str, ...]:
+    return ("cayley", "exp") if system.algebra.is_so3() else ("exp",)
+
+
+def _model_candidates(
+    system: LiePoissonSystem,
+    mu0: np.ndarray,
+    models: Sequence[str | os.PathLike[str] | BisectionIntegrator] | None,
+    h: float | None,
+) -> list[_Candidate]:
+    """Learned candidates, each either usable or with the reason it is excluded."""
+    out = []
+    for spec in list_models() if models is None else models:
+        model = spec if isinstance(spec, BisectionIntegrator) else load_model(spec)
+        name = f"learned:{model.name}"
+        why = ""
+        if model.system != system:
+            why = f"trained for {model.system!r}"
+        elif h is not None and h > model.h_max:
+            why = f"h = {h:g} > its h_max = {model.h_max:g}"
+        else:
+            outside = int((count_out_of_domain(model.domain, mu0[:, None, :]) > 0).sum())
+            if outside:
+                why = (
+                    f"{outside} of {len(mu0)} states outside its training domain "
+                    f"({_describe_domain(model.domain)})"
+                )
+        out.append(_Candidate(name, "learned", None if why else model, None, model.h_max, why))
+    return out
+
+
+def _candidates(
+    system: LiePoissonSystem,
+    mu0: np.ndarray,
+    models: Sequence[str | os.PathLike[str] | BisectionIntegrator] | None,
+    h: float | None,
+) -> list[_Candidate]:
+    """Cheap-per-step families first, so the pruning bound is set early."""
+    out = [
+        _Candidate(name, "classical", classical(system, name))
+        for name in classical_methods(system)
+        if name != "dop853"
+    ]
+    for chart in _charts(system):
+        for k in ORDERS:
+            out.append(
+                _Candidate(f"taylor{k}-{chart}", "taylor", taylor_integrator(system, k, chart))
+            )
+    out += _model_candidates(system, mu0, models, h)
+    if "dop853" in classical_methods(system):
+        tols = {tol: classical(system, "dop853", tol=tol) for tol in DOP853_TOLERANCES}
+        out.append(_Candidate("dop853", "adaptive", tolerances=tols))
+    return out
+
+
+def _timed_rollout(
+    stepper: Stepper, mu0: np.ndarray, h: float, n: int, every: int, *, repeat: bool
+) -> tuple[np.ndarray, Any, float]:
+    """One rollout to step n (failures and domain warnings left to the caller), and its wall
+    time: the best of several calls while they are short (< 50 ms), against scheduler noise."""
+
+    def call() -> tuple[np.ndarray, Any]:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return integrate(  # type: ignore[no-any-return]
+                stepper, mu0, h, n, every=every, return_info=True, on_failure="ignore"
+            )
+
+    t0 = time.perf_counter()
+    traj, info = call()
+    best = time.perf_counter() - t0
+    total, count = best, 1
+    while repeat and best < 0.05 and total < 0.3 and count < 20:
+        t0 = time.perf_counter()
+        call()
+        dt = time.perf_counter() - t0
+        best, total, count = min(best, dt), total + dt, count + 1
+    return traj, info, best
+
+
+def _trial(
+    stepper: Stepper,
+    mu0: np.ndarray,
+    ref: np.ndarray,
+    T: float,
+    n: int,
+    tol: float | None,
+    target: float,
+    *,
+    learned: bool,
+) -> Trial:
+    """Measures one rung: n steps of h = T/n on every state (DOP853: n output points)."""
+    h = T / n
+    # A learned model's rollout is checked against its domain on ~100 recorded states; the
+    # others keep only the final state.
+    every = max(1, n // 100) if learned else n
+    if learned and n % every:
+        every = 1
+    traj, info, seconds = _timed_rollout(stepper, mu0, h, n, every, repeat=tol is None)
+    final = traj[:, -1]
+    with np.errstate(invalid="ignore", over="ignore"):
+        rel = np.linalg.norm(final - ref, axis=1) / np.linalg.norm(mu0, axis=1)
+    failure = ""
+    bad = ~info.converged | ~np.isfinite(rel)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        code = int(info.failure_code[i])
+        why = FAILURE_CODES.get(code, f"code {code}") if code else "non-finite state"
+        failure = f"{int(bad.sum())} of {len(mu0)} trajectories failed ({why})"
+        rel = np.where(bad, np.inf, rel)
+    elif int(np.sum(info.out_of_domain)):
+        failure = "the rollout leaves the training domain"
+    error = float(rel.max())
+    return Trial(h, tol, error, seconds, not failure and error <= target, failure)
+
+
+def _ladder(h_cap: float, T: float, max_steps: int) -> list[int]:
+    """Step counts n₀·2^k to T, n₀ the fewest with T/n₀ ≤ h_cap, up to max_steps."""
+    n0 = max(1, math.ceil(T / h_cap * (1 - 1e-12)))
+    out = []
+    n = n0
+    while n <= max_steps:
+        out.append(n)
+        n *= 2
+    return out or [n0]
+
+
+def _run_candidate(
+    cand: _Candidate,
+    mu0: np.ndarray,
+    ref: np.ndarray,
+    T: float,
+    target: float,
+    *,
+    h: float | None,
+    max_steps: int,
+    budget_s: float,
+    best_cost: float,
+) -> CandidateResult:
+    res = CandidateResult(cand.name, cand.family, excluded=cand.excluded)
+    if cand.excluded:
+        return res
+    learned = cand.family == "learned"
+    if cand.tolerances is not None:
+        n0 = _ladder(min(H_START, T), T, max_steps)[0] if h is None else round(T / h)
+        for tol, stepper in cand.tolerances.items():
+            trial = _trial(stepper, mu0, ref, T, n0, tol, target, learned=False)
+            res.trials.append(trial)
+            if trial.passed:
+                res.stepper = stepper
+                break
+            if trial.seconds * 2 > budget_s or trial.seconds > PRUNE_FACTOR * best_cost:
+                res.stopped = "budget" if trial.seconds * 2 > budget_s else "pruned"
+                break
+        else:
+            res.stopped = "max_steps"
+        return res
+    assert cand.stepper is not None
+    steps = [round(T / h)] if h is not None else _ladder(min(H_START, cand.h_max), T, max_steps)
+    spent, stalls = 0.0, 0
+    for n in steps:
+        trial = _trial(cand.stepper, mu0, ref, T, n, None, target, learned=learned)
+        prev = res.best
+        res.trials.append(trial)
+        spent += trial.seconds
+        if trial.passed:
+            res.stepper = cand.stepper
+            break
+        # In the asymptotic regime (error < 1e-2) an error that no longer halves has stalled.
+        if prev is not None and prev.error < 1e-2 and trial.error > prev.error / STALL_RATIO:
+            stalls += 1
+        else:
+            stalls = 0
+        if stalls >= 2:
+            res.stopped = "stalled"
+            break
+        if trial.seconds > PRUNE_FACTOR * best_cost:
+            res.stopped = "pruned"
+            break
+        if spent + 2 * trial.seconds > budget_s:
+            res.stopped = "budget"
+            break
+    else:
+        res.stopped = "max_steps" if h is None else ""
+    return res
+
+
+def _explain(res: CandidateResult, winner: CandidateResult | None, target: float) -> str:
+    """Why ``res`` is not the winner."""
+    p = res.passing
+    if p is not None:
+        assert winner is not None and winner.passing is not None
+        ratio = p.seconds / winner.passing.seconds
+        return f"meets the target but costs {ratio:.3g}x the selected"
+    if not res.trials:
+        return "not measured"
+    last = res.trials[-1]
+    best = res.best
+    if best is None:
+        return f"fails at every step tried: {last.failure}"
+    knob = f"tol = {best.tol:.0e}" if best.tol is not None else f"h = {best.h:.4g}"
+    why = f"best error {best.error:.2e} at {knob}"
+    failed = [t for t in res.trials if t.failure]
+    if failed:
+        why += f"; fails at {len(failed)} of the steps tried ({failed[0].failure})"
+    if res.stopped == "stalled":
+        why += "; the error stalls (round-off, Newton tolerance or the reference's accuracy)"
+    elif res.stopped == "pruned" and winner is not None and winner.passing is not None:
+        why += f"; stopped at {last.seconds / winner.passing.seconds:.0f}x the selected's cost"
+    elif res.stopped == "budget":
+        why += f"; stopped at its time budget ({last.seconds:.2g} s for the last rung)"
+    elif res.stopped == "max_steps":
+        why += "; no finer step on the ladder"
+    return why
+
+
+def select(
+    system: LiePoissonSystem,
+    mu0: ArrayLike,
+    *,
+    T: float,
+    target: float,
+    h: float | None = None,
+    models: Sequence[str | os.PathLike[str] | BisectionIntegrator] | None = None,
+    reference: ArrayLike | None = None,
+    max_steps: int = MAX_STEPS,
+    budget_s: float = BUDGET_S,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[Stepper, float, SelectionReport]:
+    """The cheapest integrator and step that keep max |μ(T) − μ_ref(T)| / |μ₀| ≤ ``target``.
+
+    Parameters
+    ----------
+    system : LiePoissonSystem
+        E.g. ``RigidBody()`` or ``HeavyTop()``.
+    mu0 : array_like, shape (n, dim) or (dim,)
+        Initial states (finite, non-zero).
+    T : float
+        Horizon (time units), > 0.
+    target : float
+        Largest relative error allowed at T, > 0 (unit-less).
+    h : float, optional
+        Measure every candidate at this step only (T/h must be whole); default: a ladder
+        h = T/n, n = n₀·2^k, from min(1, T, the model's h_max) down to T/``max_steps``.
+    models : sequence of names, paths or loaded models, optional
+        Learned candidates (default: every shipped model, :func:`~poisson_rs.list_models`); a
+        model counts only for this system, at h ≤ its h_max, with every μ₀ in its domain.
+    reference : array_like, shape (n, dim), optional
+        μ_ref(T) for each state, if already computed; default: the exact flow for a rigid body,
+        else DOP853 at rtol = atol = 1e-13.
+    max_steps, budget_s : ladder bounds: most steps to T, and seconds per candidate.
+    progress : called with one line per candidate measured.
+
+    Returns
+    -------
+    (stepper, h, report): the selected integrator (for DOP853: ``classical(system, "dop853",
+    tol=...)``, whose h only spaces the output), the step to use with :func:`integrate`, and a
+    :class:`SelectionReport` whose ``str`` is the table.
+
+    Raises
+    ------
+    NoCandidateError (a ValueError)
+        "no candidate meets 1e-14 at T = 10; best was ...", with ``.report`` attached.
+    TypeError, ValueError
+        For a malformed system, states, horizon, target or step.
+    """
+    t_start = time.perf_counter()
+    if not isinstance(system, LiePoissonSystem):
+        raise TypeError(f"system must be a LiePoissonSystem, got {type(system).__name__}")
+    for what, v in (("T", T), ("target", target)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
+            raise ValueError(f"{what} must be a finite number > 0, got {v!r}")
+    T, target = float(T), float(target)
+    if h is not None:
+        if isinstance(h, bool) or not isinstance(h, (int, float)) or not 0 < h < math.inf:
+            raise ValueError(f"h must be a finite number > 0, got {h!r}")
+        n = round(T / h)
+        if n < 1 or abs(n * h - T) > 1e-9 * T:
+            raise ValueError(f"T = {T:g} must be a whole number of steps h = {h:g}")
+        h = float(h)
+    states = np.asarray(mu0, dtype=np.float64)
+    if states.ndim == 1:
+        states = states[None, :]
+    if states.ndim != 2 or states.shape[1] != system.dim or len(states) == 0:
+        raise ValueError(f"mu0 must have shape (n, {system.dim}), got {np.shape(mu0)}")
+    if not np.isfinite(states).all() or (np.linalg.norm(states, axis=1) == 0).any():
+        raise ValueError("mu0 must hold finite, non-zero states")
+    states = np.ascontiguousarray(states)
+    if reference is None:
+        ref, ref_name = _reference(system, states, T)
+    else:
+        ref = np.asarray(reference, dtype=np.float64).reshape(states.shape)
+        ref_name = "given"
+    results = []
+    best_cost = math.inf
+    for cand in _candidates(system, states, models, h):
+        t0 = time.perf_counter()
+        res = _run_candidate(
+            cand,
+            states,
+            ref,
+            T,
+            target,
+            h=h,
+            max_steps=max_steps,
+            budget_s=budget_s,
+            best_cost=best_cost,
+        )
+        if res.passing is not None:
+            best_cost = min(best_cost, res.passing.seconds)
+        results.append(res)
+        if progress is not None:
+            p = res.passing
+            what = (
+                res.excluded
+                or (p and f"passes at h = {p.h:.4g}, error {p.error:.2e}, {p.seconds:.2e} s")
+                or "does not pass"
+            )
+            progress(f"{cand.name}: {what} ({time.perf_counter() - t0:.1f} s)")
+    passing = [r for r in results if r.passing is not None]
+    winner = min(passing, key=lambda r: r.passing.seconds) if passing else None  # type: ignore[union-attr]
+    if winner is not None:
+        winner.winner = True
+    for r in results:
+        if not r.winner and not r.excluded:
+            r.reason = _explain(r, winner, target)
+    report = SelectionReport(
+        system, T, target, len(states), ref_name, results, time.perf_counter() - t_start
+    )
+    if winner is None:
+        measured = [r for r in results if r.best is not None]
+        if measured:
+            top = min(measured, key=lambda r: r.best.error)  # type: ignore[union-attr]
+            b = top.best
+            assert b is not None
+            knob = f"tol = {b.tol:.0e}" if b.tol is not None else f"h = {b.h:.4g}"
+            best = f"{top.name} with {b.error:.2e} at {knob}"
+        else:
+            best = "nothing (every candidate failed or was excluded)"
+        raise NoCandidateError(
+            f"no candidate meets {target:.0e} at T = {T:g}; best was {best}", report
+        )
+    p = winner.passing
+    assert p is not None and winner.stepper is not None
+    return winner.stepper, p.h, report
