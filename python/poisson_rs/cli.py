@@ -535,6 +535,7 @@ def _chart(args: argparse.Namespace) -> int:
     import time
 
     from . import charts
+    from .integrators import load_model
     from .workprecision import LEVELS, run_chart
 
     t0 = time.perf_counter()
@@ -546,9 +547,14 @@ def _chart(args: argparse.Namespace) -> int:
 
     from .ensembles import scheduler_client
 
+    models = [load_model(m) for m in args.model or ()]
     with scheduler_client(args.scheduler) as client:
         data = run_chart(
-            quick=args.quick, include_paper=not args.no_paper, progress=progress, client=client
+            quick=args.quick,
+            include_paper=not args.no_paper,
+            progress=progress,
+            client=client,
+            models=models,
         )
     charts.write_rows(data.rows, out / "workprecision.csv")
     charts.write_rows(data.long_rows, out / "long_run_energy.csv")
@@ -660,9 +666,28 @@ def cmd_stability(args: argparse.Namespace) -> int:
     steps = QUICK_STEP_SIZES if args.quick else STEP_SIZES
     from .ensembles import scheduler_client
 
+    methods = None
+    if args.model:
+        from functools import partial
+
+        from .integrators import load_model
+        from .stability import default_methods
+        from .systems import RigidBody as Body
+
+        body = Body()
+        methods = default_methods(body)
+        for path in args.model:
+            model = load_model(path)  # checked here, before the map's work
+            if model.system != body:
+                raise ValueError(f"--model {path} integrates {model.system!r}, not {body!r}")
+            methods[f"learned:{model.name}"] = partial(load_model, path)
     with scheduler_client(args.scheduler) as client:
         rows = stability_map(
-            step_sizes=steps, horizon=args.horizon, progress=_progress(args), client=client
+            step_sizes=steps,
+            horizon=args.horizon,
+            methods=methods,
+            progress=_progress(args),
+            client=client,
         )
     charts.write_rows(rows, out / "stability.csv")
     charts.stability_figure(rows, out / "stability_map.png")
@@ -886,12 +911,26 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--horizon", type=float, default=20.0, help="time T of the error (default 20)")
     st.add_argument("--threshold", type=float, default=0.1, help="relative error called broken")
     st.add_argument("--quick", action="store_true", help="two step sizes only (for tests)")
+    st.add_argument(
+        "--model",
+        action="append",
+        metavar="PATH",
+        help="also map this model (file or shipped name; repeatable); it must be trained for "
+        "the map's body",
+    )
     st.add_argument("--no-progress", dest="no_progress", action="store_true")
     _scheduler_flag(st)
 
     c = sub.add_parser("chart", help="work–precision charts: error and energy error against cost")
     c.add_argument("--out", default="out/chart", help="output folder (default: out/chart)")
     c.add_argument("--quick", action="store_true", help="a tiny sweep (seconds; for tests)")
+    c.add_argument(
+        "--model",
+        action="append",
+        metavar="PATH",
+        help="also chart this model (file or shipped name; repeatable) against the classical "
+        "methods; it must be trained for the chart's body",
+    )
     c.add_argument(
         "--threads",
         type=int,

@@ -48,7 +48,15 @@ QUICK_STEPS = (50, 100, 200)
 SLOW_STEPS = (25, 50, 100, 200)
 TAYLOR_ORDERS = (1, 3, 5, 7)
 CHARTS = ("cayley", "exp")
-CLASSICAL_NAMES = ("rk4", "midpoint", "splitting", "splitting4", "dmv", "dop853")
+CLASSICAL_NAMES = (
+    "rk4",
+    "midpoint",
+    "splitting",
+    "splitting4",
+    "splitting_casimir",
+    "dmv",
+    "dop853",
+)
 #: rtol = atol of the adaptive DOP853 sweep; its h only sets the output spacing.
 DOP853_TOLERANCES = tuple(10.0**-k for k in range(4, 13))
 DOP853_SPACING = 0.1
@@ -625,15 +633,27 @@ def run_chart(
     include_paper: bool = True,
     progress: Progress | None = None,
     client: Any = None,
+    models: Sequence[Stepper] = (),
 ) -> ChartData:
     """The measurements behind ``poisson-rs chart``: sweeps on both scenes and the long run.
 
     ``quick``: a tiny sweep (three step sizes, a few methods, a 2000-step long run) for tests.
     ``client``: a ``distributed.Client`` for the sweep's points (the long run stays here).
+    ``models``: the user's own learned models, charted beside the others; each must have been
+    trained for the scenes' body (ValueError otherwise: another body's exact solution would
+    score it against the wrong flow).
     """
     notes: list[str] = []
     scenes = [paper_scene(), separatrix_scene()]
     methods = default_methods(scenes[0].body, quick=quick, include_paper=include_paper, notes=notes)
+    for model in models:
+        system = getattr(model, "system", None)
+        if system != scenes[0].body:
+            raise ValueError(
+                f"model {getattr(model, 'name', model)!r} integrates {system!r}, not the chart's "
+                f"{scenes[0].body!r}"
+            )
+        methods.append(Method(f"learned:{model.name}", "learned", model))  # type: ignore[attr-defined]
     for line in notes:
         if progress is not None:
             progress(f"note: {line}")
