@@ -121,6 +121,11 @@ impl Layer {
         weight: Vec<f64>,
         bias: Vec<f64>,
     ) -> Result<Self, CoreError> {
+        if n_in == 0 || n_out == 0 {
+            return Err(CoreError::Format(format!(
+                "a layer of shape ({n_out}, {n_in}) has zero width"
+            )));
+        }
         if weight.len() != n_in * n_out || bias.len() != n_out {
             return Err(CoreError::Format(format!(
                 "layer of shape ({n_out}, {n_in}) needs {} weights and {n_out} biases, got {} and {}",

@@ -57,3 +57,46 @@ def test_demo_refuses_model_and_system_together(
     code = main(["demo", "--system", "heavy-top", "--model", "default", "--out", str(tmp_path)])
     assert code != 0
     assert "not both" in capsys.readouterr().err
+
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+
+def test_demo_runs_a_heavy_top_scene(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert main(["demo", "--scene", str(SCENES / "heavy_top.toml"), "--out", str(out)]) == 0
+    rows = (out / "metrics.csv").read_text()
+    assert "taylor7-exp" in rows and "splitting" in rows
+    assert (out / "states_errors.png").stat().st_size > 0
+
+
+def test_chart_and_stability_take_a_rigid_body_scene(tmp_path: Path) -> None:
+    scene = str(SCENES / "large_step.toml")
+    assert (
+        main(["chart", "--quick", "--no-paper", "--scene", scene, "--out", str(tmp_path / "c")])
+        == 0
+    )
+    assert "large_step" in (tmp_path / "c" / "workprecision.csv").read_text()
+    assert (
+        main(
+            [
+                "stability",
+                "--quick",
+                "--no-progress",
+                "--scene",
+                scene,
+                "--out",
+                str(tmp_path / "s"),
+            ]
+        )
+        == 0
+    )
+
+
+@pytest.mark.parametrize("command", ["chart", "stability"])
+def test_a_heavy_top_scene_is_refused_where_the_tool_is_rigid_body_only(
+    tmp_path: Path, command: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    scene = str(SCENES / "heavy_top.toml")
+    assert main([command, "--quick", "--scene", scene, "--out", str(tmp_path / "o")]) != 0
+    assert "rigid-body scene" in capsys.readouterr().err

@@ -13,6 +13,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from .systems import RigidBody
 
 if TYPE_CHECKING:
@@ -79,6 +81,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from .integrators import list_models, load_model, taylor_integrator
 
     _check_positive(h=args.h, steps=args.steps)
+    states = PAPER_STATES
+    if args.scene is not None:
+        from .scenes import load_scene
+
+        if args.system is not None:
+            raise ValueError("give --scene or --system, not both (a scene names its system)")
+        sc = load_scene(args.scene)
+        states, args.h = sc.states(), sc.h[0]
+        args.steps = sc.n_steps(args.h)
+        if not isinstance(sc.lie_system, RigidBody):
+            model = load_model(args.model) if args.model is not None else None
+            if model is not None and model.system != sc.lie_system:
+                raise ValueError(f"--model integrates {model.system!r}, not {sc.lie_system!r}")
+            return _demo_system(args, model, sc.lie_system, states)
     if args.system is not None:
         if args.model is not None:
             raise ValueError("give --model or --system, not both (a model names its system)")
@@ -88,6 +104,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not isinstance(model.system, RigidBody):
         return _demo_system(args, model)
     body = model.body
+    if args.scene is not None and sc.lie_system != body:
+        raise ValueError(
+            f"the scene integrates {sc.lie_system!r} but the model {model.name!r} was trained for "
+            f"{body!r}; give --model with a model of the scene's body"
+        )
     methods = {
         f"learned:{model.name}": model,
         f"taylor3-{model.chart}": taylor_integrator(body, 3, model.chart),
@@ -105,9 +126,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         else:
             print(f"not adding learned:paper: it was trained for {paper.system!r}, not {body!r}")
     print(f"model: {model!r}")
-    print(f"scene: I = {body.inertia}, states {PAPER_STATES.tolist()}")
+    print(f"scene: I = {body.inertia}, states {states.tolist()}")
     print(f"       {args.steps} steps of h = {args.h}")
-    scene = run_scene(methods, body, PAPER_STATES, args.h, args.steps, strict=args.strict)
+    scene = run_scene(methods, body, states, args.h, args.steps, strict=args.strict)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     learned = scene.runs[0]
@@ -139,24 +160,33 @@ def _write_metrics(scene: Any, out: Path, h: float, steps: int) -> None:
 SYSTEM_DEMO_OUTPUTS = ("states_errors.png", "trajectories.csv", "metrics.csv", "metrics.json")
 
 
-def _demo_system(args: argparse.Namespace, model: Any = None) -> int:
+def _demo_system(
+    args: argparse.Namespace,
+    model: Any = None,
+    system: LiePoissonSystem | None = None,
+    states: np.ndarray | None = None,
+) -> int:
     """The demo on a system other than the rigid body: Taylor-exp K = 3, 5, 7 and the classical
-    methods (and ``model`` if given) from the system's demo states against a DOP853 reference;
-    a figure of the states with their error, energy and Casimir drifts, and the metrics."""
+    methods (and ``model`` if given) from ``states`` (default: the system's demo states) against
+    a DOP853 reference; a figure of the states with their error, energy and Casimir drifts, and
+    the metrics."""
     from . import charts
     from .demo import HEAVY_TOP_STATES, run_scene
     from .files import check_outputs
     from .integrators import classical, classical_methods, taylor_integrator
     from .systems import HeavyTop
 
-    system = model.system if model is not None else _system_spec(args.system)
+    if system is None:
+        system = model.system if model is not None else _system_spec(args.system)
     if isinstance(system, RigidBody):
         raise ValueError("--system rigid-body is the paper's scene: run demo without --system")
-    if not isinstance(system, HeavyTop):
-        raise ValueError(
-            f"demo --system knows demo states for the heavy top only, not {system!r}; "
-            "use pr.integrate and pr.reference_solution for other systems"
-        )
+    if states is None:
+        if not isinstance(system, HeavyTop):
+            raise ValueError(
+                f"demo --system knows demo states for the heavy top only, not {system!r}; "
+                "give a scene file (demo --scene) with the system and its states"
+            )
+        states = HEAVY_TOP_STATES
     check_outputs(args.out, SYSTEM_DEMO_OUTPUTS)
     methods: dict[str, Any] = {}
     if model is not None:
@@ -166,9 +196,9 @@ def _demo_system(args: argparse.Namespace, model: Any = None) -> int:
     for name in classical_methods(system):
         if name != "dop853":
             methods[name] = classical(system, name)
-    print(f"system: {system!r}, states {HEAVY_TOP_STATES.tolist()}")
+    print(f"system: {system!r}, states {states.tolist()}")
     print(f"        {args.steps} steps of h = {args.h}; reference: DOP853, rtol = atol = 1e-13")
-    scene = run_scene(methods, system, HEAVY_TOP_STATES, args.h, args.steps, strict=args.strict)
+    scene = run_scene(methods, system, states, args.h, args.steps, strict=args.strict)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     charts.state_figure(scene, scene.runs, out / "states_errors.png")
@@ -548,6 +578,13 @@ def _chart(args: argparse.Namespace) -> int:
     from .ensembles import scheduler_client
 
     models = [load_model(m) for m in args.model or ()]
+    scene = None
+    if args.scene is not None:
+        from .scenes import load_scene
+        from .workprecision import Scene
+
+        sc = load_scene(args.scene)
+        scene = Scene(sc.name, sc.body, sc.states(), sc.horizon, sc.description)
     with scheduler_client(args.scheduler) as client:
         data = run_chart(
             quick=args.quick,
@@ -555,6 +592,7 @@ def _chart(args: argparse.Namespace) -> int:
             progress=progress,
             client=client,
             models=models,
+            scene=scene,
         )
     charts.write_rows(data.rows, out / "workprecision.csv")
     charts.write_rows(data.long_rows, out / "long_run_energy.csv")
@@ -667,22 +705,29 @@ def cmd_stability(args: argparse.Namespace) -> int:
     from .ensembles import scheduler_client
 
     methods = None
-    if args.model:
+    body = RigidBody()
+    if args.scene is not None:
+        from .scenes import load_scene
+
+        body = load_scene(args.scene).body  # ValueError for a scene on another system
+    if args.model or args.scene is not None:
         from functools import partial
 
         from .integrators import load_model
         from .stability import default_methods
-        from .systems import RigidBody as Body
 
-        body = Body()
         methods = default_methods(body)
-        for path in args.model:
+        if body != RigidBody():
+            # The shipped learned models are the paper body's: only the user's own may join.
+            methods = {k: v for k, v in methods.items() if not k.startswith("learned:")}
+        for path in args.model or ():
             model = load_model(path)  # checked here, before the map's work
             if model.system != body:
                 raise ValueError(f"--model {path} integrates {model.system!r}, not {body!r}")
             methods[f"learned:{model.name}"] = partial(load_model, path)
     with scheduler_client(args.scheduler) as client:
         rows = stability_map(
+            body=body,
             step_sizes=steps,
             horizon=args.horizon,
             methods=methods,
@@ -766,6 +811,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="the paper's scene with the default model: figures and table")
     d.add_argument("--model", default=None, help="model file or shipped name (default: default)")
+    d.add_argument(
+        "--scene",
+        default=None,
+        help="a scene file (TOML): its system, states, first step size and horizon replace the "
+        "paper's",
+    )
     d.add_argument(
         "--system",
         default=None,
@@ -912,6 +963,11 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--threshold", type=float, default=0.1, help="relative error called broken")
     st.add_argument("--quick", action="store_true", help="two step sizes only (for tests)")
     st.add_argument(
+        "--scene",
+        default=None,
+        help="map this rigid-body scene file's body (TOML) instead of the paper's",
+    )
+    st.add_argument(
         "--model",
         action="append",
         metavar="PATH",
@@ -924,6 +980,12 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("chart", help="work–precision charts: error and energy error against cost")
     c.add_argument("--out", default="out/chart", help="output folder (default: out/chart)")
     c.add_argument("--quick", action="store_true", help="a tiny sweep (seconds; for tests)")
+    c.add_argument(
+        "--scene",
+        default=None,
+        help="chart this rigid-body scene file (TOML: body, states, horizon) instead of the "
+        "paper's and the separatrix scenes",
+    )
     c.add_argument(
         "--model",
         action="append",

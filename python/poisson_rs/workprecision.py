@@ -634,6 +634,7 @@ def run_chart(
     progress: Progress | None = None,
     client: Any = None,
     models: Sequence[Stepper] = (),
+    scene: Scene | None = None,
 ) -> ChartData:
     """The measurements behind ``poisson-rs chart``: sweeps on both scenes and the long run.
 
@@ -641,10 +642,11 @@ def run_chart(
     ``client``: a ``distributed.Client`` for the sweep's points (the long run stays here).
     ``models``: the user's own learned models, charted beside the others; each must have been
     trained for the scenes' body (ValueError otherwise: another body's exact solution would
-    score it against the wrong flow).
+    score it against the wrong flow). ``scene``: chart this rigid-body scene instead of the
+    paper's and the separatrix one (the heavy top has its own chart: ``heavytop_chart``).
     """
     notes: list[str] = []
-    scenes = [paper_scene(), separatrix_scene()]
+    scenes = [paper_scene(), separatrix_scene()] if scene is None else [scene]
     methods = default_methods(scenes[0].body, quick=quick, include_paper=include_paper, notes=notes)
     for model in models:
         system = getattr(model, "system", None)

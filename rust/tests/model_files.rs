@@ -691,8 +691,9 @@ mod loader_fuzz {
     use proptest::sample::Index;
     use proptest::test_runner::{Config, RngSeed};
 
-    use super::valid_bytes;
+    use super::{f64_tensor, i64_tensor, metadata, serialize_tensors, valid_bytes, Tensor};
     use crate::error::CoreError;
+    use crate::generating::MlpInputs;
     use crate::model::Model;
 
     fn config() -> Config {
@@ -778,6 +779,37 @@ mod loader_fuzz {
             let mut bytes = len.to_le_bytes().to_vec();
             bytes.extend(body);
             check(&bytes)?;
+        }
+
+        /// Well-formed safetensors with random declared shapes for every tensor a model file
+        /// can hold: structure constants (any rank and sizes, dimensions 0..12), polynomial
+        /// rows of any width, and MLP layers of any widths (zero included) and count. Whatever
+        /// the shapes, loading returns a model or a format error.
+        #[test]
+        fn random_tensor_shapes_never_panic(
+            algebra in prop::option::of(prop::collection::vec(0usize..12, 0..5)),
+            poly in prop::option::of((0usize..6, 0usize..13, 0i64..70)),
+            layers in prop::collection::vec((0usize..9, 0usize..9), 0..4),
+            mlp_power in 0u32..70,
+            chart in prop::sample::select(vec!["exp", "cayley"]),
+        ) {
+            let mut tensors: Vec<Tensor> = Vec::new();
+            if let Some(shape) = &algebra {
+                let n: usize = shape.iter().product();
+                // Antisymmetric-looking numbers are not needed: shape checks come first.
+                tensors.push(f64_tensor("algebra.structure_constants", shape, &vec![0.5; n]));
+            }
+            if let Some((rows, width, power)) = poly {
+                tensors.push(i64_tensor("poly.powers", &[rows, width], &vec![power; rows * width]));
+                tensors.push(f64_tensor("poly.coeffs", &[rows], &vec![1.0; rows]));
+            }
+            for (i, &(n_out, n_in)) in layers.iter().enumerate() {
+                tensors.push(f64_tensor(&format!("mlp.{i}.weight"), &[n_out, n_in],
+                                        &vec![0.1; n_out * n_in]));
+                tensors.push(f64_tensor(&format!("mlp.{i}.bias"), &[n_out], &vec![0.0; n_out]));
+            }
+            let meta = metadata(chart, (!layers.is_empty()).then_some((mlp_power, MlpInputs::Plain)));
+            check(&serialize_tensors(&tensors, Some(meta)))?;
         }
 
         /// 1–8 random edits anywhere in a valid file (header, metadata, tensor data).
