@@ -505,21 +505,25 @@ def _runnable_command(command: str, recorded: Any, name: str) -> str:
     return shlex.join(words)
 
 
-def _level_summary(rows: Sequence[dict[str, Any]], levels: Sequence[float]) -> list[str]:
-    """Per error level: the fastest method on the paper scene, the runner-up and the learned."""
+def _level_summary(
+    rows: Sequence[dict[str, Any]], levels: Sequence[float], scene: str = "paper"
+) -> list[str]:
+    """Per error level: the fastest method on ``scene``, the runner-up and the learned."""
     from .workprecision import rank_at_level
 
+    horizon = next((r["T"] for r in rows if r["scene"] == scene), 10.0)
     lines = [
-        "fastest to reach max |μ(T) − μ_exact(T)| ≤ level, paper scene, T = 10 (s per trajectory,",
+        f"fastest to reach max |μ(T) − μ_exact(T)| ≤ level, {scene} scene, T = {horizon:g} (s per "
+        "trajectory,",
         "interpolated log–log between neighbouring measured points; [cheapest measured point]):",
     ]
     for level in levels:
-        ranked = rank_at_level(rows, level)
+        ranked = rank_at_level(rows, level, scene=scene)
         if not ranked:
             lines.append(f"  {level:.0e}: no method reaches it")
             continue
         win = ranked[0]
-        measured = rank_at_level(rows, level, interpolate=False)
+        measured = rank_at_level(rows, level, scene=scene, interpolate=False)
         point = next((m for m in measured if m["method"] == win["method"]), None)
         knob = ""
         if point is not None:
@@ -624,7 +628,7 @@ def _chart(args: argparse.Namespace) -> int:
         print(f"note: {line}")
     if failed:
         print(f"failed runs (recorded, marked × in the charts): {', '.join(failed)}")
-    for line in _level_summary(data.rows, LEVELS):
+    for line in _level_summary(data.rows, LEVELS, data.scenes[0].name):
         print(line)
     print(
         f"(timings on {args.threads} rayon thread(s); an integrate() call costs "
