@@ -199,9 +199,8 @@ impl PyModel {
 
     /// Trajectories a rollout solves together in batched passes (1: one at a time).
     #[getter]
-    fn batch(&self) -> PyResult<usize> {
-        with_dim!(self.inner.dim, N => Ok(batch_size(&self.inner.generating::<N>()?)),
-            Err(dim_error(self.inner.dim)))
+    fn batch(&self) -> usize {
+        batch_size(self.inner.mlp.as_ref())
     }
 
     #[getter]

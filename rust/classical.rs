@@ -79,12 +79,20 @@ impl RigidBody {
     /// μ̇_a = ωᵢ μ_b, μ̇_b = −ωᵢ μ_a: a rotation about eᵢ by the angle −t ωᵢ.
     #[inline]
     pub fn axis_flow(&self, i: usize, t: f64, mu: &mut [f64; 3]) {
-        let (a, b) = ((i + 1) % 3, (i + 2) % 3);
-        let (s, c) = (t * mu[i] * self.inv[i]).sin_cos();
-        let (x, y) = (mu[a], mu[b]);
-        mu[a] = c * x + s * y;
-        mu[b] = c * y - s * x;
+        rotate_about(i, t * mu[i] * self.inv[i], mu);
     }
+}
+
+/// Turns the 3-vector `v` about eᵢ by the angle −`angle`: for (i, a, b) cyclic,
+/// v_a ← cos·v_a + sin·v_b, v_b ← cos·v_b − sin·v_a. Every splitting's axis flow is this
+/// rotation, with its own angle.
+#[inline]
+fn rotate_about(i: usize, angle: f64, v: &mut [f64]) {
+    let (a, b) = ((i + 1) % 3, (i + 2) % 3);
+    let (s, c) = angle.sin_cos();
+    let (x, y) = (v[a], v[b]);
+    v[a] = c * x + s * y;
+    v[b] = c * y - s * x;
 }
 
 #[inline]
@@ -327,11 +335,7 @@ impl CasimirSplitting {
     /// Exact flow for time t of ½ a μᵢ²: a rotation about eᵢ by the angle −t a μᵢ.
     #[inline]
     fn axis_flow(i: usize, a: f64, t: f64, mu: &mut [f64; 3]) {
-        let (p, q) = ((i + 1) % 3, (i + 2) % 3);
-        let (s, c) = (t * a * mu[i]).sin_cos();
-        let (x, y) = (mu[p], mu[q]);
-        mu[p] = c * x + s * y;
-        mu[q] = c * y - s * x;
+        rotate_about(i, t * a * mu[i], mu);
     }
 }
 
@@ -588,13 +592,10 @@ impl HeavyTop {
     /// Exact flow for time t of Hᵢ = Mᵢ²/(2Iᵢ): M and Γ turn about eᵢ by the same angle.
     #[inline]
     fn axis_flow(&self, i: usize, t: f64, mu: &mut [f64; 6]) {
-        let (a, b) = ((i + 1) % 3, (i + 2) % 3);
-        let (s, c) = (t * mu[i] * self.body.inv[i]).sin_cos();
-        for off in [0, 3] {
-            let (x, y) = (mu[off + a], mu[off + b]);
-            mu[off + a] = c * x + s * y;
-            mu[off + b] = c * y - s * x;
-        }
+        let angle = t * mu[i] * self.body.inv[i];
+        let (m, g) = mu.split_at_mut(3);
+        rotate_about(i, angle, m);
+        rotate_about(i, angle, g);
     }
 
     /// Exact flow for time t of the potential mgl χ·Γ: Γ fixed, M += t mgl Γ × χ.

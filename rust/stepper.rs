@@ -139,10 +139,10 @@ fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
     a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
 }
 
-/// Trajectories per batched solve for a generating function: [`BISECTION_BATCH`] for MLPs of
-/// [`BATCH_MIN_PARAMETERS`] or more, else 1 (one at a time).
-pub fn batch_size<const N: usize>(generating: &GeneratingFunction<N>) -> usize {
-    let weights = generating.mlp.as_ref().map_or(0, Mlp::n_parameters);
+/// Trajectories per batched solve for a generating function whose MLP is `mlp`:
+/// [`BISECTION_BATCH`] for MLPs of [`BATCH_MIN_PARAMETERS`] or more, else 1 (one at a time).
+pub fn batch_size(mlp: Option<&Mlp>) -> usize {
+    let weights = mlp.map_or(0, Mlp::n_parameters);
     if weights >= BATCH_MIN_PARAMETERS {
         BISECTION_BATCH
     } else {
@@ -290,7 +290,7 @@ where
     }
 
     fn batch(&self) -> usize {
-        batch_size(&self.generating)
+        batch_size(self.generating.mlp.as_ref())
     }
 
     /// The Newton solves of the batch in lockstep: each round evaluates S at the momenta still
