@@ -47,6 +47,12 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
+@functools.lru_cache(maxsize=16)
+def _decode_system(spec: str) -> LiePoissonSystem:
+    """A system from its ``to_dict()`` as canonical JSON (systems are immutable: safe to share)."""
+    return LiePoissonSystem.from_dict(json.loads(spec))
+
+
 @dataclass
 class TrainConfig:
     """Everything that determines a training run (and is recorded in the model file)."""
@@ -117,10 +123,12 @@ class TrainConfig:
         return 1 if self.taylor_order == 0 else self.taylor_order + 2
 
     def lie_system(self) -> LiePoissonSystem:
-        """The system trained for: ``system`` decoded, or the rigid body of ``inertia``."""
+        """The system trained for: ``system`` decoded, or the rigid body of ``inertia``. The
+        training loop asks for it every batch, so decoding (and the Jacobi check that comes with
+        it) happens once per distinct system."""
         if self.system is None:
             return RigidBody(tuple(self.inertia))  # type: ignore[arg-type]
-        return LiePoissonSystem.from_dict(self.system)
+        return _decode_system(json.dumps(self.system, sort_keys=True))
 
     def validate(self) -> None:
         """Raises ValueError naming the first bad setting."""
@@ -328,6 +336,12 @@ def sample_points(
 _ORBIT_TIMES = 2048
 
 
+def _system_key(cfg: TrainConfig) -> str:
+    """The configuration's system as canonical JSON: the cache key of what depends on it."""
+    spec = cfg.system if cfg.system is not None else cfg.lie_system().to_dict()
+    return json.dumps(spec, sort_keys=True)
+
+
 @functools.lru_cache(maxsize=8)
 def _orbit_pool(
     system_json: str,
@@ -336,7 +350,7 @@ def _orbit_pool(
 ) -> np.ndarray:
     """Points of the exact orbits of ``states`` at evenly spaced times in [0, horizon]:
     (n_states · _ORBIT_TIMES, dim) float64, computed once per configuration."""
-    system = LiePoissonSystem.from_dict(json.loads(system_json))
+    system = _decode_system(system_json)
     times = np.linspace(0.0, horizon, _ORBIT_TIMES)
     traj = solution(system, np.asarray(states, np.float64), times)
     return traj.reshape(-1, system.dim)
@@ -348,8 +362,7 @@ def _sample_orbits(cfg: TrainConfig, n: int, gen: torch.Generator, dtype: torch.
     offset of σ = sampling_noise·|μ|. The offset covers where Newton's p lies: within O(h²)·|μ|
     of the orbit (p ≈ μ(h/2) to first order), and the numerical trajectory's drift off it."""
     states = tuple(tuple(float(v) for v in mu) for mu in cfg.sampling_states)
-    system_json = json.dumps(cfg.lie_system().to_dict(), sort_keys=True)
-    pool = torch.as_tensor(_orbit_pool(system_json, states, cfg.sampling_horizon))
+    pool = torch.as_tensor(_orbit_pool(_system_key(cfg), states, cfg.sampling_horizon))
     idx = torch.randint(len(pool), (n,), generator=gen)
     q = pool[idx].to(dtype)
     noise = torch.randn(n, q.shape[1], generator=gen, dtype=dtype)
