@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import poisson_rs as pr
+from poisson_rs.files import atomic_write_bytes, check_output_path
 
 
 def states(n: int, seed: int = 0) -> np.ndarray:
@@ -43,6 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--chunks", type=int, default=16, help="chunks of the states (default 16)")
     p.add_argument("--json", type=Path, default=None, help="write the results here")
     args = p.parse_args(argv)
+    if args.json is not None:
+        check_output_path(args.json)  # before minutes of rollouts
 
     import dask.array as da
     from distributed import Client, LocalCluster
@@ -104,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python benches/ensemble_throughput.py " + " ".join(sys.argv[1:]),
     }
     if args.json is not None:
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        atomic_write_bytes(args.json, (json.dumps(result, indent=2) + "\n").encode())
     return 0 if same else 1
 
 

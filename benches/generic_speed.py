@@ -10,6 +10,12 @@ written for dimension 3 only). Build it once with::
     CARGO_TARGET_DIR=/tmp/old-target cargo build --release --features python --lib
 
 then run ``python benches/generic_speed.py --baseline /tmp/old-target/release/libpoisson_rs.so``.
+
+Instruction counts, which a loaded machine does not disturb: ``--profile MODEL`` runs one
+rollout of one trajectory (5,000 steps of the default model, 20,000 of taylor5-cayley) with one
+build only (``--baseline PATH`` for the earlier one, else this one), for
+``RAYON_NUM_THREADS=1 valgrind --tool=callgrind python benches/generic_speed.py --profile default``
+and ``callgrind_annotate``, summing the lines of the core's shared library.
 It prints, per model and batch, steps/s of both builds and their ratio (generic / baseline), the
 median over interleaved repeats; ``--json FILE`` writes the numbers.
 
@@ -34,9 +40,13 @@ import numpy as np
 from safetensors.numpy import save
 
 from poisson_rs import _core
+from poisson_rs.files import atomic_write_bytes, check_output_path
 from poisson_rs.taylor import taylor_terms
 
 INERTIA = (1.5, 2.0, 2.5)
+
+#: Steps of the one-trajectory rollout ``--profile`` runs, per model.
+PROFILE_STEPS = {"default": 5000, "taylor5-cayley": 20000}
 
 
 def load_baseline(path: Path) -> ModuleType:
@@ -65,13 +75,29 @@ def steps_per_second(core: ModuleType, model: object, states: np.ndarray, n_step
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--baseline", type=Path, required=True, help="the old _core shared library")
+    ap.add_argument("--baseline", type=Path, default=None, help="the old _core shared library")
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--profile",
+        choices=list(PROFILE_STEPS),
+        default=None,
+        help="one rollout of one build only, for callgrind",
+    )
     args = ap.parse_args(argv)
-    old = load_baseline(args.baseline)
+    if args.json is not None:
+        check_output_path(args.json)
     default = resources.files("poisson_rs.models").joinpath("default.safetensors").read_bytes()
     models = {"default": default, "taylor5-cayley": taylor5_bytes()}
+    if args.profile is not None:
+        core = _core if args.baseline is None else load_baseline(args.baseline)
+        model = core.Model.from_bytes(models[args.profile])
+        n = PROFILE_STEPS[args.profile]
+        core.rollout_model(model, np.array([[1.0, 1.0, 2.0]]), 0.1, n, n)
+        return 0
+    if args.baseline is None:
+        ap.error("--baseline is needed to compare the two builds")
+    old = load_baseline(args.baseline)
     rng = np.random.default_rng(0)
     rows = []
     for name, data in models.items():
@@ -105,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+        atomic_write_bytes(args.json, (json.dumps(rows, indent=1) + "\n").encode())
     return 0
 
 
