@@ -100,3 +100,10 @@ def test_a_heavy_top_scene_is_refused_where_the_tool_is_rigid_body_only(
     scene = str(SCENES / "heavy_top.toml")
     assert main([command, "--quick", "--scene", scene, "--out", str(tmp_path / "o")]) != 0
     assert "rigid-body scene" in capsys.readouterr().err
+
+
+def test_shipped_models_join_only_maps_of_their_own_body() -> None:
+    from poisson_rs.stability import default_methods
+
+    assert "learned:default" in default_methods(pr.RigidBody())
+    assert not any(k.startswith("learned:") for k in default_methods(pr.RigidBody((1, 1, 1.001))))

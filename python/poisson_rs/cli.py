@@ -721,9 +721,6 @@ def cmd_stability(args: argparse.Namespace) -> int:
         from .stability import default_methods
 
         methods = default_methods(body)
-        if body != RigidBody():
-            # The shipped learned models are the paper body's: only the user's own may join.
-            methods = {k: v for k, v in methods.items() if not k.startswith("learned:")}
         for path in args.model or ():
             model = load_model(path)  # checked here, before the map's work
             if model.system != body:

@@ -65,9 +65,14 @@ def _loader(name: str) -> Callable[[], Stepper]:
 
 
 def default_methods(body: RigidBody) -> dict[str, Callable[[], Stepper]]:
-    """Methods of the map, built lazily: the shipped learned models (but the 253k-parameter paper
-    configuration, too slow for the grid), Taylor series and classical ones."""
-    learned = {f"learned:{n}": _loader(n) for n in list_models() if n != "paper"}
+    """Methods of the map, built lazily: the shipped learned models trained for ``body`` (but the
+    253k-parameter paper configuration, too slow for the grid), Taylor series and classical ones.
+    A model of another body would be scored against the wrong flow, so it is left out."""
+    learned = {
+        f"learned:{n}": _loader(n)
+        for n in list_models()
+        if n != "paper" and load_model(n).system == body
+    }
     return {
         **learned,
         "taylor3-cayley": lambda: taylor_integrator(body, 3, "cayley"),
