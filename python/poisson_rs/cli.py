@@ -769,9 +769,9 @@ _TRAIN_HELP = {
     "inertia": "principal moments of inertia I1 I2 I3",
     "chart": "chart of the symplectic groupoid",
     "domain": "training domain of the momenta p",
-    "r_min": "inner radius of the shell domain",
-    "r_max": "outer radius of the shell domain",
-    "half_width": "half width of the cube domain",
+    "r_min": "inner radius of the shell domain (of |Gamma| in the top domain)",
+    "r_max": "outer radius of the shell domain (of |Gamma| in the top domain)",
+    "half_width": "half width of the cube domain (of M in the top domain)",
     "batch": "training points per Adam iteration",
     "iterations": "Adam iterations",
     "lr": "Adam learning rate",
@@ -864,10 +864,16 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--inputs", choices=["t,p", "homogeneous"], help="MLP ansatz")
     t.add_argument("--taylor-order", dest="taylor_order", type=int, help="exact Taylor terms K")
     t.add_argument("--mlp-power", dest="mlp_power", type=int, help="m in t^m·MLP")
-    t.add_argument("--domain", choices=["cube", "shell"])
+    t.add_argument("--domain", choices=["cube", "shell", "top"])
     t.add_argument("--r-min", dest="r_min", type=float)
     t.add_argument("--r-max", dest="r_max", type=float)
     t.add_argument("--half-width", dest="half_width", type=float)
+    t.add_argument(
+        "--weight-power",
+        dest="weight_power",
+        type=float,
+        help="divide each HJ residual by (1 + |p|^2)^(q/2) (0: unweighted)",
+    )
     t.add_argument("--h-max", dest="h_max", type=float, help="t is sampled in [0, h_max]")
     t.add_argument("--batch", type=int)
     t.add_argument("--points", dest="n_points", type=int, help="fixed point pool (0: resample)")

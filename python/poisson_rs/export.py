@@ -213,8 +213,10 @@ def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
         raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
     meta["widths"] = tuple(widths)
     domain = _json(raw, "domain")
-    if not isinstance(domain, dict) or domain.get("kind") not in ("cube", "shell", "all"):
-        raise ValueError(f"metadata 'domain' must be a cube, a shell or all: {raw['domain']!r}")
+    if not isinstance(domain, dict) or domain.get("kind") not in ("cube", "shell", "top", "all"):
+        raise ValueError(
+            f"metadata 'domain' must be a cube, a shell, a top or all: {raw['domain']!r}"
+        )
     meta["domain"] = domain
     for key in ("final_loss", "seed", "train_seconds"):
         if key in raw:

@@ -26,7 +26,14 @@ from typing import Any
 
 import numpy as np
 
-from .integrators import Stepper, classical, integrate, taylor_integrator
+from .integrators import (
+    Stepper,
+    classical,
+    integrate,
+    list_models,
+    load_model,
+    taylor_integrator,
+)
 from .reference import reference_solution
 from .scenes import load_scene
 from .systems import LiePoissonSystem
@@ -46,10 +53,23 @@ ORDERS = (1, 3, 5, 7)
 
 
 def _methods(system: LiePoissonSystem) -> dict[str, tuple[str, Stepper]]:
+    """Taylor-exp K = 1…7, the classical methods, and the shipped learned models trained for
+    ``system`` (a model of another system would be scored against the wrong flow)."""
     out = {f"taylor{k}-exp": ("taylor", taylor_integrator(system, k, "exp")) for k in ORDERS}
     for name in ("rk4", "midpoint", "splitting"):
         out[name] = ("classical", classical(system, name))
+    for name in list_models():
+        model = load_model(name)
+        if model.system == system:
+            out[f"learned:{name}"] = ("learned", model)
     return out
+
+
+def _steps(stepper: Stepper, counts: tuple[int, ...], T: float) -> tuple[int, ...]:
+    """The step counts a method runs: all of them, but for a learned model only those whose
+    h = T/n it was trained for (h ≤ h_max)."""
+    h_max = getattr(stepper, "h_max", math.inf)
+    return tuple(n for n in counts if T / n <= h_max * (1 + 1e-12))
 
 
 def _timed(stepper: Stepper, mu0: np.ndarray, h: float, n: int, every: int) -> tuple[Any, float]:
@@ -137,7 +157,7 @@ def run(
         ref = reference_solution(system, mu0, [T])[:, 0]
         log(f"{name}: reference to T = {T:g} in {time.perf_counter() - t0:.0f} s")
         for method, (family, stepper) in _methods(system).items():
-            for n in STEPS[name]:
+            for n in _steps(stepper, STEPS[name], T):
                 # Energy and Casimirs sampled on ≤ ~2000 records (every step at T = 10).
                 every = max(1, n // 2000)
                 (traj, info), sec = _timed(stepper, mu0, T / n, n, every)

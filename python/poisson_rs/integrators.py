@@ -393,15 +393,16 @@ def _check_domain(domain: Mapping[str, Any]) -> dict[str, Any]:
         return float(v)
 
     kind = domain.get("kind")
-    if kind == "shell":
+    if kind not in ("shell", "cube", "top", "all"):
+        raise ValueError(
+            f"metadata 'domain' must be a cube, a shell, a top or all: {dict(domain)!r}"
+        )
+    if kind in ("shell", "top"):
         r_min, r_max = number("r_min"), number("r_max")
         if not 0 <= r_min < r_max:
             raise ValueError(f"metadata 'domain' needs 0 <= r_min < r_max: {dict(domain)!r}")
-    elif kind == "cube":
-        if not number("half_width") > 0:
-            raise ValueError(f"metadata 'domain' needs half_width > 0: {dict(domain)!r}")
-    elif kind != "all":
-        raise ValueError(f"metadata 'domain' must be a cube, a shell or all: {dict(domain)!r}")
+    if kind in ("cube", "top") and not number("half_width") > 0:
+        raise ValueError(f"metadata 'domain' needs half_width > 0: {dict(domain)!r}")
     return dict(domain)
 
 
@@ -414,13 +415,14 @@ def count_out_of_domain(domain: Mapping[str, Any] | None, traj: np.ndarray) -> n
     """States of ``traj`` (n, records, dim) outside a training ``domain``, per trajectory: (n,)
     int64.
 
-    Shell: |μ| outside [r_min, r_max]; cube: some |μᵢ| > half_width; "all" or None: none.
+    Shell: |μ| outside [r_min, r_max]; cube: some |μᵢ| > half_width; top (μ = (M, Γ)): some
+    |Mᵢ| > half_width or |Γ| outside [r_min, r_max]; "all" or None: none.
     NaN states (after a Newton failure) compare false and are not counted. Works through the
     trajectory in blocks, so its memory does not grow with the output.
     """
     kind = None if domain is None else domain.get("kind")
     counts = np.zeros(traj.shape[0], dtype=np.int64)
-    if domain is None or kind not in ("shell", "cube") or traj.size == 0:
+    if domain is None or kind not in ("shell", "cube", "top") or traj.size == 0:
         return counts
     rows = max(1, _DOMAIN_BLOCK // max(1, traj.shape[1]))
     for start in range(0, traj.shape[0], rows):
@@ -428,6 +430,10 @@ def count_out_of_domain(domain: Mapping[str, Any] | None, traj: np.ndarray) -> n
         if kind == "shell":
             r2 = np.einsum("nrd,nrd->nr", block, block)
             outside = (r2 < domain["r_min"] ** 2) | (r2 > domain["r_max"] ** 2)
+        elif kind == "top":
+            g2 = np.einsum("nrd,nrd->nr", block[..., 3:], block[..., 3:])
+            outside = (np.abs(block[..., :3]) > domain["half_width"]).any(axis=-1)
+            outside |= (g2 < domain["r_min"] ** 2) | (g2 > domain["r_max"] ** 2)
         else:
             outside = (np.abs(block) > domain["half_width"]).any(axis=-1)
         counts[start : start + rows] = outside.sum(axis=1, dtype=np.int64)
@@ -437,6 +443,11 @@ def count_out_of_domain(domain: Mapping[str, Any] | None, traj: np.ndarray) -> n
 def _describe_domain(domain: Mapping[str, Any]) -> str:
     if domain["kind"] == "shell":
         return f"the shell {domain['r_min']:g} <= |mu| <= {domain['r_max']:g}"
+    if domain["kind"] == "top":
+        return (
+            f"|M_i| <= {domain['half_width']:g} and "
+            f"{domain['r_min']:g} <= |Gamma| <= {domain['r_max']:g}"
+        )
     return f"the cube |mu_i| <= {domain['half_width']:g}"
 
 

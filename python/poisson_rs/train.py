@@ -71,9 +71,18 @@ class TrainConfig:
     mlp_power: int | None = None
     """m in t^m·MLP; default K + 2 for K ≥ 1 (S_{K+1} vanishes for odd K in the Cayley chart)."""
     domain: str = "shell"
+    """Where training points p lie (see ``DOMAINS``): "shell" r_min ≤ |p| ≤ r_max, "cube"
+    |pᵢ| ≤ half_width, or "top" for systems on se(3)* (p = (M, Γ)): |Mᵢ| ≤ half_width and
+    r_min ≤ |Γ| ≤ r_max. |Γ|² is a Casimir, so a top's orbits keep |Γ| = 1; the cube of R⁶
+    would spend most of its points where no orbit goes."""
     r_min: float = 1.0
     r_max: float = 4.0
     half_width: float = 3.0
+    weight_power: float = 0.0
+    """q ≥ 0: each HJ residual is divided by (1 + |p|²)^(q/2) in the loss. A Taylor base's residual
+    grows with |p| (for the heavy top's K = 3 about 170x from |M| ≈ 0.5 to |M| ≈ 5), so an
+    unweighted loss spends the fit on the domain's far corners, where few orbits go; 0: none
+    (the homogeneous ansatz already divides by |p|²)."""
     h_max: float = 0.1
     batch: int = 2048
     n_points: int | None = None
@@ -145,12 +154,16 @@ class TrainConfig:
                 "inputs 'homogeneous' builds in the scaling of a quadratic Hamiltonian; "
                 f"{system!r} is not homogeneous quadratic: use inputs 't,p'"
             )
-        if self.domain not in ("cube", "shell"):
-            raise ValueError(f"domain must be 'cube' or 'shell', got {self.domain!r}")
-        if self.domain == "shell" and not 0 <= self.r_min < self.r_max:
+        if self.domain not in DOMAINS:
+            raise ValueError(f"domain must be one of {DOMAINS}, got {self.domain!r}")
+        if self.domain in ("shell", "top") and not 0 <= self.r_min < self.r_max:
             raise ValueError(f"need 0 <= r_min < r_max, got {self.r_min}, {self.r_max}")
-        if self.domain == "cube" and not self.half_width > 0:
+        if self.domain in ("cube", "top") and not self.half_width > 0:
             raise ValueError(f"half_width must be > 0, got {self.half_width}")
+        if self.domain == "top" and system.dim != 6:
+            raise ValueError(
+                f"domain 'top' is (M, Γ) in se(3)*, 6 coordinates; {system!r} has {system.dim}"
+            )
         self._validate_numbers()
         checks = [
             ("h_max", self.h_max > 0),
@@ -165,6 +178,7 @@ class TrainConfig:
             ("data_weight", math.isfinite(self.data_weight) and self.data_weight >= 0),
             ("data_points", _is_int(self.data_points) and self.data_points >= 0),
             ("data_h", self.data_h is None or (math.isfinite(self.data_h) and self.data_h > 0)),
+            ("weight_power", 0 <= self.weight_power <= 16),
         ]
         for name, ok in checks:
             if not ok:
@@ -200,6 +214,7 @@ class TrainConfig:
             "r_min": self.r_min,
             "r_max": self.r_max,
             "half_width": self.half_width,
+            "weight_power": self.weight_power,
         }
         for name, v in reals.items():
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
@@ -255,9 +270,28 @@ class TrainConfig:
     def domain_dict(self) -> dict[str, Any]:
         if self.domain == "cube":
             return {"kind": "cube", "half_width": self.half_width, "t_max": self.h_max}
+        if self.domain == "top":
+            return {
+                "kind": "top",
+                "half_width": self.half_width,
+                "r_min": self.r_min,
+                "r_max": self.r_max,
+                "t_max": self.h_max,
+            }
         return {"kind": "shell", "r_min": self.r_min, "r_max": self.r_max, "t_max": self.h_max}
 
+    def input_radius(self) -> float:
+        """A bound on |p| over the domain: the MLP sees p divided by it (inputs of order one)."""
+        if self.domain == "cube":
+            return self.half_width * math.sqrt(self.lie_system().dim)
+        if self.domain == "top":
+            # M and Γ scaled alike, so that each of the cube's and the shell's extents is O(1).
+            return max(self.half_width, self.r_max)
+        return self.r_max
 
+
+#: Values of ``TrainConfig.domain``.
+DOMAINS = ("cube", "shell", "top")
 #: Values of ``TrainConfig.sampling``.
 SAMPLING = ("uniform", "scene")
 #: Values of ``TrainConfig.init``.
@@ -372,12 +406,18 @@ def _sample_orbits(cfg: TrainConfig, n: int, gen: torch.Generator, dtype: torch.
 def _sample_domain(
     cfg: TrainConfig, n: int, gen: torch.Generator, dtype: torch.dtype, device: str
 ) -> tuple[Tensor, Tensor]:
-    """n points uniform in the training domain: t (n,) in [0, h_max], p (n, dim) in the cube or
-    shell of Rⁿ."""
+    """n points uniform in the training domain: t (n,) in [0, h_max], p (n, dim) in the cube,
+    the shell or the top domain (``TrainConfig.domain``)."""
     dim = cfg.lie_system().dim
     t = torch.rand(n, generator=gen, dtype=dtype) * cfg.h_max
     if cfg.domain == "cube":
         p = (2.0 * torch.rand(n, dim, generator=gen, dtype=dtype) - 1.0) * cfg.half_width
+    elif cfg.domain == "top":
+        m = (2.0 * torch.rand(n, 3, generator=gen, dtype=dtype) - 1.0) * cfg.half_width
+        d = torch.randn(n, 3, generator=gen, dtype=dtype)
+        # |Γ| uniform in [r_min, r_max] (not in volume): the shell is thin about |Γ| = 1.
+        r = cfg.r_min + torch.rand(n, 1, generator=gen, dtype=dtype) * (cfg.r_max - cfg.r_min)
+        p = torch.cat([m, d / d.norm(dim=1, keepdim=True) * r], 1)
     else:
         # Uniform in volume: rⁿ uniform between r_minⁿ and r_maxⁿ.
         d = torch.randn(n, dim, generator=gen, dtype=dtype)
@@ -434,7 +474,7 @@ def build_model(cfg: TrainConfig) -> GeneratingFunction:
         if cfg.taylor_order
         else (np.zeros((0, 1 + dim), np.int64), np.zeros(0))
     )
-    r_scale = cfg.half_width * math.sqrt(dim) if cfg.domain == "cube" else cfg.r_max
+    r_scale = cfg.input_radius()
     homogeneous = cfg.inputs == "homogeneous"
     # Output scale: RMS over the domain of S_m (the term the MLP replaces first), per unit
     # |p|^(m+1) for the homogeneous ansatz.
@@ -471,10 +511,14 @@ def _loss(
     s_fn: GeneratingFunction, cfg: TrainConfig, t: Tensor, p: Tensor, create_graph: bool
 ) -> Tensor:
     """Mean squared HJ residual (eq. HJML); for the homogeneous ansatz each residual is divided by
-    |p|², which makes every point weigh as its image on the unit sphere."""
+    |p|², which makes every point weigh as its image on the unit sphere, and by
+    (1 + |p|²)^(q/2) for ``cfg.weight_power`` q > 0."""
     st, sp = hj_derivatives(s_fn, t, p, method=cfg.derivatives, create_graph=create_graph)
     with torch.set_grad_enabled(create_graph):
-        return loss_from_derivatives(s_fn, _loss_system(cfg), st, sp, p)
+        weight = None
+        if cfg.weight_power:
+            weight = (1.0 + (p * p).sum(1)) ** (-0.5 * cfg.weight_power)
+        return loss_from_derivatives(s_fn, _loss_system(cfg), st, sp, p, weight=weight)
 
 
 def _loss_system(cfg: TrainConfig) -> Sequence[float] | LiePoissonSystem:
@@ -489,13 +533,18 @@ def loss_from_derivatives(
     st: Tensor,
     sp: Tensor,
     p: Tensor,
+    *,
+    weight: Tensor | None = None,
 ) -> Tensor:
     """The mean squared HJ residual from ∂S/∂t (B,) and ∂S/∂p (B, n) however they were taken,
-    at momenta p (B, n); for the homogeneous ansatz each residual is divided by |p|².
-    ``inertia`` is the system (or, for a rigid body, its moments of inertia)."""
+    at momenta p (B, n); for the homogeneous ansatz each residual is divided by |p|², and each is
+    multiplied by ``weight`` (B,) when given. ``inertia`` is the system (or, for a rigid body,
+    its moments of inertia)."""
     r = _residual(s_fn, inertia, st, sp, p)
     if s_fn.inputs == "homogeneous":
         r = r / (p * p).sum(1)
+    if weight is not None:
+        r = r * weight
     return r.pow(2).mean()
 
 
