@@ -6,7 +6,9 @@ measures, against DOP853 (rtol = atol = 1e-13) and for the model and the same Ta
 
 - the one-step error at h on 64 held-out states (M uniform in [−1.2, 1.2]³, Γ a random unit
   vector; seed 123), median and max of |μ₁ − μ(h)|;
-- the error at T = 10, step h, on the first 8 of them: median and max of |μ(T) − μ_ref(T)| / |μ₀|;
+- the error at T = 10, step h, on 8 held-out states in the domain (the first of seed 123 whose
+  exact orbit keeps |Mᵢ| ≤ half_width; with the cube domain, the first 8): median and max of
+  |μ(T) − μ_ref(T)| / |μ₀|;
 - how well the network learned the missing part of S at t = h: the RMS error of S and of ∂S/∂p
   (all of it, and the part across the Casimir gradients (0, Γ) and (Γ, M), which moves the step)
   relative to the Taylor terms' own, with Taylor K = 13 standing in for the exact S.
@@ -20,7 +22,11 @@ exact orbits of ``--train-states`` states (seed 7, drawn like the held-out ones;
     python benches/heavy_top_learned.py --domain cube --sampling orbits --iterations 3000
     python benches/heavy_top_learned.py --domain top --widths 32 32 --iterations 6000 --batch 2048
 
-``--out`` keeps the model file; ``--json`` appends the row to a JSON-lines file.
+``--out`` keeps the model file; ``--model`` measures a model file (a shipped model's name
+included) instead of training; ``--json`` appends the row to a JSON-lines file. The shipped
+``heavy_top_h05``, trained by ``poisson-rs train`` (the command is in its file), measures with
+
+    python benches/heavy_top_learned.py --model heavy_top_h05 --taylor-order 1
 """
 
 from __future__ import annotations
@@ -49,6 +55,18 @@ def states(seed: int, n: int) -> np.ndarray:
     m = rng.uniform(-1.2, 1.2, (n, 3))
     g = rng.normal(size=(n, 3))
     return np.hstack([m, g / np.linalg.norm(g, axis=1, keepdims=True)])
+
+
+def states_inside(seed: int, n: int, half_width: float) -> np.ndarray:
+    """The first n of :func:`states` (seed) whose exact orbit keeps |Mᵢ| ≤ half_width up to
+    T = 10 (checked at 201 times): held-out states in a top domain (|Γ| = 1 on every orbit)."""
+    top = pr.HeavyTop()
+    cand = states(seed, 8 * n)
+    orbits = pr.reference_solution(top, cand, np.linspace(0.0, T, 201))
+    inside = np.abs(orbits[..., :3]).max(axis=(1, 2)) <= half_width
+    if inside.sum() < n:
+        raise ValueError(f"fewer than {n} of {len(cand)} orbits stay in |M_i| <= {half_width}")
+    return cand[inside][:n]
 
 
 def fit_quality(model: pr.LearnedIntegrator, cfg: TrainConfig, h: float) -> dict[str, float]:
@@ -116,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--weight-power", type=float, default=0.0, help="residual / (1+|p|²)^(q/2)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None, help="keep the model file here")
+    ap.add_argument("--model", default=None, help="measure this model file or name; no training")
     ap.add_argument("--json", type=Path, default=None, help="append the row (JSON lines)")
     args = ap.parse_args(argv)
     for path in (args.out, args.json):
@@ -151,30 +170,39 @@ def main(argv: list[str] | None = None) -> int:
         seed=args.seed,
         **scene,
     )
-    t0 = time.perf_counter()
-    result = train(cfg, progress=False)
-    seconds = time.perf_counter() - t0
     row: dict[str, object] = {
-        **{k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-        "train_seconds": round(seconds, 1),
-        "validation_rms": result.validation_rms,
-        "baseline_rms": result.baseline_rms,
+        k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
     }
     with tempfile.TemporaryDirectory() as tmp:
-        path = args.out or Path(tmp) / "model.safetensors"
-        save_result(result, path, name="heavy_top_learned", command=" ".join(sys.argv))
-        model = pr.load_model(path)
+        if args.model is None:
+            t0 = time.perf_counter()
+            result = train(cfg, progress=False)
+            row["train_seconds"] = round(time.perf_counter() - t0, 1)
+            row["validation_rms"] = result.validation_rms
+            row["baseline_rms"] = result.baseline_rms
+            path = args.out or Path(tmp) / "model.safetensors"
+            save_result(result, path, name="heavy_top_learned", command=" ".join(sys.argv))
+            model = pr.load_model(path)
+        else:
+            model = pr.load_model(args.model)
+            row["train_seconds"] = model.metadata.get("train_seconds")
+            row["parameters"] = model.n_parameters
         base = pr.taylor_integrator(top, args.order)
         mu0 = states(123, 64)
         ref_h = pr.reference_solution(top, mu0, np.array([0.0, args.h]))[:, -1]
-        ref_t = pr.reference_solution(top, mu0[:8], np.array([0.0, T]))[:, -1]
-        norm = np.linalg.norm(mu0[:8], axis=1)
+        held = (
+            states_inside(123, 8, model.domain["half_width"])
+            if model.domain["kind"] == "top"
+            else mu0[:8]
+        )
+        ref_t = pr.reference_solution(top, held, np.array([0.0, T]))[:, -1]
+        norm = np.linalg.norm(held, axis=1)
         n = round(T / args.h)
         for name, stepper in (("learned", model), ("taylor", base)):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # orbits may leave the domain
                 one = np.linalg.norm(pr.integrate(stepper, mu0, args.h, 1)[:, -1] - ref_h, axis=1)
-                end = pr.integrate(stepper, mu0[:8], args.h, n)[:, -1]
+                end = pr.integrate(stepper, held, args.h, n)[:, -1]
             err = np.linalg.norm(end - ref_t, axis=1) / norm
             row[f"one_step_median_{name}"] = float(np.median(one))
             row[f"one_step_max_{name}"] = float(one.max())
