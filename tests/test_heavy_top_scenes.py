@@ -27,14 +27,21 @@ def top_scene(**changes: object) -> dict[str, object]:
     return data
 
 
-@pytest.mark.parametrize(("name", "n"), [("heavy_top", 6), ("heavy_top_long", 3)])
-def test_heavy_top_scenes_load(name: str, n: int) -> None:
+@pytest.mark.parametrize(
+    ("name", "n", "targets"),
+    [
+        ("heavy_top", 6, (1e-3, 1e-6, 1e-9)),
+        ("heavy_top_long", 3, (1e-3, 1e-6, 1e-9)),
+        ("heavy_top_learned", 8, (1e-2, 1e-3, 1e-6)),
+    ],
+)
+def test_heavy_top_scenes_load(name: str, n: int, targets: tuple[float, ...]) -> None:
     scene = load_scene(SCENES / f"{name}.toml")
     assert scene.lie_system == pr.HeavyTop((1.0, 1.5, 2.0), 0.981, (0.0, 0.0, 1.0))
     mu0 = scene.states()
     assert mu0.shape == (n, 6)
     np.testing.assert_allclose(np.linalg.norm(mu0[:, 3:], axis=1), 1.0, rtol=1e-15)
-    assert scene.select is not None and scene.select.targets == (1e-3, 1e-6, 1e-9)
+    assert scene.select is not None and scene.select.targets == targets
     with pytest.raises(ValueError, match="needs a rigid-body scene"):
         _ = scene.body
 
@@ -94,3 +101,16 @@ def test_cli_select_prints_the_table(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert "no candidate meets 1e-17 at T = 0.5; best was" in capsys.readouterr().out
     path.write_text("[system]\nkind = 3\n")
     assert main(["select", str(path)]) == 2
+
+
+def test_heavy_top_charts_take_the_learned_model_of_their_system_only() -> None:
+    from poisson_rs.heavytop_chart import _methods, _steps
+
+    top = pr.HeavyTop()
+    methods = _methods(top)
+    assert methods["learned:heavy_top_h05"][0] == "learned"
+    assert not any(k.startswith("learned:") for k in _methods(pr.HeavyTop(mgl=0.5)))
+    model = methods["learned:heavy_top_h05"][1]
+    # h = 10/n: the model runs only at steps it was trained for (h <= 0.5); others at all.
+    assert _steps(model, (10, 20, 40), 10.0) == (20, 40)
+    assert _steps(methods["rk4"][1], (10, 20, 40), 10.0) == (10, 20, 40)

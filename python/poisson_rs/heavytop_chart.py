@@ -1,13 +1,15 @@
 """Work–precision for the heavy top: error, energy error and Casimir drift against measured cost.
 
-The scenes are those of ``scenes/heavy_top.toml`` (six states to T = 10) and
-``scenes/heavy_top_long.toml`` (three states to T = 1000). Every method runs behind the same
+The scenes are those of ``scenes/heavy_top.toml`` (six states to T = 10),
+``scenes/heavy_top_long.toml`` (three states to T = 1000) and ``scenes/heavy_top_learned.toml``
+(eight held-out states in the shipped model's domain, to T = 10). Every method runs behind the same
 :func:`~poisson_rs.integrate`; one row per method and step (or DOP853 tolerance) records
 
 - ``error_T``: max over states of |μ(T) − μ_ref(T)| / |μ₀| (μ_ref: DOP853, rtol = atol = 1e-13);
 - ``max_rel_dH``: max over states and recorded times of |H − H₀| / |H₀|;
 - ``max_dC``: max over states, recorded times and the Casimirs |Γ|², M·Γ of |C − C₀| / |μ₀|²;
-- ``seconds_per_traj``: best wall time of ``integrate`` on all the states, over the state count.
+- ``seconds_per_traj``: best wall time of ``integrate`` on all the states, over the state count;
+- ``extrapolated``: a learned model's run left its training domain (drawn with open markers).
 
 Rows use the keys of :mod:`poisson_rs.workprecision` so :func:`~poisson_rs.charts.
 work_precision_figure` draws them. Run ``python -m poisson_rs.heavytop_chart --out docs``.
@@ -42,13 +44,20 @@ Row = dict[str, Any]
 #: Where the scene files are (run from the repository root).
 SCENES = Path("scenes")
 #: Step counts per scene (coarse to fine): h = 1 … 1/256 at T = 10, h = 1 … 1/16 at T = 1000.
-STEPS = {"heavy_top": tuple(10 * 2**k for k in range(9)), "heavy_top_long": (1000, 4000, 16000)}
+STEPS = {
+    "heavy_top": tuple(10 * 2**k for k in range(9)),
+    "heavy_top_long": (1000, 4000, 16000),
+    "heavy_top_learned": tuple(10 * 2**k for k in range(9)),
+}
 DOP853_TOLERANCES = {
     "heavy_top": tuple(10.0**-k for k in range(4, 12)),
     "heavy_top_long": (1e-6, 1e-9),
+    "heavy_top_learned": tuple(10.0**-k for k in range(4, 12)),
 }
 #: DOP853's output spacing (its h only samples the output).
-DOP853_SPACING = {"heavy_top": 0.1, "heavy_top_long": 1.0}
+DOP853_SPACING = {"heavy_top": 0.1, "heavy_top_long": 1.0, "heavy_top_learned": 0.1}
+#: Every scene, in the order they run.
+SCENE_NAMES = ("heavy_top", "heavy_top_long", "heavy_top_learned")
 ORDERS = (1, 3, 5, 7)
 
 
@@ -125,7 +134,8 @@ def _row(
         "max_d_gamma2": None,
         "max_d_m_dot_gamma": None,
         "failed": failed,
-        "extrapolated": False,
+        # Recorded states outside a learned model's training domain (none for other methods).
+        "extrapolated": bool(info.out_of_domain.any()),
         "seconds_per_traj": seconds / len(mu0),
         "seconds": seconds,
     }
@@ -146,7 +156,7 @@ def _row(
 
 
 def run(
-    scenes: tuple[str, ...] = ("heavy_top", "heavy_top_long"), *, log: Callable[[str], None] = print
+    scenes: tuple[str, ...] = SCENE_NAMES, *, log: Callable[[str], None] = print
 ) -> list[Row]:
     """Every method and step on each scene; rows as documented in the module docstring."""
     rows: list[Row] = []
@@ -222,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m poisson_rs.heavytop_chart", description=__doc__)
     p.add_argument("--out", default="out/heavy_top", help="output folder")
     p.add_argument("--threads", type=int, default=1, help="rayon threads (default 1)")
-    p.add_argument("--short", action="store_true", help="the T = 10 scene only")
+    p.add_argument("--short", action="store_true", help="the T = 10 scenes only")
     p.add_argument("--replot", metavar="JSON", help="redraw the charts from saved rows")
     args = p.parse_args(argv)
     if args.replot is not None:
@@ -236,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    rows = run(("heavy_top",) if args.short else ("heavy_top", "heavy_top_long"))
+    rows = run(("heavy_top", "heavy_top_learned") if args.short else SCENE_NAMES)
     write_rows(rows, out / "heavy_top_workprecision.csv")
     for path in figures(rows, out):
         print(f"wrote {path}")
