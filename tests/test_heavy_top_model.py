@@ -6,10 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
+from conftest import assert_step_and_derivatives_match_torch
 
 import poisson_rs as pr
-from poisson_rs.generating import derivatives
 
 NAME = "heavy_top_h05"
 TOP = pr.HeavyTop()
@@ -67,15 +66,7 @@ def test_ten_times_below_its_taylor_terms_on_held_out_states(
 def test_rust_and_torch_step_maps_agree(model: pr.LearnedIntegrator) -> None:
     mu = held_out(7, 16)
     for h in (0.5, 0.2):
-        rust = pr.integrate(model, mu, h, 1)[:, 1]
-        torch_out = model.torch_step(torch.as_tensor(mu), h).numpy()
-        np.testing.assert_allclose(rust, torch_out, rtol=0, atol=1e-11)
-    _, g, hs = model.derivatives(0.5, mu)
-    _, gt, ht = derivatives(
-        model.generating, torch.full((16,), 0.5, dtype=torch.float64), torch.as_tensor(mu)
-    )
-    np.testing.assert_allclose(g, gt.numpy(), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(hs, ht.numpy(), rtol=1e-11, atol=1e-11)
+        assert_step_and_derivatives_match_torch(model, mu, h)
 
 
 def test_casimirs_are_kept_to_round_off(model: pr.LearnedIntegrator) -> None:

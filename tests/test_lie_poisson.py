@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import assert_step_and_derivatives_match_torch
 
 import poisson_rs as pr
 from poisson_rs.export import save_model
@@ -133,18 +134,7 @@ def test_heavy_top_rust_and_torch_step_maps_agree(seed: int, tmp_path: Path) -> 
     assert model.system == TOP and model.dim == 6
     rng = np.random.default_rng(100 + seed)
     mu = rng.uniform(-1.5, 1.5, size=(16, 6))
-    rust = pr.integrate(model, mu, 0.1, 1)[:, 1]
-    torch_out = model.torch_step(torch.as_tensor(mu), 0.1).numpy()
-    np.testing.assert_allclose(rust, torch_out, rtol=0, atol=1e-11)
-    # Derivatives of S from the Rust core's jets against torch autograd.
-    from poisson_rs.generating import derivatives
-
-    _, g, hs = model.derivatives(0.1, mu)
-    _, gt, ht = derivatives(
-        model.generating, torch.full((16,), 0.1, dtype=torch.float64), torch.as_tensor(mu)
-    )
-    np.testing.assert_allclose(g, gt.numpy(), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(hs, ht.numpy(), rtol=1e-11, atol=1e-11)
+    assert_step_and_derivatives_match_torch(model, mu, 0.1)
 
 
 def test_learned_model_records_its_system(tmp_path: Path) -> None:

@@ -155,9 +155,7 @@ def _row(
     return row
 
 
-def run(
-    scenes: tuple[str, ...] = SCENE_NAMES, *, log: Callable[[str], None] = print
-) -> list[Row]:
+def run(scenes: tuple[str, ...] = SCENE_NAMES, *, log: Callable[[str], None] = print) -> list[Row]:
     """Every method and step on each scene; rows as documented in the module docstring."""
     rows: list[Row] = []
     for name in scenes:
