@@ -32,8 +32,7 @@ from .integrators import (
     Stepper,
     classical,
     integrate,
-    list_models,
-    load_model,
+    shipped_models,
     taylor_integrator,
 )
 from .reference import reference_solution
@@ -67,10 +66,8 @@ def _methods(system: LiePoissonSystem) -> dict[str, tuple[str, Stepper]]:
     out = {f"taylor{k}-exp": ("taylor", taylor_integrator(system, k, "exp")) for k in ORDERS}
     for name in ("rk4", "midpoint", "splitting"):
         out[name] = ("classical", classical(system, name))
-    for name in list_models():
-        model = load_model(name)
-        if model.system == system:
-            out[f"learned:{name}"] = ("learned", model)
+    for name, model in shipped_models(system).items():
+        out[f"learned:{name}"] = ("learned", model)
     return out
 
 

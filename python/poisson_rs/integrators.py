@@ -309,6 +309,13 @@ def list_models() -> list[str]:
     return sorted(n.removesuffix(".safetensors") for n in names)
 
 
+def shipped_models(system: LiePoissonSystem) -> dict[str, LearnedIntegrator]:
+    """The shipped models trained for ``system``, by name (a model of another system would be
+    scored against the wrong flow)."""
+    models = {name: load_model(name) for name in list_models()}
+    return {name: m for name, m in models.items() if m.system == system}
+
+
 def load_model(
     path: str | os.PathLike[str] | None = None,
     *,

@@ -21,8 +21,8 @@ from .integrators import (
     Stepper,
     classical,
     integrate,
-    list_models,
     load_model,
+    shipped_models,
     taylor_integrator,
 )
 from .reference import RigidBody, exact_solution
@@ -68,11 +68,7 @@ def default_methods(body: RigidBody) -> dict[str, Callable[[], Stepper]]:
     """Methods of the map, built lazily: the shipped learned models trained for ``body`` (but the
     253k-parameter paper configuration, too slow for the grid), Taylor series and classical ones.
     A model of another body would be scored against the wrong flow, so it is left out."""
-    learned = {
-        f"learned:{n}": _loader(n)
-        for n in list_models()
-        if n != "paper" and load_model(n).system == body
-    }
+    learned = {f"learned:{n}": _loader(n) for n in shipped_models(body) if n != "paper"}
     return {
         **learned,
         "taylor3-cayley": lambda: taylor_integrator(body, 3, "cayley"),
