@@ -12,6 +12,19 @@ from poisson_rs.integrators import _check_domain, count_out_of_domain
 from poisson_rs.train import TrainConfig, _loss, _sample_domain, build_model, hj_residual
 
 TOP = pr.HeavyTop()
+
+
+def _so3_squared() -> pr.LiePoissonSystem:
+    """so(3) ⊕ so(3) with H = |μ|²/2: a 6-dimensional Lie–Poisson system that is not se(3)*."""
+    c = np.zeros((6, 6, 6))
+    so3 = pr.LieAlgebra.so3().c
+    c[:3, :3, :3] = so3
+    c[3:, 3:, 3:] = so3
+    h = pr.Polynomial({tuple(2 * int(i == j) for j in range(6)): 0.5 for i in range(6)})
+    return pr.LiePoissonSystem(pr.LieAlgebra(c), h)
+
+
+SO3_SQUARED = _so3_squared()
 DOMAIN = {"kind": "top", "half_width": 2.0, "r_min": 0.9, "r_max": 1.1}
 
 
@@ -57,6 +70,8 @@ def test_top_inputs_are_scaled_by_the_larger_extent() -> None:
     ("changes", "match"),
     [
         ({"system": None}, "domain 'top' is"),  # the rigid body: 3 coordinates
+        # Six coordinates, but not se(3)*: so(3) ⊕ so(3) has no (M, Γ) to sample.
+        ({"system": SO3_SQUARED.to_dict(), "chart": "exp"}, "not on se\\(3\\)"),
         ({"r_min": 1.1, "r_max": 0.9}, "r_min < r_max"),
         ({"half_width": 0.0}, "half_width"),
         ({"domain": "ball"}, "domain must be one of"),

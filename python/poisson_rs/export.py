@@ -39,6 +39,9 @@ FORMAT = "poisson_rs.generating/1"
 PACKAGE_VERSION = "0.1.0"
 _REQUIRED = ("format", "chart", "mlp_power", "widths", "system", "h_max", "domain")
 
+#: Kinds of training domain a model file may record ("all": no domain, e.g. a Taylor model).
+DOMAIN_KINDS = ("cube", "shell", "top", "all")
+
 
 def resolve_system(
     system: LiePoissonSystem | None, inertia: Sequence[float] | None
@@ -213,7 +216,7 @@ def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
         raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
     meta["widths"] = tuple(widths)
     domain = _json(raw, "domain")
-    if not isinstance(domain, dict) or domain.get("kind") not in ("cube", "shell", "top", "all"):
+    if not isinstance(domain, dict) or domain.get("kind") not in DOMAIN_KINDS:
         raise ValueError(
             f"metadata 'domain' must be a cube, a shell, a top or all: {raw['domain']!r}"
         )

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from . import _core
-from .export import load_generating, model_bytes, parse_metadata
+from .export import DOMAIN_KINDS, load_generating, model_bytes, parse_metadata
 from .files import check_input_file
 from .groupoid import sou
 from .systems import LiePoissonSystem, RigidBody
@@ -400,7 +400,7 @@ def _check_domain(domain: Mapping[str, Any]) -> dict[str, Any]:
         return float(v)
 
     kind = domain.get("kind")
-    if kind not in ("shell", "cube", "top", "all"):
+    if kind not in DOMAIN_KINDS:
         raise ValueError(
             f"metadata 'domain' must be a cube, a shell, a top or all: {dict(domain)!r}"
         )

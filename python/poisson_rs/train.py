@@ -39,7 +39,7 @@ from .generating import (
 )
 from .groupoid import check_chart, sou
 from .reference import exact_solution, reference_solution
-from .systems import LiePoissonSystem, RigidBody
+from .systems import LieAlgebra, LiePoissonSystem, RigidBody
 from .taylor import evaluate_terms, system_taylor_terms
 
 
@@ -160,10 +160,8 @@ class TrainConfig:
             raise ValueError(f"need 0 <= r_min < r_max, got {self.r_min}, {self.r_max}")
         if self.domain in ("cube", "top") and not self.half_width > 0:
             raise ValueError(f"half_width must be > 0, got {self.half_width}")
-        if self.domain == "top" and system.dim != 6:
-            raise ValueError(
-                f"domain 'top' is (M, Γ) in se(3)*, 6 coordinates; {system!r} has {system.dim}"
-            )
+        if self.domain == "top" and system.algebra != LieAlgebra.se3():
+            raise ValueError(f"domain 'top' is (M, Γ) in se(3)*; {system!r} is not on se(3)*")
         self._validate_numbers()
         checks = [
             ("h_max", self.h_max > 0),
