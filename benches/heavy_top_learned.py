@@ -9,6 +9,10 @@ measures, against DOP853 (rtol = atol = 1e-13) and for the model and the same Ta
 - the error at T = 10, step h, on 8 held-out states in the domain (the first of seed 123 whose
   exact orbit keeps |Mᵢ| ≤ half_width; with the cube domain, the first 8): median and max of
   |μ(T) − μ_ref(T)| / |μ₀|;
+- max |H − H₀|/|H₀| and max |C − C₀|/|μ₀|² (C = |Γ|², M·Γ) over that run, the Casimir drift over
+  400 steps (also with full Newton for the model), and steps/s (256 states × 200 steps, one
+  thread);
+- the range of |Γ_p| over the bisection momenta p, and the Taylor terms' residual in bins of |M|;
 - how well the network learned the missing part of S at t = h: the RMS error of S and of ∂S/∂p
   (all of it, and the part across the Casimir gradients (0, Γ) and (Γ, M), which moves the step)
   relative to the Taylor terms' own, with Taylor K = 13 standing in for the exact S.
@@ -32,7 +36,10 @@ included) instead of training; ``--json`` appends the row to a JSON-lines file. 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import math
+import os
 import sys
 import tempfile
 import time
@@ -114,6 +121,74 @@ def fit_quality(model: pr.LearnedIntegrator, cfg: TrainConfig, h: float) -> dict
     }
 
 
+def full_newton(model: pr.LearnedIntegrator) -> pr.LearnedIntegrator:
+    """The same model file with full Newton (a Jacobian every update) instead of the default."""
+    assert model.path is not None
+    return pr.load_model(model.path, newton="full")
+
+
+def invariants_and_speed(
+    name: str, stepper: pr.Stepper, held: np.ndarray, traj: np.ndarray | None, h: float
+) -> dict[str, float]:
+    """For ``name``: max |H − H₀|/|H₀| and max |C − C₀|/|μ₀|² over the T = 10 run ``traj``
+    (n, steps + 1, 6) when given; the Casimir drift over 400 steps (T = 200) from the held-out
+    states; steps per second on 256 states × 200 steps (one rayon thread as set by the caller's
+    RAYON_NUM_THREADS, best of 3)."""
+    top = pr.HeavyTop()
+    out: dict[str, float] = {}
+    norm2 = (held * held).sum(1)[:, None, None]
+    if traj is not None:
+        h0 = top.hamiltonian(held)[:, None]
+        out[f"T10_max_dH_{name}"] = float((np.abs(top.hamiltonian(traj) - h0) / np.abs(h0)).max())
+        c = top.casimirs(traj)
+        out[f"T10_max_dC_{name}"] = float((np.abs(c - c[:, :1]) / norm2).max())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        long = pr.integrate(stepper, held, h, 400)
+        c = top.casimirs(long)
+        out[f"T200_max_dC_{name}"] = float((np.abs(c - c[:, :1]) / norm2).max())
+        many = states(99, 256)
+        best = math.inf
+        for _ in range(3):
+            t0 = time.perf_counter()
+            pr.integrate(stepper, many, h, 200)
+            best = min(best, time.perf_counter() - t0)
+    out[f"steps_per_s_{name}"] = 256 * 200 / best
+    return out
+
+
+def newton_gamma_range(model: pr.LearnedIntegrator, mu0: np.ndarray, h: float) -> list[float]:
+    """[min, max] of |Γ_p| over the bisection momenta p of one step of h from the exact orbit
+    points of ``mu0`` at 21 times in [0, T]: where the step map evaluates S."""
+    from poisson_rs.generating import solve_momentum
+
+    orbit = pr.reference_solution(pr.HeavyTop(), mu0, np.linspace(0.0, T, 21)).reshape(-1, 6)
+    p, ok = solve_momentum(model.generating, torch.as_tensor(orbit), h)
+    g = np.linalg.norm(p.numpy()[ok.numpy(), 3:], axis=1)
+    return [float(g.min()), float(g.max())]
+
+
+def residual_profile(order: int, h: float) -> dict[str, float]:
+    """RMS HJ residual of the Taylor terms K = ``order`` alone (t uniform in [0, h]) over the top
+    domain |Mᵢ| ≤ 3, 0.95 ≤ |Γ| ≤ 1.05, in bins of |M|: how steeply it grows with |M|."""
+    from poisson_rs.train import _sample_domain, hj_residual
+
+    cfg = TrainConfig(
+        system=pr.HeavyTop().to_dict(), chart="exp", inputs="t,p", taylor_order=order,
+        widths=(1,), domain="top", half_width=3.0, r_min=0.95, r_max=1.05, h_max=h,
+    )  # fmt: skip
+    s_fn = build_model(cfg)
+    _zero_output(s_fn)
+    t, p = _sample_domain(cfg, 100_000, torch.Generator().manual_seed(0), torch.float64, "cpu")
+    r = hj_residual(s_fn, pr.HeavyTop(), t, p, create_graph=False).numpy()
+    m = np.linalg.norm(p[:, :3].numpy(), axis=1)
+    edges = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.2)
+    return {
+        f"{a:g}-{b:g}": float(np.sqrt(np.mean(r[(m >= a) & (m < b)] ** 2)))
+        for a, b in itertools.pairwise(edges)
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--domain", choices=["cube", "top"], default="top")
@@ -141,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         if path is not None:
             check_output_path(path)
     torch.set_num_threads(1)
+    os.environ.setdefault("RAYON_NUM_THREADS", "1")  # steps/s on one core, like the charts
     top = pr.HeavyTop()
     scene: dict[str, object] = {}
     if args.sampling == "orbits":
@@ -202,13 +278,19 @@ def main(argv: list[str] | None = None) -> int:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # orbits may leave the domain
                 one = np.linalg.norm(pr.integrate(stepper, mu0, args.h, 1)[:, -1] - ref_h, axis=1)
-                end = pr.integrate(stepper, held, args.h, n)[:, -1]
-            err = np.linalg.norm(end - ref_t, axis=1) / norm
+                traj = pr.integrate(stepper, held, args.h, n)
+            err = np.linalg.norm(traj[:, -1] - ref_t, axis=1) / norm
             row[f"one_step_median_{name}"] = float(np.median(one))
             row[f"one_step_max_{name}"] = float(one.max())
             row[f"T10_median_{name}"] = float(np.median(err))
             row[f"T10_max_{name}"] = float(err.max())
+            row.update(invariants_and_speed(name, stepper, held, traj, args.h))
+        row.update(
+            invariants_and_speed("learned_full_newton", full_newton(model), held, None, args.h)
+        )
         row.update(fit_quality(model, cfg, args.h))
+        row["newton_gamma_p_range"] = newton_gamma_range(model, mu0, args.h)
+        row["taylor_residual_rms_by_M"] = residual_profile(args.order, args.h)
     ratio = float(row["T10_median_taylor"]) / float(row["T10_median_learned"])  # type: ignore[arg-type]
     row["T10_median_ratio_taylor_over_learned"] = ratio
     print(json.dumps(row, indent=1))

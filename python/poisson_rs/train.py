@@ -80,7 +80,7 @@ class TrainConfig:
     half_width: float = 3.0
     weight_power: float = 0.0
     """q ≥ 0: each HJ residual is divided by (1 + |p|²)^(q/2) in the loss. A Taylor base's residual
-    grows with |p| (for the heavy top's K = 3 about 170x from |M| ≈ 0.5 to |M| ≈ 5), so an
+    grows with |p| (for the heavy top's K = 3 about 160x from |M| ≈ 0.5 to |M| ≈ 5), so an
     unweighted loss spends the fit on the domain's far corners, where few orbits go; 0: none
     (the homogeneous ansatz already divides by |p|²)."""
     h_max: float = 0.1
