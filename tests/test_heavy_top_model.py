@@ -69,6 +69,9 @@ def test_rust_and_torch_step_maps_agree(model: pr.LearnedIntegrator) -> None:
         assert_step_and_derivatives_match_torch(model, mu, h)
 
 
+# One of the four orbits leaves |Mᵢ| ≤ 2 before T = 200: the Casimirs are kept by any S, so the
+# model's extrapolation warning says nothing about this check.
+@pytest.mark.filterwarnings("ignore:LearnedIntegrator 'heavy_top_h05'.*training domain")
 def test_casimirs_are_kept_to_round_off(model: pr.LearnedIntegrator) -> None:
     """Full Newton: round-off. The default simplified Newton stops at a relative update of
     tol = 1e-12 with a stale Jacobian, and each step then leaves ~4e-14 in the Casimirs."""
