@@ -310,7 +310,7 @@ def test_bad_scheduler_address_is_a_clear_error(
 
 
 def test_stability_map_on_cluster_same_rows(client: Any) -> None:
-    from poisson_rs.stability import stability_map
+    from poisson_rs.studies.stability import stability_map
 
     methods = {
         "learned": pr.load_model,
@@ -324,7 +324,7 @@ def test_stability_map_on_cluster_same_rows(client: Any) -> None:
 
 
 def test_work_precision_points_on_cluster(client: Any) -> None:
-    from poisson_rs.workprecision import Method, paper_scene, sweep
+    from poisson_rs.studies.workprecision import Method, paper_scene, sweep
 
     methods = [
         Method("rk4", "classical", pr.classical(RIGID, "rk4")),
@@ -339,7 +339,7 @@ def test_work_precision_points_on_cluster(client: Any) -> None:
 
 
 def test_sweep_trainings_as_futures_same_numbers(client: Any) -> None:
-    from poisson_rs.sweep import run_sweep
+    from poisson_rs.studies.sweep import run_sweep
 
     kw: dict[str, Any] = {
         "architectures": ((4,), (4, 4)),

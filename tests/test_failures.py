@@ -31,8 +31,8 @@ from hypothesis.extra import numpy as hnp
 
 import poisson_rs as pr
 from poisson_rs import groupoid
-from poisson_rs.demo import PAPER_STATES
 from poisson_rs.integrators import count_out_of_domain
+from poisson_rs.studies.demo import PAPER_STATES
 from poisson_rs.train import hj_residual as torch_hj_residual
 
 BODY = pr.RigidBody(PAPER_INERTIA)

@@ -16,9 +16,10 @@ from conftest import build_generating
 from matplotlib.figure import Figure
 
 import poisson_rs as pr
-from poisson_rs import charts, cli
+from poisson_rs import cli
 from poisson_rs.export import save_model
 from poisson_rs.files import atomic_write_bytes, check_output_path
+from poisson_rs.studies import figures as charts
 from poisson_rs.train import TrainConfig, baseline_rms, save_result, train
 
 
@@ -183,9 +184,9 @@ def test_cli_checks_outputs_before_the_work(tmp_path: Path, capsys: Any, monkeyp
         raise AssertionError("the work started")
 
     monkeypatch.setattr("poisson_rs.train.train", never)
-    monkeypatch.setattr("poisson_rs.demo.run_scene", never)
-    monkeypatch.setattr("poisson_rs.stability.stability_map", never)
-    monkeypatch.setattr("poisson_rs.sweep.run_sweep", never)
+    monkeypatch.setattr("poisson_rs.studies.demo.run_scene", never)
+    monkeypatch.setattr("poisson_rs.studies.stability.stability_map", never)
+    monkeypatch.setattr("poisson_rs.studies.sweep.run_sweep", never)
     a_file = tmp_path / "file"
     a_file.write_text("")
     cases = [
@@ -391,7 +392,7 @@ def test_demo_rows_are_not_doubled(tmp_path: Path, capsys: Any):
 def test_scene_figures_colour_methods_by_name_and_state_the_system(
     tmp_path: Path, monkeypatch: Any
 ):
-    from poisson_rs.demo import run_scene
+    from poisson_rs.studies.demo import run_scene
 
     figs: list[Figure] = []
     real = charts._savefig

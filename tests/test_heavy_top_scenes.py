@@ -94,7 +94,7 @@ def test_cli_select_prints_the_table(tmp_path: Path, capsys: pytest.CaptureFixtu
     out = tmp_path / "select.json"
     assert main(["select", str(path), "--json", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "selected for 1e-04" in text and "trained for RigidBody" in text
+    assert "selected for error <= 1e-04" in text and "trained for RigidBody" in text
     assert out.is_file()
     argv = ["select", str(path), "--target", "1e-17", "--T", "0.5", "--budget", "1"]
     assert main([*argv, "--max-steps", "256"]) == 1
@@ -104,13 +104,13 @@ def test_cli_select_prints_the_table(tmp_path: Path, capsys: pytest.CaptureFixtu
 
 
 def test_heavy_top_charts_take_the_learned_model_of_their_system_only() -> None:
-    from poisson_rs.heavytop_chart import _methods, _steps
+    from poisson_rs.studies.workprecision import default_methods, steps_to
 
-    top = pr.HeavyTop()
-    methods = _methods(top)
-    assert methods["learned:heavy_top_h05"][0] == "learned"
-    assert not any(k.startswith("learned:") for k in _methods(pr.HeavyTop(mgl=0.5)))
-    model = methods["learned:heavy_top_h05"][1]
-    # h = 10/n: the model runs only at steps it was trained for (h <= 0.5); others at all.
-    assert _steps(model, (10, 20, 40), 10.0) == (20, 40)
-    assert _steps(methods["rk4"][1], (10, 20, 40), 10.0) == (10, 20, 40)
+    methods = {m.name: m for m in default_methods(pr.HeavyTop())}
+    assert methods["learned:heavy_top_h05"].family == "learned"
+    assert "taylor3-exp" in methods and "taylor3-cayley" not in methods  # exp only off so(3)
+    other = default_methods(pr.HeavyTop(mgl=0.5))
+    assert not any(m.name.startswith("learned:") for m in other)
+    # Step counts are per 10 time units: the same step sizes h on every horizon.
+    assert steps_to(10.0, (10, 20, 40)) == (10, 20, 40)
+    assert steps_to(1000.0, (10, 20)) == (1000, 2000)

@@ -256,7 +256,9 @@ def test_a_stop_that_never_fires_leaves_training_unchanged():
 def test_train_scene_records_the_scene_in_the_model(tmp_path: Path):
     path = tmp_path / "easy.toml"
     path.write_text(VALID.replace("error = 1e-3", "error = 1e-1").replace("energy = 1e-4", ""))
-    out = train_scene(path, tmp_path / "m.safetensors", progress=False)
+    # K = 3 alone meets this easy target: forced, to check what a trained model records.
+    out = train_scene(path, tmp_path / "m.safetensors", progress=False, force=True)
+    assert out is not None
     model = pr.load_model(out)
     meta = model.metadata
     assert meta["name"] == "m" and meta["scene"] == "small"
@@ -292,3 +294,67 @@ def test_shipped_scene_models_meet_their_targets(scene_file: str, name: str):
     # what meets it (the scene files say which plain series meet it without one).
     plain = pr.taylor_integrator(scene.body, int(meta["taylor_order"]), model.chart)
     assert not evaluate(plain, scene)["target_met"]
+
+
+def test_train_scene_stops_when_the_taylor_terms_alone_meet_the_target(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "easy.toml"
+    path.write_text(VALID.replace("error = 1e-3", "error = 1e-1").replace("energy = 1e-4", ""))
+    out = tmp_path / "m.safetensors"
+    assert train_scene(path, out, progress=True) is None
+    assert "Taylor terms alone (K = 3, cayley chart) already meet" in capsys.readouterr().out
+    assert not out.exists()
+    from poisson_rs.cli import main
+
+    assert main(["train", "--scene", str(path), "--out", str(out), "--no-progress"]) == 0
+    assert not out.exists()
+
+
+def test_a_scene_names_its_algebra_or_a_system_file(tmp_path: Path) -> None:
+    top = pr.HeavyTop()
+    terms = ", ".join(
+        "[" + ", ".join(map(str, (*k, v))) + "]" for k, v in top.polynomial.terms.items()
+    )
+    named = tmp_path / "named.toml"
+    named.write_text(
+        f"""[system]
+algebra = "se3"
+hamiltonian = {{ dim = 6, terms = [{terms}] }}
+[states]
+points = [[0.3, -0.8, 1.2, 0.6, 0.0, 0.8]]
+[steps]
+h = 0.1
+horizon = 1.0
+[target]
+error = 1e-3
+"""
+    )
+    scene = load_scene(named)
+    assert scene.lie_system.algebra == pr.LieAlgebra.se3()
+    assert scene.lie_system.polynomial == top.polynomial
+    (tmp_path / "top.json").write_text(json.dumps(top.to_dict()))
+    filed = tmp_path / "filed.toml"
+    rest = named.read_text().split("[states]")[1]
+    filed.write_text('[system]\nsystem_file = "top.json"\n[states]' + rest)
+    assert load_scene(filed).lie_system == top
+    # An se(3)* scene trains on the "top" domain: |Γ| near 1, M within the orbits' reach.
+    cfg = derive_config(load_scene(filed))
+    assert cfg.domain == "top" and cfg.r_min < 1.0 < cfg.r_max and cfg.half_width > 1.2
+    bad = named.read_text().replace('algebra = "se3"', 'algebra = "so4"')
+    named.write_text(bad)
+    with pytest.raises(ValueError, match="so4"):
+        load_scene(named)
+    filed.write_text('[system]\nsystem_file = "missing.json"\n[states]\npoints = [[1.0, 0, 0]]\n')
+    with pytest.raises((ValueError, FileNotFoundError), match="missing.json"):
+        load_scene(filed)
+
+
+def test_select_table_takes_a_metric(tmp_path: Path) -> None:
+    path = tmp_path / "s.toml"
+    path.write_text(VALID + '\n[select]\ntarget = 1e-6\nmetric = "energy"\n')
+    scene = load_scene(path)
+    assert scene.select is not None and scene.select.metric == "energy"
+    path.write_text(VALID + '\n[select]\ntarget = 1e-6\nmetric = "speed"\n')
+    with pytest.raises(ValueError, match="select.metric"):
+        load_scene(path)

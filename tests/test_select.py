@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import poisson_rs as pr
-from poisson_rs.select import NoCandidateError
+from poisson_rs.studies.select import NoCandidateError
 
 BODY = pr.RigidBody((1.5, 2.0, 2.5))
 

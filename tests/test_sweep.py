@@ -15,8 +15,8 @@ import torch
 
 from poisson_rs import RigidBody, exact_solution, integrate, load_model
 from poisson_rs.cli import main
-from poisson_rs.demo import PAPER_STATES
-from poisson_rs.sweep import (
+from poisson_rs.studies.demo import PAPER_STATES
+from poisson_rs.studies.sweep import (
     BASELINES,
     COLUMNS,
     HELD_OUT,

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import poisson_rs as pr
-from poisson_rs import workprecision as wp
 from poisson_rs.cli import main
+from poisson_rs.studies import workprecision as wp
 
 SWEEP_COLUMNS = {
     "scene",
@@ -134,19 +134,34 @@ def test_fastest_at_level_on_a_synthetic_table() -> None:
         _row("c", 0.2, 1e-6, 2.0),
         {**_row("c", 0.1, 1e-9, 1.0), "scene": "separatrix"},  # another scene: ignored
     ]
-    best = wp.fastest_at_level(rows, 1e-6, interpolate=False)
+    best = wp.fastest_at_level(rows, 1e-6, scene="paper", interpolate=False)
     assert best is not None and best["method"] == "c" and best["seconds"] == 2.0
-    assert wp.fastest_at_level(rows, 1e-9) is None
+    assert wp.fastest_at_level(rows, 1e-9, scene="paper") is None
     # 1e-2: b's first point (0.5) beats a (1.0) and c (2.0).
-    assert wp.fastest_at_level(rows, 1e-2)["method"] == "b"  # type: ignore[index]
+    assert wp.fastest_at_level(rows, 1e-2, scene="paper")["method"] == "b"  # type: ignore[index]
     # 1e-4 with interpolation: a crosses it a third of the way (in log error) from 1e-3 to
     # 1e-6, at cost 4^(1/3) ≈ 1.59 (log–log); b reaches it at a measured 0.8; c only at 2.0.
-    ranked = wp.rank_at_level(rows, 1e-4)
+    ranked = wp.rank_at_level(rows, 1e-4, scene="paper")
     assert [r["method"] for r in ranked] == ["b", "a", "c"]
     assert ranked[1]["interpolated"] and ranked[1]["seconds"] == pytest.approx(4 ** (1 / 3))
     # Without interpolation a only counts at its measured 1e-6 point.
-    ranked = wp.rank_at_level(rows, 1e-4, interpolate=False)
+    ranked = wp.rank_at_level(rows, 1e-4, scene="paper", interpolate=False)
     assert [(r["method"], r["seconds"]) for r in ranked] == [("b", 0.8), ("c", 2.0), ("a", 4.0)]
+
+
+def test_fastest_at_level_needs_no_scene_name_for_a_users_one_scene_rows() -> None:
+    # A user's scene is not called "paper": no hidden default may make it find nothing.
+    rows = [
+        {**_row("a", 0.2, 1e-3, 1.0), "scene": "mine"},
+        {**_row("b", 0.1, 1e-5, 3.0), "scene": "mine"},
+    ]
+    best = wp.fastest_at_level(rows, 1e-4)
+    assert best is not None and best["method"] == "b"
+    with pytest.raises(ValueError, match="give scene"):
+        wp.fastest_at_level([*rows, {**_row("c", 0.1, 1e-9, 1.0), "scene": "other"}], 1e-4)
+    # An unknown metric value (NaN: no Casimir known) reaches no level.
+    nan_rows = [{**r, "error_T": float("nan")} for r in rows]
+    assert wp.fastest_at_level(nan_rows, 1e-4) is None
 
 
 def test_separatrix_scene_sits_on_both_sides() -> None:

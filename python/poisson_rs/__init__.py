@@ -32,7 +32,7 @@ from .integrators import (
     taylor_integrator,
 )
 from .reference import dop853_solution, exact_solution, reference_solution
-from .select import NoCandidateError, SelectionReport, select
+from .studies.select import NoCandidateError, SelectionReport, select
 from .systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial, RigidBody
 
 # rayon's thread pool does not survive fork(): a forked child runs its rollouts serially (same

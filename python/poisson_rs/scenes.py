@@ -10,7 +10,11 @@ A scene is a TOML file::
     inertia = [1.5, 2.0, 2.5]               # principal moments I₁, I₂, I₃ > 0
     # kind = "heavy_top"                    # optional: "rigid_body" (default), "heavy_top"
     # mgl = 0.981                           #   (with inertia, mgl, com) or "lie_poisson" (with
-    # com = [0.0, 0.0, 1.0]                 #   algebra and hamiltonian: a system's to_dict())
+    # com = [0.0, 0.0, 1.0]                 #   algebra and hamiltonian: a system's to_dict());
+    # algebra = "se3"                       #   algebra may be "so3", "se3" or "sl2" instead of
+    # hamiltonian = { dim = 6, terms = [[2, 0, 0, 0, 0, 0, 0.5], ...] }   # its constants
+    # system_file = "kirchhoff.json"        # or: the whole system from a JSON file of
+                                            #   system.to_dict(), relative to the scene
 
     [states]                                # at least one of points and shell
     points = [[1.0, 1.0, 2.0], [3.0, 2.0, 0.0]]
@@ -32,7 +36,9 @@ A scene is a TOML file::
                                             #   orbits of the scene's states up to its horizon
 
     [select]                                # optional: what ``poisson-rs select`` looks for
-    target = [1e-3, 1e-6]                   # max |μ(T) − μ_ref(T)|/|μ₀| (relative; one or more)
+    target = [1e-3, 1e-6]                   # largest metric allowed (one selection per value)
+    metric = "error"                        # "error": max |μ(T) − μ_ref(T)|/|μ₀|; "energy":
+                                            #   max |H − H₀|/|H₀|; "casimir": max |C − C₀|/|μ₀|^d
     T = 10.0                                # horizon (default: steps.horizon)
     h = 0.1                                 # optional: measure at this step only
     models = ["paper_h01"]                  # optional: learned models (default: the shipped ones)
@@ -63,7 +69,9 @@ import numpy as np
 
 from .integrators import BisectionIntegrator, Stepper, integrate
 from .reference import RigidBody, exact_solution, reference_solution
-from .systems import LiePoissonSystem
+from .systems import LieAlgebra, LiePoissonSystem
+
+_SE3 = LieAlgebra.se3()
 
 if TYPE_CHECKING:
     from .generating import GeneratingFunction
@@ -71,8 +79,8 @@ if TYPE_CHECKING:
 
 _TOP_KEYS = ("name", "description", "system", "states", "steps", "target", "model", "select")
 _SECTION_KEYS: dict[str, tuple[str, ...]] = {
-    "system": ("kind", "inertia", "mgl", "com", "name", "algebra", "hamiltonian"),
-    "select": ("target", "T", "h", "models"),
+    "system": ("kind", "inertia", "mgl", "com", "name", "algebra", "hamiltonian", "system_file"),
+    "select": ("target", "T", "h", "models", "metric"),
     "states": ("points", "shell"),
     "steps": ("h", "horizon"),
     "target": ("error", "energy", "newton"),
@@ -161,6 +169,8 @@ class SelectSpec:
     T: float
     h: float | None = None
     models: tuple[str, ...] | None = None
+    metric: str = "error"
+    """What the targets bound: "error", "energy" or "casimir" (see :func:`~poisson_rs.select`)."""
 
 
 @dataclass(frozen=True)
@@ -280,10 +290,29 @@ def _model_overrides(raw: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _lie_system(raw: Mapping[str, Any]) -> LiePoissonSystem:
+#: Algebras a scene may name instead of giving the structure constants.
+NAMED_ALGEBRAS = ("so3", "se3", "sl2")
+
+
+def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> LiePoissonSystem:
     """The [system] table as a system: the rigid body unless ``kind`` names another (its
-    ``to_dict()`` keys); ValueError naming 'system' otherwise."""
-    kind = raw.get("kind", "rigid_body")
+    ``to_dict()`` keys); ``algebra`` may be a name in NAMED_ALGEBRAS instead of the structure
+    constants, and ``system_file`` a JSON file of ``system.to_dict()`` (relative to the scene)
+    instead of the whole table. ValueError naming 'system' otherwise."""
+    if "system_file" in raw:
+        extra = [k for k in raw if k != "system_file"]
+        if extra:
+            raise ValueError(f"scene key 'system.{extra[0]}': give system_file alone")
+        return _system_file(raw["system_file"], path)
+    kind = raw.get("kind", "lie_poisson" if "algebra" in raw else "rigid_body")
+    if isinstance(raw.get("algebra"), str):
+        name = raw["algebra"]
+        if name not in NAMED_ALGEBRAS:
+            raise ValueError(
+                f"scene key 'system.algebra' = {name!r} is not one of {NAMED_ALGEBRAS}; give "
+                "the structure constants as a table instead"
+            )
+        raw = {**raw, "algebra": getattr(LieAlgebra, name)().to_dict()}
     if kind == "rigid_body":
         extra = [k for k in raw if k not in ("kind", "inertia")]
         if extra:
@@ -293,10 +322,30 @@ def _lie_system(raw: Mapping[str, Any]) -> LiePoissonSystem:
             )
         if "inertia" not in raw:
             raise ValueError("scene key 'system.inertia' is missing")
-    try:
+    from .untrusted import parsing
+
+    with parsing("scene", "system"):
         return LiePoissonSystem.from_dict({**raw, "kind": kind})
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"scene key 'system': {e}") from None
+
+
+def _system_file(value: Any, path: Path | None) -> LiePoissonSystem:
+    """The system of a JSON file named by ``system.system_file`` (relative to the scene)."""
+    import json
+
+    from .files import check_input_file
+    from .untrusted import parsing
+
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"scene key 'system.system_file' must be a file name, got {value!r}")
+    file = Path(value)
+    if not file.is_absolute() and path is not None:
+        file = path.parent / file
+    check_input_file(file, max_bytes=1 << 20, what="system file")
+    with parsing(f"system file {file}"):
+        data = json.loads(file.read_text(encoding="utf-8"))
+        if not isinstance(data, dict):
+            raise ValueError("must hold a JSON object (a system's to_dict())")
+        return LiePoissonSystem.from_dict(data)
 
 
 def _select_spec(raw: Mapping[str, Any], horizon: float) -> SelectSpec | None:
@@ -319,11 +368,17 @@ def _select_spec(raw: Mapping[str, Any], horizon: float) -> SelectSpec | None:
         isinstance(models, list) and all(isinstance(m, str) and m for m in models)
     ):
         raise ValueError(f"scene key 'select.models' must be a list of model names, got {models!r}")
+    metric = raw.get("metric", "error")
+    if metric not in ("error", "energy", "casimir"):
+        raise ValueError(
+            f'scene key \'select.metric\' must be "error", "energy" or "casimir", got {metric!r}'
+        )
     return SelectSpec(
         tuple(_number(v, "select.target") for v in targets),
         T,
         h,
         None if models is None else tuple(models),
+        metric,
     )
 
 
@@ -345,14 +400,15 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         raise ValueError(f"scene key 'description' must be a string, got {description!r}")
 
     system = _table(data, "system", _SECTION_KEYS["system"])
-    if "inertia" not in system and system.get("kind", "rigid_body") == "rigid_body":
+    generic = "algebra" in system or "system_file" in system
+    if "inertia" not in system and system.get("kind", "rigid_body") == "rigid_body" and not generic:
         raise ValueError("scene key 'system.inertia' is missing")
     # A generic system has no inertia: the TrainConfig default stands in (unused with a system).
     inertia = system.get("inertia", [1.5, 2.0, 2.5])
     if not isinstance(inertia, list) or len(inertia) != 3:
         raise ValueError(f"scene key 'system.inertia' must be 3 numbers, got {inertia!r}")
     i1, i2, i3 = (_number(v, "system.inertia") for v in inertia)
-    lie_system = _lie_system(system)
+    lie_system = _lie_system(system, path)
     dim = lie_system.dim
 
     states = _table(data, "states", _SECTION_KEYS["states"])
@@ -479,7 +535,13 @@ def load_scene(path: str | Path) -> Scene:
             raise ValueError(f"scene file {path} is not valid TOML: {e}") from e
         except UnicodeDecodeError:
             raise ValueError(f"scene file {path} is not UTF-8 text (a binary file?)") from None
-    return parse_scene(data, name=path.stem, path=path)
+        except RecursionError:
+            raise ValueError(f"scene file {path}: nested too deeply") from None
+    from .untrusted import parsing
+
+    # Whatever else goes wrong in a hostile file is one ValueError naming the file.
+    with parsing(f"scene file {path}"):
+        return parse_scene(data, name=path.stem, path=path)
 
 
 #: Largest scene file read (a scene is a few hundred bytes of TOML).
@@ -519,6 +581,8 @@ def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
         "r_max": float(scene.margin[1] * r.max()),
         "h_max": max(scene.h),
     }
+    if system.algebra == _SE3:
+        base |= _top_domain(scene)
     base.update(scene.model)
     base.update(overrides)
     if base.get("sampling") == "scene":
@@ -526,6 +590,23 @@ def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
         base.setdefault("sampling_states", tuple(map(tuple, scene.states().tolist())))
         base.setdefault("sampling_horizon", scene.horizon)
     return TrainConfig(**base)
+
+
+def _top_domain(scene: Scene) -> dict[str, Any]:
+    """The "top" training domain of an se(3)* scene: |Γ| within the margins of the states' |Γ|
+    (a Casimir: it stays at |Γ₀|), |Mᵢ| up to margin[1] times the largest |Mᵢ| the reference
+    orbits reach by the horizon (M is not conserved; 201 samples of each orbit)."""
+    mu0 = scene.states()
+    gamma = np.linalg.norm(mu0[:, 3:], axis=1)
+    times = np.linspace(0.0, scene.horizon, 201)
+    orbits = reference_solution(scene.lie_system, mu0, times)
+    m_max = float(np.abs(orbits[..., :3]).max())
+    return {
+        "domain": "top",
+        "r_min": float(scene.margin[0] * gamma.min()),
+        "r_max": float(scene.margin[1] * gamma.max()),
+        "half_width": float(scene.margin[1] * max(m_max, 1e-3)),
+    }
 
 
 def evaluate(model: Stepper, scene: Scene, *, strict: bool = True) -> dict[str, Any]:
@@ -667,7 +748,8 @@ def train_scene(
     name: str | None = None,
     overrides: Mapping[str, Any] | None = None,
     max_seconds: float | None = None,
-) -> Path:
+    force: bool = False,
+) -> Path | None:
     """Trains a model for the scene file ``path`` until its target is met on the scene's states
     (or the configured iterations run out) and writes it to ``out``.
 
@@ -680,6 +762,9 @@ def train_scene(
     ``progress`` shows a progress bar and prints one line per evaluation, and the scene error of
     the Taylor terms alone (no network) before and after. ``max_seconds`` ends training after that
     wall time (see :func:`~poisson_rs.train.train`). Returns ``out``.
+
+    When the Taylor terms alone (no network) already meet the scene's target, training would
+    only add cost: it says so and returns None without training or writing, unless ``force``.
     """
     from .files import check_output_path
     from .train import export_bytes, save_result, train
@@ -694,6 +779,15 @@ def train_scene(
             f"scene {scene.name}: baseline, the Taylor terms alone (K = {cfg.taylor_order}): "
             f"error {baseline['error']:.3e}, max dH/H {baseline['energy']:.3e}"
         )
+    if baseline["target_met"] and not force:
+        chart = cfg.chart
+        print(
+            f"scene {scene.name}: the Taylor terms alone (K = {cfg.taylor_order}, {chart} chart) "
+            f"already meet the target {scene.target.as_dict()}: no training needed. Use "
+            f"taylor_integrator(system, {cfg.taylor_order}, {chart!r}), or give --force to "
+            "train a model anyway; nothing written"
+        )
+        return None
     log: Callable[[str], None] | None = None
     if progress:
         from tqdm.auto import tqdm

@@ -566,6 +566,17 @@ class LiePoissonSystem:
     def dim(self) -> int:
         return self.algebra.dim
 
+    @property
+    def component_names(self) -> tuple[str, ...]:
+        """Names of the state's components, for tables and figures: (M₁, M₂, M₃, Γ₁, Γ₂, Γ₃) on
+        se(3)*, (μ_h, μ_e, μ_f) on sl(2)*, else (μ₁, …, μₙ)."""
+        kind = _known_algebra(self.algebra)
+        if kind == "se3":
+            return tuple(f"{b}{_subscript(i)}" for b in ("M", "Γ") for i in range(1, 4))
+        if kind == "sl2":
+            return ("μ_h", "μ_e", "μ_f")
+        return tuple(f"μ{_subscript(i)}" for i in range(1, self.dim + 1))
+
     def _states(self, mu: Any) -> Any:
         return _as_states(mu, self.dim, "mu")
 
@@ -672,6 +683,11 @@ class LiePoissonSystem:
             f"LiePoissonSystem({self.algebra!r}, degree-{self.polynomial.degree} Hamiltonian with "
             f"{len(self.polynomial.terms)} terms, name={self.name!r})"
         )
+
+
+def _subscript(i: int) -> str:
+    """``i`` in subscript digits: 12 → "₁₂"."""
+    return str(i).translate(str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉"))
 
 
 def _known_algebra(algebra: LieAlgebra) -> str | None:

@@ -32,8 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .demo import PAPER_STATES
-from .integrators import (
+from ..integrators import (
     BisectionIntegrator,
     Stepper,
     integrate,
@@ -41,11 +40,12 @@ from .integrators import (
     load_model,
     taylor_integrator,
 )
-from .reference import RigidBody, exact_solution
-from .scenes import ShellStates
+from ..reference import RigidBody, exact_solution
+from ..scenes import ShellStates
+from .demo import PAPER_STATES
 
 if TYPE_CHECKING:
-    from .train import TrainConfig, TrainResult
+    from ..train import TrainConfig, TrainResult
 
 Row = dict[str, Any]
 Progress = Callable[[str], None]
@@ -262,7 +262,7 @@ def run_sweep(
     configurations and seeds, so the same models and accuracy columns as the serial run (the
     timings are the workers').
     """
-    from .train import TrainConfig, save_result
+    from ..train import TrainConfig, save_result
 
     archs = _check_architectures(architectures)
     seed_list = _check_seeds(seeds)
@@ -292,7 +292,7 @@ def run_sweep(
     if client is None:
         trained = (_train_row(w, s, cfg, speed_seconds) for w, s, cfg in configs)
     else:
-        from .ensembles import run_all
+        from ..ensembles import run_all
 
         jobs = [((w, s, cfg, speed_seconds, threads), {}) for w, s, cfg in configs]
         trained = iter(run_all(client, _train_row, jobs, desc="training", progress=bool(progress)))
@@ -363,7 +363,7 @@ def _train_row(
 ) -> tuple[Row, TrainResult]:
     """Trains one configuration and measures it (in this process or a worker, there on
     ``threads`` torch threads): its row and the training result."""
-    from .train import export_bytes, train
+    from ..train import export_bytes, train
 
     if threads is not None:
         import torch

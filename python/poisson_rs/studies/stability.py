@@ -1,31 +1,39 @@
-"""Stability map: where each integrator breaks as the step size grows, over many initial states.
+"""Stability map: where each integrator breaks as the step size grows, over many initial states,
+for any system.
 
 For every method, step size h and initial state the rollout runs to a fixed horizon T and records
-the relative error |μ(T) − μ_exact(T)| / |μ₀|, the largest relative energy and Casimir deviations
-over [0, T], and Newton failures (a failed trajectory is recorded as failed, never as a number).
-States lie on spheres of several radii, some beyond the default model's training shell
-(1 ≤ |μ| ≤ 4), on both sides of the separatrix through the intermediate axis and close to it.
+the relative error |μ(T) − μ_ref(T)| / |μ₀| (the exact flow for a rigid body, else DOP853 at
+rtol = atol = 1e-13), the largest relative energy error |H − H₀|/|H₀| and Casimir drift
+|C − C₀|/|μ₀|^d over [0, T] (NaN when the system has no known Casimir), and Newton failures (a
+failed trajectory is recorded as failed, never as a number). For the rigid body the states lie
+on spheres of several radii, some beyond the default model's training shell (1 ≤ |μ| ≤ 4), on
+both sides of the separatrix through the intermediate axis and close to it; for any other system
+they are the scene's states (or fixed directions at the same radii).
 """
 
 from __future__ import annotations
 
 import warnings
 from collections.abc import Callable, Iterator, Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
 
-from .integrators import (
+from ..casimirs import max_casimir_drift
+from ..integrators import (
     FAILURE_CODES,
     RolloutInfo,
     Stepper,
     classical,
+    classical_methods,
     integrate,
     load_model,
     shipped_models,
     taylor_integrator,
 )
-from .reference import RigidBody, exact_solution
+from ..reference import RigidBody, exact_solution, reference_solution
+from ..systems import LiePoissonSystem
 
 Row = dict[str, Any]
 
@@ -50,11 +58,21 @@ def directions(body: RigidBody) -> dict[str, np.ndarray]:
     return {k: v / np.linalg.norm(v) for k, v in out.items()}
 
 
-def states(body: RigidBody, radii: Sequence[float] = RADII) -> tuple[np.ndarray, list[str]]:
-    """(n, 3) initial states and their labels, every direction at every radius."""
+def generic_directions(system: LiePoissonSystem) -> dict[str, np.ndarray]:
+    """Three fixed unit directions in Rⁿ (seeded) for a system without the rigid body's
+    separatrix geometry."""
+    rng = np.random.default_rng(20240601)
+    out = {f"direction {k + 1}": rng.normal(size=system.dim) for k in range(3)}
+    return {k: v / np.linalg.norm(v) for k, v in out.items()}
+
+
+def states(body: LiePoissonSystem, radii: Sequence[float] = RADII) -> tuple[np.ndarray, list[str]]:
+    """(n, dim) initial states and their labels, every direction at every radius (the rigid
+    body's :func:`directions`, else :func:`generic_directions`)."""
     rows, labels = [], []
+    found = directions(body) if isinstance(body, RigidBody) else generic_directions(body)
     for r in radii:
-        for name, d in directions(body).items():
+        for name, d in found.items():
             rows.append(r * d)
             labels.append(f"|μ|={r:g}, {name}")
     return np.array(rows), labels
@@ -64,43 +82,55 @@ def _loader(name: str) -> Callable[[], Stepper]:
     return lambda: load_model(name)
 
 
-def default_methods(body: RigidBody) -> dict[str, Callable[[], Stepper]]:
+def default_methods(body: LiePoissonSystem) -> dict[str, Callable[[], Stepper]]:
     """Methods of the map, built lazily: the shipped learned models trained for ``body`` (but the
-    253k-parameter paper configuration, too slow for the grid), Taylor series and classical ones.
-    A model of another body would be scored against the wrong flow, so it is left out."""
+    253k-parameter paper configuration, too slow for the grid), Taylor series (Cayley and exp on
+    so(3), exp elsewhere) and the classical ones the system has. A model of another system would
+    be scored against the wrong flow, so it is left out."""
     learned = {f"learned:{n}": _loader(n) for n in shipped_models(body) if n != "paper"}
-    return {
-        **learned,
-        "taylor3-cayley": lambda: taylor_integrator(body, 3, "cayley"),
-        "taylor5-cayley": lambda: taylor_integrator(body, 5, "cayley"),
-        "taylor3-exp": lambda: taylor_integrator(body, 3, "exp"),
-        "splitting": lambda: classical(body, "splitting"),
-        "midpoint": lambda: classical(body, "midpoint"),
-        "rk4": lambda: classical(body, "rk4"),
-    }
+    methods: dict[str, Callable[[], Stepper]] = dict(learned)
+    if body.algebra.is_so3():
+        methods["taylor3-cayley"] = lambda: taylor_integrator(body, 3, "cayley")
+        methods["taylor5-cayley"] = lambda: taylor_integrator(body, 5, "cayley")
+        methods["taylor3-exp"] = lambda: taylor_integrator(body, 3, "exp")
+    else:
+        methods["taylor3-exp"] = lambda: taylor_integrator(body, 3, "exp")
+        methods["taylor5-exp"] = lambda: taylor_integrator(body, 5, "exp")
+    available = classical_methods(body)
+    for name in ("splitting", "midpoint", "rk4"):
+        if name in available:
+            methods[name] = partial(classical, body, name)
+    return methods
 
 
 def stability_map(
-    body: RigidBody | None = None,
+    body: LiePoissonSystem | None = None,
     step_sizes: Sequence[float] = STEP_SIZES,
     radii: Sequence[float] = RADII,
     horizon: float = HORIZON,
     methods: dict[str, Callable[[], Stepper]] | None = None,
     progress: Callable[[str], None] | None = None,
     client: Any = None,
+    states: tuple[np.ndarray, Sequence[str]] | None = None,
 ) -> list[Row]:
     """One row per (method, h, state); see the module docstring for the fields.
+
+    ``body``: any system (default: the paper's rigid body). ``states``: (mu0 (n, dim), labels)
+    instead of the grid of :func:`states` over ``radii``.
 
     ``client``: a ``distributed.Client`` that runs the (method, h) rollouts as futures (a
     progress bar follows them instead of ``progress``); the rows are the same as in process.
     """
     body = RigidBody() if body is None else body
-    mu0, labels = states(body, radii)
+    if states is not None:
+        mu0, labels = np.asarray(states[0], dtype=np.float64), list(states[1])
+    else:
+        mu0, labels = _grid_states(body, radii)
     methods = default_methods(body) if methods is None else methods
     rows: list[Row] = []
     done: Iterator[tuple[np.ndarray, RolloutInfo]] | None = None
     if client is not None:
-        from .ensembles import run_all
+        from ..ensembles import run_all
 
         jobs = [
             ((make(), mu0, h, max(1, round(horizon / h))), {})
@@ -111,7 +141,10 @@ def stability_map(
     for h in step_sizes:
         n_steps = max(1, round(horizon / h))
         T = n_steps * h
-        exact = exact_solution(body, mu0, [T])[:, 0]
+        if isinstance(body, RigidBody):
+            exact = exact_solution(body, mu0, [T])[:, 0]
+        else:
+            exact = reference_solution(body, mu0, [T])[:, 0]
         for name, make in methods.items():
             if done is not None:
                 traj, info = next(done)
@@ -120,7 +153,7 @@ def stability_map(
                     progress(f"{name} h={h:g}")
                 traj, info = _rollout(make(), mu0, h, n_steps)
             e = body.hamiltonian(traj)
-            c = body.casimir(traj)
+            dc = max_casimir_drift(body, traj)  # NaN where no Casimir is known
             for i, label in enumerate(labels):
                 ok = bool(info.converged[i])
                 r0 = float(np.linalg.norm(mu0[i]))
@@ -137,12 +170,21 @@ def stability_map(
                         "rel_error": float(np.linalg.norm(traj[i, -1] - exact[i]) / r0)
                         if ok
                         else float("nan"),
-                        "max_rel_dH": float(np.nanmax(np.abs(e[i] - e[i, 0])) / e[i, 0]),
-                        "max_rel_dC": float(np.nanmax(np.abs(c[i] - c[i, 0])) / c[i, 0]),
+                        "max_rel_dH": _nanmax(np.abs(e[i] - e[i, 0]) / abs(e[i, 0])),
+                        "max_rel_dC": _nanmax(dc[i]),
                         "out_of_domain_states": int(info.out_of_domain[i]),
                     }
                 )
     return rows
+
+
+_grid_states = states
+
+
+def _nanmax(values: np.ndarray) -> float:
+    """The largest finite value, or NaN when none is (not known, or every record failed)."""
+    finite = values[np.isfinite(values)]
+    return float(finite.max()) if finite.size else float("nan")
 
 
 def _rollout(

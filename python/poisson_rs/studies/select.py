@@ -1,5 +1,13 @@
 """The cheapest integrator and step that meet an accuracy target on given states: ``select``.
 
+The target bounds one of three metrics (``metric``): "error", the pointwise relative error at T
+(below); "energy", the largest relative energy error max |H − H₀|/|H₀| over [0, T]; or
+"casimir", the largest Casimir drift max |C − C₀|/|μ₀|^d over [0, T] (every Casimir known or
+found, of degree d). Over a chaotic horizon no method keeps a pointwise error, but the energy and
+the Casimirs stay meaningful; when nothing meets a pointwise target the message says which
+candidates keep them best. Energy and Casimirs are read at about 100 recorded states of each
+rollout (and the final one), not at every step.
+
 Every candidate the package has for a system is measured on the caller's states, on this
 machine:
 
@@ -36,7 +44,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .integrators import (
+from ..integrators import (
     FAILURE_CODES,
     BisectionIntegrator,
     Stepper,
@@ -49,9 +57,20 @@ from .integrators import (
     load_model,
     taylor_integrator,
 )
-from .systems import LiePoissonSystem, RigidBody
+from ..systems import LiePoissonSystem, RigidBody
 
 __all__ = ["CandidateResult", "NoCandidateError", "SelectionReport", "Trial", "select"]
+
+#: What each metric measures (for tables and messages).
+METRICS = {
+    "error": "max |mu(T) - mu_ref(T)|/|mu0|",
+    "energy": "max |H - H0|/|H0| over [0, T]",
+    "casimir": "max |C - C0|/|mu0|^d over [0, T]",
+}
+#: Recorded states per rollout from which energy and Casimir drifts are read.
+RECORDS = 100
+#: Steps of the probe that prices a rung before it runs.
+PROBE_STEPS = 16
 
 #: Taylor-HJ orders tried (odd: for a quadratic H the even terms vanish).
 ORDERS = (1, 3, 5, 7)
@@ -79,12 +98,17 @@ class Trial:
     h: float
     tol: float | None
     error: float
-    """max |μ(T) − μ_ref(T)| / |μ₀| over the states; inf when a trajectory failed."""
+    """The metric's value (for "error": max |μ(T) − μ_ref(T)| / |μ₀| over the states); inf
+    when a trajectory failed."""
     seconds: float
     """Wall time of ``integrate`` on all the states to T (best of the timed calls)."""
     passed: bool
     failure: str = ""
     """Why a rung fails apart from its error: Newton failure, non-finite state, left domain."""
+    energy: float = math.nan
+    """max |H − H₀| / |H₀| over the recorded states (inf when a trajectory failed)."""
+    casimir: float = math.nan
+    """max |C − C₀| / |μ₀|^d over the recorded states; NaN when no Casimir is known."""
 
 
 @dataclass
@@ -103,6 +127,8 @@ class CandidateResult:
     stopped: str = ""
     """Why the ladder ended short of a pass: "stalled", "budget", "pruned" or "max_steps"."""
     stepper: Stepper | None = field(default=None, repr=False)
+    metric: str = "error"
+    """The metric its trials measured (see :func:`select`)."""
 
     @property
     def passing(self) -> Trial | None:
@@ -128,6 +154,7 @@ class SelectionReport:
     results: list[CandidateResult]
     seconds: float = 0.0
     """Wall time of the whole selection."""
+    metric: str = "error"
 
     @property
     def winner(self) -> CandidateResult | None:
@@ -152,6 +179,7 @@ class SelectionReport:
                     "rungs": len(r.trials),
                     "reason": r.excluded or r.reason,
                     "T": self.T,
+                    "metric": self.metric,
                     "target": self.target,
                     "n_states": self.n_states,
                 }
@@ -160,7 +188,7 @@ class SelectionReport:
 
     def table(self) -> str:
         """The report as a fixed-width table, winner marked with '*'."""
-        head = ["", "candidate", "h / tol", "error", "cost [s]", "note"]
+        head = ["", "candidate", "h / tol", self.metric, "cost [s]", "note"]
         cells = []
         for r in self.results:
             p = r.passing
@@ -177,7 +205,7 @@ class SelectionReport:
         name = type(self.system).__name__
         lines = [
             f"select: {name} {_params(self.system)}, {self.n_states} states, T = {self.T:g}, "
-            f"target max |mu(T) - mu_ref(T)|/|mu0| <= {self.target:.0e} (reference: "
+            f"target {METRICS[self.metric]} <= {self.target:.0e} (reference: "
             f"{self.reference}); cost = wall time of integrate() on all states to T",
             fmt(head).rstrip(),
             "-" * (sum(widths[:-1]) + 2 * (len(widths) - 1) + 4),
@@ -222,7 +250,7 @@ _REFERENCES: dict[tuple[Any, ...], tuple[np.ndarray, str]] = {}
 
 def _reference(system: LiePoissonSystem, states: np.ndarray, T: float) -> tuple[np.ndarray, str]:
     """μ_ref(T) for each state, (n, dim), and how it was computed."""
-    from .reference import exact_solution, reference_solution
+    from ..reference import exact_solution, reference_solution
 
     key = (system, states.shape, states.tobytes(), T)
     if key not in _REFERENCES:
@@ -317,40 +345,79 @@ def _timed_rollout(
     return traj, info, best
 
 
+def _every(n: int, records: int = RECORDS) -> int:
+    """The record stride: the largest divisor of n not above n // records (so the final state
+    is recorded), at least 1."""
+    top = max(1, n // records)
+    for every in range(top, 0, -1):
+        if n % every == 0:
+            return every
+    return 1
+
+
 def _trial(
     stepper: Stepper,
     mu0: np.ndarray,
-    ref: np.ndarray,
+    ref: np.ndarray | None,
     T: float,
     n: int,
     tol: float | None,
     target: float,
     *,
     learned: bool,
+    metric: str = "error",
 ) -> Trial:
-    """Measures one rung: n steps of h = T/n on every state (DOP853: n output points)."""
+    """Measures one rung: n steps of h = T/n on every state (DOP853: n output points). Energy
+    and Casimir drifts are read on about RECORDS recorded states (a learned model's domain, too)."""
+    from ..casimirs import max_casimir_drift
+
     h = T / n
-    # A learned model's rollout is checked against its domain on ~100 recorded states; the
-    # others keep only the final state.
-    every = max(1, n // 100) if learned else n
-    if learned and n % every:
-        every = 1
+    every = _every(n)
     traj, info, seconds = _timed_rollout(stepper, mu0, h, n, every, repeat=tol is None)
+    system = getattr(stepper, "system", None)
     final = traj[:, -1]
-    with np.errstate(invalid="ignore", over="ignore"):
-        rel = np.linalg.norm(final - ref, axis=1) / np.linalg.norm(mu0, axis=1)
+    norm0 = np.linalg.norm(mu0, axis=1)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        if ref is not None:
+            rel = np.linalg.norm(final - ref, axis=1) / norm0
+        else:
+            rel = np.where(np.isfinite(final).all(axis=1), np.nan, np.inf)
     failure = ""
-    bad = ~info.converged | ~np.isfinite(rel)
+    bad = ~info.converged | ~np.isfinite(final).all(axis=1)
+    if ref is not None:
+        bad |= ~np.isfinite(rel)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         code = int(info.failure_code[i])
         why = FAILURE_CODES.get(code, f"code {code}") if code else "non-finite state"
         failure = f"{int(bad.sum())} of {len(mu0)} trajectories failed ({why})"
         rel = np.where(bad, np.inf, rel)
-    elif int(np.sum(info.out_of_domain)):
+    elif learned and int(np.sum(info.out_of_domain)):
         failure = "the rollout leaves the training domain"
-    error = float(rel.max())
-    return Trial(h, tol, error, seconds, not failure and error <= target, failure)
+    energy = casimir = math.inf
+    if not bad.any() and system is not None:
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            e = system.hamiltonian(traj)
+            energy = float(np.max(np.abs(e - e[:, :1]) / np.abs(e[:, :1])))
+            dc = max_casimir_drift(system, traj)
+        casimir = float(np.max(dc)) if np.isfinite(dc).all() else math.nan
+    value = {"error": float(rel.max()), "energy": energy, "casimir": casimir}[metric]
+    if bad.any():
+        value = math.inf
+    passed = not failure and value <= target
+    return Trial(h, tol, value, seconds, passed, failure, energy, casimir)
+
+
+def _probe_rate(stepper: Stepper, mu0: np.ndarray, h: float, n: int) -> tuple[float, float]:
+    """(seconds per step, seconds spent) from a short timed rollout of min(n, PROBE_STEPS)
+    steps: the price of a rung before it runs, so a budget holds inside one rollout too."""
+    k = max(1, min(n, PROBE_STEPS))
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        integrate(stepper, mu0, h, k, every=k, on_failure="ignore", strict=False)
+    spent = time.perf_counter() - t0
+    return spent / k, spent
 
 
 def _ladder(h_cap: float, T: float, max_steps: int) -> list[int]:
@@ -361,13 +428,13 @@ def _ladder(h_cap: float, T: float, max_steps: int) -> list[int]:
     while n <= max_steps:
         out.append(n)
         n *= 2
-    return out or [n0]
+    return out  # empty when even the coarsest step needs more than max_steps
 
 
 def _run_candidate(
     cand: _Candidate,
     mu0: np.ndarray,
-    ref: np.ndarray,
+    ref: np.ndarray | None,
     T: float,
     target: float,
     *,
@@ -375,15 +442,37 @@ def _run_candidate(
     max_steps: int,
     budget_s: float,
     best_cost: float,
+    metric: str = "error",
 ) -> CandidateResult:
     res = CandidateResult(cand.name, cand.family, excluded=cand.excluded)
     if cand.excluded:
         return res
     learned = cand.family == "learned"
+    t_start = time.perf_counter()
+
+    def affordable(stepper: Stepper, n: int) -> bool:
+        """Whether n steps fit in what is left of the budget, priced by a probe (or by the
+        last rung's rate): a rung is never started that the budget cannot pay for."""
+        spent = time.perf_counter() - t_start
+        if res.trials and res.trials[-1].tol is None and cand.tolerances is None:
+            last = res.trials[-1]
+            rate = last.seconds / max(1, round(T / last.h))
+        else:
+            rate, _ = _probe_rate(stepper, mu0, T / n, n)
+            spent = time.perf_counter() - t_start
+        return spent + rate * n <= budget_s
+
     if cand.tolerances is not None:
-        n0 = _ladder(min(H_START, T), T, max_steps)[0] if h is None else round(T / h)
+        ladder = _ladder(min(H_START, T), T, max_steps)
+        if h is None and not ladder:
+            res.stopped = "max_steps"
+            return res
+        n0 = ladder[0] if h is None else round(T / h)
         for tol, stepper in cand.tolerances.items():
-            trial = _trial(stepper, mu0, ref, T, n0, tol, target, learned=False)
+            if not affordable(stepper, n0):
+                res.stopped = "budget"
+                break
+            trial = _trial(stepper, mu0, ref, T, n0, tol, target, learned=False, metric=metric)
             res.trials.append(trial)
             if trial.passed:
                 res.stepper = stepper
@@ -396,9 +485,15 @@ def _run_candidate(
         return res
     assert cand.stepper is not None
     steps = [round(T / h)] if h is not None else _ladder(min(H_START, cand.h_max), T, max_steps)
+    if not steps:
+        res.stopped = "max_steps"
+        return res
     spent, stalls = 0.0, 0
     for n in steps:
-        trial = _trial(cand.stepper, mu0, ref, T, n, None, target, learned=learned)
+        if not affordable(cand.stepper, n):
+            res.stopped = "budget"
+            break
+        trial = _trial(cand.stepper, mu0, ref, T, n, None, target, learned=learned, metric=metric)
         prev = res.best
         res.trials.append(trial)
         spent += trial.seconds
@@ -432,13 +527,17 @@ def _explain(res: CandidateResult, winner: CandidateResult | None, target: float
         ratio = p.seconds / winner.passing.seconds
         return f"meets the target but costs {ratio:.3g}x the selected"
     if not res.trials:
+        if res.stopped == "budget":
+            return "not run: its first rung costs more than the time budget"
+        if res.stopped == "max_steps":
+            return "not run: its coarsest step needs more than max_steps steps"
         return "not measured"
     last = res.trials[-1]
     best = res.best
     if best is None:
         return f"fails at every step tried: {last.failure}"
     knob = f"tol = {best.tol:.0e}" if best.tol is not None else f"h = {best.h:.4g}"
-    why = f"best error {best.error:.2e} at {knob}"
+    why = f"best {res.metric} {best.error:.2e} at {knob}"
     failed = [t for t in res.trials if t.failure]
     if failed:
         why += f"; fails at {len(failed)} of the steps tried ({failed[0].failure})"
@@ -459,6 +558,7 @@ def select(
     *,
     T: float,
     target: float,
+    metric: str = "error",
     h: float | None = None,
     models: Sequence[str | os.PathLike[str] | BisectionIntegrator] | None = None,
     reference: ArrayLike | None = None,
@@ -466,7 +566,7 @@ def select(
     budget_s: float = BUDGET_S,
     progress: Callable[[str], None] | None = None,
 ) -> tuple[Stepper, float, SelectionReport]:
-    """The cheapest integrator and step that keep max |μ(T) − μ_ref(T)| / |μ₀| ≤ ``target``.
+    """The cheapest integrator and step that keep ``metric`` ≤ ``target`` on the states.
 
     Parameters
     ----------
@@ -477,7 +577,11 @@ def select(
     T : float
         Horizon (time units), > 0.
     target : float
-        Largest relative error allowed at T, > 0 (unit-less).
+        Largest value of the metric allowed, > 0 (unit-less).
+    metric : {"error", "energy", "casimir"}
+        "error": max |μ(T) − μ_ref(T)| / |μ₀| (pointwise, at T); "energy": max |H − H₀| / |H₀|
+        over [0, T]; "casimir": max |C − C₀| / |μ₀|^d over [0, T] (ValueError when the system
+        has no known Casimir). The last two need no reference solution.
     h : float, optional
         Measure every candidate at this step only (T/h must be whole); default: a ladder
         h = T/n, n = n₀·2^k, from min(1, T, the model's h_max) down to T/``max_steps``.
@@ -487,7 +591,8 @@ def select(
     reference : array_like, shape (n, dim), optional
         μ_ref(T) for each state, if already computed; default: the exact flow for a rigid body,
         else DOP853 at rtol = atol = 1e-13.
-    max_steps, budget_s : ladder bounds: most steps to T, and seconds per candidate.
+    max_steps, budget_s : ladder bounds: most steps to T, and seconds per candidate (a rung is
+        priced by a short probe before it runs, and not run when the budget cannot pay for it).
     progress : called with one line per candidate measured.
 
     Returns
@@ -510,6 +615,21 @@ def select(
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
             raise ValueError(f"{what} must be a finite number > 0, got {v!r}")
     T, target = float(T), float(target)
+    if metric not in METRICS:
+        raise ValueError(f"metric must be one of {tuple(METRICS)}, got {metric!r}")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+    for what, v in (("budget_s", budget_s),):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
+            raise ValueError(f"{what} must be a finite number > 0, got {v!r}")
+    if metric == "casimir":
+        from ..casimirs import system_casimirs
+
+        if system_casimirs(system) is None:
+            raise ValueError(
+                "metric='casimir': no Casimir is known or found for this system (give your own "
+                "with poisson_rs.casimirs.set_casimirs)"
+            )
     if h is not None:
         if isinstance(h, bool) or not isinstance(h, (int, float)) or not 0 < h < math.inf:
             raise ValueError(f"h must be a finite number > 0, got {h!r}")
@@ -525,7 +645,10 @@ def select(
     if not np.isfinite(states).all() or (np.linalg.norm(states, axis=1) == 0).any():
         raise ValueError("mu0 must hold finite, non-zero states")
     states = np.ascontiguousarray(states)
-    if reference is None:
+    ref: np.ndarray | None
+    if metric != "error":
+        ref, ref_name = None, "none needed"
+    elif reference is None:
         ref, ref_name = _reference(system, states, T)
     else:
         ref = np.asarray(reference, dtype=np.float64).reshape(states.shape)
@@ -544,7 +667,9 @@ def select(
             max_steps=max_steps,
             budget_s=budget_s,
             best_cost=best_cost,
+            metric=metric,
         )
+        res.metric = metric
         if res.passing is not None:
             best_cost = min(best_cost, res.passing.seconds)
         results.append(res)
@@ -564,7 +689,7 @@ def select(
         if not r.winner and not r.excluded:
             r.reason = _explain(r, winner, target)
     report = SelectionReport(
-        system, T, target, len(states), ref_name, results, time.perf_counter() - t_start
+        system, T, target, len(states), ref_name, results, time.perf_counter() - t_start, metric
     )
     if winner is None:
         measured = [r for r in results if r.best is not None]
@@ -577,8 +702,35 @@ def select(
         else:
             best = "nothing (every candidate failed or was excluded)"
         raise NoCandidateError(
-            f"no candidate meets {target:.0e} at T = {T:g}; best was {best}", report
+            f"no candidate meets {target:.0e} at T = {T:g}; best was {best}"
+            + (_long_horizon_hint(results) if metric == "error" else ""),
+            report,
         )
     p = winner.passing
     assert p is not None and winner.stepper is not None
     return winner.stepper, p.h, report
+
+
+def _long_horizon_hint(results: Sequence[CandidateResult]) -> str:
+    """When no pointwise target is met: the candidates that keep the energy and the Casimirs
+    best (over a chaotic horizon nearby orbits separate, so a pointwise error at T says little,
+    while these invariants stay meaningful)."""
+    parts = []
+    for key, label in (("energy", "energy"), ("casimir", "casimir")):
+        scored = []
+        for r in results:
+            vals = [getattr(t, key) for t in r.trials if math.isfinite(getattr(t, key))]
+            if vals:
+                t = min((t for t in r.trials if math.isfinite(getattr(t, key))),
+                        key=lambda t: getattr(t, key))  # fmt: skip
+                knob = f"tol = {t.tol:.0e}" if t.tol is not None else f"h = {t.h:.4g}"
+                scored.append((min(vals), f"{r.name} {min(vals):.1e} ({knob}, {t.seconds:.1e} s)"))
+        if scored:
+            best = ", ".join(text for _, text in sorted(scored)[:3])
+            parts.append(f"best by {label}: {best}")
+    if not parts:
+        return ""
+    return (
+        ". Over a long or chaotic horizon no method keeps a pointwise error; select by "
+        "metric='energy' or 'casimir' (--metric) instead; " + "; ".join(parts)
+    )

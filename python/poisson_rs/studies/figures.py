@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure  # the OO API: no pyplot state, no display backend
 
+from ..files import atomic_write_bytes
+from ..systems import HeavyTop, RigidBody
 from .demo import Run, SceneResult
-from .files import atomic_write_bytes
-from .systems import HeavyTop, RigidBody
 
 
 def _savefig(fig: Figure, path: Path, **kwargs: Any) -> Path:
@@ -45,34 +45,89 @@ def write_rows(rows: Sequence[dict[str, Any]], path: Path) -> None:
     atomic_write_bytes(path.with_suffix(".json"), json.dumps(list(rows), indent=1).encode())
 
 
-def paper_figure_2(scene: SceneResult, run: Run, path: Path, max_points: int = 4000) -> Path:
-    """Fig. 2: simulated (blue) and exact (red) orbits in 3-D, one panel per initial state."""
+#: Columns of a grid of per-state panels before it wraps to a new row.
+GRID_COLUMNS = 4
+
+
+def system_label(system: Any) -> str:
+    """The system for titles and messages: its kind and parameters, or its name (not a repr)."""
+    if isinstance(system, RigidBody):
+        return f"free rigid body, I = {tuple(float(i) for i in system.inertia)}"
+    if isinstance(system, HeavyTop):
+        return f"heavy top, I = {system.inertia}, mgl = {system.mgl:g}, χ = {system.com}"
+    name = getattr(system, "name", None)
+    algebra = getattr(system, "algebra", None)
+    on = ""
+    if algebra is not None:
+        on = (
+            f" on {algebra.name}*"
+            if getattr(algebra, "name", None)
+            else f" on a {algebra.dim}-dimensional g*"
+        )
+    return f"{name or type(system).__name__}{on}"
+
+
+def component_names(system: Any) -> tuple[str, ...]:
+    """The system's names of its components (μ₁…μₙ when it has none)."""
+    names = getattr(system, "component_names", None)
+    if names is not None and len(names) == system.dim:
+        return tuple(names)
+    sub = str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉")
+    return tuple(f"μ{str(i).translate(sub)}" for i in range(1, system.dim + 1))
+
+
+def _state_label(mu0: np.ndarray) -> str:
+    return "μ₀ = (" + ", ".join(f"{float(v):g}" for v in mu0) + ")"
+
+
+def _grid(n: int, columns: int = GRID_COLUMNS) -> tuple[int, int]:
+    """(rows, columns) of a grid of n panels that wraps after ``columns``."""
+    cols = max(1, min(n, columns))
+    return (n + cols - 1) // cols, cols
+
+
+def _blocks(dim: int) -> list[tuple[int, ...]]:
+    """Components in blocks of three (M and Γ on se(3)*); a last block of one or two."""
+    return [tuple(range(i, min(i + 3, dim))) for i in range(0, dim, 3)]
+
+
+def orbit_figure(
+    scene: SceneResult, runs: Sequence[Run], path: Path, max_points: int = 4000
+) -> Path:
+    """Simulated and reference orbits, projected on each block of three components (3-D; a
+    block of two is drawn in the plane), one panel per initial state and block; the grid wraps
+    after GRID_COLUMNS panels. For the paper's rigid body this is its Fig. 2."""
+    system = scene.body
+    names = component_names(system)
+    blocks = _blocks(scene.states.shape[1])
     n = len(scene.states)
-    fig = Figure(figsize=(5.5 * n, 5))
+    panels = [(i, b) for i in range(n) for b in blocks]
+    nrows, ncols = _grid(len(panels))
+    fig = Figure(figsize=(4.6 * ncols + 2.2, 4.4 * nrows), layout="constrained")
     stride = max(1, len(scene.times) // max_points)
-    for i in range(n):
-        ax = fig.add_subplot(1, n, i + 1, projection="3d")
-        ex, tr = scene.exact[i, ::stride], run.traj[i, ::stride]
-        ax.plot(*ex.T, color="tab:red", lw=2.5, alpha=0.6, label="exact")
-        ax.plot(*tr.T, color="tab:blue", lw=0.8, label=run.name)
-        ax.set_title(f"μ₀ = {tuple(float(v) for v in scene.states[i])}")
-        ax.set_xlabel("μ₁")
-        ax.set_ylabel("μ₂")
-        ax.set_zlabel("μ₃")
-        ax.legend(loc="upper left")
-    fig.suptitle(f"{_system(scene)}: {len(scene.times) - 1} steps of h = {scene.h}")
-    fig.tight_layout()
-    return _savefig(fig, path, dpi=110)
+    for k, (i, block) in enumerate(panels):
+        three = len(block) == 3
+        ax = fig.add_subplot(nrows, ncols, k + 1, projection="3d" if three else None)
+        cols = list(block) if len(block) > 1 else [block[0] - 1, block[0]]
+        ex = scene.exact[i, ::stride][:, cols]
+        ax.plot(*ex.T, color="tab:red", lw=2.5, alpha=0.5, label="reference")
+        for run in runs:
+            tr = run.traj[i, ::stride][:, cols]
+            ax.plot(*tr.T, lw=0.8, label=run.name, color=method_style(run.name)["color"])
+        ax.set_xlabel(names[cols[0]])
+        ax.set_ylabel(names[cols[1]])
+        if three:
+            ax.set_zlabel(names[cols[2]])  # type: ignore[attr-defined]
+        ax.set_title(_state_label(scene.states[i]), fontsize=9)
+    handles, labels = fig.axes[0].get_legend_handles_labels()
+    kind = "reference: exact flow" if isinstance(system, RigidBody) else "reference: DOP853"
+    title = f"{system_label(system)}: {len(scene.times) - 1} steps of h = {scene.h:g} ({kind})"
+    return _save_with_legend(fig, path, handles, labels, title)
 
 
-def _system(scene: SceneResult) -> str:
-    """The system a scene integrates, for figure titles."""
-    body = scene.body
-    if isinstance(body, RigidBody):
-        return f"free rigid body, I = {tuple(float(i) for i in body.inertia)}"
-    if isinstance(body, HeavyTop):
-        return f"heavy top, I = {body.inertia}, mgl = {body.mgl:g}, χ = {body.com}"
-    return repr(body)
+def paper_figure_2(scene: SceneResult, run: Run, path: Path, max_points: int = 4000) -> Path:
+    """Fig. 2 of the paper: :func:`orbit_figure` of one run."""
+    return orbit_figure(scene, [run], path, max_points)
 
 
 def _line_style(name: str) -> dict[str, Any]:
@@ -82,42 +137,69 @@ def _line_style(name: str) -> dict[str, Any]:
     return {"color": st["color"], "ls": st["ls"]}
 
 
-def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
-    """Fig. 3: |μ − μ_exact|, relative energy error and relative Casimir error against step."""
+def _drift_panels(scene: SceneResult) -> list[tuple[Any, str]]:
+    from ..casimirs import casimir_label
+
+    known = casimir_label(scene.body)
+    return [
+        (scene.errors, "|μ − μ_ref|"),
+        (scene.energy_drift, "|H − H₀| / |H₀|"),
+        (scene.casimir_drift, f"max |C − C₀| / |μ₀|^deg C\n({known})"),
+    ]
+
+
+def error_figure(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
+    """|μ − μ_ref|, relative energy error and Casimir drift against step: one block of three
+    panels per initial state, the blocks wrapping after GRID_COLUMNS states. Where no Casimir
+    is known the Casimir panel says so (no curve, never a zero). For the paper's scene this
+    is its Fig. 3."""
     n = len(scene.states)
-    fig = Figure(figsize=(6 * n + 2, 9), layout="constrained")
-    axes = fig.subplots(3, n, sharex=True, squeeze=False)
+    nrows, ncols = _grid(n)
+    fig = Figure(figsize=(5.2 * ncols + 2.6, 7.5 * nrows), layout="constrained")
+    axes = fig.subplots(3 * nrows, ncols, squeeze=False, sharex=True)
     steps = np.arange(len(scene.times))
-    for run in runs:
-        err, dh, dc = scene.errors(run), scene.energy_drift(run), scene.casimir_drift(run)
-        for i in range(n):
-            # Log scales: zero values (step 0) are dropped by matplotlib.
-            st = _line_style(run.name)
-            axes[0, i].loglog(steps[1:], err[i, 1:], lw=0.8, label=run.name, **st)
-            axes[1, i].loglog(steps[1:], dh[i, 1:] + 1e-17, lw=0.8, label=run.name, **st)
-            axes[2, i].loglog(steps[1:], dc[i, 1:] + 1e-17, lw=0.8, label=run.name, **st)
+    panels = _drift_panels(scene)
     for i in range(n):
-        axes[0, i].set_title(f"μ₀ = {tuple(float(v) for v in scene.states[i])}")
-        axes[0, i].set_ylabel("|μ − μ_exact|")
-        axes[1, i].set_ylabel("|H − H₀| / |H₀|")
-        axes[2, i].set_ylabel(
-            "|C − C₀| / C₀" if isinstance(scene.body, RigidBody) else "max |C − C₀| / |μ₀|²"
-        )
-        axes[2, i].set_xlabel(f"step (h = {scene.h})")
-        for ax in axes[:, i]:
+        r0, c = 3 * (i // ncols), i % ncols
+        for p, (f, ylabel) in enumerate(panels):
+            ax = axes[r0 + p, c]
+            for run in runs:
+                values = f(run)[i, 1:]
+                if not np.isfinite(values).any():
+                    continue
+                # Log scales: exact zeros are drawn at 1e-17.
+                ax.loglog(
+                    steps[1:], values + 1e-17, lw=0.8, label=run.name, **_line_style(run.name)
+                )
+            if not ax.lines:
+                ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
+                        va="center", transform=ax.transAxes, fontsize=9, color="0.3")  # fmt: skip
+                ax.set_yticks([])
+            ax.set_ylabel(ylabel, fontsize=8)
             ax.grid(True, which="major", alpha=0.3)
-    # One figure-level legend: it covers every panel.
+        axes[r0, c].set_title(_state_label(scene.states[i]), fontsize=9)
+        axes[r0 + 2, c].set_xlabel(f"step (h = {scene.h:g})")
+    for i in range(n, nrows * ncols):
+        for p in range(3):
+            axes[3 * (i // ncols) + p, i % ncols].set_visible(False)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    return _save_with_legend(fig, path, handles, labels, f"{_system(scene)}, h = {scene.h}")
+    return _save_with_legend(
+        fig, path, handles, labels, f"{system_label(scene.body)}, h = {scene.h:g}"
+    )
+
+
+def paper_figure_3(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
+    """Fig. 3 of the paper: :func:`error_figure`."""
+    return error_figure(scene, runs, path)
 
 
 def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
-    """CSV with one row per step and state: t, exact μ, and per run μ, error, H and the largest
-    Casimir drift (C for the rigid body: |C − C₀| / C₀ with C = |μ|²)."""
-    comps = [str(i + 1) for i in range(scene.states.shape[1])]
-    cols = ["state", "step", "t", *(f"exact_{c}" for c in comps)]
+    """CSV with one row per step and state: t, the reference μ, and per run μ, error, H and the
+    largest Casimir drift (NaN where no Casimir is known). Components are named by the system."""
+    comps = list(component_names(scene.body))
+    cols = ["state", "step", "t", *(f"ref_{c}" for c in comps)]
     for run in runs:
-        cols += [f"{run.name}_{c}" for c in (*comps, "error", "H", "C")]
+        cols += [f"{run.name}_{c}" for c in (*comps, "error", "H", "dC")]
     f = io.StringIO(newline="")
     w = csv.writer(f)
     w.writerow(cols)
@@ -134,48 +216,62 @@ def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> P
 
 
 def state_figure(scene: SceneResult, runs: Sequence[Run], path: Path, t_max: float = 50.0) -> Path:
-    """The state's components against time for the first initial state, up to ``t_max``: the
-    reference (solid) and each run (dashed), one panel per block of three components (M and Γ
-    for the heavy top); under them the error, energy and Casimir drifts of every run over the
-    whole rollout, one column per initial state."""
-    dim = scene.states.shape[1]
-    blocks = [range(i, min(i + 3, dim)) for i in range(0, dim, 3)]
-    names = ["M", "Γ"] if isinstance(scene.body, HeavyTop) else ["μ"] * len(blocks)
+    """Each component against time up to ``t_max``: the reference (solid) and each run (dashed,
+    in the run's colour), one panel per initial state and block of three components (M and Γ on
+    se(3)*), wrapping after GRID_COLUMNS panels; then :func:`error_figure`'s drifts beneath, in
+    the same file."""
+    system = scene.body
+    names = component_names(system)
+    blocks = _blocks(scene.states.shape[1])
     n = len(scene.states)
-    fig = Figure(figsize=(6 * n + 2, 3 * (len(blocks) + 3)), layout="constrained")
-    axes = fig.subplots(len(blocks) + 3, n, squeeze=False)
+    panels = [(i, b) for i in range(n) for b in blocks]
+    nrows, ncols = _grid(len(panels))
+    drows, dcols = _grid(n)
+    ncols = max(ncols, dcols)
+    fig = Figure(figsize=(5.2 * ncols + 2.6, 2.8 * nrows + 7.5 * drows), layout="constrained")
+    top, bottom = fig.subfigures(2, 1, height_ratios=[2.8 * nrows, 7.5 * drows])
+    axes = top.subplots(nrows, ncols, squeeze=False)
     k = min(len(scene.times), int(t_max / scene.h) + 1)
     t = scene.times[:k]
-    palette = ("tab:blue", "tab:orange", "tab:green")
-    for i in range(n):
-        for b, (block, label) in enumerate(zip(blocks, names, strict=True)):
-            ax = axes[b, i]
-            for j, c in zip(block, palette, strict=False):
-                ax.plot(t, scene.exact[i, :k, j], color=c, lw=1.2, label=f"{label}{j % 3 + 1}")
-                for run in runs:
-                    ax.plot(t, run.traj[i, :k, j], color=c, lw=0.8, ls="--")
-            ax.set_ylabel(f"{label} (reference solid, methods dashed)")
-            ax.legend(loc="upper right", fontsize=7)
-            ax.set_xlabel("t")
-        steps = np.arange(len(scene.times))
-        rows = (scene.errors, scene.energy_drift, scene.casimir_drift)
-        labels = ("|μ − μ_ref|", "|H − H₀| / |H₀|", "max |C − C₀| / |μ₀|²")
-        for r, (f, ylabel) in enumerate(zip(rows, labels, strict=True)):
-            ax = axes[len(blocks) + r, i]
+    shades = ("tab:blue", "tab:orange", "tab:green")
+    for p, (i, block) in enumerate(panels):
+        ax = axes[p // ncols, p % ncols]
+        for j, colour in zip(block, shades, strict=False):
+            ax.plot(t, scene.exact[i, :k, j], color=colour, lw=1.4, label=names[j])
             for run in runs:
-                ax.loglog(
-                    steps[1:],
-                    f(run)[i, 1:] + 1e-17,
-                    lw=0.8,
-                    label=run.name,
-                    **_line_style(run.name),
-                )
-            ax.set_ylabel(ylabel)
+                ax.plot(t, run.traj[i, :k, j], color=colour, lw=0.7, ls="--", alpha=0.7)
+        ax.set_title(_state_label(scene.states[i]), fontsize=8)
+        ax.set_xlabel("t")
+        ax.legend(loc="upper right", fontsize=7, title="reference solid, methods dashed",
+                  title_fontsize=6)  # fmt: skip
+    for p in range(len(panels), nrows * ncols):
+        axes[p // ncols, p % ncols].set_visible(False)
+    axes2 = bottom.subplots(3 * drows, ncols, squeeze=False, sharex=True)
+    steps = np.arange(len(scene.times))
+    drift = _drift_panels(scene)
+    for i in range(n):
+        r0, c = 3 * (i // ncols), i % ncols
+        for q, (f, ylabel) in enumerate(drift):
+            ax = axes2[r0 + q, c]
+            for run in runs:
+                values = f(run)[i, 1:]
+                if np.isfinite(values).any():
+                    ax.loglog(
+                        steps[1:], values + 1e-17, lw=0.8, label=run.name, **_line_style(run.name)
+                    )
+            if not ax.lines:
+                ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
+                        va="center", transform=ax.transAxes, fontsize=9, color="0.3")  # fmt: skip
+                ax.set_yticks([])
+            ax.set_ylabel(ylabel, fontsize=8)
             ax.grid(True, which="major", alpha=0.3)
-        axes[-1, i].set_xlabel(f"step (h = {scene.h})")
-        axes[0, i].set_title(f"μ₀ = {tuple(float(v) for v in scene.states[i])}")
-    handles, labels = axes[-1, 0].get_legend_handles_labels()
-    return _save_with_legend(fig, path, handles, labels, f"{_system(scene)}, h = {scene.h}")
+        axes2[r0, c].set_title(_state_label(scene.states[i]), fontsize=8)
+        axes2[r0 + 2, c].set_xlabel(f"step (h = {scene.h:g})")
+    for i in range(n, (len(axes2) // 3) * ncols):
+        for q in range(3):
+            axes2[3 * (i // ncols) + q, i % ncols].set_visible(False)
+    handles, labels = axes2[0, 0].get_legend_handles_labels()
+    return _save_with_legend(fig, path, handles, labels, f"{system_label(system)}, h = {scene.h:g}")
 
 
 # --- Work–precision charts (``poisson-rs chart``; numbers from poisson_rs.workprecision) ---
@@ -187,23 +283,75 @@ _CLASSICAL_STYLE = {
     "splitting4": ("tab:brown", "P"),
     "dmv": ("tab:pink", "X"),
     "dop853": ("tab:red", "*"),
+    "splitting_casimir": ("tab:gray", "d"),
 }
+
+
+#: Colours of learned models other than the default (black): none is used by another method.
+LEARNED_COLOURS = (
+    "tab:purple",
+    "crimson",
+    "teal",
+    "darkgoldenrod",
+    "indigo",
+    "tab:pink",
+    "olivedrab",
+    "sienna",
+    "slateblue",
+    "darkcyan",
+    "maroon",
+    "dimgray",
+)
+#: Learned model → colour, assigned on first sight (stable for the process, distinct while
+#: fewer than len(LEARNED_COLOURS) models are drawn).
+_LEARNED: dict[str, str] = {}
+
+
+def learned_colour(method: str) -> str:
+    """A colour of its own for a learned model: the slot crc32(name) picks, or the next free one
+    when another model already holds it; the same name always gets the same colour once seen."""
+    import zlib
+
+    if method == "learned:default":
+        return "black"
+    if method not in _LEARNED:
+        taken = set(_LEARNED.values())
+        start = zlib.crc32(method.encode()) % len(LEARNED_COLOURS)
+        for k in range(len(LEARNED_COLOURS)):
+            colour = LEARNED_COLOURS[(start + k) % len(LEARNED_COLOURS)]
+            if colour not in taken:
+                break
+        else:
+            colour = LEARNED_COLOURS[start]
+        _LEARNED[method] = colour
+    return _LEARNED[method]
 
 
 def method_style(method: str) -> dict[str, Any]:
     """Line style of a method, fixed by its name so every chart colours it the same way.
 
-    Learned models are thick (black for the default), Taylor K in the Cayley chart blue and in
-    the exponential chart orange (darker for larger K, dashed), classical methods their own colour.
+    Learned models are thick, each in a colour of its own (:func:`learned_colour`; black for the
+    default), Taylor K in the Cayley chart blue and in the exponential chart orange (darker for
+    larger K, dashed), classical methods their own colour.
     """
     from matplotlib import colormaps
 
     if method.startswith("learned:"):
-        color = "black" if method == "learned:default" else "tab:purple"
-        return {"color": color, "marker": "o", "lw": 2.2, "ls": "-", "ms": 5, "zorder": 5}
+        return {
+            "color": learned_colour(method),
+            "marker": "o",
+            "lw": 2.2,
+            "ls": "-",
+            "ms": 5,
+            "zorder": 5,
+        }
     if method.startswith("taylor"):
         order, _, chart = method.removeprefix("taylor").partition("-")
-        shade = 0.35 + 0.6 * min(int(order), 7) / 7
+        try:
+            k = int(order)
+        except ValueError:
+            k = 3
+        shade = 0.35 + 0.6 * min(k, 7) / 7
         cmap = colormaps["Blues" if chart == "cayley" else "Oranges"]
         ls = "-" if chart == "cayley" else "--"
         marker = "o" if chart == "cayley" else "s"
@@ -246,13 +394,21 @@ def work_precision_figure(
     axes = fig.subplots(1, len(scenes), squeeze=False, sharey=True)[0]
     for ax, scene in zip(axes, scenes, strict=True):
         srows = [r for r in rows if r["scene"] == scene]
-        finite = [r[metric] for r in srows if not r["failed"] and r[metric]]
+        finite = [
+            r[metric]
+            for r in srows
+            if not r["failed"] and r[metric] is not None and math.isfinite(r[metric]) and r[metric]
+        ]
         low = min(finite, default=1e-16)
         top = min(ceiling, max(finite, default=ceiling)) * 3
         edge = ax.get_xaxis_transform()  # x in data, y in axes fraction: the top edge
         for method, pts in _by_method(srows).items():
             st = method_style(method)
-            ok = [r for r in pts if not r["failed"] and r[metric] is not None]
+            ok = [
+                r
+                for r in pts
+                if not r["failed"] and r[metric] is not None and math.isfinite(r[metric])
+            ]
             inside = [r for r in ok if r[metric] <= ceiling]
             xs = [r["seconds_per_traj"] for r in inside]
             ys = [max(r[metric], 1e-17) for r in inside]  # a zero would vanish on a log axis
@@ -282,11 +438,19 @@ def work_precision_figure(
         ax.grid(True, which="major", alpha=0.3)
     axes[0].set_ylabel(ylabel)
     handles, labels = axes[0].get_legend_handles_labels()
-    handles += [
-        Line2D([], [], color="0.3", marker="x", mew=2, ls="none", ms=8),
-        Line2D([], [], color="0.3", marker="^", mfc="none", ls="none", ms=8),
-    ]
-    labels += ["failed run (top edge)", f"> {ceiling:g} (top edge)"]
+    # Legend entries only for the markers drawn.
+    if any(r["failed"] and r["seconds_per_traj"] for r in rows):
+        handles.append(Line2D([], [], color="0.3", marker="x", mew=2, ls="none", ms=8))
+        labels.append("failed run (top edge)")
+    if any(not r["failed"] and r[metric] is not None and r[metric] > ceiling for r in rows):
+        handles.append(Line2D([], [], color="0.3", marker="^", mfc="none", ls="none", ms=8))
+        labels.append(f"> {ceiling:g} (top edge)")
+    if not any(
+        not r["failed"] and r[metric] is not None and math.isfinite(r[metric]) for r in rows
+    ):
+        for ax in axes:
+            ax.text(0.5, 0.5, f"n/a: {metric} not known for this system", ha="center",
+                    va="center", transform=ax.transAxes, color="0.3")  # fmt: skip
     if any(r.get("extrapolated") for r in rows):
         handles.append(Line2D([], [], color="0.3", marker="o", mfc="white", ls="none", ms=6))
         labels.append("h > trained h_max")
@@ -331,7 +495,7 @@ def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "")
     return _save_with_legend(fig, path, list(entries.values()), list(entries), title)
 
 
-def stability_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
+def stability_figure(rows: Sequence[dict[str, Any]], path: Path, *, system: Any = None) -> Path:
     """Stability map: log₁₀ relative error at T per state (rows) and step size (columns), one
     panel per method; Newton failures are black crosses, never a colour."""
     methods = list(dict.fromkeys(r["method"] for r in rows))
@@ -369,12 +533,16 @@ def stability_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
             image,
             ax=axes,
             shrink=0.8,
-            label="log₁₀ |μ(T) − μ_exact(T)| / |μ₀|  (× = Newton failure)",
+            label="log₁₀ |μ(T) − μ_ref(T)| / |μ₀|  (× = Newton failure)",
         )
+    if system is not None:
+        fig.suptitle(f"Stability map: {system_label(system)}", fontsize=11)
     return _savefig(fig, path, dpi=110, bbox_inches="tight")
 
 
-def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path:
+def stability_summary_figure(
+    rows: Sequence[dict[str, Any]], path: Path, *, system: Any = None
+) -> Path:
     """Worst relative error at T, worst |ΔH|/H and worst |ΔC|/C over the states against h, per
     method; a step size where Newton failed for some state is marked × at the top."""
     fig = Figure(figsize=(15, 4.5), layout="constrained")
@@ -382,7 +550,7 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
     keys = [
         ("rel_error", "worst |μ(T) − μ_exact(T)| / |μ₀|"),
         ("max_rel_dH", "worst max |H − H₀| / H₀"),
-        ("max_rel_dC", "worst max |C − C₀| / C₀"),
+        ("max_rel_dC", "worst max |C − C₀| / |μ₀|^deg C"),
     ]
     marks: list[tuple[float, str]] = []  # (h, colour) of failures, drawn once limits are final
     for method in dict.fromkeys(r["method"] for r in rows):
@@ -393,11 +561,16 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
             worst = []
             for h in hs:
                 vals = [float(r[key]) for r in mine if float(r["h"]) == h and r["converged"]]
+                vals = [v for v in vals if math.isfinite(v)]  # NaN: not known, not zero
                 worst.append(max(vals) + 1e-17 if vals else np.nan)
             (line,) = ax.loglog(
                 hs, worst, marker="o", ms=3, lw=1, label=method, color=method_style(method)["color"]
             )
         marks += [(h, line.get_color()) for h, f in zip(hs, failed, strict=True) if f]
+    for ax, (key, _) in zip(axes, keys, strict=True):
+        if not any(math.isfinite(float(r[key])) for r in rows if r["converged"]):
+            ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
+                    va="center", transform=ax.transAxes, color="0.3")  # fmt: skip
     for ax in axes:
         top = ax.get_ylim()[1]
         for h, colour in marks:
@@ -407,7 +580,8 @@ def stability_summary_figure(rows: Sequence[dict[str, Any]], path: Path) -> Path
         ax.set_ylabel(label)
         ax.grid(True, which="major", alpha=0.3)
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right center", fontsize=8)
-    fig.suptitle("Where methods break (× at the top: Newton failed for some state)")
+    what = f"{system_label(system)}: " if system is not None else ""
+    fig.suptitle(f"{what}where methods break (× at the top: Newton failed for some state)")
     return _savefig(fig, path, dpi=110)
 
 

@@ -1,4 +1,5 @@
-"""Work–precision measurements: accuracy per unit of cost for every integrator, same machine.
+"""Work–precision measurements: accuracy per unit of cost for every integrator, same machine, on
+any system (the rigid body, the heavy top, any Lie–Poisson scene).
 
 Every method steps behind the same :func:`~poisson_rs.integrate`, so costs compare like with like.
 For each scene, method and step size h (or tolerance, for an adaptive method) one row records the
@@ -7,8 +8,10 @@ and Casimir deviations over [0, T], Newton failures and the wall-clock seconds p
 A long run records |ΔH|/H against time over 10⁵ steps. Rows are plain dicts (CSV/JSON ready);
 plotting lives in :mod:`poisson_rs.charts`.
 
-Conventions: errors are Euclidean norms |μ − μ_exact| (max over the scene's states); ΔH/H and
-ΔC/C are |H − H₀|/H₀ and |C − C₀|/C₀, max over states and output times; a setting where any
+Conventions: errors are Euclidean norms |μ − μ_ref| (max over the scene's states; the reference is
+the exact flow for a rigid body, else DOP853 at rtol = atol = 1e-13); ΔH/H is |H − H₀|/|H₀| and
+ΔC is |C − C₀|/|μ₀|^d for each Casimir of degree d (for the rigid body |C − C₀|/C₀), max over
+states and output times, and NaN when the system has no known Casimir; a setting where any
 trajectory fails has ``failed = True`` and no accuracy numbers (never dropped silently). A
 learned model is also measured past the largest step it was trained for (``extrapolated``).
 """
@@ -25,15 +28,18 @@ from typing import Any
 
 import numpy as np
 
-from .integrators import (
+from ..casimirs import casimir_degrees, casimir_label, max_casimir_drift, system_casimirs
+from ..integrators import (
     FAILURE_CODES,
     RolloutInfo,
     Stepper,
+    classical_methods,
     integrate,
-    load_model,
+    shipped_models,
     taylor_integrator,
 )
-from .reference import RigidBody, exact_solution
+from ..reference import RigidBody, exact_solution, reference_solution
+from ..systems import LiePoissonSystem
 
 Row = dict[str, Any]
 Progress = Callable[[str], None]
@@ -79,13 +85,33 @@ def _integrate(stepper: Stepper, mu0: Any, h: float, n_steps: int, **kw: Any) ->
 
 @dataclass(frozen=True)
 class Scene:
-    """Initial states integrated together. states: (n, 3); horizon T in time units."""
+    """Initial states of one system integrated together. states: (n, dim); horizon T in time
+    units. ``system``: any system with ``dim``, ``hamiltonian`` and ``casimirs``."""
 
     name: str
-    body: RigidBody
+    system: LiePoissonSystem
     states: np.ndarray
     T: float = HORIZON
     description: str = ""
+
+    @property
+    def body(self) -> LiePoissonSystem:
+        """The system (the name the rigid-body-only version used)."""
+        return self.system
+
+
+def reference_at(system: LiePoissonSystem, states: np.ndarray, times: Any) -> np.ndarray:
+    """μ_ref at ``times`` for each state, (n, len(times), dim): the exact flow for a rigid body,
+    else DOP853 at rtol = atol = 1e-13."""
+    if isinstance(system, RigidBody):
+        return exact_solution(system, states, times)
+    return reference_solution(system, states, times)
+
+
+def steps_to(T: float, counts: Sequence[int]) -> tuple[int, ...]:
+    """Step counts to horizon T from ``counts`` given per HORIZON (= 10) time units: the same
+    step sizes h = HORIZON / count on every horizon."""
+    return tuple(dict.fromkeys(max(1, round(n * T / HORIZON)) for n in counts))
 
 
 @dataclass(frozen=True)
@@ -119,6 +145,10 @@ class ChartData:
     call_overhead_s: float
     """Seconds of an ``integrate`` call on the paper scene that takes no step (fixed cost)."""
     scenes: list[Scene] = field(default_factory=list)
+    long_h: float = 0.1
+    """Step size of the long run."""
+    casimir_label: str = ""
+    """What the Casimir drift measures, for axis labels (or that none is known)."""
 
 
 def paper_scene(body: RigidBody | None = None) -> Scene:
@@ -183,13 +213,15 @@ def _dop853_stepper(classical: Callable[..., Stepper], body: RigidBody, tol: flo
 
 
 def default_methods(
-    body: RigidBody,
+    body: LiePoissonSystem,
     *,
     quick: bool = False,
     include_paper: bool = True,
     notes: list[str] | None = None,
 ) -> list[Method]:
-    """The learned models, Taylor K ∈ {1,3,5,7} in both charts, and the classical methods.
+    """The shipped learned models trained for ``body`` (any system), Taylor K ∈ {1,3,5,7} in
+    every chart the system has (Cayley and exp on so(3), exp elsewhere), and the classical
+    methods the system has.
 
     Classical methods come from ``poisson_rs.classical`` when it exists; one that is missing
     is skipped with a line in ``notes``. ``quick`` keeps a handful of cheap methods (tests).
@@ -198,26 +230,32 @@ def default_methods(
 
     notes = [] if notes is None else notes
     methods: list[Method] = []
-    default = load_model()
-    # The shipped models were trained for the paper's body: charted only on scenes of that body.
-    if default.system == body:
-        methods.append(Method("learned:default", "learned", default))
-    else:
-        notes.append(f"shipped learned models skipped: they integrate {default.system!r}")
-    if include_paper and not quick and default.system == body:
-        paper = load_model("paper")
-        # 253k parameters: a few step sizes only, and a shorter long run.
-        methods.append(
-            Method("learned:paper", "learned", paper, steps=SLOW_STEPS, long_run_budget_s=30.0)
-        )
+    # A model of another system would be scored against the wrong flow: only this system's.
+    mine = shipped_models(body)
+    for name, model in mine.items():
+        if name == "paper":
+            if include_paper and not quick:
+                # 253k parameters: a few step sizes only, and a shorter long run.
+                methods.append(
+                    Method(
+                        "learned:paper", "learned", model, steps=SLOW_STEPS, long_run_budget_s=30.0
+                    )
+                )
+            continue
+        if quick and name != "default" and len(mine) > 1 and "default" in mine:
+            continue
+        methods.append(Method(f"learned:{name}", "learned", model))
+    if not mine:
+        notes.append("no shipped learned model integrates this system: none charted")
+    so3 = getattr(getattr(body, "algebra", None), "is_so3", lambda: False)()
     orders = (3, 5) if quick else TAYLOR_ORDERS
-    charts = ("cayley",) if quick else CHARTS
+    charts = (("cayley",) if quick else CHARTS) if so3 else ("exp",)
     for chart in charts:
         for k in orders:
             methods.append(
                 Method(f"taylor{k}-{chart}", "taylor", taylor_integrator(body, k, chart))
             )
-    if quick:
+    if quick and so3:
         methods.append(Method("taylor3-exp", "taylor", taylor_integrator(body, 3, "exp")))
 
     classical = getattr(poisson_rs, "classical", None)
@@ -227,12 +265,15 @@ def default_methods(
             + ", ".join(CLASSICAL_NAMES)
         )
         return methods
+    available = classical_methods(body)
     for name in ("rk4", "midpoint") if quick else CLASSICAL_NAMES:
+        if name not in available:
+            continue  # not defined for this system (e.g. the splittings off the rigid body)
         try:
             stepper = classical(body, name)
             # One step, so that a method whose Rust side is not built yet is skipped here
             # rather than aborting the sweep.
-            _integrate(stepper, [1.0, 1.0, 2.0], 0.1, 1)
+            _integrate(stepper, np.full(body.dim, 0.5), 0.1, 1)
         except Exception as e:  # any reason at all: skip it, say why
             notes.append(f"classical {name!r} not available: {type(e).__name__}: {e}")
             continue
@@ -304,7 +345,8 @@ def measure(
     min_call_s: float = 0.03,
     max_batch: int = 4096,
 ) -> Row:
-    """One work–precision point. exact: (n_states, n_steps + 1, 3) at times h·k.
+    """One work–precision point. exact: (n_states, records, dim), of which only the last record,
+    μ_ref(T), is read.
 
     Accuracy comes from one run of the scene's states with every state kept. The cost is timed
     separately: ``integrate`` on the scene's states tiled k times (k chosen so that a call lasts
@@ -373,12 +415,14 @@ def measure(
         failed = int((~info.converged | ~finite).sum())
         row.update(failed=True, n_failed=failed, failure=_describe_failure(info, finite))
         return row
-    body = scene.body
-    h0, c0_ = body.hamiltonian(traj[:, :1]), body.casimir(traj[:, :1])
+    system = scene.system
+    h0 = system.hamiltonian(traj[:, :1])
+    dc = max_casimir_drift(system, traj)
     row.update(
         error_T=float(np.linalg.norm(traj[:, -1] - exact[:, -1], axis=-1).max()),
-        max_rel_dH=float((np.abs(body.hamiltonian(traj) - h0) / np.abs(h0)).max()),
-        max_rel_dC=float((np.abs(body.casimir(traj) - c0_) / np.abs(c0_)).max()),
+        max_rel_dH=float((np.abs(system.hamiltonian(traj) - h0) / np.abs(h0)).max()),
+        # NaN when the system has no known Casimir: "n/a", never a zero drift.
+        max_rel_dC=float(np.max(dc)) if np.isfinite(dc).all() else float("nan"),
     )
     return row
 
@@ -386,11 +430,12 @@ def measure(
 def _settings(
     method: Method, steps: Sequence[int], T: float
 ) -> list[tuple[float, int, float | None, Stepper]]:
-    """(h, n_steps, tol, stepper) for every point of ``method``'s sweep to horizon T."""
+    """(h, n_steps, tol, stepper) for every point of ``method``'s sweep to horizon T; ``steps``
+    are counts per HORIZON time units (the same step sizes on every horizon)."""
     if method.tolerances is not None:
-        n = round(T / method.spacing)
+        n = max(1, round(T / method.spacing))
         return [(T / n, n, tol, s) for tol, s in method.tolerances.items()]
-    return [(T / n, n, None, method.stepper) for n in (method.steps or steps)]
+    return [(T / n, n, None, method.stepper) for n in steps_to(T, method.steps or steps)]
 
 
 def call_overhead(scene: Scene, stepper: Stepper) -> float:
@@ -422,18 +467,19 @@ def sweep(
     total, done = len(scenes) * len(methods), 0
     measured: Iterator[Row] | None = None
     if client is not None:
-        from .ensembles import run_all
+        from ..ensembles import run_all
 
         jobs = []
         for scene in scenes:
+            ref = reference_at(scene.system, scene.states, [scene.T])
             for m in methods:
                 for h, n, tol, stepper in _settings(m, steps, scene.T):
-                    exact = exact_solution(scene.body, scene.states, h * np.arange(n + 1))
-                    args = (scene, m.name, m.family, stepper, h, n, exact)
+                    args = (scene, m.name, m.family, stepper, h, n, ref)
                     jobs.append((args, {"tol": tol, "repeats": repeats}))
         measured = iter(run_all(client, measure, jobs, desc="points", progress=bool(progress)))
     for scene in scenes:
-        exact_cache: dict[tuple[float, int], np.ndarray] = {}
+        # Only μ_ref(T) is compared: one reference per scene (h·n = T for every setting).
+        ref = reference_at(scene.system, scene.states, [scene.T]) if measured is None else None
         for m in methods:
             t0 = time.perf_counter()
             settings = _settings(m, steps, scene.T)
@@ -441,11 +487,9 @@ def sweep(
                 if measured is not None:
                     rows.append(next(measured))
                     continue
-                if (h, n) not in exact_cache:
-                    times = h * np.arange(n + 1)
-                    exact_cache[h, n] = exact_solution(scene.body, scene.states, times)
+                assert ref is not None
                 row = measure(
-                    scene, m.name, m.family, stepper, h, n, exact_cache[h, n], tol=tol,
+                    scene, m.name, m.family, stepper, h, n, ref, tol=tol,
                     repeats=repeats,
                 )  # fmt: skip
                 rows.append(row)
@@ -490,7 +534,10 @@ def long_run(
     notes = [] if notes is None else notes
     edges = window_edges(n_steps, n_windows)
     rows: list[Row] = []
-    body = scene.body
+    body = scene.system
+    casimirs = system_casimirs(body)
+    degrees = np.asarray(casimir_degrees(body) or (), dtype=np.float64)
+    norm0 = np.linalg.norm(scene.states, axis=1)
     labels = ["(" + ", ".join(f"{v:g}" for v in s) + ")" for s in scene.states]
     for idx, m in enumerate(methods):
         budget = m.long_run_budget_s if m.long_run_budget_s is not None else budget_s
@@ -503,8 +550,10 @@ def long_run(
         n_states = len(scene.states)
         dh = np.full((n_states, n_steps + 1), np.nan)
         dc = np.full((n_states, n_steps + 1), np.nan)
-        h0, c0 = body.hamiltonian(scene.states), body.casimir(scene.states)
-        dh[:, 0] = dc[:, 0] = 0.0
+        h0 = np.abs(body.hamiltonian(scene.states))
+        c0 = casimirs(scene.states) if casimirs is not None else None  # (n, m)
+        dh[:, 0] = 0.0
+        dc[:, 0] = 0.0 if c0 is not None else np.nan
         state = scene.states.copy()
         alive = np.ones(n_states, dtype=bool)
         done, t0, chunk = 0, time.perf_counter(), 1000
@@ -521,7 +570,11 @@ def long_run(
             ids = np.flatnonzero(alive)
             seg = slice(done + 1, done + chunk + 1)
             dh[ids, seg] = np.abs(body.hamiltonian(traj[:, 1:]) - h0[ids, None]) / h0[ids, None]
-            dc[ids, seg] = np.abs(body.casimir(traj[:, 1:]) - c0[ids, None]) / c0[ids, None]
+            if casimirs is not None and c0 is not None:
+                # |C − C₀| / |μ₀|^d, max over the Casimirs (rigid body: |C − C₀| / C₀).
+                drift = np.abs(casimirs(traj[:, 1:]) - c0[ids, None, :])
+                scale = norm0[ids, None, None] ** degrees
+                dc[ids, seg] = (drift / scale).max(axis=-1)
             ok = info.converged & np.isfinite(traj[:, -1]).all(axis=1)
             for j in np.flatnonzero(~ok):
                 step = done + max(int(info.failed_step[j]), 0)
@@ -555,7 +608,7 @@ def long_run(
                         "step": int(e),
                         "t": float(e * h),
                         "max_rel_dH": float(win_h.max()),
-                        "max_rel_dC": float(win_c.max()),
+                        "max_rel_dC": float(win_c.max()) if np.isfinite(win_c).all() else math.nan,
                     }
                 )
         if progress is not None:
@@ -575,18 +628,26 @@ def rank_at_level(
     rows: Iterable[Row],
     level: float,
     *,
-    scene: str = "paper",
+    scene: str | None = None,
     metric: str = "error_T",
     interpolate: bool = True,
 ) -> list[Row]:
     """Methods that reach ``metric`` ≤ ``level`` on ``scene``, cheapest first.
 
-    Each result: method, seconds (per trajectory), h, tol, interpolated. Candidates are the
+    ``scene``: the scene's name; None when the rows hold one scene only (ValueError when they
+    hold several: the ranking is per scene). Each result: method, seconds (per trajectory), h,
+    tol, interpolated. Candidates are the
     measured points at or below the level and, with ``interpolate``, the crossings of the level
     between consecutive points of a method's curve (coarse to fine), with log(seconds)
     interpolated linearly in log(metric). Nothing is extrapolated past measured points, and
     no curve is interpolated across a failed point.
     """
+    rows = list(rows)
+    if scene is None:
+        names = list(dict.fromkeys(r["scene"] for r in rows))
+        if len(names) > 1:
+            raise ValueError(f"the rows hold scenes {names}: give scene=one of them")
+        scene = names[0] if names else None
     by_method: dict[str, list[Row]] = {}
     for r in rows:
         if r["scene"] == scene:
@@ -598,6 +659,8 @@ def rank_at_level(
         for i, p in enumerate(pts):
             if p["failed"] or p[metric] is None or p["seconds_per_traj"] is None:
                 continue
+            if not math.isfinite(p[metric]):
+                continue  # not known (NaN): it reaches no level
             if p[metric] <= level:
                 cands.append({**_pick(p), "seconds": p["seconds_per_traj"], "interpolated": False})
             q = pts[i - 1] if i else None
@@ -624,11 +687,12 @@ def fastest_at_level(
     rows: Iterable[Row],
     level: float,
     *,
-    scene: str = "paper",
+    scene: str | None = None,
     metric: str = "error_T",
     interpolate: bool = True,
 ) -> Row | None:
-    """The cheapest method reaching ``metric`` ≤ ``level`` (see rank_at_level), or None."""
+    """The cheapest method reaching ``metric`` ≤ ``level`` (see rank_at_level), or None.
+    ``scene`` may be left out when the rows hold one scene."""
     ranked = rank_at_level(rows, level, scene=scene, metric=metric, interpolate=interpolate)
     return ranked[0] if ranked else None
 
@@ -647,20 +711,24 @@ def run_chart(
     ``quick``: a tiny sweep (three step sizes, a few methods, a 2000-step long run) for tests.
     ``client``: a ``distributed.Client`` for the sweep's points (the long run stays here).
     ``models``: the user's own learned models, charted beside the others; each must have been
-    trained for the scenes' body (ValueError otherwise: another body's exact solution would
-    score it against the wrong flow). ``scene``: chart this rigid-body scene instead of the
-    paper's and the separatrix one (the heavy top has its own chart: ``heavytop_chart``).
+    trained for the scene's system (ValueError otherwise: another system's reference would
+    score it against the wrong flow). ``scene``: chart this scene of any system instead of the
+    paper's and the separatrix one.
     """
     notes: list[str] = []
     scenes = [paper_scene(), separatrix_scene()] if scene is None else [scene]
-    methods = default_methods(scenes[0].body, quick=quick, include_paper=include_paper, notes=notes)
-    for model in models:
-        system = getattr(model, "system", None)
-        if system != scenes[0].body:
+    system = scenes[0].system
+    for model in models:  # checked before any work
+        if getattr(model, "system", None) != system:
+            from .figures import system_label
+
             raise ValueError(
-                f"model {getattr(model, 'name', model)!r} integrates {system!r}, not the chart's "
-                f"{scenes[0].body!r}"
+                f"model {getattr(model, 'name', model)!r} integrates "
+                f"{system_label(getattr(model, 'system', None))}, not the chart's "
+                f"{system_label(system)}"
             )
+    methods = default_methods(system, quick=quick, include_paper=include_paper, notes=notes)
+    for model in models:
         methods.append(Method(f"learned:{model.name}", "learned", model))  # type: ignore[attr-defined]
     for line in notes:
         if progress is not None:
@@ -682,4 +750,4 @@ def run_chart(
         progress=progress,
         notes=notes,
     )
-    return ChartData(rows, long_rows, notes, overhead, scenes)
+    return ChartData(rows, long_rows, notes, overhead, scenes, 0.1, casimir_label(system))
