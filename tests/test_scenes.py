@@ -346,7 +346,7 @@ error = 1e-3
     with pytest.raises(ValueError, match="so4"):
         load_scene(named)
     filed.write_text('[system]\nsystem_file = "missing.json"\n[states]\npoints = [[1.0, 0, 0]]\n')
-    with pytest.raises((ValueError, FileNotFoundError), match="missing.json"):
+    with pytest.raises((ValueError, FileNotFoundError), match=r"missing\.json"):
         load_scene(filed)
 
 
@@ -356,5 +356,5 @@ def test_select_table_takes_a_metric(tmp_path: Path) -> None:
     scene = load_scene(path)
     assert scene.select is not None and scene.select.metric == "energy"
     path.write_text(VALID + '\n[select]\ntarget = 1e-6\nmetric = "speed"\n')
-    with pytest.raises(ValueError, match="select.metric"):
+    with pytest.raises(ValueError, match=r"select\.metric"):
         load_scene(path)

@@ -13,8 +13,8 @@ by degree, a basis of the new ones: those that are not polynomials in the Casimi
 degree (so (|μ|²)² is not listed again at degree 4).
 
 >>> from poisson_rs import LieAlgebra
->>> [c.terms for c in polynomial_casimirs(LieAlgebra.so3(), 2)]
-[{(2, 0, 0): 1.0, (0, 2, 0): 1.0, (0, 0, 2): 1.0}]
+>>> [sorted(c.terms.items()) for c in polynomial_casimirs(LieAlgebra.so3(), 2)]
+[[((0, 0, 2), 1.0), ((0, 2, 0), 1.0), ((2, 0, 0), 1.0)]]
 """
 
 from __future__ import annotations
@@ -101,6 +101,8 @@ def _rref_columns(basis: np.ndarray) -> np.ndarray:
             if other != r:
                 m[other] -= m[other, col] * m[r]
         r += 1
+    # Round-off off the readable coefficients (1.0000000000000002 → 1.0).
+    m = np.round(m, 12)
     m[np.abs(m) < 1e-12] = 0.0
     return m[:r].T
 

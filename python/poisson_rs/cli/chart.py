@@ -135,7 +135,7 @@ def _chart(args: argparse.Namespace) -> int:
         data.rows,
         out / "workprecision_casimirs.png",
         metric="max_rel_dC",
-        ylabel=f"max |C − C₀| / |μ₀|² over [0, T], {data.casimir_label}",
+        ylabel=f"max |C − C₀| / |μ₀|^deg C over [0, T]\n{data.casimir_label}",
         title=f"Casimir drift against cost: {system}",
     )
     n_long = max((r["step"] for r in data.long_rows), default=0)
@@ -161,7 +161,8 @@ def _chart(args: argparse.Namespace) -> int:
         "amortise it: see the timing_batch column)"
     )
     print(
-        f"wrote {out}/workprecision_error.png, workprecision_energy.png, long_run_energy.png, "
+        f"wrote {out}/workprecision_error.png, workprecision_energy.png, "
+        "workprecision_casimirs.png, long_run_energy.png, "
         f"workprecision.csv/json, long_run_energy.csv/json in {time.perf_counter() - t0:.0f} s"
     )
     return 0

@@ -110,7 +110,7 @@ def orbit_figure(
         ax = fig.add_subplot(nrows, ncols, k + 1, projection="3d" if three else None)
         cols = list(block) if len(block) > 1 else [block[0] - 1, block[0]]
         ex = scene.exact[i, ::stride][:, cols]
-        ax.plot(*ex.T, color="tab:red", lw=2.5, alpha=0.5, label="reference")
+        ax.plot(*ex.T, color="0.55", lw=3.0, alpha=0.6, label="reference")
         for run in runs:
             tr = run.traj[i, ::stride][:, cols]
             ax.plot(*tr.T, lw=0.8, label=run.name, color=method_style(run.name)["color"])
@@ -548,8 +548,8 @@ def stability_summary_figure(
     fig = Figure(figsize=(15, 4.5), layout="constrained")
     axes = fig.subplots(1, 3)
     keys = [
-        ("rel_error", "worst |μ(T) − μ_exact(T)| / |μ₀|"),
-        ("max_rel_dH", "worst max |H − H₀| / H₀"),
+        ("rel_error", "worst |μ(T) − μ_ref(T)| / |μ₀|"),
+        ("max_rel_dH", "worst max |H − H₀| / |H₀|"),
         ("max_rel_dC", "worst max |C − C₀| / |μ₀|^deg C"),
     ]
     marks: list[tuple[float, str]] = []  # (h, colour) of failures, drawn once limits are final
@@ -581,7 +581,8 @@ def stability_summary_figure(
         ax.grid(True, which="major", alpha=0.3)
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right center", fontsize=8)
     what = f"{system_label(system)}: " if system is not None else ""
-    fig.suptitle(f"{what}where methods break (× at the top: Newton failed for some state)")
+    failures = " (× at the top: Newton failed for some state)" if marks else ""
+    fig.suptitle(f"{what}where methods break{failures}")
     return _savefig(fig, path, dpi=110)
 
 
