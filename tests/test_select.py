@@ -103,3 +103,67 @@ def test_bad_arguments(kwargs: dict[str, float], match: str) -> None:
         pr.select(BODY, [[1.0, 1.0, 2.0]], **kwargs)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="shape"):
         pr.select(BODY, [[1.0, 1.0]], T=1.0, target=1e-3)
+
+
+# --- metric: energy and Casimir over [0, T]; the budget inside a rollout -----------------------
+
+
+def test_select_by_energy_meets_the_energy_target_on_held_out_states() -> None:
+    mu0 = shell_states(4, seed=5)
+    stepper, h, report = pr.select(
+        BODY, mu0, T=5.0, target=1e-6, metric="energy", models=["default"], budget_s=5
+    )
+    assert report.metric == "energy" and report.reference == "none needed"
+    assert "max |H - H0|/|H0| over [0, T] <= 1e-06" in report.table()
+    # Independent check: the energy error of the selected method over every step.
+    held_out = shell_states(4, seed=6)
+    traj = pr.integrate(stepper, held_out, h, round(5.0 / h))
+    e = BODY.hamiltonian(traj)
+    assert float((np.abs(e - e[:, :1]) / e[:, :1]).max()) <= 3e-6  # records vs every step
+
+
+def test_select_by_casimir_needs_a_known_casimir() -> None:
+    c = np.zeros((3, 3, 3))
+    c[2, 0, 0], c[0, 2, 0] = 1.0, -1.0
+    c[2, 1, 1], c[1, 2, 1] = 1.0, -1.0
+    h = pr.Polynomial({(2, 0, 0): 0.5, (0, 2, 0): 0.5, (0, 0, 2): 0.5})
+    system = pr.LiePoissonSystem(pr.LieAlgebra(c), h)
+    with pytest.raises(ValueError, match="no Casimir"):
+        pr.select(system, [1.0, 0.5, 0.2], T=1.0, target=1e-6, metric="casimir")
+    with pytest.raises(ValueError, match="metric"):
+        pr.select(BODY, [1.0, 0.5, 0.2], T=1.0, target=1e-6, metric="speed")
+    _, _, report = pr.select(BODY, [1.0, 0.5, 0.2], T=1.0, target=1e-12, metric="casimir",
+                             models=[], budget_s=2)  # fmt: skip
+    winner = report.winner
+    assert winner is not None and winner.passing is not None
+    assert winner.passing.casimir <= 1e-12
+
+
+def test_a_chaotic_horizon_gets_a_useful_answer() -> None:
+    # The heavy top to T = 200: no fixed-step method keeps a pointwise error of 1e-8 there (the
+    # DOP853 reference itself separates), but energy and Casimirs still rank the methods.
+    top = pr.HeavyTop()
+    mu0 = np.array([[1.0, -0.5, 0.2, 0.6, 0.0, 0.8]])
+    with pytest.raises(NoCandidateError) as info:
+        pr.select(top, mu0, T=200.0, target=1e-14, models=[], budget_s=1.0, max_steps=4096)
+    message = str(info.value)
+    assert "metric='energy' or 'casimir'" in message
+    assert "best by energy:" in message and "best by casimir:" in message
+
+
+def test_the_budget_holds_inside_one_rollout() -> None:
+    # T = 1e6: the coarsest rung alone is 10⁶ steps of each state; a candidate whose first
+    # rung the budget cannot pay for is not run at all (priced by a 16-step probe).
+    mu0 = shell_states(2, seed=1)
+    with pytest.raises(NoCandidateError) as info:
+        pr.select(BODY, mu0, T=1e6, target=1e-3, models=[], budget_s=0.05, max_steps=1 << 30)
+    report = info.value.report
+    slow = [r for r in report.results if r.name in ("taylor7-cayley", "dop853")]
+    assert slow and all(r.stopped == "budget" and not r.trials for r in slow)
+    assert all("time budget" in r.reason for r in slow)
+    # max_steps bounds the ladder: T = 1e9 with at most 2^20 steps runs nothing.
+    with pytest.raises(NoCandidateError) as info:
+        pr.select(BODY, mu0, T=1e9, target=1e-3, models=[], budget_s=1.0)
+    assert all(not r.trials for r in info.value.report.results)
+    with pytest.raises(ValueError, match="budget_s"):
+        pr.select(BODY, mu0, T=1.0, target=1e-3, budget_s=0.0)

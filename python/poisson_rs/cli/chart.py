@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .common import check_out_dir, scheduler, scheduler_flag, threads_type
+from .common import check_out_dir, check_scheduler, scheduler, scheduler_flag, threads_type
 
 NAME = "chart"
 CHART_OUTPUTS = (
@@ -63,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from ..files import check_outputs
 
     check_out_dir(args.out)
+    check_scheduler(args.scheduler)
     check_outputs(args.out, CHART_OUTPUTS)
     # Rayon reads this when its pool starts, at the first rollout, which is still to come (in a
     # process that already stepped, the pool keeps its size). One thread measures each method's

@@ -210,17 +210,22 @@ def scheduler_flag(p: argparse.ArgumentParser) -> None:
 _NOT_DASK = ("http://", "https://", "ws://", "wss://", "ftp://", "file://")
 
 
+def check_scheduler(address: str | None) -> None:
+    """ValueError for a ``--scheduler`` that is a web address (checked before any work)."""
+    if address is not None and address.strip().lower().startswith(_NOT_DASK):
+        raise ValueError(
+            f"--scheduler {address!r} is a web address; a Dask scheduler listens on "
+            "tcp://host:8786 (the dashboard's HTTP port is not the scheduler's)"
+        )
+
+
 @contextlib.contextmanager
 def scheduler(address: str | None) -> Iterator[Any]:
     """The Dask client of ``--scheduler`` (None: serial). A web address, or any failure to
     connect, is one ValueError naming the address, never a traceback from the client."""
     from ..ensembles import scheduler_client
 
-    if address is not None and address.lower().startswith(_NOT_DASK):
-        raise ValueError(
-            f"--scheduler {address!r} is a web address; a Dask scheduler listens on "
-            "tcp://host:8786 (the dashboard's HTTP port is not the scheduler's)"
-        )
+    check_scheduler(address)
     stack = contextlib.ExitStack()
     try:
         client = stack.enter_context(scheduler_client(address))

@@ -10,6 +10,7 @@ from .common import (
     MAX_STEPS,
     POSITIVE,
     check_out_dir,
+    check_scheduler,
     number,
     progress_printer,
     scheduler,
@@ -78,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     from ..systems import RigidBody
 
     out = check_out_dir(args.out)
+    check_scheduler(args.scheduler)
     check_outputs(args.out, STABILITY_OUTPUTS)
     steps = QUICK_STEP_SIZES if args.quick else STEP_SIZES
     if args.horizon / min(steps) > MAX_STEPS:

@@ -10,6 +10,7 @@ from typing import Any
 
 from .common import (
     check_out_dir,
+    check_scheduler,
     number,
     sampling_flags,
     scheduler,
@@ -114,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     from ..studies.sweep import FAST, medians, run_sweep
 
     out = check_out_dir(args.out)
+    check_scheduler(args.scheduler)
     png = out / f"{args.stem}.png"
     stems = (args.stem, f"{args.stem}_medians")
     check_outputs(out, [f"{args.stem}.png", *(f"{x}.{e}" for x in stems for e in ("csv", "json"))])

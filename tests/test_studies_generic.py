@@ -1,0 +1,181 @@
+"""One study pipeline for every system: demo, chart and stability on the heavy top and on a
+user's ``lie_poisson`` scene whose Casimirs are unknown (NaN in the data, "n/a" in tables and
+figures, never 0), figures that name components by the system, wrap large state grids, give
+each learned model its own colour and list only the markers drawn."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from matplotlib.figure import Figure
+
+import poisson_rs as pr
+from poisson_rs.cli import main
+from poisson_rs.studies import figures
+from poisson_rs.studies.demo import run_scene
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+#: A solvable algebra without polynomial Casimirs ([e3, e1] = e1, [e3, e2] = e2), quadratic H.
+BOOK = """name = "book"
+[system]
+kind = "lie_poisson"
+name = "book algebra"
+algebra = { structure_constants = [[[0,0,0],[0,0,0],[-1,0,0]], [[0,0,0],[0,0,0],[0,-1,0]],
+  [[1,0,0],[0,1,0],[0,0,0]]] }
+hamiltonian = { dim = 3, terms = [[2,0,0,0.5],[0,2,0,0.5],[0,0,2,0.5]] }
+[states]
+points = [[0.3, 0.2, 0.5], [0.1, -0.4, 0.2]]
+[steps]
+h = 0.05
+horizon = 1.0
+[target]
+error = 1e-3
+"""
+
+
+@pytest.fixture
+def book(tmp_path: Path) -> Path:
+    path = tmp_path / "book.toml"
+    path.write_text(BOOK)
+    return path
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_demo_on_a_users_scene_reports_unknown_casimirs_as_na(
+    book: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "demo"
+    assert main(["demo", "--scene", str(book), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert " n/a " in text  # the table's Casimir column
+    rows = _rows(out / "metrics.csv")
+    assert rows and all(r["max_rel_dC"] == "nan" for r in rows)  # NaN, never 0
+    assert all(math.isnan(r["max_rel_dC"]) for r in json.loads((out / "metrics.json").read_text()))
+    header = (out / "trajectories.csv").read_text().splitlines()[0].split(",")
+    assert "ref_μ₁" in header and "taylor3-exp_μ₃" in header
+    assert (out / "orbits.png").stat().st_size > 0 and (out / "states_errors.png").is_file()
+
+
+def test_demo_scene_honours_h_and_steps(
+    book: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "demo"
+    assert (
+        main(["demo", "--scene", str(book), "--h", "0.1", "--steps", "4", "--out", str(out)]) == 0
+    )
+    assert "h = 0.1, 4 steps (T = 0.4)" in capsys.readouterr().out
+    rows = json.loads((out / "metrics.json").read_text())
+    assert rows and all(r["T"] == pytest.approx(0.4) for r in rows)
+    lines = (out / "trajectories.csv").read_text().splitlines()
+    assert len(lines) == 1 + 2 * 5  # two states, steps 0..4
+
+
+def test_demo_heavy_top_scene_names_m_and_gamma(tmp_path: Path) -> None:
+    out = tmp_path / "top"
+    argv = ["demo", "--scene", str(SCENES / "heavy_top.toml"), "--steps", "20", "--out", str(out)]
+    assert main(argv) == 0
+    header = (out / "trajectories.csv").read_text().splitlines()[0]
+    assert "ref_M₁" in header and "ref_Γ₃" in header
+    rows = _rows(out / "metrics.csv")
+    assert all(float(r["max_rel_dC"]) < 1e-12 for r in rows if r["method"].startswith("taylor"))
+
+
+@pytest.mark.parametrize("command", ["chart", "stability"])
+def test_chart_and_stability_run_on_a_users_scene(
+    book: Path, tmp_path: Path, command: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / command
+    argv = [command, str(book), "--quick", "--out", str(out)]
+    if command == "stability":
+        argv += ["--no-progress", "--horizon", "1"]
+    assert main(argv) == 0, capsys.readouterr().err
+    data = out / ("workprecision.csv" if command == "chart" else "stability.csv")
+    rows = _rows(data)
+    assert rows and all(r["max_rel_dC"] == "nan" for r in rows)
+    assert any(float(r["max_rel_dH"]) > 0 for r in rows if r["max_rel_dH"] != "")
+
+
+def test_chart_on_the_heavy_top_scene_records_its_casimirs(tmp_path: Path) -> None:
+    out = tmp_path / "chart"
+    assert main(["chart", str(SCENES / "heavy_top.toml"), "--quick", "--out", str(out)]) == 0
+    rows = json.loads((out / "workprecision.json").read_text())
+    assert {r["scene"] for r in rows} == {"heavy_top"}
+    taylor = [r for r in rows if r["method"].startswith("taylor") and not r["failed"]]
+    assert taylor and max(r["max_rel_dC"] for r in taylor) < 1e-12
+    assert "learned:heavy_top_h05" in {r["method"] for r in rows}
+    assert (out / "workprecision_casimirs.png").is_file()
+
+
+def test_component_names_and_titles_come_from_the_system() -> None:
+    assert pr.HeavyTop().component_names == ("M₁", "M₂", "M₃", "Γ₁", "Γ₂", "Γ₃")
+    assert pr.RigidBody().component_names == ("μ₁", "μ₂", "μ₃")
+    sl2 = pr.LiePoissonSystem(pr.LieAlgebra.sl2(), pr.Polynomial({(2, 0, 0): 1.0}))
+    assert sl2.component_names == ("μ_h", "μ_e", "μ_f")
+    c = np.zeros((10, 10, 10))
+    big = pr.LiePoissonSystem(pr.LieAlgebra(c), pr.Polynomial({(2,) + (0,) * 9: 1.0}))
+    assert big.component_names[-1] == "μ₁₀"
+    label = figures.system_label(pr.HeavyTop())
+    assert label.startswith("heavy top") and "HeavyTop(" not in label
+    assert "LiePoissonSystem(" not in figures.system_label(sl2)
+
+
+def test_every_learned_model_gets_a_colour_of_its_own() -> None:
+    names = [f"learned:user_model_{k}" for k in range(10)]
+    colours = [figures.method_style(n)["color"] for n in names]
+    assert len(set(colours)) == len(colours)
+    assert colours == [figures.method_style(n)["color"] for n in names]  # stable
+    others = {figures.method_style(m)["color"] for m in ("rk4", "midpoint", "dop853", "splitting")}
+    assert not others & set(colours)
+    assert figures.method_style("learned:default")["color"] == "black"
+
+
+def _keep_figures(monkeypatch: pytest.MonkeyPatch) -> list[Figure]:
+    kept: list[Figure] = []
+    real = figures._savefig
+
+    def keep(fig: Figure, path: Path, **kwargs: Any) -> Path:
+        kept.append(fig)
+        return real(fig, path, **kwargs)
+
+    monkeypatch.setattr(figures, "_savefig", keep)
+    return kept
+
+
+def test_state_grids_wrap_for_eight_states(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    kept = _keep_figures(monkeypatch)
+    body = pr.RigidBody()
+    states = np.random.default_rng(0).normal(size=(8, 3)) * 2
+    scene = run_scene({"rk4": pr.classical(body, "rk4")}, body, states, 0.1, 10)
+    figures.error_figure(scene, scene.runs, tmp_path / "e.png")
+    visible = [ax for ax in kept[-1].axes if ax.get_visible()]
+    assert len(visible) == 3 * 8
+    columns = {round(ax.get_position().x0, 3) for ax in visible}
+    assert len(columns) == figures.GRID_COLUMNS  # 4 columns, 2 blocks of rows
+    figures.orbit_figure(scene, scene.runs, tmp_path / "o.png")
+    assert len([ax for ax in kept[-1].axes if ax.get_visible()]) == 8
+
+
+def test_legend_lists_only_the_markers_drawn(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    kept = _keep_figures(monkeypatch)
+    row = {"scene": "s", "method": "rk4", "h": 0.1, "tol": None, "T": 1.0, "failed": False,
+           "error_T": 1e-6, "seconds_per_traj": 1e-4, "extrapolated": False}  # fmt: skip
+    figures.work_precision_figure([row, {**row, "h": 0.05, "error_T": 1e-8}], tmp_path / "a.png")
+    labels = [t.get_text() for t in kept[-1].legends[0].get_texts()]
+    assert labels == ["rk4"]
+    failed = {**row, "h": 0.5, "failed": True, "error_T": None}
+    figures.work_precision_figure([row, failed], tmp_path / "b.png")
+    labels = [t.get_text() for t in kept[-1].legends[0].get_texts()]
+    assert "failed run (top edge)" in labels and not any(">" in t for t in labels)
