@@ -20,11 +20,8 @@ PAPER = str(SCENES / "paper.toml")
 
 
 def _one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
-    """Runs the CLI (an argparse error exits via SystemExit): status 2, one line on stderr."""
-    try:
-        code = main(argv)
-    except SystemExit as e:
-        code = int(e.code or 0)
+    """Runs the CLI: status 2 returned (not raised), one line on stderr."""
+    code = main(argv)
     err = capsys.readouterr().err
     assert code == 2, (argv, err)
     lines = err.strip().splitlines()

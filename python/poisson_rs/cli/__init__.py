@@ -13,7 +13,7 @@ import sys
 from collections.abc import Sequence
 from types import ModuleType
 
-from .common import Parser
+from .common import Parser, UsageError
 
 #: The subcommand modules, in the order ``--help`` lists them. A module that cannot be imported
 #: because it does not exist (an optional part not installed) is left out.
@@ -60,7 +60,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ..untrusted import InputError
 
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as e:
+        print(_one_line(e), file=sys.stderr)
+        return 2
     args.argv = argv
     try:
         return int(args.run(args))

@@ -27,12 +27,17 @@ MAX_STEPS = 10**9
 MAX_TIME = 1e9
 
 
+class UsageError(ValueError):
+    """A command line that does not parse; ``main`` prints it as one line and returns 2."""
+
+
 class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose errors are one line on stderr and exit status 2."""
+    """An ArgumentParser whose errors are a :class:`UsageError` (one line, exit status 2 from
+    ``main``) instead of a usage block and ``sys.exit``."""
 
     def error(self, message: str) -> Any:  # type: ignore[override]
         one = " ".join(message.split())
-        self.exit(2, f"{self.prog}: error: {one}\n")
+        raise UsageError(f"{self.prog}: {one}")
 
 
 def max_threads() -> int:
