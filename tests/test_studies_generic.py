@@ -179,3 +179,16 @@ def test_legend_lists_only_the_markers_drawn(
     figures.work_precision_figure([row, failed], tmp_path / "b.png")
     labels = [t.get_text() for t in kept[-1].legends[0].get_texts()]
     assert "failed run (top edge)" in labels and not any(">" in t for t in labels)
+
+
+def test_every_that_does_not_divide_the_steps_is_documented_where_integrate_is_called() -> None:
+    # integrate() keeps steps 0, every, 2·every, ...: with every ∤ n_steps the final state is
+    # not there. Its docstring says so, and the studies only call it with divisors.
+    from poisson_rs.studies.select import _every
+
+    taylor = pr.taylor_integrator(pr.RigidBody(), 3)
+    traj = pr.integrate(taylor, [1.0, 1.0, 2.0], 0.1, 10, every=3)
+    assert traj.shape == (4, 3)  # steps 0, 3, 6, 9
+    assert "NOT the final one" in (pr.integrate.__doc__ or "")
+    for n in (1, 7, 100, 1000, 4096, 10**6, 999_983):
+        assert n % _every(n) == 0 and n // _every(n) >= min(n, 100)  # the final state is kept

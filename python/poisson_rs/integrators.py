@@ -550,6 +550,10 @@ def integrate(
     every ``every``-th) outside it, and one RuntimeWarning per call says so when any are. Its
     ``hj_residual`` tells how well it solves its equation there. Ctrl-C interrupts a long
     rollout (KeyboardInterrupt) within a fraction of a second.
+
+    When ``every`` does not divide ``n_steps`` the last recorded state is step
+    ``n_steps - n_steps % every``, NOT the final one (n_steps = 10, every = 3 keeps steps 0, 3,
+    6, 9): choose ``every`` dividing ``n_steps`` to keep the final state.
     """
     if not hasattr(stepper, "_rollout"):
         raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
