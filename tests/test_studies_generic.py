@@ -192,3 +192,17 @@ def test_every_that_does_not_divide_the_steps_is_documented_where_integrate_is_c
     assert "NOT the final one" in (pr.integrate.__doc__ or "")
     for n in (1, 7, 100, 1000, 4096, 10**6, 999_983):
         assert n % _every(n) == 0 and n // _every(n) >= min(n, 100)  # the final state is kept
+
+
+def test_the_kirchhoff_scene_names_its_algebra_and_uses_the_se3_casimirs() -> None:
+    from poisson_rs.scenes import load_scene
+
+    scene = load_scene(SCENES / "kirchhoff.toml")
+    system = scene.lie_system
+    assert system.algebra == pr.LieAlgebra.se3() and system.name == "Kirchhoff body"
+    assert figures.system_label(system) == "Kirchhoff body on se(3)*"
+    mu0 = scene.states()
+    traj = pr.integrate(pr.taylor_integrator(system, 3, "exp"), mu0, 0.1, 100)
+    from poisson_rs.casimirs import max_casimir_drift
+
+    assert np.nanmax(max_casimir_drift(system, traj)) < 1e-13

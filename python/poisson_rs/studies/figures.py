@@ -58,6 +58,9 @@ def system_label(system: Any) -> str:
     name = getattr(system, "name", None)
     algebra = getattr(system, "algebra", None)
     on = ""
+    pretty = {"so3": "so(3)", "se3": "se(3)", "sl2": "sl(2)"}
+    if algebra is not None and getattr(algebra, "name", None) in pretty:
+        return f"{name or type(system).__name__} on {pretty[algebra.name]}*"
     if algebra is not None:
         on = (
             f" on {algebra.name}*"
@@ -463,8 +466,12 @@ def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "")
     A flat curve is a bounded energy error; a drift shows as a slope (1 for linear growth).
     """
     states = list(dict.fromkeys(r["state"] for r in rows))
-    fig = Figure(figsize=(6.2 * len(states) + 2.6, 5.2), layout="constrained")
-    axes = fig.subplots(1, len(states), squeeze=False, sharey=True)[0]
+    nrows, ncols = _grid(len(states))  # wraps after GRID_COLUMNS states
+    fig = Figure(figsize=(6.2 * ncols + 2.6, 5.2 * nrows), layout="constrained")
+    grid = fig.subplots(nrows, ncols, squeeze=False, sharey=True)
+    for k in range(len(states), nrows * ncols):
+        grid[k // ncols, k % ncols].set_visible(False)
+    axes = [grid[k // ncols, k % ncols] for k in range(len(states))]
     methods = list(dict.fromkeys(r["method"] for r in rows))
     t_max = max(r["t"] for r in rows)
     for ax, state in zip(axes, states, strict=True):
@@ -484,9 +491,10 @@ def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "")
         ax.set_title(f"μ₀ = {state}, h = {rows[0]['h']:g}")
         ax.set_xlabel("time t")
         ax.grid(True, which="major", alpha=0.3)
-    axes[0].set_ylabel(
-        "max |H − H₀| / H₀ over the window ending at t\n(exact zeros drawn at 1e-17)"
-    )
+    for row in grid:
+        row[0].set_ylabel(
+            "max |H − H₀| / |H₀| over the window ending at t\n(exact zeros drawn at 1e-17)"
+        )
     # Labels may differ between panels (a run cut short on one state only): merge them.
     entries: dict[str, Any] = {}
     for ax in axes:
