@@ -169,3 +169,20 @@ def test_separatrix_scene_sits_on_both_sides() -> None:
     i2 = scene.body.inertia[1]
     h, c = scene.body.hamiltonian(scene.states), scene.body.casimir(scene.states)
     np.testing.assert_allclose((2 * h * i2 - c) / c, [1e-3, -1e-3, 1e-2], rtol=1e-9)
+
+
+def test_a_long_run_cut_short_ends_where_its_note_says() -> None:
+    # A budget too small for the run: the last window ends on the step where it stopped, so
+    # the figure's "to t = ..." and the note's "(t = ...)" are the same number.
+    import re
+
+    scene = wp.paper_scene()
+    body = scene.system
+    method = wp.Method("taylor3-cayley", "taylor", pr.taylor_integrator(body, 3, "cayley"))
+    notes: list[str] = []
+    rows = wp.long_run(scene, [method], n_steps=10**7, budget_s=0.3, notes=notes)
+    note = next(n for n in notes if "stopped at" in n)
+    stopped = int(re.search(r"stopped at (\d+) of", note).group(1))  # type: ignore[union-attr]
+    assert max(r["step"] for r in rows) == stopped
+    assert f"(t = {stopped * 0.1:g})" in note
+    assert max(r["t"] for r in rows) == pytest.approx(stopped * 0.1)

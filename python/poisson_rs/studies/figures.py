@@ -483,7 +483,7 @@ def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "")
             ts = [r["t"] for r in pts]
             # A run cut short (time budget, failure) says so in its label.
             label = method if pts[0].get("tol") is None else f"{method}, tol {pts[0]['tol']:.0e}"
-            label += "" if ts[-1] >= t_max else f" (to t = {ts[-1]:.4g})"
+            label += "" if ts[-1] >= t_max else f" (to t = {ts[-1]:g})"
             # Exact zeros (midpoint, DMV keep H to the last bit over short windows) sit at 1e-17.
             ax.plot(ts, [max(r["max_rel_dH"], 1e-17) for r in pts], label=label, **st)
         ax.set_xscale("log")

@@ -588,11 +588,15 @@ def long_run(
                 f"long run: {m.name} stopped at {done} of {n_steps} steps (t = {done * h:g}) "
                 f"after its {budget:g} s budget"
             )
+        # Window ends up to the last step run; a run cut short by its budget ends on the step
+        # where it stopped, so the figure's "to t = ..." is the t of the note, not the last
+        # full window before it.
+        ends = [int(e) for e in edges if e <= done]
+        if done >= 1 and (not ends or ends[-1] != done):
+            ends.append(done)
         for i in range(n_states):
             lo = 1
-            for e in edges:
-                if e > done:
-                    break
+            for e in ends:
                 win_h, win_c = dh[i, lo : e + 1], dc[i, lo : e + 1]
                 lo = e + 1
                 if not np.isfinite(win_h).all():
