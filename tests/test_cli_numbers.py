@@ -170,3 +170,12 @@ def test_select_json_rows_name_their_metric(
     rows = json.loads(out.read_text())
     assert {r["metric"] for r in rows} == {"energy"}
     assert "selected for energy <= 1e-03" in capsys.readouterr().out
+
+
+def test_train_reports_the_lbfgs_polish(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "m.safetensors"
+    argv = ["train", "--out", str(out), "--widths", "4", "--iterations", "3"]
+    assert main([*argv, "--lbfgs-iterations", "2", "--no-progress", "--threads", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "L-BFGS polish of up to 2 iterations" in text
+    assert "L-BFGS polish: " in text and " -> " in text

@@ -212,6 +212,12 @@ def run(args: argparse.Namespace) -> int:
         f"baseline: the Taylor terms alone (K = {cfg.taylor_order}, no network) have validation "
         f"RMS residual {baseline_rms(cfg):.3e}"
     )
+    if cfg.lbfgs_iterations:
+        print(
+            f"then an L-BFGS polish of up to {cfg.lbfgs_iterations} iterations (full batch; "
+            "its losses are reported when it ends)",
+            flush=True,
+        )
     result = train(
         cfg,
         checkpoint=args.checkpoint,
@@ -222,6 +228,12 @@ def run(args: argparse.Namespace) -> int:
     )
     if result.timed_out:
         print(f"stopped after {result.iterations_run} iterations: --max-seconds reached")
+    if result.lbfgs_losses:
+        first, last = result.lbfgs_losses[0], result.lbfgs_losses[-1]
+        print(
+            f"L-BFGS polish: {result.lbfgs_iterations_run} iterations, "
+            f"{len(result.lbfgs_losses)} loss evaluations, loss {first:.3e} -> {last:.3e}"
+        )
     if not math.isfinite(result.final_loss):
         raise ValueError(
             f"training diverged (final loss {result.final_loss}); nothing written to {args.out}"
