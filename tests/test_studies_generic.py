@@ -206,3 +206,9 @@ def test_the_kirchhoff_scene_names_its_algebra_and_uses_the_se3_casimirs() -> No
     from poisson_rs.casimirs import max_casimir_drift
 
     assert np.nanmax(max_casimir_drift(system, traj)) < 1e-13
+
+
+def test_learned_colours_stay_distinct_past_the_palette() -> None:
+    names = [f"learned:many_{k}" for k in range(3 * len(figures.LEARNED_COLOURS))]
+    colours = [figures.learned_colour(n) for n in names]
+    assert len(set(colours)) == len(colours)

@@ -52,8 +52,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     d.add_argument(
         "--system",
         default=None,
-        help="run the demo on another system instead of the paper's rigid body: heavy-top "
-        "(Taylor-exp and classical methods against a DOP853 reference)",
+        help="run the demo on a system instead of the paper's model: rigid-body, heavy-top or a "
+        "JSON file of LiePoissonSystem.to_dict() (Taylor-exp and classical methods against the "
+        "exact flow or a DOP853 reference, from the system's demo states)",
     )
     d.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     d.add_argument(

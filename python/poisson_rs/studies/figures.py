@@ -305,9 +305,19 @@ LEARNED_COLOURS = (
     "maroon",
     "dimgray",
 )
-#: Learned model → colour, assigned on first sight (stable for the process, distinct while
-#: fewer than len(LEARNED_COLOURS) models are drawn).
+#: Learned model → colour, assigned on first sight (stable for the process; past the palette,
+#: hues a golden-ratio step apart, so no two learned models share one).
 _LEARNED: dict[str, str] = {}
+
+
+def _extra_colour(index: int) -> str:
+    """The index-th colour past the palette: hues a golden-ratio step apart (never repeating),
+    darkened to read on white."""
+    import colorsys
+
+    hue = (0.61803398875 * index) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(hue, 0.75, 0.55 + 0.2 * ((index * 7) % 3) / 2)
+    return f"#{round(r * 255):02x}{round(g * 255):02x}{round(b * 255):02x}"
 
 
 def learned_colour(method: str) -> str:
@@ -320,13 +330,12 @@ def learned_colour(method: str) -> str:
     if method not in _LEARNED:
         taken = set(_LEARNED.values())
         start = zlib.crc32(method.encode()) % len(LEARNED_COLOURS)
-        for k in range(len(LEARNED_COLOURS)):
-            colour = LEARNED_COLOURS[(start + k) % len(LEARNED_COLOURS)]
-            if colour not in taken:
-                break
-        else:
-            colour = LEARNED_COLOURS[start]
-        _LEARNED[method] = colour
+        free = [
+            LEARNED_COLOURS[(start + k) % len(LEARNED_COLOURS)]
+            for k in range(len(LEARNED_COLOURS))
+            if LEARNED_COLOURS[(start + k) % len(LEARNED_COLOURS)] not in taken
+        ]
+        _LEARNED[method] = free[0] if free else _extra_colour(len(_LEARNED))
     return _LEARNED[method]
 
 
