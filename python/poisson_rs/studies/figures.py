@@ -277,7 +277,7 @@ def state_figure(scene: SceneResult, runs: Sequence[Run], path: Path, t_max: flo
     return _save_with_legend(fig, path, handles, labels, f"{system_label(system)}, h = {scene.h:g}")
 
 
-# --- Work–precision charts (``poisson-rs chart``; numbers from poisson_rs.workprecision) ---
+# --- Work–precision charts (``poisson-rs chart``; numbers from studies.workprecision) ---
 
 _CLASSICAL_STYLE = {
     "rk4": ("tab:green", "^"),
@@ -603,14 +603,14 @@ def stability_summary_figure(
     return _savefig(fig, path, dpi=110)
 
 
-# --- Size against accuracy and speed (``poisson-rs sweep``; numbers from poisson_rs.sweep) ---
+# --- Size against accuracy and speed (``poisson-rs sweep``; numbers from studies.sweep) ---
 
 _DEPTH_COLOURS = {1: "tab:cyan", 2: "tab:blue", 3: "tab:green"}
 
 
 def sweep_figure(rows: Sequence[dict[str, Any]], path: Path, *, title: str = "") -> Path:
     """Error at T from (1,1,2) and from (3,2,0), and rollout steps/s, against parameter count
-    (log–log), from :func:`poisson_rs.sweep.run_sweep` rows.
+    (log–log), from :func:`poisson_rs.studies.sweep.run_sweep` rows.
 
     Each trained seed is a small dot and each architecture's median a large one (colour: depth),
     medians of one depth joined by a line; a shipped model is a star labelled with where it was

@@ -15,7 +15,7 @@ the :class:`~poisson_rs.train.TrainConfig` defaults and measures it on the paper
 
 Shipped models (by default the paper's 500-250-250-250 network) are measured from their files,
 not retrained, and Taylor series without a network give reference rows. Rows are plain dicts
-(CSV/JSON ready, :data:`COLUMNS`); the figure is :func:`poisson_rs.charts.sweep_figure`.
+(CSV/JSON ready, :data:`COLUMNS`); the figure is :func:`poisson_rs.studies.figures.sweep_figure`.
 """
 
 from __future__ import annotations

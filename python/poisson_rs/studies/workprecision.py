@@ -6,7 +6,7 @@ For each scene, method and step size h (or tolerance, for an adaptive method) on
 error at the horizon T against :func:`~poisson_rs.exact_solution`, the largest relative energy
 and Casimir deviations over [0, T], Newton failures and the wall-clock seconds per trajectory.
 A long run records |ΔH|/H against time over 10⁵ steps. Rows are plain dicts (CSV/JSON ready);
-plotting lives in :mod:`poisson_rs.charts`.
+plotting lives in :mod:`poisson_rs.studies.figures`.
 
 Conventions: errors are Euclidean norms |μ − μ_ref| (max over the scene's states; the reference is
 the exact flow for a rigid body, else DOP853 at rtol = atol = 1e-13); ΔH/H is |H − H₀|/|H₀| and
