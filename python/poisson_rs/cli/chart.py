@@ -25,7 +25,9 @@ CHART_OUTPUTS = (
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
-    c = sub.add_parser(NAME, help="work–precision charts: error and energy error against cost")
+    c = sub.add_parser(
+        NAME, help="work–precision charts: error, energy error and Casimir drift against cost"
+    )
     c.add_argument(
         "scene",
         nargs="?",
