@@ -16,8 +16,10 @@ pub mod generating;
 pub mod groupoid;
 pub mod kernel;
 pub mod model;
+pub mod realization;
 pub mod rollout;
 pub mod stepper;
+pub mod structures;
 pub mod system;
 
 #[cfg(feature = "python")]
