@@ -38,7 +38,7 @@ def _cmat(c: FloatArray, like: Any) -> Any:
     if _is_tensor(like):
         import torch
 
-        return torch.as_tensor(c, dtype=like.dtype, device=like.device)
+        return torch.tensor(c, dtype=like.dtype, device=like.device)
     return c
 
 

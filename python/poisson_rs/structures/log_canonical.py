@@ -107,7 +107,7 @@ class LogCanonical:
         if _is_tensor(x):
             import torch
 
-            c = torch.as_tensor(c, dtype=x.dtype, device=x.device)
+            c = torch.tensor(c, dtype=x.dtype, device=x.device)
         return c * x[..., :, None] * x[..., None, :]
 
     def to_dict(self) -> dict[str, Any]:
@@ -183,9 +183,9 @@ class LogPolynomial:
         if _is_tensor(q):
             import torch
 
-            p = torch.as_tensor(self._powers, dtype=q.dtype, device=q.device)
-            a = torch.as_tensor(self._coeffs, dtype=q.dtype, device=q.device)
-            b = torch.as_tensor(self._b, dtype=q.dtype, device=q.device)
+            p = torch.tensor(self._powers, dtype=q.dtype, device=q.device)
+            a = torch.tensor(self._coeffs, dtype=q.dtype, device=q.device)
+            b = torch.tensor(self._b, dtype=q.dtype, device=q.device)
             return (a * torch.exp(q @ p.T)).sum(-1) - (b * q).sum(-1)
         q = np.asarray(q, dtype=np.float64)
         return np.exp(q @ self._powers.T) @ self._coeffs - q @ self._b
@@ -195,9 +195,9 @@ class LogPolynomial:
         if _is_tensor(q):
             import torch
 
-            p = torch.as_tensor(self._powers, dtype=q.dtype, device=q.device)
-            a = torch.as_tensor(self._coeffs, dtype=q.dtype, device=q.device)
-            b = torch.as_tensor(self._b, dtype=q.dtype, device=q.device)
+            p = torch.tensor(self._powers, dtype=q.dtype, device=q.device)
+            a = torch.tensor(self._coeffs, dtype=q.dtype, device=q.device)
+            b = torch.tensor(self._b, dtype=q.dtype, device=q.device)
             return (a * torch.exp(q @ p.T)) @ p - b
         q = np.asarray(q, dtype=np.float64)
         return (np.exp(q @ self._powers.T) * self._coeffs) @ self._powers - self._b
@@ -322,7 +322,7 @@ class LogCanonicalSystem:
         if _is_tensor(q):
             import torch
 
-            c = torch.as_tensor(c, dtype=q.dtype, device=q.device)
+            c = torch.tensor(c, dtype=q.dtype, device=q.device)
         return g @ c.T
 
     def casimirs(self, x: Any) -> Any:
@@ -337,7 +337,7 @@ class LogCanonicalSystem:
         if _is_tensor(q):
             import torch
 
-            return q @ torch.as_tensor(k.T, dtype=q.dtype, device=q.device)
+            return q @ torch.tensor(k.T, dtype=q.dtype, device=q.device)
         return q @ k.T.astype(np.float64)
 
     def to_dict(self) -> dict[str, Any]:
