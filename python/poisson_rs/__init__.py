@@ -37,7 +37,15 @@ from .integrators import (
 )
 from .reference import dop853_solution, exact_solution, reference_solution
 from .select import NoCandidateError, SelectionReport, select
-from .structures import LogCanonical, LogCanonicalSystem, LogPolynomial, lotka_volterra
+from .structures import (
+    LogCanonical,
+    LogCanonicalSystem,
+    LogPolynomial,
+    PolynomialBivector,
+    PolynomialPoissonSystem,
+    RealizationTaylorIntegrator,
+    lotka_volterra,
+)
 from .systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial, RigidBody
 
 # rayon's thread pool does not survive fork(): a forked child runs its rollouts serially (same
@@ -62,6 +70,9 @@ __all__ = [
     "LogPolynomial",
     "NoCandidateError",
     "Polynomial",
+    "PolynomialBivector",
+    "PolynomialPoissonSystem",
+    "RealizationTaylorIntegrator",
     "RigidBody",
     "RolloutInfo",
     "SelectionReport",
