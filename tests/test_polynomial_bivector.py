@@ -119,10 +119,13 @@ def test_global_order_is_two(m: int) -> None:
         assert integ.s_terms[1] == 0
 
 
-def test_casimir_drift_per_step_is_third_order() -> None:
+@pytest.mark.parametrize("realization_order", [1, 2])
+def test_casimir_drift_per_step_is_third_order(realization_order: int) -> None:
+    """C(β) − C(α) is odd in p and its |p| term vanishes (∇C·π = 0), so both the order-1 and
+    the order-2 realization keep C to O(h³) a step."""
     system = cubic()
     x0 = np.random.default_rng(0).uniform(-0.6, 0.6, (10, 3))
-    integ = RealizationTaylorIntegrator(system, 3)
+    integ = RealizationTaylorIntegrator(system, 3, realization_order)
     hs = [0.2, 0.1, 0.05]
     drifts = []
     for h in hs:
