@@ -221,6 +221,23 @@ def test_leaving_the_orthant_is_a_failure_code() -> None:
         pr.integrate(pr.log_canonical_classical(system, "rk4"), [1.0, 3.0], 2.0, 5)
 
 
+def test_taylor_step_that_overflows_is_a_failure() -> None:
+    """A state so large that e^q overflows within a step stops with a failure code and NaN,
+    never a silent inf."""
+    system = pnn()
+    traj, info = pr.integrate(
+        pr.log_canonical_taylor(system, 3),
+        [[1e300, 1.0], [1.0, 0.8]],
+        0.1,
+        3,
+        return_info=True,
+        on_failure="ignore",
+    )
+    assert not info.converged[0] and info.failure_code[0] != 0
+    assert np.isnan(traj[0, 1:]).all()
+    assert info.converged[1] and np.isfinite(traj[1]).all()
+
+
 def test_round_trips() -> None:
     system = lv3()
     again = pr.LogCanonicalSystem.from_dict(system.to_dict())
