@@ -39,6 +39,9 @@ pub enum StepFailure {
     NonFinite,
     /// The chart was evaluated beyond its domain (exponential chart at |x| near 2π).
     ChartSingular,
+    /// The state left the domain of the structure (the open positive orthant of a
+    /// log-canonical one).
+    OutOfDomain,
 }
 
 impl StepFailure {
@@ -49,6 +52,7 @@ impl StepFailure {
             StepFailure::SingularJacobian => 2,
             StepFailure::NonFinite => 3,
             StepFailure::ChartSingular => 4,
+            StepFailure::OutOfDomain => 5,
         }
     }
 
@@ -58,6 +62,7 @@ impl StepFailure {
             StepFailure::SingularJacobian => "singular Newton Jacobian",
             StepFailure::NonFinite => "non-finite value",
             StepFailure::ChartSingular => "chart singular (|x| too close to 2*pi)",
+            StepFailure::OutOfDomain => "left the domain (positive orthant)",
         }
     }
 }

@@ -6,8 +6,9 @@
 //! ([`generating`], with [`dual`] numbers and the [`kernel`] of batched layers), a stepper
 //! ([`stepper`] for bisection, [`classical`] for the baselines), and the [`rollout`]. Every piece
 //! is generic over the dimension N of the algebra, monomorphised for N = 1 … [`MAX_DIM`]; the
-//! rigid body is N = 3. The core is pure Rust; the Python bindings live in one module behind the
-//! `python` feature.
+//! rigid body is N = 3. Beyond g*, [`realization`] abstracts what a step needs from a symplectic
+//! realization (sou, tar), and [`structures`] holds the log-canonical (Lotka–Volterra) one. The
+//! core is pure Rust; the Python bindings live in one module behind the `python` feature.
 
 pub mod classical;
 pub mod dual;
@@ -16,8 +17,10 @@ pub mod generating;
 pub mod groupoid;
 pub mod kernel;
 pub mod model;
+pub mod realization;
 pub mod rollout;
 pub mod stepper;
+pub mod structures;
 pub mod system;
 
 #[cfg(feature = "python")]
@@ -32,6 +35,7 @@ pub use error::{CoreError, StepFailure};
 pub use generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
 pub use groupoid::{Chart, Groupoid, LieAlgebra};
 pub use model::Model;
+pub use realization::{Generating, Realization, RealizationStepper};
 pub use rollout::{rollout, TrajectoryInfo};
 pub use stepper::{BisectionStepper, NewtonOptions, StepMap, StepStats};
 pub use system::{Hamiltonian, LiePoisson, VectorField};

@@ -1,6 +1,7 @@
 //! One step of a bisection integrator: solve tar(∂S/∂p(h,p), p) = μ for p by Newton, then
-//! μ' = sou(∂S/∂p(h,p), p). Generic over the dimension N of the Lie algebra; the Newton
-//! Jacobian is an N×N nalgebra matrix on the stack.
+//! μ' = sou(∂S/∂p(h,p), p). Generic over the dimension N and over the realization that gives
+//! sou and tar ([`Realization`]: the Lie-algebra groupoid by default, or the log-canonical one);
+//! the Newton Jacobian is an N×N nalgebra matrix on the stack.
 
 use nalgebra::{Const, DimMin, SMatrix, SVector};
 
@@ -8,6 +9,7 @@ use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Mlp, Workspace, MAX_BATCH};
 use crate::groupoid::Groupoid;
+use crate::realization::Realization;
 
 /// Newton settings. The defaults converge to round-off, so the Casimir is kept to round-off.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -118,11 +120,12 @@ fn step_each<const N: usize, S: StepMap<N> + ?Sized>(
     }
 }
 
-/// The bisection integrator of a generating function in a chart.
+/// The bisection integrator of a generating function on a realization: a chart of the
+/// Lie-algebra groupoid by default.
 #[derive(Clone, Debug)]
-pub struct BisectionStepper<const N: usize> {
+pub struct BisectionStepper<const N: usize, R = Groupoid<N>> {
     pub generating: GeneratingFunction<N>,
-    pub groupoid: Groupoid<N>,
+    pub groupoid: R,
     pub newton: NewtonOptions,
 }
 
@@ -153,7 +156,7 @@ pub fn batch_size(mlp: Option<&Mlp>) -> usize {
 /// The Newton Jacobian of an N-dimensional step.
 type Jacobian<const N: usize> = SMatrix<f64, N, N>;
 
-impl<const N: usize> BisectionStepper<N>
+impl<const N: usize, R: Realization<N>> BisectionStepper<N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
@@ -257,7 +260,7 @@ where
     }
 }
 
-impl<const N: usize> StepMap<N> for BisectionStepper<N>
+impl<const N: usize, R: Realization<N>> StepMap<N> for BisectionStepper<N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {

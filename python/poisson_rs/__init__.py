@@ -22,6 +22,8 @@ from .integrators import (
     BisectionIntegrator,
     ClassicalIntegrator,
     LearnedIntegrator,
+    LogCanonicalClassicalIntegrator,
+    LogCanonicalTaylorIntegrator,
     RolloutInfo,
     TaylorIntegrator,
     classical,
@@ -29,10 +31,21 @@ from .integrators import (
     integrate,
     list_models,
     load_model,
+    log_canonical_classical,
+    log_canonical_taylor,
     taylor_integrator,
 )
 from .reference import dop853_solution, exact_solution, reference_solution
 from .studies.select import NoCandidateError, SelectionReport, select
+from .structures import (
+    LogCanonical,
+    LogCanonicalSystem,
+    LogPolynomial,
+    PolynomialBivector,
+    PolynomialPoissonSystem,
+    RealizationTaylorIntegrator,
+    lotka_volterra,
+)
 from .systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial, RigidBody
 
 # rayon's thread pool does not survive fork(): a forked child runs its rollouts serially (same
@@ -50,8 +63,16 @@ __all__ = [
     "LearnedIntegrator",
     "LieAlgebra",
     "LiePoissonSystem",
+    "LogCanonical",
+    "LogCanonicalClassicalIntegrator",
+    "LogCanonicalSystem",
+    "LogCanonicalTaylorIntegrator",
+    "LogPolynomial",
     "NoCandidateError",
     "Polynomial",
+    "PolynomialBivector",
+    "PolynomialPoissonSystem",
+    "RealizationTaylorIntegrator",
     "RigidBody",
     "RolloutInfo",
     "SelectionReport",
@@ -64,6 +85,9 @@ __all__ = [
     "integrate",
     "list_models",
     "load_model",
+    "log_canonical_classical",
+    "log_canonical_taylor",
+    "lotka_volterra",
     "reference_solution",
     "select",
     "taylor_integrator",

@@ -99,3 +99,39 @@ def rollout_lie_poisson(
     """As :func:`rollout_classical`, for the Lie–Poisson system with structure constants ``c``
     (N, N, N) and Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: "rk4", "midpoint", or "splitting"
     with ``heavy_top`` = (inertia, mgl, com)."""
+
+def rollout_log_canonical(
+    c: npt.NDArray[np.float64],
+    t_powers: npt.NDArray[np.int64],
+    exponents: npt.NDArray[np.int64],
+    coeffs: npt.NDArray[np.float64],
+    linear: npt.NDArray[np.float64],
+    q0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-12,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    """Bisection rollout on the log-canonical groupoid of ``c`` (N, N), in q = ln x, of
+    S(t, q) = Σ_m coeffs[m] t^t_powers[m] e^{exponents[m]·q} + t·linear·q: solve
+    q + ½ c ∇S(q) = q_k, then q_{k+1} = q − ½ c ∇S(q). q0 (n, N) → (n, n_steps // every + 1, N)
+    in q, and the per-trajectory dict. A step whose e^q leaves the float64 orthant fails
+    (code 5 or 3)."""
+
+def rollout_log_classical(
+    name: str,
+    c: npt.NDArray[np.float64],
+    powers: npt.NDArray[np.int64],
+    coeffs: npt.NDArray[np.float64],
+    b: npt.NDArray[np.float64],
+    s0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-12,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    """Classical rollout of the log-canonical system c, H = Σ coeffs[m] x^powers[m] − Σ b_i ln x_i:
+    "rk4", "midpoint" (state x; leaving the orthant fails with code 5), "log_splitting",
+    "log_splitting4" (state q = ln x; exact one-variable flows, Strang / Suzuki)."""

@@ -458,7 +458,8 @@ def reference_solution(
     rtol: float = 1e-13,
     atol: float = 1e-13,
 ) -> FloatArray:
-    """Flow of any :class:`~poisson_rs.systems.LiePoissonSystem` by SciPy's DOP853.
+    """Flow of any :class:`~poisson_rs.systems.LiePoissonSystem` (or log-canonical system,
+    integrated in q = ln x) by SciPy's DOP853.
 
     μ(0) = mu0 and μ̇_j = Σ_{i,k} c[i,j,k] ∂H/∂μ_i μ_k (the system's ``vector_field``), each
     trajectory integrated separately with dense output at ``times``: forward from t = 0 for the
@@ -489,6 +490,15 @@ def reference_solution(
         If the integrator fails, a trajectory would take more than 200,000 steps (the cost grows
         with the state's size times T), or the right-hand side overflows (fails at once).
     """
+    from .structures.log_canonical import LogCanonicalSystem
+
+    if isinstance(system, LogCanonicalSystem):
+        # In q = ln x (the positive orthant is kept, the tolerances are relative in x).
+        rtol, atol = _check_tolerances(rtol, atol)
+        states, t, single = _check_states_and_times(mu0, times, system.dim)
+        system.hamiltonian(states)  # ValueError for a state outside the positive orthant
+        out = np.exp(_dop853(system.vector_field_log, np.log(states), t, rtol, atol))
+        return out[0] if single else out
     if not isinstance(system, LiePoissonSystem):
         raise TypeError(f"system must be a LiePoissonSystem, got {type(system).__name__}")
     rtol, atol = _check_tolerances(rtol, atol)

@@ -221,6 +221,7 @@ mod batched;
 mod charts;
 mod derivatives;
 mod lie_poisson;
+mod log_canonical;
 mod model_files;
 mod rollouts;
 mod steps;

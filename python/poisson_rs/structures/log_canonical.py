@@ -1,0 +1,401 @@
+"""Log-canonical Poisson structures π_ij(x) = c_ij x_i x_j and their Lotka–Volterra systems.
+
+States live in the open positive orthant x > 0. In q = ln x the bracket is the constant
+antisymmetric matrix c ({q_i, q_j} = c_ij), which is why every tool below works in q and why the
+structure has an exact symplectic groupoid (:mod:`poisson_rs.realizations.log_canonical`).
+
+Hamiltonians are *log-polynomials*: H(x) = Σ_m a_m x^{e_m} − Σ_i b_i ln x_i with integer
+exponent vectors e_m ≥ 0. In q every derivative of H beyond the first is a polynomial in
+y = e^q, so the Hamilton–Jacobi Taylor terms are polynomials in y as well.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Mapping, Sequence
+from fractions import Fraction
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+#: Largest dimension the Rust core is compiled for (``poisson_rs._core.MAX_DIM``).
+MAX_DIM = 10
+#: Largest exponent of a Hamiltonian monomial.
+MAX_EXPONENT = 16
+
+
+def _is_tensor(x: object) -> bool:
+    return type(x).__module__.startswith("torch")
+
+
+def _check_matrix(c: ArrayLike) -> FloatArray:
+    """A finite antisymmetric (n, n) float64 copy of ``c``; ValueError/TypeError naming 'c'."""
+    arr = np.asarray(c)
+    if arr.dtype == object or arr.dtype.kind not in "fiu":
+        raise TypeError(f"c must be an array of real numbers, got dtype {arr.dtype}")
+    arr = np.array(arr, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1] or not 1 <= arr.shape[0] <= MAX_DIM:
+        raise ValueError(
+            f"c must be a square (n, n) matrix with 1 <= n <= {MAX_DIM}, got {arr.shape}"
+        )
+    if not np.isfinite(arr).all():
+        raise ValueError("c holds NaN or infinite values")
+    if not np.array_equal(arr, -arr.T):
+        i, j = np.argwhere(arr != -arr.T)[0]
+        raise ValueError(
+            f"c must be antisymmetric (c_ij = -c_ji): c[{i},{j}] = {arr[i, j]} but "
+            f"c[{j},{i}] = {arr[j, i]}"
+        )
+    return arr
+
+
+def integer_null_space(c: FloatArray) -> NDArray[np.int64]:
+    """Integer vectors k spanning the rational null space of c (c k = 0), one per row, each
+    divided by the gcd of its entries. The entries of c are read as the exact binary fractions
+    they are, so the null space is exact. Returns an (m, n) int64 array (m = 0 when c is
+    invertible)."""
+    import sympy
+
+    n = c.shape[0]
+    mat = sympy.Matrix(n, n, [sympy.Rational(Fraction(float(v))) for v in c.ravel()])
+    rows = []
+    for v in mat.nullspace():
+        den = sympy.ilcm(*[sympy.fraction(e)[1] for e in v])
+        ints = [int(e * den) for e in v]
+        g = math.gcd(*ints) or 1
+        first = next(k for k in ints if k != 0)
+        sign = 1 if first > 0 else -1
+        rows.append([sign * k // g for k in ints])
+    return np.array(rows, dtype=np.int64).reshape(len(rows), n)
+
+
+class LogCanonical:
+    """The log-canonical Poisson structure π_ij(x) = c_ij x_i x_j on the positive orthant.
+
+    ``c``: (n, n) antisymmetric, finite. Jacobi holds for every such c (in q = ln x the bracket
+    is constant). Casimirs: Σ_i k_i ln x_i for every integer k with c k = 0.
+    """
+
+    kind = "log_canonical"
+
+    def __init__(self, c: ArrayLike) -> None:
+        self._c = _check_matrix(c)
+        self._c.flags.writeable = False
+        self._casimir_vectors = integer_null_space(self._c)
+        self._casimir_vectors.flags.writeable = False
+
+    @property
+    def c(self) -> FloatArray:
+        return self._c
+
+    @property
+    def dim(self) -> int:
+        return int(self._c.shape[0])
+
+    @property
+    def casimir_vectors(self) -> NDArray[np.int64]:
+        """(m, n) integer rows k with c k = 0: the Casimirs Π x_i^{k_i} (log form Σ k_i ln x_i)."""
+        return self._casimir_vectors
+
+    def bivector(self, x: Any) -> Any:
+        """π(x) = c ∘ (x xᵀ). x: (..., n) positive → (..., n, n)."""
+        c = self._c
+        if _is_tensor(x):
+            import torch
+
+            c = torch.tensor(c, dtype=x.dtype, device=x.device)
+        return c * x[..., :, None] * x[..., None, :]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "c": self._c.tolist()}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> LogCanonical:
+        if not isinstance(data, Mapping) or data.get("kind") != cls.kind or "c" not in data:
+            raise ValueError(f"a log-canonical structure needs kind {cls.kind!r} and 'c': {data!r}")
+        return cls(data["c"])
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, LogCanonical) and np.array_equal(self._c, other._c)
+
+    def __hash__(self) -> int:
+        return hash(self._c.tobytes())
+
+    def __repr__(self) -> str:
+        return f"LogCanonical(c={self._c.tolist()})"
+
+
+class LogPolynomial:
+    """H(x) = Σ_m a_m x^{e_m} − Σ_i b_i ln x_i on the positive orthant.
+
+    ``terms``: mapping from exponent tuples (n non-negative integers ≤ MAX_EXPONENT, not all
+    zero) to finite coefficients a_m; ``b``: (n,) finite log coefficients.
+    """
+
+    def __init__(self, terms: Mapping[Sequence[int], float], b: ArrayLike) -> None:
+        b_arr = np.array(b, dtype=np.float64).reshape(-1)
+        if not np.isfinite(b_arr).all():
+            raise ValueError("b holds NaN or infinite values")
+        n = b_arr.size
+        clean: dict[tuple[int, ...], float] = {}
+        for e, a in dict(terms).items():
+            key = tuple(e)
+            if len(key) != n or any(
+                isinstance(k, bool) or not isinstance(k, numbers.Integral) for k in key
+            ):
+                raise ValueError(f"Hamiltonian exponent {e!r} must be {n} integers")
+            if any(not 0 <= int(k) <= MAX_EXPONENT for k in key) or not any(key):
+                raise ValueError(
+                    f"Hamiltonian exponent {e!r} must lie in 0..={MAX_EXPONENT}, not all zero"
+                )
+            if isinstance(a, bool) or not isinstance(a, numbers.Real) or not math.isfinite(a):
+                raise ValueError(f"Hamiltonian coefficient of {e!r} must be finite, got {a!r}")
+            key = tuple(int(k) for k in key)
+            clean[key] = clean.get(key, 0.0) + float(a)
+        self._terms = {e: a for e, a in sorted(clean.items()) if a != 0.0}
+        self._b = b_arr
+        self._b.flags.writeable = False
+        self._powers = np.array(list(self._terms), dtype=np.int64).reshape(-1, n)
+        self._coeffs = np.array(list(self._terms.values()), dtype=np.float64)
+
+    @property
+    def dim(self) -> int:
+        return int(self._b.size)
+
+    @property
+    def terms(self) -> Mapping[tuple[int, ...], float]:
+        return dict(self._terms)
+
+    @property
+    def b(self) -> FloatArray:
+        return self._b
+
+    def to_arrays(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+        """(powers (M, n) int64, coeffs (M,), b (n,))."""
+        return self._powers.copy(), self._coeffs.copy(), self._b.copy()
+
+    def in_log(self, q: Any) -> Any:
+        """H as a function of q = ln x. q: (..., n) → (...,)."""
+        if _is_tensor(q):
+            import torch
+
+            p = torch.tensor(self._powers, dtype=q.dtype, device=q.device)
+            a = torch.tensor(self._coeffs, dtype=q.dtype, device=q.device)
+            b = torch.tensor(self._b, dtype=q.dtype, device=q.device)
+            return (a * torch.exp(q @ p.T)).sum(-1) - (b * q).sum(-1)
+        q = np.asarray(q, dtype=np.float64)
+        return np.exp(q @ self._powers.T) @ self._coeffs - q @ self._b
+
+    def grad_log(self, q: Any) -> Any:
+        """∇_q H = Σ_m a_m e_m y^{e_m} − b. q: (..., n) → (..., n)."""
+        if _is_tensor(q):
+            import torch
+
+            p = torch.tensor(self._powers, dtype=q.dtype, device=q.device)
+            a = torch.tensor(self._coeffs, dtype=q.dtype, device=q.device)
+            b = torch.tensor(self._b, dtype=q.dtype, device=q.device)
+            return (a * torch.exp(q @ p.T)) @ p - b
+        q = np.asarray(q, dtype=np.float64)
+        return (np.exp(q @ self._powers.T) * self._coeffs) @ self._powers - self._b
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "terms": [[list(e), a] for e, a in self._terms.items()],
+            "b": self._b.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> LogPolynomial:
+        if not isinstance(data, Mapping) or "terms" not in data or "b" not in data:
+            raise ValueError(f"a log-polynomial needs 'terms' and 'b': {data!r}")
+        return cls({tuple(e): a for e, a in data["terms"]}, data["b"])
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, LogPolynomial)
+            and self._terms == other._terms
+            and np.array_equal(self._b, other._b)
+        )
+
+    def __hash__(self) -> int:
+        return hash((tuple(self._terms.items()), self._b.tobytes()))
+
+    def __repr__(self) -> str:
+        return f"LogPolynomial(terms={self._terms}, b={self._b.tolist()})"
+
+
+def _positive_states(x: Any, n: int, name: str = "x") -> Any:
+    """Checks the trailing dimension; ValueError for a state outside the open positive orthant."""
+    if _is_tensor(x):
+        if x.shape[-1:] != (n,):
+            raise ValueError(f"{name} must have shape (..., {n}), got {tuple(x.shape)}")
+        if not bool((x > 0).all()):
+            raise ValueError(f"{name} must lie in the open positive orthant (every x_i > 0)")
+        return x
+    arr = np.asarray(x)
+    if arr.dtype == object or arr.dtype.kind not in "fiu":
+        raise TypeError(f"{name} must be an array of real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if arr.ndim == 0 or arr.shape[-1] != n:
+        raise ValueError(f"{name} must have shape (..., {n}), got {arr.shape}")
+    if not (np.isfinite(arr).all() and (arr > 0).all()):
+        bad = np.argwhere(~(np.isfinite(arr) & (arr > 0)))[0]
+        raise ValueError(
+            f"{name} must lie in the open positive orthant (finite, every x_i > 0); "
+            f"entry {tuple(int(i) for i in bad)} is {arr[tuple(bad)]}"
+        )
+    return arr
+
+
+def _log(x: Any) -> Any:
+    if _is_tensor(x):
+        import torch
+
+        return torch.log(x)
+    return np.log(x)
+
+
+class LogCanonicalSystem:
+    """A log-canonical structure with a log-polynomial Hamiltonian: ẋ = π(x)∇H(x), i.e.
+    q̇ = c ∇_q H in q = ln x. The system interface of the studies: ``dim``, ``hamiltonian``,
+    ``vector_field``, ``casimirs`` (None when c is invertible), ``component_names``,
+    ``to_dict``/``from_dict``.
+    """
+
+    kind = "log_canonical"
+
+    def __init__(
+        self,
+        structure: LogCanonical,
+        hamiltonian: LogPolynomial,
+        *,
+        name: str | None = None,
+        component_names: Sequence[str] | None = None,
+    ) -> None:
+        if not isinstance(structure, LogCanonical):
+            raise TypeError(f"structure must be a LogCanonical, got {type(structure).__name__}")
+        if not isinstance(hamiltonian, LogPolynomial):
+            raise TypeError(
+                f"hamiltonian must be a LogPolynomial, got {type(hamiltonian).__name__}"
+            )
+        if structure.dim != hamiltonian.dim:
+            raise ValueError(
+                f"the structure has dimension {structure.dim}, the Hamiltonian {hamiltonian.dim}"
+            )
+        n = structure.dim
+        names = tuple(component_names) if component_names is not None else None
+        if names is None:
+            names = ("u", "v") if n == 2 else tuple(f"x{i + 1}" for i in range(n))
+        if len(names) != n or not all(isinstance(s, str) for s in names):
+            raise ValueError(f"component_names must be {n} strings, got {component_names!r}")
+        self.structure = structure
+        self.log_hamiltonian = hamiltonian
+        self.name = name
+        self.component_names: tuple[str, ...] = names
+
+    @property
+    def dim(self) -> int:
+        return self.structure.dim
+
+    @property
+    def c(self) -> FloatArray:
+        return self.structure.c
+
+    def hamiltonian(self, x: Any) -> Any:
+        """H(x). x: (..., n) positive → (...,)."""
+        x = _positive_states(x, self.dim)
+        return self.log_hamiltonian.in_log(_log(x))
+
+    def vector_field(self, x: Any) -> Any:
+        """ẋ = π(x)∇H(x) = x ∘ (c ∇_q H(ln x)). x: (..., n) positive → (..., n)."""
+        x = _positive_states(x, self.dim)
+        return x * self.vector_field_log(_log(x))
+
+    def vector_field_log(self, q: Any) -> Any:
+        """q̇ = c ∇_q H(q) in q = ln x. q: (..., n) → (..., n)."""
+        g = self.log_hamiltonian.grad_log(q)
+        c = self.c
+        if _is_tensor(q):
+            import torch
+
+            c = torch.tensor(c, dtype=q.dtype, device=q.device)
+        return g @ c.T
+
+    def casimirs(self, x: Any) -> Any:
+        """The monomial Casimirs in log form, Σ_i k_i ln x_i for each row k of
+        ``structure.casimir_vectors``. x: (..., n) positive → (..., m), or None when c is
+        invertible (no Casimir)."""
+        k = self.structure.casimir_vectors
+        if len(k) == 0:
+            return None
+        x = _positive_states(x, self.dim)
+        q = _log(x)
+        if _is_tensor(q):
+            import torch
+
+            return q @ torch.tensor(k.T, dtype=q.dtype, device=q.device)
+        return q @ k.T.astype(np.float64)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "name": self.name,
+            "structure": self.structure.to_dict(),
+            "hamiltonian": self.log_hamiltonian.to_dict(),
+            "component_names": list(self.component_names),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> LogCanonicalSystem:
+        if not isinstance(data, Mapping) or data.get("kind") != cls.kind:
+            raise ValueError(f"expected a {cls.kind!r} system dictionary, got {data!r}")
+        try:
+            return cls(
+                LogCanonical.from_dict(data["structure"]),
+                LogPolynomial.from_dict(data["hamiltonian"]),
+                name=data.get("name"),
+                component_names=data.get("component_names"),
+            )
+        except KeyError as exc:
+            raise ValueError(f"a log-canonical system needs a {exc.args[0]!r} entry") from None
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, LogCanonicalSystem)
+            and self.structure == other.structure
+            and self.log_hamiltonian == other.log_hamiltonian
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.structure, self.log_hamiltonian))
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_from_dict, (self.to_dict(),))
+
+    def __repr__(self) -> str:
+        label = f"name={self.name!r}, " if self.name else ""
+        return f"LogCanonicalSystem({label}c={self.c.tolist()}, H={self.log_hamiltonian!r})"
+
+
+def _from_dict(data: Mapping[str, Any]) -> LogCanonicalSystem:
+    return LogCanonicalSystem.from_dict(data)
+
+
+def lotka_volterra(c: ArrayLike, b: ArrayLike, *, name: str | None = None) -> LogCanonicalSystem:
+    """The Lotka–Volterra system of the log-canonical structure c with H = Σ_i (x_i − b_i ln x_i):
+    ẋ_i = x_i Σ_j c_ij (x_j − b_j).
+
+    PNN's 2D system is ``lotka_volterra([[0, 1], [-1, 0]], [1, 2])``: u̇ = u(v − 2),
+    v̇ = v(1 − u).
+    """
+    structure = LogCanonical(c)
+    n = structure.dim
+    b_arr = np.asarray(b, dtype=np.float64).reshape(-1)
+    if b_arr.size != n:
+        raise ValueError(f"b must have {n} entries (one per species), got {b_arr.size}")
+    terms = {tuple(int(i == j) for j in range(n)): 1.0 for i in range(n)}
+    return LogCanonicalSystem(structure, LogPolynomial(terms, b_arr), name=name)

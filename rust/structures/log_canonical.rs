@@ -1,0 +1,471 @@
+//! Log-canonical structures π_ij(x) = c_ij x_i x_j on the positive orthant.
+//!
+//! In q = ln x the bracket is the constant antisymmetric matrix c and the exact symplectic
+//! groupoid is linear: with P_j = x_j p_j, sou = β(q, P) = q − ½ c P and tar = α(q, P) = q + ½ c P.
+//! Hamiltonians are log-polynomials H = Σ_m a_m e^{e_m·q} − b·q, so every Hamilton–Jacobi Taylor
+//! term S_k (k ≥ 2) is a polynomial in y = e^q ([`ExpPolynomial`]).
+//!
+//! Coordinates: the bisection stepper and the splittings work in q (a step never leaves the
+//! orthant, only overflows); RK4 and the implicit midpoint rule work in x, where a step can leave
+//! the orthant, which is a [`StepFailure::OutOfDomain`].
+
+// Index loops over small fixed-size vectors and matrices read as the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
+use nalgebra::{Const, DimMin, SMatrix, SVector};
+
+use crate::dual::{Dual1, Jet2, Scalar};
+use crate::error::{CoreError, StepFailure};
+use crate::realization::{Generating, Realization, RealizationStepper};
+use crate::stepper::{NewtonOptions, StepMap, StepResult, StepStats};
+
+/// The structure matrix c of π_ij = c_ij x_i x_j: finite and antisymmetric.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LogCanonical<const N: usize> {
+    c: [[f64; N]; N],
+}
+
+impl<const N: usize> LogCanonical<N> {
+    pub fn new(c: [[f64; N]; N]) -> Result<Self, CoreError> {
+        for i in 0..N {
+            for j in 0..N {
+                if !c[i][j].is_finite() || c[i][j] != -c[j][i] {
+                    return Err(CoreError::Invalid(format!(
+                        "c must be finite and antisymmetric: c[{i}][{j}] = {}, c[{j}][{i}] = {}",
+                        c[i][j], c[j][i]
+                    )));
+                }
+            }
+        }
+        Ok(LogCanonical { c })
+    }
+
+    pub fn c(&self) -> &[[f64; N]; N] {
+        &self.c
+    }
+
+    /// q ± ½ c P.
+    #[inline(always)]
+    fn shift<T: Scalar>(&self, x: &[T; N], p: &[T; N], sign: f64) -> [T; N] {
+        std::array::from_fn(|i| {
+            let mut acc = p[i];
+            for j in 0..N {
+                if self.c[i][j] != 0.0 {
+                    acc.add_scaled(&x[j], 0.5 * sign * self.c[i][j]);
+                }
+            }
+            acc
+        })
+    }
+}
+
+/// In log coordinates: fibre x = P, base p = q.
+impl<const N: usize> Realization<N> for LogCanonical<N> {
+    #[inline]
+    fn sou<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
+        Ok(self.shift(x, p, -1.0))
+    }
+    #[inline]
+    fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
+        Ok(self.shift(x, p, 1.0))
+    }
+}
+
+/// One term c · t^k · e^{e·q} = c t^k y^e.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExpMonomial<const N: usize> {
+    pub t_power: u32,
+    pub exponents: [i32; N],
+    pub coeff: f64,
+}
+
+/// S(t, q) = Σ c t^k y^e + t · (linear · q): the Taylor-HJ generating function of a log-canonical
+/// system (the linear part is S₁'s −(−b·q)).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExpPolynomial<const N: usize> {
+    terms: Vec<ExpMonomial<N>>,
+    linear: [f64; N],
+}
+
+/// Largest |exponent| of a term.
+pub const MAX_EXPONENT: i32 = 256;
+
+impl<const N: usize> ExpPolynomial<N> {
+    pub fn new(terms: Vec<ExpMonomial<N>>, linear: [f64; N]) -> Result<Self, CoreError> {
+        if let Some(m) = terms
+            .iter()
+            .find(|m| !m.coeff.is_finite() || m.exponents.iter().any(|e| e.abs() > MAX_EXPONENT))
+        {
+            return Err(CoreError::Invalid(format!(
+                "generating term {m:?} has a non-finite coefficient or an exponent over \
+                 {MAX_EXPONENT}"
+            )));
+        }
+        if linear.iter().any(|v| !v.is_finite()) {
+            return Err(CoreError::Invalid("linear part must be finite".into()));
+        }
+        Ok(ExpPolynomial { terms, linear })
+    }
+
+    /// S(t, ·) at q with its q-gradient and q-Hessian, in closed form: ∂/∂q_i y^e = e_i y^e.
+    pub fn jet_at(&self, t: f64, q: &[f64; N]) -> Jet2<N> {
+        let y: [f64; N] = std::array::from_fn(|i| q[i].exp());
+        let mut out = Jet2::<N>::default();
+        for m in &self.terms {
+            let mut w = m.coeff * t.powi(m.t_power as i32);
+            for i in 0..N {
+                if m.exponents[i] != 0 {
+                    w *= y[i].powi(m.exponents[i]);
+                }
+            }
+            out.v += w;
+            let e = m.exponents.map(f64::from);
+            for i in 0..N {
+                out.g[i] += w * e[i];
+            }
+            let packed = out.packed_mut();
+            let mut k = 0;
+            for a in 0..N {
+                for b in a..N {
+                    packed[k] += w * e[a] * e[b];
+                    k += 1;
+                }
+            }
+        }
+        for i in 0..N {
+            out.v += t * self.linear[i] * q[i];
+            out.g[i] += t * self.linear[i];
+        }
+        out
+    }
+}
+
+impl<const N: usize> Generating<N> for ExpPolynomial<N> {
+    type Workspace = ();
+    fn workspace(&self) {}
+    fn jet(&self, t: f64, p: &[f64; N], _: &mut ()) -> Jet2<N> {
+        self.jet_at(t, p)
+    }
+    fn gradient(&self, t: f64, p: &[f64; N], _: &mut ()) -> Dual1<N> {
+        let j = self.jet_at(t, p);
+        Dual1 { v: j.v, g: j.g }
+    }
+}
+
+/// A log-canonical system: the structure c and H = Σ_m a_m x^{e_m} − Σ_i b_i ln x_i
+/// (exponents ≥ 0), ẋ_i = x_i Σ_j c_ij (x_j ∂H/∂x_j) = x_i Σ_j c_ij (Σ_m a_m e_mj x^{e_m} − b_j).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LogSystem<const N: usize> {
+    pub structure: LogCanonical<N>,
+    terms: Vec<([u32; N], f64)>,
+    b: [f64; N],
+}
+
+/// Largest exponent of a Hamiltonian monomial.
+pub const MAX_HAMILTONIAN_EXPONENT: u32 = 16;
+
+impl<const N: usize> LogSystem<N> {
+    pub fn new(
+        structure: LogCanonical<N>,
+        terms: Vec<([u32; N], f64)>,
+        b: [f64; N],
+    ) -> Result<Self, CoreError> {
+        if let Some((e, a)) = terms.iter().find(|(e, a)| {
+            !a.is_finite()
+                || e.iter().any(|&k| k > MAX_HAMILTONIAN_EXPONENT)
+                || e.iter().all(|&k| k == 0)
+        }) {
+            return Err(CoreError::Invalid(format!(
+                "Hamiltonian term {a} x^{e:?} needs a finite coefficient and exponents in \
+                 0..={MAX_HAMILTONIAN_EXPONENT}, not all zero"
+            )));
+        }
+        if b.iter().any(|v| !v.is_finite()) {
+            return Err(CoreError::Invalid("b must be finite".into()));
+        }
+        Ok(LogSystem {
+            structure,
+            terms,
+            b,
+        })
+    }
+
+    /// x_j ∂H/∂x_j = ∂H/∂q_j, a polynomial in x.
+    #[inline]
+    fn log_gradient<T: Scalar>(&self, x: &[T; N]) -> [T; N] {
+        let mut g: [T; N] = std::array::from_fn(|j| T::cst(-self.b[j]));
+        for (e, a) in &self.terms {
+            let mut m = T::cst(*a);
+            for i in 0..N {
+                if e[i] > 0 {
+                    m = m * x[i].powi(e[i] as i32);
+                }
+            }
+            for j in 0..N {
+                if e[j] > 0 {
+                    g[j].add_scaled(&m, f64::from(e[j]));
+                }
+            }
+        }
+        g
+    }
+
+    /// ẋ = π(x)∇H(x), for any scalar.
+    pub fn vector_field<T: Scalar>(&self, x: &[T; N]) -> [T; N] {
+        let g = self.log_gradient(x);
+        let c = self.structure.c();
+        std::array::from_fn(|i| {
+            let mut acc = T::cst(0.0);
+            for j in 0..N {
+                if c[i][j] != 0.0 {
+                    acc.add_scaled(&g[j], c[i][j]);
+                }
+            }
+            x[i] * acc
+        })
+    }
+
+    /// H' of the one-variable parts: the flow of H_i(q_i) = Σ_{m ∈ i} a_m e^{e_mi q_i} − b_i q_i
+    /// is q_j += t c_ji H_i'(q_i) (q_i fixed since c_ii = 0). None unless H is separable (every
+    /// monomial in one variable).
+    fn separable(&self) -> Option<Vec<(usize, u32, f64)>> {
+        let mut parts = Vec::with_capacity(self.terms.len());
+        for (e, a) in &self.terms {
+            let vars: Vec<usize> = (0..N).filter(|&i| e[i] > 0).collect();
+            if vars.len() != 1 {
+                return None;
+            }
+            parts.push((vars[0], e[vars[0]], *a));
+        }
+        Some(parts)
+    }
+}
+
+/// Classical integrators of a log-canonical system.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LogMethod {
+    /// Explicit RK4 in x; order 4, not Poisson.
+    Rk4,
+    /// Implicit midpoint in x, Newton with the exact Jacobian; order 2, not Poisson.
+    Midpoint,
+    /// Strang composition of the exact one-variable flows in q: H₁(h/2)…H_{n−1}(h/2) H_n(h)
+    /// H_{n−1}(h/2)…H₁(h/2); explicit, order 2, Poisson.
+    Splitting,
+    /// Suzuki's 5-stage composition (p, p, 1 − 4p, p, p) of that Strang step,
+    /// p = 1/(4 − 4^{1/3}); explicit, order 4, Poisson.
+    Splitting4,
+}
+
+impl LogMethod {
+    pub fn from_name(name: &str) -> Result<Self, CoreError> {
+        match name {
+            "rk4" => Ok(LogMethod::Rk4),
+            "midpoint" => Ok(LogMethod::Midpoint),
+            "log_splitting" => Ok(LogMethod::Splitting),
+            "log_splitting4" => Ok(LogMethod::Splitting4),
+            _ => Err(CoreError::Invalid(format!(
+                "unknown log-canonical integrator {name:?}; valid: rk4, midpoint, log_splitting, \
+                 log_splitting4"
+            ))),
+        }
+    }
+
+    /// Whether the state is q = ln x (the splittings) rather than x.
+    pub fn in_log(self) -> bool {
+        matches!(self, LogMethod::Splitting | LogMethod::Splitting4)
+    }
+}
+
+/// A classical stepper of a log-canonical system.
+#[derive(Clone, Debug)]
+pub struct LogClassical<const N: usize> {
+    pub method: LogMethod,
+    pub system: LogSystem<N>,
+    pub newton: NewtonOptions,
+    /// (variable, exponent, coefficient) of each monomial, for the splittings.
+    parts: Vec<(usize, u32, f64)>,
+}
+
+/// Suzuki's weight p = 1/(4 − 4^{1/3}).
+fn suzuki_p() -> f64 {
+    1.0 / (4.0 - 4f64.powf(1.0 / 3.0))
+}
+
+fn in_orthant<const N: usize>(x: &[f64; N]) -> Result<(), StepFailure> {
+    if x.iter().any(|v| !v.is_finite()) {
+        Err(StepFailure::NonFinite)
+    } else if x.iter().any(|&v| v <= 0.0) {
+        Err(StepFailure::OutOfDomain)
+    } else {
+        Ok(())
+    }
+}
+
+/// q must stay finite and x = e^q representable (neither 0 nor ∞).
+fn log_state_in_orthant<const N: usize>(q: &[f64; N]) -> Result<(), StepFailure> {
+    if q.iter().any(|v| !v.is_finite()) {
+        return Err(StepFailure::NonFinite);
+    }
+    in_orthant(&q.map(f64::exp))
+}
+
+/// The Taylor-HJ (or any [`ExpPolynomial`]) bisection integrator of a log-canonical structure,
+/// state q = ln x.
+pub type LogBisection<const N: usize> = RealizationStepper<N, LogCanonical<N>, ExpPolynomial<N>>;
+
+/// A stepper in q whose every step is checked to keep x = e^q in the open orthant (finite,
+/// > 0 in float64): a step that leaves it is a failure, never a silent 0 or ∞.
+#[derive(Clone, Debug)]
+pub struct OrthantChecked<S>(pub S);
+
+impl<const N: usize, S: StepMap<N>> StepMap<N> for OrthantChecked<S> {
+    type Workspace = S::Workspace;
+    fn workspace(&self) -> S::Workspace {
+        self.0.workspace()
+    }
+    fn step(&self, h: f64, q: &mut [f64; N], ws: &mut S::Workspace) -> StepResult {
+        let stats = self.0.step(h, q, ws)?;
+        log_state_in_orthant(q)?;
+        Ok(stats)
+    }
+}
+
+impl<const N: usize> LogClassical<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    pub fn new(
+        method: LogMethod,
+        system: LogSystem<N>,
+        newton: NewtonOptions,
+    ) -> Result<Self, CoreError> {
+        let parts = if method.in_log() {
+            system.separable().ok_or_else(|| {
+                CoreError::Invalid(
+                    "the log splittings need a separable Hamiltonian (every monomial in one \
+                     variable)"
+                        .into(),
+                )
+            })?
+        } else {
+            Vec::new()
+        };
+        Ok(LogClassical {
+            method,
+            system,
+            newton,
+            parts,
+        })
+    }
+
+    /// The exact flow of H_i for time t: q_j += t c_ji H_i'(q_i).
+    #[inline]
+    fn flow(&self, i: usize, t: f64, q: &mut [f64; N]) {
+        let mut d = -self.system.b[i];
+        for &(v, e, a) in &self.parts {
+            if v == i {
+                let ef = f64::from(e);
+                d += a * ef * (ef * q[i]).exp();
+            }
+        }
+        let c = self.system.structure.c();
+        for j in 0..N {
+            q[j] += t * c[j][i] * d;
+        }
+    }
+
+    fn strang(&self, h: f64, q: &mut [f64; N]) {
+        for i in 0..N - 1 {
+            self.flow(i, 0.5 * h, q);
+        }
+        self.flow(N - 1, h, q);
+        for i in (0..N - 1).rev() {
+            self.flow(i, 0.5 * h, q);
+        }
+    }
+
+    fn rk4(&self, h: f64, x: &mut [f64; N]) {
+        let f = |y: &[f64; N]| self.system.vector_field(y);
+        let k1 = f(x);
+        let k2 = f(&std::array::from_fn(|i| x[i] + 0.5 * h * k1[i]));
+        let k3 = f(&std::array::from_fn(|i| x[i] + 0.5 * h * k2[i]));
+        let k4 = f(&std::array::from_fn(|i| x[i] + h * k3[i]));
+        for i in 0..N {
+            x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
+        }
+    }
+
+    /// z = x + h f((x + z)/2) by Newton from z = x + h f(x).
+    fn midpoint(&self, h: f64, x: &mut [f64; N]) -> StepResult {
+        let x0 = *x;
+        let f0 = self.system.vector_field(&x0);
+        let mut z: [f64; N] = std::array::from_fn(|i| x0[i] + h * f0[i]);
+        let mut iterations = 0;
+        loop {
+            if iterations >= self.newton.max_iter {
+                return Err(StepFailure::NotConverged);
+            }
+            let m: [Dual1<N>; N] = std::array::from_fn(|i| {
+                let mut d = Dual1::var(0.5 * (x0[i] + z[i]), i);
+                d.g[i] = 0.5;
+                d
+            });
+            let fm = self.system.vector_field(&m);
+            let jac =
+                SMatrix::<f64, N, N>::from_fn(|r, c| f64::from(u8::from(r == c)) - h * fm[r].g[c]);
+            let res = SVector::<f64, N>::from_fn(|i, _| x0[i] + h * fm[i].v - z[i]);
+            let delta = jac.lu().solve(&res).ok_or(StepFailure::SingularJacobian)?;
+            if !delta.iter().all(|d| d.is_finite()) {
+                return Err(StepFailure::NonFinite);
+            }
+            for i in 0..N {
+                z[i] += delta[i];
+            }
+            iterations += 1;
+            let scale = z.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-300);
+            if delta.amax() <= self.newton.tol * scale {
+                let fm = self
+                    .system
+                    .vector_field(&std::array::from_fn(|i| 0.5 * (x0[i] + z[i])));
+                let residual = (0..N)
+                    .map(|i| (x0[i] + h * fm[i] - z[i]).abs())
+                    .fold(0.0, f64::max);
+                *x = z;
+                return Ok(StepStats {
+                    iterations,
+                    residual,
+                });
+            }
+        }
+    }
+}
+
+impl<const N: usize> StepMap<N> for LogClassical<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    type Workspace = ();
+
+    fn workspace(&self) {}
+
+    fn step(&self, h: f64, s: &mut [f64; N], _: &mut ()) -> StepResult {
+        let mut stats = StepStats::default();
+        match self.method {
+            LogMethod::Rk4 => self.rk4(h, s),
+            LogMethod::Midpoint => stats = self.midpoint(h, s)?,
+            LogMethod::Splitting => self.strang(h, s),
+            LogMethod::Splitting4 => {
+                let p = suzuki_p();
+                for w in [p, p, 1.0 - 4.0 * p, p, p] {
+                    self.strang(w * h, s);
+                }
+            }
+        }
+        if self.method.in_log() {
+            log_state_in_orthant(s)?;
+        } else {
+            in_orthant(s)?;
+        }
+        Ok(stats)
+    }
+}

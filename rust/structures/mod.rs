@@ -1,0 +1,11 @@
+//! Poisson structures beyond g*, each with its realization and its classical baselines.
+//!
+//! - [`log_canonical`]: π_ij = c_ij x_i x_j (Lotka–Volterra in any dimension), stepped in
+//!   q = ln x where the bracket is the constant matrix c and the groupoid is linear.
+
+pub mod log_canonical;
+
+pub use log_canonical::{
+    ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
+    OrthantChecked,
+};

@@ -1,0 +1,279 @@
+//! Realizations beyond g*: the generic [`RealizationStepper`] against [`BisectionStepper`] on
+//! the Lie-algebra groupoid (bit-identical), and the log-canonical structure of Lotka–Volterra
+//! (units, fitted orders of Taylor-HJ and the log splittings, Casimirs, the positive orthant).
+
+#![allow(clippy::needless_range_loop)]
+
+use super::*;
+use crate::realization::{Realization, RealizationStepper};
+use crate::structures::{
+    ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
+    OrthantChecked,
+};
+
+/// The generic stepper on the Lie-algebra groupoid is the same map, bit for bit, as the
+/// project's bisection stepper (full Newton, one trajectory at a time).
+#[test]
+fn generic_stepper_is_bit_identical_on_the_lie_groupoid() {
+    let mut rng = Rng::new(20);
+    for chart in [Chart::Cayley, Chart::Exp] {
+        for gf in [
+            GeneratingFunction::new(Polynomial { terms: taylor3() }, None, 0, MlpInputs::Plain)
+                .unwrap(),
+            random_generating(&mut rng, MlpInputs::Plain),
+        ] {
+            let newton = NewtonOptions {
+                simplified: false,
+                ..NewtonOptions::default()
+            };
+            let old = BisectionStepper {
+                generating: gf.clone(),
+                groupoid: Groupoid::so3(chart).unwrap(),
+                newton,
+            };
+            assert_eq!(old.batch(), 1);
+            let new = RealizationStepper {
+                generating: gf,
+                realization: Groupoid::so3(chart).unwrap(),
+                newton,
+                scale_floor: 1e-300,
+            };
+            let mu0: Vec<[f64; 3]> = (0..5).map(|_| rng.sphere(2.0)).collect();
+            let (n, steps) = (mu0.len(), 50);
+            let mut a = vec![0.0; n * n_records(steps, 1) * 3];
+            let mut b = a.clone();
+            let ia = rollout(&old, &mu0, 0.1, steps, 1, &mut a).unwrap();
+            let ib = rollout(&new, &mu0, 0.1, steps, 1, &mut b).unwrap();
+            assert_eq!(ia, ib);
+            assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+        }
+    }
+}
+
+/// PNN's Lotka–Volterra: c = [[0, 1], [−1, 0]], H = u − ln u + v − 2 ln v.
+fn pnn() -> LogSystem<2> {
+    let c = LogCanonical::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap();
+    LogSystem::new(c, vec![([1, 0], 1.0), ([0, 1], 1.0)], [1.0, 2.0]).unwrap()
+}
+
+/// S = t S₁ (+ t³ S₃) for PNN's system: S₁ = −(u + v) + (ln u + 2 ln v), and S₃ as derived
+/// by the Python HJ series (checked there against the flow).
+fn pnn_taylor(order: u32) -> LogBisection<2> {
+    let mut terms = vec![
+        ExpMonomial {
+            t_power: 1,
+            exponents: [1, 0],
+            coeff: -1.0,
+        },
+        ExpMonomial {
+            t_power: 1,
+            exponents: [0, 1],
+            coeff: -1.0,
+        },
+    ];
+    if order >= 3 {
+        for (e, c) in [
+            ([2, 1], -1.0 / 24.0),
+            ([1, 1], 0.25),
+            ([0, 1], -1.0 / 24.0),
+            ([1, 2], -1.0 / 24.0),
+            ([1, 0], -1.0 / 6.0),
+        ] {
+            terms.push(ExpMonomial {
+                t_power: 3,
+                exponents: e,
+                coeff: c,
+            });
+        }
+    }
+    RealizationStepper {
+        generating: ExpPolynomial::new(terms, [1.0, 2.0]).unwrap(),
+        realization: LogCanonical::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap(),
+        newton: NewtonOptions::default(),
+        scale_floor: 1.0,
+    }
+}
+
+/// Final states in q of `n_steps` steps of size T/n_steps from `q0`.
+fn final_state<S: StepMap<2>>(stepper: &S, q0: [f64; 2], t: f64, n_steps: usize) -> [f64; 2] {
+    let mut out = vec![0.0; n_records(n_steps, n_steps) * 2];
+    let info = rollout(
+        stepper,
+        &[q0],
+        t / n_steps as f64,
+        n_steps,
+        n_steps,
+        &mut out,
+    )
+    .unwrap();
+    assert!(info[0].converged);
+    [out[2], out[3]]
+}
+
+fn fitted_order<S: StepMap<2>>(stepper: &S, q0: [f64; 2], reference: [f64; 2]) -> f64 {
+    let e = |n: usize| {
+        let q = final_state(stepper, q0, 1.0, n);
+        (q[0] - reference[0]).abs().max((q[1] - reference[1]).abs())
+    };
+    (e(10) / e(20)).log2()
+}
+
+#[test]
+fn log_canonical_units_and_linearity() {
+    let g = LogCanonical::new([[0.0, 1.5, -2.0], [-1.5, 0.0, 0.5], [2.0, -0.5, 0.0]]).unwrap();
+    let q = [0.3, -0.2, 1.1];
+    assert_eq!(g.sou(&[0.0; 3], &q).unwrap(), q);
+    assert_eq!(g.tar(&[0.0; 3], &q).unwrap(), q);
+    // sou − tar = −c P: the step q_{k+1} − q_k = −c ∇S.
+    let p = [0.7, -0.4, 0.2];
+    let (s, t) = (g.sou(&p, &q).unwrap(), g.tar(&p, &q).unwrap());
+    for i in 0..3 {
+        let cp: f64 = (0..3).map(|j| g.c()[i][j] * p[j]).sum();
+        assert!((s[i] - t[i] + cp).abs() < 1e-15);
+    }
+    assert!(LogCanonical::new([[0.0, 1.0], [1.0, 0.0]]).is_err());
+    assert!(LogCanonical::new([[0.0, f64::NAN], [f64::NAN, 0.0]]).is_err());
+}
+
+/// Taylor-HJ of order 1 and 3 has order 2 and 4; Strang and Suzuki splittings 2 and 4; RK4 4
+/// and midpoint 2: against a Taylor-5 run of 2000 steps.
+#[test]
+fn log_canonical_fitted_orders() {
+    let q0 = [0.0, (0.8f64).ln()];
+    let reference = final_state(&pnn_taylor(3), q0, 1.0, 4000);
+    for (order, expected) in [(1, 2.0), (3, 4.0)] {
+        let p = fitted_order(&pnn_taylor(order), q0, reference);
+        assert!((p - expected).abs() < 0.15, "Taylor {order}: order {p}");
+    }
+    let newton = NewtonOptions::default();
+    for (method, expected) in [(LogMethod::Splitting, 2.0), (LogMethod::Splitting4, 4.0)] {
+        let s = LogClassical::new(method, pnn(), newton).unwrap();
+        let p = fitted_order(&s, q0, reference);
+        assert!((p - expected).abs() < 0.15, "{method:?}: order {p}");
+    }
+    // RK4 and the midpoint rule step x.
+    let x0 = q0.map(f64::exp);
+    let xref = reference.map(f64::exp);
+    for (method, expected) in [(LogMethod::Rk4, 4.0), (LogMethod::Midpoint, 2.0)] {
+        let s = LogClassical::new(method, pnn(), newton).unwrap();
+        let p = fitted_order(&s, x0, xref);
+        assert!((p - expected).abs() < 0.15, "{method:?}: order {p}");
+    }
+}
+
+/// A 3D Lotka–Volterra with the Casimir x₁x₃/x₂ (c k = 0 for k = (1, −1, 1)): kept to
+/// round-off over 10⁴ steps by the Taylor-HJ step and the log splitting.
+#[test]
+fn log_canonical_casimir_is_kept() {
+    let c = [[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]];
+    let b = [1.0, 2.0, 1.0];
+    let terms: Vec<ExpMonomial<3>> = (0..3)
+        .map(|i| {
+            let mut exponents = [0; 3];
+            exponents[i] = 1;
+            ExpMonomial {
+                t_power: 1,
+                exponents,
+                coeff: -1.0,
+            }
+        })
+        .collect();
+    let taylor = OrthantChecked(LogBisection {
+        generating: ExpPolynomial::new(terms, b).unwrap(),
+        realization: LogCanonical::new(c).unwrap(),
+        newton: NewtonOptions::default(),
+        scale_floor: 1.0,
+    });
+    let system = LogSystem::new(
+        LogCanonical::new(c).unwrap(),
+        vec![([1, 0, 0], 1.0), ([0, 1, 0], 1.0), ([0, 0, 1], 1.0)],
+        b,
+    )
+    .unwrap();
+    let split = LogClassical::new(LogMethod::Splitting, system, NewtonOptions::default()).unwrap();
+    let q0 = [0.2, -0.3, 0.5];
+    let casimir = |q: &[f64]| q[0] - q[1] + q[2];
+    let steps = 10_000;
+    let c0 = casimir(&q0);
+    let mut out = vec![0.0; n_records(steps, 100) * 3];
+    let check = |info: Vec<TrajectoryInfo>, out: &[f64]| {
+        assert!(info[0].converged);
+        let drift = out
+            .chunks(3)
+            .map(|q| (casimir(q) - c0).abs())
+            .fold(0.0, f64::max);
+        assert!(drift < 1e-12 * c0.abs(), "Casimir drift {drift}");
+    };
+    check(
+        rollout(&split, &[q0], 0.1, steps, 100, &mut out).unwrap(),
+        &out,
+    );
+    check(
+        rollout(&taylor, &[q0], 0.1, steps, 100, &mut out).unwrap(),
+        &out,
+    );
+    // The state moved: the test is not vacuous.
+    assert!((out[out.len() - 3] - q0[0]).abs() > 1e-3);
+}
+
+/// A step that leaves the positive orthant is a failure, never a silent NaN: RK4 in x with a
+/// step far too large, and a Taylor step whose e^q overflows.
+#[test]
+fn log_canonical_leaving_the_orthant_fails() {
+    let rk4 = LogClassical::new(LogMethod::Rk4, pnn(), NewtonOptions::default()).unwrap();
+    let mut out = vec![0.0; n_records(5, 1) * 2];
+    let info = rollout(&rk4, &[[1.0, 3.0]], 2.0, 5, 1, &mut out).unwrap();
+    assert!(!info[0].converged);
+    assert_eq!(info[0].failure, Some(StepFailure::OutOfDomain));
+    assert!(out[2 * (info[0].failed_step as usize + 1)..]
+        .iter()
+        .all(|v| v.is_nan()));
+    let taylor = OrthantChecked(pnn_taylor(1));
+    let info = rollout(&taylor, &[[700.0, 0.0]], 0.1, 5, 1, &mut out).unwrap();
+    assert!(!info[0].converged);
+    assert!(info[0].failure.is_some());
+    // The splittings need a separable Hamiltonian.
+    let mixed = LogSystem::new(
+        LogCanonical::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap(),
+        vec![([1, 1], 1.0)],
+        [1.0, 1.0],
+    )
+    .unwrap();
+    assert!(LogClassical::new(LogMethod::Splitting, mixed, NewtonOptions::default()).is_err());
+}
+
+/// The project's bisection stepper runs on the log-canonical realization too: with any S
+/// (here −tH of the rigid body, random polynomial terms and a random MLP, read as a function
+/// of q), one at a time and batched with simplified Newton, the step is a Poisson map of the
+/// constant bracket c, so the Casimir k·q (c k = 0) is kept to round-off.
+#[test]
+fn bisection_stepper_on_the_log_canonical_realization_keeps_the_casimir() {
+    let mut rng = Rng::new(21);
+    let c = [[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]];
+    for generating in [
+        random_generating(&mut rng, MlpInputs::Plain),
+        wide_generating(&mut rng, MlpInputs::Plain),
+    ] {
+        let stepper = BisectionStepper {
+            generating,
+            groupoid: LogCanonical::new(c).unwrap(),
+            newton: NewtonOptions::default(),
+        };
+        let q0: Vec<[f64; 3]> = (0..20).map(|_| rng.vec3(-0.5, 0.5)).collect();
+        let steps = 500;
+        let mut out = vec![0.0; q0.len() * n_records(steps, 50) * 3];
+        let info = rollout(&stepper, &q0, 0.05, steps, 50, &mut out).unwrap();
+        assert!(info.iter().all(|i| i.converged));
+        let casimir = |q: &[f64]| q[0] - q[1] + q[2];
+        for (traj, q) in out.chunks(n_records(steps, 50) * 3).zip(&q0) {
+            let c0 = casimir(q);
+            let drift = traj
+                .chunks(3)
+                .map(|s| (casimir(s) - c0).abs())
+                .fold(0.0, f64::max);
+            assert!(drift < 1e-13, "Casimir drift {drift}");
+            // The state moved: the test is not vacuous.
+            assert!((traj[traj.len() - 3] - q[0]).abs() > 1e-4);
+        }
+    }
+}
