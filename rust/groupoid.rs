@@ -209,12 +209,13 @@ impl<const N: usize> LieAlgebra<N> {
             .flatten()
             .fold(0.0f64, |m, v| m.max(v.abs()))
             .max(1.0);
+        // Finite entries of size at most 1: every sum below is finite, so `>` cannot miss a NaN.
         let u: [[[f64; N]; N]; N] = c.map(|a| a.map(|b| b.map(|v| v / scale)));
         let tol = 1e-12;
         for i in 0..N {
             for j in 0..N {
                 for k in 0..N {
-                    if !((u[i][j][k] + u[j][i][k]).abs() <= tol) {
+                    if (u[i][j][k] + u[j][i][k]).abs() > tol {
                         return invalid(format!(
                             "structure constants are not antisymmetric (c[i,j,k] = -c[j,i,k] \
                              fails): c[{i},{j},{k}] = {} but c[{j},{i},{k}] = {}",
@@ -236,7 +237,7 @@ impl<const N: usize> LieAlgebra<N> {
                                     + u[k][i][l] * u[l][j][m]
                             })
                             .sum();
-                        if !(s.abs() <= tol) {
+                        if s.abs() > tol {
                             return invalid(format!(
                                 "structure constants violate the Jacobi identity at \
                                  (e{i}, e{j}, e{k}), component {m}: {:e}",

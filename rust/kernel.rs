@@ -32,9 +32,9 @@ pub fn pack(weight: &[f64], n_in: usize, n_out: usize) -> Vec<f64> {
 /// the width of a layer comes from a model file.
 pub fn try_pack(weight: &[f64], n_in: usize, n_out: usize) -> Result<Vec<f64>, CoreError> {
     let panels = n_out.div_ceil(MR);
-    let len = panels
-        .checked_mul(MR * n_in)
-        .ok_or_else(|| CoreError::Memory(format!("a packed layer of {n_out} x {n_in} is too large")))?;
+    let len = panels.checked_mul(MR * n_in).ok_or_else(|| {
+        CoreError::Memory(format!("a packed layer of {n_out} x {n_in} is too large"))
+    })?;
     let mut packed = crate::memory::try_filled(len, 0.0, "a packed layer")?;
     for (o, row) in weight.chunks_exact(n_in).enumerate() {
         let (q, r) = (o / MR, o % MR);

@@ -27,7 +27,10 @@ fn proc_kib(text: &str, key: &str) -> Option<usize> {
 
 /// MemAvailable from /proc/meminfo.
 fn mem_available() -> Option<usize> {
-    proc_kib(&std::fs::read_to_string("/proc/meminfo").ok()?, "MemAvailable:")
+    proc_kib(
+        &std::fs::read_to_string("/proc/meminfo").ok()?,
+        "MemAvailable:",
+    )
 }
 
 /// The soft RLIMIT_AS from /proc/self/limits ("Max address space  <soft> <hard> bytes"), minus
@@ -37,7 +40,9 @@ fn address_space_left() -> Option<usize> {
     let line = limits
         .lines()
         .find(|l| l.starts_with("Max address space"))?;
-    let soft = line["Max address space".len()..].split_whitespace().next()?;
+    let soft = line["Max address space".len()..]
+        .split_whitespace()
+        .next()?;
     let limit: usize = soft.parse().ok()?; // "unlimited" does not parse: no limit
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let used = proc_kib(&status, "VmSize:").unwrap_or(0);
@@ -138,7 +143,8 @@ fn refused<T>(len: usize, what: &str) -> CoreError {
 /// An empty vector with room for exactly `len` elements, or [`CoreError::Memory`].
 pub fn try_with_capacity<T>(len: usize, what: &str) -> Result<Vec<T>, CoreError> {
     let mut v = Vec::new();
-    v.try_reserve_exact(len).map_err(|_| refused::<T>(len, what))?;
+    v.try_reserve_exact(len)
+        .map_err(|_| refused::<T>(len, what))?;
     Ok(v)
 }
 
@@ -175,7 +181,10 @@ mod tests {
     fn an_impossible_allocation_is_an_error_not_an_abort() {
         // More than any address space: the allocator refuses it at once.
         let e = try_filled(usize::MAX / 16, 0.0f64, "a test buffer").unwrap_err();
-        assert!(matches!(e, CoreError::Memory(ref m) if m.contains("a test buffer")), "{e:?}");
+        assert!(
+            matches!(e, CoreError::Memory(ref m) if m.contains("a test buffer")),
+            "{e:?}"
+        );
         assert!(check_fits(usize::MAX, "a test", "use less").is_err());
     }
 
