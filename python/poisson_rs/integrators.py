@@ -468,9 +468,10 @@ def _check_domain(domain: Mapping[str, Any], dim: int | None = None) -> dict[str
 
 
 #: Largest relative RMS difference between ∂S/∂t(0, p) and −H(p) accepted at load: round-off
-#: where the t¹ terms are exact polynomials, and the training error where an MLP multiplied by
-#: t¹ (``mlp_power = 1``, the paper's ansatz) learns them (1.6 % for the shipped paper model).
-FIRST_ORDER_TOL_EXACT = 1e-9
+#: where the t¹ terms are exact polynomials (float32 training stores them rounded to float32:
+#: 2e-8 measured), and the training error where an MLP multiplied by t¹ (``mlp_power = 1``, the
+#: paper's ansatz) learns them (1.6 % for the shipped paper model).
+FIRST_ORDER_TOL_EXACT = 1e-6
 FIRST_ORDER_TOL_LEARNED = 0.05
 #: Seeded sample of the training domain on which the t¹ terms are compared.
 _FIRST_ORDER_SAMPLES = 512
