@@ -219,6 +219,22 @@ def test_a_fraction_is_a_step() -> None:
     assert integrators._check_step(np.float32(0.5)) == 0.5
 
 
+def test_model_methods_take_any_real_time() -> None:
+    model = pr.taylor_integrator(order=3)
+    for bad in (10**400, float("nan"), -1.0):
+        with pytest.raises(ValueError, match="h"):
+            model.hj_residual(MU, bad)
+        with pytest.raises(ValueError, match="t"):
+            model.derivatives(bad, MU)
+        with pytest.raises(ValueError, match="h"):
+            model.torch_step(MU, bad)
+    exact = model.torch_step(MU, 0.1).detach().numpy()
+    np.testing.assert_array_equal(model.torch_step(MU, Fraction(1, 10)).detach().numpy(), exact)
+    np.testing.assert_array_equal(
+        model.hj_residual(MU, Fraction(1, 10)), model.hj_residual(MU, 0.1)
+    )
+
+
 @pytest.mark.parametrize("value", [2**64, 2**53 + 1, -1])
 def test_bad_counts_are_one_clear_error(value: int) -> None:
     with pytest.raises(ValueError, match="n_steps"):

@@ -105,6 +105,9 @@ def test_a_wide_layer_is_memory_error_not_abort(wide: pr.LearnedIntegrator) -> N
     assert outcome.startswith("MemoryError"), outcome
     outcome = run_limited(lambda: wide.hj_residual(p, 0.1), GIB)
     assert outcome.startswith("MemoryError"), outcome
+    # A rollout makes one workspace per thread: counted before it starts.
+    outcome = run_limited(lambda: pr.integrate(wide, p, 0.01, 2), GIB)
+    assert outcome.startswith("MemoryError"), outcome
 
 
 def test_a_wide_layer_runs_where_the_memory_is_there() -> None:

@@ -63,6 +63,20 @@ def _check_step(h: Any, name: str = "h") -> float:
     return value
 
 
+def _check_time(t: Any, name: str = "t") -> float:
+    """A time t >= 0 as a float: TypeError unless a real number (not a bool), ValueError unless
+    finite (``10**400`` included, which float() would turn into OverflowError)."""
+    if isinstance(t, (bool, np.bool_)) or not isinstance(t, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(t).__name__}")
+    try:
+        value = float(t)
+    except (OverflowError, ValueError, TypeError):
+        raise ValueError(f"{name} must be finite, got a number too large for float64") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be finite and >= 0, got {value}")
+    return value
+
+
 def _check_count(name: str, value: Any, low: int = 0) -> int:
     """``value`` as an int in [low, MAX_COUNT]: TypeError unless an integer (Python or NumPy;
     not a bool, not a float), ValueError naming ``name`` outside the range (2**64 included,
@@ -257,16 +271,16 @@ class BisectionIntegrator:
 
         from .generating import bisection_step
 
-        _check_step(h)
+        step = _check_step(h)
         mu = torch.as_tensor(mu, dtype=torch.float64)
         return bisection_step(
-            self.generating, mu, h, chart=self.chart, tol=self.tol, max_iter=self.max_iter
+            self.generating, mu, step, chart=self.chart, tol=self.tol, max_iter=self.max_iter
         )
 
     def derivatives(self, t: float, p: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """S, ∂S/∂p, ∂²S/∂p² from the Rust core (forward mode).
         p: (B, n) → (B,), (B, n), (B, n, n)."""
-        return self._core.derivatives(float(t), _as_states(p, "p", self.dim)[0])
+        return self._core.derivatives(_check_time(t, "t"), _as_states(p, "p", self.dim)[0])
 
     def hj_residual(self, mu: ArrayLike, h: float) -> np.ndarray:
         """The model's Hamilton–Jacobi residual at (h, p = μ), relative to H(μ).
@@ -280,10 +294,7 @@ class BisectionIntegrator:
         (r itself where H(μ) = 0). Non-finite states, and states whose ∂S/∂p reaches the
         exponential chart's singularity, give NaN.
         """
-        if isinstance(h, bool) or not isinstance(h, numbers.Real):
-            raise TypeError(f"h must be a real number, got {type(h).__name__}")
-        if not (math.isfinite(h) and h >= 0):
-            raise ValueError(f"h must be finite and >= 0, got {h}")
+        h = _check_time(h, "h")
         arr = np.asarray(mu)
         if arr.dtype == object or arr.dtype.kind not in "fiu":
             raise TypeError(f"mu must be an array of real numbers, got dtype {arr.dtype}")
