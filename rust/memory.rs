@@ -8,6 +8,8 @@
 //! large ones are checked first against [`usable_bytes`]: the least of what the machine, the
 //! address-space limit and the cgroup leave to this process.
 
+use std::path::Path;
+
 use crate::error::CoreError;
 
 /// Prefix of the message of a panic raised for refused memory where no `Result` can carry it
@@ -52,30 +54,37 @@ fn address_space_left() -> Option<usize> {
 /// A cgroup limit minus the cgroup's usage: v2 (`memory.max`, `memory.current`) or v1
 /// (`memory.limit_in_bytes`, `memory.usage_in_bytes`); None when unlimited or unreadable.
 fn cgroup_left() -> Option<usize> {
-    let read = |p: &str| std::fs::read_to_string(p).ok();
+    let own = std::fs::read_to_string("/proc/self/cgroup").ok();
+    cgroup_left_at(Path::new("/sys/fs/cgroup"), own.as_deref())
+}
+
+/// [`cgroup_left`] for a cgroup file system mounted at `root`, the process's
+/// `/proc/self/cgroup` being `own`.
+fn cgroup_left_at(root: &Path, own: Option<&str>) -> Option<usize> {
+    let read = |p: &Path| std::fs::read_to_string(p).ok();
     let number = |s: String| s.trim().parse::<usize>().ok();
     // v2: the process's own cgroup ("0::/path") and each of its ancestors; the tightest wins.
-    let own = read("/proc/self/cgroup").and_then(|s| {
+    let own = own.and_then(|s| {
         s.lines()
             .find_map(|l| l.strip_prefix("0::").map(|p| p.trim().to_string()))
     });
     if let Some(own) = own {
         let mut best: Option<usize> = None;
         let mut found = false;
-        let mut path = std::path::PathBuf::from(format!("/sys/fs/cgroup{own}"));
+        let mut path = root.join(own.trim_start_matches('/'));
         loop {
-            if let Some(max) = read(&path.join("memory.max").to_string_lossy()) {
+            if let Some(max) = read(&path.join("memory.max")) {
                 found = true;
                 // "max": no limit at this level.
                 if let Some(limit) = number(max) {
-                    let used = read(&path.join("memory.current").to_string_lossy())
+                    let used = read(&path.join("memory.current"))
                         .and_then(number)
                         .unwrap_or(0);
                     let left = limit.saturating_sub(used);
                     best = Some(best.map_or(left, |b| b.min(left)));
                 }
             }
-            if path == std::path::Path::new("/sys/fs/cgroup") || !path.pop() {
+            if path == root || !path.pop() {
                 break;
             }
         }
@@ -83,13 +92,13 @@ fn cgroup_left() -> Option<usize> {
             return best;
         }
     }
-    let dir = "/sys/fs/cgroup/memory";
-    let limit = read(&format!("{dir}/memory.limit_in_bytes")).and_then(number)?;
+    let dir = root.join("memory");
+    let limit = read(&dir.join("memory.limit_in_bytes")).and_then(number)?;
     // v1 writes a huge number (close to i64::MAX, page-rounded) for "no limit".
     if limit >= 1 << 62 {
         return None;
     }
-    let used = read(&format!("{dir}/memory.usage_in_bytes"))
+    let used = read(&dir.join("memory.usage_in_bytes"))
         .and_then(number)
         .unwrap_or(0);
     Some(limit.saturating_sub(used))
@@ -186,6 +195,52 @@ mod tests {
             "{e:?}"
         );
         assert!(check_fits(usize::MAX, "a test", "use less").is_err());
+    }
+
+    /// A scratch folder laid out like a cgroup mount.
+    fn fake_cgroup(name: &str, files: &[(&str, &str)]) -> std::path::PathBuf {
+        let root =
+            std::env::temp_dir().join(format!("poisson_rs_cgroup_{name}_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        for (path, text) in files {
+            let p = root.join(path);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(p, text).unwrap();
+        }
+        root
+    }
+
+    #[test]
+    fn cgroup_limits_are_read_v2_up_the_tree_and_v1() {
+        let root = fake_cgroup(
+            "v2",
+            &[
+                ("memory.max", "max\n"),
+                ("a/memory.max", "1000000\n"),
+                ("a/memory.current", "400000\n"),
+                ("a/b/memory.max", "max\n"),
+                ("a/b/memory.current", "10\n"),
+            ],
+        );
+        // The parent's limit applies to the child: 1e6 - 4e5 left.
+        assert_eq!(cgroup_left_at(&root, Some("0::/a/b\n")), Some(600_000));
+        assert_eq!(cgroup_left_at(&root, Some("0::/\n")), None);
+        let v1 = fake_cgroup(
+            "v1",
+            &[
+                ("memory/memory.limit_in_bytes", "2000000\n"),
+                ("memory/memory.usage_in_bytes", "500000\n"),
+            ],
+        );
+        assert_eq!(cgroup_left_at(&v1, None), Some(1_500_000));
+        let unlimited = fake_cgroup(
+            "v1max",
+            &[("memory/memory.limit_in_bytes", "9223372036854771712\n")],
+        );
+        assert_eq!(cgroup_left_at(&unlimited, None), None);
+        for d in [root, v1, unlimited] {
+            let _ = std::fs::remove_dir_all(d);
+        }
     }
 
     #[test]
