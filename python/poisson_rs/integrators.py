@@ -261,8 +261,10 @@ class BisectionIntegrator:
 
             # From the bytes the core was built from, never the path again: a file replaced
             # since (or turned into a FIFO) would give torch another model than Rust, or hang.
-            tensors = load(self._bytes)
-            self._generating = load_generating(tensors, self.metadata)
+            name = f"model file {self._source}" if self.path is not None else "model bytes"
+            with parsing(name):
+                tensors = load(self._bytes)
+                self._generating = load_generating(tensors, self.metadata)
         return self._generating
 
     def torch_step(self, mu: torch.Tensor, h: float) -> torch.Tensor:
