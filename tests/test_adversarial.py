@@ -149,6 +149,16 @@ def test_replacing_an_output_keeps_its_mode(tmp_path: Path) -> None:
     assert stat.S_IMODE(path.stat().st_mode) == 0o600 and path.read_bytes() == b"new"
 
 
+def test_replacing_an_output_gives_the_path_a_new_file(tmp_path: Path) -> None:
+    # The documented choice: atomic replacement over writing in place, so another hard link to
+    # the old file keeps the old contents (never a half-written mix).
+    path, link = tmp_path / "out.bin", tmp_path / "link.bin"
+    path.write_bytes(b"old")
+    os.link(path, link)
+    files.atomic_write_bytes(path, b"new")
+    assert path.read_bytes() == b"new" and link.read_bytes() == b"old"
+
+
 def test_model_bytes_are_deterministic() -> None:
     # In a fresh interpreter each: a hash map's order changes between processes.
     code = textwrap.dedent(
