@@ -18,7 +18,9 @@ use pyo3::types::PyDict;
 
 use crate::classical::{ClassicalMethod, HeavyTop, LieMethod, LieStepper, RigidBody};
 use crate::error::CoreError;
+use crate::generating::Workspace;
 use crate::groupoid::LieAlgebra;
+use crate::memory::try_with_capacity;
 use crate::model::{Model, FORMAT};
 use crate::rollout::{n_records, Rollout, TrajectoryInfo};
 use crate::stepper::{batch_size, NewtonOptions, StepMap};
@@ -31,6 +33,7 @@ impl From<CoreError> for PyErr {
             CoreError::NotFound(_) => PyFileNotFoundError::new_err(e.to_string()),
             CoreError::Io(_) => PyOSError::new_err(e.to_string()),
             CoreError::Format(_) | CoreError::Invalid(_) => PyValueError::new_err(e.to_string()),
+            CoreError::Memory(_) => PyMemoryError::new_err(e.to_string()),
         }
     }
 }
@@ -38,36 +41,17 @@ impl From<CoreError> for PyErr {
 /// A float64 NumPy array owned by Python.
 type Array<'py, D> = Bound<'py, PyArray<f64, D>>;
 
-/// Cap on what one call may allocate where the available memory cannot be read.
-const FALLBACK_MAX_BYTES: usize = 16 << 30;
-
-/// Fraction of the available memory one call may plan to take.
-const MEMORY_SHARE: f64 = 0.8;
-
-/// MemAvailable from /proc/meminfo, in bytes; None where it cannot be read.
-fn available_bytes() -> Option<usize> {
-    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = info.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kib: usize = line.split_whitespace().nth(1)?.parse().ok()?;
-    kib.checked_mul(1024)
-}
-
 /// Refuses, with MemoryError, a call whose output of `numbers` float64 plus `extra` bytes of
-/// working memory would not fit in the memory available now; before anything is allocated.
+/// working memory would not fit in the memory this process can use now (the least of
+/// MemAvailable, RLIMIT_AS and the cgroup limit, see [`crate::memory`]); before anything is
+/// allocated.
 fn check_output_bytes(numbers: usize, extra: usize) -> PyResult<()> {
     let need = numbers.saturating_mul(8).saturating_add(extra);
-    let limit = available_bytes()
-        .map(|a| (a as f64 * MEMORY_SHARE) as usize)
-        .unwrap_or(FALLBACK_MAX_BYTES);
-    if need > limit {
-        let gib = |b: usize| b as f64 / f64::from(1u32 << 30);
-        return Err(PyMemoryError::new_err(format!(
-            "this call needs about {:.2} GiB (output and working memory) but only {:.2} GiB \
-             can be used now; raise `every` or split the batch",
-            gib(need),
-            gib(limit)
-        )));
-    }
+    crate::memory::check_fits(
+        need,
+        "this call (output and working memory)",
+        "raise `every` or split the batch",
+    )?;
     Ok(())
 }
 
@@ -77,7 +61,18 @@ fn detached<T: Send>(
     f: impl FnOnce() -> Result<T, CoreError> + Send,
 ) -> PyResult<T> {
     py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
-        .map_err(|_| PyRuntimeError::new_err("internal error in the poisson_rs core (panic)"))?
+        .map_err(|payload| {
+            // Memory refused where no Result could carry it (a workspace inside the pool).
+            let message = payload
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| payload.downcast_ref::<&str>().copied())
+                .unwrap_or("");
+            match message.strip_prefix(crate::memory::OUT_OF_MEMORY) {
+                Some(m) => PyMemoryError::new_err(m.to_string()),
+                None => PyRuntimeError::new_err("internal error in the poisson_rs core (panic)"),
+            }
+        })?
         .map_err(PyErr::from)
 }
 
@@ -141,8 +136,8 @@ impl PyModel {
 
     /// Parses the bytes of a model file. Raises ValueError.
     #[staticmethod]
-    fn from_bytes(py: Python<'_>, data: Vec<u8>) -> PyResult<Self> {
-        let inner = detached(py, || Model::from_bytes(&data))?;
+    fn from_bytes(py: Python<'_>, data: &[u8]) -> PyResult<Self> {
+        let inner = detached(py, || Model::from_bytes(data))?;
         Ok(PyModel { inner })
     }
 
@@ -250,13 +245,15 @@ impl PyModel {
         let p = states::<N>(&p, "p")?;
         let g = self.inner.generating::<N>()?;
         let n = p.len();
-        check_output_bytes(n.saturating_mul(1 + N + N * N), 0)?;
+        // The outputs and the workspace (wide layers make it large) are counted, then
+        // allocated fallibly: a refusal is MemoryError, never an abort.
+        check_output_bytes(n.saturating_mul(1 + N + N * N), Workspace::bytes(&g))?;
         let (s, grad, hess) = detached(py, || {
-            let mut ws = g.workspace();
+            let mut ws = g.try_workspace()?;
             let (mut s, mut grad, mut hess) = (
-                Vec::with_capacity(n),
-                Vec::with_capacity(N * n),
-                Vec::with_capacity(N * N * n),
+                try_with_capacity(n, "the output S")?,
+                try_with_capacity(N * n, "the output dS/dp")?,
+                try_with_capacity(N * N * n, "the output d2S/dp2")?,
             );
             for q in &p {
                 let jet = g.jet(t, q, &mut ws);
@@ -286,12 +283,17 @@ impl PyModel {
     ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix1>)> {
         let p = states::<N>(&p, "p")?;
         let g = self.inner.generating::<N>()?;
-        check_output_bytes(p.len().saturating_mul(2), 0)?;
-        let (s, dt): (Vec<f64>, Vec<f64>) = detached(py, || {
-            let mut ws = g.workspace();
-            Ok(p.iter()
-                .map(|q| g.value_and_time_derivative(t, q, &mut ws))
-                .unzip())
+        check_output_bytes(p.len().saturating_mul(2), Workspace::bytes(&g))?;
+        let (s, dt) = detached(py, || {
+            let mut ws = g.try_workspace()?;
+            let mut s = try_with_capacity(p.len(), "the output S")?;
+            let mut dt = try_with_capacity(p.len(), "the output dS/dt")?;
+            for q in &p {
+                let (v, d) = g.value_and_time_derivative(t, q, &mut ws);
+                s.push(v);
+                dt.push(d);
+            }
+            Ok((s, dt))
         })?;
         Ok((
             Array1::from_vec(s).into_pyarray(py),

@@ -13,6 +13,9 @@ pub enum CoreError {
     Io(String),
     /// A file that does not exist.
     NotFound(String),
+    /// The memory a call needs is not there (or an allocation was refused): MemoryError in
+    /// Python, never an abort.
+    Memory(String),
 }
 
 impl fmt::Display for CoreError {
@@ -22,6 +25,7 @@ impl fmt::Display for CoreError {
             CoreError::Invalid(m) => write!(f, "{m}"),
             CoreError::Io(m) => write!(f, "i/o error: {m}"),
             CoreError::NotFound(m) => write!(f, "no such file: {m}"),
+            CoreError::Memory(m) => write!(f, "{m}"),
         }
     }
 }

@@ -11,6 +11,8 @@
 use crate::dual::{Dual1, Jet2, Scalar, Variable};
 use crate::error::CoreError;
 use crate::kernel;
+use crate::memory::{try_collect, try_filled};
+use std::sync::Arc;
 
 /// Most trajectories one batched evaluation takes.
 pub const MAX_BATCH: usize = 32;
@@ -139,11 +141,14 @@ impl Layer {
                 "a layer holds a NaN or infinite weight".into(),
             ));
         }
-        let packed = kernel::pack(&weight, n_in, n_out);
-        let transposed: Vec<f64> = (0..n_in * n_out)
-            .map(|i| weight[(i % n_out) * n_in + i / n_out])
-            .collect();
-        let packed_t = kernel::pack(&transposed, n_out, n_in);
+        // Two packed copies of W: allocated fallibly, since the width comes from a file.
+        let packed = kernel::try_pack(&weight, n_in, n_out)?;
+        let transposed = try_collect(
+            n_in * n_out,
+            (0..n_in * n_out).map(|i| weight[(i % n_out) * n_in + i / n_out]),
+            "a transposed layer",
+        )?;
+        let packed_t = kernel::try_pack(&transposed, n_out, n_in)?;
         Ok(Layer {
             n_in,
             n_out,
@@ -182,9 +187,12 @@ impl Layer {
 }
 
 /// A tanh MLP R^{1+N} → R with inputs (t, p₁, …, p_N); tanh after every layer but the last.
+///
+/// The layers are shared: cloning an MLP (a stepper per call, per dimension) copies a pointer,
+/// never the weights, so it cannot run out of memory.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mlp {
-    pub layers: Vec<Layer>,
+    pub layers: Arc<[Layer]>,
 }
 
 impl Mlp {
@@ -218,7 +226,9 @@ impl Mlp {
                 last.n_out
             )));
         }
-        Ok(Mlp { layers })
+        Ok(Mlp {
+            layers: layers.into(),
+        })
     }
 
     /// Inputs of the first layer (1 + N: time and momentum).
@@ -461,17 +471,27 @@ impl<const N: usize> GeneratingFunction<N> {
         })
     }
 
+    /// A workspace for this function. Where the memory is refused it panics (an unwinding
+    /// panic the bindings turn into MemoryError, see [`crate::memory::OUT_OF_MEMORY`]), never
+    /// aborts; callers check [`Workspace::bytes`] first or use [`Self::try_workspace`].
     pub fn workspace(&self) -> Workspace<N> {
+        self.try_workspace()
+            .unwrap_or_else(|e| panic!("{}{e}", crate::memory::OUT_OF_MEMORY))
+    }
+
+    /// A workspace, or [`CoreError::Memory`] where the memory is refused.
+    pub fn try_workspace(&self) -> Result<Workspace<N>, CoreError> {
         let (w, batch, acts) = Workspace::sizes(self);
-        Workspace {
-            jet_a: vec![Jet2::default(); w],
-            jet_b: vec![Jet2::default(); w],
-            d1_a: vec![Dual1::default(); w],
-            d1_b: vec![Dual1::default(); w],
-            batch_a: vec![0.0; batch],
-            batch_b: vec![0.0; batch],
-            acts: vec![0.0; acts],
-        }
+        let what = "the evaluation workspace (a very wide layer?)";
+        Ok(Workspace {
+            jet_a: try_filled(w, Jet2::default(), what)?,
+            jet_b: try_filled(w, Jet2::default(), what)?,
+            d1_a: try_filled(w, Dual1::default(), what)?,
+            d1_b: try_filled(w, Dual1::default(), what)?,
+            batch_a: try_filled(batch, 0.0, what)?,
+            batch_b: try_filled(batch, 0.0, what)?,
+            acts: try_filled(acts, 0.0, what)?,
+        })
     }
 
     /// S(t, p), ∂S/∂p and ∂²S/∂p² at fixed t, exactly (forward mode).

@@ -186,48 +186,62 @@ pub struct LieAlgebra<const N: usize> {
 }
 
 impl<const N: usize> LieAlgebra<N> {
-    /// Checks antisymmetry and the Jacobi identity (to a tolerance relative to max |c|).
+    /// Checks that every entry is finite, antisymmetry and the Jacobi identity, to a tolerance
+    /// relative to max |c| (above 1). Both checks run on c / max(max |c|, 1), so the Jacobi sums
+    /// (quadratic in c) cannot overflow and turn the check off, however large the constants.
     pub fn new(c: [[[f64; N]; N]; N]) -> Result<Self, CoreError> {
         let invalid = |m: String| Err(CoreError::Invalid(m));
+        for i in 0..N {
+            for j in 0..N {
+                for k in 0..N {
+                    if !c[i][j][k].is_finite() {
+                        return invalid(format!(
+                            "structure constants must be finite: c[{i},{j},{k}] = {}",
+                            c[i][j][k]
+                        ));
+                    }
+                }
+            }
+        }
         let scale = c
             .iter()
             .flatten()
             .flatten()
-            .fold(0.0f64, |m, v| m.max(v.abs()));
-        if !scale.is_finite() {
-            return invalid("structure constants must be finite".into());
-        }
-        let tol = 1e-12 * scale.max(1.0);
+            .fold(0.0f64, |m, v| m.max(v.abs()))
+            .max(1.0);
+        // Finite entries of size at most 1: every sum below is finite, so `>` cannot miss a NaN.
+        let u: [[[f64; N]; N]; N] = c.map(|a| a.map(|b| b.map(|v| v / scale)));
+        let tol = 1e-12;
         for i in 0..N {
             for j in 0..N {
                 for k in 0..N {
-                    if (c[i][j][k] + c[j][i][k]).abs() > tol {
+                    if (u[i][j][k] + u[j][i][k]).abs() > tol {
                         return invalid(format!(
-                            "structure constants are not antisymmetric: c[{i},{j},{k}] = {} but \
-                             c[{j},{i},{k}] = {}",
+                            "structure constants are not antisymmetric (c[i,j,k] = -c[j,i,k] \
+                             fails): c[{i},{j},{k}] = {} but c[{j},{i},{k}] = {}",
                             c[i][j][k], c[j][i][k]
                         ));
                     }
                 }
             }
         }
-        // Jacobi: Σ_l c[i][j][l] c[l][k][m] + cyclic = 0.
-        let tol2 = 1e-12 * scale.max(1.0).powi(2);
+        // Jacobi: Σ_l c[i][j][l] c[l][k][m] + cyclic = 0, on the scaled constants.
         for i in 0..N {
             for j in 0..N {
                 for k in 0..N {
                     for m in 0..N {
                         let s: f64 = (0..N)
                             .map(|l| {
-                                c[i][j][l] * c[l][k][m]
-                                    + c[j][k][l] * c[l][i][m]
-                                    + c[k][i][l] * c[l][j][m]
+                                u[i][j][l] * u[l][k][m]
+                                    + u[j][k][l] * u[l][i][m]
+                                    + u[k][i][l] * u[l][j][m]
                             })
                             .sum();
-                        if s.abs() > tol2 {
+                        if s.abs() > tol {
                             return invalid(format!(
                                 "structure constants violate the Jacobi identity at \
-                                 (e{i}, e{j}, e{k}), component {m}: {s:e}"
+                                 (e{i}, e{j}, e{k}), component {m}: {:e}",
+                                s * scale * scale
                             ));
                         }
                     }
@@ -404,6 +418,25 @@ mod tests {
 
     fn norm(a: &[f64; 3]) -> f64 {
         dot(a, a).sqrt()
+    }
+
+    #[test]
+    fn algebra_check_refuses_nan_and_keeps_jacobi_for_huge_constants() {
+        let mut c = [[[0.0; 3]; 3]; 3];
+        for (i, j, k) in [(0, 1, 2), (1, 2, 0), (2, 0, 1)] {
+            c[i][j][k] = 1.0;
+            c[j][i][k] = -1.0;
+        }
+        let mut nan = c;
+        nan[0][0][0] = f64::NAN;
+        assert!(LieAlgebra::<3>::new(nan).is_err());
+        // so(3) scaled by 1e200 is a Lie algebra; adding a non-Jacobi entry of that size is not.
+        let big = c.map(|a| a.map(|b| b.map(|v| v * 1e200)));
+        assert!(LieAlgebra::<3>::new(big).is_ok());
+        let mut bad = big;
+        bad[0][1][0] = 1e200;
+        bad[1][0][0] = -1e200;
+        assert!(LieAlgebra::<3>::new(bad).is_err());
     }
 
     #[test]

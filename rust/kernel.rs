@@ -13,6 +13,8 @@
 //! whichever block, remainder loop or column position computes it. A trajectory's numbers
 //! therefore never depend on which other trajectories share its chunk.
 
+use crate::error::CoreError;
+
 /// Weight rows per register block.
 pub const MR: usize = 6;
 /// Columns per register block: two 4-wide vectors.
@@ -23,15 +25,24 @@ const KC: usize = 128;
 /// W (row-major, `n_out × n_in`) repacked for [`gemm`]: panels of MR rows, each k-major
 /// (`panel[k·MR + r] = W[q·MR + r, k]`), with zero rows past `n_out`.
 pub fn pack(weight: &[f64], n_in: usize, n_out: usize) -> Vec<f64> {
+    try_pack(weight, n_in, n_out).unwrap_or_else(|e| panic!("{}{e}", crate::memory::OUT_OF_MEMORY))
+}
+
+/// [`pack`], with the packed copy allocated fallibly ([`CoreError::Memory`] where refused):
+/// the width of a layer comes from a model file.
+pub fn try_pack(weight: &[f64], n_in: usize, n_out: usize) -> Result<Vec<f64>, CoreError> {
     let panels = n_out.div_ceil(MR);
-    let mut packed = vec![0.0; panels * MR * n_in];
+    let len = panels.checked_mul(MR * n_in).ok_or_else(|| {
+        CoreError::Memory(format!("a packed layer of {n_out} x {n_in} is too large"))
+    })?;
+    let mut packed = crate::memory::try_filled(len, 0.0, "a packed layer")?;
     for (o, row) in weight.chunks_exact(n_in).enumerate() {
         let (q, r) = (o / MR, o % MR);
         for (k, &w) in row.iter().enumerate() {
             packed[q * MR * n_in + k * MR + r] = w;
         }
     }
-    packed
+    Ok(packed)
 }
 
 #[inline(always)]

@@ -20,6 +20,7 @@ use safetensors::{Dtype, SafeTensors};
 use crate::error::CoreError;
 use crate::generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
 use crate::groupoid::{Chart, Groupoid, LieAlgebra};
+use crate::memory::{check_fits, try_collect, try_with_capacity};
 use crate::stepper::{BisectionStepper, NewtonOptions};
 use crate::{with_dim, MAX_DIM};
 
@@ -77,15 +78,16 @@ fn read_f64(st: &SafeTensors<'_>, name: &str) -> Result<(Vec<usize>, Vec<f64>), 
             t.dtype()
         )));
     }
-    let v = t
-        .data()
-        .chunks_exact(8)
-        .map(|b| {
+    let data = t.data();
+    let v = try_collect(
+        data.len() / 8,
+        data.chunks_exact(8).map(|b| {
             let mut a = [0u8; 8];
             a.copy_from_slice(b);
             f64::from_le_bytes(a)
-        })
-        .collect();
+        }),
+        &format!("tensor {name}"),
+    )?;
     Ok((t.shape().to_vec(), v))
 }
 
@@ -107,15 +109,16 @@ fn read_polynomial(st: &SafeTensors<'_>) -> Result<(usize, Vec<RawMonomial>), Co
         )));
     }
     let width = shape[1];
-    let raw: Vec<i64> = powers
-        .data()
-        .chunks_exact(8)
-        .map(|b| {
+    let data = powers.data();
+    let raw: Vec<i64> = try_collect(
+        data.len() / 8,
+        data.chunks_exact(8).map(|b| {
             let mut a = [0u8; 8];
             a.copy_from_slice(b);
             i64::from_le_bytes(a)
-        })
-        .collect();
+        }),
+        "tensor poly.powers",
+    )?;
     let (cshape, coeffs) = read_f64(st, "poly.coeffs")?;
     if cshape != [shape[0]] {
         return Err(format_err(format!(
@@ -123,7 +126,7 @@ fn read_polynomial(st: &SafeTensors<'_>) -> Result<(usize, Vec<RawMonomial>), Co
             shape[0]
         )));
     }
-    let mut terms = Vec::with_capacity(coeffs.len());
+    let mut terms = try_with_capacity(coeffs.len(), "the polynomial terms")?;
     for (row, &coeff) in raw.chunks_exact(width).zip(&coeffs) {
         if let Some(&bad) = row.iter().find(|&&e| !(0..=MAX_POWER).contains(&e)) {
             return Err(format_err(format!(
@@ -207,6 +210,18 @@ impl Model {
                 },
             }
         }
+        // What loading takes beside the file's bytes: each MLP weight is held four times (as
+        // read, packed, transposed and packed again); refused up front rather than part-way.
+        let tensor_bytes = st
+            .tensors()
+            .iter()
+            .map(|(_, t)| t.data().len())
+            .fold(0usize, usize::saturating_add);
+        check_fits(
+            tensor_bytes.saturating_mul(4),
+            "loading this model",
+            "the model is too large for this machine",
+        )?;
         let algebra = read_algebra(&st)?;
         let (poly_dim, terms) = if has_poly {
             let (d, t) = read_polynomial(&st)?;

@@ -259,8 +259,15 @@ def test_dop853_work_is_bounded(monkeypatch: Any):
     monkeypatch.setattr(reference, "_DOP853_MAX_STEPS", 2000, raising=False)
     dop = pr.classical(pr.RigidBody(), "dop853")
     t0 = time.perf_counter()
-    with pytest.raises(RuntimeError, match="budget"):
-        pr.integrate(dop, [1e10, 2e10, 3e10], 0.1, 100)
+    with pytest.raises(RuntimeError, match="failed"), pytest.warns(RuntimeWarning, match="budget"):
+        pr.integrate(dop, [1e10, 2e10, 3e10], 0.1, 100, on_failure="raise")
+    # One state over the budget does not lose the batch: it comes back NaN, the others finite.
+    with pytest.warns(RuntimeWarning, match="budget"):
+        traj, info = pr.integrate(
+            dop, [[1e10, 2e10, 3e10], [1.0, 1.0, 2.0]], 0.1, 100, return_info=True
+        )
+    assert np.isnan(traj[0, 1:]).all() and np.isfinite(traj[1]).all()
+    np.testing.assert_array_equal(info.converged, [False, True])
     assert time.perf_counter() - t0 < 3.0
     # Ordinary states stay within it.
     assert np.isfinite(pr.integrate(dop, [1.0, 1.0, 2.0], 0.1, 100)).all()

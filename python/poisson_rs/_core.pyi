@@ -19,9 +19,12 @@ class Model:
     """A generating function loaded from a model file (validated on load)."""
 
     @staticmethod
-    def load(path: str | PathLike[str]) -> Model: ...
+    def load(path: str | PathLike[str]) -> Model:
+        """FileNotFoundError, ValueError for a malformed file, MemoryError where its layers do
+        not fit (each weight is held about four times: read, packed, transposed, packed)."""
     @staticmethod
-    def from_bytes(data: bytes) -> Model: ...
+    def from_bytes(data: bytes) -> Model:
+        """As :meth:`load`, from the file's bytes (borrowed, not copied)."""
     @property
     def dim(self) -> int:
         """Dimension N of the model's Lie algebra (3 for the rigid body)."""
@@ -45,10 +48,15 @@ class Model:
     def n_polynomial_terms(self) -> int: ...
     def derivatives(
         self, t: float, p: npt.NDArray[np.float64]
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """S (n,), ∂S/∂p (n, N), ∂²S/∂p² (n, N, N) at time t. MemoryError, before anything is
+        allocated, where the outputs and the evaluation workspace (which grows with the widest
+        layer) exceed what this process may use: the least of MemAvailable, the address-space
+        limit (RLIMIT_AS) and the cgroup's memory limit."""
     def time_derivative(
         self, t: float, p: npt.NDArray[np.float64]
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """S (n,) and ∂S/∂t (n,) at time t; MemoryError as for :meth:`derivatives`."""
 
 def rollout_model(
     model: Model,
@@ -67,8 +75,9 @@ def rollout_model(
 
     Runs in segments of about 50 ms with the GIL released, checking for signals in between
     (Ctrl-C raises KeyboardInterrupt); the result does not depend on the segmentation. An output
-    that, with every thread's workspace, does not fit in the memory available, or that cannot be
-    allocated, raises MemoryError before any step. In a forked child the rollout runs serially.
+    that, with every thread's workspace, does not fit in the memory this process may use (the
+    least of MemAvailable, RLIMIT_AS and the cgroup's limit), or that cannot be allocated,
+    raises MemoryError before any step. In a forked child the rollout runs serially.
     """
 
 def rollout_classical(

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import shutil
 import socket
 import sys
 import warnings
@@ -29,8 +30,10 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from .files import check_output_path
+from .files import check_output_path, temporary_name
 from .integrators import RolloutInfo, Stepper, integrate
+from .systems import LiePoissonSystem
+from .untrusted import parsing
 
 if TYPE_CHECKING:
     import dask.array as da
@@ -203,8 +206,10 @@ def to_zarr(
     its chunks are irregular). The store holds ``trajectories`` (n, n_steps // every + 1, dim)
     float64, chunked (chunk, all records, dim), and with ``info`` one (n,) array per
     :class:`~poisson_rs.integrators.RolloutInfo` field under ``info/``; its attributes record
-    h, n_steps, every and the stepper. Read it back with ``zarr.open_group(path)`` or
-    ``dask.array.from_zarr(path, component="trajectories")``.
+    h, n_steps, every, the stepper, the system's ``to_dict()`` (:func:`zarr_system` rebuilds
+    it) and ``complete``. The store is written under a temporary name beside ``path`` and
+    renamed when complete, so an interrupted run leaves nothing at ``path``. Read it back with
+    ``zarr.open_group(path)`` or ``dask.array.from_zarr(path, component="trajectories")``.
 
     Memory: each chunk is computed, written and released, so the writing process holds about
     (chunks in flight) × chunk × records × dim × 8 bytes, whatever n. Computes with the current
@@ -234,22 +239,68 @@ def to_zarr(
     traj, rollout_info = integrate_dask(
         stepper, mu0, h, n_steps, every=every, return_info=True, on_failure="ignore", strict=strict
     )
-    # Checked again right before writing: the path may have appeared meanwhile.
-    check_output_path(path, kind="dir")
-    group = zarr.open_group(str(path), mode="w-")
-    group.attrs.update(
-        {"h": float(h), "n_steps": int(n_steps), "every": int(every), "stepper": repr(stepper)}
-    )
-    arrays = {"trajectories": traj}
-    if info:
-        arrays.update({f"info/{k}": getattr(rollout_info, k) for k in INFO_FIELDS})
-    stores = [
-        da.to_zarr(a, str(path), component=name, compute=False, mode="a")
-        for name, a in arrays.items()
-    ]
-    # One compute: each chunk's rollout runs once and feeds all its arrays.
-    dask.compute(*stores, **dict(compute_kwargs or {}))
+    # Written under a temporary name beside the target and renamed when complete: an interrupt
+    # (Ctrl-C, a killed worker, a full disk) leaves no partial store at `path`, so a re-run
+    # works. The temporary store is removed on any failure; one left by a killed process is a
+    # hidden folder that nothing reads.
+    tmp = temporary_name(path, "zarr-partial")
+    try:
+        group = zarr.open_group(str(tmp), mode="w-")
+        group.attrs.update(_store_attributes(stepper, h, n_steps, every, complete=False))
+        arrays = {"trajectories": traj}
+        if info:
+            arrays.update({f"info/{k}": getattr(rollout_info, k) for k in INFO_FIELDS})
+        stores = [
+            da.to_zarr(a, str(tmp), component=name, compute=False, mode="a")
+            for name, a in arrays.items()
+        ]
+        # One compute: each chunk's rollout runs once and feeds all its arrays.
+        dask.compute(*stores, **dict(compute_kwargs or {}))
+        group.attrs["complete"] = True
+        # Checked again right before the rename: the path may have appeared meanwhile (and
+        # os.rename would replace an empty folder there).
+        if os.path.lexists(path):
+            raise ValueError(f"output {path} appeared while the ensemble was computed")
+        os.rename(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return path
+
+
+def _store_attributes(
+    stepper: Stepper, h: float, n_steps: int, every: int, *, complete: bool
+) -> dict[str, Any]:
+    """What a store records: the run (h, n_steps, every), the stepper, the system as its
+    ``to_dict()`` (:func:`zarr_system` rebuilds it) and whether the store is complete."""
+    system = getattr(stepper, "system", None)
+    return {
+        "h": float(h),
+        "n_steps": int(n_steps),
+        "every": int(every),
+        "stepper": repr(stepper),
+        "system": system.to_dict() if isinstance(system, LiePoissonSystem) else None,
+        "complete": complete,
+    }
+
+
+def zarr_system(path: str | os.PathLike[str]) -> LiePoissonSystem:
+    """The Lie–Poisson system an ensemble written by :func:`to_zarr` integrates, rebuilt from
+    the store's attributes. ValueError (:class:`~poisson_rs.untrusted.InputError`) naming the
+    store when it is incomplete or records no valid system."""
+    import zarr
+
+    source = f"Zarr store {path}"
+    with parsing(source):
+        attrs = dict(zarr.open_group(str(path), mode="r").attrs)
+    with parsing(source, "complete"):
+        if attrs.get("complete") is not True:
+            raise ValueError("the store is not complete (its writer was interrupted)")
+    with parsing(source, "system"):
+        spec = attrs.get("system")
+        if spec is None:
+            raise ValueError("the store records no system")
+        return LiePoissonSystem.from_dict(spec)
 
 
 def connect(address: str, *, timeout: float = CONNECT_TIMEOUT) -> Client:

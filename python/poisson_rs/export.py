@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -28,6 +29,7 @@ import numpy as np
 
 from .files import atomic_write_bytes
 from .systems import LiePoissonSystem, RigidBody
+from .untrusted import InputError, parsing
 
 if TYPE_CHECKING:
     from .generating import GeneratingFunction
@@ -77,8 +79,6 @@ def model_bytes(
     ``inertia``) names what the model integrates. ``record`` holds provenance (final_loss,
     command, seed, train_seconds, name, ...); non-string values are stored as JSON.
     """
-    from safetensors.numpy import save
-
     system = resolve_system(system, inertia)
     tensors: dict[str, np.ndarray] = {
         "algebra.structure_constants": np.ascontiguousarray(system.algebra.c, dtype=np.float64)
@@ -102,10 +102,56 @@ def model_bytes(
         "package_version": PACKAGE_VERSION,
     }
     for k, v in (record or {}).items():
-        meta[k] = v if isinstance(v, str) else json.dumps(v)
+        meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
     if isinstance(system, RigidBody):
         meta["inertia"] = json.dumps([float(i) for i in system.inertia])
-    return save(tensors, metadata=meta)
+    return safetensors_bytes(tensors, meta)
+
+
+_DTYPES = {np.dtype("<f8"): "F64", np.dtype("<i8"): "I64"}
+
+
+def safetensors_bytes(tensors: Mapping[str, np.ndarray], metadata: Mapping[str, str]) -> bytes:
+    """A safetensors file, byte for byte the same for the same tensors and metadata: the header
+    is JSON with sorted keys and no spaces, the data in sorted tensor order (the library's own
+    writer keeps the metadata in a hash map, whose order changes from run to run).
+
+    Layout: an 8-byte little-endian header length, the header padded with spaces to a multiple
+    of 8 bytes, then each tensor's little-endian bytes at its ``data_offsets``."""
+    header: dict[str, Any] = {"__metadata__": dict(sorted(metadata.items()))}
+    chunks: list[bytes] = []
+    offset = 0
+    for name in sorted(tensors):
+        arr = np.ascontiguousarray(tensors[name])
+        dtype = _DTYPES.get(arr.dtype.newbyteorder("<"))
+        if dtype is None:
+            raise TypeError(f"tensor {name!r} has dtype {arr.dtype}; float64 or int64 expected")
+        data = arr.astype(arr.dtype.newbyteorder("<"), copy=False).tobytes()
+        header[name] = {
+            "dtype": dtype,
+            "shape": list(arr.shape),
+            "data_offsets": [offset, offset + len(data)],
+        }
+        chunks.append(data)
+        offset += len(data)
+    text = json.dumps(header, sort_keys=True, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
+    return len(text).to_bytes(8, "little") + text + b"".join(chunks)
+
+
+def read_tensor(data: bytes, name: str) -> np.ndarray | None:
+    """One tensor of a safetensors file's bytes (already validated by the core), without
+    decoding the others; None when the file has no tensor ``name``."""
+    with parsing("model file", name):
+        size = int.from_bytes(data[:8], "little")
+        header = json.loads(data[8 : 8 + size])
+        entry = header.get(name)
+        if entry is None:
+            return None
+        dtype = {"F64": "<f8", "I64": "<i8"}[entry["dtype"]]
+        a, b = entry["data_offsets"]
+        base = 8 + size
+        return np.frombuffer(data[base + a : base + b], dtype=dtype).reshape(entry["shape"])
 
 
 def _check_finite_model(s_fn: GeneratingFunction, path: str | os.PathLike[str]) -> None:
@@ -151,79 +197,138 @@ def save_model(
 
 
 def _json(meta: Mapping[str, str], key: str) -> Any:
+    """The JSON value of metadata ``key`` (the caller runs it inside :func:`parsing`)."""
+    value = meta[key]
+    if not isinstance(value, str):
+        raise TypeError(f"metadata '{key}' must be a string, got {type(value).__name__}")
     try:
-        return json.loads(meta[key])
-    except (json.JSONDecodeError, TypeError) as e:
-        raise ValueError(f"metadata '{key}' is not valid JSON: {meta[key]!r}") from e
+        return json.loads(value)
+    except json.JSONDecodeError:
+        raise ValueError(f"metadata '{key}' is not valid JSON: {value[:80]!r}") from None
 
 
-def parse_metadata(raw: Mapping[str, str]) -> dict[str, Any]:
-    """Checks a model file's metadata and decodes it; raises ValueError naming the problem."""
-    missing = [k for k in _REQUIRED if k not in raw]
-    if missing:
-        raise ValueError(f"model metadata lacks {', '.join(missing)}")
-    if raw["format"] != FORMAT:
-        raise ValueError(f"model format is {raw['format']!r}, expected {FORMAT!r}")
+#: Numbers in metadata, in ASCII only: float() and int() also accept other scripts' digits
+#: ("٣" is 3) and underscores, which no writer of the format produces.
+_FLOAT_TEXT = re.compile(r"[+-]?((\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|inf|infinity|nan)", re.A | re.I)
+_INT_TEXT = re.compile(r"[+-]?\d+", re.A)
+
+
+def _float(raw: Mapping[str, str], key: str) -> float:
+    text = raw[key].strip()
+    if not _FLOAT_TEXT.fullmatch(text):
+        raise ValueError(f"metadata '{key}' is not a number in ASCII decimal: {raw[key][:40]!r}")
+    return float(text)
+
+
+def _int(raw: Mapping[str, str], key: str, low: int, high: int) -> int:
+    text = raw[key].strip()
+    if not _INT_TEXT.fullmatch(text) or len(text) > 20:
+        raise ValueError(f"metadata '{key}' is not an integer in ASCII decimal: {raw[key][:40]!r}")
+    value = int(text)
+    if not low <= value <= high:
+        raise ValueError(f"metadata '{key}' must lie in {low}..{high}, got {value}")
+    return value
+
+
+#: Largest Taylor order and MLP power a model file may state (the core caps powers at 64).
+_MAX_ORDER = 64
+
+
+def parse_metadata(raw: Mapping[str, str], source: str = "model metadata") -> dict[str, Any]:
+    """Checks a model file's metadata and decodes it. Any problem, whatever its kind (nested
+    JSON, a malformed number, an odd type), raises one :class:`~poisson_rs.untrusted.InputError`
+    (a ValueError) naming ``source`` and the field."""
+    with parsing(source):
+        if not isinstance(raw, Mapping):
+            raise TypeError(f"metadata must be a mapping of strings, got {type(raw).__name__}")
+        missing = [k for k in _REQUIRED if k not in raw]
+        if missing:
+            raise ValueError(f"model metadata lacks {', '.join(missing)}")
+        bad = [k for k, v in raw.items() if not (isinstance(k, str) and isinstance(v, str))]
+        if bad:
+            raise TypeError(f"metadata keys and values must be strings: {bad[:3]!r}")
+    with parsing(source, "format"):
+        if raw["format"] != FORMAT:
+            raise ValueError(f"model format is {raw['format'][:80]!r}, expected {FORMAT!r}")
     meta: dict[str, Any] = dict(raw)
-    if raw["chart"] not in _CHARTS:
-        raise ValueError(f"unknown chart {raw['chart']!r}; expected one of {_CHARTS}")
+    with parsing(source, "chart"):
+        if raw["chart"] not in _CHARTS:
+            raise ValueError(f"unknown chart {raw['chart'][:40]!r}; expected one of {_CHARTS}")
     inertia: tuple[float, ...] | None = None
     if "inertia" in raw:
-        values = _json(raw, "inertia")
-        if (
-            not isinstance(values, list)
-            or len(values) != 3
-            or not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in values)
-        ):
-            raise ValueError(
-                f"metadata 'inertia' must be 3 positive numbers, got {raw['inertia']!r}"
-            )
-        inertia = tuple(float(v) for v in values)
-    if raw["system"] == "rigid_body":
-        # Written before other systems existed: the body is given by its inertia.
-        if inertia is None:
-            raise ValueError("model metadata lacks inertia")
-        meta["system"] = RigidBody(inertia)  # type: ignore[arg-type]
-    else:
-        spec = _json(raw, "system")
-        if not isinstance(spec, dict):
-            raise ValueError(f"metadata 'system' must describe a system, got {raw['system']!r}")
-        try:
-            meta["system"] = LiePoissonSystem.from_dict(spec)
-        except (KeyError, TypeError, ValueError) as e:
-            raise ValueError(f"metadata 'system' does not describe a valid system: {e}") from e
-    if isinstance(meta["system"], RigidBody):
-        if inertia is not None and inertia != meta["system"].inertia:
-            raise ValueError(
-                f"metadata 'inertia' {list(inertia)} disagrees with 'system' {meta['system']!r}"
-            )
-        meta["inertia"] = meta["system"].inertia
-    elif inertia is not None:
-        raise ValueError(f"metadata 'inertia' given for {meta['system']!r}, not a rigid body")
-    try:
-        meta["h_max"] = float(raw["h_max"])
-        meta["mlp_power"] = int(raw["mlp_power"])
-        meta["taylor_order"] = int(raw.get("taylor_order", "0"))
-    except ValueError as e:
-        raise ValueError(f"model metadata has a malformed number: {e}") from e
-    if not meta["h_max"] > 0:
-        raise ValueError(f"metadata 'h_max' must be a positive number, got {raw['h_max']!r}")
-    if math.isinf(meta["h_max"]) and raw["h_max"].strip().lower() not in ("inf", "+inf"):
-        # "1e400" overflows to inf, which would turn the strict step-size check off.
-        raise ValueError(f"metadata 'h_max' overflows float64: {raw['h_max']!r}")
-    widths = _json(raw, "widths")
-    if not isinstance(widths, list) or not all(isinstance(w, int) and w > 0 for w in widths):
-        raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
-    meta["widths"] = tuple(widths)
-    domain = _json(raw, "domain")
-    if not isinstance(domain, dict) or domain.get("kind") not in DOMAIN_KINDS:
-        raise ValueError(
-            f"metadata 'domain' must be a cube, a shell, a top or all: {raw['domain']!r}"
+        with parsing(source, "inertia"):
+            values = _json(raw, "inertia")
+            if (
+                not isinstance(values, list)
+                or len(values) != 3
+                or not all(
+                    isinstance(v, (int, float))
+                    and not isinstance(v, bool)
+                    and math.isfinite(v)
+                    and v > 0
+                    for v in values
+                )
+            ):
+                raise ValueError(
+                    f"metadata 'inertia' must be 3 positive numbers, got {raw['inertia'][:80]!r}"
+                )
+            inertia = tuple(float(v) for v in values)
+    with parsing(source, "system"):
+        if raw["system"] == "rigid_body":
+            # Written before other systems existed: the body is given by its inertia.
+            if inertia is None:
+                raise ValueError("model metadata lacks inertia")
+            meta["system"] = RigidBody(inertia)  # type: ignore[arg-type]
+        else:
+            spec = _json(raw, "system")
+            if not isinstance(spec, dict):
+                raise ValueError(
+                    f"metadata 'system' must describe a system, got {raw['system'][:80]!r}"
+                )
+            try:
+                meta["system"] = LiePoissonSystem.from_dict(spec)
+            except InputError as e:  # named after the metadata, not the inner dictionary
+                raise InputError(source, "system", e.problem) from None
+    with parsing(source, "inertia"):
+        if isinstance(meta["system"], RigidBody):
+            if inertia is not None and inertia != meta["system"].inertia:
+                raise ValueError(
+                    f"metadata 'inertia' {list(inertia)} disagrees with 'system' {meta['system']!r}"
+                )
+            meta["inertia"] = meta["system"].inertia
+        elif inertia is not None:
+            raise ValueError(f"metadata 'inertia' given for {meta['system']!r}, not a rigid body")
+    with parsing(source, "h_max"):
+        meta["h_max"] = _float(raw, "h_max")
+        if not meta["h_max"] > 0:
+            raise ValueError(f"metadata 'h_max' must be a positive number, got {raw['h_max']!r}")
+        if math.isinf(meta["h_max"]) and raw["h_max"].strip().lower() not in ("inf", "+inf"):
+            # "1e400" overflows to inf, which would turn the strict step-size check off.
+            raise ValueError(f"metadata 'h_max' overflows float64: {raw['h_max']!r}")
+    with parsing(source, "mlp_power"):
+        meta["mlp_power"] = _int(raw, "mlp_power", 0, _MAX_ORDER)
+    with parsing(source, "taylor_order"):
+        meta["taylor_order"] = (
+            _int(raw, "taylor_order", 0, _MAX_ORDER) if "taylor_order" in raw else 0
         )
-    meta["domain"] = domain
+    with parsing(source, "widths"):
+        widths = _json(raw, "widths")
+        if not isinstance(widths, list) or not all(
+            isinstance(w, int) and not isinstance(w, bool) and w > 0 for w in widths
+        ):
+            raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
+        meta["widths"] = tuple(widths)
+    with parsing(source, "domain"):
+        domain = _json(raw, "domain")
+        if not isinstance(domain, dict) or domain.get("kind") not in DOMAIN_KINDS:
+            raise ValueError(
+                f"metadata 'domain' must be a cube, a shell, a top or all: {raw['domain'][:80]!r}"
+            )
+        meta["domain"] = domain
     for key in ("final_loss", "seed", "train_seconds"):
         if key in raw:
-            meta[key] = _json(raw, key)
+            with parsing(source, key):
+                meta[key] = _json(raw, key)
     return meta
 
 

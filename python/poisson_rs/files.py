@@ -82,24 +82,121 @@ def check_outputs(folder: str | os.PathLike[str], names: Iterable[str]) -> Path:
     return folder
 
 
+#: Longest file name where the file system cannot say (Linux and most others: 255 bytes).
+_NAME_MAX = 255
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return _NAME_MAX
+
+
+def temporary_name(path: str | os.PathLike[str], tag: str = "tmp") -> Path:
+    """A fresh name beside ``path`` for a temporary file or folder: hidden, random, and never
+    longer than the file system allows, however long ``path``'s own name is (a 252-byte target
+    is legal; ``.<name>.<pid>.<random>.tmp`` would not be). The target's name is kept as far as
+    it fits, cut at a character boundary."""
+    path = Path(path)
+    suffix = f".{os.getpid()}.{secrets.token_hex(4)}.{tag}"
+    room = min(_name_max(path.parent if str(path.parent) else Path(".")), _NAME_MAX)
+    room -= len(os.fsencode(suffix)) + 1  # the leading dot
+    stem = os.fsencode(path.name)[: max(room, 0)]
+    text = stem.decode("utf-8", errors="ignore") if stem else ""
+    while len(os.fsencode(text)) > room:  # a name that is not UTF-8 (surrogate escapes)
+        text = text[:-1]
+    return path.with_name(f".{text}{suffix}")
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Makes a rename in ``folder`` durable (best effort: some file systems refuse)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def probe_writable(path: str | os.PathLike[str], *, kind: Literal["file", "dir"] = "file") -> Path:
+    """Checks, before the work, that an output can really be written where ``path`` says: beyond
+    :func:`check_output_path`, it creates, writes, syncs and removes a real temporary file with
+    the name the writer will use (so a name too long for the file system, a read-only mount, a
+    full quota on the first block or a missing permission show up now, not after an hour of
+    training). Folders it had to create are removed again. Raises ValueError naming the path and
+    the problem; returns the path."""
+    path = check_output_path(path, kind=kind)
+    folder = path if kind == "dir" else path.parent
+    probe_target = folder / ".probe" if kind == "dir" else path
+    created: list[Path] = []
+    missing = folder
+    while not os.path.lexists(missing) and missing != missing.parent:
+        created.append(missing)
+        missing = missing.parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = temporary_name(probe_target, "probe")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.write(fd, b"\0")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+            tmp.unlink(missing_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
+    finally:
+        for d in created:
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+    return path
+
+
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
     """Writes ``data`` to ``path`` atomically: readers see the old file or the new one, never a
     half-written one. Creates missing parent folders; refuses to replace anything but a regular
-    file (ValueError). Returns the path."""
+    file (ValueError). Returns the path.
+
+    The data is written to a temporary file beside the target (a name that always fits, see
+    :func:`temporary_name`), synced, then renamed over the target, and the folder is synced.
+    A replaced file keeps its permission bits (a 0600 file stays 0600; a new one gets 0666 less
+    the umask) and, where allowed, its owner and group. Hard links: the rename gives the path a
+    new file, so other names linked to the old one keep the old contents; atomicity is chosen
+    over writing in place, which a crash could leave half-written."""
     path = check_output_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        old = os.stat(path)
+    except FileNotFoundError:
+        old = None
     # O_EXCL: the temporary file is new, never a link someone placed there.
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    tmp = temporary_name(path)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old is None else 0o600)
     try:
         with os.fdopen(fd, "wb") as f:
+            if old is not None:
+                os.fchmod(f.fileno(), stat.S_IMODE(old.st_mode))
+                try:
+                    os.fchown(f.fileno(), old.st_uid, old.st_gid)
+                except OSError:
+                    pass  # not ours to give away: the new file stays the writer's
             f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
         # Checked again right before the rename: the target may have changed while writing.
         check_output_path(path)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    _fsync_dir(path.parent)
     return path
 
 

@@ -18,10 +18,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from . import _core
-from .export import DOMAIN_KINDS, load_generating, model_bytes, parse_metadata
+from .export import DOMAIN_KINDS, load_generating, model_bytes, parse_metadata, read_tensor
 from .files import check_input_file
 from .groupoid import sou
 from .systems import LiePoissonSystem, RigidBody
+from .untrusted import parsing
 
 if TYPE_CHECKING:
     import torch
@@ -34,12 +35,60 @@ DEFAULT_MODEL = "default"
 MAX_MODEL_BYTES = 1 << 30
 
 
-def _check_step(h: Any) -> None:
-    """TypeError unless h is a real number (not a bool), ValueError unless finite and > 0."""
-    if isinstance(h, bool) or not isinstance(h, numbers.Real):
-        raise TypeError(f"h must be a real number, got {type(h).__name__}")
-    if not (math.isfinite(h) and h > 0):
-        raise ValueError(f"h must be finite and > 0, got {h}")
+#: Smallest step accepted: the least normal float64 (2.2e-308). Below it 1/h and T/h overflow.
+MIN_STEP = sys.float_info.min
+
+#: Largest step count (n_steps, every) accepted: 2**53, the last integer float64 holds exactly,
+#: so every recorded time k·h is the float it should be; a rollout that long would take
+#: centuries, and past 2**64 the count does not even fit the core's integers.
+MAX_COUNT = 2**53
+
+
+def _check_step(h: Any, name: str = "h") -> float:
+    """``h`` as a float: TypeError unless a real number (int, float, Fraction, Decimal, NumPy
+    scalar; not a bool), ValueError unless finite and in [MIN_STEP, ∞) — ``10**400`` and 1e-320
+    included, which would otherwise overflow later as OverflowError."""
+    if isinstance(h, (bool, np.bool_)) or not isinstance(h, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(h).__name__}")
+    try:
+        value = float(h)
+    except (OverflowError, ValueError, TypeError):
+        raise ValueError(
+            f"{name} must be finite and > 0, got a number too large for float64"
+        ) from None
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be finite and > 0, got {value}")
+    if value < MIN_STEP:
+        raise ValueError(f"{name} = {value:g} is below {MIN_STEP:g}, the smallest step accepted")
+    return value
+
+
+def _check_time(t: Any, name: str = "t") -> float:
+    """A time t >= 0 as a float: TypeError unless a real number (not a bool), ValueError unless
+    finite (``10**400`` included, which float() would turn into OverflowError)."""
+    if isinstance(t, (bool, np.bool_)) or not isinstance(t, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(t).__name__}")
+    try:
+        value = float(t)
+    except (OverflowError, ValueError, TypeError):
+        raise ValueError(f"{name} must be finite, got a number too large for float64") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be finite and >= 0, got {value}")
+    return value
+
+
+def _check_count(name: str, value: Any, low: int = 0) -> int:
+    """``value`` as an int in [low, MAX_COUNT]: TypeError unless an integer (Python or NumPy;
+    not a bool, not a float), ValueError naming ``name`` outside the range (2**64 included,
+    which would otherwise overflow as OverflowError on the way into the core)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an integer, got {type(value).__name__}")
+    count = int(value)
+    if count < low:
+        raise ValueError(f"{name} must be >= {low}, got {count}")
+    if count > MAX_COUNT:
+        raise ValueError(f"{name} must be <= 2**53, got {count}")
+    return count
 
 
 #: Meaning of :attr:`RolloutInfo.failure_code` (0: no failure).
@@ -111,29 +160,38 @@ class BisectionIntegrator:
         self._source = source
         if isinstance(source, bytes):
             data = source
+            where = "model bytes"
         else:
             # A FIFO would block the read and /dev/zero fill the memory: a bounded regular file.
             check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
             data = Path(source).read_bytes()
-        # The bytes the model was built from, read once: a pickle carries them (not the path,
-        # which another machine may lack or a later write may change).
+            where = f"model file {source}"
+        # The bytes the model was built from, read once: the core, the torch module
+        # (`generating`) and a pickle are all built from them, never from the path again (a
+        # later write may change the file, or turn it into a FIFO).
         self._bytes = data
-        self._core = _core.Model.from_bytes(data)
-        self.metadata: dict[str, Any] = parse_metadata(self._core.metadata)
+        with parsing(where):  # MemoryError passes through as it is
+            self._core = _core.Model.from_bytes(data)
+        self.metadata: dict[str, Any] = parse_metadata(self._core.metadata, where)
         system: LiePoissonSystem = self.metadata["system"]
-        if system.dim != self._core.dim or not np.array_equal(
-            system.algebra.c, self._core.structure_constants
-        ):
-            raise ValueError(
-                f"metadata 'system' ({system!r}) does not match the structure constants of the "
-                f"file's tensors (dimension {self._core.dim})"
-            )
-        if tuple(self._core.widths) != self.metadata["widths"]:
-            raise ValueError(
-                f"metadata 'widths' says {list(self.metadata['widths'])} but the tensors hold "
-                f"{self._core.widths}"
-            )
-        self.domain: dict[str, Any] = _check_domain(self.metadata["domain"])
+        with parsing(where, "system"):
+            if system.dim != self._core.dim or not np.array_equal(
+                system.algebra.c, self._core.structure_constants
+            ):
+                raise ValueError(
+                    f"metadata 'system' ({system!r}) does not match the structure constants of "
+                    f"the file's tensors (dimension {self._core.dim})"
+                )
+        with parsing(where, "widths"):
+            if tuple(self._core.widths) != self.metadata["widths"]:
+                raise ValueError(
+                    f"metadata 'widths' says {list(self.metadata['widths'])} but the tensors "
+                    f"hold {self._core.widths}"
+                )
+        with parsing(where, "domain"):
+            self.domain: dict[str, Any] = _check_domain(self.metadata["domain"], self._core.dim)
+        with parsing(where, "system"):
+            _check_first_order(self._core, data, system, self.domain)
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self.newton = newton
@@ -201,11 +259,14 @@ class BisectionIntegrator:
     def generating(self) -> GeneratingFunction:
         """The torch generating function (built on first use: stepping in Rust needs no torch)."""
         if self._generating is None:
-            from safetensors.numpy import load, load_file
+            from safetensors.numpy import load
 
-            src = self._source
-            tensors = load(src) if isinstance(src, bytes) else load_file(str(src))
-            self._generating = load_generating(tensors, self.metadata)
+            # From the bytes the core was built from, never the path again: a file replaced
+            # since (or turned into a FIFO) would give torch another model than Rust, or hang.
+            name = f"model file {self._source}" if self.path is not None else "model bytes"
+            with parsing(name):
+                tensors = load(self._bytes)
+                self._generating = load_generating(tensors, self.metadata)
         return self._generating
 
     def torch_step(self, mu: torch.Tensor, h: float) -> torch.Tensor:
@@ -214,16 +275,16 @@ class BisectionIntegrator:
 
         from .generating import bisection_step
 
-        _check_step(h)
+        step = _check_step(h)
         mu = torch.as_tensor(mu, dtype=torch.float64)
         return bisection_step(
-            self.generating, mu, h, chart=self.chart, tol=self.tol, max_iter=self.max_iter
+            self.generating, mu, step, chart=self.chart, tol=self.tol, max_iter=self.max_iter
         )
 
     def derivatives(self, t: float, p: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """S, ∂S/∂p, ∂²S/∂p² from the Rust core (forward mode).
         p: (B, n) → (B,), (B, n), (B, n, n)."""
-        return self._core.derivatives(float(t), _as_states(p, "p", self.dim)[0])
+        return self._core.derivatives(_check_time(t, "t"), _as_states(p, "p", self.dim)[0])
 
     def hj_residual(self, mu: ArrayLike, h: float) -> np.ndarray:
         """The model's Hamilton–Jacobi residual at (h, p = μ), relative to H(μ).
@@ -237,10 +298,7 @@ class BisectionIntegrator:
         (r itself where H(μ) = 0). Non-finite states, and states whose ∂S/∂p reaches the
         exponential chart's singularity, give NaN.
         """
-        if isinstance(h, bool) or not isinstance(h, numbers.Real):
-            raise TypeError(f"h must be a real number, got {type(h).__name__}")
-        if not (math.isfinite(h) and h >= 0):
-            raise ValueError(f"h must be finite and >= 0, got {h}")
+        h = _check_time(h, "h")
         arr = np.asarray(mu)
         if arr.dtype == object or arr.dtype.kind not in "fiu":
             raise TypeError(f"mu must be an array of real numbers, got dtype {arr.dtype}")
@@ -359,9 +417,9 @@ def taylor_integrator(
     """The Taylor-in-t integrator, S = Σ_{k≤order} t^k S_k with the S_k exact (order ≥ 1), for
     any Lie–Poisson system ``body`` (default: the paper's rigid body).
 
-    ``chart``: "cayley" (so(3) only; the default there) or "exp" (any algebra; the default
-    elsewhere). Its order of accuracy is ``order``, or ``order + 1`` where S_{order+1} vanishes
-    (odd orders for a quadratic Hamiltonian).
+    ``chart``: "cayley" (the rigid body only; the default there) or "exp" (any system; the
+    default elsewhere, a quartic H on so(3) included). Its order of accuracy is ``order``, or
+    ``order + 1`` where S_{order+1} vanishes (odd orders for a quadratic Hamiltonian).
     """
     from .taylor import system_taylor_terms
 
@@ -371,7 +429,9 @@ def taylor_integrator(
     if isinstance(order, bool) or not isinstance(order, numbers.Integral) or order < 1:
         raise ValueError(f"order must be an integer >= 1, got {order!r}")
     if chart is None:
-        chart = "cayley" if body.algebra.is_so3() else "exp"
+        # The Cayley chart's series exists for the rigid body only (a quartic H on so(3) would
+        # fail in its own default chart): every other system defaults to exp.
+        chart = "cayley" if isinstance(body, RigidBody) else "exp"
     powers, coeffs = system_taylor_terms(body, int(order), chart)
     data = model_bytes(
         powers=powers,
@@ -388,11 +448,12 @@ def taylor_integrator(
     return TaylorIntegrator(data, tol=tol, max_iter=max_iter)
 
 
-def _check_domain(domain: Mapping[str, Any]) -> dict[str, Any]:
+def _check_domain(domain: Mapping[str, Any], dim: int | None = None) -> dict[str, Any]:
     """A training domain from a model's metadata, with the numbers its kind needs checked.
 
     Raises ValueError for a shell without finite 0 <= r_min < r_max, a cube without a finite
-    half_width > 0, or another kind than "shell", "cube" and "all".
+    half_width > 0, a top on a model whose dimension ``dim`` is not 6, or another kind than
+    "shell", "cube", "top" and "all".
     """
 
     def number(key: str) -> float:
@@ -412,7 +473,84 @@ def _check_domain(domain: Mapping[str, Any]) -> dict[str, Any]:
             raise ValueError(f"metadata 'domain' needs 0 <= r_min < r_max: {dict(domain)!r}")
     if kind in ("cube", "top") and not number("half_width") > 0:
         raise ValueError(f"metadata 'domain' needs half_width > 0: {dict(domain)!r}")
+    if kind == "top" and dim is not None and dim != 6:
+        # (M, Γ) ∈ se(3)*: the top's bounds index six components.
+        raise ValueError(
+            f"metadata 'domain' is a top (for se(3)*, dimension 6) but the model has dimension "
+            f"{dim}: {dict(domain)!r}"
+        )
     return dict(domain)
+
+
+#: Largest relative RMS difference between ∂S/∂t(0, p) and −H(p) accepted at load: round-off
+#: where the t¹ terms are exact polynomials (float32 training stores them rounded to float32:
+#: 2e-8 measured), and the training error where an MLP multiplied by t¹ (``mlp_power = 1``, the
+#: paper's ansatz) learns them (1.6 % for the shipped paper model).
+FIRST_ORDER_TOL_EXACT = 1e-6
+FIRST_ORDER_TOL_LEARNED = 0.05
+#: Seeded sample of the training domain on which the t¹ terms are compared.
+_FIRST_ORDER_SAMPLES = 512
+
+
+def _domain_sample(domain: Mapping[str, Any], dim: int, n: int) -> np.ndarray:
+    """``n`` states in a training domain (deterministic: seed 0); radii 0.5 to 3 for "all"."""
+    rng = np.random.default_rng(0)
+    kind = domain["kind"]
+
+    def shell(d: int, r_min: float, r_max: float) -> np.ndarray:
+        u = rng.normal(size=(n, d))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        return u * rng.uniform(r_min, r_max, size=(n, 1))
+
+    if kind == "cube":
+        return rng.uniform(-domain["half_width"], domain["half_width"], size=(n, dim))
+    if kind == "shell":
+        return shell(dim, domain["r_min"], domain["r_max"])
+    if kind == "top":
+        m = rng.uniform(-domain["half_width"], domain["half_width"], size=(n, 3))
+        return np.concatenate([m, shell(dim - 3, domain["r_min"], domain["r_max"])], axis=1)
+    return shell(dim, 0.5, 3.0)
+
+
+def _check_first_order(
+    core: Any, data: bytes, system: LiePoissonSystem, domain: Mapping[str, Any]
+) -> None:
+    """ValueError unless the t¹ terms of the model's S are −t·H of the system its metadata
+    records: S = −tH + O(t²) for every generating function of the flow of H (the
+    Hamilton–Jacobi equation at t = 0, where ∂S/∂p = 0 and sou = p). A file whose metadata was
+    edited to claim another system (another inertia, say) would otherwise load cleanly, run the
+    original body and report the claimed one.
+
+    Where the polynomial part holds t¹ terms (the exact Taylor terms a writer put there) they
+    must match to round-off, whatever an MLP adds. Where it holds none and the MLP carries t¹
+    (``mlp_power = 1``, the paper's ansatz) the learned ∂S/∂t(0, p) must be within the training
+    error, FIRST_ORDER_TOL_LEARNED. Compared on a seeded sample of the training domain."""
+    p = _domain_sample(domain, core.dim, _FIRST_ORDER_SAMPLES)
+    powers = read_tensor(data, "poly.powers")
+    coeffs = read_tensor(data, "poly.coeffs")
+    first = None if powers is None or coeffs is None else powers[:, 0] == 1
+    with np.errstate(all="ignore"):
+        energy = np.asarray(system.hamiltonian(p), dtype=np.float64)
+        if first is not None and first.any():
+            exps, cs = powers[first, 1:], coeffs[first]
+            s_1 = np.prod(p[:, None, :] ** exps[None, :, :], axis=-1) @ cs
+            tol, what = FIRST_ORDER_TOL_EXACT, "polynomial t¹ terms"
+        elif core.mlp_power == 1:
+            s_1 = core.time_derivative(0.0, p)[1]
+            tol, what = FIRST_ORDER_TOL_LEARNED, "learned t¹ terms"
+        else:
+            s_1 = np.zeros(len(p))
+            tol, what = FIRST_ORDER_TOL_EXACT, "t¹ terms (it has none)"
+        scale = math.sqrt(float(np.mean(energy**2)))
+        diff = math.sqrt(float(np.mean((s_1 + energy) ** 2)))
+    rel = diff / scale if scale > 0 else diff
+    if not rel <= tol:  # NaN fails too
+        raise ValueError(
+            f"the model's {what} are not -t·H of the system its metadata records "
+            f"({system!r}): relative RMS difference {rel:.3g} over its training domain, "
+            f"tolerance {tol:g}. The metadata was edited or belongs to another model: the "
+            "tensors integrate another system"
+        )
 
 
 #: Trajectory-states per block of :func:`count_out_of_domain`: its temporaries stay a few MB
@@ -817,11 +955,16 @@ class ClassicalIntegrator:
             )
         from .reference import dop853_solution, reference_solution
 
-        times = h * np.arange(0, n_steps + 1, every, dtype=np.float64)
+        n_steps, every = _check_count("n_steps", n_steps), _check_count("every", every, 1)
+        times = h * np.arange(0, n_steps // every + 1, dtype=np.float64) * every
+        # One trajectory DOP853 cannot finish (over its budget, overflowing) comes back NaN and
+        # is reported below; the others are kept.
         if isinstance(body, RigidBody):
-            traj = dop853_solution(body, mu0, times, rtol=self.tol, atol=self.tol)
+            traj = dop853_solution(body, mu0, times, rtol=self.tol, atol=self.tol, failures="nan")
         else:
-            traj = reference_solution(body, mu0, times, rtol=self.tol, atol=self.tol)
+            traj = reference_solution(
+                body, mu0, times, rtol=self.tol, atol=self.tol, failures="nan"
+            )
         n = mu0.shape[0]
         # Same keys and dtypes as the Rust rollout's; a trajectory DOP853 could not finish is
         # NaN from there on and reported like a failed step.

@@ -26,6 +26,8 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .untrusted import parsing
+
 __all__ = ["HeavyTop", "LieAlgebra", "LiePoissonSystem", "Polynomial", "RigidBody"]
 
 FloatArray = NDArray[np.float64]
@@ -233,10 +235,11 @@ class LieAlgebra:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> LieAlgebra:
-        """Inverse of :meth:`to_dict`; ValueError on a malformed dictionary."""
-        if not isinstance(data, Mapping) or "structure_constants" not in data:
-            raise ValueError("a Lie algebra dictionary needs a 'structure_constants' entry")
-        return cls(data["structure_constants"], name=data.get("name"))
+        """Inverse of :meth:`to_dict`; one ValueError (InputError) on a malformed dictionary."""
+        with parsing("Lie algebra dictionary"):
+            if not isinstance(data, Mapping) or "structure_constants" not in data:
+                raise ValueError("a Lie algebra dictionary needs a 'structure_constants' entry")
+            return cls(data["structure_constants"], name=data.get("name"))
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, LieAlgebra):
@@ -275,22 +278,32 @@ def _check_structure_constants(c: ArrayLike) -> FloatArray:
         raise ValueError(f"the algebra's dimension must be between 1 and {MAX_DIM}, got {n}")
     if not np.isfinite(arr).all():
         raise ValueError("structure constants must be finite (found NaN or inf)")
+    # Both checks on c / max(max|c|, 1): the Jacobi sums are quadratic in c and would overflow
+    # (and so pass) for |c| > 1e154.
     scale = max(1.0, float(np.max(np.abs(arr))))
-    skew = np.abs(arr + arr.transpose(1, 0, 2))
-    if skew.max() > 1e-12 * scale:
+    unit = arr / scale
+    skew = np.abs(unit + unit.transpose(1, 0, 2))
+    if skew.max() > 1e-12:
         i, j, k = np.unravel_index(int(np.argmax(skew)), skew.shape)
+        if i == j:
+            raise ValueError(
+                f"structure constants are not antisymmetric: [e_i, e_i] = 0 needs "
+                f"c[i,i,k] = 0, but c[{i},{i},{k}] = {float(arr[i, j, k])!r}"
+            )
         raise ValueError(
-            f"structure constants are not antisymmetric: c[{i},{j},{k}] = {arr[i, j, k]!r} but "
-            f"c[{j},{i},{k}] = {arr[j, i, k]!r}"
+            f"structure constants are not antisymmetric: [e_i, e_j] = -[e_j, e_i] needs "
+            f"c[i,j,k] = -c[j,i,k], but c[{i},{j},{k}] = {float(arr[i, j, k])!r} and "
+            f"c[{j},{i},{k}] = {float(arr[j, i, k])!r}"
         )
     # Jacobi: Σ_l c[i,j,l] c[l,k,m] + c[j,k,l] c[l,i,m] + c[k,i,l] c[l,j,m] = 0.
-    a = np.einsum("ijl,lkm->ijkm", arr, arr)
+    a = np.einsum("ijl,lkm->ijkm", unit, unit)
     jacobi = np.abs(a + a.transpose(1, 2, 0, 3) + a.transpose(2, 0, 1, 3))
-    if jacobi.max() > 1e-12 * scale**2:
+    if jacobi.max() > 1e-12:
         i, j, k, m = np.unravel_index(int(np.argmax(jacobi)), jacobi.shape)
         raise ValueError(
-            f"structure constants violate the Jacobi identity at (e{i}, e{j}, e{k}), "
-            f"component {m}: {jacobi[i, j, k, m]:.3e}"
+            f"structure constants violate the Jacobi identity "
+            f"[e_i,[e_j,e_k]] + [e_j,[e_k,e_i]] + [e_k,[e_i,e_j]] = 0 at (e{i}, e{j}, e{k}), "
+            f"component {m}: {jacobi[i, j, k, m] * scale * scale:.3e}"
         )
     arr += 0.0  # -0.0 → 0.0, for hashing by bytes
     arr.flags.writeable = False
@@ -477,7 +490,12 @@ class Polynomial:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Polynomial:
-        """Inverse of :meth:`to_dict`; ValueError on a malformed dictionary."""
+        """Inverse of :meth:`to_dict`; one ValueError (InputError) on a malformed dictionary."""
+        with parsing("polynomial dictionary"):
+            return cls._from_dict(data)
+
+    @classmethod
+    def _from_dict(cls, data: Mapping[str, Any]) -> Polynomial:
         if not isinstance(data, Mapping) or "terms" not in data or "dim" not in data:
             raise ValueError("a polynomial dictionary needs 'dim' and 'terms' entries")
         n = data["dim"]
@@ -641,6 +659,11 @@ class LiePoissonSystem:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> LiePoissonSystem:
         """Rebuild any system from :meth:`to_dict`; called on a subclass, the kind must match."""
+        with parsing("system dictionary"):
+            return cls._from_dict(data)
+
+    @classmethod
+    def _from_dict(cls, data: Mapping[str, Any]) -> LiePoissonSystem:
         if not isinstance(data, Mapping) or "kind" not in data:
             raise ValueError("a system dictionary needs a 'kind' entry")
         kinds: dict[str, type[LiePoissonSystem]] = {

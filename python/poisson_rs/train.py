@@ -17,6 +17,7 @@ import functools
 import io
 import json
 import math
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -28,7 +29,7 @@ import torch
 from torch import Tensor
 
 from .export import model_bytes, save_model
-from .files import atomic_write_bytes, check_input_file, check_output_path
+from .files import atomic_write_bytes, check_input_file, probe_writable
 from .generating import (
     MLP_INPUTS,
     GeneratingFunction,
@@ -41,10 +42,64 @@ from .groupoid import check_chart, sou
 from .reference import exact_solution, reference_solution
 from .systems import LieAlgebra, LiePoissonSystem, RigidBody
 from .taylor import evaluate_terms, system_taylor_terms
+from .untrusted import parsing
 
 
 def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
+
+
+#: Most threads per core a run may ask for: beyond it threads only contend, and far beyond
+#: (10⁴–10⁵) spawning them takes minutes or crashes the OpenMP runtime.
+MAX_THREADS_PER_CORE = 4
+
+
+def cpu_cores() -> int:
+    """Cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def max_threads() -> int:
+    """The most threads :func:`check_threads` accepts: ``MAX_THREADS_PER_CORE`` per core."""
+    return MAX_THREADS_PER_CORE * max(cpu_cores(), os.cpu_count() or 1)
+
+
+def check_threads(threads: Any, what: str = "threads") -> int:
+    """``threads`` as an int in 1..:func:`max_threads`; TypeError/ValueError naming ``what``."""
+    if not _is_int(threads):
+        raise TypeError(f"{what} must be an integer, got {type(threads).__name__}")
+    if not 1 <= threads <= max_threads():
+        raise ValueError(
+            f"{what} must lie in 1..{max_threads()} ({MAX_THREADS_PER_CORE} per core on this "
+            f"machine's {cpu_cores()} core(s)), got {threads}"
+        )
+    return int(threads)
+
+
+def default_threads() -> int:
+    """The package's thread policy for training, shared by ``train()`` and the CLI: 1 on a
+    machine with at most 2 cores (shared with other work, where more threads only contend:
+    torch's default ran 5–75x slower there), else torch's own default, bounded."""
+    if cpu_cores() <= 2:
+        return 1
+    return min(max(torch.get_num_threads(), 1), max_threads())
+
+
+def resolve_threads(threads: int | None, what: str = "threads") -> int:
+    """``threads`` checked (:func:`check_threads`), or :func:`default_threads` for None."""
+    return default_threads() if threads is None else check_threads(threads, what)
+
+
+def use_threads(threads: int | None, what: str = "threads") -> int:
+    """Applies the thread policy to this process: torch's intra-op threads, and rayon's for the
+    Rust rollouts unless RAYON_NUM_THREADS is set already. Returns the count used."""
+    n = resolve_threads(threads, what)
+    torch.set_num_threads(n)
+    os.environ.setdefault("RAYON_NUM_THREADS", str(n))
+    return n
 
 
 @functools.lru_cache(maxsize=16)
@@ -59,8 +114,9 @@ class TrainConfig:
 
     inertia: tuple[float, float, float] = (1.5, 2.0, 2.5)
     """The rigid body's principal moments, when ``system`` is None."""
-    system: dict[str, Any] | None = None
-    """The Lie–Poisson system as its ``to_dict()`` (``LiePoissonSystem.from_dict`` reads it); None:
+    system: dict[str, Any] | LiePoissonSystem | None = None
+    """The Lie–Poisson system, or its ``to_dict()`` (``LiePoissonSystem.from_dict`` reads it);
+    stored as the dictionary, so the configuration stays JSON (checkpoints, model files). None:
     the rigid body of ``inertia``."""
     chart: str = "cayley"
     widths: tuple[int, ...] = (8, 8)
@@ -126,6 +182,11 @@ class TrainConfig:
     exact Taylor terms and training improves on the series) or "xavier" (every layer
     Xavier-uniform: the paper's, and how models recorded without this field were trained)."""
 
+    def __post_init__(self) -> None:
+        # A system object is kept as its dictionary: the configuration is recorded as JSON.
+        if isinstance(self.system, LiePoissonSystem):
+            self.system = self.system.to_dict()
+
     def resolved_mlp_power(self) -> int:
         if self.mlp_power is not None:
             return self.mlp_power
@@ -137,7 +198,10 @@ class TrainConfig:
         it) happens once per distinct system."""
         if self.system is None:
             return RigidBody(tuple(self.inertia))  # type: ignore[arg-type]
-        return _decode_system(json.dumps(self.system, sort_keys=True))
+        if isinstance(self.system, LiePoissonSystem):  # assigned after construction
+            return self.system
+        with parsing("TrainConfig", "system"):
+            return _decode_system(json.dumps(self.system, sort_keys=True))
 
     def validate(self) -> None:
         """Raises ValueError naming the first bad setting."""
@@ -651,20 +715,54 @@ _MAX_CHECKPOINT_BYTES = 1 << 30
 
 def _load_checkpoint(path: Path) -> dict[str, Any]:
     """A checkpoint read with ``weights_only=True``: tensors, dicts, lists, numbers and strings
-    only, so a crafted file cannot run code. Raises ValueError naming the file when it is not a
-    readable checkpoint (truncated, garbage, foreign objects, missing entries)."""
+    only, so a crafted file cannot run code. Every entry is checked for its type (a model and
+    optimizer state of tensors, a byte-tensor generator state, a non-negative iteration, a list
+    of finite losses, a finite number of seconds); any problem raises one
+    :class:`~poisson_rs.untrusted.InputError` (ValueError) naming the file and the entry."""
     check_input_file(path, max_bytes=_MAX_CHECKPOINT_BYTES, what="checkpoint")
-    try:
-        state = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as e:  # UnpicklingError, RuntimeError (bad zip), EOFError, ...
-        why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise ValueError(f"checkpoint {path} is not a readable training checkpoint: {why}") from e
-    keys = ("config", "model", "optimizer", "generator", "iteration", "losses", "seconds")
-    if not isinstance(state, dict) or any(k not in state for k in keys):
-        raise ValueError(f"checkpoint {path} lacks the entries {', '.join(keys)}")
-    if not _is_int(state["iteration"]) or state["iteration"] < 0:
-        raise ValueError(f"checkpoint {path} holds a bad iteration {state['iteration']!r}")
-    return state
+    source = f"checkpoint {path}"
+    with parsing(source):
+        try:
+            state = torch.load(path, weights_only=True, map_location="cpu")
+        except Exception as e:  # UnpicklingError, RuntimeError (bad zip), EOFError, ...
+            why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise ValueError(f"not a readable training checkpoint: {why}") from None
+        keys = ("config", "model", "optimizer", "generator", "iteration", "losses", "seconds")
+        if not isinstance(state, dict) or any(k not in state for k in keys):
+            raise ValueError(f"checkpoint {path} lacks the entries {', '.join(keys)}")
+    with parsing(source, "iteration"):
+        if not _is_int(state["iteration"]) or state["iteration"] < 0:
+            raise ValueError(f"checkpoint {path} holds a bad iteration {state['iteration']!r}")
+    with parsing(source, "config"):
+        if not isinstance(state["config"], dict):
+            raise TypeError(f"must be a dict, got {type(state['config']).__name__}")
+    with parsing(source, "model"):
+        model = state["model"]
+        if not isinstance(model, dict) or not all(
+            isinstance(k, str) and isinstance(v, Tensor) for k, v in model.items()
+        ):
+            raise TypeError("must map parameter names to tensors")
+    with parsing(source, "optimizer"):
+        opt = state["optimizer"]
+        if not (
+            isinstance(opt, dict)
+            and isinstance(opt.get("state"), dict)
+            and isinstance(opt.get("param_groups"), list)
+        ):
+            raise TypeError("must be an optimizer state (a dict with 'state' and 'param_groups')")
+    with parsing(source, "generator"):
+        gen = state["generator"]
+        if not (isinstance(gen, Tensor) and gen.dtype == torch.uint8 and gen.dim() == 1):
+            raise TypeError("must be a generator state (a 1-D uint8 tensor)")
+    with parsing(source, "losses"):
+        losses = state["losses"]
+        if not isinstance(losses, list) or not all(isinstance(v, float) for v in losses):
+            raise TypeError("must be a list of floats")
+    with parsing(source, "seconds"):
+        sec = state["seconds"]
+        if isinstance(sec, bool) or not isinstance(sec, (int, float)) or not 0 <= sec < math.inf:
+            raise ValueError(f"must be a finite number >= 0, got {sec!r}")
+    return state  # type: ignore[no-any-return]
 
 
 def _check_train_options(checkpoint_every: Any, max_seconds: Any) -> None:
@@ -718,6 +816,7 @@ def train(
     stop: Callable[[int, GeneratingFunction], bool] | None = None,
     data: tuple[np.ndarray, np.ndarray] | None = None,
     max_seconds: float | None = None,
+    threads: int | None = None,
 ) -> TrainResult:
     """Trains a generating function on the HJ residual with Adam, then L-BFGS if
     ``cfg.lbfgs_iterations`` > 0.
@@ -742,12 +841,54 @@ def train(
     starts at zero output, so training starts from the Taylor terms, whose residual is reported
     as ``baseline_rms``. Raises ValueError when the loss is not finite at the start (a
     domain too large for the dtype).
+
+    ``threads``: torch threads for the run (1..``max_threads()``); None applies the same policy
+    as the command line (:func:`default_threads`: 1 on a machine with at most 2 cores). The
+    previous setting is restored afterwards.
     """
     cfg.validate()
     _check_train_options(checkpoint_every, max_seconds)
+    n_threads = resolve_threads(threads)
     if checkpoint is not None:
-        # Before any work: a checkpoint that cannot be written would fail only at its first save.
-        check_output_path(checkpoint)
+        # Before any work: a checkpoint that cannot be written (a name too long for the file
+        # system with the temporary suffix, a read-only folder) would fail only at its first
+        # save, so its real write path is tried now.
+        probe_writable(checkpoint)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n_threads)
+    try:
+        return _train(
+            cfg,
+            checkpoint=checkpoint,
+            checkpoint_every=checkpoint_every,
+            resume=resume,
+            progress=progress,
+            log_every=log_every,
+            callback=callback,
+            evaluate_every=evaluate_every,
+            stop=stop,
+            data=data,
+            max_seconds=max_seconds,
+        )
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _train(
+    cfg: TrainConfig,
+    *,
+    checkpoint: str | Path | None,
+    checkpoint_every: int,
+    resume: bool,
+    progress: bool,
+    log_every: int,
+    callback: Callable[[int, float], None] | None,
+    evaluate_every: int,
+    stop: Callable[[int, GeneratingFunction], bool] | None,
+    data: tuple[np.ndarray, np.ndarray] | None,
+    max_seconds: float | None,
+) -> TrainResult:
+    """:func:`train` after its checks, with the threads set."""
     if stop is not None and (
         isinstance(evaluate_every, bool)
         or not isinstance(evaluate_every, int)
@@ -813,9 +954,27 @@ def train(
         state = _load_checkpoint(ckpt)
         if state["config"] != dataclasses.asdict(cfg):
             raise ValueError("the checkpoint was written by a different configuration")
-        s_fn.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        gen.set_state(state["generator"])
+        # Shapes and contents are checked by torch as they load: a mismatch is one error naming
+        # the entry, never a traceback from inside torch.
+        with parsing(f"checkpoint {ckpt}", "model"):
+            s_fn.load_state_dict(state["model"])
+            if not all(torch.isfinite(v).all() for v in s_fn.state_dict().values()):
+                raise ValueError("holds NaN or infinite weights")
+        with parsing(f"checkpoint {ckpt}", "optimizer"):
+            opt.load_state_dict(state["optimizer"])
+            for param, moments in opt.state.items():
+                for key, value in moments.items():
+                    if key != "step" and (
+                        not isinstance(value, Tensor) or value.shape != param.shape
+                    ):
+                        raise ValueError(f"Adam's {key!r} does not fit its parameter")
+        with parsing(f"checkpoint {ckpt}", "generator"):
+            gen.set_state(state["generator"])
+        with parsing(f"checkpoint {ckpt}", "iteration"):
+            if state["iteration"] > cfg.iterations:
+                raise ValueError(
+                    f"{state['iteration']} is past the configuration's {cfg.iterations}"
+                )
         start, losses, elapsed = state["iteration"], state["losses"], state["seconds"]
     if s_fn.n_parameters() == 0 or cfg.iterations == 0:
         start = cfg.iterations
