@@ -36,7 +36,6 @@ from .integrators import (
     taylor_integrator,
 )
 from .reference import dop853_solution, exact_solution, reference_solution
-from .studies.select import NoCandidateError, SelectionReport, select
 from .structures import (
     LogCanonical,
     LogCanonicalSystem,
@@ -46,6 +45,7 @@ from .structures import (
     RealizationTaylorIntegrator,
     lotka_volterra,
 )
+from .studies.select import NoCandidateError, SelectionReport, select
 from .systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial, RigidBody
 
 # rayon's thread pool does not survive fork(): a forked child runs its rollouts serially (same

@@ -42,29 +42,12 @@ from .groupoid import check_chart, sou
 from .reference import exact_solution, reference_solution
 from .systems import LieAlgebra, LiePoissonSystem, RigidBody
 from .taylor import evaluate_terms, system_taylor_terms
+from .threads import MAX_THREADS_PER_CORE, cpu_cores, max_threads
 from .untrusted import parsing
 
 
 def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
-
-
-#: Most threads per core a run may ask for: beyond it threads only contend, and far beyond
-#: (10⁴–10⁵) spawning them takes minutes or crashes the OpenMP runtime.
-MAX_THREADS_PER_CORE = 4
-
-
-def cpu_cores() -> int:
-    """Cores this process may run on (its affinity mask where the OS has one)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
-
-
-def max_threads() -> int:
-    """The most threads :func:`check_threads` accepts: ``MAX_THREADS_PER_CORE`` per core."""
-    return MAX_THREADS_PER_CORE * max(cpu_cores(), os.cpu_count() or 1)
 
 
 def check_threads(threads: Any, what: str = "threads") -> int:

@@ -11,11 +11,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from ..threads import max_threads
 
 if TYPE_CHECKING:
     from ..systems import LiePoissonSystem
@@ -38,12 +39,6 @@ class Parser(argparse.ArgumentParser):
     def error(self, message: str) -> Any:  # type: ignore[override]
         one = " ".join(message.split())
         raise UsageError(f"{self.prog}: {one}")
-
-
-def max_threads() -> int:
-    """The most threads a ``--threads`` option accepts: 4 per core (more only contend, and tens
-    of thousands of OpenMP threads crash libgomp)."""
-    return 4 * (os.cpu_count() or 1)
 
 
 def _parse_int(text: str) -> int:
@@ -131,14 +126,6 @@ def check_out_dir(out: str, flag: str = "--out") -> Path:
     if not out or not out.strip():
         raise ValueError(f"{flag} is empty: give an output folder (use . for this one)")
     return Path(out)
-
-
-def default_threads() -> int:
-    """Torch threads when --threads is not given: 1 on a machine with at most 2 cores (shared
-    with other work, where more threads only contend), else torch's own default."""
-    import torch
-
-    return 1 if (os.cpu_count() or 1) <= 2 else torch.get_num_threads()
 
 
 def vectors(values: Sequence[float], dim: int, flag: str) -> tuple[tuple[float, ...], ...]:

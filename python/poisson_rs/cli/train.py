@@ -14,7 +14,6 @@ from typing import Any
 from .common import (
     POSITIVE,
     STEPS,
-    default_threads,
     number,
     sampling_flags,
     system_spec,
@@ -147,10 +146,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
 
-    from ..files import check_output_path
-    from ..train import PRESETS, TrainConfig, baseline_rms, save_result, train
+    from ..files import check_output_path, probe_writable
+    from ..train import PRESETS, TrainConfig, baseline_rms, save_result, train, use_threads
 
     # Every check before any work: a bad output would otherwise fail after the training.
     check_output_path(args.out)
@@ -160,10 +158,12 @@ def run(args: argparse.Namespace) -> int:
         # --resume reads the checkpoint it will then replace: that is what it is for.
         if not args.resume:
             refuse_existing(args.checkpoint, "--checkpoint", args.force)
-    threads = default_threads() if args.threads is None else args.threads
-    torch.set_num_threads(threads)
-    # Read when rayon's pool starts, at the first rollout (scene evaluations).
-    os.environ.setdefault("RAYON_NUM_THREADS", str(threads))
+    # The write path itself, tried before the work (a name can pass every check and still fail).
+    probe_writable(args.out)
+    if args.checkpoint is not None:
+        probe_writable(args.checkpoint)
+    # One thread policy for the CLI and train(): torch's threads and rayon's (scene evaluations).
+    threads = use_threads(args.threads, "--threads")
 
     flags: dict[str, Any] = {}
     for f in dataclasses.fields(TrainConfig):
