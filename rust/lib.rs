@@ -15,6 +15,7 @@ pub mod error;
 pub mod generating;
 pub mod groupoid;
 pub mod kernel;
+pub mod lanes;
 pub mod model;
 pub mod rollout;
 pub mod stepper;

@@ -99,3 +99,13 @@ def rollout_lie_poisson(
     """As :func:`rollout_classical`, for the Lie–Poisson system with structure constants ``c``
     (N, N, N) and Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: "rk4", "midpoint", or "splitting"
     with ``heavy_top`` = (inertia, mgl, com)."""
+
+def step_angles(
+    c: npt.NDArray[np.float64],
+    powers: npt.NDArray[np.int64],
+    coeffs: npt.NDArray[np.float64],
+    mu: npt.NDArray[np.float64],
+    h: float,
+) -> npt.NDArray[np.float64]:
+    """h × max(‖ad_∇H(μ)‖₂, ‖∂f/∂μ‖_F) at each row of ``mu`` (n, N) for the Lie–Poisson system
+    (c, powers, coeffs): the angle (rad) a step of size h turns each state by. Shape (n,)."""
