@@ -194,6 +194,12 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 out: o,
                 row,
             };
+            if block.mu.len() == 1 {
+                // A lone trajectory: a block of one lane does the same arithmetic (bit for bit)
+                // without carrying seven idle ones.
+                advance_block::<N, 1, S>(self.stepper, h, steps.clone(), every, block);
+                continue;
+            }
             match self.isa {
                 #[cfg(target_arch = "x86_64")]
                 Isa::Avx2 => {

@@ -241,6 +241,8 @@ pub struct CompiledLiePoisson<const N: usize> {
     max_power: [usize; N],
     /// Highest power of one coordinate in a product of ∇H.
     grad_degree: usize,
+    /// bracket[row_end[j − 1]..row_end[j]] are the entries of component j.
+    row_end: [usize; N],
 }
 
 impl<const N: usize> CompiledLiePoisson<N> {
@@ -304,7 +306,9 @@ impl<const N: usize> CompiledLiePoisson<N> {
             .flat_map(|t| factors[t.start..t.end].iter().map(|&(_, p)| p))
             .max()
             .unwrap_or(0);
+        let row_end = std::array::from_fn(|j| bracket.iter().filter(|e| e.1 <= j).count());
         CompiledLiePoisson {
+            row_end,
             bracket,
             grad,
             hess,
@@ -451,11 +455,28 @@ impl<const N: usize> CompiledLiePoisson<N> {
         } else {
             self.gradient_lanes(|v, _| &mu[v], &mut g);
         }
-        *out = [[0.0; L]; N];
-        for &(i, j, k, c) in &self.bracket {
-            for l in 0..L {
-                out[j][l] += c * g[i][l] * mu[k][l];
+        // Component by component, accumulated in registers (the same sums, in the same order,
+        // as the scalar path's); a structure constant ±1 multiplies exactly, so it is skipped.
+        let mut start = 0;
+        for j in 0..N {
+            let mut acc = [0.0; L];
+            for &(i, _, k, c) in &self.bracket[start..self.row_end[j]] {
+                if c == 1.0 {
+                    for l in 0..L {
+                        acc[l] += g[i][l] * mu[k][l];
+                    }
+                } else if c == -1.0 {
+                    for l in 0..L {
+                        acc[l] += -g[i][l] * mu[k][l];
+                    }
+                } else {
+                    for l in 0..L {
+                        acc[l] += c * g[i][l] * mu[k][l];
+                    }
+                }
             }
+            out[j] = acc;
+            start = self.row_end[j];
         }
     }
 
