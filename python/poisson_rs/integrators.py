@@ -574,12 +574,19 @@ def integrate(
                 strict=strict,
             )
     arr, single = _as_states(mu0, dim=int(getattr(stepper, "dim", 3)))
-    if isinstance(h, bool) or not isinstance(h, numbers.Real):
+    # Exact built-in types first: the abstract-number checks cost more than a small rollout.
+    if type(h) is not float and (isinstance(h, bool) or not isinstance(h, numbers.Real)):
         raise TypeError(f"h must be a real number, got {type(h).__name__}")
-    if not (np.isfinite(h) and h > 0):
+    try:
+        finite = math.isfinite(h)
+    except OverflowError:  # an integer beyond the float range
+        finite = False
+    if not (finite and h > 0):
         raise ValueError(f"h must be finite and > 0, got {h}")
     for name, value, low in (("n_steps", n_steps, 0), ("every", every, 1)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        if type(value) is not int and (
+            isinstance(value, bool) or not isinstance(value, numbers.Integral)
+        ):
             raise TypeError(f"{name} must be an integer, got {type(value).__name__}")
         if value < low:
             raise ValueError(f"{name} must be >= {low}, got {value}")
@@ -598,7 +605,9 @@ def integrate(
     if "step_angle" not in raw:
         raw["step_angle"] = _step_angles(stepper, arr, h)
     # Vectorised over the recorded states: cheap next to the rollout that made them.
-    out_of_domain = count_out_of_domain(domain, traj)
+    out_of_domain = (
+        np.zeros(len(arr), dtype=np.int64) if domain is None else count_out_of_domain(domain, traj)
+    )
     info = RolloutInfo(**raw, out_of_domain=out_of_domain)
     _warn_unresolved(stepper, info.step_angle, h)
     n_outside = int(out_of_domain.sum()) if domain is not None else 0
