@@ -646,7 +646,7 @@ fn rollout_lie_poisson<'py>(
 
 /// h × the local rate at each row of `mu` (n, N) for the Lie–Poisson system with structure
 /// constants `c` (N, N, N) and polynomial Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: the angle
-/// a step of size h turns each state by, max(‖ad_∇H‖₂, ‖∂f/∂μ‖_F) · h. Returns (n,) float64.
+/// a step of size h turns each state by, max(‖ad_∇H‖_F/√2, ‖∂f/∂μ‖_F) · h. Returns (n,) float64.
 #[pyfunction]
 fn step_angles<'py>(
     py: Python<'py>,

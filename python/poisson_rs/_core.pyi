@@ -107,5 +107,5 @@ def step_angles(
     mu: npt.NDArray[np.float64],
     h: float,
 ) -> npt.NDArray[np.float64]:
-    """h × max(‖ad_∇H(μ)‖₂, ‖∂f/∂μ‖_F) at each row of ``mu`` (n, N) for the Lie–Poisson system
+    """h × max(‖ad_∇H(μ)‖_F/√2, ‖∂f/∂μ‖_F) at each row of ``mu`` (n, N) for the Lie–Poisson system
     (c, powers, coeffs): the angle (rad) a step of size h turns each state by. Shape (n,)."""

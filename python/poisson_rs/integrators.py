@@ -72,7 +72,7 @@ class RolloutInfo:
     outside the model's training domain; states between records are not checked, NaN states
     after a failure are not counted. Zeros for methods without a domain (Taylor, classical)."""
     step_angle: np.ndarray
-    """float64, radians: h times the local rate at the initial state, max(‖ad_∇H(μ)‖₂,
+    """float64, radians: h times the local rate at the initial state, max(‖ad_∇H(μ)‖_F/√2,
     ‖∂f/∂μ‖_F) with f the vector field (the Frobenius norm of the Jacobian carries the Hessian
     of H and bounds its spectral norm). Above :data:`MAX_STEP_ANGLE` no fixed-step method
     resolves the motion. NaN where it does not apply (adaptive DOP853, a stepper without a
@@ -692,7 +692,7 @@ def _warn_unresolved(stepper: Any, angle: np.ndarray, h: float) -> None:
     rate = angle[worst] / h
     warnings.warn(
         f"{_stepper_name(stepper)}: a step of h = {h:g} turns state {worst} by "
-        f"{angle[worst]:.3g} rad (h × the local rate max(‖ad_∇H‖, ‖∂f/∂μ‖_F)), more than a "
+        f"{angle[worst]:.3g} rad (h × the local rate max(‖ad_∇H‖_F/√2, ‖∂f/∂μ‖_F)), more than a "
         f"quarter turn: no fixed-step method resolves this motion and the result can be O(1) "
         f"wrong with every step converged; use h <= {MAX_STEP_ANGLE / rate:.3g} (see "
         "info.step_angle)",

@@ -309,10 +309,26 @@ fn spectral_norm_matches_the_svd() {
         let got = spectral_norm(&a);
         assert!((got - want).abs() <= 1e-12 * want, "{got} vs {want}");
     }
-    // ‖ad_ω‖₂ = |ω| on so(3), where AᵀA has a double eigenvalue.
+    // ‖ad_ω‖₂ = |ω| on so(3), where AᵀA has a double eigenvalue; the cheap rotation rate
+    // ‖A‖_F/√2 is exact there.
     let w = [0.3, -1.2, 2.0];
     let a = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]];
     assert!((spectral_norm(&a) - norm(&w)).abs() <= 1e-14);
+    assert!((crate::system::lie_poisson_rate(&a, 0.0) - norm(&w)).abs() <= 1e-14);
+    // On any skew A it bounds ‖A‖₂ from above, and on any A it is within √(N/2) of it.
+    for _ in 0..50 {
+        let m: [[f64; 6]; 6] =
+            std::array::from_fn(|_| std::array::from_fn(|_| rng.range(-3.0, 3.0)));
+        let skew: [[f64; 6]; 6] =
+            std::array::from_fn(|i| std::array::from_fn(|j| m[i][j] - m[j][i]));
+        let cheap = crate::system::lie_poisson_rate(&skew, 0.0);
+        assert!(cheap >= spectral_norm(&skew) * (1.0 - 1e-12));
+        let (cheap, exact) = (crate::system::lie_poisson_rate(&m, 0.0), spectral_norm(&m));
+        assert!(
+            cheap <= exact * 3f64.sqrt() * (1.0 + 1e-12)
+                && cheap >= exact / 2f64.sqrt() * (1.0 - 1e-12)
+        );
+    }
 }
 
 #[test]
