@@ -43,9 +43,9 @@ os.environ.setdefault(
     "XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 )
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import poisson_rs as pr  # noqa: E402
+import poisson_rs as pr
 
 H = 0.1
 RIGID_I = (1.5, 2.0, 2.5)
@@ -89,9 +89,7 @@ def poisson_rs_runner(system: str, core: ModuleType | None = None) -> Runner:
         return lambda mu0, n: core.rollout_classical("rk4", RIGID_I, mu0, H, n, n)[0][:, -1]
     powers, coeffs = body.polynomial.to_arrays()
     c = np.ascontiguousarray(body.algebra.c)
-    return lambda mu0, n: core.rollout_lie_poisson("rk4", c, powers, coeffs, mu0, H, n, n)[0][
-        :, -1
-    ]
+    return lambda mu0, n: core.rollout_lie_poisson("rk4", c, powers, coeffs, mu0, H, n, n)[0][:, -1]
 
 
 def jax_runner(system: str) -> Runner | None:
@@ -158,7 +156,13 @@ def numba_runner(system: str) -> Runner | None:
     @numba.njit(cache=False, fastmath=False)
     def run(mu0: np.ndarray, n: int) -> np.ndarray:
         out = mu0.copy()
-        k1, k2, k3, k4, y = (np.empty(dim), np.empty(dim), np.empty(dim), np.empty(dim), np.empty(dim))
+        k1, k2, k3, k4, y = (
+            np.empty(dim),
+            np.empty(dim),
+            np.empty(dim),
+            np.empty(dim),
+            np.empty(dim),
+        )
         for b in range(out.shape[0]):
             mu = out[b]
             for _ in range(n):
@@ -268,7 +272,10 @@ def main() -> None:
     if baseline is not None:
         b = poisson_rs_runner("rigid body", baseline)
         calls["baseline (_core call only)"] = call_cost(lambda: b(one[None], 1), rounds)
-    print("one call, one state, one step: " + ", ".join(f"{k} {v * 1e6:.2f} us" for k, v in calls.items()))
+    print(
+        "one call, one state, one step: "
+        + ", ".join(f"{k} {v * 1e6:.2f} us" for k, v in calls.items())
+    )
     load = os.getloadavg()
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
     print(f"machine: {machine}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")

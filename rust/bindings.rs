@@ -381,6 +381,9 @@ fn output_size<const N: usize>(
     Ok((records, len))
 }
 
+/// Writes the step angle of each state into the slice beside it.
+type StepAngles<'a, const N: usize> = dyn Fn(&[[f64; N]], &mut [f64]) + Sync + 'a;
+
 /// Wall-clock time a rollout segment aims at: Ctrl-C is noticed within about this long (plus one
 /// step of one chunk of trajectories, the smallest segment).
 const SEGMENT_SECONDS: f64 = 0.05;
@@ -405,7 +408,7 @@ fn run_rollout<'py, const N: usize, K: ChunkKernel<N>>(
     h: f64,
     n_steps: usize,
     every: usize,
-    angles: Option<&(dyn Fn(&[[f64; N]], &mut [f64]) + Sync)>,
+    angles: Option<&StepAngles<'_, N>>,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     // Refuses what cannot fit before anything is allocated, and an allocation the system
     // refuses anyway becomes MemoryError rather than the abort of an infallible allocation.

@@ -17,6 +17,9 @@
 //! feature-gated function; AVX-512 (`avx512f` as a target feature) is stable from Rust 1.89,
 //! above this crate's minimum 1.85, so it is not compiled in (see docs/performance.md).
 
+// Index loops over lanes and coordinates read as the formulas they evaluate.
+#![allow(clippy::needless_range_loop)]
+
 use crate::classical::{RigidBody, Rk4};
 use crate::error::StepFailure;
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
@@ -261,7 +264,7 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
         }
         let all_finite = probe.iter().all(|p| *p == 0.0);
         let keep = (k + 1) % every == 0;
-        if !(keep || !all_finite) {
+        if !keep && all_finite {
             continue;
         }
         for l in 0..n {

@@ -2,6 +2,9 @@
 //! Hamiltonian H on g*. In the convention of the rigid body (μ̇ = μ × ∇H on so(3)*),
 //! μ̇_j = Σ_{i,k} c[i][j][k] ∂H/∂μ_i μ_k, i.e. μ̇ = ad*_{∇H} μ with A = ad_{∇H}ᵀ: μ̇ = A μ.
 
+// Index loops over lanes and coordinates read as the formulas they evaluate.
+#![allow(clippy::needless_range_loop)]
+
 use nalgebra::SMatrix;
 
 use crate::dual::{Dual1, Scalar};

@@ -75,7 +75,8 @@ def _rollout_block(
     """One chunk's rollout, in a worker: (rows, records, dim) and the info fields (rows,).
 
     Warnings would land in a worker's log, unseen: failures, out-of-domain states and steps too
-    large to resolve the motion (``step_angle``) are in the info instead. ``offset``: the chunk's first row in the whole array, for the error message.
+    large to resolve the motion (``step_angle``) are in the info instead. ``offset``: the
+    chunk's first row in the whole array, for the error message.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -644,6 +644,7 @@ def integrate(
 #: a Taylor series is beyond its range.
 MAX_STEP_ANGLE = 0.5 * math.pi
 
+
 def _step_angles(stepper: Any, states: np.ndarray, h: float) -> np.ndarray:
     """h × the local rate at each of ``states`` (n, dim), computed in Rust (see
     :attr:`RolloutInfo.step_angle`); NaN for adaptive DOP853, which chooses its own steps, and
