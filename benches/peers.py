@@ -269,6 +269,8 @@ def main() -> None:
     numba_run = numba_runner("rigid body")
     if numba_run is not None:
         calls["numba"] = call_cost(lambda: numba_run(one[None], 1), rounds)
+    core = poisson_rs_runner("rigid body", pr._core)
+    calls["poisson_rs (_core call only)"] = call_cost(lambda: core(one[None], 1), rounds)
     if baseline is not None:
         b = poisson_rs_runner("rigid body", baseline)
         calls["baseline (_core call only)"] = call_cost(lambda: b(one[None], 1), rounds)
