@@ -116,8 +116,8 @@ pub fn step_angles<const N: usize, F: VectorField<N>>(
 /// ‖A‖₂ = |ω| on so(3), an upper bound of ‖A‖₂ wherever A is skew (singular values in pairs:
 /// compact algebras in an orthonormal basis), and within √(N/2) of it otherwise; an exact
 /// ‖A‖₂ ([`spectral_norm`]) costs ten times as much for N = 6. The rotation misses how fast ∇H
-/// itself changes, which the Hessian term of J carries: a quartic H on so(3) turns μ by 0.85
-/// rad a step while J's norm is 8× larger, and every fixed-step method is then O(1) wrong.
+/// itself changes, which the Hessian term of J carries: a quartic H on so(3) can turn μ by
+/// 0.85 rad a step while J's norm is 8× larger, and every fixed-step method is then O(1) wrong.
 /// ‖J‖_F bounds J's spectral norm from above at the cost of N² multiplications. For a quadratic
 /// H (the rigid body) the two terms of J partly cancel and ‖J‖_F stays below |ω|, so the rule
 /// there is unchanged.
