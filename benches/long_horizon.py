@@ -23,9 +23,9 @@ from typing import Any
 os.environ.setdefault("RAYON_NUM_THREADS", "1")
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import poisson_rs as pr  # noqa: E402
+import poisson_rs as pr
 
 INERTIA = (1.5, 2.0, 2.5)
 #: (method, steps) swept; RK4 down to the step that keeps the Casimir to ~1e-12 at T = 1e5.
