@@ -321,8 +321,82 @@ fn bench_kernel(c: &mut Criterion) {
     group.finish();
 }
 
+/// RK4 of the rigid body and the heavy top, 4096 trajectories × 20 steps (final state kept):
+/// one trajectory at a time (the scalar oracle), and in SIMD lanes on the portable and the
+/// widest dispatch path. `cargo bench --bench rollout -- classical`.
+fn bench_classical(c: &mut Criterion) {
+    use poisson_rs::lanes::{Isa, Lanes};
+    use poisson_rs::rollout::{ChunkKernel, PerStep, Rollout};
+    use poisson_rs::{Hamiltonian, LieAlgebra, LiePoisson, RigidBody, Rk4};
+
+    fn run<const N: usize, K: ChunkKernel<N>>(k: &K, mu0: &[[f64; N]], n: usize, out: &mut [f64]) {
+        let mut r = Rollout::start(mu0, H, n, n, out).unwrap();
+        r.advance_kernel(k, n, out, false).unwrap();
+        black_box(r.info());
+    }
+    fn group<const N: usize, F>(c: &mut Criterion, name: &str, field: F, mu0: Vec<[f64; N]>)
+    where
+        F: poisson_rs::lanes::LaneField<N> + poisson_rs::VectorField<N>,
+    {
+        let n = 20;
+        let rk4 = Rk4 { system: field };
+        let mut out = vec![0.0; mu0.len() * 2 * N];
+        let mut g = c.benchmark_group(format!("classical/{name}"));
+        g.sample_size(10);
+        g.warm_up_time(Duration::from_millis(500));
+        g.measurement_time(Duration::from_secs(2));
+        g.throughput(Throughput::Elements((mu0.len() * n) as u64));
+        g.bench_function("scalar", |b| {
+            b.iter(|| run(&PerStep(&rk4), &mu0, n, &mut out))
+        });
+        for isa in [Isa::Portable, Isa::detect()] {
+            let k = Lanes { stepper: &rk4, isa };
+            g.bench_function(format!("lanes-{}", isa.name()), |b| {
+                b.iter(|| run(&k, &mu0, n, &mut out))
+            });
+        }
+        g.finish();
+    }
+    let mut rng = Rng(7);
+    let rigid: Vec<[f64; 3]> = (0..4096)
+        .map(|_| std::array::from_fn(|_| rng.range(-3.0, 3.0)))
+        .collect();
+    group(
+        c,
+        "rigid_body",
+        RigidBody::new([1.5, 2.0, 2.5]).unwrap(),
+        rigid,
+    );
+    let mut sc = [[[0.0; 6]; 6]; 6];
+    for (i, j, k) in [(0, 1, 2), (1, 2, 0), (2, 0, 1)] {
+        sc[i][j][k] = 1.0;
+        sc[j][i][k] = -1.0;
+        sc[i][3 + j][3 + k] = 1.0;
+        sc[3 + j][i][3 + k] = -1.0;
+        sc[j][3 + i][3 + k] = -1.0;
+        sc[3 + i][j][3 + k] = 1.0;
+    }
+    let mut terms: Vec<([u32; 6], f64)> = (0..3)
+        .map(|i| {
+            let mut e = [0; 6];
+            e[i] = 2;
+            (e, 0.5 / [1.0, 1.5, 2.0][i])
+        })
+        .collect();
+    terms.push(([0, 0, 0, 0, 0, 1], 0.981));
+    let top = LiePoisson {
+        algebra: LieAlgebra::new(sc).unwrap(),
+        hamiltonian: Hamiltonian::new(terms).unwrap(),
+    };
+    let states: Vec<[f64; 6]> = (0..4096)
+        .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0)))
+        .collect();
+    group(c, "heavy_top", top.compile(), states);
+}
+
 criterion_group!(
     benches,
+    bench_classical,
     bench_rollout,
     bench_step,
     bench_kernel,

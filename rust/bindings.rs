@@ -16,15 +16,18 @@ use pyo3::exceptions::{
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::classical::{ClassicalMethod, HeavyTop, LieMethod, LieStepper, RigidBody};
+use crate::classical::{
+    ClassicalMethod, ClassicalStepper, HeavyTop, LieMethod, LieStepper, RigidBody,
+};
 use crate::error::CoreError;
 use crate::generating::Workspace;
 use crate::groupoid::LieAlgebra;
+use crate::lanes::Lanes;
 use crate::memory::try_with_capacity;
 use crate::model::{Model, FORMAT};
-use crate::rollout::{n_records, Rollout, TrajectoryInfo};
-use crate::stepper::{batch_size, NewtonOptions, StepMap};
-use crate::system::{Hamiltonian, LiePoisson};
+use crate::rollout::{n_records, ChunkKernel, PerStep, Rollout, TrajectoryInfo};
+use crate::stepper::{batch_size, NewtonOptions};
+use crate::system::{self, Hamiltonian, LiePoisson, VectorField};
 use crate::{with_dim, MAX_DIM};
 
 impl From<CoreError> for PyErr {
@@ -41,12 +44,19 @@ impl From<CoreError> for PyErr {
 /// A float64 NumPy array owned by Python.
 type Array<'py, D> = Bound<'py, PyArray<f64, D>>;
 
+/// Below this many bytes a call skips reading the memory limits: a file read costs more
+/// than the whole of a small call, and no machine this runs on lacks 1 MiB.
+const SMALL_CALL_BYTES: usize = 1 << 20;
+
 /// Refuses, with MemoryError, a call whose output of `numbers` float64 plus `extra` bytes of
 /// working memory would not fit in the memory this process can use now (the least of
 /// MemAvailable, RLIMIT_AS and the cgroup limit, see [`crate::memory`]); before anything is
 /// allocated.
 fn check_output_bytes(numbers: usize, extra: usize) -> PyResult<()> {
     let need = numbers.saturating_mul(8).saturating_add(extra);
+    if need <= SMALL_CALL_BYTES {
+        return Ok(());
+    }
     crate::memory::check_fits(
         need,
         "this call (output and working memory)",
@@ -302,8 +312,17 @@ impl PyModel {
     }
 }
 
-fn info_dict<'py>(py: Python<'py>, info: &[TrajectoryInfo]) -> PyResult<Bound<'py, PyDict>> {
+/// The per-trajectory diagnostics as a dict of (n,) arrays; `step_angle` (h × the local rate
+/// at each initial state, see [`VectorField::step_rate`]) where the rollout knows its system.
+fn info_dict<'py>(
+    py: Python<'py>,
+    info: &[TrajectoryInfo],
+    step_angle: Option<Vec<f64>>,
+) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
+    if let Some(a) = step_angle {
+        d.set_item("step_angle", Array1::from_vec(a).into_pyarray(py))?;
+    }
     let col = |f: &dyn Fn(&TrajectoryInfo) -> f64| Array1::from_iter(info.iter().map(f));
     d.set_item(
         "converged",
@@ -356,7 +375,7 @@ fn output_size<const N: usize>(
         rayon::current_num_threads() + 1
     };
     // Per trajectory: its current state, its diagnostics, and the returned diagnostic arrays.
-    let per_trajectory = 8 * N + std::mem::size_of::<TrajectoryInfo>() + 6 * 8;
+    let per_trajectory = 8 * N + std::mem::size_of::<TrajectoryInfo>() + 7 * 8;
     let extra = n
         .saturating_mul(per_trajectory)
         .saturating_add(threads.saturating_mul(workspace_bytes));
@@ -364,61 +383,119 @@ fn output_size<const N: usize>(
     Ok((records, len))
 }
 
+/// Writes the step angle of each state into the slice beside it.
+type StepAngles<'a, const N: usize> = dyn Fn(&[[f64; N]], &mut [f64]) + Sync + 'a;
+
 /// Wall-clock time a rollout segment aims at: Ctrl-C is noticed within about this long (plus one
-/// step of every trajectory, the smallest segment).
+/// step of one chunk of trajectories, the smallest segment).
 const SEGMENT_SECONDS: f64 = 0.05;
 
-/// Runs a rollout of `stepper` into a new (n, records, N) array, in segments with the GIL
+/// Runs a rollout with `kernel` into a new (n, records, N) array, in segments with the GIL
 /// released. Between segments it re-attaches and calls `py.check_signals()`, so Ctrl-C raises
-/// KeyboardInterrupt within about SEGMENT_SECONDS instead of at the end. The first segment is
-/// one step, whatever the model costs; later ones are sized from the measured speed. The result
-/// does not depend on the segmentation (see [`Rollout`]).
-fn run_rollout<'py, const N: usize, S: StepMap<N>>(
+/// KeyboardInterrupt within about SEGMENT_SECONDS instead of at the end.
+///
+/// Segments are sized by work (trajectory-steps), not by steps: the batch is taken in blocks
+/// of consecutive trajectories, and a segment advances one block by as many steps as the work
+/// allows, so a segment's length does not grow with the batch. The first segment is one step of
+/// one chunk, whatever the model costs; the work per segment is then rescaled from the measured
+/// speed. A block of a single chunk runs on the calling thread (no hand-off to the pool). The
+/// result does not depend on the blocks or segments (see [`Rollout`]).
+///
+/// `angles` computes the step angle of each initial state (see [`info_dict`]).
+#[allow(clippy::too_many_arguments)]
+fn run_rollout<'py, const N: usize, K: ChunkKernel<N>>(
     py: Python<'py>,
-    stepper: &S,
+    kernel: &K,
     mu0: &[[f64; N]],
     h: f64,
     n_steps: usize,
     every: usize,
+    angles: Option<&StepAngles<'_, N>>,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     // Refuses what cannot fit before anything is allocated, and an allocation the system
     // refuses anyway becomes MemoryError rather than the abort of an infallible allocation.
-    let (records, len) = output_size::<N>(mu0.len(), n_steps, every, stepper.workspace_bytes())?;
-    let mut out: Vec<f64> = Vec::new();
-    out.try_reserve_exact(len).map_err(|_| {
+    let n = mu0.len();
+    let (records, len) = output_size::<N>(n, n_steps, every, kernel.workspace_bytes())?;
+    let alloc_error = || {
         PyMemoryError::new_err(format!(
-            "cannot allocate the output ({} trajectories x {records} states x {N} float64, \
+            "cannot allocate the output ({n} trajectories x {records} states x {N} float64, \
              {:.1} GiB); raise `every` or split the batch",
-            mu0.len(),
             (len as f64) * 8.0 / f64::from(1u32 << 30)
         ))
-    })?;
-    let serial = FORKED.load(Ordering::SeqCst);
-    let mut rollout = detached(py, || {
-        out.resize(len, 0.0);
-        Rollout::start(mu0, h, n_steps, every, &mut out)
-    })?;
-    let mut segment = 1;
-    while !rollout.is_finished() {
-        let start = Instant::now();
+    };
+    let mut out: Vec<f64> = Vec::new();
+    out.try_reserve_exact(len).map_err(|_| alloc_error())?;
+    let mut info: Vec<TrajectoryInfo> = Vec::new();
+    info.try_reserve_exact(n).map_err(|_| alloc_error())?;
+    let mut step_angle: Option<Vec<f64>> = None;
+    if let Some(f) = angles {
+        let mut a = Vec::new();
+        a.try_reserve_exact(n).map_err(|_| alloc_error())?;
+        a.resize(n, f64::NAN);
         detached(py, || {
-            rollout.advance_with(stepper, segment, &mut out, !serial)
+            f(mu0, &mut a);
+            Ok(())
         })?;
-        py.check_signals()?;
-        // Rescale towards SEGMENT_SECONDS, growing at most 8× at a time so that a segment
-        // timed while the machine was briefly idle cannot overshoot by much.
-        let seconds = start.elapsed().as_secs_f64();
-        let factor = if seconds > 0.0 {
-            (SEGMENT_SECONDS / seconds).min(8.0)
-        } else {
-            8.0
-        };
-        segment = ((segment as f64 * factor) as usize).max(1);
+        step_angle = Some(a);
     }
-    let info = rollout.into_info();
-    let traj = Array3::from_shape_vec((mu0.len(), records, N), out)
+    let serial = FORKED.load(Ordering::SeqCst);
+    // Every trajectory's row of the output, and the block's rows to the end of the batch.
+    let row = records * N;
+    let chunk = kernel.chunk().max(1);
+    let mut work = chunk as f64;
+    let mut done = 0;
+    out.resize(len, 0.0);
+    while done < n {
+        // Whole chunks, so the chunks (and the batched solves) are those of one big block.
+        let rows = ((work as usize).div_ceil(chunk) * chunk)
+            .max(chunk)
+            .min(n - done);
+        let out_block = &mut out[done * row..(done + rows) * row];
+        let mut rollout = detached(py, || {
+            Rollout::start(&mu0[done..done + rows], h, n_steps, every, out_block)
+        })?;
+        while !rollout.is_finished() {
+            let start = Instant::now();
+            let steps = ((work / rows as f64) as usize).max(1);
+            detached(py, || {
+                rollout.advance_kernel(kernel, steps, out_block, !serial)
+            })?;
+            py.check_signals()?;
+            // Rescale towards SEGMENT_SECONDS, growing at most 8× at a time so that a segment
+            // timed while the machine was briefly idle cannot overshoot by much.
+            let seconds = start.elapsed().as_secs_f64();
+            let factor = if seconds > 0.0 {
+                (SEGMENT_SECONDS / seconds).min(8.0)
+            } else {
+                8.0
+            };
+            work = (steps as f64 * rows as f64 * factor).max(chunk as f64);
+        }
+        info.extend_from_slice(rollout.info());
+        done += rows;
+    }
+    let traj = Array3::from_shape_vec((n, records, N), out)
         .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
-    Ok((traj.into_pyarray(py), info_dict(py, &info)?))
+    Ok((traj.into_pyarray(py), info_dict(py, &info, step_angle)?))
+}
+
+/// The step angles of `mu` under `field`, in parallel for large batches (each state's angle
+/// is computed alone, so the result does not depend on the threads).
+fn angles_of<const N: usize, F: VectorField<N>>(
+    field: &F,
+    h: f64,
+    mu: &[[f64; N]],
+    out: &mut [f64],
+) {
+    use rayon::prelude::*;
+    const CHUNK: usize = 4096;
+    if mu.len() > CHUNK && !FORKED.load(Ordering::SeqCst) {
+        out.par_chunks_mut(CHUNK)
+            .zip(mu.par_chunks(CHUNK))
+            .for_each(|(o, m)| system::step_angles(field, m, h, o));
+    } else {
+        system::step_angles(field, mu, h, out);
+    }
 }
 
 /// Rolls out the bisection integrator of `model` from each row of `mu0` (n, N). `simplified`
@@ -447,7 +524,7 @@ fn rollout_model<'py>(
     with_dim!(model.inner.dim, N => {
         let mu0 = states::<N>(&mu0, "mu0")?;
         let stepper = model.inner.stepper::<N>(newton)?;
-        run_rollout(py, &stepper, &mu0, h, n_steps, every)
+        run_rollout(py, &PerStep(&stepper), &mu0, h, n_steps, every, None)
     }, Err(dim_error(model.inner.dim)))
 }
 
@@ -475,8 +552,28 @@ fn rollout_classical<'py>(
     let body = RigidBody::new(inertia)?;
     let mu0 = states::<3>(&mu0, "mu0")?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
-    let stepper = method.stepper(body, newton);
-    run_rollout(py, &stepper, &mu0, h, n_steps, every)
+    let angles = |m: &[[f64; 3]], o: &mut [f64]| angles_of(&body, h, m, o);
+    match method.stepper(body, newton) {
+        // RK4 in SIMD lanes; the others one trajectory at a time.
+        ClassicalStepper::Rk4(rk4) => run_rollout(
+            py,
+            &Lanes::new(&rk4),
+            &mu0,
+            h,
+            n_steps,
+            every,
+            Some(&angles),
+        ),
+        stepper => run_rollout(
+            py,
+            &PerStep(&stepper),
+            &mu0,
+            h,
+            n_steps,
+            every,
+            Some(&angles),
+        ),
+    }
 }
 
 /// Heavy-top parameters for the splitting integrator: (inertia, mgl, centre of mass).
@@ -538,9 +635,17 @@ fn rollout_lie_poisson<'py>(
             terms.push((std::array::from_fn(|i| row[i] as u32), coeff));
         }
         let system = LiePoisson { algebra, hamiltonian: Hamiltonian::new(terms)? };
+        let compiled = system.compile();
+        let angles = |m: &[[f64; N]], o: &mut [f64]| angles_of(&compiled, h, m, o);
         let stepper = LieStepper::new(method, system, top, newton)?;
         let mu0 = states::<N>(&mu0, "mu0")?;
-        run_rollout(py, &stepper, &mu0, h, n_steps, every)
+        match &stepper {
+            // RK4 in SIMD lanes; the others one trajectory at a time.
+            LieStepper::Rk4(rk4) => {
+                run_rollout(py, &Lanes::new(rk4), &mu0, h, n_steps, every, Some(&angles))
+            }
+            _ => run_rollout(py, &PerStep(&stepper), &mu0, h, n_steps, every, Some(&angles)),
+        }
     }, Err(dim_error(dim)))
 }
 
@@ -646,7 +751,7 @@ fn rollout_log_canonical<'py>(
             scale_floor: 1.0,
         });
         let q0 = states::<N>(&q0, "q0")?;
-        run_rollout(py, &stepper, &q0, h, n_steps, every)
+        run_rollout(py, &PerStep(&stepper), &q0, h, n_steps, every, None)
     }, Err(dim_error(dim)))
 }
 
@@ -699,8 +804,82 @@ fn rollout_log_classical<'py>(
         let system = LogSystem::new(structure, terms, std::array::from_fn(|i| bb[i]))?;
         let stepper = LogClassical::new(method, system, newton)?;
         let s0 = states::<N>(&s0, "s0")?;
-        run_rollout(py, &stepper, &s0, h, n_steps, every)
+        run_rollout(py, &PerStep(&stepper), &s0, h, n_steps, every, None)
     }, Err(dim_error(dim)))
+}
+
+/// h × the local rate at each row of `mu` (n, N) for the Lie–Poisson system with structure
+/// constants `c` (N, N, N) and polynomial Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: the angle
+/// a step of size h turns each state by, max(‖ad_∇H‖_F/√2, ‖∂f/∂μ‖_F) · h. Returns (n,) float64.
+#[pyfunction]
+fn step_angles<'py>(
+    py: Python<'py>,
+    c: PyReadonlyArray3<'py, f64>,
+    powers: PyReadonlyArray2<'py, i64>,
+    coeffs: PyReadonlyArray1<'py, f64>,
+    mu: PyReadonlyArray2<'py, f64>,
+    h: f64,
+) -> PyResult<Array<'py, Ix1>> {
+    if !(h.is_finite() && h > 0.0) {
+        return Err(PyValueError::new_err(format!(
+            "h must be a finite number > 0, got {h}"
+        )));
+    }
+    let dim = c.shape()[0];
+    with_dim!(dim, N => {
+        let system = lie_poisson_system::<N>(&c, &powers, &coeffs)?.compile();
+        let mu = states::<N>(&mu, "mu")?;
+        check_output_bytes(mu.len(), 0)?;
+        let mut out = Vec::new();
+        out.try_reserve_exact(mu.len())
+            .map_err(|_| PyMemoryError::new_err("cannot allocate the step angles"))?;
+        out.resize(mu.len(), f64::NAN);
+        detached(py, || {
+            angles_of(&system, h, &mu, &mut out);
+            Ok(())
+        })?;
+        Ok(Array1::from_vec(out).into_pyarray(py))
+    }, Err(dim_error(dim)))
+}
+
+/// The Lie–Poisson system of structure constants `c` (N, N, N) and the polynomial Hamiltonian
+/// Σ coeffs[m] Π μ_i^powers[m, i] (powers int64 (M, N), coeffs (M,)), checked.
+fn lie_poisson_system<const N: usize>(
+    c: &PyReadonlyArray3<'_, f64>,
+    powers: &PyReadonlyArray2<'_, i64>,
+    coeffs: &PyReadonlyArray1<'_, f64>,
+) -> PyResult<LiePoisson<N>> {
+    let shape = c.shape();
+    if shape != [N, N, N] {
+        return Err(PyValueError::new_err(format!(
+            "structure constants must have shape (N, N, N), got {shape:?}"
+        )));
+    }
+    if powers.shape()[1] != N || powers.shape()[0] != coeffs.shape()[0] {
+        return Err(PyValueError::new_err(format!(
+            "the Hamiltonian needs powers of shape (M, {N}) and coeffs of shape (M,), got {:?} \
+             and {:?}",
+            powers.shape(),
+            coeffs.shape()
+        )));
+    }
+    let (c, powers, coeffs) = (c.as_array(), powers.as_array(), coeffs.as_array());
+    let algebra = LieAlgebra::<N>::new(std::array::from_fn(|i| {
+        std::array::from_fn(|j| std::array::from_fn(|k| c[[i, j, k]]))
+    }))?;
+    let mut terms = Vec::with_capacity(coeffs.len());
+    for (row, &coeff) in powers.rows().into_iter().zip(coeffs.iter()) {
+        if let Some(&bad) = row.iter().find(|&&e| !(0..=64).contains(&e)) {
+            return Err(PyValueError::new_err(format!(
+                "Hamiltonian exponent {bad} is outside 0..=64"
+            )));
+        }
+        terms.push((std::array::from_fn(|i| row[i] as u32), coeff));
+    }
+    Ok(LiePoisson {
+        algebra,
+        hamiltonian: Hamiltonian::new(terms)?,
+    })
 }
 
 #[pymodule]
@@ -709,6 +888,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(rollout_model, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_classical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_lie_poisson, m)?)?;
+    m.add_function(wrap_pyfunction!(step_angles, m)?)?;
     m.add_function(wrap_pyfunction!(_after_fork_in_child, m)?)?;
     m.add_function(wrap_pyfunction!(serial_rollouts, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_log_canonical, m)?)?;

@@ -26,7 +26,7 @@ use nalgebra::{Const, DimMin, Matrix3, SMatrix, SVector, Vector3};
 use crate::error::{CoreError, StepFailure};
 use crate::rollout::{rollout, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepMap, StepStats};
-use crate::system::{LiePoisson, VectorField};
+use crate::system::{CompiledLiePoisson, LiePoisson, VectorField};
 
 /// A free rigid body: principal moments of inertia I (any order, all finite and > 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -50,6 +50,12 @@ impl RigidBody {
 
     pub fn inertia(&self) -> [f64; 3] {
         self.inertia
+    }
+
+    /// 1/Iᵢ, the factors of ω = μ/I.
+    #[inline(always)]
+    pub fn inverse_inertia(&self) -> [f64; 3] {
+        self.inv
     }
 
     /// H(μ) = ½ Σ μᵢ²/Iᵢ.
@@ -114,6 +120,13 @@ impl VectorField<3> for RigidBody {
     #[inline]
     fn jacobian(&self, mu: &[f64; 3]) -> Matrix3<f64> {
         hat(mu) * Matrix3::from_diagonal(&Vector3::from(self.inv)) - hat(&self.velocity(mu))
+    }
+
+    /// max(|ω|, ‖J‖_F): ‖ad_ω‖₂ = |ω| in closed form (see [`crate::system::lie_poisson_rate`]).
+    fn step_rate(&self, mu: &[f64; 3]) -> f64 {
+        let w = self.velocity(mu);
+        let rotation = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+        rotation.max(self.jacobian(mu).norm())
     }
 }
 
@@ -664,8 +677,8 @@ impl LieMethod {
 /// A classical integrator of a Lie–Poisson system chosen at run time.
 #[derive(Clone, Debug)]
 pub enum LieStepper<const N: usize> {
-    Rk4(Rk4<LiePoisson<N>>),
-    Midpoint(ImplicitMidpoint<LiePoisson<N>>),
+    Rk4(Rk4<CompiledLiePoisson<N>>),
+    Midpoint(ImplicitMidpoint<CompiledLiePoisson<N>>),
     /// Only for N = 6 (the heavy top); built by [`LieStepper::new`] alone.
     HeavyTop(HeavyTopSplitting),
 }
@@ -679,6 +692,8 @@ impl<const N: usize> LieStepper<N> {
         heavy_top: Option<HeavyTop>,
         newton: NewtonOptions,
     ) -> Result<Self, CoreError> {
+        // The steppers evaluate the system compiled to its sparsity.
+        let system = system.compile();
         Ok(match method {
             LieMethod::Rk4 => LieStepper::Rk4(Rk4 { system }),
             LieMethod::Midpoint => LieStepper::Midpoint(ImplicitMidpoint { system, newton }),

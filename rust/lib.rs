@@ -16,6 +16,7 @@ pub mod error;
 pub mod generating;
 pub mod groupoid;
 pub mod kernel;
+pub mod lanes;
 pub mod memory;
 pub mod model;
 pub mod realization;

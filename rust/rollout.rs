@@ -2,7 +2,9 @@
 //!
 //! Trajectories are independent, so the result is bit-identical whatever the thread count; a
 //! trajectory's state is carried exactly between segments, so it is bit-identical whatever the
-//! segmentation too.
+//! segmentation too. How a chunk is advanced is a [`ChunkKernel`]: one step of every trajectory
+//! at a time for any [`StepMap`] ([`PerStep`]), or blocks of SIMD lanes kept in registers over
+//! many steps ([`crate::lanes::Lanes`]).
 
 use rayon::prelude::*;
 
@@ -165,23 +167,36 @@ impl<const N: usize> Rollout<N> {
         out: &mut [f64],
         parallel: bool,
     ) -> Result<usize, CoreError> {
+        self.advance_kernel(&PerStep(stepper), max_steps, out, parallel)
+    }
+
+    /// [`Rollout::advance_with`] for any [`ChunkKernel`]. A rollout of a single chunk runs on
+    /// the calling thread whatever `parallel` says: handing it to the pool costs more than it
+    /// could gain.
+    pub fn advance_kernel<K: ChunkKernel<N>>(
+        &mut self,
+        kernel: &K,
+        max_steps: usize,
+        out: &mut [f64],
+        parallel: bool,
+    ) -> Result<usize, CoreError> {
         let row = check_buffer::<N>(self.mu.len(), self.n_steps, self.every, out)?;
         let steps = max_steps.min(self.n_steps - self.steps_done);
         let (h, every, first) = (self.h, self.every, self.steps_done);
         if steps > 0 && !self.mu.is_empty() {
             // Fixed chunks of `batch` consecutive trajectories: which trajectories share a
             // batched solve never depends on the thread count.
-            let batch = stepper.batch().clamp(1, MAX_BATCH);
-            let chunk = |ws: &mut S::Workspace, ((o, mu), info): Chunk<'_, N>| {
-                advance_chunk(stepper, ws, mu, info, h, first..first + steps, every, o);
+            let batch = kernel.chunk().max(1);
+            let chunk = |ws: &mut K::Workspace, ((o, mu), info): Chunk<'_, N>| {
+                kernel.advance_chunk(ws, mu, info, h, first..first + steps, every, o);
             };
-            if parallel {
+            if parallel && self.mu.len() > batch {
                 out.par_chunks_mut(row * batch)
                     .zip(self.mu.par_chunks_mut(batch))
                     .zip(self.info.par_chunks_mut(batch))
-                    .for_each_init(|| stepper.workspace(), chunk);
+                    .for_each_init(|| kernel.workspace(), chunk);
             } else {
-                let mut ws = stepper.workspace();
+                let mut ws = kernel.workspace();
                 out.chunks_mut(row * batch)
                     .zip(self.mu.chunks_mut(batch))
                     .zip(self.info.chunks_mut(batch))
@@ -192,6 +207,11 @@ impl<const N: usize> Rollout<N> {
         Ok(steps)
     }
 
+    /// The current state of every trajectory (the last one reached where a step failed).
+    pub fn states(&self) -> &[[f64; N]] {
+        &self.mu
+    }
+
     /// The per-trajectory diagnostics (final once [`Rollout::is_finished`]).
     pub fn info(&self) -> &[TrajectoryInfo] {
         &self.info
@@ -199,6 +219,102 @@ impl<const N: usize> Rollout<N> {
 
     pub fn into_info(self) -> Vec<TrajectoryInfo> {
         self.info
+    }
+}
+
+/// How a [`Rollout`] advances a chunk of consecutive trajectories over a range of steps. The
+/// chunks are fixed by position (never by the thread count), and a kernel must give every
+/// trajectory the same result whatever chunk it sits in.
+pub trait ChunkKernel<const N: usize>: Sync {
+    type Workspace: Send;
+    fn workspace(&self) -> Self::Workspace;
+    /// Bytes one workspace takes (the rollout makes one per thread).
+    fn workspace_bytes(&self) -> usize {
+        0
+    }
+    /// Trajectories per chunk.
+    fn chunk(&self) -> usize;
+    /// Takes the global steps `steps` (state k → k+1 for k in the range) of the trajectories
+    /// `mu`, updating `info` and writing their records into their rows of `out` (n_records × N
+    /// each). After a failed step a trajectory's later records are NaN.
+    #[allow(clippy::too_many_arguments)]
+    fn advance_chunk(
+        &self,
+        ws: &mut Self::Workspace,
+        mu: &mut [[f64; N]],
+        info: &mut [TrajectoryInfo],
+        h: f64,
+        steps: std::ops::Range<usize>,
+        every: usize,
+        out: &mut [f64],
+    );
+}
+
+/// Any [`StepMap`] as a [`ChunkKernel`]: one step of every trajectory of the chunk at a time,
+/// chunks of [`StepMap::batch`] trajectories.
+pub struct PerStep<'a, S>(pub &'a S);
+
+impl<const N: usize, S: StepMap<N>> ChunkKernel<N> for PerStep<'_, S> {
+    type Workspace = S::Workspace;
+
+    fn workspace(&self) -> S::Workspace {
+        self.0.workspace()
+    }
+
+    fn workspace_bytes(&self) -> usize {
+        self.0.workspace_bytes()
+    }
+
+    fn chunk(&self) -> usize {
+        self.0.batch().clamp(1, MAX_BATCH)
+    }
+
+    fn advance_chunk(
+        &self,
+        ws: &mut S::Workspace,
+        mu: &mut [[f64; N]],
+        info: &mut [TrajectoryInfo],
+        h: f64,
+        steps: std::ops::Range<usize>,
+        every: usize,
+        out: &mut [f64],
+    ) {
+        advance_chunk(self.0, ws, mu, info, h, steps, every, out);
+    }
+}
+
+/// Records the outcome of global step k (state k → k+1) of one trajectory: its diagnostics, and
+/// its new state `mu` if it is kept, or NaN in every later record if the step failed. `o` is the
+/// trajectory's row of the output. Returns whether the trajectory is still live.
+#[inline]
+pub(crate) fn record_step<const N: usize>(
+    result: StepResult,
+    k: usize,
+    every: usize,
+    mu: &[f64; N],
+    info: &mut TrajectoryInfo,
+    o: &mut [f64],
+) -> bool {
+    match result {
+        Ok(stats) => {
+            info.newton_iterations += u64::from(stats.iterations);
+            info.max_newton_iterations = info.max_newton_iterations.max(stats.iterations);
+            info.max_residual = info.max_residual.max(stats.residual);
+            if (k + 1) % every == 0 {
+                let r = N * ((k + 1) / every);
+                o[r..r + N].copy_from_slice(mu);
+            }
+            true
+        }
+        Err(failure) => {
+            // The trajectory stops here: later records are NaN, never stale values.
+            info.converged = false;
+            info.failed_step = k as i64;
+            info.failure = Some(failure);
+            let next = (k + 1).div_ceil(every);
+            o[N * next..].fill(f64::NAN);
+            false
+        }
     }
 }
 
@@ -232,27 +348,7 @@ fn advance_chunk<const N: usize, S: StepMap<N>>(
                 continue;
             }
             let o = &mut out[i * row..(i + 1) * row];
-            match results[i] {
-                Ok(stats) => {
-                    let info = &mut info[i];
-                    info.newton_iterations += u64::from(stats.iterations);
-                    info.max_newton_iterations = info.max_newton_iterations.max(stats.iterations);
-                    info.max_residual = info.max_residual.max(stats.residual);
-                    if (k + 1) % every == 0 {
-                        let r = N * ((k + 1) / every);
-                        o[r..r + N].copy_from_slice(&mu[i]);
-                    }
-                }
-                Err(failure) => {
-                    // The trajectory stops here: later records are NaN, never stale values.
-                    live[i] = false;
-                    info[i].converged = false;
-                    info[i].failed_step = k as i64;
-                    info[i].failure = Some(failure);
-                    let next = (k + 1).div_ceil(every);
-                    o[N * next..].fill(f64::NAN);
-                }
-            }
+            live[i] = record_step(results[i], k, every, &mu[i], &mut info[i], o);
         }
     }
 }

@@ -144,3 +144,13 @@ def rollout_log_classical(
     """Classical rollout of the log-canonical system c, H = Σ coeffs[m] x^powers[m] − Σ b_i ln x_i:
     "rk4", "midpoint" (state x; leaving the orthant fails with code 5), "log_splitting",
     "log_splitting4" (state q = ln x; exact one-variable flows, Strang / Suzuki)."""
+
+def step_angles(
+    c: npt.NDArray[np.float64],
+    powers: npt.NDArray[np.int64],
+    coeffs: npt.NDArray[np.float64],
+    mu: npt.NDArray[np.float64],
+    h: float,
+) -> npt.NDArray[np.float64]:
+    """h × max(‖ad_∇H(μ)‖_F/√2, ‖∂f/∂μ‖_F) at each row of ``mu`` (n, N) for the Lie–Poisson system
+    (c, powers, coeffs): the angle (rad) a step of size h turns each state by. Shape (n,)."""

@@ -52,6 +52,7 @@ INFO_FIELDS = (
     "max_newton_iterations",
     "max_residual",
     "out_of_domain",
+    "step_angle",
 )
 
 _EXTRA = "pip install 'poisson_rs[distributed]'"
@@ -76,8 +77,9 @@ def _rollout_block(
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """One chunk's rollout, in a worker: (rows, records, dim) and the info fields (rows,).
 
-    Warnings would land in a worker's log, unseen: failures and out-of-domain states are in the
-    info instead. ``offset``: the chunk's first row in the whole array, for the error message.
+    Warnings would land in a worker's log, unseen: failures, out-of-domain states and steps too
+    large to resolve the motion (``step_angle``) are in the info instead. ``offset``: the
+    chunk's first row in the whole array, for the error message.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -124,7 +126,9 @@ def integrate_dask(
     ValueError when their chunk is computed. Failures are reported in the info:
     ``on_failure="raise"`` makes a chunk with a failed trajectory raise RuntimeError when
     computed, "warn" and "ignore" warn nothing (a worker's warnings would go unseen), and
-    out-of-domain states are counted in ``info.out_of_domain`` without a warning.
+    out-of-domain states are counted in ``info.out_of_domain`` and every state's step angle is
+    in ``info.step_angle`` (above ``integrators.MAX_STEP_ANGLE`` the step does not resolve the
+    motion), without a warning.
 
     Each chunk's task receives the stepper once (a pickle of its model bytes and options, kept
     once in the graph and shared by every chunk).

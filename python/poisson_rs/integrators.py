@@ -21,7 +21,7 @@ from . import _core
 from .export import DOMAIN_KINDS, load_generating, model_bytes, parse_metadata, read_tensor
 from .files import check_input_file
 from .groupoid import sou
-from .systems import LiePoissonSystem, RigidBody
+from .systems import HeavyTop, LiePoissonSystem, RigidBody
 from .untrusted import parsing
 
 if TYPE_CHECKING:
@@ -122,6 +122,12 @@ class RolloutInfo:
     """int64: recorded states (the kept ones, every ``every``-th, the initial one included)
     outside the model's training domain; states between records are not checked, NaN states
     after a failure are not counted. Zeros for methods without a domain (Taylor, classical)."""
+    step_angle: np.ndarray
+    """float64, radians: h times the local rate at the initial state, max(‖ad_∇H(μ)‖_F/√2,
+    ‖∂f/∂μ‖_F) with f the vector field (the Frobenius norm of the Jacobian carries the Hessian
+    of H and bounds its spectral norm). Above :data:`MAX_STEP_ANGLE` no fixed-step method
+    resolves the motion. NaN where it does not apply (adaptive DOP853, a stepper without a
+    Lie–Poisson system)."""
 
 
 class Stepper(Protocol):
@@ -712,15 +718,22 @@ def integrate(
                 strict=strict,
             )
     arr, single = _as_states(mu0, dim=int(getattr(stepper, "dim", 3)))
-    if isinstance(h, bool) or not isinstance(h, numbers.Real):
-        raise TypeError(f"h must be a real number, got {type(h).__name__}")
-    if not (np.isfinite(h) and h > 0):
-        raise ValueError(f"h must be finite and > 0, got {h}")
-    for name, value, low in (("n_steps", n_steps, 0), ("every", every, 1)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            raise TypeError(f"{name} must be an integer, got {type(value).__name__}")
-        if value < low:
-            raise ValueError(f"{name} must be >= {low}, got {value}")
+    # Exact built-in types in range take the short path: the abstract-number checks cost more
+    # than a small rollout. Anything else (Fraction, NumPy scalars, 10**400, 2**64, tiny h) gets
+    # the full checks, which name the argument.
+    if not (type(h) is float and MIN_STEP <= h < math.inf):
+        h = _check_step(h)
+    if not (type(n_steps) is int and 0 <= n_steps <= MAX_COUNT):
+        n_steps = _check_count("n_steps", n_steps)
+    if not (type(every) is int and 1 <= every <= MAX_COUNT):
+        every = _check_count("every", every, 1)
+    if n_steps % every:
+        warnings.warn(
+            f"every = {every} does not divide n_steps = {n_steps}: the last "
+            f"{n_steps % every} steps are taken but their final state is not recorded",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     if on_failure not in ("warn", "raise", "ignore"):
         raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
     domain: dict[str, Any] | None = None
@@ -731,12 +744,17 @@ def integrate(
                 f"h = {h} exceeds h_max = {stepper.h_max}, the largest step {stepper.name!r} "
                 "was trained for; pass strict=False to extrapolate (poisson-rs demo: --no-strict)"
             )
-    _warn_unresolved(stepper, arr, float(h))
-    traj, raw = stepper._rollout(arr, float(h), int(n_steps), int(every))
+    h = float(h)
+    traj, raw = stepper._rollout(arr, h, int(n_steps), int(every))
+    if "step_angle" not in raw:
+        raw["step_angle"] = _step_angles(stepper, arr, h)
     # Vectorised over the recorded states: cheap next to the rollout that made them.
-    out_of_domain = count_out_of_domain(domain, traj)
+    out_of_domain = (
+        np.zeros(len(arr), dtype=np.int64) if domain is None else count_out_of_domain(domain, traj)
+    )
     info = RolloutInfo(**raw, out_of_domain=out_of_domain)
-    n_outside = int(out_of_domain.sum())
+    _warn_unresolved(stepper, info.step_angle, h)
+    n_outside = int(out_of_domain.sum()) if domain is not None else 0
     if n_outside:
         assert domain is not None
         n_traj = int((out_of_domain > 0).sum())
@@ -748,7 +766,7 @@ def integrate(
             RuntimeWarning,
             stacklevel=2,
         )
-    n_failed = int((~info.converged).sum())
+    n_failed = 0 if info.converged.all() else int((~info.converged).sum())
     if n_failed and on_failure != "ignore":
         first = int(np.flatnonzero(~info.converged)[0])
         code = int(info.failure_code[first])
@@ -764,40 +782,69 @@ def integrate(
     return (out, info) if return_info else out
 
 
-#: Largest angle h·ρ a step may turn the state by (ρ = ‖ad_{∇H(μ)}‖₂, |ω| for the rigid body)
-#: before :func:`integrate` warns: beyond a quarter turn no fixed-step method resolves the motion
-#: (fewer than 4 steps a revolution), and a Taylor series is beyond its range.
+#: Largest angle h·ρ a step may turn the state by (ρ the local rate, see
+#: :attr:`RolloutInfo.step_angle`; |ω| for the rigid body) before :func:`integrate` warns: beyond
+#: a quarter turn no fixed-step method resolves the motion (fewer than 4 steps a revolution), and
+#: a Taylor series is beyond its range.
 MAX_STEP_ANGLE = 0.5 * math.pi
 
-#: Initial states checked by :func:`_warn_unresolved` (the first ones): enough to catch a scale
-#: mistake, cheap next to any rollout.
-_RESOLUTION_SAMPLE = 4096
+
+def _step_angles(stepper: Any, states: np.ndarray, h: float) -> np.ndarray:
+    """h × the local rate at each of ``states`` (n, dim), computed in Rust (see
+    :attr:`RolloutInfo.step_angle`); NaN for adaptive DOP853, which chooses its own steps, and
+    for a stepper without a Lie–Poisson system."""
+    system = getattr(stepper, "system", None)
+    # The adaptive method is the classical "dop853" itself, not anything named so (a model file
+    # may carry any name).
+    if not isinstance(system, LiePoissonSystem) or (
+        isinstance(stepper, ClassicalIntegrator) and stepper.name == "dop853"
+    ):
+        return np.full(len(states), np.nan)
+    c, powers, coeffs = _system_arrays(system)
+    return _core.step_angles(c, powers, coeffs, states, h)
 
 
-def _warn_unresolved(stepper: Any, states: np.ndarray, h: float) -> None:
+def _system_arrays(system: LiePoissonSystem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Structure constants (dim, dim, dim) and the Hamiltonian's (powers, coeffs) as the core
+    takes them, computed once per system (systems are immutable)."""
+    cached = _SYSTEM_ARRAYS.get(id(system))
+    if cached is not None and cached[0] is system:
+        return cached[1]
+    powers, coeffs = system.polynomial.to_arrays()
+    arrays = (np.ascontiguousarray(system.algebra.c, dtype=np.float64), powers, coeffs)
+    if len(_SYSTEM_ARRAYS) >= 64:
+        _SYSTEM_ARRAYS.clear()
+    _SYSTEM_ARRAYS[id(system)] = (system, arrays)
+    return arrays
+
+
+#: The core's arrays of recently used systems, by id (the system itself is kept with them, so
+#: the id cannot be reused while cached).
+_SYSTEM_ARRAYS: dict[int, tuple[LiePoissonSystem, tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+
+
+def _warn_unresolved(stepper: Any, angle: np.ndarray, h: float) -> None:
     """Warns when a step of size h turns some initial state by more than MAX_STEP_ANGLE: the
     result would be O(1) wrong while every step "converged" (a fixed-step method cannot see it).
-    The angle is h·‖ad_{∇H(μ)}‖₂, the rate at which the coadjoint flow turns μ; for the rigid
-    body h·|ω| with ω = μ/I. Adaptive DOP853 chooses its own steps and is not checked."""
-    system = getattr(stepper, "system", None)
-    if (
-        not isinstance(system, LiePoissonSystem)
-        or getattr(stepper, "name", "") == "dop853"
-        or not len(states)
-    ):
+    ``angle`` is :attr:`RolloutInfo.step_angle`, one per trajectory (every state is checked);
+    NaN angles (DOP853) are skipped."""
+    if not len(angle):
         return
-    mu = states[:_RESOLUTION_SAMPLE]
-    with np.errstate(over="ignore", invalid="ignore"):
-        rate = np.linalg.norm(system.algebra.ad(system.grad_hamiltonian(mu)), ord=2, axis=(-2, -1))
-    angle = h * rate
-    worst = int(np.nanargmax(angle)) if np.isfinite(angle).any() else 0
-    if not angle[worst] > MAX_STEP_ANGLE:
+    top = angle.max()
+    if np.isnan(top):  # some angles are n/a: look at the others
+        if np.isnan(angle).all():
+            return
+        top = np.nanmax(angle)
+    if not top > MAX_STEP_ANGLE:
         return
+    worst = int(np.nanargmax(angle))
+    rate = angle[worst] / h
     warnings.warn(
         f"{_stepper_name(stepper)}: a step of h = {h:g} turns state {worst} by "
-        f"{angle[worst]:.3g} rad (h·‖ad_∇H‖), more than a quarter turn: no fixed-step method "
-        f"resolves this motion and the result can be O(1) wrong with every step converged; "
-        f"use h <= {MAX_STEP_ANGLE / rate[worst]:.3g}",
+        f"{angle[worst]:.3g} rad (h × the local rate max(‖ad_∇H‖_F/√2, ‖∂f/∂μ‖_F)), more than a "
+        f"quarter turn: no fixed-step method resolves this motion and the result can be O(1) "
+        f"wrong with every step converged; use h <= {MAX_STEP_ANGLE / rate:.3g} (see "
+        "info.step_angle)",
         RuntimeWarning,
         stacklevel=3,
     )
@@ -926,15 +973,13 @@ class ClassicalIntegrator:
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        from .systems import HeavyTop
-
         body = self.body
         if self.name != "dop853":
             if isinstance(body, RigidBody):
                 return _core.rollout_classical(
                     self.name, body.inertia, mu0, h, n_steps, every, self.tol, self.max_iter
                 )
-            powers, coeffs = body.polynomial.to_arrays()
+            c, powers, coeffs = _system_arrays(body)
             top = (
                 (body.inertia, body.mgl, body.com)
                 if isinstance(body, HeavyTop) and self.name == "splitting"
@@ -942,7 +987,7 @@ class ClassicalIntegrator:
             )
             return _core.rollout_lie_poisson(
                 self.name,
-                np.ascontiguousarray(body.algebra.c),
+                c,
                 powers,
                 coeffs,
                 mu0,
@@ -978,6 +1023,8 @@ class ClassicalIntegrator:
             "newton_iterations": np.zeros(n, dtype=np.uint64),
             "max_newton_iterations": np.zeros(n, dtype=np.uint32),
             "max_residual": np.zeros(n, dtype=np.float64),
+            # DOP853 chooses its own steps: no step to resolve.
+            "step_angle": np.full(n, np.nan),
         }
         return traj, info
 

@@ -220,6 +220,7 @@ fn richardson(d: impl Fn(f64) -> f64, delta: f64) -> f64 {
 mod batched;
 mod charts;
 mod derivatives;
+mod lanes;
 mod lie_poisson;
 mod log_canonical;
 mod model_files;

@@ -1,0 +1,293 @@
+//! Batch-SIMD classical steppers: trajectories in structure-of-arrays blocks of [`LANES`]
+//! lanes, kept in registers over a whole segment of steps, one instruction advancing every lane.
+//!
+//! A system plugs in by implementing one trait, [`LaneField`] (its vector field at L states at
+//! once); [`Rk4`] then runs on it through [`Lanes`], the rollout kernel. The scalar steppers of
+//! [`crate::classical`] stay the oracle.
+//!
+//! **Bit identity.** A lane performs exactly the scalar path's operations in the same order
+//! (plain multiplies and adds: Rust never contracts `a * b + c` into an FMA), so every lane equals
+//! the scalar [`crate::stepper::StepMap::step`] bit for bit, on every dispatch path, for any
+//! chunking, padding and thread count. The tests check all of it.
+//!
+//! **Dispatch.** The block loop is compiled twice in one binary: for the baseline x86-64 (SSE2,
+//! two lanes per instruction) and, behind `#[target_feature(enable = "avx2,fma")]`, for AVX2
+//! (four lanes per instruction), chosen once at run time with `is_x86_feature_detected!`
+//! ([`Isa::detect`]). `std::arch` needs no dependency and no `unsafe` beyond the call of the
+//! feature-gated function; AVX-512 (`avx512f` as a target feature) is stable from Rust 1.89,
+//! above this crate's minimum 1.85, so it is not compiled in (see docs/performance.md).
+
+// Index loops over lanes and coordinates read as the formulas they evaluate.
+#![allow(clippy::needless_range_loop)]
+
+use crate::classical::{RigidBody, Rk4};
+use crate::error::StepFailure;
+use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
+use crate::system::CompiledLiePoisson;
+
+/// Lanes per block: 8 f64, two AVX2 registers (or four SSE2 ones) per coordinate, which gives the
+/// core independent chains to overlap; 4 was slower (see docs/performance.md).
+pub const LANES: usize = 8;
+
+/// Trajectories per rollout chunk (a multiple of [`LANES`]).
+pub const LANE_CHUNK: usize = 8 * LANES;
+
+/// A vector field evaluated on a block of L states at once.
+///
+/// `mu[i][l]` is coordinate i of lane l. An implementation must give each lane the same number,
+/// bit for bit, as the system's scalar field (the same operations in the same order), and no
+/// lane may depend on another: that is what keeps results independent of the chunking.
+pub trait LaneField<const N: usize>: Sync {
+    fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
+}
+
+impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
+    #[inline(always)]
+    fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        CompiledLiePoisson::field_lanes(self, mu, out);
+    }
+}
+
+impl LaneField<3> for RigidBody {
+    /// μ × (μ/I), as [`RigidBody::vector_field`].
+    #[inline(always)]
+    fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
+        let inv = self.inverse_inertia();
+        for l in 0..L {
+            let (a0, a1, a2) = (mu[0][l], mu[1][l], mu[2][l]);
+            let (b0, b1, b2) = (a0 * inv[0], a1 * inv[1], a2 * inv[2]);
+            out[0][l] = a1 * b2 - a2 * b1;
+            out[1][l] = a2 * b0 - a0 * b2;
+            out[2][l] = a0 * b1 - a1 * b0;
+        }
+    }
+}
+
+/// A stepper that advances a block of L states by one step. Explicit steppers cannot fail
+/// except by overflow, which [`Lanes`] detects after each step.
+pub trait LaneStepper<const N: usize>: Sync {
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]);
+}
+
+impl<const N: usize, F: LaneField<N>> LaneStepper<N> for Rk4<F> {
+    /// The same operations as the scalar [`Rk4`] step, lane by lane.
+    #[inline(always)]
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
+        let f = &self.system;
+        let (mut k1, mut k2, mut k3, mut k4) =
+            ([[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N]);
+        let mut y = [[0.0; L]; N];
+        let (half, sixth) = (0.5 * h, h / 6.0);
+        f.field_lanes(mu, &mut k1);
+        axpy_lanes(half, &k1, mu, &mut y);
+        f.field_lanes(&y, &mut k2);
+        axpy_lanes(half, &k2, mu, &mut y);
+        f.field_lanes(&y, &mut k3);
+        axpy_lanes(h, &k3, mu, &mut y);
+        f.field_lanes(&y, &mut k4);
+        for i in 0..N {
+            for l in 0..L {
+                mu[i][l] += sixth * (k1[i][l] + 2.0 * (k2[i][l] + k3[i][l]) + k4[i][l]);
+            }
+        }
+    }
+}
+
+/// out = y + a·x, lane by lane (the scalar `axpy`).
+#[inline(always)]
+fn axpy_lanes<const L: usize, const N: usize>(
+    a: f64,
+    x: &[[f64; L]; N],
+    y: &[[f64; L]; N],
+    out: &mut [[f64; L]; N],
+) {
+    for i in 0..N {
+        for l in 0..L {
+            out[i][l] = y[i][l] + a * x[i][l];
+        }
+    }
+}
+
+/// The instruction sets the block loop is compiled for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Isa {
+    /// The target's baseline (SSE2 on x86-64): runs everywhere.
+    Portable,
+    /// AVX2 and FMA (x86-64 only; FMA is enabled but never contracted into, see the module doc).
+    Avx2,
+}
+
+impl Isa {
+    /// The widest instruction set this CPU runs.
+    pub fn detect() -> Isa {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                return Isa::Avx2;
+            }
+        }
+        Isa::Portable
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Isa::Portable => "portable",
+            Isa::Avx2 => "avx2+fma",
+        }
+    }
+}
+
+/// A [`LaneStepper`] as a rollout [`ChunkKernel`]: chunks of [`LANE_CHUNK`] trajectories, each
+/// advanced in blocks of [`LANES`] (the last block padded with zero states, whose lanes are
+/// ignored), the block loop compiled for `isa`.
+pub struct Lanes<'a, S> {
+    pub stepper: &'a S,
+    pub isa: Isa,
+}
+
+impl<'a, S> Lanes<'a, S> {
+    /// The kernel for the widest instruction set this CPU runs.
+    pub fn new(stepper: &'a S) -> Self {
+        Lanes {
+            stepper,
+            isa: Isa::detect(),
+        }
+    }
+}
+
+/// One block's view of its trajectories: states, diagnostics and output rows.
+struct Block<'a, const N: usize> {
+    mu: &'a mut [[f64; N]],
+    info: &'a mut [TrajectoryInfo],
+    out: &'a mut [f64],
+    row: usize,
+}
+
+impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
+    type Workspace = ();
+
+    fn workspace(&self) {}
+
+    fn chunk(&self) -> usize {
+        LANE_CHUNK
+    }
+
+    fn advance_chunk(
+        &self,
+        _: &mut (),
+        mu: &mut [[f64; N]],
+        info: &mut [TrajectoryInfo],
+        h: f64,
+        steps: std::ops::Range<usize>,
+        every: usize,
+        out: &mut [f64],
+    ) {
+        if mu.is_empty() {
+            return;
+        }
+        let row = out.len() / mu.len();
+        for ((m, i), o) in mu
+            .chunks_mut(LANES)
+            .zip(info.chunks_mut(LANES))
+            .zip(out.chunks_mut(row * LANES))
+        {
+            let block = Block {
+                mu: m,
+                info: i,
+                out: o,
+                row,
+            };
+            if block.mu.len() == 1 {
+                // A lone trajectory: a block of one lane does the same arithmetic (bit for bit)
+                // without carrying seven idle ones.
+                advance_block::<N, 1, S>(self.stepper, h, steps.clone(), every, block);
+                continue;
+            }
+            match self.isa {
+                #[cfg(target_arch = "x86_64")]
+                Isa::Avx2 => {
+                    // SAFETY: `Isa::Avx2` is only chosen (by `Isa::detect` or a caller that
+                    // checked) where the CPU runs AVX2 and FMA.
+                    unsafe {
+                        advance_block_avx2::<N, S>(self.stepper, h, steps.clone(), every, block)
+                    }
+                }
+                _ => advance_block::<N, LANES, S>(self.stepper, h, steps.clone(), every, block),
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn advance_block_avx2<const N: usize, S: LaneStepper<N>>(
+    stepper: &S,
+    h: f64,
+    steps: std::ops::Range<usize>,
+    every: usize,
+    block: Block<'_, N>,
+) {
+    advance_block::<N, LANES, S>(stepper, h, steps, every, block);
+}
+
+/// Loads up to L trajectories into lanes, takes the steps, records and checks each lane after
+/// every step, and stores the live lanes back.
+#[inline(always)]
+fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
+    stepper: &S,
+    h: f64,
+    steps: std::ops::Range<usize>,
+    every: usize,
+    block: Block<'_, N>,
+) {
+    let Block { mu, info, out, row } = block;
+    let n = mu.len();
+    let mut lanes = [[0.0; L]; N];
+    let mut live = [false; L];
+    for (l, (m, i)) in mu.iter().zip(info.iter()).enumerate() {
+        live[l] = i.converged;
+        for c in 0..N {
+            lanes[c][l] = m[c];
+        }
+    }
+    if !live.contains(&true) {
+        return;
+    }
+    for k in steps {
+        stepper.step_lanes(h, &mut lanes);
+        // x · 0 is 0 for finite x and NaN for ±∞ and NaN: one multiply-add per coordinate.
+        let mut probe = [0.0; L];
+        for c in 0..N {
+            for l in 0..L {
+                probe[l] += lanes[c][l] * 0.0;
+            }
+        }
+        let all_finite = probe.iter().all(|p| *p == 0.0);
+        let keep = (k + 1) % every == 0;
+        if !keep && all_finite {
+            continue;
+        }
+        for l in 0..n {
+            if !live[l] {
+                continue;
+            }
+            let state: [f64; N] = std::array::from_fn(|c| lanes[c][l]);
+            let result = if probe[l] == 0.0 {
+                Ok(Default::default())
+            } else {
+                mu[l] = state;
+                Err(StepFailure::NonFinite)
+            };
+            let o = &mut out[l * row..(l + 1) * row];
+            live[l] = record_step(result, k, every, &state, &mut info[l], o);
+        }
+        if !live.contains(&true) {
+            return;
+        }
+    }
+    for l in 0..n {
+        if live[l] {
+            mu[l] = std::array::from_fn(|c| lanes[c][l]);
+        }
+    }
+}

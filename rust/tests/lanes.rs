@@ -1,0 +1,379 @@
+//! Systems compiled to their sparsity against the dense oracle, SIMD-lane rollouts against the
+//! scalar steppers (bit for bit, on every dispatch path, any batch size and chunking), and the
+//! local rate behind the step-size check.
+
+#![allow(clippy::needless_range_loop)]
+
+use super::*;
+use crate::classical::{RigidBody, Rk4};
+use crate::groupoid::LieAlgebra;
+use crate::lanes::{Isa, Lanes, LANES};
+use crate::rollout::{ChunkKernel, PerStep, Rollout};
+use crate::system::{spectral_norm, Hamiltonian, LiePoisson, VectorField};
+
+const EPS3: [(usize, usize, usize); 3] = [(0, 1, 2), (1, 2, 0), (2, 0, 1)];
+
+/// se(3): [R_i,R_j] = ε_ijk R_k, [R_i,T_j] = ε_ijk T_k, [T_i,T_j] = 0.
+fn se3() -> [[[f64; 6]; 6]; 6] {
+    let mut c = [[[0.0; 6]; 6]; 6];
+    for (i, j, k) in EPS3 {
+        c[i][j][k] = 1.0;
+        c[j][i][k] = -1.0;
+        c[i][3 + j][3 + k] = 1.0;
+        c[3 + j][i][3 + k] = -1.0;
+        c[j][3 + i][3 + k] = -1.0;
+        c[3 + i][j][3 + k] = 1.0;
+    }
+    c
+}
+
+fn so3() -> [[[f64; 3]; 3]; 3] {
+    *LieAlgebra::<3>::so3().unwrap().structure_constants()
+}
+
+/// The structure constants of the same algebra in the basis e'_a = Σ_b B[a][b] e_b, B random
+/// and well conditioned (identity plus a small perturbation): every entry becomes nonzero.
+fn random_basis<const N: usize>(rng: &mut Rng, c: &[[[f64; N]; N]; N]) -> [[[f64; N]; N]; N] {
+    let b = nalgebra::SMatrix::<f64, N, N>::from_fn(|i, j| {
+        f64::from(u8::from(i == j)) + rng.range(-0.3, 0.3)
+    });
+    let binv = b.try_inverse().unwrap();
+    let mut out = [[[0.0; N]; N]; N];
+    for i in 0..N {
+        for j in 0..N {
+            for k in 0..N {
+                let mut s = 0.0;
+                for a in 0..N {
+                    for bb in 0..N {
+                        for d in 0..N {
+                            s += b[(i, a)] * b[(j, bb)] * c[a][bb][d] * binv[(d, k)];
+                        }
+                    }
+                }
+                out[i][j][k] = s;
+            }
+        }
+    }
+    // Exact antisymmetry (the Jacobi identity holds to round-off).
+    for i in 0..N {
+        for j in 0..i {
+            for k in 0..N {
+                out[j][i][k] = -out[i][j][k];
+            }
+        }
+        out[i][i] = [0.0; N];
+    }
+    out
+}
+
+/// A random polynomial H: `n` monomials of total degree ≤ `max_deg`, one of them quadratic.
+fn random_hamiltonian<const N: usize>(rng: &mut Rng, n: usize, max_deg: u32) -> Hamiltonian<N> {
+    let mut terms = Vec::new();
+    for _ in 0..n {
+        let mut e = [0u32; N];
+        let deg = 1 + rng.below(max_deg as usize) as u32;
+        for _ in 0..deg {
+            e[rng.below(N)] += 1;
+        }
+        terms.push((e, rng.range(-1.0, 1.0)));
+    }
+    Hamiltonian::new(terms).unwrap()
+}
+
+/// Σ |c| |∂ᵢH| |μ_k| with every coefficient and coordinate made positive: the size of the terms
+/// summed in a field component, the scale of its rounding error.
+fn field_scale<const N: usize>(sys: &LiePoisson<N>, mu: &[f64; N]) -> f64 {
+    let abs_h = Hamiltonian::new(
+        sys.hamiltonian
+            .terms()
+            .iter()
+            .map(|(e, c)| (*e, c.abs()))
+            .collect(),
+    )
+    .unwrap();
+    let g = abs_h.gradient(&mu.map(f64::abs));
+    let c = sys.algebra.structure_constants();
+    let mut s = 0.0;
+    for i in 0..N {
+        for j in 0..N {
+            for k in 0..N {
+                s += c[i][j][k].abs() * g[i] * mu[k].abs();
+            }
+        }
+    }
+    s
+}
+
+fn check_sparse_equals_dense<const N: usize>(sys: &LiePoisson<N>, rng: &mut Rng, states: usize) {
+    let compiled = sys.compile();
+    for _ in 0..states {
+        let mu: [f64; N] = std::array::from_fn(|_| rng.range(-2.0, 2.0));
+        // Rounding of sums of up to N² products of up to 18 factors each, reordered.
+        let tol = 64.0 * f64::EPSILON * (field_scale(sys, &mu) + f64::MIN_POSITIVE);
+        let (fs, fd) = (compiled.field(&mu), sys.field(&mu));
+        let (gs, gd) = (compiled.gradient(&mu), sys.hamiltonian.gradient(&mu));
+        let (js, jd) = (compiled.jacobian(&mu), sys.jacobian(&mu));
+        for j in 0..N {
+            assert!(
+                (fs[j] - fd[j]).abs() <= tol,
+                "field {j}: {} vs {}",
+                fs[j],
+                fd[j]
+            );
+            let gtol = 64.0 * f64::EPSILON * (1.0 + gd[j].abs());
+            assert!((gs[j] - gd[j]).abs() <= gtol * 8.0, "grad {j}");
+            for m in 0..N {
+                // The Jacobian's terms are up to max_deg × the field's per unit of μ.
+                let jtol = 8.0 * tol / mu.iter().fold(1e-3f64, |a, v| a.max(v.abs()));
+                assert!(
+                    (js[(j, m)] - jd[(j, m)]).abs() <= jtol,
+                    "J[{j},{m}]: {} vs {}",
+                    js[(j, m)],
+                    jd[(j, m)]
+                );
+            }
+        }
+        // The compiled rate is the dense one, to rounding.
+        let (rs, rd) = (compiled.step_rate(&mu), sys.step_rate(&mu));
+        assert!((rs - rd).abs() <= 1e-10 * (1.0 + rd), "rate {rs} vs {rd}");
+    }
+}
+
+#[test]
+fn sparse_field_equals_dense_on_random_algebras() {
+    let mut rng = Rng::new(17);
+    for _ in 0..6 {
+        let c = random_basis(&mut rng, &so3());
+        let sys = LiePoisson {
+            algebra: LieAlgebra::new(c).unwrap(),
+            hamiltonian: random_hamiltonian::<3>(&mut rng, 6, 4),
+        };
+        check_sparse_equals_dense(&sys, &mut rng, 20);
+        let c = random_basis(&mut rng, &se3());
+        let sys = LiePoisson {
+            algebra: LieAlgebra::new(c).unwrap(),
+            hamiltonian: random_hamiltonian::<6>(&mut rng, 10, 3),
+        };
+        check_sparse_equals_dense(&sys, &mut rng, 20);
+    }
+    // The sparse algebras themselves, with high powers (the power tables).
+    let sys = LiePoisson {
+        algebra: LieAlgebra::new(se3()).unwrap(),
+        hamiltonian: random_hamiltonian::<6>(&mut rng, 12, 7),
+    };
+    assert_eq!(sys.compile().bracket().len(), 18);
+    check_sparse_equals_dense(&sys, &mut rng, 50);
+}
+
+/// The heavy top with DPNN's parameters.
+fn heavy_top() -> LiePoisson<6> {
+    let inertia = [1.0, 1.5, 2.0];
+    let mut terms: Vec<([u32; 6], f64)> = (0..3)
+        .map(|i| {
+            let mut e = [0; 6];
+            e[i] = 2;
+            (e, 0.5 / inertia[i])
+        })
+        .collect();
+    terms.push(([0, 0, 0, 0, 0, 1], 0.981));
+    LiePoisson {
+        algebra: LieAlgebra::new(se3()).unwrap(),
+        hamiltonian: Hamiltonian::new(terms).unwrap(),
+    }
+}
+
+fn isas() -> Vec<Isa> {
+    let mut v = vec![Isa::Portable];
+    if Isa::detect() != Isa::Portable {
+        v.push(Isa::detect());
+    }
+    v
+}
+
+/// A rollout of `mu0` with `kernel`, in segments of `segment` steps, serial or on the pool.
+fn run<const N: usize, K: ChunkKernel<N>>(
+    kernel: &K,
+    mu0: &[[f64; N]],
+    (h, n_steps, every): (f64, usize, usize),
+    segment: usize,
+    parallel: bool,
+) -> (Vec<f64>, Vec<TrajectoryInfo>) {
+    let mut out = vec![0.0; mu0.len() * n_records(n_steps, every) * N];
+    let mut r = Rollout::start(mu0, h, n_steps, every, &mut out).unwrap();
+    while !r.is_finished() {
+        r.advance_kernel(kernel, segment, &mut out, parallel)
+            .unwrap();
+    }
+    (out, r.into_info())
+}
+
+fn assert_same_bits(
+    a: &(Vec<f64>, Vec<TrajectoryInfo>),
+    b: &(Vec<f64>, Vec<TrajectoryInfo>),
+    what: &str,
+) {
+    assert_eq!(a.0.len(), b.0.len());
+    for (i, (x, y)) in a.0.iter().zip(&b.0).enumerate() {
+        assert!(
+            x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()),
+            "{what}: number {i}: {x:e} vs {y:e}"
+        );
+    }
+    assert_eq!(a.1, b.1, "{what}: info");
+}
+
+fn check_lanes_equal_scalar<const N: usize, F>(field: F, rng: &mut Rng, scale: f64, h: f64)
+where
+    F: crate::lanes::LaneField<N> + VectorField<N> + Clone,
+{
+    let rk4 = Rk4 { system: field };
+    for n in [1, 3, LANES + 1, 2 * LANES - 1, 67, 133] {
+        let mut mu0: Vec<[f64; N]> = (0..n)
+            .map(|_| std::array::from_fn(|_| rng.range(-scale, scale)))
+            .collect();
+        // One state that overflows within a few steps, in the middle of a block: it fails
+        // alone, at the same step as on the scalar path, and leaves its neighbours alone.
+        if n > 2 {
+            mu0[n / 2] = [1e80; N];
+        }
+        let args = (h, 23, 3);
+        let scalar = run(&PerStep(&rk4), &mu0, args, 23, false);
+        if n > 2 {
+            assert!(!scalar.1[n / 2].converged, "the huge state should overflow");
+            assert!(scalar.1.iter().filter(|i| i.converged).count() == n - 1);
+        }
+        for isa in isas() {
+            let lanes = Lanes { stepper: &rk4, isa };
+            let what = format!("N = {N}, n = {n}, {}", isa.name());
+            assert_same_bits(&run(&lanes, &mu0, args, 23, false), &scalar, &what);
+            // Any segmentation, serial or parallel.
+            assert_same_bits(&run(&lanes, &mu0, args, 5, true), &scalar, &what);
+            assert_same_bits(&run(&lanes, &mu0, args, 1, true), &scalar, &what);
+        }
+    }
+}
+
+#[test]
+fn simd_rk4_equals_the_scalar_path_bit_for_bit() {
+    let mut rng = Rng::new(23);
+    check_lanes_equal_scalar(RigidBody::new(INERTIA).unwrap(), &mut rng, 3.0, 0.1);
+    check_lanes_equal_scalar(heavy_top().compile(), &mut rng, 2.0, 0.05);
+    // A random dense algebra with a quartic H exercises the power tables.
+    let sys = LiePoisson {
+        algebra: LieAlgebra::new(random_basis(&mut rng, &so3())).unwrap(),
+        hamiltonian: random_hamiltonian::<3>(&mut rng, 6, 4),
+    };
+    check_lanes_equal_scalar(sys.compile(), &mut rng, 1.0, 0.01);
+}
+
+#[test]
+fn compiled_rk4_matches_the_dense_rk4() {
+    // The compiled field differs from the dense one by rounding only, so a short rollout does.
+    let sys = heavy_top();
+    let mut rng = Rng::new(5);
+    let mu0: Vec<[f64; 6]> = (0..9)
+        .map(|_| std::array::from_fn(|_| rng.range(-2.0, 2.0)))
+        .collect();
+    let args = (0.1, 50, 50);
+    let dense = run(
+        &PerStep(&Rk4 {
+            system: sys.clone(),
+        }),
+        &mu0,
+        args,
+        50,
+        false,
+    );
+    let sparse = run(
+        &PerStep(&Rk4 {
+            system: sys.compile(),
+        }),
+        &mu0,
+        args,
+        50,
+        false,
+    );
+    for (a, b) in dense.0.iter().zip(&sparse.0) {
+        assert!((a - b).abs() <= 1e-12 * (1.0 + a.abs()), "{a} vs {b}");
+    }
+}
+
+#[test]
+fn spectral_norm_matches_the_svd() {
+    let mut rng = Rng::new(3);
+    for _ in 0..50 {
+        let a: [[f64; 6]; 6] =
+            std::array::from_fn(|_| std::array::from_fn(|_| rng.range(-3.0, 3.0)));
+        let m = nalgebra::SMatrix::<f64, 6, 6>::from_fn(|i, j| a[i][j]);
+        let want = m.singular_values().max();
+        let got = spectral_norm(&a);
+        assert!((got - want).abs() <= 1e-12 * want, "{got} vs {want}");
+    }
+    // ‖ad_ω‖₂ = |ω| on so(3), where AᵀA has a double eigenvalue; the cheap rotation rate
+    // ‖A‖_F/√2 is exact there.
+    let w = [0.3, -1.2, 2.0];
+    let a = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]];
+    assert!((spectral_norm(&a) - norm(&w)).abs() <= 1e-14);
+    assert!((crate::system::lie_poisson_rate(&a, 0.0) - norm(&w)).abs() <= 1e-14);
+    // On any skew A it bounds ‖A‖₂ from above, and on any A it is within √(N/2) of it.
+    for _ in 0..50 {
+        let m: [[f64; 6]; 6] =
+            std::array::from_fn(|_| std::array::from_fn(|_| rng.range(-3.0, 3.0)));
+        let skew: [[f64; 6]; 6] =
+            std::array::from_fn(|i| std::array::from_fn(|j| m[i][j] - m[j][i]));
+        let cheap = crate::system::lie_poisson_rate(&skew, 0.0);
+        assert!(cheap >= spectral_norm(&skew) * (1.0 - 1e-12));
+        let (cheap, exact) = (crate::system::lie_poisson_rate(&m, 0.0), spectral_norm(&m));
+        assert!(
+            cheap <= exact * 3f64.sqrt() * (1.0 + 1e-12)
+                && cheap >= exact / 2f64.sqrt() * (1.0 - 1e-12)
+        );
+    }
+}
+
+#[test]
+fn the_local_rate_sees_the_hessian() {
+    // Rigid body: the rate is |ω| (the Jacobian's norm is smaller there).
+    let body = RigidBody::new(INERTIA).unwrap();
+    let mu = [60.0, 50.0, 60.0];
+    let w = [40.0, 25.0, 24.0];
+    assert!((body.step_rate(&mu) - norm(&w)).abs() <= 1e-12 * norm(&w));
+    // The same body as a Lie–Poisson system gives the same rate.
+    let rigid = LiePoisson {
+        algebra: LieAlgebra::so3().unwrap(),
+        hamiltonian: Hamiltonian::new(
+            (0..3)
+                .map(|i| {
+                    let mut e = [0; 3];
+                    e[i] = 2;
+                    (e, 0.5 / INERTIA[i])
+                })
+                .collect(),
+        )
+        .unwrap(),
+    };
+    assert!((rigid.compile().step_rate(&mu) - norm(&w)).abs() <= 1e-12 * norm(&w));
+    // A quartic H = Σ μᵢ⁴/(4Iᵢ): ∇H = μ³/I, and the Hessian 3μ²/I makes the local rate several
+    // times the rotation rate |∇H| (1.7× here), which alone would pass steps the flow does not.
+    let quartic = LiePoisson {
+        algebra: LieAlgebra::so3().unwrap(),
+        hamiltonian: Hamiltonian::new(
+            (0..3)
+                .map(|i| {
+                    let mut e = [0; 3];
+                    e[i] = 4;
+                    (e, 0.25 / INERTIA[i])
+                })
+                .collect(),
+        )
+        .unwrap(),
+    };
+    let mu = [1.0, 2.0, 0.5];
+    let g = quartic.hamiltonian.gradient(&mu);
+    let rate = quartic.compile().step_rate(&mu);
+    assert!(rate > 1.5 * norm(&g), "rate {rate} vs |∇H| {}", norm(&g));
+    // It is the Jacobian's Frobenius norm, an upper bound of its spectral norm.
+    let j = quartic.jacobian(&mu);
+    assert!((rate - j.norm()).abs() <= 1e-12 * rate);
+    assert!(rate >= j.singular_values().max());
+}
