@@ -138,8 +138,9 @@ def test_out_of_domain_counts_recorded_states_of_a_shell(default_model: pr.Learn
     mu0 = np.array([[1.0, 1.0, 2.0], [0.3, 0.4, 0.0], [3.0, 2.0, 0.0], [3.0, 3.0, 3.0]])
     with pytest.warns(RuntimeWarning, match="outside the training domain") as record:
         traj, info = pr.integrate(default_model, mu0, 0.1, 20, every=3, return_info=True)
-    assert len([w for w in record if "training domain" in str(w.message)]) == 1  # once a call
-    assert "14 recorded states of 2 of 4 trajectories" in str(record[0].message)
+    domain = [str(w.message) for w in record if "training domain" in str(w.message)]
+    assert len(domain) == 1  # once a call
+    assert "14 recorded states of 2 of 4 trajectories" in domain[0]
     assert info.out_of_domain.dtype == np.int64
     np.testing.assert_array_equal(info.out_of_domain, [0, 7, 0, 7])  # 20 // 3 + 1 records
     # The counts are those of the recorded states, nothing else.
@@ -318,9 +319,14 @@ def test_every_layout_gives_the_same_result(random_model: RandomModel, kind: str
 
 def test_huge_output_is_refused_before_allocating(taylor3: pr.TaylorIntegrator):
     for stepper in (taylor3, pr.classical(BODY, "splitting")):
-        for n_steps in (10**9, 2**62):  # 24 GB, and a size that overflows 64 bits
+        # 24 GB of output, then a count whose output size overflows 64 bits (refused as a count
+        # beyond 2**53 before any size is computed).
+        for n_steps, error, match in (
+            (10**9, MemoryError, "raise `every` or split the batch"),
+            (2**62, ValueError, r"n_steps must be <= 2\*\*53"),
+        ):
             t0 = time.perf_counter()
-            with pytest.raises(MemoryError, match="raise `every` or split the batch"):
+            with pytest.raises(error, match=match):
                 pr.integrate(stepper, [1.0, 1.0, 2.0], 0.1, n_steps)
             assert time.perf_counter() - t0 < 1.0  # refused, not attempted
 

@@ -41,6 +41,16 @@ MAX_DEGREE = 12
 # --- helpers -------------------------------------------------------------------------------------
 
 
+def _scaled(value: float, scale: float, power: int) -> str:
+    """value · scale**power, formatted for a message without overflowing float64 (a huge algebra's
+    scale squared does not fit)."""
+    if value == 0:
+        return "0"
+    log10 = math.log10(abs(value)) + power * math.log10(scale)
+    exponent = math.floor(log10)
+    return f"{math.copysign(10 ** (log10 - exponent), value):.3f}e{exponent:+d}"
+
+
 def _is_tensor(x: object) -> bool:
     return type(x).__module__.partition(".")[0] == "torch"
 
@@ -303,7 +313,7 @@ def _check_structure_constants(c: ArrayLike) -> FloatArray:
         raise ValueError(
             f"structure constants violate the Jacobi identity "
             f"[e_i,[e_j,e_k]] + [e_j,[e_k,e_i]] + [e_k,[e_i,e_j]] = 0 at (e{i}, e{j}, e{k}), "
-            f"component {m}: {jacobi[i, j, k, m] * scale * scale:.3e}"
+            f"component {m}: {_scaled(float(jacobi[i, j, k, m]), float(scale), 2)}"
         )
     arr += 0.0  # -0.0 → 0.0, for hashing by bytes
     arr.flags.writeable = False
