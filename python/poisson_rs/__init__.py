@@ -31,6 +31,7 @@ from .integrators import (
     load_model,
     taylor_integrator,
 )
+from .learn import learn
 from .reference import dop853_solution, exact_solution, reference_solution
 from .select import NoCandidateError, SelectionReport, select
 from .systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial, RigidBody
@@ -62,6 +63,7 @@ __all__ = [
     "dop853_solution",
     "exact_solution",
     "integrate",
+    "learn",
     "list_models",
     "load_model",
     "reference_solution",

@@ -100,7 +100,7 @@ def bisection_step(
 ) -> StepResult:
     """One bisection step of S(h, p) = Σ coeffs[m] p^{e_m} (coefficients of S at the step's h,
     (N,)) from mu (B, n), float64. Non-converged rows come back NaN."""
-    ct = torch.as_tensor(c, dtype=torch.float64)
+    ct = torch.tensor(np.array(c, dtype=np.float64))
     coeffs = coeffs.detach()
     mu = mu.detach()
     p = mu.clone()
