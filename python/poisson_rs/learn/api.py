@@ -39,9 +39,7 @@ def resolve_algebra(algebra: Any, system: Any) -> LieAlgebra:
         return _ALGEBRAS[algebra]()
     if algebra is None:
         raise ValueError("learn needs the Poisson structure: give algebra= or system=")
-    raise ValueError(
-        f"algebra must be a LieAlgebra or one of {tuple(_ALGEBRAS)}, got {algebra!r}"
-    )
+    raise ValueError(f"algebra must be a LieAlgebra or one of {tuple(_ALGEBRAS)}, got {algebra!r}")
 
 
 def _domain(data: TrajectoryData) -> dict[str, Any]:
@@ -50,8 +48,9 @@ def _domain(data: TrajectoryData) -> dict[str, Any]:
     return {"kind": "cube", "half_width": 1.1 * half}
 
 
-def _record(data: TrajectoryData, family: str, mode: str, seed: int, command: str | None,
-            seconds: float) -> dict[str, Any]:
+def _record(
+    data: TrajectoryData, family: str, mode: str, seed: int, command: str | None, seconds: float
+) -> dict[str, Any]:
     return {
         "name": f"learned-{family}",
         "learn_mode": mode,
@@ -208,8 +207,9 @@ def learn(
             "mode 'hj+data' (known H plus data, the blended loss) is not available yet; use "
             "'hamiltonian' or 'map'"
         )
-    if degree is not None and (isinstance(degree, bool) or not isinstance(degree, int)
-                               or not 1 <= degree <= 4):
+    if degree is not None and (
+        isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= 4
+    ):
         raise ValueError(f"degree must be an integer in [1, 4], got {degree!r}")
     alg = resolve_algebra(algebra, system)
     data = prepare(trajectories, h, alg, test_fraction=test_fraction, seed=seed)
@@ -230,14 +230,16 @@ def learn(
                 cand.reason = "the smallest family that reaches the data's noise level"
                 break
             cand.reason = (
-                f"held-out one-step error {cand.one_step:.2e} above the noise level "
-                f"{threshold:.2e}" if math.isfinite(threshold) else "noise level unknown"
+                f"held-out one-step error {cand.one_step:.2e} above the noise level {threshold:.2e}"
+                if math.isfinite(threshold)
+                else "noise level unknown"
             )
     if kept is None and mode in ("auto", "map"):
         cand = _map_candidate(data, alg, mode, seed, command, dict(map_options or {}))
         candidates.append(cand)
         cand.reason = (
-            "reaches the data's noise level" if cand.one_step <= threshold
+            "reaches the data's noise level"
+            if cand.one_step <= threshold
             else f"held-out one-step error {cand.one_step:.2e}"
         )
         if mode == "map" or cand.one_step <= threshold:

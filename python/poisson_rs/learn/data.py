@@ -167,7 +167,11 @@ def _as_list(trajectories: Any) -> list[np.ndarray]:
         if len(trajectories) == 0:
             raise ValueError("trajectories: got an empty list")
         first = trajectories[0]
-        if np.ndim(first) == 1:  # one trajectory given as a list of records
+        try:
+            depth = np.ndim(first)
+        except ValueError:  # numpy refuses ragged nesting
+            depth = 2
+        if depth == 1:  # one trajectory given as a list of records
             return [_one(trajectories, 0)]
         return [_one(t, i) for i, t in enumerate(trajectories)]
     raise TypeError(

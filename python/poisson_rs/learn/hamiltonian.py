@@ -127,7 +127,9 @@ class _Model:
             out = series_jacobian(self.c, self.family, theta, self.order, self.h)
         else:
             b, sk = taylor_series(self.c, self.family, torch.as_tensor(theta), self.order)
-            powers = torch.tensor([self.h**k for k in range(1, self.order + 1)], dtype=torch.float64)
+            powers = torch.tensor(
+                [self.h**k for k in range(1, self.order + 1)], dtype=torch.float64
+            )
             out = (b, powers @ sk, None)
         self._cache = (key, out)
         return out
@@ -255,8 +257,15 @@ def fit_polynomial(
         kept = [e for e, s in zip(family, share, strict=True) if s > floor]
         if kept and len(kept) < len(family):
             sub = fit_polynomial(
-                data, algebra, degree, order=order, horizon=horizon, max_iter=max_iter,
-                family=kept, verbose=verbose, sparse=False,
+                data,
+                algebra,
+                degree,
+                order=order,
+                horizon=horizon,
+                max_iter=max_iter,
+                family=kept,
+                verbose=verbose,
+                sparse=False,
             )
             if sub.history[-1] <= 1.5 * history[-1] + 1e-28:
                 sub.seconds = time.perf_counter() - t0
@@ -281,4 +290,3 @@ def relative_field_error(
     a = np.asarray(learned.vector_field(states))
     b = np.asarray(truth.vector_field(states))
     return float(np.max(np.linalg.norm(a - b, axis=-1)) / np.max(np.linalg.norm(b, axis=-1)))
-

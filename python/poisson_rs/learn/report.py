@@ -104,8 +104,6 @@ class LearnReport:
                 f"{num(c.one_step):>9} {num(c.rollout):>9}  {verdict}"
             )
         if self.hamiltonian is not None:
-            terms = ", ".join(
-                f"{coef:+.6g}·μ^{e}" for e, coef in self.hamiltonian.terms.items()
-            )
+            terms = ", ".join(f"{coef:+.6g}·μ^{e}" for e, coef in self.hamiltonian.terms.items())
             lines.append(f"  H = {terms}")
         return "\n".join(lines)
