@@ -22,6 +22,9 @@ __all__ = ["MODES", "learn", "resolve_algebra"]
 MODES = ("auto", "hamiltonian", "map", "hj+data")
 #: Polynomial degrees tried, smallest first.
 AUTO_DEGREES = (2, 3, 4)
+#: Held-out one-step error that counts as exact data when the noise cannot be estimated
+#: (trajectories too short for finite differences): nothing smaller is worth a larger model.
+EXACT_LEVEL = 1e-10
 _ALGEBRAS = {"so3": LieAlgebra.so3, "se3": LieAlgebra.se3, "sl2": LieAlgebra.sl2}
 
 
@@ -228,6 +231,13 @@ def learn(
             if math.isfinite(threshold) and cand.one_step <= threshold:
                 kept = cand
                 cand.reason = "the smallest family that reaches the data's noise level"
+                break
+            if not math.isfinite(threshold) and cand.one_step <= EXACT_LEVEL:
+                kept = cand
+                cand.reason = (
+                    f"noise level unknown; held-out one-step error below {EXACT_LEVEL:g} "
+                    "(exact data)"
+                )
                 break
             cand.reason = (
                 f"held-out one-step error {cand.one_step:.2e} above the noise level {threshold:.2e}"

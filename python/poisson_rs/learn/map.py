@@ -1,7 +1,7 @@
 """Mode "map": the generating function S_θ(h, p) of the time-h map, learned from pairs alone.
 
-S_θ(t, p) = −t·H₀(p) + t·s·MLP(t, p/scale): H₀ is a quadratic Hamiltonian fitted to finite-
-difference velocities by linear least squares (a base that already steps roughly right), the
+S_θ(t, p) = −t·H₀(p) + t·s·MLP(t, p/scale): H₀ is the quadratic whose order-1 map S = −t·H₀
+fits the pairs best (a base that already steps to O(t³)), the
 MLP a small tanh network (its last layer starts at zero, so training starts from H₀'s map). The
 loss is the mean squared relative one-step error of the bisection map through the implicit step,
 with gradients by the implicit function theorem (``train.data_loss``). Any S gives a Poisson map,
@@ -20,7 +20,7 @@ from ..generating import GeneratingFunction
 from ..systems import LieAlgebra
 from ..train import data_loss
 from .data import TrajectoryData
-from .hamiltonian import vector_field_design, velocities
+from .hamiltonian import fit_polynomial, vector_field_design, velocities
 from .series import monomials
 
 __all__ = ["fit_map", "quadratic_guess"]
@@ -80,7 +80,13 @@ def fit_map(
 ) -> tuple[GeneratingFunction, int]:
     """Trains the map's S on ``data.train`` pairs; returns (S, trainable parameters)."""
     torch.manual_seed(seed)
-    h0 = quadratic_guess(data, algebra) if base else {(0,) * algebra.dim: 0.0}
+    if base:
+        # The best quadratic S = −t·H₀ (Taylor-HJ of order 1) through the step map itself:
+        # a few LM iterations, and the network only has to learn the O(t³) rest.
+        fit = fit_polynomial(data, algebra, 2, order=1, horizon=1, max_iter=8, sparse=False)
+        h0 = {e: float(t) for e, t in zip(fit.family, fit.theta, strict=True)}
+    else:
+        h0 = {(0,) * algebra.dim: 0.0}
     h0 = {e: c for e, c in h0.items() if sum(e) > 0} or {
         tuple(1 if i == 0 else 0 for i in range(algebra.dim)): 0.0
     }
@@ -93,7 +99,7 @@ def fit_map(
         loss.backward()
         opt.step()
         if verbose and i % 50 == 0:
-            print(f"  map Adam {i}: {float(loss):.3e}")
+            print(f"  map Adam {i}: {loss.item():.3e}")
     if lbfgs_steps:
         lbfgs = torch.optim.LBFGS(
             s_fn.mlp.parameters(), lr=1.0, max_iter=lbfgs_steps, line_search_fn="strong_wolfe"
