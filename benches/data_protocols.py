@@ -62,8 +62,13 @@ PEERS = {
 def rk45(y0: np.ndarray, times: np.ndarray) -> np.ndarray:
     """The peers' data generator: scipy RK45, rtol = atol = 1e-12. y0 (3,) → (len(times), 3)."""
     sol = solve_ivp(
-        lambda t, y: BODY.vector_field(y), (times[0], times[-1]), y0, method="RK45",
-        t_eval=times, rtol=1e-12, atol=1e-12,
+        lambda t, y: BODY.vector_field(y),
+        (times[0], times[-1]),
+        y0,
+        method="RK45",
+        t_eval=times,
+        rtol=1e-12,
+        atol=1e-12,
     )
     return sol.y.T
 
@@ -89,17 +94,20 @@ def add_noise(trajs: list[np.ndarray], sigma: float, seed: int) -> list[np.ndarr
     if sigma == 0:
         return trajs
     rng = np.random.default_rng(seed)
-    return [t + sigma * np.linalg.norm(t, axis=1, keepdims=True) * rng.normal(size=t.shape)
-            for t in trajs]
+    return [
+        t + sigma * np.linalg.norm(t, axis=1, keepdims=True) * rng.normal(size=t.shape)
+        for t in trajs
+    ]
 
 
-# --- baselines --------------------------------------------------------------------------------------
+# --- baselines ------------------------------------------------------------------------------------
 
 
 def quadratic_system(theta: np.ndarray) -> pr.LiePoissonSystem:
     family = monomials(3, 2, min_degree=1)
     return pr.LiePoissonSystem(
-        pr.LieAlgebra.so3(), pr.Polynomial({e: float(t) for e, t in zip(family, theta)})
+        pr.LieAlgebra.so3(),
+        pr.Polynomial({e: float(t) for e, t in zip(family, theta, strict=True)}),
     )
 
 
@@ -161,13 +169,20 @@ def sindy_fit(trajs: list[np.ndarray]):
 def dop853(rhs, y0: np.ndarray, times: np.ndarray) -> np.ndarray:
     out = []
     for y in y0:
-        sol = solve_ivp(lambda t, z: rhs(z), (0.0, times[-1]), y, method="DOP853",
-                        t_eval=times, rtol=1e-13, atol=1e-13)
+        sol = solve_ivp(
+            lambda t, z: rhs(z),
+            (0.0, times[-1]),
+            y,
+            method="DOP853",
+            t_eval=times,
+            rtol=1e-13,
+            atol=1e-13,
+        )
         out.append(sol.y.T if sol.success else np.full((len(times), 3), np.nan))
     return np.stack(out)
 
 
-# --- metrics ------------------------------------------------------------------------------------------
+# --- metrics --------------------------------------------------------------------------------------
 
 
 def metrics(traj: np.ndarray, exact: np.ndarray) -> dict[str, float]:
@@ -188,8 +203,9 @@ def metrics(traj: np.ndarray, exact: np.ndarray) -> dict[str, float]:
     }
 
 
-def run_protocol(name: str, trajs, tests, horizon, n_steps, *, map_steps, sigma=0.0, seed=0,
-                 methods=None):
+def run_protocol(
+    name: str, trajs, tests, horizon, n_steps, *, map_steps, sigma=0.0, seed=0, methods=None
+):
     trajs = add_noise(trajs, sigma, seed + 1)
     every = max(1, n_steps // 200)
     times = TAU * np.arange(0, n_steps + 1, every)
@@ -202,8 +218,10 @@ def run_protocol(name: str, trajs, tests, horizon, n_steps, *, map_steps, sigma=
         m = metrics(traj, exact)
         m.update({"parameters": params, "seconds": seconds, "note": extra})
         rows[method] = m
-        print(f"  {name:<6} σ={sigma:<6g} {method:<11} err@T {m['error_T']:.2e}  "
-              f"ΔE {m['energy']:.1e}  ΔC {m['casimir']:.1e}  params {params}  {seconds:.1f} s")
+        print(
+            f"  {name:<6} σ={sigma:<6g} {method:<11} err@T {m['error_T']:.2e}  "
+            f"ΔE {m['energy']:.1e}  ΔC {m['casimir']:.1e}  params {params}  {seconds:.1f} s"
+        )
 
     if "auto" in methods:
         t0 = time.perf_counter()
@@ -211,12 +229,14 @@ def run_protocol(name: str, trajs, tests, horizon, n_steps, *, map_steps, sigma=
         seconds = time.perf_counter() - t0
         print(report)
         traj = pr.integrate(stepper, tests, TAU, n_steps, every=every)
-        record("auto", traj.reshape(exact.shape), report.kept.parameters, seconds,
-               report.kept.family)
+        record(
+            "auto", traj.reshape(exact.shape), report.kept.parameters, seconds, report.kept.family
+        )
     if "map" in methods:
         t0 = time.perf_counter()
-        stepper, report = pr.learn(trajs, TAU, algebra="so3", mode="map", seed=seed,
-                                   map_options=map_steps)
+        stepper, report = pr.learn(
+            trajs, TAU, algebra="so3", mode="map", seed=seed, map_options=map_steps
+        )
         seconds = time.perf_counter() - t0
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -247,8 +267,11 @@ def main() -> None:
     parser.add_argument("--no-noise", action="store_true")
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    map_steps = {"adam_steps": 60, "lbfgs_steps": 20} if args.quick else {
-        "adam_steps": 150, "lbfgs_steps": 100}
+    map_steps = (
+        {"adam_steps": 60, "lbfgs_steps": 20}
+        if args.quick
+        else {"adam_steps": 150, "lbfgs_steps": 100}
+    )
     results = {}
     curves = {}
     for name, make in (("single", single_data), ("whole", whole_data)):
@@ -261,21 +284,29 @@ def main() -> None:
         for sigma in (1e-6, 1e-4, 1e-2):
             for name, make in (("single", single_data), ("whole", whole_data)):
                 trajs, tests, horizon, n_steps = make()
-                rows, _ = run_protocol(name, trajs, tests, horizon, n_steps, sigma=sigma,
-                                       map_steps=map_steps,
-                                       methods=("auto", "rk4-fit", "sindy", "lsq+dop853"))
+                rows, _ = run_protocol(
+                    name,
+                    trajs,
+                    tests,
+                    horizon,
+                    n_steps,
+                    sigma=sigma,
+                    map_steps=map_steps,
+                    methods=("auto", "rk4-fit", "sindy", "lsq+dop853"),
+                )
                 noise[f"{name}/{sigma:g}"] = rows
         for name in ("single", "whole"):
             noise[f"{name}/0"] = {k: v for k, v in results[name].items() if k != "map"}
 
     def clean(rows):
-        return {k: {f: v for f, v in r.items() if not f.startswith("curve")}
-                for k, r in rows.items()}
+        return {
+            k: {f: v for f, v in r.items() if not f.startswith("curve")} for k, r in rows.items()
+        }
 
-    (OUT / "protocols.json").write_text(json.dumps(
-        {k: clean(v) for k, v in results.items()}, indent=1))
-    (OUT / "noise.json").write_text(json.dumps({k: clean(v) for k, v in noise.items()},
-                                               indent=1))
+    (OUT / "protocols.json").write_text(
+        json.dumps({k: clean(v) for k, v in results.items()}, indent=1)
+    )
+    (OUT / "noise.json").write_text(json.dumps({k: clean(v) for k, v in noise.items()}, indent=1))
     with open(OUT / "curves.csv", "w", encoding="utf-8") as fh:
         fh.write("protocol,method,t,error,casimir\n")
         for name, (times, rows) in curves.items():
@@ -294,16 +325,19 @@ def print_tables(results, noise) -> None:
         for peer, err, cas, params in PEERS[name]:
             print(f"| {peer} (published) | {err} | n/a | {cas} | {params} | n/a |")
         for method, r in results[name].items():
-            print(f"| {method} {r['note']} | {r['error_T']:.2e} | {r['energy']:.1e} | "
-                  f"{r['casimir']:.1e} | {r['parameters']} | {r['seconds']:.1f} |")
+            print(
+                f"| {method} {r['note']} | {r['error_T']:.2e} | {r['energy']:.1e} | "
+                f"{r['casimir']:.1e} | {r['parameters']} | {r['seconds']:.1f} |"
+            )
     if noise:
         print("\nnoise study: error at T (protocol/σ × method)")
         methods = ("auto", "rk4-fit", "sindy", "lsq+dop853")
         print("| protocol | σ | " + " | ".join(methods) + " |")
         for key in sorted(noise, key=lambda k: (k.split("/")[0], float(k.split("/")[1]))):
             name, sigma = key.split("/")
-            cells = [f"{noise[key][m]['error_T']:.2e}" if m in noise[key] else "n/a"
-                     for m in methods]
+            cells = [
+                f"{noise[key][m]['error_T']:.2e}" if m in noise[key] else "n/a" for m in methods
+            ]
             print(f"| {name} | {sigma} | " + " | ".join(cells) + " |")
 
 
@@ -313,8 +347,10 @@ def charts(curves, noise) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    for what, label in (("curve_error", "error |y − y_exact|"),
-                        ("curve_casimir", "relative Casimir error")):
+    for what, label in (
+        ("curve_error", "error |y − y_exact|"),
+        ("curve_casimir", "relative Casimir error"),
+    ):
         fig, axes = plt.subplots(1, 2, figsize=(11, 4))
         for ax, (name, (times, rows)) in zip(axes, curves.items(), strict=True):
             for method, r in rows.items():
@@ -328,7 +364,9 @@ def charts(curves, noise) -> None:
         plt.close(fig)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, name in zip(axes, ("single", "whole"), strict=True):
-        keys = sorted((k for k in noise if k.startswith(name)), key=lambda k: float(k[len(name)+1:]))
+        keys = sorted(
+            (k for k in noise if k.startswith(name)), key=lambda k: float(k[len(name) + 1 :])
+        )
         sig = [max(float(k.split("/")[1]), 1e-8) for k in keys]
         for method in ("auto", "rk4-fit", "sindy", "lsq+dop853"):
             ys = [noise[k][method]["error_T"] if method in noise[k] else np.nan for k in keys]

@@ -44,7 +44,9 @@ def test_series_matches_exact_rationals(algebra, degree, order) -> None:
     family = monomials(algebra.dim, degree, min_degree=1)
     theta = rng.normal(size=len(family))
     b, sk = taylor_series(algebra.c, family, torch.as_tensor(theta), order)
-    exact = lie_taylor_coefficients(algebra.c, dict(zip(family, theta.tolist())), order)
+    exact = lie_taylor_coefficients(
+        algebra.c, dict(zip(family, theta.tolist(), strict=True)), order
+    )
     ref = np.zeros((order, b.size))
     for k, s_k in enumerate(exact):
         for e, c in s_k.items():
@@ -56,7 +58,7 @@ def test_complex_step_jacobian_matches_finite_differences() -> None:
     rng = np.random.default_rng(2)
     family = monomials(3, 3, min_degree=1)
     theta, d = rng.normal(size=(2, len(family)))
-    _, s, jac = series_jacobian(BODY.algebra.c, family, theta, 5, 0.1)
+    _, _, jac = series_jacobian(BODY.algebra.c, family, theta, 5, 0.1)
     eps = 1e-6
     sp = series_jacobian(BODY.algebra.c, family, theta + eps * d, 5, 0.1)[1]
     sm = series_jacobian(BODY.algebra.c, family, theta - eps * d, 5, 0.1)[1]
@@ -74,7 +76,7 @@ def test_ift_gradients_match_finite_differences_of_the_step_map() -> None:
     starts = 1.5 * _sphere(rng, 6)
     targets = np.zeros((6, 3, 3))
     model = _Model(BODY.algebra, family, 5, 0.3)
-    r, jac = model.residuals(theta, starts, targets, 3, True)
+    _, jac = model.residuals(theta, starts, targets, 3, True)
     d = rng.normal(size=theta.shape)
     eps = 1e-6
     rp, _ = model.residuals(theta + eps * d, starts, targets, 3, False)
@@ -83,7 +85,7 @@ def test_ift_gradients_match_finite_differences_of_the_step_map() -> None:
     assert np.abs(jac @ d - fd).max() <= 1e-7 * np.abs(fd).max()
 
 
-# --- recovery of a known H -------------------------------------------------------------------------
+# --- recovery of a known H ------------------------------------------------------------------------
 
 
 def test_recovers_rigid_body_vector_field_and_keeps_casimirs() -> None:
@@ -128,7 +130,7 @@ def test_auto_prefers_the_smaller_family_when_it_fits() -> None:
     assert "poly2" in str(report3) and "KEPT" in str(report3)
 
 
-# --- map mode ----------------------------------------------------------------------------------------
+# --- map mode -------------------------------------------------------------------------------------
 
 
 def _random_map(seed: int) -> torch.nn.Module:
@@ -202,7 +204,7 @@ def test_map_mode_learns_and_records_provenance() -> None:
     assert np.abs(c - c[:, :1]).max() <= 1e-13
 
 
-# --- data: files and bad input -----------------------------------------------------------------------
+# --- data: files and bad input --------------------------------------------------------------------
 
 
 def test_loaders_agree(tmp_path) -> None:
@@ -256,7 +258,7 @@ def test_hj_data_mode_says_it_is_not_available() -> None:
         learn(np.ones((2, 4, 3)), 0.1, algebra="so3", mode="hj+data")
 
 
-# --- the command line ----------------------------------------------------------------------------------
+# --- the command line -----------------------------------------------------------------------------
 
 
 def test_cli_writes_a_model_with_its_provenance(tmp_path, capsys) -> None:

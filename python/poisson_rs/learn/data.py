@@ -274,14 +274,14 @@ def prepare(
     rng = np.random.default_rng(seed)
     if len(clean) == 1:
         t = clean[0]
-        n_test = int(round(test_fraction * len(t)))
+        n_test = round(test_fraction * len(t))
         if n_test >= 2 and len(t) - n_test >= 2:
             train, test = [t[: len(t) - n_test]], [t[len(t) - n_test - 1 :]]
         else:
             train, test = [t], []
     else:
         order = rng.permutation(len(clean))
-        n_test = int(round(test_fraction * len(clean)))
+        n_test = round(test_fraction * len(clean))
         test = [clean[i] for i in sorted(order[:n_test])]
         train = [clean[i] for i in sorted(order[n_test:])]
     allx = np.concatenate(clean)

@@ -1,4 +1,4 @@
-"""What :func:`poisson_rs.learn` did: every candidate model, the data's diagnostics, the kept one."""
+"""What :func:`poisson_rs.learn` did: every candidate, the data's diagnostics, the kept one."""
 
 from __future__ import annotations
 

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["MonomialBasis", "taylor_series", "bernoulli_weights"]
+__all__ = ["MonomialBasis", "bernoulli_weights", "series_jacobian", "taylor_series"]
 
 
 def monomials(n: int, degree: int, min_degree: int = 0) -> list[tuple[int, ...]]:

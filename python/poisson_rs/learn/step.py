@@ -6,7 +6,7 @@ One step from μ: solve F(p) = tar(∇S(p), p) − μ = 0 by Newton from p = μ,
 vector s, so with G = ∂(∇S)/∂s (the monomials' gradients) and J = T_x ∇²S + T_p (the Newton
 Jacobian),
 
-    dp/ds = −J⁻¹ T_x G,    dμ'/ds = U_x (G + ∇²S dp/ds) + U_p dp/ds,    dμ'/dμ = (U_x ∇²S + U_p) J⁻¹,
+    dp/ds = −J⁻¹ T_x G,   dμ'/ds = U_x (G + ∇²S dp/ds) + U_p dp/ds,   dμ'/dμ = (U_x ∇²S + U_p) J⁻¹,
 
 where T_•, U_• are the Jacobians of tar and sou. One linear solve with J at the converged p; the
 Newton iterations are never differentiated.
@@ -38,7 +38,7 @@ def _series_terms(a: Tensor) -> int:
         raise FloatingPointError(f"the exponential chart is singular here (|ad_x| = {rho:.3g})")
     if rho == 0.0:
         return 2
-    return min(400, max(4, int(math.ceil(math.log(1e-18) / math.log(rho / (2 * math.pi))))) + 2)
+    return min(400, max(4, math.ceil(math.log(1e-18) / math.log(rho / (2 * math.pi))))) + 2
 
 
 def chart_maps(c: Tensor, x: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
