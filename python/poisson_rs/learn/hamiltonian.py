@@ -253,7 +253,10 @@ def fit_polynomial(
         # Terms whose share of the vector field is below what the data resolve are dropped and
         # the rest refitted once (sequential thresholding, as in sparse regression).
         share = np.abs(theta) * col / max(float(np.linalg.norm(v * w[:, None])), 1e-300)
-        floor = max(10.0 * (data.noise if math.isfinite(data.noise) else 0.0), 1e-9)
+        # Noise per coordinate: the finite-difference estimate, or, where the records are too
+        # few for it (pairs), the fit's own residual (one-step RMS ≈ √2 σ per coordinate).
+        sigma = data.noise if math.isfinite(data.noise) else math.sqrt(history[-1] / 2.0)
+        floor = max(10.0 * sigma, 1e-9)
         kept = [e for e, s in zip(family, share, strict=True) if s > floor]
         if kept and len(kept) < len(family):
             sub = fit_polynomial(
