@@ -14,7 +14,6 @@ from ..integrators import LearnedIntegrator, TaylorIntegrator, integrate
 from ..systems import LieAlgebra, LiePoissonSystem
 from ..taylor import system_taylor_terms
 from .data import TrajectoryData, prepare
-from .hamiltonian import fit_polynomial
 from .report import Candidate, LearnReport
 
 __all__ = ["MODES", "learn", "resolve_algebra"]
@@ -87,6 +86,8 @@ def _errors(stepper: Any, data: TrajectoryData) -> tuple[float, float]:
 
 
 def _polynomial_candidate(data, algebra, degree, order, mode, seed, command, options):
+    from .hamiltonian import fit_polynomial  # torch is imported on first use only
+
     fit = fit_polynomial(data, algebra, degree, order=order, **options)
     powers, coeffs = system_taylor_terms(fit.system, fit.order, "exp")
     family = f"poly{degree}"
