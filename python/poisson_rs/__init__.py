@@ -35,6 +35,7 @@ from .integrators import (
     log_canonical_taylor,
     taylor_integrator,
 )
+from .learn import learn
 from .reference import dop853_solution, exact_solution, reference_solution
 from .structures import (
     LogCanonical,
@@ -83,6 +84,7 @@ __all__ = [
     "dop853_solution",
     "exact_solution",
     "integrate",
+    "learn",
     "list_models",
     "load_model",
     "log_canonical_classical",

@@ -1,0 +1,17 @@
+"""Learning Poisson integrators from trajectories: :func:`learn` (see :mod:`.api`)."""
+
+from .api import MODES, learn
+from .data import CasimirDriftWarning, HullWarning, TrajectoryData, load_trajectories, prepare
+from .report import Candidate, LearnReport
+
+__all__ = [
+    "MODES",
+    "Candidate",
+    "CasimirDriftWarning",
+    "HullWarning",
+    "LearnReport",
+    "TrajectoryData",
+    "learn",
+    "load_trajectories",
+    "prepare",
+]

@@ -1,0 +1,284 @@
+"""``pr.learn``: a Poisson integrator from trajectories, with H learned or never formed."""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+
+from ..export import model_bytes
+from ..integrators import LearnedIntegrator, TaylorIntegrator, integrate
+from ..systems import LieAlgebra, LiePoissonSystem
+from ..taylor import system_taylor_terms
+from .data import TrajectoryData, prepare
+from .report import Candidate, LearnReport
+
+__all__ = ["MODES", "learn", "resolve_algebra"]
+
+MODES = ("auto", "hamiltonian", "map", "hj+data")
+#: Polynomial degrees tried, smallest first.
+AUTO_DEGREES = (2, 3, 4)
+#: Held-out one-step error that counts as exact data when the noise cannot be estimated
+#: (trajectories too short for finite differences): nothing smaller is worth a larger model.
+EXACT_LEVEL = 1e-10
+_ALGEBRAS = {"so3": LieAlgebra.so3, "se3": LieAlgebra.se3, "sl2": LieAlgebra.sl2}
+
+
+def resolve_algebra(algebra: Any, system: Any) -> LieAlgebra:
+    """The Lie algebra from ``algebra`` (a LieAlgebra or "so3"/"se3"/"sl2") or ``system``."""
+    if system is not None:
+        if not isinstance(system, LiePoissonSystem):
+            raise TypeError(f"system must be a LiePoissonSystem, got {type(system).__name__}")
+        if algebra is not None and resolve_algebra(algebra, None) != system.algebra:
+            raise ValueError("algebra and system.algebra differ; give one of them")
+        return system.algebra
+    if isinstance(algebra, LieAlgebra):
+        return algebra
+    if isinstance(algebra, str) and algebra in _ALGEBRAS:
+        return _ALGEBRAS[algebra]()
+    if algebra is None:
+        raise ValueError("learn needs the Poisson structure: give algebra= or system=")
+    raise ValueError(f"algebra must be a LieAlgebra or one of {tuple(_ALGEBRAS)}, got {algebra!r}")
+
+
+def _domain(data: TrajectoryData) -> dict[str, Any]:
+    """A cube 10 % wider than the data: rollouts that leave it are counted and warned about."""
+    half = float(np.max(np.maximum(np.abs(data.lo), np.abs(data.hi))))
+    return {"kind": "cube", "half_width": 1.1 * half}
+
+
+def _record(
+    data: TrajectoryData, family: str, mode: str, seed: int, command: str | None, seconds: float
+) -> dict[str, Any]:
+    return {
+        "name": f"learned-{family}",
+        "learn_mode": mode,
+        "learn_family": family,
+        "data_sha256": data.digest,
+        "data_shape": list(data.shape),
+        "data_h": data.h,
+        "command": command or "poisson_rs.learn",
+        "seed": seed,
+        "train_seconds": round(seconds, 3),
+    }
+
+
+def _errors(stepper: Any, data: TrajectoryData) -> tuple[float, float]:
+    """Held-out one-step RMS relative error and rollout max relative error (train data when
+    nothing is held out)."""
+    trajs = data.test or data.train
+    starts = np.concatenate([t[:-1] for t in trajs])
+    targets = np.concatenate([t[1:] for t in trajs])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = integrate(stepper, starts, data.h, 1, on_failure="ignore")[:, -1]
+        rel = np.linalg.norm(out - targets, axis=1) / np.linalg.norm(starts, axis=1)
+        one = float(np.sqrt(np.mean(rel**2)))
+        worst = 0.0
+        for t in trajs:
+            roll = integrate(stepper, t[0], data.h, len(t) - 1, on_failure="ignore")
+            e = np.linalg.norm(roll - t, axis=1) / np.linalg.norm(t, axis=1)
+            worst = max(worst, float(np.max(e)))
+    return (one if math.isfinite(one) else math.inf), (worst if math.isfinite(worst) else math.inf)
+
+
+def _polynomial_candidate(data, algebra, degree, order, mode, seed, command, options):
+    from .hamiltonian import fit_polynomial  # torch is imported on first use only
+
+    fit = fit_polynomial(data, algebra, degree, order=order, **options)
+    powers, coeffs = system_taylor_terms(fit.system, fit.order, "exp")
+    family = f"poly{degree}"
+    raw = model_bytes(
+        powers=powers,
+        coeffs=coeffs,
+        layers=[],
+        mlp_power=1,
+        chart="exp",
+        system=fit.system,
+        h_max=math.inf,
+        domain=_domain(data),
+        taylor_order=fit.order,
+        record=_record(data, family, mode, seed, command, fit.seconds),
+    )
+    stepper = TaylorIntegrator(raw)
+    one, roll = _errors(stepper, data)
+    return Candidate(
+        family=family,
+        parameters=fit.n_parameters,
+        order=fit.order,
+        seconds=fit.seconds,
+        one_step=one,
+        rollout=roll,
+        stepper=stepper,
+        model_bytes=raw,
+        system=fit.system,
+    )
+
+
+def _map_candidate(data, algebra, mode, seed, command, options):
+    from .map import fit_map
+
+    t0 = time.perf_counter()
+    s_fn, n_params = fit_map(data, algebra, seed=seed, **options)
+    seconds = time.perf_counter() - t0
+    raw = model_bytes(
+        powers=s_fn.powers.numpy(),
+        coeffs=s_fn.coeffs.detach().numpy(),
+        layers=s_fn.exported_layers(),
+        mlp_power=s_fn.mlp_power,
+        mlp_inputs=s_fn.inputs,
+        chart="exp",
+        system=LiePoissonSystem(algebra, _zero(algebra.dim), name="learned-map"),
+        h_max=data.h,
+        domain=_domain(data),
+        record=_record(data, "map", mode, seed, command, seconds),
+    )
+    stepper = LearnedIntegrator(raw)
+    one, roll = _errors(stepper, data)
+    return Candidate(
+        family="map",
+        parameters=n_params,
+        order=0,
+        seconds=seconds,
+        one_step=one,
+        rollout=roll,
+        stepper=stepper,
+        model_bytes=raw,
+    )
+
+
+def _zero(n: int) -> Any:
+    from ..systems import Polynomial
+
+    return Polynomial({(0,) * n: 0.0})
+
+
+def learn(
+    trajectories: Any,
+    h: float,
+    *,
+    algebra: LieAlgebra | str | None = None,
+    system: LiePoissonSystem | None = None,
+    mode: str = "auto",
+    degree: int | None = None,
+    order: int | None = None,
+    test_fraction: float = 0.2,
+    seed: int = 0,
+    horizon: int = 4,
+    max_iter: int = 30,
+    map_options: dict[str, Any] | None = None,
+    command: str | None = None,
+    verbose: bool = False,
+) -> tuple[Any, LearnReport]:
+    """Learns a Poisson integrator from trajectories whose Poisson structure is known.
+
+    Parameters
+    ----------
+    trajectories : array (n_traj, n_records, dim), one (n_records, dim) array, a list of such
+        arrays (lengths may differ), or a path (.npz, .csv, Zarr from ``ensembles.to_zarr``).
+        Records are ``h`` apart in time.
+    h : float
+        The record spacing (time units), > 0.
+    algebra, system : the Lie algebra (a LieAlgebra or "so3", "se3", "sl2"), or a system whose
+        algebra it is (its Hamiltonian is not used: H is learned).
+    mode : "auto" (smallest model that explains the data: polynomial H of degree 2, 3, 4, then
+        a map), "hamiltonian" (polynomial H of ``degree``, or the degrees in turn), "map" (the
+        time-h map's generating function, H never formed), "hj+data" (not available yet).
+    degree, order : polynomial degree of H and Taylor-HJ order K (default: chosen, see
+        :func:`poisson_rs.learn.hamiltonian.default_order`).
+    test_fraction, seed : held-out share of the trajectories (of the records when there is only
+        one) and the seed that picks them.
+    horizon, max_iter : longest multi-step residual and Levenberg–Marquardt iterations.
+    map_options : keyword arguments for :func:`poisson_rs.learn.map.fit_map`.
+    command : recorded in the model file.
+
+    Returns
+    -------
+    (stepper, report): ``stepper`` integrates with :func:`poisson_rs.integrate` (a Taylor-HJ
+    integrator of the learned H, any h; or a learned map, the data's h only); ``report`` a
+    :class:`~poisson_rs.learn.report.LearnReport` (``print(report)`` shows every candidate).
+
+    Raises ValueError naming the input and field for bad data (see
+    :func:`poisson_rs.learn.data.prepare`); warns when the data's Casimirs drift.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if mode == "hj+data":
+        raise NotImplementedError(
+            "mode 'hj+data' (known H plus data, the blended loss) is not available yet; use "
+            "'hamiltonian' or 'map'"
+        )
+    if degree is not None and (
+        isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= 4
+    ):
+        raise ValueError(f"degree must be an integer in [1, 4], got {degree!r}")
+    alg = resolve_algebra(algebra, system)
+    data = prepare(trajectories, h, alg, test_fraction=test_fraction, seed=seed)
+    n = alg.dim
+    threshold = 1.5 * math.sqrt(2 * n) * data.noise + 1e-12
+    options = {"horizon": horizon, "max_iter": max_iter, "verbose": verbose}
+    candidates: list[Candidate] = []
+    kept: Candidate | None = None
+    degrees = [degree] if degree is not None else list(AUTO_DEGREES)
+    if mode in ("auto", "hamiltonian"):
+        for d in degrees:
+            cand = _polynomial_candidate(data, alg, d, order, mode, seed, command, options)
+            candidates.append(cand)
+            if verbose:
+                print(f"poly{d}: one-step {cand.one_step:.3e}, {cand.seconds:.1f} s")
+            if math.isfinite(threshold) and cand.one_step <= threshold:
+                kept = cand
+                cand.reason = "the smallest family that reaches the data's noise level"
+                break
+            if not math.isfinite(threshold) and cand.one_step <= EXACT_LEVEL:
+                kept = cand
+                cand.reason = (
+                    f"noise level unknown; held-out one-step error below {EXACT_LEVEL:g} "
+                    "(exact data)"
+                )
+                break
+            cand.reason = (
+                f"held-out one-step error {cand.one_step:.2e} above the noise level {threshold:.2e}"
+                if math.isfinite(threshold)
+                else "noise level unknown"
+            )
+    if kept is None and mode in ("auto", "map"):
+        cand = _map_candidate(data, alg, mode, seed, command, dict(map_options or {}))
+        candidates.append(cand)
+        cand.reason = (
+            "reaches the data's noise level"
+            if cand.one_step <= threshold
+            else f"held-out one-step error {cand.one_step:.2e}"
+        )
+        if mode == "map" or cand.one_step <= threshold:
+            kept = cand
+    if kept is None:
+        best = min(c.one_step for c in candidates)
+        if not math.isfinite(threshold):
+            # Noise unknown (too few records per trajectory): the smallest candidate within 2×
+            # of the best held-out error.
+            kept = next(c for c in candidates if c.one_step <= 2.0 * best)
+            kept.reason = "the smallest family within 2× of the best held-out error"
+        else:
+            kept = next(c for c in candidates if c.one_step == best)
+            kept.reason = "no family reached the noise level; the best held-out error"
+    kept.kept = True
+    for c in candidates:
+        if c is not kept and c.reason.startswith("the smallest"):
+            c.reason = "a smaller family was kept"
+    report = LearnReport(
+        mode=mode,
+        candidates=candidates,
+        kept=kept,
+        noise=data.noise,
+        casimir_drift=data.casimir_drift,
+        data_sha256=data.digest,
+        data_shape=data.shape,
+        threshold=threshold,
+        h=data.h,
+        seed=seed,
+    )
+    return kept.stepper, report

@@ -1,0 +1,276 @@
+"""The Taylor series in t of the Hamilton–Jacobi generating function, in floating point and
+differentiable in the Hamiltonian's coefficients.
+
+:func:`poisson_rs.taylor.lie_taylor_coefficients` computes S = Σ_k t^k S_k exactly (rationals) for
+one Hamiltonian; fitting H_θ = Σ_e θ_e μ^e to data needs S and dS/dθ at every iterate, so this
+module runs the same recursion (exponential chart of T*G on any g*),
+
+    k S_k = −[t^{k−1}] H_θ(σ(t, p)),   σ = sou(Σ_j t^j ∇S_j, p) = Σ_r (B_r/r!) A^r p,
+    (A v)_j = Σ_{i,k} c[i,j,k] x_i v_k,
+
+on dense polynomial coefficient vectors in torch (float64), over the monomials of total degree
+≤ D = K(d − 1) + 1 (d = deg H). Every S_k has degree ≤ k(d − 1) + 1, so truncating products at D
+loses nothing. The result is one coefficient vector per order; S(h, ·) = Σ_k h^k S_k.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from functools import cache
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["MonomialBasis", "bernoulli_weights", "series_jacobian", "taylor_series"]
+
+
+def monomials(n: int, degree: int, min_degree: int = 0) -> list[tuple[int, ...]]:
+    """Exponent tuples of the monomials in n variables of total degree in [min_degree, degree],
+    sorted by degree then reverse-lexicographically (μ₁² before μ₁μ₂)."""
+    out = []
+    for d in range(min_degree, degree + 1):
+        for combo in itertools.combinations_with_replacement(range(n), d):
+            e = [0] * n
+            for i in combo:
+                e[i] += 1
+            out.append(tuple(e))
+    return out
+
+
+class MonomialBasis:
+    """Dense polynomials in n variables of total degree ≤ D as coefficient vectors (..., N_d).
+
+    Monomials are sorted by degree, so a polynomial of degree ≤ d is the first N_d = C(n + d, d)
+    coefficients: every operation takes and returns such prefixes, and a product of degrees a
+    and b costs only the pairs it needs (truncated at D). Index tables are built once per
+    (a, b) and cached.
+    """
+
+    def __init__(self, n: int, degree: int) -> None:
+        self.n, self.degree = n, degree
+        self.exponents = monomials(n, degree)
+        self.index = {e: i for i, e in enumerate(self.exponents)}
+        self.size = len(self.exponents)
+        exps = np.array(self.exponents, dtype=np.int64).reshape(self.size, n)
+        self.powers = exps
+        self._deg = exps.sum(1)
+        self.count = [math.comb(n + d, d) for d in range(degree + 1)]
+        self._length_degree = {c: d for d, c in enumerate(self.count)}
+        self._mul_tables: dict[tuple[int, int], tuple[Tensor, Tensor, Tensor, int]] = {}
+        self._diff_tables: dict[tuple[int, int], tuple[Tensor, Tensor, Tensor]] = {}
+
+    def degree_of(self, a: Tensor) -> int:
+        return self._length_degree[a.shape[-1]]
+
+    def pad(self, a: Tensor, degree: int) -> Tensor:
+        """a as a polynomial of degree ≤ ``degree`` (zero-padded)."""
+        extra = self.count[degree] - a.shape[-1]
+        return a if extra == 0 else torch.nn.functional.pad(a, (0, extra))
+
+    def add(self, a: Tensor, b: Tensor) -> Tensor:
+        d = max(self.degree_of(a), self.degree_of(b))
+        return self.pad(a, d) + self.pad(b, d)
+
+    def _mul_table(self, da: int, db: int) -> tuple[Tensor, Tensor, Tensor, int]:
+        key = (da, db)
+        if key not in self._mul_tables:
+            dc = min(da + db, self.degree)
+            na, nb = self.count[da], self.count[db]
+            deg = self._deg
+            ia, ib = np.nonzero(deg[:na, None] + deg[None, :nb] <= self.degree)
+            summed = self.powers[ia] + self.powers[ib]
+            ic = np.array([self.index[tuple(e)] for e in summed.tolist()], dtype=np.int64)
+            self._mul_tables[key] = (
+                torch.as_tensor(ia),
+                torch.as_tensor(ib),
+                torch.as_tensor(ic),
+                dc,
+            )
+        return self._mul_tables[key]
+
+    def mul(self, a: Tensor, b: Tensor) -> Tensor:
+        """Truncated product of prefixes a (..., N_a), b (..., N_b) (broadcast) → (..., N_c)."""
+        ia, ib, ic, dc = self._mul_table(self.degree_of(a), self.degree_of(b))
+        vals = a[..., ia] * b[..., ib]
+        out = torch.zeros((*vals.shape[:-1], self.count[dc]), dtype=vals.dtype)
+        return out.index_add(-1, ic, vals)
+
+    def diff(self, a: Tensor, i: int) -> Tensor:
+        """∂a/∂μ_i, a (..., N_d) → (..., N_{d−1})."""
+        d = self.degree_of(a)
+        key = (d, i)
+        if key not in self._diff_tables:
+            exps = self.powers[: self.count[d]]
+            src = np.nonzero(exps[:, i] > 0)[0]
+            unit = np.eye(self.n, dtype=np.int64)[i]
+            dst = [self.index[tuple(e)] for e in (exps[src] - unit).tolist()]
+            self._diff_tables[key] = (
+                torch.as_tensor(src),
+                torch.as_tensor(np.array(dst, dtype=np.int64)),
+                torch.as_tensor(exps[src, i].astype(np.float64)),
+            )
+        src, dst, factor = self._diff_tables[key]
+        out = torch.zeros((*a.shape[:-1], self.count[max(d - 1, 0)]), dtype=a.dtype)
+        return out.index_add(-1, dst, a[..., src] * factor.to(a.dtype))
+
+    def grad(self, a: Tensor) -> Tensor:
+        """∇a as n coefficient vectors: a (..., N_d) → (..., n, N_{d−1})."""
+        return torch.stack([self.diff(a, i) for i in range(self.n)], -2)
+
+    def variable(self, i: int) -> Tensor:
+        """μ_i as a polynomial of degree ≤ 1: (N_1,)."""
+        v = torch.zeros(self.count[1], dtype=torch.float64)
+        v[self.index[tuple(1 if j == i else 0 for j in range(self.n))]] = 1.0
+        return v
+
+    def evaluate(self, coeffs: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Value (B,), gradient (B, n) and Hessian (B, n, n) of Σ_c coeffs[c] p^{e_c} at p (B, n);
+        coeffs (N,), differentiable in both."""
+        phi, dphi, ddphi = self.features(p)
+        return phi @ coeffs, dphi @ coeffs, ddphi @ coeffs
+
+    def features(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Monomials (B, N), their gradients (B, n, N) and Hessians (B, n, n, N) at p (B, n)."""
+        b, n = p.shape
+        d = self.degree
+        pw = [torch.ones_like(p)]
+        for _ in range(d):
+            pw.append(pw[-1] * p)
+        table = torch.stack(pw, 0)  # (d + 1, B, n): p_i^k
+        e = torch.as_tensor(self.powers)  # (N, n)
+        ef = e.to(p.dtype)
+
+        def factor(shift: Tensor) -> Tensor:
+            """Π_i coefficient·p_i^(e_i − shift_i) over the monomials: (B, N)."""
+            k = e - shift
+            ok = (k >= 0).all(1)
+            kk = k.clamp_min(0)
+            vals = torch.ones(b, self.size, dtype=p.dtype)
+            for i in range(n):
+                vals = vals * table[kk[:, i], :, i].T
+            coef = torch.ones(self.size, dtype=p.dtype)
+            for i in range(n):
+                s = int(shift[0, i]) if shift.ndim == 2 else 0
+                if s == 1:
+                    coef = coef * ef[:, i]
+                elif s == 2:
+                    coef = coef * ef[:, i] * (ef[:, i] - 1)
+            return vals * (coef * ok)[None, :]
+
+        zero = torch.zeros(1, n, dtype=torch.int64)
+        phi = factor(zero)
+        dphi = torch.stack([factor(_unit(n, i)) for i in range(n)], 1)
+        rows = []
+        for i in range(n):
+            rows.append(torch.stack([factor(_unit(n, i) + _unit(n, j)) for j in range(n)], 1))
+        return phi, dphi, torch.stack(rows, 1)
+
+
+def _unit(n: int, i: int) -> Tensor:
+    u = torch.zeros(1, n, dtype=torch.int64)
+    u[0, i] = 1
+    return u
+
+
+@cache
+def bernoulli_weights(n_max: int) -> tuple[float, ...]:
+    """B_r/r! for r = 0..n_max (B₁ = −½)."""
+    from fractions import Fraction
+
+    b = [Fraction(0)] * (n_max + 1)
+    b[0] = Fraction(1)
+    for m in range(1, n_max + 1):
+        b[m] = -sum((math.comb(m + 1, j) * b[j] for j in range(m)), Fraction(0)) / (m + 1)
+    return tuple(float(b[r] / math.factorial(r)) for r in range(n_max + 1))
+
+
+@cache
+def basis(n: int, degree: int) -> MonomialBasis:
+    """A cached :class:`MonomialBasis`."""
+    return MonomialBasis(n, degree)
+
+
+def taylor_series(
+    c: np.ndarray, family: list[tuple[int, ...]], theta: Tensor, order: int
+) -> tuple[MonomialBasis, Tensor]:
+    """S_1..S_K of H_θ = Σ_m θ_m μ^{family[m]} on the dual of the algebra with structure constants
+    c (n, n, n), exponential chart.
+
+    theta: (..., P), real or complex (complex steps give exact derivatives, see
+    :func:`series_jacobian`). Returns the basis (degree K(d − 1) + 1) and the coefficients
+    (..., K, N). Agrees with :func:`poisson_rs.taylor.lie_taylor_coefficients` to rounding.
+    """
+    n = c.shape[0]
+    d = max(sum(e) for e in family)
+    basis_ = basis(n, max(1, order * (d - 1) + 1))
+    dtype = theta.dtype
+    batch = theta.shape[:-1]
+    ct = torch.tensor(np.array(c, dtype=np.float64)).to(dtype)
+    weights = bernoulli_weights(order)
+    p_vec = torch.stack([basis_.variable(i) for i in range(n)]).to(dtype).expand(*batch, n, -1)
+    # H's monomials as sorted variable lists; prod series by prefix, as in taylor.py.
+    factors = [tuple(i for i, a in enumerate(e) for _ in range(a)) for e in family]
+    prefixes = sorted({f[:r] for f in factors for r in range(2, len(f) + 1)}, key=len)
+    prods: dict[tuple[int, ...], list[Tensor]] = {}
+    one = torch.ones(1, dtype=dtype)  # the constant 1, degree 0
+    mats: list[Tensor] = [torch.zeros(0)]
+    w: list[list[Tensor]] = [[p_vec]]
+    sigma: list[Tensor] = [p_vec]
+    coeffs: list[Tensor] = []
+    for k in range(1, order + 1):
+        m = k - 1
+        if m >= 1:
+            x_m = basis_.grad(coeffs[m - 1])  # (..., n, N)
+            mats.append(torch.einsum("iab,...iN->...abN", ct, x_m))  # (A_m)_{ab}
+            w.append([])
+            for r in range(1, m + 1):
+                js = range(m, m + 1) if r == 1 else range(1, m - r + 2)
+                acc = torch.zeros(*batch, n, 1, dtype=dtype)
+                for j in js:
+                    v = w[r - 1][m - j - (r - 1)]  # (..., n, N)
+                    acc = basis_.add(acc, basis_.mul(mats[j], v[..., None, :, :]).sum(-2))
+                w[r].append(acc)
+            sig = torch.zeros(*batch, n, 1, dtype=dtype)
+            for r in range(1, m + 1):
+                sig = basis_.add(sig, weights[r] * w[r][m - r])
+            sigma.append(sig)
+        for f in prefixes:
+            head = prods[f[:-1]] if len(f) > 2 else [sg[..., f[0], :] for sg in sigma]
+            acc = torch.zeros(*batch, 1, dtype=dtype)
+            for a in range(m + 1):
+                acc = basis_.add(acc, basis_.mul(head[a], sigma[m - a][..., f[-1], :]))
+            prods.setdefault(f, []).append(acc)
+        h_m = torch.zeros(*batch, 1, dtype=dtype)
+        for q, f in enumerate(factors):
+            t = theta[..., q : q + 1]
+            if len(f) == 0:
+                if m == 0:
+                    h_m = basis_.add(h_m, t * one)
+            elif len(f) == 1:
+                h_m = basis_.add(h_m, t * sigma[m][..., f[0], :])
+            else:
+                h_m = basis_.add(h_m, t * prods[f][m])
+        coeffs.append(-h_m / k)
+    return basis_, torch.stack([basis_.pad(c_k, basis_.degree) for c_k in coeffs], -2)
+
+
+#: Imaginary step of the complex-step derivative: the S_k are polynomials in θ, so
+#: Im f(θ + iε e_j)/ε is ∂f/∂θ_j to rounding (no subtraction, no truncation error to speak of).
+COMPLEX_STEP = 1e-30
+
+
+def series_jacobian(
+    c: np.ndarray, family: list[tuple[int, ...]], theta: np.ndarray, order: int, h: float
+) -> tuple[MonomialBasis, Tensor, Tensor]:
+    """S(h, ·) = Σ_k h^k S_k as coefficients (N,) and their Jacobian in θ (N, P), by one batched
+    complex-step evaluation of :func:`taylor_series` (P + 1 Hamiltonians at once)."""
+    th = np.asarray(theta, dtype=np.float64)
+    p = th.size
+    batch = np.tile(th.astype(np.complex128), (p + 1, 1))
+    batch[1:] += 1j * COMPLEX_STEP * np.eye(p)
+    b, sk = taylor_series(c, family, torch.as_tensor(batch), order)
+    powers = torch.tensor([h**k for k in range(1, order + 1)], dtype=torch.complex128)
+    s = torch.einsum("k,bkN->bN", powers, sk)
+    return b, s[0].real.clone(), (s[1:].imag / COMPLEX_STEP).T.contiguous()

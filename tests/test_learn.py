@@ -1,0 +1,286 @@
+"""pr.learn: a Poisson integrator from trajectories (H learned as a polynomial, or a map)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+import poisson_rs as pr
+from poisson_rs.learn import CasimirDriftWarning, learn, load_trajectories, prepare
+from poisson_rs.learn.hamiltonian import _Model, fit_polynomial, relative_field_error
+from poisson_rs.learn.map import build_map
+from poisson_rs.learn.series import monomials, series_jacobian, taylor_series
+from poisson_rs.taylor import lie_taylor_coefficients
+
+torch.set_num_threads(1)
+
+BODY = pr.RigidBody((2.0, 1.0, 2.0 / 3.0))
+
+
+def _sphere(rng: np.random.Generator, m: int) -> np.ndarray:
+    x = rng.normal(size=(m, 3))
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def _trajectories(system: pr.LiePoissonSystem, y0: np.ndarray, h: float, records: int):
+    return pr.reference_solution(system, y0, h * np.arange(records))
+
+
+# --- the differentiable Taylor series -----------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("algebra", "degree", "order"),
+    [(pr.LieAlgebra.so3(), 2, 7), (pr.LieAlgebra.sl2(), 3, 4), (pr.LieAlgebra.se3(), 2, 3)],
+)
+def test_series_matches_exact_rationals(algebra, degree, order) -> None:
+    rng = np.random.default_rng(1)
+    family = monomials(algebra.dim, degree, min_degree=1)
+    theta = rng.normal(size=len(family))
+    b, sk = taylor_series(algebra.c, family, torch.as_tensor(theta), order)
+    exact = lie_taylor_coefficients(
+        algebra.c, dict(zip(family, theta.tolist(), strict=True)), order
+    )
+    ref = np.zeros((order, b.size))
+    for k, s_k in enumerate(exact):
+        for e, c in s_k.items():
+            ref[k, b.index[e]] = float(c)
+    assert np.abs(sk.numpy() - ref).max() <= 1e-14 * np.abs(ref).max()
+
+
+def test_complex_step_jacobian_matches_finite_differences() -> None:
+    rng = np.random.default_rng(2)
+    family = monomials(3, 3, min_degree=1)
+    theta, d = rng.normal(size=(2, len(family)))
+    _, _, jac = series_jacobian(BODY.algebra.c, family, theta, 5, 0.1)
+    eps = 1e-6
+    sp = series_jacobian(BODY.algebra.c, family, theta + eps * d, 5, 0.1)[1]
+    sm = series_jacobian(BODY.algebra.c, family, theta - eps * d, 5, 0.1)[1]
+    fd = (sp - sm) / (2 * eps)
+    assert torch.allclose(jac @ torch.as_tensor(d), fd, rtol=0, atol=1e-8 * float(fd.abs().max()))
+
+
+def test_ift_gradients_match_finite_differences_of_the_step_map() -> None:
+    """dΦ^L/dθ (L = 1, 3) through the implicit steps, against central differences of the whole
+    step map (Newton re-solved at θ ± εd)."""
+    rng = np.random.default_rng(3)
+    family = monomials(3, 2, min_degree=1)
+    theta = np.array([BODY.polynomial.terms.get(e, 0.0) for e in family])
+    theta = theta + 0.05 * rng.normal(size=theta.shape)
+    starts = 1.5 * _sphere(rng, 6)
+    targets = np.zeros((6, 3, 3))
+    model = _Model(BODY.algebra, family, 5, 0.3)
+    _, jac = model.residuals(theta, starts, targets, 3, True)
+    d = rng.normal(size=theta.shape)
+    eps = 1e-6
+    rp, _ = model.residuals(theta + eps * d, starts, targets, 3, False)
+    rm, _ = model.residuals(theta - eps * d, starts, targets, 3, False)
+    fd = (rp - rm) / (2 * eps)
+    assert np.abs(jac @ d - fd).max() <= 1e-7 * np.abs(fd).max()
+
+
+# --- recovery of a known H ------------------------------------------------------------------------
+
+
+def test_recovers_rigid_body_vector_field_and_keeps_casimirs() -> None:
+    rng = np.random.default_rng(4)
+    traj = _trajectories(BODY, _sphere(rng, 10), 0.1, 16)
+    stepper, report = learn(traj, 0.1, algebra="so3", mode="hamiltonian", degree=2, seed=0)
+    test = rng.normal(size=(200, 3))
+    assert relative_field_error(report.system, BODY, test) <= 1e-6
+    assert report.hamiltonian is not None and report.hamiltonian.degree == 2
+    roll = pr.integrate(stepper, traj[:, 0], 0.1, 500)
+    c = np.sum(roll**2, axis=-1)
+    assert np.abs(c - c[:, :1]).max() <= 1e-13 * c.max()
+
+
+def test_recovers_heavy_top_vector_field() -> None:
+    top = pr.HeavyTop()
+    rng = np.random.default_rng(5)
+    y0 = np.concatenate([rng.normal(size=(6, 3)), _sphere(rng, 6)], axis=1)
+    traj = _trajectories(top, y0, 0.05, 12)
+    data = prepare(traj, 0.05, top.algebra, seed=0)
+    fit = fit_polynomial(data, top.algebra, 2, order=5, max_iter=8)
+    states = np.concatenate([rng.normal(size=(100, 3)), _sphere(rng, 100)], axis=1)
+    assert relative_field_error(fit.system, top, states) <= 1e-6
+
+
+def test_auto_prefers_the_smaller_family_when_it_fits() -> None:
+    rng = np.random.default_rng(6)
+    traj = _trajectories(BODY, _sphere(rng, 10), 0.1, 16)
+    _, report = learn(traj, 0.1, algebra="so3", mode="auto")
+    assert [c.family for c in report.candidates] == ["poly2"]
+    assert report.kept.family == "poly2" and "smallest" in report.kept.reason
+    # A cubic H: the quadratic family cannot reach the noise level, the cubic one is kept.
+    cubic = pr.LiePoissonSystem(
+        pr.LieAlgebra.so3(),
+        pr.Polynomial({(2, 0, 0): 0.25, (0, 2, 0): 0.5, (0, 0, 2): 0.75, (1, 1, 1): 0.3}),
+    )
+    traj3 = _trajectories(cubic, _sphere(rng, 10), 0.1, 16)
+    _, report3 = learn(traj3, 0.1, algebra="so3", mode="auto", max_iter=10)
+    assert [c.family for c in report3.candidates] == ["poly2", "poly3"]
+    assert report3.kept.family == "poly3"
+    assert report3.candidates[1].one_step < 1e-3 * report3.candidates[0].one_step
+    assert "poly2" in str(report3) and "KEPT" in str(report3)
+
+
+# --- map mode -------------------------------------------------------------------------------------
+
+
+def _random_map(seed: int) -> torch.nn.Module:
+    s_fn = build_map(
+        {(2, 0, 0): 0.25, (0, 2, 0): 0.5, (0, 0, 2): 0.75},
+        pr.LieAlgebra.so3(),
+        widths=(8, 8),
+        h=0.1,
+        seed=seed,
+    )
+    torch.manual_seed(seed)
+    for lin in s_fn.linears:
+        torch.nn.init.normal_(lin.weight, std=0.5)
+        torch.nn.init.normal_(lin.bias, std=0.1)
+    return s_fn
+
+
+def _map_stepper(s_fn) -> pr.LearnedIntegrator:
+    from poisson_rs.export import model_bytes
+
+    raw = model_bytes(
+        powers=s_fn.powers.numpy(),
+        coeffs=s_fn.coeffs.detach().numpy(),
+        layers=s_fn.exported_layers(),
+        mlp_power=s_fn.mlp_power,
+        chart="exp",
+        system=pr.LiePoissonSystem(pr.LieAlgebra.so3(), pr.Polynomial({(0, 0, 0): 0.0})),
+        h_max=0.1,
+        domain={"kind": "all"},
+        record={"learn_mode": "map"},
+    )
+    return pr.LearnedIntegrator(raw)
+
+
+def test_random_map_keeps_casimirs_and_rust_matches_torch(tmp_path) -> None:
+    stepper = _map_stepper(_random_map(7))
+    mu0 = _sphere(np.random.default_rng(7), 5)
+    roll = pr.integrate(stepper, mu0, 0.1, 300)
+    c = np.sum(roll**2, axis=-1)
+    assert np.isfinite(roll).all()
+    assert np.abs(c - 1.0).max() <= 1e-13
+    one = pr.integrate(stepper, mu0, 0.1, 1)[:, -1]
+    torch_one = stepper.torch_step(torch.as_tensor(mu0), 0.1).numpy()
+    assert np.abs(one - torch_one).max() <= 1e-14
+    # Round trips: the file and pickle step bit for bit like the original.
+    path = tmp_path / "map.safetensors"
+    path.write_bytes(stepper._bytes)
+    again = pr.load_model(str(path))
+    assert np.array_equal(pr.integrate(again, mu0, 0.1, 20), roll[:, :21])
+    clone = pickle.loads(pickle.dumps(stepper))
+    assert np.array_equal(pr.integrate(clone, mu0, 0.1, 20), roll[:, :21])
+
+
+def test_map_mode_learns_and_records_provenance() -> None:
+    rng = np.random.default_rng(8)
+    traj = _trajectories(BODY, _sphere(rng, 10), 0.1, 6)
+    stepper, report = learn(
+        traj,
+        0.1,
+        algebra="so3",
+        mode="map",
+        seed=3,
+        map_options={"adam_steps": 10, "lbfgs_steps": 5, "widths": (8,)},
+    )
+    assert report.kept.family == "map" and report.hamiltonian is None
+    assert report.kept.one_step < 1e-3
+    meta = stepper.metadata
+    assert meta["learn_mode"] == "map" and meta["data_sha256"] == report.data_sha256
+    assert meta["seed"] == 3 and json.loads(meta["data_shape"]) == [10, 6, 3]
+    c = np.sum(pr.integrate(stepper, traj[:, 0], 0.1, 100) ** 2, axis=-1)
+    assert np.abs(c - c[:, :1]).max() <= 1e-13
+
+
+# --- data: files and bad input --------------------------------------------------------------------
+
+
+def test_loaders_agree(tmp_path) -> None:
+    rng = np.random.default_rng(9)
+    traj = _trajectories(BODY, _sphere(rng, 3), 0.1, 5)
+    np.savez(tmp_path / "a.npz", trajectories=traj)
+    rows = [[i, *r] for i, t in enumerate(traj) for r in t]
+    np.savetxt(tmp_path / "a.csv", rows, delimiter=",", header="traj,m1,m2,m3", comments="")
+    for name in ("a.npz", "a.csv"):
+        got = load_trajectories(tmp_path / name)
+        assert len(got) == 3 and all(
+            np.allclose(g, t, rtol=0, atol=1e-15) for g, t in zip(got, traj, strict=True)
+        )
+    pytest.importorskip("zarr")
+    pytest.importorskip("dask")
+    from poisson_rs.ensembles import to_zarr
+
+    rk4 = pr.classical(BODY, "rk4")
+    to_zarr(rk4, traj[:, 0], 0.1, 4, tmp_path / "z")
+    assert np.array_equal(
+        np.stack(load_trajectories(tmp_path / "z")), pr.integrate(rk4, traj[:, 0], 0.1, 4)
+    )
+
+
+@pytest.mark.parametrize(
+    ("data", "h", "match"),
+    [
+        (np.full((2, 4, 3), np.nan), 0.1, r"trajectories\[0\]: record 0, component 0 is nan"),
+        (np.ones((2, 4, 4)), 0.1, "dimension 4, but the algebra"),
+        (np.ones((2, 1, 3)), 0.1, "at least two records"),
+        ([[[1.0, 2.0, 3.0], [1.0, 2.0]]], 0.1, "ragged"),
+        (np.ones((2, 4, 3)), 0.0, "h must be finite and > 0"),
+        (np.ones((2, 4, 3)), -1.0, "h must be finite and > 0"),
+    ],
+)
+def test_bad_input_gets_one_clear_error(data, h, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        learn(data, h, algebra="so3")
+
+
+def test_drifting_casimirs_warn_with_their_size() -> None:
+    rng = np.random.default_rng(10)
+    traj = _trajectories(BODY, _sphere(rng, 4), 0.1, 12)
+    traj = traj * (1 + 0.01 * np.arange(12))[None, :, None]  # |μ| grows: not Lie–Poisson
+    with pytest.warns(CasimirDriftWarning, match=r"drift by up to 0\.1\d+ \(relative\)"):
+        prepare(traj, 0.1, pr.LieAlgebra.so3())
+
+
+def test_hj_data_mode_says_it_is_not_available() -> None:
+    with pytest.raises(NotImplementedError, match="hj\\+data"):
+        learn(np.ones((2, 4, 3)), 0.1, algebra="so3", mode="hj+data")
+
+
+# --- the command line -----------------------------------------------------------------------------
+
+
+def test_cli_writes_a_model_with_its_provenance(tmp_path, capsys) -> None:
+    from poisson_rs.learn import cli
+
+    rng = np.random.default_rng(11)
+    traj = _trajectories(BODY, _sphere(rng, 8), 0.1, 12)
+    np.savez(tmp_path / "d.npz", trajectories=traj)
+    parser = argparse.ArgumentParser()
+    cli.add_parser(parser.add_subparsers())
+    out = tmp_path / "m.safetensors"
+    args = parser.parse_args(
+        ["learn", str(tmp_path / "d.npz"), "--h", "0.1", "--out", str(out), "--seed", "2"]
+    )
+    assert args.func(args) == 0
+    model = pr.load_model(str(out))
+    assert model.metadata["learn_mode"] == "auto" and model.metadata["seed"] == 2
+    assert json.loads(model.metadata["data_shape"]) == [8, 12, 3]
+    assert "KEPT" in capsys.readouterr().out
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert args.func(args) == 2  # exists, no --force
+    bad = parser.parse_args(["learn", str(tmp_path / "d.npz"), "--h", "-1", "--out", str(out)])
+    with pytest.raises(ValueError, match="--h"):
+        bad.func(bad)
