@@ -1,5 +1,5 @@
-"""Command line: ``poisson-rs demo``, ``train``, ``models``, ``chart``, ``stability``, ``select``
-and ``sweep``, for every system the package integrates.
+"""Command line: ``poisson-rs demo``, ``train``, ``models``, ``chart``, ``stability``, ``select``,
+``sweep`` and ``learn``, for every system the package integrates.
 
 Each subcommand is a module with ``add_parser(subparsers)`` and ``run(args)``; :data:`COMMANDS`
 lists them, so a new subcommand is one more line there. Errors in what a user gave (a number, a
@@ -41,7 +41,7 @@ def _modules() -> list[ModuleType]:
 
 
 def _description() -> str:
-    return "Learned and classical Poisson integrators for Lie–Poisson systems: " + ", ".join(
+    return "Learned and classical Poisson integrators: " + ", ".join(
         getattr(m, "NAME", m.__name__.rsplit(".", 1)[-1]) for m in _modules()
     )
 

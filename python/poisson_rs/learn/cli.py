@@ -21,6 +21,10 @@ from ..untrusted import parsing
 __all__ = ["add_parser", "run"]
 
 
+#: The subcommand this module adds (``poisson-rs learn``).
+NAME = "learn"
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Adds the ``learn`` subcommand; returns its parser."""
     p = subparsers.add_parser(
