@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import math
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,7 +32,9 @@ def _save_with_legend(
     """One legend right of the panels, an optional title, and the PNG at ``path``."""
     fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
     if title:
-        fig.suptitle(title, fontsize=10)
+        # Wrapped to the figure's width: a system's description can be longer than one line.
+        chars = max(40, int(fig.get_figwidth() * 72 / (0.6 * 10)))
+        fig.suptitle(textwrap.fill(title, chars), fontsize=10)
     return _savefig(fig, path, dpi=110)
 
 
