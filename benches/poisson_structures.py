@@ -22,14 +22,13 @@ import argparse
 import json
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
 import poisson_rs as pr
 from poisson_rs.files import atomic_write_bytes, check_output_path
-from poisson_rs.untrusted import parsing
+from poisson_rs import scenes
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = [ROOT / "scenes" / "lotka_volterra_pnn.toml", ROOT / "scenes" / "lotka_volterra_3d.toml"]
@@ -45,23 +44,11 @@ METHODS = [
 
 
 def load_scene(path: Path) -> tuple[str, pr.LogCanonicalSystem, np.ndarray, float, int]:
-    """(name, system, states (n, dim), h, n_steps) of a Lotka–Volterra scene TOML."""
-    source = str(path)
-    with parsing(source):
-        data = tomllib.loads(path.read_text())
-    with parsing(source, "system"):
-        system_table = data["system"]
-        if system_table.get("kind") != "lotka_volterra":
-            raise ValueError(f"kind must be 'lotka_volterra', got {system_table.get('kind')!r}")
-        system = pr.lotka_volterra(system_table["c"], system_table["b"], name=data["name"])
-    with parsing(source, "states.points"):
-        states = np.array(data["states"]["points"], dtype=np.float64)
-        system.hamiltonian(states)  # the open positive orthant
-    with parsing(source, "steps"):
-        h, n_steps = float(data["steps"]["h"]), int(data["steps"]["n_steps"])
-        if not (h > 0 and n_steps >= 1):
-            raise ValueError(f"need h > 0 and n_steps >= 1, got {h}, {n_steps}")
-    return str(data["name"]), system, states, h, n_steps
+    """(name, system, states (n, dim), h, n_steps) of a Lotka–Volterra scene TOML, read by
+    :func:`poisson_rs.scenes.load_scene` (its checks: c antisymmetric, states in the orthant)."""
+    scene = scenes.load_scene(path)
+    h = scene.h[0]
+    return scene.name, scene.lie_system, scene.states(), h, scene.n_steps(h)
 
 
 def make(method: str, system: pr.LogCanonicalSystem) -> object:

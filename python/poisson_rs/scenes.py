@@ -79,7 +79,18 @@ if TYPE_CHECKING:
 
 _TOP_KEYS = ("name", "description", "system", "states", "steps", "target", "model", "select")
 _SECTION_KEYS: dict[str, tuple[str, ...]] = {
-    "system": ("kind", "inertia", "mgl", "com", "name", "algebra", "hamiltonian", "system_file"),
+    "system": (
+        "kind",
+        "inertia",
+        "mgl",
+        "com",
+        "name",
+        "algebra",
+        "hamiltonian",
+        "system_file",
+        "c",
+        "b",
+    ),
     "select": ("target", "T", "h", "models", "metric"),
     "states": ("points", "shell"),
     "steps": ("h", "horizon"),
@@ -191,8 +202,9 @@ class Scene:
     margin: tuple[float, float] = DEFAULT_MARGIN
     description: str = ""
     path: Path | None = None
-    system: LiePoissonSystem | None = None
-    """The system integrated; None (filled in): the rigid body of ``inertia``."""
+    system: Any = None
+    """The system integrated (a LiePoissonSystem, or a log-canonical system); None (filled
+    in): the rigid body of ``inertia``."""
     select: SelectSpec | None = None
 
     def __post_init__(self) -> None:
@@ -200,8 +212,9 @@ class Scene:
             object.__setattr__(self, "system", RigidBody(self.inertia))
 
     @property
-    def lie_system(self) -> LiePoissonSystem:
-        """The scene's system (typed: never None after construction)."""
+    def lie_system(self) -> Any:
+        """The scene's system (never None after construction): a LiePoissonSystem, or a
+        log-canonical system for ``kind = "lotka_volterra"``."""
         assert self.system is not None
         return self.system
 
@@ -305,6 +318,8 @@ def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> LiePoissonS
             raise ValueError(f"scene key 'system.{extra[0]}': give system_file alone")
         return _system_file(raw["system_file"], path)
     kind = raw.get("kind", "lie_poisson" if "algebra" in raw else "rigid_body")
+    if kind == "lotka_volterra":
+        return _lotka_volterra(raw)
     if isinstance(raw.get("algebra"), str):
         name = raw["algebra"]
         if name not in NAMED_ALGEBRAS:
@@ -326,6 +341,41 @@ def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> LiePoissonS
 
     with parsing("scene", "system"):
         return LiePoissonSystem.from_dict({**raw, "kind": kind})
+
+
+def _lotka_volterra(raw: Mapping[str, Any]) -> Any:
+    """A ``kind = "lotka_volterra"`` [system] table: the log-canonical structure ``c`` (n × n,
+    antisymmetric) with H = Σ (x_i − b_i ln x_i) (``b``: n numbers), optional ``name``."""
+    from .structures.log_canonical import lotka_volterra
+    from .untrusted import parsing
+
+    extra = [k for k in raw if k not in ("kind", "c", "b", "name")]
+    if extra:
+        raise ValueError(
+            f"scene key 'system.{extra[0]}' is not known for kind = \"lotka_volterra\" "
+            "(give c, b and optionally name)"
+        )
+    for key in ("c", "b"):
+        if key not in raw:
+            raise ValueError(f"scene key 'system.{key}' is missing")
+    c, b = raw["c"], raw["b"]
+    if not (isinstance(c, list) and all(isinstance(row, list) for row in c)):
+        raise ValueError(
+            f"scene key 'system.c' must be a list of rows (an n × n matrix), got {c!r}"
+        )
+    for j, row in enumerate(c):
+        if len(row) != len(c):
+            raise ValueError(f"scene key 'system.c' must be square: row {j} has {len(row)} entries")
+        for v in row:
+            _number(v, "system.c", positive=False)
+    if not isinstance(b, list) or len(b) != len(c):
+        raise ValueError(f"scene key 'system.b' must be {len(c)} numbers (one per species)")
+    b_values = [_number(v, "system.b", positive=False) for v in b]
+    name = raw.get("name")
+    if name is not None and not isinstance(name, str):
+        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
+    with parsing("scene", "system.c"):
+        return lotka_volterra(c, b_values, name=name)
 
 
 def _system_file(value: Any, path: Path | None) -> LiePoissonSystem:
@@ -410,6 +460,9 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
     i1, i2, i3 = (_number(v, "system.inertia") for v in inertia)
     lie_system = _lie_system(system, path)
     dim = lie_system.dim
+    from .studies.methods import is_positive_orthant
+
+    positive_orthant = is_positive_orthant(lie_system)
 
     states = _table(data, "states", _SECTION_KEYS["states"])
     if "points" not in states and "shell" not in states:
@@ -425,6 +478,11 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         if not isinstance(pt, list) or len(pt) != dim:
             raise ValueError(f"scene key '{key}' must be {dim} numbers, got {pt!r}")
         values = tuple(_number(v, key, positive=False) for v in pt)
+        if positive_orthant and not all(v > 0 for v in values):
+            raise ValueError(
+                f"scene key '{key}' = {list(values)} must lie in the open positive orthant "
+                f"(every component > 0) for {_system_label(lie_system)}"
+            )
         # H₀ = 0 there: the relative energy error is undefined (and μ = 0 never moves).
         if not any(values):
             raise ValueError(f"scene key '{key}' must not be the zero state")
@@ -491,6 +549,11 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         newton=newton,
     )
 
+    if "model" in data and not isinstance(lie_system, LiePoissonSystem):
+        raise ValueError(
+            "scene key 'model': training is for Lie–Poisson systems, not "
+            + _system_label(lie_system)
+        )
     model = _model_overrides(_table(data, "model", tuple(_MODEL_TYPES)))
     evaluate_every = model.pop("evaluate_every", DEFAULT_EVALUATE_EVERY)
     if evaluate_every < 1:
@@ -515,11 +578,18 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         system=lie_system,
         select=select,
     )
-    try:
-        derive_config(scene).validate()
-    except ValueError as e:
-        raise ValueError(f"scene key 'model': {e}") from e
+    if isinstance(lie_system, LiePoissonSystem):
+        try:
+            derive_config(scene).validate()
+        except ValueError as e:
+            raise ValueError(f"scene key 'model': {e}") from e
     return scene
+
+
+def _system_label(system: Any) -> str:
+    from .studies.figures import system_label
+
+    return system_label(system)
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -638,8 +708,11 @@ def evaluate(model: Stepper, scene: Scene, *, strict: bool = True) -> dict[str, 
     else:
         exact = reference_solution(system, mu0, [scene.horizon])[:, 0]
     h0, c0 = body.hamiltonian(mu0), _casimirs(system, mu0)
-    # Casimir drift relative to |μ₀|² (for the rigid body, C₀ itself).
+    # Casimir drift relative to |μ₀|² (for the rigid body, C₀ itself); absolute for the
+    # log-form Casimirs Σ k_i ln x_i of a log-canonical system (they are not homogeneous).
     c_scale = np.einsum("nd,nd->n", mu0, mu0)
+    if not isinstance(system, LiePoissonSystem):
+        c_scale = np.ones(len(mu0))
     per_h = []
     for h in scene.h:
         with warnings.catch_warnings():

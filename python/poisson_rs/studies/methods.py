@@ -1,0 +1,80 @@
+"""The integrators each kind of system has, by name, for the studies and the CLI.
+
+A study asks three things of a system: which Taylor-HJ integrators it has (and in which charts),
+which classical methods, and how to build each. Lie–Poisson systems answer with
+:func:`~poisson_rs.taylor_integrator` (Cayley and exp charts on so(3), exp elsewhere) and
+:func:`~poisson_rs.classical`; log-canonical systems (Lotka–Volterra) with
+:func:`~poisson_rs.log_canonical_taylor` on the exact groupoid (chart name "log": the step works
+in q = ln x) and :func:`~poisson_rs.log_canonical_classical` (RK4, midpoint, the log splittings
+of order 2 and 4, DOP853 as the reference). Names follow one pattern everywhere:
+``taylor{k}-{chart}`` and the classical method's own name.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..integrators import Stepper, classical, classical_methods, taylor_integrator
+
+#: The chart name of the exact log-canonical groupoid (the step works in q = ln x).
+LOG_CHART = "log"
+
+
+def is_log_canonical(system: Any) -> bool:
+    """Whether ``system`` is a log-canonical system (e.g. :func:`~poisson_rs.lotka_volterra`)."""
+    from ..structures.log_canonical import LogCanonicalSystem
+
+    return isinstance(system, LogCanonicalSystem)
+
+
+def is_positive_orthant(system: Any) -> bool:
+    """Whether the system's states live in the open positive orthant (log-canonical ones)."""
+    return is_log_canonical(system)
+
+
+def taylor_charts(system: Any) -> tuple[str, ...]:
+    """The charts the system's Taylor-HJ integrators are built in: ("cayley", "exp") on so(3),
+    ("log",) for a log-canonical system, ("exp",) for any other Lie–Poisson system."""
+    if is_log_canonical(system):
+        return (LOG_CHART,)
+    so3 = getattr(getattr(system, "algebra", None), "is_so3", lambda: False)()
+    return ("cayley", "exp") if so3 else ("exp",)
+
+
+def default_chart(system: Any) -> str:
+    """The chart the studies use when they pick one: exp, or log for a log-canonical system."""
+    return LOG_CHART if is_log_canonical(system) else "exp"
+
+
+def taylor(system: Any, order: int, chart: str | None = None) -> Stepper:
+    """The Taylor-HJ integrator of ``order`` for ``system`` in ``chart`` (default:
+    :func:`default_chart`). ValueError for a chart the system does not have."""
+    chart = default_chart(system) if chart is None else chart
+    if is_log_canonical(system):
+        if chart != LOG_CHART:
+            raise ValueError(
+                f"chart {chart!r}: a log-canonical system has one chart, {LOG_CHART!r}"
+            )
+        from ..integrators import log_canonical_taylor
+
+        return log_canonical_taylor(system, order)
+    return taylor_integrator(system, order, chart)  # type: ignore[arg-type]
+
+
+def classical_names(system: Any) -> list[str]:
+    """Names of the classical integrators the system has ("dop853" among them)."""
+    if is_log_canonical(system):
+        from ..integrators import LOG_CANONICAL_METHODS
+
+        return list(LOG_CANONICAL_METHODS)
+    return classical_methods(system)
+
+
+def classical_stepper(system: Any, name: str, **kw: Any) -> Stepper:
+    """The classical integrator ``name`` of :func:`classical_names` (``tol`` sets DOP853's
+    rtol = atol)."""
+    if is_log_canonical(system):
+        from ..integrators import log_canonical_classical
+
+        return log_canonical_classical(system, name, **kw)
+    return classical(system, name, **kw)
