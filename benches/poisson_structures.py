@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 import poisson_rs as pr
-from poisson_rs.files import atomic_write_bytes, check_output_path
 from poisson_rs import scenes
+from poisson_rs.files import atomic_write_bytes, check_output_path
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = [ROOT / "scenes" / "lotka_volterra_pnn.toml", ROOT / "scenes" / "lotka_volterra_3d.toml"]

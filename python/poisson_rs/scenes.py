@@ -90,6 +90,8 @@ _SECTION_KEYS: dict[str, tuple[str, ...]] = {
         "system_file",
         "c",
         "b",
+        "cocycle",
+        "component_names",
     ),
     "select": ("target", "T", "h", "models", "metric"),
     "states": ("points", "shell"),
@@ -320,6 +322,8 @@ def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> LiePoissonS
     kind = raw.get("kind", "lie_poisson" if "algebra" in raw else "rigid_body")
     if kind == "lotka_volterra":
         return _lotka_volterra(raw)
+    if kind == "affine":
+        return _affine(raw)
     if isinstance(raw.get("algebra"), str):
         name = raw["algebra"]
         if name not in NAMED_ALGEBRAS:
@@ -376,6 +380,48 @@ def _lotka_volterra(raw: Mapping[str, Any]) -> Any:
         raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
     with parsing("scene", "system.c"):
         return lotka_volterra(c, b_values, name=name)
+
+
+def _affine(raw: Mapping[str, Any]) -> Any:
+    """A ``kind = "affine"`` [system] table: ``algebra`` (a name in NAMED_ALGEBRAS or a
+    LieAlgebra.to_dict() table), ``cocycle`` (n × n, antisymmetric, a 2-cocycle), ``hamiltonian``
+    (a Polynomial.to_dict() table), optional ``name`` and ``component_names``."""
+    from .structures.affine import AffinePoissonSystem
+    from .systems import Polynomial
+    from .untrusted import parsing
+
+    allowed = ("kind", "algebra", "cocycle", "hamiltonian", "name", "component_names")
+    extra = [k for k in raw if k not in allowed]
+    if extra:
+        raise ValueError(
+            f"scene key 'system.{extra[0]}' is not known for kind = \"affine\" (give "
+            "algebra, cocycle, hamiltonian and optionally name, component_names)"
+        )
+    for key in ("algebra", "cocycle", "hamiltonian"):
+        if key not in raw:
+            raise ValueError(f"scene key 'system.{key}' is missing")
+    with parsing("scene", "system.algebra"):
+        algebra = raw["algebra"]
+        if isinstance(algebra, str):
+            if algebra not in NAMED_ALGEBRAS:
+                raise ValueError(f"{algebra!r} is not one of {NAMED_ALGEBRAS}")
+            algebra = getattr(LieAlgebra, algebra)()
+        else:
+            algebra = LieAlgebra.from_dict(algebra)
+    with parsing("scene", "system.hamiltonian"):
+        hamiltonian = Polynomial.from_dict(raw["hamiltonian"])
+    names = raw.get("component_names")
+    if names is not None and not (
+        isinstance(names, list) and all(isinstance(v, str) and v for v in names)
+    ):
+        raise ValueError(f"scene key 'system.component_names' must be a list of names: {names!r}")
+    name = raw.get("name")
+    if name is not None and not isinstance(name, str):
+        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
+    with parsing("scene", "system.cocycle"):
+        return AffinePoissonSystem(
+            algebra, raw["cocycle"], hamiltonian, name=name, component_names=names
+        )
 
 
 def _system_file(value: Any, path: Path | None) -> LiePoissonSystem:

@@ -56,6 +56,8 @@ def system_label(system: Any) -> str:
     if isinstance(system, HeavyTop):
         return f"heavy top, I = {system.inertia}, mgl = {system.mgl:g}, χ = {system.com}"
     name = getattr(system, "name", None)
+    if getattr(system, "kind", None) == "affine":
+        return f"{name or 'affine system'}: Lie–Poisson + constant cocycle, dim {system.dim}"
     if getattr(system, "kind", None) == "log_canonical":
         c = np.asarray(system.c).tolist()
         rows = ", ".join("[" + ", ".join(f"{v:g}" for v in row) + "]" for row in c)

@@ -6,7 +6,10 @@ which classical methods, and how to build each. Lie–Poisson systems answer wit
 :func:`~poisson_rs.classical`; log-canonical systems (Lotka–Volterra) with
 :func:`~poisson_rs.log_canonical_taylor` on the exact groupoid (chart name "log": the step works
 in q = ln x) and :func:`~poisson_rs.log_canonical_classical` (RK4, midpoint, the log splittings
-of order 2 and 4, DOP853 as the reference). Names follow one pattern everywhere:
+of order 2 and 4, DOP853 as the reference); affine systems (Lie–Poisson plus a constant
+cocycle) with the same Lie–Poisson methods run on their central extension at level 1
+(:func:`~poisson_rs.affine_taylor`, :func:`~poisson_rs.affine_classical`: Taylor-exp, RK4,
+midpoint, DOP853). Names follow one pattern everywhere:
 ``taylor{k}-{chart}`` and the classical method's own name.
 """
 
@@ -25,6 +28,20 @@ def is_log_canonical(system: Any) -> bool:
     from ..structures.log_canonical import LogCanonicalSystem
 
     return isinstance(system, LogCanonicalSystem)
+
+
+def is_affine(system: Any) -> bool:
+    """Whether ``system`` is an affine Poisson system (see :mod:`poisson_rs.structures.affine`)."""
+    from ..structures.affine import AffinePoissonSystem
+
+    return isinstance(system, AffinePoissonSystem)
+
+
+def is_supported(system: Any) -> bool:
+    """Whether the studies have integrators for ``system``."""
+    from ..systems import LiePoissonSystem
+
+    return isinstance(system, LiePoissonSystem) or is_log_canonical(system) or is_affine(system)
 
 
 def is_positive_orthant(system: Any) -> bool:
@@ -58,6 +75,12 @@ def taylor(system: Any, order: int, chart: str | None = None) -> Stepper:
         from ..integrators import log_canonical_taylor
 
         return log_canonical_taylor(system, order)
+    if is_affine(system):
+        if chart != "exp":
+            raise ValueError(f"chart {chart!r}: an affine system is integrated in the exp chart")
+        from ..structures.affine import affine_taylor
+
+        return affine_taylor(system, order)
     return taylor_integrator(system, order, chart)  # type: ignore[arg-type]
 
 
@@ -67,6 +90,8 @@ def classical_names(system: Any) -> list[str]:
         from ..integrators import LOG_CANONICAL_METHODS
 
         return list(LOG_CANONICAL_METHODS)
+    if is_affine(system):
+        return classical_methods(system.extension)
     return classical_methods(system)
 
 
@@ -77,4 +102,8 @@ def classical_stepper(system: Any, name: str, **kw: Any) -> Stepper:
         from ..integrators import log_canonical_classical
 
         return log_canonical_classical(system, name, **kw)
+    if is_affine(system):
+        from ..structures.affine import affine_classical
+
+        return affine_classical(system, name, **kw)
     return classical(system, name, **kw)

@@ -58,8 +58,8 @@ from ..systems import LiePoissonSystem, RigidBody
 from .methods import (
     classical_names,
     classical_stepper,
-    is_log_canonical,
     is_positive_orthant,
+    is_supported,
     taylor_charts,
 )
 from .methods import taylor as taylor_stepper
@@ -611,9 +611,9 @@ def select(
         For a malformed system, states, horizon, target or step.
     """
     t_start = time.perf_counter()
-    if not (isinstance(system, LiePoissonSystem) or is_log_canonical(system)):
+    if not is_supported(system):
         raise TypeError(
-            f"system must be a LiePoissonSystem or a log-canonical system, got "
+            f"system must be a LiePoissonSystem, a log-canonical or an affine system, got "
             f"{type(system).__name__}"
         )
     for what, v in (("T", T), ("target", target)):

@@ -34,7 +34,13 @@ from ..integrators import (
 )
 from ..reference import RigidBody, exact_solution, reference_solution
 from ..systems import LiePoissonSystem
-from .methods import LOG_CHART, classical_stepper, is_log_canonical, is_positive_orthant
+from .methods import (
+    LOG_CHART,
+    classical_names,
+    classical_stepper,
+    is_log_canonical,
+    is_positive_orthant,
+)
 from .methods import taylor as taylor_stepper
 
 Row = dict[str, Any]
@@ -117,6 +123,16 @@ def default_methods(body: LiePoissonSystem) -> dict[str, Callable[[], Stepper]]:
         for name in ("log_splitting", "log_splitting4", "midpoint", "rk4"):
             log[name] = partial(classical_stepper, body, name)
         return log
+    if not isinstance(body, LiePoissonSystem):
+        # Another structure (affine: on its central extension): Taylor-exp and the classical
+        # methods it has.
+        other: dict[str, Callable[[], Stepper]] = {
+            f"taylor{k}-exp": partial(taylor_stepper, body, k, "exp") for k in (3, 5)
+        }
+        for name in ("midpoint", "rk4"):
+            if name in classical_names(body):
+                other[name] = partial(classical_stepper, body, name)
+        return other
     learned = {f"learned:{n}": _loader(n) for n in shipped_models(body) if n != "paper"}
     methods: dict[str, Callable[[], Stepper]] = dict(learned)
     if body.algebra.is_so3():

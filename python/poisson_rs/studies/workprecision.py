@@ -270,8 +270,8 @@ def default_methods(
             + ", ".join(CLASSICAL_NAMES)
         )
         return methods
-    if log_canonical:
-        classical = classical_stepper
+    if not isinstance(body, LiePoissonSystem):
+        classical = classical_stepper  # the structure's own (log-canonical, affine)
     assert classical is not None
     available = classical_names(body)
     wanted = [*CLASSICAL_NAMES, *LOG_CLASSICAL_NAMES]
