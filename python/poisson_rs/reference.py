@@ -580,6 +580,14 @@ def reference_solution(
             system.extension, lifted, times, rtol=rtol, atol=atol, failures=failures
         )
         return np.ascontiguousarray(out[..., : system.dim])
+    from .structures.polynomial import PolynomialPoissonSystem
+
+    if isinstance(system, PolynomialPoissonSystem):
+        rtol, atol = _check_tolerances(rtol, atol)
+        states, t, single = _check_states_and_times(mu0, times, system.dim)
+        field = system.vector_field
+        out = _dop853(lambda y: field(y[None])[0], states, t, rtol, atol, failures)
+        return out[0] if single else out
     if isinstance(system, LogCanonicalSystem):
         # In q = ln x (the positive orthant is kept, the tolerances are relative in x).
         rtol, atol = _check_tolerances(rtol, atol)

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import shlex
 import time
 import tomllib
@@ -92,6 +93,7 @@ _SECTION_KEYS: dict[str, tuple[str, ...]] = {
         "b",
         "cocycle",
         "component_names",
+        "casimir",
     ),
     "select": ("target", "T", "h", "models", "metric"),
     "states": ("points", "shell"),
@@ -324,6 +326,8 @@ def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> LiePoissonS
         return _lotka_volterra(raw)
     if kind == "affine":
         return _affine(raw)
+    if kind == "nambu":
+        return _nambu(raw)
     if isinstance(raw.get("algebra"), str):
         name = raw["algebra"]
         if name not in NAMED_ALGEBRAS:
@@ -380,6 +384,49 @@ def _lotka_volterra(raw: Mapping[str, Any]) -> Any:
         raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
     with parsing("scene", "system.c"):
         return lotka_volterra(c, b_values, name=name)
+
+
+#: A polynomial in x1, x2, x3 as a scene may write it: numbers, the variables, + − * / ** and
+#: parentheses, nothing else (the string then goes to sympy, which must never see a name).
+_POLYNOMIAL_TEXT = re.compile(r"(?:x[1-3]|[0-9.+\-*/() ])+")
+
+
+def _polynomial_text(value: Any, key: str) -> str:
+    if not isinstance(value, str) or not 0 < len(value) <= 2000:
+        raise ValueError(f"scene key '{key}' must be a polynomial in x1, x2, x3 (a string)")
+    if not _POLYNOMIAL_TEXT.fullmatch(value):
+        raise ValueError(
+            f"scene key '{key}' = {value!r}: only numbers, x1, x2, x3, + - * / ** and "
+            "parentheses are allowed"
+        )
+    return value
+
+
+def _nambu(raw: Mapping[str, Any]) -> Any:
+    """A ``kind = "nambu"`` [system] table: the Nambu bracket {f, g} = ∇C·(∇f × ∇g) on R³ of the
+    polynomial ``casimir`` C, with the polynomial ``hamiltonian`` (strings in x1, x2, x3),
+    optional ``name``."""
+    from .structures.polynomial import PolynomialBivector, PolynomialPoissonSystem
+    from .untrusted import parsing
+
+    extra = [k for k in raw if k not in ("kind", "casimir", "hamiltonian", "name")]
+    if extra:
+        raise ValueError(
+            f"scene key 'system.{extra[0]}' is not known for kind = \"nambu\" (give casimir, "
+            "hamiltonian and optionally name)"
+        )
+    for key in ("casimir", "hamiltonian"):
+        if key not in raw:
+            raise ValueError(f"scene key 'system.{key}' is missing")
+    casimir = _polynomial_text(raw["casimir"], "system.casimir")
+    hamiltonian = _polynomial_text(raw["hamiltonian"], "system.hamiltonian")
+    name = raw.get("name")
+    if name is not None and not isinstance(name, str):
+        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
+    with parsing("scene", "system.casimir"):
+        structure = PolynomialBivector.nambu(casimir)
+    with parsing("scene", "system.hamiltonian"):
+        return PolynomialPoissonSystem(structure, hamiltonian, name=name)
 
 
 def _affine(raw: Mapping[str, Any]) -> Any:

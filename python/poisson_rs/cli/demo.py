@@ -218,6 +218,7 @@ def _demo_system(
         default_chart,
         is_log_canonical,
         taylor,
+        taylor_orders,
     )
 
     if states is None:
@@ -228,7 +229,7 @@ def _demo_system(
         methods[f"learned:{model.name}"] = model
     chart = default_chart(system)
     # The exact log-canonical groupoid is cheap at every order: m = 1 shows order 2 too.
-    for k in (1, 3, 5, 7) if is_log_canonical(system) else (3, 5, 7):
+    for k in taylor_orders(system, (1, 3, 5, 7) if is_log_canonical(system) else (3, 5, 7)):
         methods[f"taylor{k}-{chart}"] = taylor(system, k, chart)
     for name in classical_names(system):
         if name != "dop853":

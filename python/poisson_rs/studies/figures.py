@@ -56,6 +56,10 @@ def system_label(system: Any) -> str:
     if isinstance(system, HeavyTop):
         return f"heavy top, I = {system.inertia}, mgl = {system.mgl:g}, χ = {system.com}"
     name = getattr(system, "name", None)
+    if getattr(system, "kind", None) == "polynomial_bivector":
+        nambu = getattr(system.structure, "casimir", None)
+        what = f"Nambu bracket of C = {nambu}" if nambu is not None else "polynomial bivector"
+        return f"{name or 'polynomial Poisson system'}: {what}, H = {system.h}"
     if getattr(system, "kind", None) == "affine":
         return f"{name or 'affine system'}: Lie–Poisson + constant cocycle, dim {system.dim}"
     if getattr(system, "kind", None) == "log_canonical":
@@ -88,7 +92,8 @@ def component_names(system: Any) -> tuple[str, ...]:
 def state_symbol(system: Any) -> str:
     """The letter of the system's states: μ on g*, x for the other structures (a log-canonical
     or affine system, whose ``kind`` says so)."""
-    return "x" if getattr(system, "kind", None) in ("log_canonical", "affine") else "μ"
+    kinds = ("log_canonical", "affine", "polynomial_bivector")
+    return "x" if getattr(system, "kind", None) in kinds else "μ"
 
 
 def _state_label(mu0: np.ndarray, symbol: str = "μ") -> str:

@@ -9,7 +9,9 @@ in q = ln x) and :func:`~poisson_rs.log_canonical_classical` (RK4, midpoint, the
 of order 2 and 4, DOP853 as the reference); affine systems (Lie–Poisson plus a constant
 cocycle) with the same Lie–Poisson methods run on their central extension at level 1
 (:func:`~poisson_rs.affine_taylor`, :func:`~poisson_rs.affine_classical`: Taylor-exp, RK4,
-midpoint, DOP853). Names follow one pattern everywhere:
+midpoint, DOP853); polynomial bivectors (a cubic Nambu bracket, ...) with Taylor-HJ on the
+order-2 realization (chart name "realization2", NumPy) and RK4, midpoint and DOP853 on the vector
+field (NumPy). Names follow one pattern everywhere:
 ``taylor{k}-{chart}`` and the classical method's own name.
 """
 
@@ -37,11 +39,35 @@ def is_affine(system: Any) -> bool:
     return isinstance(system, AffinePoissonSystem)
 
 
+def is_polynomial_bivector(system: Any) -> bool:
+    """Whether ``system`` is a polynomial-bivector system (order-2 realization)."""
+    from ..structures.polynomial import PolynomialPoissonSystem
+
+    return isinstance(system, PolynomialPoissonSystem)
+
+
+#: The chart name of the order-2 realization of a polynomial bivector.
+REALIZATION_CHART = "realization2"
+
+
 def is_supported(system: Any) -> bool:
     """Whether the studies have integrators for ``system``."""
     from ..systems import LiePoissonSystem
 
-    return isinstance(system, LiePoissonSystem) or is_log_canonical(system) or is_affine(system)
+    return (
+        isinstance(system, LiePoissonSystem)
+        or is_log_canonical(system)
+        or is_affine(system)
+        or is_polynomial_bivector(system)
+    )
+
+
+def taylor_orders(system: Any, wanted: tuple[int, ...] = (1, 3, 5, 7)) -> tuple[int, ...]:
+    """The Taylor-HJ orders of ``wanted`` the system's integrator takes (at most 5 on the
+    order-2 realization of a polynomial bivector, whose sympy series grows fast)."""
+    if is_polynomial_bivector(system):
+        return tuple(k for k in wanted if k <= 5)
+    return wanted
 
 
 def is_positive_orthant(system: Any) -> bool:
@@ -54,12 +80,16 @@ def taylor_charts(system: Any) -> tuple[str, ...]:
     ("log",) for a log-canonical system, ("exp",) for any other Lie–Poisson system."""
     if is_log_canonical(system):
         return (LOG_CHART,)
+    if is_polynomial_bivector(system):
+        return (REALIZATION_CHART,)
     so3 = getattr(getattr(system, "algebra", None), "is_so3", lambda: False)()
     return ("cayley", "exp") if so3 else ("exp",)
 
 
 def default_chart(system: Any) -> str:
     """The chart the studies use when they pick one: exp, or log for a log-canonical system."""
+    if is_polynomial_bivector(system):
+        return REALIZATION_CHART
     return LOG_CHART if is_log_canonical(system) else "exp"
 
 
@@ -75,6 +105,12 @@ def taylor(system: Any, order: int, chart: str | None = None) -> Stepper:
         from ..integrators import log_canonical_taylor
 
         return log_canonical_taylor(system, order)
+    if is_polynomial_bivector(system):
+        if chart != REALIZATION_CHART:
+            raise ValueError(f"chart {chart!r}: a polynomial bivector has {REALIZATION_CHART!r}")
+        from ..structures.polynomial import RealizationTaylorIntegrator
+
+        return RealizationTaylorIntegrator(system, order)
     if is_affine(system):
         if chart != "exp":
             raise ValueError(f"chart {chart!r}: an affine system is integrated in the exp chart")
@@ -92,6 +128,10 @@ def classical_names(system: Any) -> list[str]:
         return list(LOG_CANONICAL_METHODS)
     if is_affine(system):
         return classical_methods(system.extension)
+    if is_polynomial_bivector(system):
+        from ..structures.polynomial import VECTOR_FIELD_METHODS
+
+        return list(VECTOR_FIELD_METHODS)
     return classical_methods(system)
 
 
@@ -106,4 +146,8 @@ def classical_stepper(system: Any, name: str, **kw: Any) -> Stepper:
         from ..structures.affine import affine_classical
 
         return affine_classical(system, name, **kw)
+    if is_polynomial_bivector(system):
+        from ..structures.polynomial import VectorFieldIntegrator
+
+        return VectorFieldIntegrator(system, name, **kw)
     return classical(system, name, **kw)

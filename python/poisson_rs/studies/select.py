@@ -61,6 +61,7 @@ from .methods import (
     is_positive_orthant,
     is_supported,
     taylor_charts,
+    taylor_orders,
 )
 from .methods import taylor as taylor_stepper
 
@@ -311,7 +312,7 @@ def _candidates(
         if name != "dop853"
     ]
     for chart in taylor_charts(system):
-        for k in ORDERS:
+        for k in taylor_orders(system, ORDERS):
             out.append(_Candidate(f"taylor{k}-{chart}", "taylor", taylor_stepper(system, k, chart)))
     if isinstance(system, LiePoissonSystem) or models:
         # Learned models are Lie–Poisson: none of the shipped ones is listed for another system.

@@ -38,6 +38,7 @@ from .methods import (
     LOG_CHART,
     classical_names,
     classical_stepper,
+    default_chart,
     is_log_canonical,
     is_positive_orthant,
 )
@@ -127,7 +128,10 @@ def default_methods(body: LiePoissonSystem) -> dict[str, Callable[[], Stepper]]:
         # Another structure (affine: on its central extension): Taylor-exp and the classical
         # methods it has.
         other: dict[str, Callable[[], Stepper]] = {
-            f"taylor{k}-exp": partial(taylor_stepper, body, k, "exp") for k in (3, 5)
+            f"taylor{k}-{default_chart(body)}": partial(
+                taylor_stepper, body, k, default_chart(body)
+            )
+            for k in (3, 5)
         }
         for name in ("midpoint", "rk4"):
             if name in classical_names(body):

@@ -39,7 +39,13 @@ from ..integrators import (
 )
 from ..reference import RigidBody, exact_solution, reference_solution
 from ..systems import LiePoissonSystem
-from .methods import classical_names, classical_stepper, is_log_canonical, taylor_charts
+from .methods import (
+    classical_names,
+    classical_stepper,
+    is_log_canonical,
+    taylor_charts,
+    taylor_orders,
+)
 from .methods import taylor as taylor_stepper
 
 Row = dict[str, Any]
@@ -257,7 +263,7 @@ def default_methods(
     if quick and so3:
         charts = ("cayley",)
     for chart in charts:
-        for k in orders:
+        for k in taylor_orders(body, orders):
             methods.append(Method(f"taylor{k}-{chart}", "taylor", taylor_stepper(body, k, chart)))
     if quick and so3:
         methods.append(Method("taylor3-exp", "taylor", taylor_integrator(body, 3, "exp")))
