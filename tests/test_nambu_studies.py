@@ -39,7 +39,7 @@ def test_scene_refuses_anything_but_a_polynomial(text: str, tmp_path: Path) -> N
     # A TOML literal string: the text as it is, quotes included.
     source = SCENE.read_text().replace('"x1**2/2 + x2**2/3 + x3**2/4"', f"'{text}'")
     path.write_text(source)
-    with pytest.raises(ValueError, match="system.hamiltonian"):
+    with pytest.raises(ValueError, match=r"system\.hamiltonian"):
         load_scene(path)
 
 
