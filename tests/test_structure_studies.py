@@ -230,3 +230,13 @@ def test_select_api_refuses_states_outside_the_orthant() -> None:
     ref = pr.reference_solution(lv, [1.0, 0.8], [1.0])[0]
     assert np.linalg.norm(traj[-1] - ref) / np.linalg.norm([1.0, 0.8]) <= 1e-4
     assert math.isfinite(h)
+
+
+def test_train_refuses_a_log_canonical_scene_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["train", "--scene", str(PNN), "--out", str(tmp_path / "m.safetensors")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "training a learned S is for Lie–Poisson systems" in err and "\n" not in err
+    assert not (tmp_path / "m.safetensors").exists()

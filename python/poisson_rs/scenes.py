@@ -729,8 +729,14 @@ def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
     """
     from .train import TrainConfig
 
-    r = np.linalg.norm(scene.states(), axis=1)
     system = scene.lie_system
+    if not isinstance(system, LiePoissonSystem):
+        raise ValueError(
+            f"scene {scene.name!r}: training a learned S is for Lie–Poisson systems, not "
+            f"{_system_label(system)}; its Taylor-HJ and classical methods run in demo, chart, "
+            "stability and select"
+        )
+    r = np.linalg.norm(scene.states(), axis=1)
     base: dict[str, Any] = {"inertia": scene.inertia}
     if not isinstance(system, RigidBody):
         # Other systems: the exp chart (the only one off so(3)) and t,p inputs unless H is

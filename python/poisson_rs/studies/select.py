@@ -235,7 +235,8 @@ def _params(system: LiePoissonSystem) -> str:
     d = system.to_dict()
     keys = [k for k in ("inertia", "mgl", "com") if k in d]
     if not keys:
-        return f"(dim {system.dim})"
+        name = getattr(system, "name", None)
+        return f"({name}, dim {system.dim})" if name else f"(dim {system.dim})"
     return "(" + ", ".join(f"{k} = {d[k]}" for k in keys) + ")"
 
 
