@@ -491,8 +491,11 @@ def work_precision_figure(
     return _save_with_legend(fig, path, handles, labels, title)
 
 
-def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "") -> Path:
-    """|ΔH|/H (max over growing windows) against time, log–log: one panel per initial state.
+def long_run_figure(
+    rows: Sequence[dict[str, Any]], path: Path, title: str = "", *, symbol: str = "μ"
+) -> Path:
+    """|ΔH|/H (max over growing windows) against time, log–log: one panel per initial state
+    (titled ``symbol``₀ = the state: μ on g*, x for other structures).
 
     A flat curve is a bounded energy error; a drift shows as a slope (1 for linear growth).
     """
@@ -519,7 +522,7 @@ def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "")
             ax.plot(ts, [max(r["max_rel_dH"], 1e-17) for r in pts], label=label, **st)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_title(f"μ₀ = {state}, h = {rows[0]['h']:g}")
+        ax.set_title(f"{symbol}₀ = {state}, h = {rows[0]['h']:g}")
         ax.set_xlabel("time t")
         ax.grid(True, which="major", alpha=0.3)
     for row in grid:
