@@ -161,3 +161,10 @@ def test_select_on_an_affine_system() -> None:
     traj = pr.integrate(stepper, STATES[:1], h, n)
     ref = pr.reference_solution(system, STATES[:1], [2.0])[:, 0]
     assert np.linalg.norm(traj[:, -1] - ref) / np.linalg.norm(STATES[0]) <= 1e-6
+
+
+def test_dask_rollout_is_bit_identical() -> None:
+    da = pytest.importorskip("dask.array")
+    stepper = pr.affine_taylor(pendulum(), 3)
+    lazy = pr.integrate(stepper, da.from_array(STATES, chunks=2), 0.1, 50)
+    np.testing.assert_array_equal(lazy.compute(), pr.integrate(stepper, STATES, 0.1, 50))
