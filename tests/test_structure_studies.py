@@ -240,3 +240,17 @@ def test_train_refuses_a_log_canonical_scene_in_one_line(
     err = capsys.readouterr().err.strip()
     assert "training a learned S is for Lie–Poisson systems" in err and "\n" not in err
     assert not (tmp_path / "m.safetensors").exists()
+
+
+def test_select_by_casimir_picks_a_poisson_method() -> None:
+    """On the 3D scene only the Poisson maps keep ln x₁ − ln x₂ + ln x₃ to round-off: a Casimir
+    target of 1e-12 at T = 10 is met by them at large steps, RK4 needs tiny ones."""
+    system = load_scene(LV3).lie_system
+    states = load_scene(LV3).states()
+    stepper, h, report = pr.select(
+        system, states, T=10.0, target=1e-12, metric="casimir", budget_s=3.0
+    )
+    assert stepper.name in ("log_splitting", "log_splitting4") or stepper.name.endswith("-log")
+    traj = pr.integrate(stepper, states, h, round(10.0 / h))
+    assert np.nanmax(max_casimir_drift(system, traj)) <= 1e-12
+    assert "rk4" in str(report)
