@@ -249,7 +249,7 @@ def test_round_trips() -> None:
         np.testing.assert_array_equal(
             pr.integrate(clone, x0, 0.1, 20), pr.integrate(stepper, x0, 0.1, 20)
         )
-    assert system.component_names == ("x1", "x2", "x3")
+    assert system.component_names == ("x₁", "x₂", "x₃")
     assert pnn().component_names == ("u", "v")
 
 

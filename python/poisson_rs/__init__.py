@@ -40,12 +40,17 @@ from .integrators import (
 from .learn import learn
 from .reference import dop853_solution, exact_solution, reference_solution
 from .structures import (
+    AffineIntegrator,
+    AffinePoissonSystem,
     LogCanonical,
     LogCanonicalSystem,
     LogPolynomial,
     PolynomialBivector,
     PolynomialPoissonSystem,
     RealizationTaylorIntegrator,
+    affine_classical,
+    affine_poisson_system,
+    affine_taylor,
     lotka_volterra,
 )
 from .studies.select import NoCandidateError, SelectionReport, select
@@ -60,6 +65,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "FAILURE_CODES",
+    "AffineIntegrator",
+    "AffinePoissonSystem",
     "BisectionIntegrator",
     "ClassicalIntegrator",
     "HeavyTop",
@@ -81,6 +88,9 @@ __all__ = [
     "SelectionReport",
     "TaylorIntegrator",
     "__version__",
+    "affine_classical",
+    "affine_poisson_system",
+    "affine_taylor",
     "classical",
     "classical_methods",
     "dop853_solution",

@@ -219,6 +219,11 @@ def casimir_degrees(system: Any) -> tuple[int, ...] | None:
     fn = system_casimirs(system)
     if fn is None:
         return None
+    # A system whose Casimirs are not homogeneous polynomials says how to scale them (0: the
+    # log-form Casimirs Σ k_i ln x_i of a log-canonical system, whose drift is absolute).
+    own = getattr(system, "casimir_degrees", None)
+    if own is not None:
+        return tuple(int(d) for d in own)
     # Homogeneous: C(2μ) = 2^d C(μ) at a generic point.
     rng = np.random.default_rng(0)
     mu = rng.normal(size=(1, int(system.dim)))
@@ -252,6 +257,8 @@ def max_casimir_drift(system: Any, traj: np.ndarray) -> np.ndarray:
 
 def casimir_label(system: Any) -> str:
     """What the Casimir drift measures, for axis labels: "C = |Γ|², M·Γ", or "no Casimir known"."""
+    if isinstance(getattr(system, "casimir_label", None), str):
+        return str(system.casimir_label)
     fn = system_casimirs(system)
     if fn is None:
         return "no Casimir known (drift n/a)"

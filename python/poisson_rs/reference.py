@@ -570,8 +570,24 @@ def reference_solution(
         If the integrator fails, a trajectory would take more than 200,000 steps (the cost grows
         with the state's size times T), or the right-hand side overflows (fails at once).
     """
+    from .structures.affine import AffinePoissonSystem
     from .structures.log_canonical import LogCanonicalSystem
 
+    if isinstance(system, AffinePoissonSystem):
+        # On the central extension at level 1 (μ_z = 1 is kept), its first n components.
+        lifted = system.lift(np.asarray(mu0, dtype=np.float64))
+        out = reference_solution(
+            system.extension, lifted, times, rtol=rtol, atol=atol, failures=failures
+        )
+        return np.ascontiguousarray(out[..., : system.dim])
+    from .structures.polynomial import PolynomialPoissonSystem
+
+    if isinstance(system, PolynomialPoissonSystem):
+        rtol, atol = _check_tolerances(rtol, atol)
+        states, t, single = _check_states_and_times(mu0, times, system.dim)
+        field = system.vector_field
+        out = _dop853(lambda y: field(y[None])[0], states, t, rtol, atol, failures)
+        return out[0] if single else out
     if isinstance(system, LogCanonicalSystem):
         # In q = ln x (the positive orthant is kept, the tolerances are relative in x).
         rtol, atol = _check_tolerances(rtol, atol)

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import shlex
 import time
 import tomllib
@@ -79,7 +80,21 @@ if TYPE_CHECKING:
 
 _TOP_KEYS = ("name", "description", "system", "states", "steps", "target", "model", "select")
 _SECTION_KEYS: dict[str, tuple[str, ...]] = {
-    "system": ("kind", "inertia", "mgl", "com", "name", "algebra", "hamiltonian", "system_file"),
+    "system": (
+        "kind",
+        "inertia",
+        "mgl",
+        "com",
+        "name",
+        "algebra",
+        "hamiltonian",
+        "system_file",
+        "c",
+        "b",
+        "cocycle",
+        "component_names",
+        "casimir",
+    ),
     "select": ("target", "T", "h", "models", "metric"),
     "states": ("points", "shell"),
     "steps": ("h", "horizon"),
@@ -191,8 +206,9 @@ class Scene:
     margin: tuple[float, float] = DEFAULT_MARGIN
     description: str = ""
     path: Path | None = None
-    system: LiePoissonSystem | None = None
-    """The system integrated; None (filled in): the rigid body of ``inertia``."""
+    system: Any = None
+    """The system integrated (a LiePoissonSystem, or a log-canonical system); None (filled
+    in): the rigid body of ``inertia``."""
     select: SelectSpec | None = None
 
     def __post_init__(self) -> None:
@@ -200,8 +216,9 @@ class Scene:
             object.__setattr__(self, "system", RigidBody(self.inertia))
 
     @property
-    def lie_system(self) -> LiePoissonSystem:
-        """The scene's system (typed: never None after construction)."""
+    def lie_system(self) -> Any:
+        """The scene's system (never None after construction): a LiePoissonSystem, or a
+        log-canonical system for ``kind = "lotka_volterra"``."""
         assert self.system is not None
         return self.system
 
@@ -305,6 +322,12 @@ def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> LiePoissonS
             raise ValueError(f"scene key 'system.{extra[0]}': give system_file alone")
         return _system_file(raw["system_file"], path)
     kind = raw.get("kind", "lie_poisson" if "algebra" in raw else "rigid_body")
+    if kind == "lotka_volterra":
+        return _lotka_volterra(raw)
+    if kind == "affine":
+        return _affine(raw)
+    if kind == "nambu":
+        return _nambu(raw)
     if isinstance(raw.get("algebra"), str):
         name = raw["algebra"]
         if name not in NAMED_ALGEBRAS:
@@ -326,6 +349,126 @@ def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> LiePoissonS
 
     with parsing("scene", "system"):
         return LiePoissonSystem.from_dict({**raw, "kind": kind})
+
+
+def _lotka_volterra(raw: Mapping[str, Any]) -> Any:
+    """A ``kind = "lotka_volterra"`` [system] table: the log-canonical structure ``c`` (n × n,
+    antisymmetric) with H = Σ (x_i − b_i ln x_i) (``b``: n numbers), optional ``name``."""
+    from .structures.log_canonical import lotka_volterra
+    from .untrusted import parsing
+
+    extra = [k for k in raw if k not in ("kind", "c", "b", "name")]
+    if extra:
+        raise ValueError(
+            f"scene key 'system.{extra[0]}' is not known for kind = \"lotka_volterra\" "
+            "(give c, b and optionally name)"
+        )
+    for key in ("c", "b"):
+        if key not in raw:
+            raise ValueError(f"scene key 'system.{key}' is missing")
+    c, b = raw["c"], raw["b"]
+    if not (isinstance(c, list) and all(isinstance(row, list) for row in c)):
+        raise ValueError(
+            f"scene key 'system.c' must be a list of rows (an n × n matrix), got {c!r}"
+        )
+    for j, row in enumerate(c):
+        if len(row) != len(c):
+            raise ValueError(f"scene key 'system.c' must be square: row {j} has {len(row)} entries")
+        for v in row:
+            _number(v, "system.c", positive=False)
+    if not isinstance(b, list) or len(b) != len(c):
+        raise ValueError(f"scene key 'system.b' must be {len(c)} numbers (one per species)")
+    b_values = [_number(v, "system.b", positive=False) for v in b]
+    name = raw.get("name")
+    if name is not None and not isinstance(name, str):
+        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
+    with parsing("scene", "system.c"):
+        return lotka_volterra(c, b_values, name=name)
+
+
+#: A polynomial in x1, x2, x3 as a scene may write it: numbers, the variables, + − * / ** and
+#: parentheses, nothing else (the string then goes to sympy, which must never see a name).
+_POLYNOMIAL_TEXT = re.compile(r"(?:x[1-3]|[0-9.+\-*/() ])+")
+
+
+def _polynomial_text(value: Any, key: str) -> str:
+    if not isinstance(value, str) or not 0 < len(value) <= 2000:
+        raise ValueError(f"scene key '{key}' must be a polynomial in x1, x2, x3 (a string)")
+    if not _POLYNOMIAL_TEXT.fullmatch(value):
+        raise ValueError(
+            f"scene key '{key}' = {value!r}: only numbers, x1, x2, x3, + - * / ** and "
+            "parentheses are allowed"
+        )
+    return value
+
+
+def _nambu(raw: Mapping[str, Any]) -> Any:
+    """A ``kind = "nambu"`` [system] table: the Nambu bracket {f, g} = ∇C·(∇f × ∇g) on R³ of the
+    polynomial ``casimir`` C, with the polynomial ``hamiltonian`` (strings in x1, x2, x3),
+    optional ``name``."""
+    from .structures.polynomial import PolynomialBivector, PolynomialPoissonSystem
+    from .untrusted import parsing
+
+    extra = [k for k in raw if k not in ("kind", "casimir", "hamiltonian", "name")]
+    if extra:
+        raise ValueError(
+            f"scene key 'system.{extra[0]}' is not known for kind = \"nambu\" (give casimir, "
+            "hamiltonian and optionally name)"
+        )
+    for key in ("casimir", "hamiltonian"):
+        if key not in raw:
+            raise ValueError(f"scene key 'system.{key}' is missing")
+    casimir = _polynomial_text(raw["casimir"], "system.casimir")
+    hamiltonian = _polynomial_text(raw["hamiltonian"], "system.hamiltonian")
+    name = raw.get("name")
+    if name is not None and not isinstance(name, str):
+        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
+    with parsing("scene", "system.casimir"):
+        structure = PolynomialBivector.nambu(casimir)
+    with parsing("scene", "system.hamiltonian"):
+        return PolynomialPoissonSystem(structure, hamiltonian, name=name)
+
+
+def _affine(raw: Mapping[str, Any]) -> Any:
+    """A ``kind = "affine"`` [system] table: ``algebra`` (a name in NAMED_ALGEBRAS or a
+    LieAlgebra.to_dict() table), ``cocycle`` (n × n, antisymmetric, a 2-cocycle), ``hamiltonian``
+    (a Polynomial.to_dict() table), optional ``name`` and ``component_names``."""
+    from .structures.affine import AffinePoissonSystem
+    from .systems import Polynomial
+    from .untrusted import parsing
+
+    allowed = ("kind", "algebra", "cocycle", "hamiltonian", "name", "component_names")
+    extra = [k for k in raw if k not in allowed]
+    if extra:
+        raise ValueError(
+            f"scene key 'system.{extra[0]}' is not known for kind = \"affine\" (give "
+            "algebra, cocycle, hamiltonian and optionally name, component_names)"
+        )
+    for key in ("algebra", "cocycle", "hamiltonian"):
+        if key not in raw:
+            raise ValueError(f"scene key 'system.{key}' is missing")
+    with parsing("scene", "system.algebra"):
+        algebra = raw["algebra"]
+        if isinstance(algebra, str):
+            if algebra not in NAMED_ALGEBRAS:
+                raise ValueError(f"{algebra!r} is not one of {NAMED_ALGEBRAS}")
+            algebra = getattr(LieAlgebra, algebra)()
+        else:
+            algebra = LieAlgebra.from_dict(algebra)
+    with parsing("scene", "system.hamiltonian"):
+        hamiltonian = Polynomial.from_dict(raw["hamiltonian"])
+    names = raw.get("component_names")
+    if names is not None and not (
+        isinstance(names, list) and all(isinstance(v, str) and v for v in names)
+    ):
+        raise ValueError(f"scene key 'system.component_names' must be a list of names: {names!r}")
+    name = raw.get("name")
+    if name is not None and not isinstance(name, str):
+        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
+    with parsing("scene", "system.cocycle"):
+        return AffinePoissonSystem(
+            algebra, raw["cocycle"], hamiltonian, name=name, component_names=names
+        )
 
 
 def _system_file(value: Any, path: Path | None) -> LiePoissonSystem:
@@ -410,6 +553,9 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
     i1, i2, i3 = (_number(v, "system.inertia") for v in inertia)
     lie_system = _lie_system(system, path)
     dim = lie_system.dim
+    from .studies.methods import is_positive_orthant
+
+    positive_orthant = is_positive_orthant(lie_system)
 
     states = _table(data, "states", _SECTION_KEYS["states"])
     if "points" not in states and "shell" not in states:
@@ -425,6 +571,11 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         if not isinstance(pt, list) or len(pt) != dim:
             raise ValueError(f"scene key '{key}' must be {dim} numbers, got {pt!r}")
         values = tuple(_number(v, key, positive=False) for v in pt)
+        if positive_orthant and not all(v > 0 for v in values):
+            raise ValueError(
+                f"scene key '{key}' = {list(values)} must lie in the open positive orthant "
+                f"(every component > 0) for {_system_label(lie_system)}"
+            )
         # H₀ = 0 there: the relative energy error is undefined (and μ = 0 never moves).
         if not any(values):
             raise ValueError(f"scene key '{key}' must not be the zero state")
@@ -491,6 +642,11 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         newton=newton,
     )
 
+    if "model" in data and not isinstance(lie_system, LiePoissonSystem):
+        raise ValueError(
+            "scene key 'model': training is for Lie–Poisson systems, not "
+            + _system_label(lie_system)
+        )
     model = _model_overrides(_table(data, "model", tuple(_MODEL_TYPES)))
     evaluate_every = model.pop("evaluate_every", DEFAULT_EVALUATE_EVERY)
     if evaluate_every < 1:
@@ -515,11 +671,18 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         system=lie_system,
         select=select,
     )
-    try:
-        derive_config(scene).validate()
-    except ValueError as e:
-        raise ValueError(f"scene key 'model': {e}") from e
+    if isinstance(lie_system, LiePoissonSystem):
+        try:
+            derive_config(scene).validate()
+        except ValueError as e:
+            raise ValueError(f"scene key 'model': {e}") from e
     return scene
+
+
+def _system_label(system: Any) -> str:
+    from .studies.figures import system_label
+
+    return system_label(system)
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -566,8 +729,14 @@ def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
     """
     from .train import TrainConfig
 
-    r = np.linalg.norm(scene.states(), axis=1)
     system = scene.lie_system
+    if not isinstance(system, LiePoissonSystem):
+        raise ValueError(
+            f"scene {scene.name!r}: training a learned S is for Lie–Poisson systems, not "
+            f"{_system_label(system)}; its Taylor-HJ and classical methods run in demo, chart, "
+            "stability and select"
+        )
+    r = np.linalg.norm(scene.states(), axis=1)
     base: dict[str, Any] = {"inertia": scene.inertia}
     if not isinstance(system, RigidBody):
         # Other systems: the exp chart (the only one off so(3)) and t,p inputs unless H is
@@ -638,8 +807,11 @@ def evaluate(model: Stepper, scene: Scene, *, strict: bool = True) -> dict[str, 
     else:
         exact = reference_solution(system, mu0, [scene.horizon])[:, 0]
     h0, c0 = body.hamiltonian(mu0), _casimirs(system, mu0)
-    # Casimir drift relative to |μ₀|² (for the rigid body, C₀ itself).
+    # Casimir drift relative to |μ₀|² (for the rigid body, C₀ itself); absolute for the
+    # log-form Casimirs Σ k_i ln x_i of a log-canonical system (they are not homogeneous).
     c_scale = np.einsum("nd,nd->n", mu0, mu0)
+    if not isinstance(system, LiePoissonSystem):
+        c_scale = np.ones(len(mu0))
     per_h = []
     for h in scene.h:
         with warnings.catch_warnings():

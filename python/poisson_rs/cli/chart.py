@@ -119,7 +119,10 @@ def _chart(args: argparse.Namespace) -> int:
         )
     charts.write_rows(data.rows, out / "workprecision.csv")
     charts.write_rows(data.long_rows, out / "long_run_energy.csv")
-    scenes = "; ".join(f"{s.name}: {s.description}" for s in data.scenes)
+    # A long description (a scene file's) would not fit in the title: the name alone then.
+    scenes = "; ".join(
+        s.name if len(s.description) > 80 else f"{s.name}: {s.description}" for s in data.scenes
+    )
     system = charts.system_label(data.scenes[0].system)
     charts.work_precision_figure(
         data.rows,
@@ -147,6 +150,7 @@ def _chart(args: argparse.Namespace) -> int:
         out / "long_run_energy.png",
         title=f"Energy error over {n_long} steps of h = {data.long_h:g}: {system}, "
         f"{data.scenes[0].name} scene",
+        symbol=charts.state_symbol(data.scenes[0].system),
     )
     failed = sorted(
         {f"{r['method']} ({r['scene']}, h={r['h']:g})" for r in data.rows if r["failed"]}

@@ -205,13 +205,21 @@ def _demo_system(
     system: LiePoissonSystem,
     states: np.ndarray | None = None,
 ) -> int:
-    """The demo on any system: Taylor-exp K = 3, 5, 7 and the classical methods (and ``model``
+    """The demo on any system: Taylor K = 3, 5, 7 (exp chart; 1, 3, 5, 7 on the exact
+    log-canonical groupoid) and the classical methods (and ``model``
     if given) from ``states`` (default: the system's demo states) against a DOP853 reference;
     the orbits, the states with their error, energy and Casimir drifts, and the metrics."""
     from ..files import check_outputs
-    from ..integrators import classical, classical_methods, taylor_integrator
     from ..studies import figures
     from ..studies.demo import demo_states, run_scene
+    from ..studies.methods import (
+        classical_names,
+        classical_stepper,
+        default_chart,
+        is_log_canonical,
+        taylor,
+        taylor_orders,
+    )
 
     if states is None:
         states = demo_states(system)
@@ -219,11 +227,13 @@ def _demo_system(
     methods: dict[str, Any] = {}
     if model is not None:
         methods[f"learned:{model.name}"] = model
-    for k in (3, 5, 7):
-        methods[f"taylor{k}-exp"] = taylor_integrator(system, k, "exp")
-    for name in classical_methods(system):
+    chart = default_chart(system)
+    # The exact log-canonical groupoid is cheap at every order: m = 1 shows order 2 too.
+    for k in taylor_orders(system, (1, 3, 5, 7) if is_log_canonical(system) else (3, 5, 7)):
+        methods[f"taylor{k}-{chart}"] = taylor(system, k, chart)
+    for name in classical_names(system):
         if name != "dop853":
-            methods[name] = classical(system, name)
+            methods[name] = classical_stepper(system, name)
     check_memory(len(states), system.dim, args.steps, len(methods))
     print(f"system: {_label(system)}, states {states.tolist()}")
     print(f"        {args.steps} steps of h = {args.h}; reference: DOP853, rtol = atol = 1e-13")

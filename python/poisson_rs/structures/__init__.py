@@ -1,7 +1,16 @@
 """Poisson structures beyond g* and the systems built on them: log-canonical structures
 π_ij = c_ij x_i x_j with log-polynomial Hamiltonians (Lotka–Volterra), and any polynomial
-bivector (checked for Jacobi) with its order-2 approximate realization."""
+bivector (checked for Jacobi) with its order-2 approximate realization, and affine brackets
+(Lie–Poisson plus a constant 2-cocycle) through their central extension at level 1."""
 
+from .affine import (
+    AffineIntegrator,
+    AffinePoissonSystem,
+    affine_classical,
+    affine_poisson_system,
+    affine_taylor,
+    central_extension,
+)
 from .log_canonical import (
     LogCanonical,
     LogCanonicalSystem,
@@ -12,12 +21,18 @@ from .log_canonical import (
 from .polynomial import PolynomialBivector, PolynomialPoissonSystem, RealizationTaylorIntegrator
 
 __all__ = [
+    "AffineIntegrator",
+    "AffinePoissonSystem",
     "LogCanonical",
     "LogCanonicalSystem",
     "LogPolynomial",
     "PolynomialBivector",
     "PolynomialPoissonSystem",
     "RealizationTaylorIntegrator",
+    "affine_classical",
+    "affine_poisson_system",
+    "affine_taylor",
+    "central_extension",
     "integer_null_space",
     "lotka_volterra",
 ]

@@ -229,7 +229,8 @@ class LogPolynomial:
 
 
 def _positive_states(x: Any, n: int, name: str = "x") -> Any:
-    """Checks the trailing dimension; ValueError for a state outside the open positive orthant."""
+    """Checks the trailing dimension; ValueError for a state outside the open positive orthant
+    (NaN entries pass: see below)."""
     if _is_tensor(x):
         if x.shape[-1:] != (n,):
             raise ValueError(f"{name} must have shape (..., {n}), got {tuple(x.shape)}")
@@ -242,8 +243,11 @@ def _positive_states(x: Any, n: int, name: str = "x") -> Any:
     arr = arr.astype(np.float64)
     if arr.ndim == 0 or arr.shape[-1] != n:
         raise ValueError(f"{name} must have shape (..., {n}), got {arr.shape}")
-    if not (np.isfinite(arr).all() and (arr > 0).all()):
-        bad = np.argwhere(~(np.isfinite(arr) & (arr > 0)))[0]
+    # NaN passes through (H, C are NaN there): it marks the states after a failed step in a
+    # trajectory, which the studies report as failures rather than refuse.
+    ok = (np.isfinite(arr) & (arr > 0)) | np.isnan(arr)
+    if not ok.all():
+        bad = np.argwhere(~ok)[0]
         raise ValueError(
             f"{name} must lie in the open positive orthant (finite, every x_i > 0); "
             f"entry {tuple(int(i) for i in bad)} is {arr[tuple(bad)]}"
@@ -289,7 +293,12 @@ class LogCanonicalSystem:
         n = structure.dim
         names = tuple(component_names) if component_names is not None else None
         if names is None:
-            names = ("u", "v") if n == 2 else tuple(f"x{i + 1}" for i in range(n))
+            sub = "₀₁₂₃₄₅₆₇₈₉"
+            names = (
+                ("u", "v")
+                if n == 2
+                else tuple("x" + "".join(sub[int(d)] for d in str(i + 1)) for i in range(n))
+            )
         if len(names) != n or not all(isinstance(s, str) for s in names):
             raise ValueError(f"component_names must be {n} strings, got {component_names!r}")
         self.structure = structure
@@ -339,6 +348,32 @@ class LogCanonicalSystem:
 
             return q @ torch.tensor(k.T, dtype=q.dtype, device=q.device)
         return q @ k.T.astype(np.float64)
+
+    @property
+    def casimir_degrees(self) -> tuple[int, ...]:
+        """0 for each Casimir: the log forms Σ k_i ln x_i are not homogeneous, so the studies
+        report their drift absolute, not relative to a power of |x₀|."""
+        return (0,) * len(self.structure.casimir_vectors)
+
+    @property
+    def casimir_label(self) -> str:
+        """What the Casimir drift measures, for tables and axis labels."""
+        k = self.structure.casimir_vectors
+        if len(k) == 0:
+            return "no Casimir (c is invertible): drift n/a"
+        names = self.component_names
+        forms = []
+        for row in k:
+            parts = []
+            for ki, name in zip(row.tolist(), names, strict=True):
+                if ki == 0:
+                    continue
+                sign = "−" if ki < 0 else "+"
+                mag = "" if abs(ki) == 1 else f"{abs(ki)} "
+                parts.append(f"{sign} {mag}ln {name}")
+            text = " ".join(parts)
+            forms.append(text[2:] if text.startswith("+ ") else "−" + text[2:])
+        return "C = " + ", ".join(forms) + " (absolute drift)"
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -173,7 +173,9 @@ class PolynomialPoissonSystem:
 
     kind = "polynomial_bivector"
 
-    def __init__(self, structure: PolynomialBivector, hamiltonian: Any) -> None:
+    def __init__(
+        self, structure: PolynomialBivector, hamiltonian: Any, *, name: str | None = None
+    ) -> None:
         import sympy
 
         if not isinstance(structure, PolynomialBivector):
@@ -184,6 +186,9 @@ class PolynomialPoissonSystem:
         h = sympy.sympify(hamiltonian, locals={f"x{i + 1}": s for i, s in enumerate(x)})
         if not h.free_symbols <= set(x) or not h.is_polynomial(*x):
             raise ValueError(f"hamiltonian {hamiltonian!r} is not a polynomial in x")
+        if name is not None and not isinstance(name, str):
+            raise ValueError(f"name must be a string or None, got {name!r}")
+        self.name = name
         self.structure = structure
         self.h = sympy.expand(h)
         self.component_names = tuple(str(s) for s in x)
@@ -207,6 +212,17 @@ class PolynomialPoissonSystem:
     def vector_field(self, x: Any) -> FloatArray:
         x = np.asarray(x, dtype=np.float64)
         return self._f(*np.moveaxis(x, -1, 0))
+
+    @property
+    def casimir_degrees(self) -> tuple[int, ...]:
+        """0: the Nambu function need not be homogeneous, so its drift is reported absolute."""
+        return () if self._c is None else (0,)
+
+    @property
+    def casimir_label(self) -> str:
+        if self.structure.casimir is None:
+            return "no Casimir known (drift n/a)"
+        return f"C = {self.structure.casimir} (absolute drift)"
 
     def casimirs(self, x: Any) -> FloatArray | None:
         if self._c is None:
@@ -348,3 +364,115 @@ class RealizationTaylorIntegrator:
             "max_residual": np.zeros(n_traj, dtype=np.float64),
         }
         return out, info
+
+
+#: The classical integrators of a polynomial-bivector system: (order, Poisson map).
+VECTOR_FIELD_METHODS: dict[str, tuple[int, bool]] = {
+    "rk4": (4, False),
+    "midpoint": (2, False),
+    "dop853": (8, False),
+}
+
+
+class VectorFieldIntegrator:
+    """A classical baseline for a :class:`PolynomialPoissonSystem`, in NumPy on its vector
+    field (vectorised over trajectories), driven by :func:`poisson_rs.integrate`:
+
+    - "rk4": explicit RK4;
+    - "midpoint": the implicit midpoint rule by fixed-point iteration (``tol`` relative,
+      ``max_iter`` sweeps; a trajectory that does not converge fails with code 1);
+    - "dop853": SciPy's adaptive DOP853 at rtol = atol = ``tol`` (h only spaces the output).
+
+    None is a Poisson map for a non-linear π; a non-finite state fails with code 3.
+    """
+
+    def __init__(
+        self, system: PolynomialPoissonSystem, name: str, *, tol: float = 1e-13, max_iter: int = 100
+    ) -> None:
+        if not isinstance(system, PolynomialPoissonSystem):
+            raise TypeError(
+                f"system must be a PolynomialPoissonSystem, got {type(system).__name__}"
+            )
+        if not (isinstance(name, str) and name in VECTOR_FIELD_METHODS):
+            raise ValueError(
+                f"unknown classical integrator {name!r} for a polynomial bivector; valid names: "
+                + ", ".join(VECTOR_FIELD_METHODS)
+            )
+        if not 0 < tol < 1:
+            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+        self.system, self.name = system, name
+        self.tol, self.max_iter = float(tol), int(max_iter)
+
+    @property
+    def dim(self) -> int:
+        return self.system.dim
+
+    @property
+    def order(self) -> int:
+        return VECTOR_FIELD_METHODS[self.name][0]
+
+    def step(self, x: FloatArray, h: float) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """One step of every row of x (B, n); the new states and which converged."""
+        f = self.system.vector_field
+        with np.errstate(all="ignore"):
+            if self.name == "rk4":
+                k1 = f(x)
+                k2 = f(x + 0.5 * h * k1)
+                k3 = f(x + 0.5 * h * k2)
+                k4 = f(x + h * k3)
+                new = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+                return new, np.isfinite(new).all(axis=1)
+            new = x + h * f(x)
+            ok = np.zeros(len(x), dtype=bool)
+            for _ in range(self.max_iter):
+                nxt = x + h * f(0.5 * (x + new))
+                size = np.abs(nxt - new).max(axis=1)
+                new = nxt
+                ok = size <= self.tol * np.maximum(np.abs(new).max(axis=1), 1.0)
+                if ok.all() or not np.isfinite(new).all():
+                    break
+        return new, ok & np.isfinite(new).all(axis=1)
+
+    def _rollout(
+        self, mu0: FloatArray, h: float, n_steps: int, every: int
+    ) -> tuple[FloatArray, dict[str, np.ndarray]]:
+        n_traj = len(mu0)
+        if self.name == "dop853":
+            from ..reference import reference_solution
+
+            times = h * np.arange(0, n_steps + 1, every, dtype=np.float64)
+            out = reference_solution(self.system, mu0, times, rtol=self.tol, atol=self.tol)
+            failed = np.full(n_traj, -1, dtype=np.int64)
+            codes = np.zeros(n_traj, dtype=np.int8)
+        else:
+            records = n_steps // every + 1
+            out = np.full((n_traj, records, self.dim), np.nan)
+            out[:, 0] = mu0
+            state = mu0.copy()
+            live = np.ones(n_traj, dtype=bool)
+            failed = np.full(n_traj, -1, dtype=np.int64)
+            codes = np.zeros(n_traj, dtype=np.int8)
+            for k in range(n_steps):
+                if not live.any():
+                    break
+                new, ok = self.step(state[live], h)
+                idx = np.flatnonzero(live)
+                bad = idx[~ok]
+                failed[bad] = k
+                codes[bad] = np.where(np.isfinite(new[~ok]).all(axis=1), 1, 3)
+                live[bad] = False
+                state[idx[ok]] = new[ok]
+                if (k + 1) % every == 0:
+                    out[live, (k + 1) // every] = state[live]
+        info = {
+            "converged": failed < 0,
+            "failed_step": failed,
+            "failure_code": codes,
+            "newton_iterations": np.zeros(n_traj, dtype=np.uint64),
+            "max_newton_iterations": np.zeros(n_traj, dtype=np.uint32),
+            "max_residual": np.zeros(n_traj, dtype=np.float64),
+        }
+        return out, info
+
+    def __repr__(self) -> str:
+        return f"VectorFieldIntegrator(name={self.name!r})"

@@ -59,6 +59,16 @@ def system_label(system: Any) -> str:
     if isinstance(system, HeavyTop):
         return f"heavy top, I = {system.inertia}, mgl = {system.mgl:g}, χ = {system.com}"
     name = getattr(system, "name", None)
+    if getattr(system, "kind", None) == "polynomial_bivector":
+        nambu = getattr(system.structure, "casimir", None)
+        what = f"Nambu bracket of C = {nambu}" if nambu is not None else "polynomial bivector"
+        return f"{name or 'polynomial Poisson system'}: {what}, H = {system.h}"
+    if getattr(system, "kind", None) == "affine":
+        return f"{name or 'affine system'}: Lie–Poisson + constant cocycle, dim {system.dim}"
+    if getattr(system, "kind", None) == "log_canonical":
+        c = np.asarray(system.c).tolist()
+        rows = ", ".join("[" + ", ".join(f"{v:g}" for v in row) + "]" for row in c)
+        return f"{name or 'Lotka–Volterra'}, log-canonical π_ij = c_ij x_i x_j, c = [{rows}]"
     algebra = getattr(system, "algebra", None)
     on = ""
     pretty = {"so3": "so(3)", "se3": "se(3)", "sl2": "sl(2)"}
@@ -82,8 +92,15 @@ def component_names(system: Any) -> tuple[str, ...]:
     return tuple(f"μ{str(i).translate(sub)}" for i in range(1, system.dim + 1))
 
 
-def _state_label(mu0: np.ndarray) -> str:
-    return "μ₀ = (" + ", ".join(f"{float(v):g}" for v in mu0) + ")"
+def state_symbol(system: Any) -> str:
+    """The letter of the system's states: μ on g*, x for the other structures (a log-canonical
+    or affine system, whose ``kind`` says so)."""
+    kinds = ("log_canonical", "affine", "polynomial_bivector")
+    return "x" if getattr(system, "kind", None) in kinds else "μ"
+
+
+def _state_label(mu0: np.ndarray, symbol: str = "μ") -> str:
+    return f"{symbol}₀ = (" + ", ".join(f"{float(v):g}" for v in mu0) + ")"
 
 
 def _grid(n: int, columns: int = GRID_COLUMNS) -> tuple[int, int]:
@@ -124,7 +141,7 @@ def orbit_figure(
         ax.set_ylabel(names[cols[1]])
         if three:
             ax.set_zlabel(names[cols[2]])  # type: ignore[attr-defined]
-        ax.set_title(_state_label(scene.states[i]), fontsize=9)
+        ax.set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=9)
     handles, labels = fig.axes[0].get_legend_handles_labels()
     kind = "reference: exact flow" if isinstance(system, RigidBody) else "reference: DOP853"
     title = f"{system_label(system)}: {len(scene.times) - 1} steps of h = {scene.h:g} ({kind})"
@@ -147,10 +164,11 @@ def _drift_panels(scene: SceneResult) -> list[tuple[Any, str]]:
     from ..casimirs import casimir_label
 
     known = casimir_label(scene.body)
+    m = state_symbol(scene.body)
     return [
-        (scene.errors, "|μ − μ_ref|"),
+        (scene.errors, f"|{m} − {m}_ref|"),
         (scene.energy_drift, "|H − H₀| / |H₀|"),
-        (scene.casimir_drift, f"max |C − C₀| / |μ₀|^deg C\n({known})"),
+        (scene.casimir_drift, f"max |C − C₀| / |{m}₀|^deg C\n({known})"),
     ]
 
 
@@ -183,7 +201,7 @@ def error_figure(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
                 ax.set_yticks([])
             ax.set_ylabel(ylabel, fontsize=8)
             ax.grid(True, which="major", alpha=0.3)
-        axes[r0, c].set_title(_state_label(scene.states[i]), fontsize=9)
+        axes[r0, c].set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=9)
         axes[r0 + 2, c].set_xlabel(f"step (h = {scene.h:g})")
     for i in range(n, nrows * ncols):
         for p in range(3):
@@ -246,7 +264,7 @@ def state_figure(scene: SceneResult, runs: Sequence[Run], path: Path, t_max: flo
             ax.plot(t, scene.exact[i, :k, j], color=colour, lw=1.4, label=names[j])
             for run in runs:
                 ax.plot(t, run.traj[i, :k, j], color=colour, lw=0.7, ls="--", alpha=0.7)
-        ax.set_title(_state_label(scene.states[i]), fontsize=8)
+        ax.set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=8)
         ax.set_xlabel("t")
         ax.legend(loc="upper right", fontsize=7, title="reference solid, methods dashed",
                   title_fontsize=6)  # fmt: skip
@@ -271,7 +289,7 @@ def state_figure(scene: SceneResult, runs: Sequence[Run], path: Path, t_max: flo
                 ax.set_yticks([])
             ax.set_ylabel(ylabel, fontsize=8)
             ax.grid(True, which="major", alpha=0.3)
-        axes2[r0, c].set_title(_state_label(scene.states[i]), fontsize=8)
+        axes2[r0, c].set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=8)
         axes2[r0 + 2, c].set_xlabel(f"step (h = {scene.h:g})")
     for i in range(n, (len(axes2) // 3) * ncols):
         for q in range(3):
@@ -290,6 +308,10 @@ _CLASSICAL_STYLE = {
     "dmv": ("tab:pink", "X"),
     "dop853": ("tab:red", "*"),
     "splitting_casimir": ("tab:gray", "d"),
+    # The log-coordinate splittings of a log-canonical system: the same roles as the rigid
+    # body's splittings (explicit Poisson, order 2 and 4), never charted beside them.
+    "log_splitting": ("tab:cyan", "D"),
+    "log_splitting4": ("tab:brown", "P"),
 }
 
 
@@ -472,8 +494,11 @@ def work_precision_figure(
     return _save_with_legend(fig, path, handles, labels, title)
 
 
-def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "") -> Path:
-    """|ΔH|/H (max over growing windows) against time, log–log: one panel per initial state.
+def long_run_figure(
+    rows: Sequence[dict[str, Any]], path: Path, title: str = "", *, symbol: str = "μ"
+) -> Path:
+    """|ΔH|/H (max over growing windows) against time, log–log: one panel per initial state
+    (titled ``symbol``₀ = the state: μ on g*, x for other structures).
 
     A flat curve is a bounded energy error; a drift shows as a slope (1 for linear growth).
     """
@@ -500,7 +525,7 @@ def long_run_figure(rows: Sequence[dict[str, Any]], path: Path, title: str = "")
             ax.plot(ts, [max(r["max_rel_dH"], 1e-17) for r in pts], label=label, **st)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_title(f"μ₀ = {state}, h = {rows[0]['h']:g}")
+        ax.set_title(f"{symbol}₀ = {state}, h = {rows[0]['h']:g}")
         ax.set_xlabel("time t")
         ax.grid(True, which="major", alpha=0.3)
     for row in grid:
@@ -521,6 +546,7 @@ def stability_figure(rows: Sequence[dict[str, Any]], path: Path, *, system: Any 
     methods = list(dict.fromkeys(r["method"] for r in rows))
     hs = sorted({float(r["h"]) for r in rows})
     labels = list(dict.fromkeys(r["state"] for r in rows))
+    m = state_symbol(system)
     n = len(methods)
     cols = min(n, 4)
     nrows = (n + cols - 1) // cols
@@ -553,7 +579,7 @@ def stability_figure(rows: Sequence[dict[str, Any]], path: Path, *, system: Any 
             image,
             ax=axes,
             shrink=0.8,
-            label="log₁₀ |μ(T) − μ_ref(T)| / |μ₀|  (× = Newton failure)",
+            label=f"log₁₀ |{m}(T) − {m}_ref(T)| / |{m}₀|  (× = failed step)",
         )
     if system is not None:
         fig.suptitle(f"Stability map: {system_label(system)}", fontsize=11)
@@ -567,10 +593,11 @@ def stability_summary_figure(
     method; a step size where Newton failed for some state is marked × at the top."""
     fig = Figure(figsize=(15, 4.5), layout="constrained")
     axes = fig.subplots(1, 3)
+    m = state_symbol(system)
     keys = [
-        ("rel_error", "worst |μ(T) − μ_ref(T)| / |μ₀|"),
+        ("rel_error", f"worst |{m}(T) − {m}_ref(T)| / |{m}₀|"),
         ("max_rel_dH", "worst max |H − H₀| / |H₀|"),
-        ("max_rel_dC", "worst max |C − C₀| / |μ₀|^deg C"),
+        ("max_rel_dC", f"worst max |C − C₀| / |{m}₀|^deg C"),
     ]
     marks: list[tuple[float, str]] = []  # (h, colour) of failures, drawn once limits are final
     for method in dict.fromkeys(r["method"] for r in rows):
@@ -587,11 +614,15 @@ def stability_summary_figure(
                 hs, worst, marker="o", ms=3, lw=1, label=method, color=method_style(method)["color"]
             )
         marks += [(h, line.get_color()) for h, f in zip(hs, failed, strict=True) if f]
+    empty = set()
     for ax, (key, _) in zip(axes, keys, strict=True):
         if not any(math.isfinite(float(r[key])) for r in rows if r["converged"]):
+            empty.add(ax)
             ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
                     va="center", transform=ax.transAxes, color="0.3")  # fmt: skip
     for ax in axes:
+        if ax in empty:
+            continue  # nothing plotted: no axis to mark failures on
         top = ax.get_ylim()[1]
         for h, colour in marks:
             ax.plot(h, top, marker="x", color=colour, ms=8, mew=2, clip_on=False)
@@ -601,7 +632,7 @@ def stability_summary_figure(
         ax.grid(True, which="major", alpha=0.3)
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right center", fontsize=8)
     what = f"{system_label(system)}: " if system is not None else ""
-    failures = " (× at the top: Newton failed for some state)" if marks else ""
+    failures = " (× at the top: a step failed for some state)" if marks else ""
     fig.suptitle(f"{what}where methods break{failures}")
     return _savefig(fig, path, dpi=110)
 

@@ -49,15 +49,21 @@ from ..integrators import (
     BisectionIntegrator,
     Stepper,
     _describe_domain,
-    classical,
-    classical_methods,
     count_out_of_domain,
     integrate,
     list_models,
     load_model,
-    taylor_integrator,
 )
 from ..systems import LiePoissonSystem, RigidBody
+from .methods import (
+    classical_names,
+    classical_stepper,
+    is_positive_orthant,
+    is_supported,
+    taylor_charts,
+    taylor_orders,
+)
+from .methods import taylor as taylor_stepper
 
 __all__ = ["CandidateResult", "NoCandidateError", "SelectionReport", "Trial", "select"]
 
@@ -229,7 +235,8 @@ def _params(system: LiePoissonSystem) -> str:
     d = system.to_dict()
     keys = [k for k in ("inertia", "mgl", "com") if k in d]
     if not keys:
-        return f"(dim {system.dim})"
+        name = getattr(system, "name", None)
+        return f"({name}, dim {system.dim})" if name else f"(dim {system.dim})"
     return "(" + ", ".join(f"{k} = {d[k]}" for k in keys) + ")"
 
 
@@ -263,10 +270,6 @@ def _reference(system: LiePoissonSystem, states: np.ndarray, T: float) -> tuple[
             del _REFERENCES[next(iter(_REFERENCES))]
     ref, name = _REFERENCES[key]
     return ref.copy(), name
-
-
-def _charts(system: LiePoissonSystem) -> tuple[str, ...]:
-    return ("cayley", "exp") if system.algebra.is_so3() else ("exp",)
 
 
 def _model_candidates(
@@ -303,19 +306,20 @@ def _candidates(
     h: float | None,
 ) -> list[_Candidate]:
     """Cheap-per-step families first, so the pruning bound is set early."""
+    names = classical_names(system)
     out = [
-        _Candidate(name, "classical", classical(system, name))
-        for name in classical_methods(system)
+        _Candidate(name, "classical", classical_stepper(system, name))
+        for name in names
         if name != "dop853"
     ]
-    for chart in _charts(system):
-        for k in ORDERS:
-            out.append(
-                _Candidate(f"taylor{k}-{chart}", "taylor", taylor_integrator(system, k, chart))
-            )
-    out += _model_candidates(system, mu0, models, h)
-    if "dop853" in classical_methods(system):
-        tols = {tol: classical(system, "dop853", tol=tol) for tol in DOP853_TOLERANCES}
+    for chart in taylor_charts(system):
+        for k in taylor_orders(system, ORDERS):
+            out.append(_Candidate(f"taylor{k}-{chart}", "taylor", taylor_stepper(system, k, chart)))
+    if isinstance(system, LiePoissonSystem) or models:
+        # Learned models are Lie–Poisson: none of the shipped ones is listed for another system.
+        out += _model_candidates(system, mu0, models, h)
+    if "dop853" in names:
+        tols = {tol: classical_stepper(system, "dop853", tol=tol) for tol in DOP853_TOLERANCES}
         out.append(_Candidate("dop853", "adaptive", tolerances=tols))
     return out
 
@@ -609,8 +613,11 @@ def select(
         For a malformed system, states, horizon, target or step.
     """
     t_start = time.perf_counter()
-    if not isinstance(system, LiePoissonSystem):
-        raise TypeError(f"system must be a LiePoissonSystem, got {type(system).__name__}")
+    if not is_supported(system):
+        raise TypeError(
+            f"system must be a LiePoissonSystem, a log-canonical or an affine system, got "
+            f"{type(system).__name__}"
+        )
     for what, v in (("T", T), ("target", target)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
             raise ValueError(f"{what} must be a finite number > 0, got {v!r}")
@@ -644,6 +651,12 @@ def select(
         raise ValueError(f"mu0 must have shape (n, {system.dim}), got {np.shape(mu0)}")
     if not np.isfinite(states).all() or (np.linalg.norm(states, axis=1) == 0).any():
         raise ValueError("mu0 must hold finite, non-zero states")
+    if is_positive_orthant(system) and not (states > 0).all():
+        k = int(np.flatnonzero(~(states > 0).all(axis=1))[0])
+        raise ValueError(
+            f"mu0 must lie in the open positive orthant (every x_i > 0): state {k} is "
+            f"{states[k].tolist()}"
+        )
     states = np.ascontiguousarray(states)
     ref: np.ndarray | None
     if metric != "error":

@@ -34,6 +34,15 @@ from ..integrators import (
 )
 from ..reference import RigidBody, exact_solution, reference_solution
 from ..systems import LiePoissonSystem
+from .methods import (
+    LOG_CHART,
+    classical_names,
+    classical_stepper,
+    default_chart,
+    is_log_canonical,
+    is_positive_orthant,
+)
+from .methods import taylor as taylor_stepper
 
 Row = dict[str, Any]
 
@@ -41,6 +50,8 @@ STEP_SIZES = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
 QUICK_STEP_SIZES = (0.1, 1.0)
 RADII = (1.0, 2.5, 4.0, 6.0)
 HORIZON = 20.0
+#: Log distances |ln x − ln x*| of the states of a log-canonical system from its equilibrium.
+LOG_RADII = (0.25, 0.5, 1.0, 1.5)
 
 
 def directions(body: RigidBody) -> dict[str, np.ndarray]:
@@ -69,12 +80,29 @@ def generic_directions(system: LiePoissonSystem) -> dict[str, np.ndarray]:
 def states(body: LiePoissonSystem, radii: Sequence[float] = RADII) -> tuple[np.ndarray, list[str]]:
     """(n, dim) initial states and their labels, every direction at every radius (the rigid
     body's :func:`directions`, else :func:`generic_directions`)."""
+    if is_positive_orthant(body):
+        return log_states(body, LOG_RADII if tuple(radii) == RADII else radii)
     rows, labels = [], []
     found = directions(body) if isinstance(body, RigidBody) else generic_directions(body)
     for r in radii:
         for name, d in found.items():
             rows.append(r * d)
             labels.append(f"|μ|={r:g}, {name}")
+    return np.array(rows), labels
+
+
+def log_states(system: Any, radii: Sequence[float] = LOG_RADII) -> tuple[np.ndarray, list[str]]:
+    """States of a log-canonical system (n, dim), all in the open positive orthant: x = x* ∘
+    exp(ρ d) for each fixed unit direction d of :func:`generic_directions` and each log
+    distance ρ in ``radii`` from x* = b, the equilibrium of a Lotka–Volterra H = Σ (x_i −
+    b_i ln x_i) (x* = 1 when b is not positive)."""
+    b = np.asarray(system.log_hamiltonian.b, dtype=np.float64)
+    center = b if (b > 0).all() else np.ones_like(b)
+    rows, labels = [], []
+    for r in radii:
+        for name, d in generic_directions(system).items():
+            rows.append(center * np.exp(r * d))
+            labels.append(f"|ln x − ln x*|={r:g}, {name}")
     return np.array(rows), labels
 
 
@@ -87,6 +115,28 @@ def default_methods(body: LiePoissonSystem) -> dict[str, Callable[[], Stepper]]:
     253k-parameter paper configuration, too slow for the grid), Taylor series (Cayley and exp on
     so(3), exp elsewhere) and the classical ones the system has. A model of another system would
     be scored against the wrong flow, so it is left out."""
+    if is_log_canonical(body):
+        # Taylor-HJ on the exact groupoid, the log splittings (explicit, Poisson) and the
+        # non-Poisson RK4 and midpoint rule in x.
+        log: dict[str, Callable[[], Stepper]] = {
+            f"taylor{k}-{LOG_CHART}": partial(taylor_stepper, body, k, LOG_CHART) for k in (3, 5)
+        }
+        for name in ("log_splitting", "log_splitting4", "midpoint", "rk4"):
+            log[name] = partial(classical_stepper, body, name)
+        return log
+    if not isinstance(body, LiePoissonSystem):
+        # Another structure (affine: on its central extension): Taylor-exp and the classical
+        # methods it has.
+        other: dict[str, Callable[[], Stepper]] = {
+            f"taylor{k}-{default_chart(body)}": partial(
+                taylor_stepper, body, k, default_chart(body)
+            )
+            for k in (3, 5)
+        }
+        for name in ("midpoint", "rk4"):
+            if name in classical_names(body):
+                other[name] = partial(classical_stepper, body, name)
+        return other
     learned = {f"learned:{n}": _loader(n) for n in shipped_models(body) if n != "paper"}
     methods: dict[str, Callable[[], Stepper]] = dict(learned)
     if body.algebra.is_so3():

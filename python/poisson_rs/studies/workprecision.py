@@ -33,13 +33,20 @@ from ..integrators import (
     FAILURE_CODES,
     RolloutInfo,
     Stepper,
-    classical_methods,
     integrate,
     shipped_models,
     taylor_integrator,
 )
 from ..reference import RigidBody, exact_solution, reference_solution
 from ..systems import LiePoissonSystem
+from .methods import (
+    classical_names,
+    classical_stepper,
+    is_log_canonical,
+    taylor_charts,
+    taylor_orders,
+)
+from .methods import taylor as taylor_stepper
 
 Row = dict[str, Any]
 Progress = Callable[[str], None]
@@ -63,6 +70,9 @@ CLASSICAL_NAMES = (
     "dmv",
     "dop853",
 )
+#: The classical methods of a log-canonical system besides RK4, midpoint and DOP853: the
+#: explicit Poisson splittings in q = ln x of order 2 and 4.
+LOG_CLASSICAL_NAMES = ("log_splitting", "log_splitting4")
 #: rtol = atol of the adaptive DOP853 sweep; its h only sets the output spacing.
 DOP853_TOLERANCES = tuple(10.0**-k for k in range(4, 13))
 DOP853_SPACING = 0.1
@@ -249,30 +259,39 @@ def default_methods(
         notes.append("no shipped learned model integrates this system: none charted")
     so3 = getattr(getattr(body, "algebra", None), "is_so3", lambda: False)()
     orders = (3, 5) if quick else TAYLOR_ORDERS
-    charts = (("cayley",) if quick else CHARTS) if so3 else ("exp",)
+    charts = taylor_charts(body)
+    if quick and so3:
+        charts = ("cayley",)
     for chart in charts:
-        for k in orders:
-            methods.append(
-                Method(f"taylor{k}-{chart}", "taylor", taylor_integrator(body, k, chart))
-            )
+        for k in taylor_orders(body, orders):
+            methods.append(Method(f"taylor{k}-{chart}", "taylor", taylor_stepper(body, k, chart)))
     if quick and so3:
         methods.append(Method("taylor3-exp", "taylor", taylor_integrator(body, 3, "exp")))
 
+    log_canonical = is_log_canonical(body)
     classical = getattr(poisson_rs, "classical", None)
-    if classical is None:
+    if classical is None and not log_canonical:
         notes.append(
             "classical integrators not available (no poisson_rs.classical): skipped "
             + ", ".join(CLASSICAL_NAMES)
         )
         return methods
-    available = classical_methods(body)
-    for name in ("rk4", "midpoint") if quick else CLASSICAL_NAMES:
+    if not isinstance(body, LiePoissonSystem):
+        classical = classical_stepper  # the structure's own (log-canonical, affine)
+    assert classical is not None
+    available = classical_names(body)
+    wanted = [*CLASSICAL_NAMES, *LOG_CLASSICAL_NAMES]
+    quick_names = (
+        ("rk4", "midpoint", *LOG_CLASSICAL_NAMES) if log_canonical else ("rk4", "midpoint")
+    )
+    for name in quick_names if quick else wanted:
         if name not in available:
             continue  # not defined for this system (e.g. the splittings off the rigid body)
         try:
             stepper = classical(body, name)
             # One step, so that a method whose Rust side is not built yet is skipped here
-            # rather than aborting the sweep.
+            # rather than aborting the sweep (from a state inside the positive orthant, where
+            # a log-canonical system lives).
             _integrate(stepper, np.full(body.dim, 0.5), 0.1, 1)
         except Exception as e:  # any reason at all: skip it, say why
             notes.append(f"classical {name!r} not available: {type(e).__name__}: {e}")

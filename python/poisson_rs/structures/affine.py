@@ -1,0 +1,330 @@
+"""Affine Poisson structures: a Lie–Poisson bracket plus a constant 2-cocycle, integrated as
+Lie–Poisson systems on a central extension at level 1.
+
+The bracket on Rⁿ is {x_i, x_j} = −Σ_k c[i,j,k] x_k + ω_ij, with c the structure constants of a
+Lie algebra g (the package's convention: the Lie–Poisson part is that of
+:class:`~poisson_rs.LiePoissonSystem`, μ̇_j = Σ_{i,k} c[i,j,k] ∂_iH μ_k) and ω a constant
+antisymmetric matrix. Jacobi holds if and only if ω is a 2-cocycle of g:
+
+    Σ_l (c[j,k,l] ω_il + c[k,i,l] ω_jl + c[i,j,l] ω_kl) = 0   for every triple (i, j, k).
+
+Then ĝ = g ⊕ R z with [e_i, e_j] = Σ_k c[i,j,k] e_k − ω_ij z and z central is a Lie algebra (the
+central extension by ω), μ_z is a Casimir of ĝ*, and on the hyperplane μ_z = 1 the Lie–Poisson
+bracket of ĝ* is the affine bracket above. So every Lie–Poisson integrator of ĝ* (Taylor-HJ on
+the exact groupoid, RK4, the midpoint rule, DOP853) integrates the affine system: lift x to
+(x, 1), step on ĝ*, drop the last component. μ_z = 1 is linear, so every one of them keeps it to
+round-off; the Taylor-HJ steps keep the other Casimirs of ĝ* as well.
+
+PNN's extended pendulum is {u, v} = −1, {u, r} = −2v, {v, r} = 2u: g = e(2) (r rotates the
+translations u, v), ω_uv = −1, and ĝ is the oscillator algebra. Its Casimir on μ_z = 1 is
+r − u² − v².
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..systems import LieAlgebra, LiePoissonSystem, Polynomial
+
+FloatArray = NDArray[np.float64]
+
+#: Largest dimension of the extension the core is compiled for (``poisson_rs._core.MAX_DIM``).
+MAX_DIM = 10
+#: Cocycle residual allowed, relative to max|c|·max|ω|.
+COCYCLE_RTOL = 1e-12
+
+
+def _check_cocycle(c: FloatArray, cocycle: ArrayLike) -> FloatArray:
+    """ω as a finite antisymmetric (n, n) float64 array that is a 2-cocycle of c; ValueError
+    naming 'cocycle' (and the failing triple) otherwise."""
+    n = c.shape[0]
+    arr = np.asarray(cocycle)
+    if arr.dtype == object or arr.dtype.kind not in "fiu":
+        raise TypeError(f"cocycle must be an array of real numbers, got dtype {arr.dtype}")
+    w = np.array(arr, dtype=np.float64)
+    if w.shape != (n, n):
+        raise ValueError(f"cocycle must be an ({n}, {n}) matrix for this algebra, got {w.shape}")
+    if not np.isfinite(w).all():
+        raise ValueError("cocycle holds NaN or infinite values")
+    if not np.array_equal(w, -w.T):
+        i, j = np.argwhere(w != -w.T)[0]
+        raise ValueError(
+            f"cocycle must be antisymmetric (w_ij = -w_ji): w[{i},{j}] = {w[i, j]} but "
+            f"w[{j},{i}] = {w[j, i]}"
+        )
+    scale = max(float(np.abs(c).max(initial=0.0)) * float(np.abs(w).max(initial=0.0)), 1e-300)
+    for i, j, k in itertools.combinations(range(n), 3):
+        r = c[j, k] @ w[i] + c[k, i] @ w[j] + c[i, j] @ w[k]
+        if abs(r) > COCYCLE_RTOL * scale * n:
+            raise ValueError(
+                f"cocycle is not a 2-cocycle of the algebra (the bracket fails the Jacobi "
+                f"identity) for the triple (i, j, k) = ({i}, {j}, {k}): "
+                f"Σ_l (c[j,k,l] w_il + c[k,i,l] w_jl + c[i,j,l] w_kl) = {r:.3g}"
+            )
+    return w
+
+
+def central_extension(algebra: LieAlgebra, cocycle: ArrayLike) -> LieAlgebra:
+    """ĝ = g ⊕ R z, [e_i, e_j] = Σ_k c[i,j,k] e_k − ω_ij z, z central: (n+1)-dimensional, so that
+    its Lie–Poisson bracket at μ_z = 1 is {x_i, x_j} = −Σ_k c[i,j,k] x_k + ω_ij."""
+    if not isinstance(algebra, LieAlgebra):
+        raise TypeError(f"algebra must be a LieAlgebra, got {type(algebra).__name__}")
+    c = algebra.c
+    n = c.shape[0]
+    if n + 1 > MAX_DIM:
+        raise ValueError(f"the extension has dimension {n + 1}, more than {MAX_DIM}")
+    w = _check_cocycle(c, cocycle)
+    ext = np.zeros((n + 1, n + 1, n + 1))
+    ext[:n, :n, :n] = c
+    ext[:n, :n, n] = -w
+    return LieAlgebra(ext, name=None)
+
+
+def _lift_polynomial(h: Polynomial) -> Polynomial:
+    """H(x) as a polynomial on Rⁿ⁺¹ that does not depend on the last variable."""
+    return Polynomial({(*e, 0): a for e, a in h.terms.items()} or {(0,) * (h.dim + 1): 0.0})
+
+
+class AffinePoissonSystem:
+    """An affine Poisson system on Rⁿ: {x_i, x_j} = −Σ_k c[i,j,k] x_k + ω_ij with a polynomial
+    H, ẋ = π(x)∇H(x). Integrated on its central extension at level 1 (:attr:`extension`, a
+    :class:`~poisson_rs.LiePoissonSystem` of dimension n + 1); see the module docstring.
+
+    The system interface of the studies: ``dim``, ``hamiltonian``, ``vector_field``,
+    ``casimirs`` (those of the extension that are not constant on μ_z = 1, or None),
+    ``component_names``, ``to_dict``/``from_dict``.
+    """
+
+    kind = "affine"
+
+    def __init__(
+        self,
+        algebra: LieAlgebra,
+        cocycle: ArrayLike,
+        hamiltonian: Polynomial,
+        *,
+        name: str | None = None,
+        component_names: Sequence[str] | None = None,
+    ) -> None:
+        if not isinstance(hamiltonian, Polynomial):
+            raise TypeError(f"hamiltonian must be a Polynomial, got {type(hamiltonian).__name__}")
+        ext_algebra = central_extension(algebra, cocycle)
+        n = algebra.dim
+        if hamiltonian.dim != n:
+            raise ValueError(f"the algebra has dimension {n}, the Hamiltonian {hamiltonian.dim}")
+        if name is not None and not isinstance(name, str):
+            raise ValueError(f"name must be a string or None, got {name!r}")
+        names = (
+            tuple(component_names)
+            if component_names is not None
+            else tuple(f"x{chr(0x2080 + i + 1) if i < 9 else i + 1}" for i in range(n))
+        )
+        if len(names) != n or not all(isinstance(s, str) for s in names):
+            raise ValueError(f"component_names must be {n} strings, got {component_names!r}")
+        self.algebra = algebra
+        self.cocycle = np.array(cocycle, dtype=np.float64)
+        self.cocycle.flags.writeable = False
+        self.polynomial = hamiltonian
+        self.name = name
+        self.component_names: tuple[str, ...] = names
+        self.extension = LiePoissonSystem(ext_algebra, _lift_polynomial(hamiltonian), name=name)
+        self._casimir_columns: list[int] | None = None
+
+    @property
+    def dim(self) -> int:
+        return self.algebra.dim
+
+    def lift(self, x: Any) -> FloatArray:
+        """(x, 1): states (..., n) → (..., n + 1) on the extension's level-1 hyperplane."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim == 0 or x.shape[-1] != self.dim:
+            raise ValueError(f"x must have shape (..., {self.dim}), got {x.shape}")
+        return np.concatenate([x, np.ones((*x.shape[:-1], 1))], axis=-1)
+
+    def hamiltonian(self, x: Any) -> FloatArray:
+        """H(x). x: (..., n) → (...,)."""
+        return np.asarray(self.polynomial(np.asarray(x, dtype=np.float64)), dtype=np.float64)
+
+    def bivector(self, x: Any) -> FloatArray:
+        """π(x)_ij = −Σ_k c[i,j,k] x_k + ω_ij. x: (..., n) → (..., n, n)."""
+        x = np.asarray(x, dtype=np.float64)
+        return -np.einsum("ijk,...k->...ij", self.algebra.c, x) + self.cocycle
+
+    def vector_field(self, x: Any) -> FloatArray:
+        """ẋ = π(x)∇H(x), the first n components of the extension's field at (x, 1)."""
+        return np.asarray(self.extension.vector_field(self.lift(x)))[..., : self.dim]
+
+    def _casimir_fn(self) -> Any:
+        from ..casimirs import system_casimirs
+
+        return system_casimirs(self.extension)
+
+    def _columns(self) -> list[int]:
+        """The extension's Casimirs that vary on μ_z = 1 (μ_z itself and its powers do not)."""
+        if self._casimir_columns is None:
+            fn = self._casimir_fn()
+            cols: list[int] = []
+            if fn is not None:
+                rng = np.random.default_rng(0)
+                values = fn(self.lift(rng.normal(size=(16, self.dim))))
+                spread = values.max(axis=0) - values.min(axis=0)
+                cols = [int(k) for k in np.flatnonzero(spread > 1e-9 * (1 + np.abs(values).max()))]
+            self._casimir_columns = cols
+        return self._casimir_columns
+
+    def casimirs(self, x: Any) -> FloatArray | None:
+        """The extension's polynomial Casimirs at (x, 1) that are not constant there:
+        (..., n) → (..., m), or None when there is none (r − u² − v² up to scale for PNN's
+        extended pendulum)."""
+        cols = self._columns()
+        if not cols:
+            return None
+        return np.asarray(self._casimir_fn()(self.lift(x)))[..., cols]
+
+    @property
+    def casimir_degrees(self) -> tuple[int, ...]:
+        """The degree of each Casimir on the extension (homogeneous there): the studies scale
+        its drift by |x₀|^d."""
+        from ..casimirs import casimir_degrees
+
+        degrees = casimir_degrees(self.extension) or ()
+        return tuple(degrees[k] for k in self._columns())
+
+    @property
+    def casimir_label(self) -> str:
+        m = len(self._columns())
+        if m == 0:
+            return "no Casimir known (drift n/a)"
+        return f"{m} Casimir{'s' if m != 1 else ''} of the central extension, at level 1"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "name": self.name,
+            "algebra": self.algebra.to_dict(),
+            "cocycle": self.cocycle.tolist(),
+            "hamiltonian": self.polynomial.to_dict(),
+            "component_names": list(self.component_names),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> AffinePoissonSystem:
+        if not isinstance(data, Mapping) or data.get("kind") != cls.kind:
+            raise ValueError(f"expected an {cls.kind!r} system dictionary, got {data!r}")
+        for key in ("algebra", "cocycle", "hamiltonian"):
+            if key not in data:
+                raise ValueError(f"an affine system needs an {key!r} entry")
+        return cls(
+            LieAlgebra.from_dict(data["algebra"]),
+            data["cocycle"],
+            Polynomial.from_dict(data["hamiltonian"]),
+            name=data.get("name"),
+            component_names=data.get("component_names"),
+        )
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, AffinePoissonSystem)
+            and self.extension == other.extension
+            and self.dim == other.dim
+        )
+
+    def __hash__(self) -> int:
+        return hash(("affine", self.extension))
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_from_dict, (self.to_dict(),))
+
+    def __repr__(self) -> str:
+        label = f"name={self.name!r}, " if self.name else ""
+        return f"AffinePoissonSystem({label}dim={self.dim}, cocycle={self.cocycle.tolist()})"
+
+
+def _from_dict(data: Mapping[str, Any]) -> AffinePoissonSystem:
+    return AffinePoissonSystem.from_dict(data)
+
+
+def affine_poisson_system(
+    c: ArrayLike | LieAlgebra,
+    cocycle: ArrayLike,
+    hamiltonian: Polynomial | Mapping[tuple[int, ...], float],
+    *,
+    name: str | None = None,
+    component_names: Sequence[str] | None = None,
+) -> AffinePoissonSystem:
+    """The affine Poisson system {x_i, x_j} = −Σ_k c[i,j,k] x_k + ω_ij with Hamiltonian H.
+
+    ``c``: structure constants (n, n, n) of a Lie algebra (or a LieAlgebra), in the convention of
+    :class:`~poisson_rs.LieAlgebra`; ``cocycle``: ω, (n, n), antisymmetric and a 2-cocycle of c
+    (ValueError naming the failing triple otherwise); ``hamiltonian``: a Polynomial on Rⁿ or its
+    terms {exponents: coefficient}.
+
+    PNN's extended pendulum ({u, v} = −1, {u, r} = −2v, {v, r} = 2u)::
+
+        c = np.zeros((3, 3, 3))
+        c[0, 2, 1], c[2, 0, 1] = 2, -2     # {u, r} = −2v
+        c[1, 2, 0], c[2, 1, 0] = -2, 2     # {v, r} = 2u
+        w = [[0, -1, 0], [1, 0, 0], [0, 0, 0]]
+        pr.affine_poisson_system(c, w, {(2, 0, 0): 0.5, (0, 2, 0): 0.5, (0, 4, 0): -1 / 24})
+    """
+    algebra = c if isinstance(c, LieAlgebra) else LieAlgebra(c)
+    poly = hamiltonian if isinstance(hamiltonian, Polynomial) else Polynomial(dict(hamiltonian))
+    return AffinePoissonSystem(algebra, cocycle, poly, name=name, component_names=component_names)
+
+
+class AffineIntegrator:
+    """An integrator of an :class:`AffinePoissonSystem`: ``inner`` (any integrator of its
+    :attr:`~AffinePoissonSystem.extension`) run from (x, 1), returning the first n components.
+    Built by :func:`affine_taylor` and :func:`affine_classical`; driven by
+    :func:`~poisson_rs.integrate`."""
+
+    def __init__(self, system: AffinePoissonSystem, inner: Any, name: str) -> None:
+        if not isinstance(system, AffinePoissonSystem):
+            raise TypeError(f"system must be an AffinePoissonSystem, got {type(system).__name__}")
+        self.system = system
+        self.inner = inner
+        self.name = name
+
+    @property
+    def dim(self) -> int:
+        return self.system.dim
+
+    @property
+    def order(self) -> int | None:
+        return getattr(self.inner, "order", None)
+
+    def _rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        from ..integrators import _step_angles
+
+        lifted = np.ascontiguousarray(self.system.lift(mu0))
+        traj, raw = self.inner._rollout(lifted, h, n_steps, every)
+        if "step_angle" not in raw:
+            raw["step_angle"] = _step_angles(self.inner, lifted, h)
+        return np.ascontiguousarray(traj[..., : self.dim]), raw
+
+    def __repr__(self) -> str:
+        return f"AffineIntegrator({self.name!r}, system={self.system!r})"
+
+
+def affine_taylor(system: AffinePoissonSystem, order: int = 3) -> AffineIntegrator:
+    """Taylor-HJ of ``order`` in the exp chart of the extension's exact groupoid: a Poisson map
+    that keeps μ_z = 1 and every Casimir of the extension to round-off."""
+    from ..integrators import taylor_integrator
+
+    inner = taylor_integrator(system.extension, order, "exp")
+    return AffineIntegrator(system, inner, f"taylor{order}-exp")
+
+
+def affine_classical(system: AffinePoissonSystem, name: str, **kw: Any) -> AffineIntegrator:
+    """A classical integrator of the extension ("rk4", "midpoint", "dop853"; ``tol`` for
+    DOP853's rtol = atol), run at level 1."""
+    from ..integrators import classical
+
+    return AffineIntegrator(system, classical(system.extension, name, **kw), name)
