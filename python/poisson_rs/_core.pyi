@@ -1,6 +1,7 @@
 """Type stubs for the Rust extension module."""
 
 from os import PathLike
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -14,6 +15,17 @@ def _after_fork_in_child() -> None:
 
 def serial_rollouts() -> bool:
     """Whether rollouts in this process run serially (a forked child)."""
+
+class RolloutDiagnostics:
+    """A rollout's per-trajectory diagnostics, kept in the core until asked for."""
+
+    def summary(self) -> tuple[int, int, int, int, float, int]:
+        """(n_failed, first failed trajectory or -1, its failed step, its failure code, the
+        largest step angle ignoring NaN (NaN if none), its index or -1)."""
+    def arrays(self) -> dict[str, npt.NDArray[np.generic]]:
+        """The diagnostics as a dict of (n,) arrays (the fields of ``RolloutInfo`` but
+        ``out_of_domain``)."""
+    def __len__(self) -> int: ...
 
 class Model:
     """A generating function loaded from a model file (validated on load)."""
@@ -89,8 +101,11 @@ def rollout_classical(
     every: int = 1,
     tol: float = 1e-12,
     max_iter: int = 50,
-) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
-    """As :func:`rollout_model`, for the classical method ``name``."""
+    lazy: bool = False,
+) -> tuple[npt.NDArray[np.float64], Any]:
+    """As :func:`rollout_model`, for the classical method ``name``; ``lazy=True`` returns a
+    :class:`RolloutDiagnostics` in place of the dict. A state holding NaN or ±∞ is a
+    ValueError."""
 
 def rollout_lie_poisson(
     name: str,
@@ -104,7 +119,8 @@ def rollout_lie_poisson(
     tol: float = 1e-12,
     max_iter: int = 50,
     heavy_top: tuple[tuple[float, float, float], float, tuple[float, float, float]] | None = None,
-) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    lazy: bool = False,
+) -> tuple[npt.NDArray[np.float64], Any]:
     """As :func:`rollout_classical`, for the Lie–Poisson system with structure constants ``c``
     (N, N, N) and Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: "rk4", "midpoint", or "splitting"
     with ``heavy_top`` = (inertia, mgl, com)."""
