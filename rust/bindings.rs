@@ -14,7 +14,7 @@ use pyo3::exceptions::{
     PyFileNotFoundError, PyMemoryError, PyOSError, PyRuntimeError, PyValueError,
 };
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyFloat, PyInt, PyList};
 
 use crate::classical::{
     ClassicalMethod, ClassicalStepper, HeavyTop, LieMethod, LieStepper, RigidBody,
@@ -120,6 +120,45 @@ fn finite_states<const N: usize>(
         )));
     }
     Ok(rows)
+}
+
+/// The initial states of a rollout: an (n, N) float64 array, or a Python list of exactly N
+/// plain numbers (`float`, or `int` within int64; not `bool`), one state, read without NumPy
+/// (converting a short list to an array costs more than a one-step rollout). Ok(None) for any
+/// other list: the caller converts it (and names what is wrong with it). Non-finite states are
+/// a ValueError either way.
+fn initial_states<const N: usize>(
+    mu0: &Bound<'_, PyAny>,
+    what: &str,
+) -> PyResult<Option<Vec<[f64; N]>>> {
+    let Ok(list) = mu0.cast::<PyList>() else {
+        let array: PyReadonlyArray2<'_, f64> = mu0.extract()?;
+        return finite_states::<N>(&array, what).map(Some);
+    };
+    if list.len() != N {
+        return Ok(None);
+    }
+    let mut state = [0.0; N];
+    for (x, item) in state.iter_mut().zip(list.iter()) {
+        *x = if item.is_exact_instance_of::<PyFloat>() {
+            item.extract::<f64>()?
+        } else if item.is_exact_instance_of::<PyInt>() {
+            // As NumPy casts an int64 array (round to nearest); a larger int is an object
+            // array there, refused with its dtype named.
+            match item.extract::<i64>() {
+                Ok(v) => v as f64,
+                Err(_) => return Ok(None),
+            }
+        } else {
+            return Ok(None);
+        };
+    }
+    if !state.iter().all(|v| v.is_finite()) {
+        return Err(PyValueError::new_err(format!(
+            "{what} holds NaN or infinite values (state 0)"
+        )));
+    }
+    Ok(Some(vec![state]))
 }
 
 fn dim_error(dim: usize) -> PyErr {
@@ -639,17 +678,19 @@ fn rollout_classical<'py>(
     py: Python<'py>,
     name: &str,
     inertia: [f64; 3],
-    mu0: PyReadonlyArray2<'py, f64>,
+    mu0: &Bound<'py, PyAny>,
     h: f64,
     n_steps: usize,
     every: usize,
     tol: f64,
     max_iter: u32,
     lazy: bool,
-) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyAny>)> {
+) -> PyResult<Option<(Array<'py, Ix3>, Bound<'py, PyAny>)>> {
     let method = ClassicalMethod::from_name(name)?;
     let body = RigidBody::new(inertia)?;
-    let mu0 = finite_states::<3>(&mu0, "mu0")?;
+    let Some(mu0) = initial_states::<3>(mu0, "mu0")? else {
+        return Ok(None);
+    };
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let angles = |m: &[[f64; 3]], o: &mut [f64]| angles_of(&body, h, m, o);
     let (traj, diagnostics) = match method.stepper(body, newton) {
@@ -673,7 +714,7 @@ fn rollout_classical<'py>(
             Some(&angles),
         )?,
     };
-    Ok((traj, diagnostics.into_python(py, lazy)?))
+    Ok(Some((traj, diagnostics.into_python(py, lazy)?)))
 }
 
 /// Heavy-top parameters for the splitting integrator: (inertia, mgl, centre of mass).
@@ -692,7 +733,7 @@ fn rollout_lie_poisson<'py>(
     c: PyReadonlyArray3<'py, f64>,
     powers: PyReadonlyArray2<'py, i64>,
     coeffs: PyReadonlyArray1<'py, f64>,
-    mu0: PyReadonlyArray2<'py, f64>,
+    mu0: &Bound<'py, PyAny>,
     h: f64,
     n_steps: usize,
     every: usize,
@@ -700,7 +741,7 @@ fn rollout_lie_poisson<'py>(
     max_iter: u32,
     heavy_top: Option<HeavyTopParameters>,
     lazy: bool,
-) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyAny>)> {
+) -> PyResult<Option<(Array<'py, Ix3>, Bound<'py, PyAny>)>> {
     let method = LieMethod::from_name(name)?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let shape = c.shape();
@@ -739,7 +780,9 @@ fn rollout_lie_poisson<'py>(
         let compiled = system.compile();
         let angles = |m: &[[f64; N]], o: &mut [f64]| angles_of(&compiled, h, m, o);
         let stepper = LieStepper::new(method, system, top, newton)?;
-        let mu0 = finite_states::<N>(&mu0, "mu0")?;
+        let Some(mu0) = initial_states::<N>(mu0, "mu0")? else {
+            return Ok(None);
+        };
         let (traj, diagnostics) = match &stepper {
             // RK4 in SIMD lanes; the others one trajectory at a time.
             LieStepper::Rk4(rk4) => {
@@ -747,7 +790,7 @@ fn rollout_lie_poisson<'py>(
             }
             _ => run_rollout_lazy(py, &PerStep(&stepper), &mu0, h, n_steps, every, Some(&angles))?,
         };
-        Ok((traj, diagnostics.into_python(py, lazy)?))
+        Ok(Some((traj, diagnostics.into_python(py, lazy)?)))
     }, Err(dim_error(dim)))
 }
 

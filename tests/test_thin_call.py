@@ -21,10 +21,12 @@ def test_thin_path_equals_the_full_path(name: str):
     stepper = pr.classical(BODY, name)
     rng = np.random.default_rng(17)
     mu0 = rng.normal(size=(11, 3))
-    thin = pr.integrate(stepper, mu0, 0.1, 7)
-    full, info = pr.integrate(stepper, mu0, 0.1, 7, return_info=True)
+    thin = pr.integrate(stepper, mu0, 0.1, 8)
+    full, info = pr.integrate(stepper, mu0, 0.1, 8, return_info=True)
     np.testing.assert_array_equal(thin, full)
     assert info.converged.all()
+    # every dividing n_steps takes the thin path too: every 4th state of the same rollout.
+    np.testing.assert_array_equal(pr.integrate(stepper, mu0, 0.1, 8, every=4), full[:, ::4])
     # One state as a list of ints, as floats, as a 1-D array: the same numbers.
     one = pr.integrate(stepper, [1, 1, 2], 0.1, 3)
     np.testing.assert_array_equal(one, pr.integrate(stepper, [1.0, 1.0, 2.0], 0.1, 3))
@@ -104,3 +106,23 @@ def test_summary_with_no_angles_is_nan():
     }
     n_failed, first, _, _, top, worst = _summary(raw)
     assert (n_failed, first, worst) == (0, -1, -1) and np.isnan(top)
+
+
+def test_lists_read_by_the_core_equal_arrays():
+    """A list of plain numbers goes to the core without NumPy; anything else in a list takes
+    NumPy's conversion, with the same result and the same errors as before."""
+    stepper = pr.classical(BODY, "rk4")
+    ref = pr.integrate(stepper, np.array([1.0, -2.0, 0.5]), 0.1, 4)
+    for same in ([1.0, -2.0, 0.5], [1, -2.0, 0.5], [np.float64(1.0), -2, 0.5], [[1.0, -2.0, 0.5]]):
+        got = pr.integrate(stepper, same, 0.1, 4)
+        np.testing.assert_array_equal(got.reshape(ref.shape), ref)
+    # An int beyond int64 was an object array, refused with its dtype named: still so.
+    with pytest.raises(TypeError, match="dtype object"):
+        pr.integrate(stepper, [2**70, 1, 2], 0.1, 1)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        pr.integrate(stepper, [1.0, float("inf"), 2], 0.1, 1)
+    top = pr.classical(TOP, "rk4")
+    state = [0.1, -0.2, 0.3, 0.0, 0.6, 0.8]
+    np.testing.assert_array_equal(
+        pr.integrate(top, state, 0.05, 3), pr.integrate(top, np.array([state]), 0.05, 3)[0]
+    )

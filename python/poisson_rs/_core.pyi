@@ -95,24 +95,25 @@ def rollout_model(
 def rollout_classical(
     name: str,
     inertia: tuple[float, float, float],
-    mu0: npt.NDArray[np.float64],
+    mu0: npt.NDArray[np.float64] | list[Any],
     h: float,
     n_steps: int,
     every: int = 1,
     tol: float = 1e-12,
     max_iter: int = 50,
     lazy: bool = False,
-) -> tuple[npt.NDArray[np.float64], Any]:
+) -> tuple[npt.NDArray[np.float64], Any] | None:
     """As :func:`rollout_model`, for the classical method ``name``; ``lazy=True`` returns a
     :class:`RolloutDiagnostics` in place of the dict. A state holding NaN or ±∞ is a
-    ValueError."""
+    ValueError. ``mu0`` may also be a list of 3 plain numbers (float, or int within int64):
+    one state, read without NumPy; None for any other list."""
 
 def rollout_lie_poisson(
     name: str,
     c: npt.NDArray[np.float64],
     powers: npt.NDArray[np.int64],
     coeffs: npt.NDArray[np.float64],
-    mu0: npt.NDArray[np.float64],
+    mu0: npt.NDArray[np.float64] | list[Any],
     h: float,
     n_steps: int,
     every: int = 1,
@@ -120,7 +121,7 @@ def rollout_lie_poisson(
     max_iter: int = 50,
     heavy_top: tuple[tuple[float, float, float], float, tuple[float, float, float]] | None = None,
     lazy: bool = False,
-) -> tuple[npt.NDArray[np.float64], Any]:
+) -> tuple[npt.NDArray[np.float64], Any] | None:
     """As :func:`rollout_classical`, for the Lie–Poisson system with structure constants ``c``
     (N, N, N) and Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: "rk4", "midpoint", or "splitting"
     with ``heavy_top`` = (inertia, mgl, com)."""

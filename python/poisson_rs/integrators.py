@@ -726,8 +726,9 @@ def integrate(
         and MIN_STEP <= h < math.inf
         and type(n_steps) is int
         and 0 <= n_steps <= MAX_COUNT
-        and every == 1
         and type(every) is int
+        and 1 <= every <= MAX_COUNT
+        and not n_steps % every
         and not return_info
     ):
         # The thin path of a small call: every argument of a built-in type in range, no info
@@ -735,11 +736,18 @@ def integrate(
         # core's summary says so.
         if on_failure not in _ON_FAILURE:
             raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
-        arr, single = _as_states(mu0, dim=stepper.dim, check_finite=False)
-        traj, diagnostics = core_rollout(arr, h, n_steps, 1)
+        # A list of plain numbers, one state, goes to the core as it is (NumPy's conversion
+        # of a short list costs more than the step); the core returns None for another list.
+        result = core_rollout(mu0, h, n_steps, every) if type(mu0) is list else None
+        if result is None:
+            arr, single = _as_states(mu0, dim=stepper.dim, check_finite=False)
+            result = core_rollout(arr, h, n_steps, every)
+        else:
+            single = True
+        traj, diagnostics = result
         summary = diagnostics.summary()
         if summary[0] or summary[4] > MAX_STEP_ANGLE:  # NaN compares false
-            _report(stepper, h, len(arr), summary, on_failure)
+            _report(stepper, h, len(traj), summary, on_failure)
         return traj[0] if single else traj
     if core_rollout is None and not hasattr(stepper, "_rollout"):
         raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
@@ -1069,8 +1077,10 @@ class ClassicalIntegrator:
         return None if self.name == "dop853" else self._rust_rollout
 
     def _rust_rollout(
-        self, mu0: np.ndarray, h: float, n_steps: int, every: int, lazy: bool = True
-    ) -> tuple[np.ndarray, Any]:
+        self, mu0: np.ndarray | list[Any], h: float, n_steps: int, every: int, lazy: bool = True
+    ) -> tuple[np.ndarray, Any] | None:
+        """``(traj, diagnostics)`` from the core; mu0 an (n, dim) float64 array, or a list of
+        dim plain numbers (one state; None where the list holds anything else)."""
         body = self.body
         if isinstance(body, RigidBody):
             return _core.rollout_classical(  # type: ignore[no-any-return]
@@ -1102,7 +1112,9 @@ class ClassicalIntegrator:
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         body = self.body
         if self.name != "dop853":
-            return self._rust_rollout(mu0, h, n_steps, every, lazy=False)
+            result = self._rust_rollout(mu0, h, n_steps, every, lazy=False)
+            assert result is not None  # an array always gives one
+            return result  # type: ignore[no-any-return]
         from .reference import dop853_solution, reference_solution
 
         n_steps, every = _check_count("n_steps", n_steps), _check_count("every", every, 1)
