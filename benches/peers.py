@@ -271,6 +271,10 @@ def main() -> None:
         calls["numba"] = call_cost(lambda: numba_run(one[None], 1), rounds)
     core = poisson_rs_runner("rigid body", pr._core)
     calls["poisson_rs (_core call only)"] = call_cost(lambda: core(one[None], 1), rounds)
+    lazy = pr._core.rollout_classical
+    calls["poisson_rs (_core call, lazy diagnostics)"] = call_cost(
+        lambda: lazy("rk4", RIGID_I, one[None], H, 1, 1, lazy=True), rounds
+    )
     if baseline is not None:
         b = poisson_rs_runner("rigid body", baseline)
         calls["baseline (_core call only)"] = call_cost(lambda: b(one[None], 1), rounds)

@@ -14,7 +14,7 @@ use pyo3::exceptions::{
     PyFileNotFoundError, PyMemoryError, PyOSError, PyRuntimeError, PyValueError,
 };
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyFloat, PyInt, PyList};
 
 use crate::classical::{
     ClassicalMethod, ClassicalStepper, HeavyTop, LieMethod, LieStepper, RigidBody,
@@ -105,6 +105,60 @@ fn states<const N: usize>(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult
             .map(|r| std::array::from_fn(|i| r[i])),
     );
     Ok(rows)
+}
+
+/// [`states`], with ValueError for a state that holds NaN or ±∞ (the check `integrate()` leaves
+/// to the core on its fast path; worded as its own).
+fn finite_states<const N: usize>(
+    a: &PyReadonlyArray2<'_, f64>,
+    what: &str,
+) -> PyResult<Vec<[f64; N]>> {
+    let rows = states::<N>(a, what)?;
+    if let Some(bad) = rows.iter().position(|m| !m.iter().all(|v| v.is_finite())) {
+        return Err(PyValueError::new_err(format!(
+            "{what} holds NaN or infinite values (state {bad})"
+        )));
+    }
+    Ok(rows)
+}
+
+/// The initial states of a rollout: an (n, N) float64 array, or a Python list of exactly N
+/// plain numbers (`float`, or `int` within int64; not `bool`), one state, read without NumPy
+/// (converting a short list to an array costs more than a one-step rollout). Ok(None) for any
+/// other list: the caller converts it (and names what is wrong with it). Non-finite states are
+/// a ValueError either way.
+fn initial_states<const N: usize>(
+    mu0: &Bound<'_, PyAny>,
+    what: &str,
+) -> PyResult<Option<Vec<[f64; N]>>> {
+    let Ok(list) = mu0.cast::<PyList>() else {
+        let array: PyReadonlyArray2<'_, f64> = mu0.extract()?;
+        return finite_states::<N>(&array, what).map(Some);
+    };
+    if list.len() != N {
+        return Ok(None);
+    }
+    let mut state = [0.0; N];
+    for (x, item) in state.iter_mut().zip(list.iter()) {
+        *x = if item.is_exact_instance_of::<PyFloat>() {
+            item.extract::<f64>()?
+        } else if item.is_exact_instance_of::<PyInt>() {
+            // As NumPy casts an int64 array (round to nearest); a larger int is an object
+            // array there, refused with its dtype named.
+            match item.extract::<i64>() {
+                Ok(v) => v as f64,
+                Err(_) => return Ok(None),
+            }
+        } else {
+            return Ok(None);
+        };
+    }
+    if !state.iter().all(|v| v.is_finite()) {
+        return Err(PyValueError::new_err(format!(
+            "{what} holds NaN or infinite values (state 0)"
+        )));
+    }
+    Ok(Some(vec![state]))
 }
 
 fn dim_error(dim: usize) -> PyErr {
@@ -348,6 +402,74 @@ fn info_dict<'py>(
     Ok(d)
 }
 
+/// A rollout's per-trajectory diagnostics, kept in Rust until asked for: `summary()` gives
+/// what `integrate()` needs to warn (a few numbers, no arrays), `arrays()` the dict of (n,)
+/// arrays of `RolloutInfo`. Building seven NumPy arrays and a dict costs more than a one-step
+/// rollout of one state, and most calls never look at them.
+#[pyclass(name = "RolloutDiagnostics", module = "poisson_rs._core", frozen)]
+struct PyDiagnostics {
+    info: Vec<TrajectoryInfo>,
+    step_angle: Option<Vec<f64>>,
+}
+
+#[pymethods]
+impl PyDiagnostics {
+    /// (n_failed, first_failed, its failed_step, its failure_code, max_angle, argmax_angle):
+    /// the trajectories that failed, the first of them (−1 if none) with its step and code,
+    /// and the largest step angle ignoring NaN with its index (NaN and −1 where every angle is
+    /// NaN or none was computed).
+    fn summary(&self) -> (usize, i64, i64, i8, f64, i64) {
+        let mut n_failed = 0;
+        let mut first: Option<usize> = None;
+        for (k, i) in self.info.iter().enumerate() {
+            if !i.converged {
+                n_failed += 1;
+                first.get_or_insert(k);
+            }
+        }
+        let (step, code) = first.map_or((-1, 0), |k| {
+            let i = &self.info[k];
+            (i.failed_step, i.failure.map_or(0, |f| f.code()))
+        });
+        let (mut top, mut worst) = (f64::NAN, -1i64);
+        for (k, &a) in self.step_angle.iter().flatten().enumerate() {
+            // The first largest, as NumPy's nanargmax.
+            if a > top || (top.is_nan() && !a.is_nan()) {
+                top = a;
+                worst = k as i64;
+            }
+        }
+        (
+            n_failed,
+            first.map_or(-1, |k| k as i64),
+            step,
+            code,
+            top,
+            worst,
+        )
+    }
+
+    /// The diagnostics as a dict of (n,) arrays (the fields of `RolloutInfo` but out_of_domain).
+    fn arrays<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        info_dict(py, &self.info, self.step_angle.clone())
+    }
+
+    fn __len__(&self) -> usize {
+        self.info.len()
+    }
+}
+
+impl PyDiagnostics {
+    /// Itself (`lazy`) or the dict of its arrays.
+    fn into_python(self, py: Python<'_>, lazy: bool) -> PyResult<Bound<'_, PyAny>> {
+        if lazy {
+            Ok(Bound::new(py, self)?.into_any())
+        } else {
+            Ok(self.arrays(py)?.into_any())
+        }
+    }
+}
+
 /// Records per trajectory and numbers in the (n, records, N) output of a rollout, and a check
 /// that the output, the rollout's own state and every thread's workspace fit in memory.
 fn output_size<const N: usize>(
@@ -412,6 +534,21 @@ fn run_rollout<'py, const N: usize, K: ChunkKernel<N>>(
     every: usize,
     angles: Option<&StepAngles<'_, N>>,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+    let (traj, diagnostics) = run_rollout_lazy(py, kernel, mu0, h, n_steps, every, angles)?;
+    Ok((traj, diagnostics.arrays(py)?))
+}
+
+/// [`run_rollout`] with the diagnostics left in Rust ([`PyDiagnostics`]).
+#[allow(clippy::too_many_arguments)]
+fn run_rollout_lazy<'py, const N: usize, K: ChunkKernel<N>>(
+    py: Python<'py>,
+    kernel: &K,
+    mu0: &[[f64; N]],
+    h: f64,
+    n_steps: usize,
+    every: usize,
+    angles: Option<&StepAngles<'_, N>>,
+) -> PyResult<(Array<'py, Ix3>, PyDiagnostics)> {
     // Refuses what cannot fit before anything is allocated, and an allocation the system
     // refuses anyway becomes MemoryError rather than the abort of an infallible allocation.
     let n = mu0.len();
@@ -476,7 +613,7 @@ fn run_rollout<'py, const N: usize, K: ChunkKernel<N>>(
     }
     let traj = Array3::from_shape_vec((n, records, N), out)
         .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
-    Ok((traj.into_pyarray(py), info_dict(py, &info, step_angle)?))
+    Ok((traj.into_pyarray(py), PyDiagnostics { info, step_angle }))
 }
 
 /// The step angles of `mu` under `field`, in parallel for large batches (each state's angle
@@ -535,27 +672,30 @@ fn rollout_model<'py>(
 /// Returns the trajectories (n, n_steps // every + 1, 3) and a dict of per-trajectory arrays.
 /// Ctrl-C interrupts it (KeyboardInterrupt) within about SEGMENT_SECONDS.
 #[pyfunction]
-#[pyo3(signature = (name, inertia, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
+#[pyo3(signature = (name, inertia, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50, lazy=false))]
 #[allow(clippy::too_many_arguments)]
 fn rollout_classical<'py>(
     py: Python<'py>,
     name: &str,
     inertia: [f64; 3],
-    mu0: PyReadonlyArray2<'py, f64>,
+    mu0: &Bound<'py, PyAny>,
     h: f64,
     n_steps: usize,
     every: usize,
     tol: f64,
     max_iter: u32,
-) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+    lazy: bool,
+) -> PyResult<Option<(Array<'py, Ix3>, Bound<'py, PyAny>)>> {
     let method = ClassicalMethod::from_name(name)?;
     let body = RigidBody::new(inertia)?;
-    let mu0 = states::<3>(&mu0, "mu0")?;
+    let Some(mu0) = initial_states::<3>(mu0, "mu0")? else {
+        return Ok(None);
+    };
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let angles = |m: &[[f64; 3]], o: &mut [f64]| angles_of(&body, h, m, o);
-    match method.stepper(body, newton) {
+    let (traj, diagnostics) = match method.stepper(body, newton) {
         // RK4 in SIMD lanes; the others one trajectory at a time.
-        ClassicalStepper::Rk4(rk4) => run_rollout(
+        ClassicalStepper::Rk4(rk4) => run_rollout_lazy(
             py,
             &Lanes::new(&rk4),
             &mu0,
@@ -563,8 +703,8 @@ fn rollout_classical<'py>(
             n_steps,
             every,
             Some(&angles),
-        ),
-        stepper => run_rollout(
+        )?,
+        stepper => run_rollout_lazy(
             py,
             &PerStep(&stepper),
             &mu0,
@@ -572,8 +712,9 @@ fn rollout_classical<'py>(
             n_steps,
             every,
             Some(&angles),
-        ),
-    }
+        )?,
+    };
+    Ok(Some((traj, diagnostics.into_python(py, lazy)?)))
 }
 
 /// Heavy-top parameters for the splitting integrator: (inertia, mgl, centre of mass).
@@ -584,7 +725,7 @@ type HeavyTopParameters = ([f64; 3], f64, [f64; 3]);
 /// Σ coeffs[m] Π μ_i^powers[m, i] (powers int64 (M, N), coeffs (M,)), from each row of `mu0`
 /// (n, N). `heavy_top` = (inertia, mgl, com) selects the heavy top's splitting.
 #[pyfunction]
-#[pyo3(signature = (name, c, powers, coeffs, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50, heavy_top=None))]
+#[pyo3(signature = (name, c, powers, coeffs, mu0, h, n_steps, every=1, tol=1e-12, max_iter=50, heavy_top=None, lazy=false))]
 #[allow(clippy::too_many_arguments)]
 fn rollout_lie_poisson<'py>(
     py: Python<'py>,
@@ -592,14 +733,15 @@ fn rollout_lie_poisson<'py>(
     c: PyReadonlyArray3<'py, f64>,
     powers: PyReadonlyArray2<'py, i64>,
     coeffs: PyReadonlyArray1<'py, f64>,
-    mu0: PyReadonlyArray2<'py, f64>,
+    mu0: &Bound<'py, PyAny>,
     h: f64,
     n_steps: usize,
     every: usize,
     tol: f64,
     max_iter: u32,
     heavy_top: Option<HeavyTopParameters>,
-) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+    lazy: bool,
+) -> PyResult<Option<(Array<'py, Ix3>, Bound<'py, PyAny>)>> {
     let method = LieMethod::from_name(name)?;
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let shape = c.shape();
@@ -638,14 +780,17 @@ fn rollout_lie_poisson<'py>(
         let compiled = system.compile();
         let angles = |m: &[[f64; N]], o: &mut [f64]| angles_of(&compiled, h, m, o);
         let stepper = LieStepper::new(method, system, top, newton)?;
-        let mu0 = states::<N>(&mu0, "mu0")?;
-        match &stepper {
+        let Some(mu0) = initial_states::<N>(mu0, "mu0")? else {
+            return Ok(None);
+        };
+        let (traj, diagnostics) = match &stepper {
             // RK4 in SIMD lanes; the others one trajectory at a time.
             LieStepper::Rk4(rk4) => {
-                run_rollout(py, &Lanes::new(rk4), &mu0, h, n_steps, every, Some(&angles))
+                run_rollout_lazy(py, &Lanes::new(rk4), &mu0, h, n_steps, every, Some(&angles))?
             }
-            _ => run_rollout(py, &PerStep(&stepper), &mu0, h, n_steps, every, Some(&angles)),
-        }
+            _ => run_rollout_lazy(py, &PerStep(&stepper), &mu0, h, n_steps, every, Some(&angles))?,
+        };
+        Ok(Some((traj, diagnostics.into_python(py, lazy)?)))
     }, Err(dim_error(dim)))
 }
 
@@ -885,6 +1030,7 @@ fn lie_poisson_system<const N: usize>(
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyModel>()?;
+    m.add_class::<PyDiagnostics>()?;
     m.add_function(wrap_pyfunction!(rollout_model, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_classical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_lie_poisson, m)?)?;

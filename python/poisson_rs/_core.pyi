@@ -1,6 +1,7 @@
 """Type stubs for the Rust extension module."""
 
 from os import PathLike
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -14,6 +15,17 @@ def _after_fork_in_child() -> None:
 
 def serial_rollouts() -> bool:
     """Whether rollouts in this process run serially (a forked child)."""
+
+class RolloutDiagnostics:
+    """A rollout's per-trajectory diagnostics, kept in the core until asked for."""
+
+    def summary(self) -> tuple[int, int, int, int, float, int]:
+        """(n_failed, first failed trajectory or -1, its failed step, its failure code, the
+        largest step angle ignoring NaN (NaN if none), its index or -1)."""
+    def arrays(self) -> dict[str, npt.NDArray[np.generic]]:
+        """The diagnostics as a dict of (n,) arrays (the fields of ``RolloutInfo`` but
+        ``out_of_domain``)."""
+    def __len__(self) -> int: ...
 
 class Model:
     """A generating function loaded from a model file (validated on load)."""
@@ -83,28 +95,33 @@ def rollout_model(
 def rollout_classical(
     name: str,
     inertia: tuple[float, float, float],
-    mu0: npt.NDArray[np.float64],
+    mu0: npt.NDArray[np.float64] | list[Any],
     h: float,
     n_steps: int,
     every: int = 1,
     tol: float = 1e-12,
     max_iter: int = 50,
-) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
-    """As :func:`rollout_model`, for the classical method ``name``."""
+    lazy: bool = False,
+) -> tuple[npt.NDArray[np.float64], Any] | None:
+    """As :func:`rollout_model`, for the classical method ``name``; ``lazy=True`` returns a
+    :class:`RolloutDiagnostics` in place of the dict. A state holding NaN or ±∞ is a
+    ValueError. ``mu0`` may also be a list of 3 plain numbers (float, or int within int64):
+    one state, read without NumPy; None for any other list."""
 
 def rollout_lie_poisson(
     name: str,
     c: npt.NDArray[np.float64],
     powers: npt.NDArray[np.int64],
     coeffs: npt.NDArray[np.float64],
-    mu0: npt.NDArray[np.float64],
+    mu0: npt.NDArray[np.float64] | list[Any],
     h: float,
     n_steps: int,
     every: int = 1,
     tol: float = 1e-12,
     max_iter: int = 50,
     heavy_top: tuple[tuple[float, float, float], float, tuple[float, float, float]] | None = None,
-) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    lazy: bool = False,
+) -> tuple[npt.NDArray[np.float64], Any] | None:
     """As :func:`rollout_classical`, for the Lie–Poisson system with structure constants ``c``
     (N, N, N) and Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: "rk4", "midpoint", or "splitting"
     with ``heavy_top`` = (inertia, mgl, com)."""

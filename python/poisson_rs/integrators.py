@@ -609,27 +609,42 @@ def _describe_domain(domain: Mapping[str, Any]) -> str:
     return f"the cube |mu_i| <= {domain['half_width']:g}"
 
 
-def _as_states(mu0: Any, what: str = "mu0", dim: int = 3) -> tuple[np.ndarray, bool]:
-    """(n, dim) C-contiguous float64 copy of an array-like of states, and whether it was one
-    state."""
-    if isinstance(mu0, np.ma.MaskedArray):
-        # np.asarray would drop the mask and step the masked values as if they were data.
-        raise TypeError(
-            f"{what} is a numpy masked array, whose mask would be ignored; pass plain data "
-            "(e.g. the unmasked rows, or .filled(value))"
-        )
-    arr = np.asarray(mu0)
-    if arr.dtype == object or arr.dtype.kind not in "fiu":
-        raise TypeError(f"{what} must be an array of real numbers, got dtype {arr.dtype}")
-    if arr.shape == (dim,):
+#: NumPy's native float64 dtype (one object: compared by identity on the fast path).
+_FLOAT64 = np.dtype(np.float64)
+
+
+def _as_states(
+    mu0: Any, what: str = "mu0", dim: int = 3, *, check_finite: bool = True
+) -> tuple[np.ndarray, bool]:
+    """(n, dim) C-contiguous float64 array of an array-like of states (mu0 itself where it is
+    one already), and whether it was one state. ``check_finite=False`` leaves the NaN/∞ check
+    to a caller whose core makes it (with the same message)."""
+    if type(mu0) is np.ndarray:
+        arr = mu0
+    else:
+        if isinstance(mu0, np.ma.MaskedArray):
+            # np.asarray would drop the mask and step the masked values as if they were data.
+            raise TypeError(
+                f"{what} is a numpy masked array, whose mask would be ignored; pass plain data "
+                "(e.g. the unmasked rows, or .filled(value))"
+            )
+        arr = np.asarray(mu0)
+    dtype = arr.dtype
+    if dtype is not _FLOAT64:
+        if dtype.kind not in "fiu":  # object, bool, complex, strings, ...
+            raise TypeError(f"{what} must be an array of real numbers, got dtype {dtype}")
+        arr = arr.astype(np.float64)
+    shape = arr.shape
+    if shape == (dim,):
         single = True
-        arr = arr[None, :]
-    elif arr.ndim == 2 and arr.shape[1] == dim:
+        arr = arr.reshape(1, dim)
+    elif len(shape) == 2 and shape[1] == dim:
         single = False
     else:
-        raise ValueError(f"{what} must have shape ({dim},) or (n, {dim}), got {arr.shape}")
-    arr = np.ascontiguousarray(arr, dtype=np.float64)
-    if not np.isfinite(arr).all():
+        raise ValueError(f"{what} must have shape ({dim},) or (n, {dim}), got {shape}")
+    if not arr.flags.c_contiguous:
+        arr = np.ascontiguousarray(arr)
+    if check_finite and not np.isfinite(arr).all():
         raise ValueError(f"{what} holds NaN or infinite values")
     return arr, single
 
@@ -706,9 +721,43 @@ def integrate(
     ``n_steps - n_steps % every``, NOT the final one (n_steps = 10, every = 3 keeps steps 0, 3,
     6, 9): choose ``every`` dividing ``n_steps`` to keep the final state.
     """
-    if not hasattr(stepper, "_rollout"):
+    # A stepper whose core checks the states and keeps its diagnostics until asked for (see
+    # ClassicalIntegrator._core_rollout).
+    core_rollout = getattr(stepper, "_core_rollout", None)
+    if (
+        core_rollout is not None
+        and (type(mu0) is list or type(mu0) is np.ndarray)
+        and type(h) is float
+        and MIN_STEP <= h < math.inf
+        and type(n_steps) is int
+        and 0 <= n_steps <= MAX_COUNT
+        and type(every) is int
+        and 1 <= every <= MAX_COUNT
+        and not n_steps % every
+        and not return_info
+    ):
+        # The thin path of a small call: every argument of a built-in type in range, no info
+        # asked for; nothing else to check but on_failure, and nothing to report unless the
+        # core's summary says so.
+        if on_failure not in _ON_FAILURE:
+            raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
+        # A list of plain numbers, one state, goes to the core as it is (NumPy's conversion
+        # of a short list costs more than the step); the core returns None for another list.
+        result = core_rollout(mu0, h, n_steps, every) if type(mu0) is list else None
+        if result is None:
+            arr, single = _as_states(mu0, dim=stepper.dim, check_finite=False)
+            result = core_rollout(arr, h, n_steps, every)
+        else:
+            single = True
+        traj, diagnostics = result
+        summary = diagnostics.summary()
+        if summary[0] or summary[4] > MAX_STEP_ANGLE:  # NaN compares false
+            _report(stepper, h, len(traj), summary, on_failure)
+        return traj[0] if single else traj
+    if core_rollout is None and not hasattr(stepper, "_rollout"):
         raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
-    if "dask.array" in sys.modules:  # a dask array exists only once dask.array is imported
+    # A dask array exists only once dask.array is imported (and is no list or ndarray).
+    if type(mu0) is not list and type(mu0) is not np.ndarray and "dask.array" in sys.modules:
         from .ensembles import integrate_dask, is_dask_array
 
         if is_dask_array(mu0):
@@ -722,7 +771,9 @@ def integrate(
                 on_failure=on_failure,
                 strict=strict,
             )
-    arr, single = _as_states(mu0, dim=int(getattr(stepper, "dim", 3)))
+    arr, single = _as_states(
+        mu0, dim=int(getattr(stepper, "dim", 3)), check_finite=core_rollout is None
+    )
     # Exact built-in types in range take the short path: the abstract-number checks cost more
     # than a small rollout. Anything else (Fraction, NumPy scalars, 10**400, 2**64, tiny h) gets
     # the full checks, which name the argument.
@@ -739,7 +790,7 @@ def integrate(
             RuntimeWarning,
             stacklevel=2,
         )
-    if on_failure not in ("warn", "raise", "ignore"):
+    if on_failure not in _ON_FAILURE:
         raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
     domain: dict[str, Any] | None = None
     if isinstance(stepper, BisectionIntegrator):
@@ -750,41 +801,89 @@ def integrate(
                 "was trained for; pass strict=False to extrapolate (poisson-rs demo: --no-strict)"
             )
     h = float(h)
-    traj, raw = stepper._rollout(arr, h, int(n_steps), int(every))
-    if "step_angle" not in raw:
-        raw["step_angle"] = _step_angles(stepper, arr, h)
-    # Vectorised over the recorded states: cheap next to the rollout that made them.
-    out_of_domain = (
-        np.zeros(len(arr), dtype=np.int64) if domain is None else count_out_of_domain(domain, traj)
-    )
-    info = RolloutInfo(**raw, out_of_domain=out_of_domain)
-    _warn_unresolved(stepper, info.step_angle, h)
-    n_outside = int(out_of_domain.sum()) if domain is not None else 0
-    if n_outside:
-        assert domain is not None
-        n_traj = int((out_of_domain > 0).sum())
-        warnings.warn(
-            f"{_stepper_name(stepper)}: {n_outside} recorded states of {n_traj} of "
-            f"{len(out_of_domain)} trajectories lie outside the training domain "
-            f"({_describe_domain(domain)}); the model extrapolates there (see "
-            "info.out_of_domain and hj_residual)",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-    n_failed = 0 if info.converged.all() else int((~info.converged).sum())
+    raw: dict[str, np.ndarray] | None
+    if core_rollout is not None:
+        traj, diagnostics = core_rollout(arr, h, int(n_steps), int(every))
+        summary = diagnostics.summary()
+        raw = diagnostics.arrays() if return_info else None
+    else:
+        traj, raw = stepper._rollout(arr, h, int(n_steps), int(every))
+        if "step_angle" not in raw:
+            raw["step_angle"] = _step_angles(stepper, arr, h)
+        summary = _summary(raw)
+    out_of_domain = None
+    if domain is not None:
+        # Vectorised over the recorded states: cheap next to the rollout that made them.
+        out_of_domain = count_out_of_domain(domain, traj)
+    _report(stepper, h, len(arr), summary, on_failure, domain, out_of_domain)
+    out = traj[0] if single else traj
+    if not return_info:
+        return out
+    assert raw is not None
+    if out_of_domain is None:
+        out_of_domain = np.zeros(len(arr), dtype=np.int64)
+    return out, RolloutInfo(**raw, out_of_domain=out_of_domain)
+
+
+_ON_FAILURE = ("warn", "raise", "ignore")
+
+
+def _report(
+    stepper: Any,
+    h: float,
+    n: int,
+    summary: tuple[int, int, int, int, float, int],
+    on_failure: str,
+    domain: Mapping[str, Any] | None = None,
+    out_of_domain: np.ndarray | None = None,
+) -> None:
+    """The warnings of :func:`integrate` (called from it: stacklevel 3 names its caller), in
+    this order: a step that does not resolve the motion, recorded states outside a model's
+    training domain, failed trajectories (RuntimeError with ``on_failure="raise"``).
+    ``summary`` is (n_failed, first failed, its step, its code, max step angle, its index), as
+    :func:`_summary` and ``_core.RolloutDiagnostics.summary()`` give it."""
+    n_failed, first, failed_step, code, top, worst = summary
+    if top > MAX_STEP_ANGLE:  # NaN (no angle known) compares false
+        _warn_angle(stepper, top, worst, h, stacklevel=4)
+    if domain is not None and out_of_domain is not None:
+        n_outside = int(out_of_domain.sum())
+        if n_outside:
+            n_traj = int((out_of_domain > 0).sum())
+            warnings.warn(
+                f"{_stepper_name(stepper)}: {n_outside} recorded states of {n_traj} of "
+                f"{len(out_of_domain)} trajectories lie outside the training domain "
+                f"({_describe_domain(domain)}); the model extrapolates there (see "
+                "info.out_of_domain and hj_residual)",
+                RuntimeWarning,
+                stacklevel=3,
+            )
     if n_failed and on_failure != "ignore":
-        first = int(np.flatnonzero(~info.converged)[0])
-        code = int(info.failure_code[first])
         msg = (
-            f"{_stepper_name(stepper)}: {n_failed} of {len(info.converged)} trajectories failed "
-            f"(first: trajectory {first} at step {int(info.failed_step[first])}: "
+            f"{_stepper_name(stepper)}: {n_failed} of {n} trajectories failed "
+            f"(first: trajectory {first} at step {failed_step}: "
             f"{FAILURE_CODES.get(code, f'code {code}')}); their later states are NaN"
         )
         if on_failure == "raise":
             raise RuntimeError(msg)
-        warnings.warn(msg, RuntimeWarning, stacklevel=2)
-    out = traj[0] if single else traj
-    return (out, info) if return_info else out
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
+
+
+def _summary(raw: Mapping[str, np.ndarray]) -> tuple[int, int, int, int, float, int]:
+    """What :func:`integrate` warns about, from the diagnostic arrays of a rollout: as
+    ``_core.RolloutDiagnostics.summary()``, (n_failed, first failed trajectory, its failed
+    step, its failure code, the largest step angle ignoring NaN, its index); −1 and NaN for
+    none."""
+    converged = raw["converged"]
+    n_failed = 0 if converged.all() else int((~converged).sum())
+    first = step = code = -1
+    if n_failed:
+        first = int(np.flatnonzero(~converged)[0])
+        step, code = int(raw["failed_step"][first]), int(raw["failure_code"][first])
+    angle = raw["step_angle"]
+    if not len(angle) or np.isnan(angle).all():
+        return n_failed, first, step, code, math.nan, -1
+    worst = int(np.nanargmax(angle))
+    return n_failed, first, step, code, float(angle[worst]), worst
 
 
 #: Largest angle h·ρ a step may turn the state by (ρ the local rate, see
@@ -833,25 +932,24 @@ def _warn_unresolved(stepper: Any, angle: np.ndarray, h: float) -> None:
     result would be O(1) wrong while every step "converged" (a fixed-step method cannot see it).
     ``angle`` is :attr:`RolloutInfo.step_angle`, one per trajectory (every state is checked);
     NaN angles (DOP853) are skipped."""
-    if not len(angle):
-        return
-    top = angle.max()
-    if np.isnan(top):  # some angles are n/a: look at the others
-        if np.isnan(angle).all():
-            return
-        top = np.nanmax(angle)
-    if not top > MAX_STEP_ANGLE:
+    if not len(angle) or np.isnan(angle).all():
         return
     worst = int(np.nanargmax(angle))
-    rate = angle[worst] / h
+    if angle[worst] > MAX_STEP_ANGLE:
+        _warn_angle(stepper, float(angle[worst]), worst, h, stacklevel=4)
+
+
+def _warn_angle(stepper: Any, top: float, worst: int, h: float, stacklevel: int = 3) -> None:
+    """The warning of :func:`_warn_unresolved`: state ``worst`` turns by ``top`` rad a step."""
+    rate = top / h
     warnings.warn(
         f"{_stepper_name(stepper)}: a step of h = {h:g} turns state {worst} by "
-        f"{angle[worst]:.3g} rad (h × the local rate max(‖ad_∇H‖_F/√2, ‖∂f/∂μ‖_F)), more than a "
+        f"{top:.3g} rad (h × the local rate max(‖ad_∇H‖_F/√2, ‖∂f/∂μ‖_F)), more than a "
         f"quarter turn: no fixed-step method resolves this motion and the result can be O(1) "
         f"wrong with every step converged; use h <= {MAX_STEP_ANGLE / rate:.3g} (see "
         "info.step_angle)",
         RuntimeWarning,
-        stacklevel=3,
+        stacklevel=stacklevel,
     )
 
 
@@ -949,6 +1047,7 @@ class ClassicalIntegrator:
         self.name = name
         self.tol = float(tol)
         self.max_iter = int(max_iter)
+        self._dim = int(body.dim)  # systems are immutable; read on every integrate() call
 
     def __reduce__(self) -> tuple[Any, ...]:
         """Pickles as the system, the method's name and the options; unpickling checks them."""
@@ -960,7 +1059,7 @@ class ClassicalIntegrator:
 
     @property
     def dim(self) -> int:
-        return int(self.body.dim)
+        return self._dim
 
     def _table(self) -> dict[str, tuple[int, bool]]:
         return CLASSICAL_METHODS if isinstance(self.body, RigidBody) else LIE_POISSON_METHODS
@@ -975,34 +1074,52 @@ class ClassicalIntegrator:
         """Whether a step is a Poisson map (keeps every Casimir to round-off)."""
         return self._table()[self.name][1]
 
+    @property
+    def _core_rollout(self) -> Any:
+        """The rollout in the Rust core that checks the states itself (NaN/∞ included) and
+        returns ``(traj, _core.RolloutDiagnostics)``, for :func:`integrate`'s thin path; None
+        for DOP853 (SciPy)."""
+        return None if self.name == "dop853" else self._rust_rollout
+
+    def _rust_rollout(
+        self, mu0: np.ndarray | list[Any], h: float, n_steps: int, every: int, lazy: bool = True
+    ) -> tuple[np.ndarray, Any] | None:
+        """``(traj, diagnostics)`` from the core; mu0 an (n, dim) float64 array, or a list of
+        dim plain numbers (one state; None where the list holds anything else)."""
+        body = self.body
+        if isinstance(body, RigidBody):
+            return _core.rollout_classical(  # type: ignore[no-any-return]
+                self.name, body.inertia, mu0, h, n_steps, every, self.tol, self.max_iter, lazy
+            )
+        c, powers, coeffs = _system_arrays(body)
+        top = (
+            (body.inertia, body.mgl, body.com)
+            if isinstance(body, HeavyTop) and self.name == "splitting"
+            else None
+        )
+        return _core.rollout_lie_poisson(  # type: ignore[no-any-return]
+            self.name,
+            c,
+            powers,
+            coeffs,
+            mu0,
+            h,
+            n_steps,
+            every,
+            self.tol,
+            self.max_iter,
+            top,
+            lazy,
+        )
+
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         body = self.body
         if self.name != "dop853":
-            if isinstance(body, RigidBody):
-                return _core.rollout_classical(
-                    self.name, body.inertia, mu0, h, n_steps, every, self.tol, self.max_iter
-                )
-            c, powers, coeffs = _system_arrays(body)
-            top = (
-                (body.inertia, body.mgl, body.com)
-                if isinstance(body, HeavyTop) and self.name == "splitting"
-                else None
-            )
-            return _core.rollout_lie_poisson(
-                self.name,
-                c,
-                powers,
-                coeffs,
-                mu0,
-                h,
-                n_steps,
-                every,
-                self.tol,
-                self.max_iter,
-                top,
-            )
+            result = self._rust_rollout(mu0, h, n_steps, every, lazy=False)
+            assert result is not None  # an array always gives one
+            return result  # type: ignore[no-any-return]
         from .reference import dop853_solution, reference_solution
 
         n_steps, every = _check_count("n_steps", n_steps), _check_count("every", every, 1)
