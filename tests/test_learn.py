@@ -13,6 +13,7 @@ import torch
 
 import poisson_rs as pr
 from poisson_rs.learn import CasimirDriftWarning, learn, load_trajectories, prepare
+from poisson_rs.learn.api import _map_base
 from poisson_rs.learn.hamiltonian import _Model, fit_polynomial, relative_field_error
 from poisson_rs.learn.map import build_map
 from poisson_rs.learn.series import monomials, series_jacobian, taylor_series
@@ -157,7 +158,7 @@ def _map_stepper(s_fn) -> pr.LearnedIntegrator:
         layers=s_fn.exported_layers(),
         mlp_power=s_fn.mlp_power,
         chart="exp",
-        system=pr.LiePoissonSystem(pr.LieAlgebra.so3(), pr.Polynomial({(0, 0, 0): 0.0})),
+        system=_map_base(s_fn, pr.LieAlgebra.so3()),
         h_max=0.1,
         domain={"kind": "all"},
         record={"learn_mode": "map"},

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -85,10 +86,25 @@ def _errors(stepper: Any, data: TrajectoryData) -> tuple[float, float]:
     return (one if math.isfinite(one) else math.inf), (worst if math.isfinite(worst) else math.inf)
 
 
-def _polynomial_candidate(data, algebra, degree, order, mode, seed, command, options):
+def _all_records(data: TrajectoryData) -> TrajectoryData:
+    """The same data with nothing held out (a single trajectory whole again)."""
+    if not data.test:
+        return data
+    if data.shape[0] == 1:
+        whole = [np.concatenate([data.train[0], data.test[0][1:]])]
+    else:
+        whole = data.train + data.test
+    return dataclasses.replace(data, train=whole, test=[])
+
+
+def _polynomial_candidate(
+    data, algebra, degree, order, mode, seed, command, options, family=None, sparse=True
+):
     from .hamiltonian import fit_polynomial  # torch is imported on first use only
 
-    fit = fit_polynomial(data, algebra, degree, order=order, **options)
+    fit = fit_polynomial(
+        data, algebra, degree, order=order, family=family, sparse=sparse, **options
+    )
     powers, coeffs = system_taylor_terms(fit.system, fit.order, "exp")
     family = f"poly{degree}"
     raw = model_bytes(
@@ -131,7 +147,7 @@ def _map_candidate(data, algebra, mode, seed, command, options):
         mlp_power=s_fn.mlp_power,
         mlp_inputs=s_fn.inputs,
         chart="exp",
-        system=LiePoissonSystem(algebra, _zero(algebra.dim), name="learned-map"),
+        system=_map_base(s_fn, algebra),
         h_max=data.h,
         domain=_domain(data),
         record=_record(data, "map", mode, seed, command, seconds),
@@ -150,10 +166,21 @@ def _map_candidate(data, algebra, mode, seed, command, options):
     )
 
 
-def _zero(n: int) -> Any:
+def _map_base(s_fn: Any, algebra: LieAlgebra) -> LiePoissonSystem:
+    """The system a map's file records: H₀ of its t¹ terms −t·H₀ (model files check that the
+    t¹ terms are −t·H of the recorded system); the map itself is the learned S, not H₀'s flow."""
     from ..systems import Polynomial
 
-    return Polynomial({(0,) * n: 0.0})
+    powers = s_fn.powers.numpy()
+    coeffs = s_fn.coeffs.detach().numpy()
+    terms = {
+        tuple(int(v) for v in row[1:]): -float(c)
+        for row, c in zip(powers, coeffs, strict=True)
+        if row[0] == 1
+    }
+    return LiePoissonSystem(
+        algebra, Polynomial(terms or {(0,) * algebra.dim: 0.0}), name="learned-map"
+    )
 
 
 def learn(
@@ -172,6 +199,7 @@ def learn(
     map_options: dict[str, Any] | None = None,
     command: str | None = None,
     verbose: bool = False,
+    refit: bool = True,
 ) -> tuple[Any, LearnReport]:
     """Learns a Poisson integrator from trajectories whose Poisson structure is known.
 
@@ -194,6 +222,8 @@ def learn(
     horizon, max_iter : longest multi-step residual and Levenberg–Marquardt iterations.
     map_options : keyword arguments for :func:`poisson_rs.learn.map.fit_map`.
     command : recorded in the model file.
+    refit : after the choice on held-out data, refit the kept polynomial's coefficients on every
+        record (its one-step and rollout errors in the report stay the held-out ones).
 
     Returns
     -------
@@ -265,6 +295,29 @@ def learn(
         else:
             kept = next(c for c in candidates if c.one_step == best)
             kept.reason = "no family reached the noise level; the best held-out error"
+    if refit and kept.system is not None and data.test:
+        # The family is chosen on held-out data; its coefficients are then fitted on every
+        # record (with one trajectory, the held-out end is the longest lever on the phase).
+        terms = [e for e, c in kept.system.polynomial.terms.items() if c != 0.0]
+        if terms:
+            whole = _all_records(data)
+            final = _polynomial_candidate(
+                whole,
+                alg,
+                max(map(sum, terms)),
+                kept.order,
+                mode,
+                seed,
+                command,
+                options,
+                family=terms,
+                sparse=False,
+            )
+            final.one_step, final.rollout = kept.one_step, kept.rollout
+            final.seconds += kept.seconds
+            final.reason = kept.reason + "; coefficients refitted on all records"
+            candidates[candidates.index(kept)] = final
+            kept = final
     kept.kept = True
     for c in candidates:
         if c is not kept and c.reason.startswith("the smallest"):
