@@ -104,6 +104,7 @@ class PolynomialFit:
     history: list[float] = field(default_factory=list)
     seconds: float = 0.0
     gauge_dropped: int = 0
+    correction: np.ndarray | None = None
 
     @property
     def hamiltonian(self) -> Polynomial:
@@ -111,7 +112,7 @@ class PolynomialFit:
 
     @property
     def n_parameters(self) -> int:
-        return int(np.count_nonzero(self.theta))
+        return int(np.count_nonzero(self.theta if self.correction is None else self.correction))
 
 
 class _Model:
@@ -234,14 +235,15 @@ def shooting_refine(
     length: int = SHOOTING_LENGTH,
     max_iter: int = 30,
     verbose: bool = False,
+    offset: np.ndarray | float = 0.0,
 ) -> tuple[np.ndarray, float, int]:
-    """Maximum likelihood under white noise on every record: θ = q z and one free start state per
-    window of ``length`` records are fitted so that the rollout Φ^k(start) matches every record of
-    the window (residuals relative to |record|). Errors-in-variables, where one-step residuals
-    put the noise of μ_k into the model; and a window's k-th record constrains H with weight k·h,
-    so the long-time phase (the error at large T) is fitted from the whole span. Levenberg–
-    Marquardt from z and the recorded starts; returns (z, RMS residual per coordinate, residuals
-    count)."""
+    """Maximum likelihood under white noise on every record: θ = offset + q z and one free start
+    state per window of ``length`` records are fitted so that the rollout Φ^k(start) matches
+    every record of the window (residuals relative to |record|). Errors-in-variables, where
+    one-step residuals put the noise of μ_k into the model; and a window's k-th record
+    constrains H with weight k·h, so the long-time phase (the error at large T) is fitted from
+    the whole span. Levenberg–Marquardt from z and the recorded starts; returns (z, RMS residual
+    per coordinate, residuals count)."""
     wins = _shooting_windows(trajs, length)
     groups: dict[int, list[int]] = {}
     for i, w in enumerate(wins):
@@ -255,9 +257,9 @@ def shooting_refine(
         for ln, idx in groups.items():
             tg = np.stack([wins[i] for i in idx])  # (G, ln, n)
             if jacobian:
-                out, dth, dst = model.rollout(q @ zz, st[idx], ln - 1)
+                out, dth, dst = model.rollout(offset + q @ zz, st[idx], ln - 1)
             else:
-                out = torch.as_tensor(model.states(q @ zz, st[idx], ln - 1))
+                out = torch.as_tensor(model.states(offset + q @ zz, st[idx], ln - 1))
             scale = np.linalg.norm(tg, axis=2, keepdims=True).clip(1e-300)
             rs.append(((out.numpy() - tg) / scale).reshape(-1))
             if jacobian:
@@ -332,15 +334,26 @@ def fit_polynomial(
     verbose: bool = False,
     sparse: bool = True,
     shooting: bool = True,
+    known: Polynomial | None = None,
 ) -> PolynomialFit:
     """Fits H_θ of total degree ≤ ``degree`` (no constant) to ``data.train``; see the module
     docstring. ``horizon``: the longest multi-step residual (records permitting); ``sparse``:
-    drop the terms the data do not resolve and refit (kept when the fit is as good)."""
+    drop the terms the data do not resolve and refit (kept when the fit is as good);
+    ``shooting``: refine by :func:`shooting_refine` where trajectories are long enough;
+    ``known``: a known part of H, fixed: H = known + H_θ and only the correction H_θ is
+    learned (mode "hj+data")."""
     t0 = time.perf_counter()
     n = algebra.dim
     family = family or monomials(n, degree, min_degree=1)
-    order = order or default_order(max(sum(e) for e in family), n)
+    known_terms = {} if known is None else {e: c for e, c in known.terms.items() if sum(e) > 0}
+    full = list(family) + [e for e in known_terms if e not in family]
+    offset = np.array([known_terms.get(e, 0.0) for e in full])
+    embed = np.eye(len(full))[:, : len(family)]  # correction coefficients → full family
+    order = order or default_order(max(sum(e) for e in full), n)
     x, v = velocities(data.train, data.h)
+    if known_terms:
+        # The correction fits what the known part leaves of the velocities.
+        v = v - np.einsum("bjp,p->bj", vector_field_design(algebra, full, x), offset)
     a = vector_field_design(algebra, family, x)  # (B, n, P)
     w = 1.0 / np.linalg.norm(x, axis=1).clip(1e-300)
     a2 = (a * w[:, None, None]).reshape(-1, len(family))
@@ -350,7 +363,8 @@ def fit_polynomial(
     keep = sv > GAUGE_RTOL * sv[0]
     q = (vt[keep].T) / col[:, None]  # θ = q z
     z = (u[:, keep].T @ (v * w[:, None]).reshape(-1)) / sv[keep]
-    model = _Model(algebra, family, order, data.h)
+    qf = embed @ q  # H's coefficients over ``full``: offset + qf z
+    model = _Model(algebra, full, order, data.h)
     # Residuals: one step over every pair, several steps over windows.
     s1, t1 = _windows(data.train, 1)
     sets = [(s1, t1, 1)]
@@ -362,11 +376,11 @@ def fit_polynomial(
     def evaluate(zz, jacobian):
         rs, js = [], []
         for st, tg, hz in sets:
-            r, j = model.residuals(q @ zz, st, tg, hz, jacobian)
+            r, j = model.residuals(offset + qf @ zz, st, tg, hz, jacobian)
             rs.append(r)
             js.append(j)
         r = np.concatenate(rs)
-        return r, (np.concatenate(js) @ q if jacobian else None)
+        return r, (np.concatenate(js) @ qf if jacobian else None)
 
     history = []
     lam = 1e-6
@@ -403,9 +417,10 @@ def fit_polynomial(
     if shooting and any(len(t) >= SHOOTING_MIN_RECORDS for t in data.train) and np.isfinite(cost):
         z, shoot_sigma, _ = shooting_refine(
             model,
-            q,
+            qf,
             z,
             [t for t in data.train if len(t) >= SHOOTING_MIN_RECORDS],
+            offset=offset,
             max_iter=max_iter,
             verbose=verbose,
         )
@@ -441,15 +456,18 @@ def fit_polynomial(
                 verbose=verbose,
                 sparse=False,
                 shooting=shooting,
+                known=known,
             )
             if sub.history[-1] <= 1.5 * history[-1] + 1e-28:
                 sub.seconds = time.perf_counter() - t0
                 return sub
-    poly = Polynomial({e: float(t) for e, t in zip(family, theta, strict=True) if t != 0.0})
+    theta_full = offset + embed @ theta
+    poly = Polynomial({e: float(t) for e, t in zip(full, theta_full, strict=True) if t != 0.0})
     system = LiePoissonSystem(algebra, poly, name="learned")
     return PolynomialFit(
-        family=list(family),
-        theta=theta,
+        family=list(full),
+        theta=theta_full,
+        correction=theta if known_terms else None,
         order=order,
         system=system,
         history=history,
