@@ -422,6 +422,14 @@ def heavy_top_protocol(n_traj: int = 40, records: int = 11, n_test: int = 6, see
         "seconds": seconds,
         "note": report.kept.family,
     }
+    # The floor: the true H through the same integrator (Taylor-HJ, the order auto used).
+    floor = pr.taylor_integrator(top, report.kept.order, "exp")
+    rows["true H, same integrator"] = {
+        **score(pr.integrate(floor, tests, TAU, 1000, every=5)),
+        "parameters": 0,
+        "seconds": 0.0,
+        "note": f"K = {report.kept.order}",
+    }
     t0 = time.perf_counter()
     family = monomials(6, 2, min_degree=1)
     x, v = velocities(trajs, TAU)
