@@ -349,3 +349,27 @@ def test_cli_writes_a_model_with_its_provenance(tmp_path, capsys) -> None:
     bad = parser.parse_args(["learn", str(tmp_path / "d.npz"), "--h", "-1", "--out", str(out)])
     with pytest.raises(ValueError, match="--h"):
         bad.func(bad)
+
+
+# --- Lotka–Volterra on a known log-canonical structure --------------------------------------------
+
+
+def test_lotka_volterra_fit_recovers_h_and_rejects_states_off_the_orthant() -> None:
+    from poisson_rs.learn.log_canonical import fit_lotka_volterra
+
+    c = [[0.0, 1.0], [-1.0, 0.0]]
+    lv = pr.lotka_volterra(c, [1.0, 2.0])
+    reference = pr.log_canonical_classical(lv, "dop853", tol=1e-13)
+    trajs = pr.integrate(reference, np.array([[1.0, 0.8], [1.0, 1.2]]), 0.1, 60)
+    fit = fit_lotka_volterra(list(trajs), 0.1, c)
+    # Oracle: the generating H = u − ln u + v − 2 ln v (c is invertible: no gauge).
+    assert np.abs(fit.a - 1.0).max() <= 1e-6
+    assert np.abs(fit.b - [1.0, 2.0]).max() <= 1e-6
+    x0 = np.array([[1.0, 0.9]])
+    learned = pr.integrate(fit.stepper, x0, 0.1, 100)
+    truth = pr.integrate(pr.log_canonical_taylor(lv, 5), x0, 0.1, 100)
+    assert np.abs(learned - truth).max() <= 1e-5
+    with pytest.raises(ValueError, match=r"trajectories\[0\]: states must be finite and positive"):
+        fit_lotka_volterra([-trajs[0]], 0.1, c)
+    with pytest.raises(ValueError, match="h must be finite and > 0"):
+        fit_lotka_volterra(list(trajs), 0.0, c)
