@@ -194,7 +194,7 @@ def test_map_mode_learns_and_records_provenance() -> None:
         algebra="so3",
         mode="map",
         seed=3,
-        map_options={"adam_steps": 10, "lbfgs_steps": 5, "widths": (8,)},
+        map_options={"kind": "network", "adam_steps": 10, "lbfgs_steps": 5, "widths": (8,)},
     )
     assert report.kept.family == "map" and report.hamiltonian is None
     assert report.kept.one_step < 1e-3
@@ -203,6 +203,25 @@ def test_map_mode_learns_and_records_provenance() -> None:
     assert meta["seed"] == 3 and json.loads(meta["data_shape"]) == [10, 6, 3]
     c = np.sum(pr.integrate(stepper, traj[:, 0], 0.1, 100) ** 2, axis=-1)
     assert np.abs(c - c[:, :1]).max() <= 1e-13
+
+
+def test_polynomial_map_learns_the_time_h_map_from_pairs(tmp_path) -> None:
+    rng = np.random.default_rng(12)
+    pairs = _trajectories(BODY, _sphere(rng, 120), 0.1, 2)
+    stepper, report = learn(pairs, 0.1, algebra="so3", mode="map", seed=0)
+    assert report.kept.family == "map-poly6" and report.hamiltonian is None
+    assert report.kept.parameters <= 84
+    # Oracle: the exact solution (Jacobi elliptic functions) at held-out states, t = 10.
+    mu0 = _sphere(rng, 4)
+    roll = pr.integrate(stepper, mu0, 0.1, 100)
+    exact = pr.exact_solution(BODY, mu0, 0.1 * np.arange(101))
+    assert np.abs(roll - exact).max() <= 1e-7
+    assert np.abs(np.sum(roll**2, -1) - 1.0).max() <= 1e-13
+    path = tmp_path / "map.safetensors"
+    path.write_bytes(stepper._bytes)
+    assert np.array_equal(pr.integrate(pr.load_model(str(path)), mu0, 0.1, 20), roll[:, :21])
+    with pytest.raises(ValueError, match="map_options\\['kind'\\]"):
+        learn(pairs, 0.1, algebra="so3", mode="map", map_options={"kind": "spline"})
 
 
 # --- data: files and bad input --------------------------------------------------------------------

@@ -137,6 +137,53 @@ def _polynomial_candidate(
 
 
 def _map_candidate(data, algebra, mode, seed, command, options):
+    options = dict(options)
+    kind = options.pop("kind", "polynomial")
+    if kind == "polynomial":
+        return _polynomial_map_candidate(data, algebra, mode, seed, command, options)
+    if kind != "network":
+        raise ValueError(f"map_options['kind'] must be 'polynomial' or 'network', got {kind!r}")
+    return _network_map_candidate(data, algebra, mode, seed, command, options)
+
+
+def _polynomial_map_candidate(data, algebra, mode, seed, command, options):
+    from ..systems import Polynomial
+    from .map import fit_polynomial_map
+
+    t0 = time.perf_counter()
+    s, basis, n_params = fit_polynomial_map(data, algebra, **options)
+    seconds = time.perf_counter() - t0
+    nz = s != 0.0
+    powers = np.concatenate([np.full((basis.size, 1), 2, np.int64), basis.powers], axis=1)
+    family = f"map-poly{basis.degree}"
+    raw = model_bytes(
+        # S(t, p) = (t/h)²·S(h, p): the map is learned at the data's h only, and with no t¹
+        # term the file records no H (H is never formed).
+        powers=powers[nz],
+        coeffs=s[nz] / data.h**2,
+        layers=[],
+        mlp_power=1,
+        chart="exp",
+        system=LiePoissonSystem(algebra, Polynomial({(0,) * algebra.dim: 0.0}), name="learned-map"),
+        h_max=data.h,
+        domain=_domain(data),
+        record=_record(data, family, mode, seed, command, seconds),
+    )
+    stepper = LearnedIntegrator(raw)
+    one, roll = _errors(stepper, data)
+    return Candidate(
+        family=family,
+        parameters=n_params,
+        order=0,
+        seconds=seconds,
+        one_step=one,
+        rollout=roll,
+        stepper=stepper,
+        model_bytes=raw,
+    )
+
+
+def _network_map_candidate(data, algebra, mode, seed, command, options):
     from .map import fit_map
 
     t0 = time.perf_counter()
