@@ -370,6 +370,28 @@ def test_cli_writes_a_model_with_its_provenance(tmp_path, capsys) -> None:
         bad.func(bad)
 
 
+def test_cli_hj_data_reads_the_known_system(tmp_path) -> None:
+    from poisson_rs.learn import cli
+
+    known, truth, _, trajs = _hj_data(8)
+    np.savez(tmp_path / "d.npz", trajectories=trajs)
+    (tmp_path / "known.json").write_text(json.dumps(known.to_dict()))
+    parser = argparse.ArgumentParser()
+    cli.add_parser(parser.add_subparsers())
+    out = tmp_path / "m.safetensors"
+    argv = ["learn", str(tmp_path / "d.npz"), "--h", "0.1", "--out", str(out), "--mode"]
+    argv += ["hj+data", "--degree", "3", "--system", str(tmp_path / "known.json")]
+    args = parser.parse_args(argv)
+    assert args.func(args) == 0
+    model = pr.load_model(str(out))
+    assert model.metadata["learn_mode"] == "hj+data"
+    assert relative_field_error(model.system, truth, np.concatenate(trajs)) <= 1e-6
+    (tmp_path / "bad.json").write_text("{")
+    args = parser.parse_args([*argv[:-1], str(tmp_path / "bad.json"), "--force"])
+    with pytest.raises(ValueError, match="--system"):
+        args.func(args)
+
+
 # --- Lotka–Volterra on a known log-canonical structure --------------------------------------------
 
 
