@@ -306,7 +306,10 @@ def learn(
     test_fraction, seed : held-out share of the trajectories (of the records when there is only
         one) and the seed that picks them.
     horizon, max_iter : longest multi-step residual and Levenberg–Marquardt iterations.
-    map_options : keyword arguments for :func:`poisson_rs.learn.map.fit_map`.
+    map_options : the map's family and options: ``kind`` "polynomial" (default: S(h, ·) a
+        polynomial in p, :func:`poisson_rs.learn.map.fit_polynomial_map`, e.g. ``degree``) or
+        "network" (:func:`poisson_rs.learn.map.fit_map`); for mode "hj+data" with
+        ``correction="network"``, options of :func:`poisson_rs.learn.blend.fit_blended_map`.
     command : recorded in the model file.
     correction, lam : mode "hj+data": "polynomial" (H = known + a polynomial of ``degree``;
         default the known H's degree, at least 2) or "network" (S = the known H's Taylor series
