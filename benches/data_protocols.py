@@ -312,7 +312,7 @@ def main() -> None:
             protocols[name]["map"] = {
                 f: v for f, v in rows["map"].items() if not f.startswith("curve")
             }
-            if old is not None:
+            if old is not None and "map-mlp" not in protocols[name]:
                 protocols[name]["map-mlp"] = old
         (OUT / "protocols.json").write_text(json.dumps(protocols, indent=1))
         print_tables(protocols, {})

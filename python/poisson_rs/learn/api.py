@@ -20,6 +20,8 @@ from .report import Candidate, LearnReport
 __all__ = ["MODES", "learn", "resolve_algebra"]
 
 MODES = ("auto", "hamiltonian", "map", "hj+data")
+#: Degrees of the map's polynomial S(h, ·) tried (the held-out one-step error chooses).
+MAP_DEGREES = (4, 6)
 #: What mode "hj+data" learns on top of the known H.
 CORRECTIONS = ("polynomial", "network")
 #: Polynomial degrees tried, smallest first.
@@ -150,6 +152,16 @@ def _polynomial_map_candidate(data, algebra, mode, seed, command, options):
     from ..systems import Polynomial
     from .map import fit_polynomial_map
 
+    if "degree" not in options:
+        # Degree by held-out one-step error: the larger S fits exact data to round-off, the
+        # smaller one overfits noise less.
+        tried = [
+            _polynomial_map_candidate(data, algebra, mode, seed, command, {**options, "degree": d})
+            for d in MAP_DEGREES
+        ]
+        best = min(tried, key=lambda c: c.one_step)
+        best.seconds = sum(c.seconds for c in tried)
+        return best
     t0 = time.perf_counter()
     s, basis, n_params = fit_polynomial_map(data, algebra, **options)
     seconds = time.perf_counter() - t0

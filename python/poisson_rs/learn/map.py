@@ -151,7 +151,12 @@ def fit_polynomial_map(
     scale = np.linalg.norm(mu_k, axis=1, keepdims=True)
 
     def evaluate(coeffs: np.ndarray, jacobian: bool):
-        step = bisection_step(b, algebra.c, torch.as_tensor(coeffs), start, derivatives=jacobian)
+        try:
+            step = bisection_step(
+                b, algebra.c, torch.as_tensor(coeffs), start, derivatives=jacobian
+            )
+        except FloatingPointError:  # a trial step far outside the chart: rejected
+            return np.full(mu_k.size, np.inf), None
         r = ((step.out.numpy() - mu_k1) / scale).reshape(-1)
         j = None
         if jacobian:
