@@ -13,6 +13,7 @@ import torch
 
 import poisson_rs as pr
 from poisson_rs.learn import CasimirDriftWarning, learn, load_trajectories, prepare
+from poisson_rs.learn.api import _map_base
 from poisson_rs.learn.hamiltonian import _Model, fit_polynomial, relative_field_error
 from poisson_rs.learn.map import build_map
 from poisson_rs.learn.series import monomials, series_jacobian, taylor_series
@@ -157,7 +158,7 @@ def _map_stepper(s_fn) -> pr.LearnedIntegrator:
         layers=s_fn.exported_layers(),
         mlp_power=s_fn.mlp_power,
         chart="exp",
-        system=pr.LiePoissonSystem(pr.LieAlgebra.so3(), pr.Polynomial({(0, 0, 0): 0.0})),
+        system=_map_base(s_fn, pr.LieAlgebra.so3()),
         h_max=0.1,
         domain={"kind": "all"},
         record={"learn_mode": "map"},
@@ -193,7 +194,7 @@ def test_map_mode_learns_and_records_provenance() -> None:
         algebra="so3",
         mode="map",
         seed=3,
-        map_options={"adam_steps": 10, "lbfgs_steps": 5, "widths": (8,)},
+        map_options={"kind": "network", "adam_steps": 10, "lbfgs_steps": 5, "widths": (8,)},
     )
     assert report.kept.family == "map" and report.hamiltonian is None
     assert report.kept.one_step < 1e-3
@@ -202,6 +203,25 @@ def test_map_mode_learns_and_records_provenance() -> None:
     assert meta["seed"] == 3 and json.loads(meta["data_shape"]) == [10, 6, 3]
     c = np.sum(pr.integrate(stepper, traj[:, 0], 0.1, 100) ** 2, axis=-1)
     assert np.abs(c - c[:, :1]).max() <= 1e-13
+
+
+def test_polynomial_map_learns_the_time_h_map_from_pairs(tmp_path) -> None:
+    rng = np.random.default_rng(12)
+    pairs = _trajectories(BODY, _sphere(rng, 120), 0.1, 2)
+    stepper, report = learn(pairs, 0.1, algebra="so3", mode="map", seed=0)
+    assert report.kept.family == "map-poly6" and report.hamiltonian is None
+    assert report.kept.parameters <= 84
+    # Oracle: the exact solution (Jacobi elliptic functions) at held-out states, t = 10.
+    mu0 = _sphere(rng, 4)
+    roll = pr.integrate(stepper, mu0, 0.1, 100)
+    exact = pr.exact_solution(BODY, mu0, 0.1 * np.arange(101))
+    assert np.abs(roll - exact).max() <= 1e-7
+    assert np.abs(np.sum(roll**2, -1) - 1.0).max() <= 1e-13
+    path = tmp_path / "map.safetensors"
+    path.write_bytes(stepper._bytes)
+    assert np.array_equal(pr.integrate(pr.load_model(str(path)), mu0, 0.1, 20), roll[:, :21])
+    with pytest.raises(ValueError, match="map_options\\['kind'\\]"):
+        learn(pairs, 0.1, algebra="so3", mode="map", map_options={"kind": "spline"})
 
 
 # --- data: files and bad input --------------------------------------------------------------------
@@ -253,9 +273,115 @@ def test_drifting_casimirs_warn_with_their_size() -> None:
         prepare(traj, 0.1, pr.LieAlgebra.so3())
 
 
-def test_hj_data_mode_says_it_is_not_available() -> None:
-    with pytest.raises(NotImplementedError, match="hj\\+data"):
-        learn(np.ones((2, 4, 3)), 0.1, algebra="so3", mode="hj+data")
+def test_shooting_rollout_derivatives_match_finite_differences() -> None:
+    family = monomials(3, 2, min_degree=1)
+    theta = np.zeros(len(family))
+    for e, c in {(2, 0, 0): 0.25, (0, 2, 0): 0.5, (0, 0, 2): 0.75, (1, 0, 0): 0.1}.items():
+        theta[family.index(e)] = c
+    model = _Model(pr.LieAlgebra.so3(), family, 5, 0.1)
+    starts = _sphere(np.random.default_rng(13), 3)
+    out, dth, dst = model.rollout(theta, starts, 6)
+    assert np.abs(out.numpy()[:, 0] - starts).max() == 0.0
+    d = np.random.default_rng(14).normal(size=len(theta))
+    eps = 1e-6
+    fd = (model.states(theta + eps * d, starts, 6) - model.states(theta - eps * d, starts, 6)) / (
+        2 * eps
+    )
+    assert np.abs(dth.numpy() @ d - fd).max() <= 1e-7 * max(1.0, np.abs(fd).max())
+    v = np.random.default_rng(15).normal(size=starts.shape)
+    fd = (model.states(theta, starts + eps * v, 6) - model.states(theta, starts - eps * v, 6)) / (
+        2 * eps
+    )
+    assert np.abs(np.einsum("bkij,bj->bki", dst.numpy(), v) - fd).max() <= 1e-7
+
+
+def test_shooting_beats_one_step_residuals_on_a_noisy_trajectory() -> None:
+    """One trajectory with noise of 1e-4: fitting every record from a free start (shooting)
+    brings the learned vector field closer to the true one than one- and multi-step residuals."""
+    y0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
+    traj = _trajectories(BODY, y0, 0.1, 121)
+    for seed in range(3):
+        noisy = traj + 1e-4 * np.random.default_rng(seed).normal(size=traj.shape)
+        with pytest.warns(CasimirDriftWarning):  # noise of 1e-4 breaks |μ|² by ~1e-4
+            data = prepare(noisy, 0.1, pr.LieAlgebra.so3(), test_fraction=0.0)
+        err = [
+            relative_field_error(
+                fit_polynomial(data, pr.LieAlgebra.so3(), 2, shooting=s, sparse=False).system,
+                BODY,
+                traj,
+            )
+            for s in (False, True)
+        ]
+        assert err[1] <= 0.5 * err[0]
+
+
+# --- mode "hj+data": a known part of H plus what the data add ---------------------------------
+
+_KNOWN = {(2, 0, 0): 0.25, (0, 2, 0): 0.5, (0, 0, 2): 0.75}
+
+
+def _hj_data(records: int = 12):
+    """Exact records of H = H_known + 0.05·μ₁μ₂μ₃, and the known part."""
+    alg = pr.LieAlgebra.so3()
+    known = pr.LiePoissonSystem(alg, pr.Polynomial(_KNOWN))
+    truth = pr.LiePoissonSystem(alg, pr.Polynomial({**_KNOWN, (1, 1, 1): 0.05}))
+    y0 = _sphere(np.random.default_rng(11), 5)
+    return known, truth, y0, _trajectories(truth, y0, 0.1, records)
+
+
+def test_hj_data_polynomial_correction_recovers_the_missing_term() -> None:
+    known, truth, y0, trajs = _hj_data()
+    stepper, report = learn(trajs, 0.1, system=known, mode="hj+data", degree=3, seed=0)
+    assert report.kept.family == "known+poly3"
+    # Oracle: the true vector field (gauge-free), and the exact Casimir |μ|².
+    states = np.concatenate(trajs)
+    assert relative_field_error(report.system, truth, states) <= 1e-6
+    roll = pr.integrate(stepper, y0, 0.1, 300)
+    assert np.abs(np.sum(roll**2, -1) - 1.0).max() <= 1e-13
+    # Without the correction the known part alone is far off on the same data.
+    assert relative_field_error(known, truth, states) >= 1e-2
+
+
+def test_hj_data_network_blend_keeps_casimirs_and_the_data_term_pulls() -> None:
+    known, _truth, y0, trajs = _hj_data(8)
+    opts = {"widths": (8,), "adam_steps": 40, "lbfgs_steps": 10, "n_hj": 64}
+    errors = {}
+    for lam in (0.0, 10.0):
+        stepper, report = learn(
+            trajs,
+            0.1,
+            system=known,
+            mode="hj+data",
+            correction="network",
+            lam=lam,
+            map_options=opts,
+            test_fraction=0.0,
+        )
+        assert report.kept.family == "known+network" and report.kept.parameters == 49
+        errors[lam] = report.kept.one_step
+        roll = pr.integrate(stepper, y0, 0.1, 200)
+        assert np.isfinite(roll).all()
+        assert np.abs(np.sum(roll**2, -1) - 1.0).max() <= 1e-13
+    # The data term moves the map toward the data (loss_HJ alone keeps it at H_known's flow).
+    assert errors[10.0] <= 0.75 * errors[0.0]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"algebra": "so3"}, "needs the known part of H: give system="),
+        ({"correction": "spline"}, "correction must be one of"),
+        ({"lam": -1.0}, "lam must be a finite number >= 0"),
+        ({"lam": float("inf")}, "lam must be a finite number >= 0"),
+    ],
+)
+def test_hj_data_bad_input_gets_one_clear_error(kwargs, match) -> None:
+    known = pr.LiePoissonSystem(pr.LieAlgebra.so3(), pr.Polynomial(_KNOWN))
+    kw = {"system": known, **kwargs}
+    if "algebra" in kw:
+        del kw["system"]
+    with pytest.raises(ValueError, match=match):
+        learn(np.ones((2, 4, 3)), 0.1, mode="hj+data", **kw)
 
 
 # --- the command line -----------------------------------------------------------------------------
@@ -284,3 +410,49 @@ def test_cli_writes_a_model_with_its_provenance(tmp_path, capsys) -> None:
     bad = parser.parse_args(["learn", str(tmp_path / "d.npz"), "--h", "-1", "--out", str(out)])
     with pytest.raises(ValueError, match="--h"):
         bad.func(bad)
+
+
+def test_cli_hj_data_reads_the_known_system(tmp_path) -> None:
+    from poisson_rs.learn import cli
+
+    known, truth, _, trajs = _hj_data(8)
+    np.savez(tmp_path / "d.npz", trajectories=trajs)
+    (tmp_path / "known.json").write_text(json.dumps(known.to_dict()))
+    parser = argparse.ArgumentParser()
+    cli.add_parser(parser.add_subparsers())
+    out = tmp_path / "m.safetensors"
+    argv = ["learn", str(tmp_path / "d.npz"), "--h", "0.1", "--out", str(out), "--mode"]
+    argv += ["hj+data", "--degree", "3", "--system", str(tmp_path / "known.json")]
+    args = parser.parse_args(argv)
+    assert args.func(args) == 0
+    model = pr.load_model(str(out))
+    assert model.metadata["learn_mode"] == "hj+data"
+    assert relative_field_error(model.system, truth, np.concatenate(trajs)) <= 1e-6
+    (tmp_path / "bad.json").write_text("{")
+    args = parser.parse_args([*argv[:-1], str(tmp_path / "bad.json"), "--force"])
+    with pytest.raises(ValueError, match="--system"):
+        args.func(args)
+
+
+# --- Lotka–Volterra on a known log-canonical structure --------------------------------------------
+
+
+def test_lotka_volterra_fit_recovers_h_and_rejects_states_off_the_orthant() -> None:
+    from poisson_rs.learn.log_canonical import fit_lotka_volterra
+
+    c = [[0.0, 1.0], [-1.0, 0.0]]
+    lv = pr.lotka_volterra(c, [1.0, 2.0])
+    reference = pr.log_canonical_classical(lv, "dop853", tol=1e-13)
+    trajs = pr.integrate(reference, np.array([[1.0, 0.8], [1.0, 1.2]]), 0.1, 60)
+    fit = fit_lotka_volterra(list(trajs), 0.1, c)
+    # Oracle: the generating H = u − ln u + v − 2 ln v (c is invertible: no gauge).
+    assert np.abs(fit.a - 1.0).max() <= 1e-6
+    assert np.abs(fit.b - [1.0, 2.0]).max() <= 1e-6
+    x0 = np.array([[1.0, 0.9]])
+    learned = pr.integrate(fit.stepper, x0, 0.1, 100)
+    truth = pr.integrate(pr.log_canonical_taylor(lv, 5), x0, 0.1, 100)
+    assert np.abs(learned - truth).max() <= 1e-5
+    with pytest.raises(ValueError, match=r"trajectories\[0\]: states must be finite and positive"):
+        fit_lotka_volterra([-trajs[0]], 0.1, c)
+    with pytest.raises(ValueError, match="h must be finite and > 0"):
+        fit_lotka_volterra(list(trajs), 0.0, c)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -19,6 +20,10 @@ from .report import Candidate, LearnReport
 __all__ = ["MODES", "learn", "resolve_algebra"]
 
 MODES = ("auto", "hamiltonian", "map", "hj+data")
+#: Degrees of the map's polynomial S(h, ·) tried (the held-out one-step error chooses).
+MAP_DEGREES = (4, 6)
+#: What mode "hj+data" learns on top of the known H.
+CORRECTIONS = ("polynomial", "network")
 #: Polynomial degrees tried, smallest first.
 AUTO_DEGREES = (2, 3, 4)
 #: Held-out one-step error that counts as exact data when the noise cannot be estimated
@@ -85,10 +90,25 @@ def _errors(stepper: Any, data: TrajectoryData) -> tuple[float, float]:
     return (one if math.isfinite(one) else math.inf), (worst if math.isfinite(worst) else math.inf)
 
 
-def _polynomial_candidate(data, algebra, degree, order, mode, seed, command, options):
+def _all_records(data: TrajectoryData) -> TrajectoryData:
+    """The same data with nothing held out (a single trajectory whole again)."""
+    if not data.test:
+        return data
+    if data.shape[0] == 1:
+        whole = [np.concatenate([data.train[0], data.test[0][1:]])]
+    else:
+        whole = data.train + data.test
+    return dataclasses.replace(data, train=whole, test=[])
+
+
+def _polynomial_candidate(
+    data, algebra, degree, order, mode, seed, command, options, family=None, sparse=True
+):
     from .hamiltonian import fit_polynomial  # torch is imported on first use only
 
-    fit = fit_polynomial(data, algebra, degree, order=order, **options)
+    fit = fit_polynomial(
+        data, algebra, degree, order=order, family=family, sparse=sparse, **options
+    )
     powers, coeffs = system_taylor_terms(fit.system, fit.order, "exp")
     family = f"poly{degree}"
     raw = model_bytes(
@@ -119,6 +139,63 @@ def _polynomial_candidate(data, algebra, degree, order, mode, seed, command, opt
 
 
 def _map_candidate(data, algebra, mode, seed, command, options):
+    options = dict(options)
+    kind = options.pop("kind", "polynomial")
+    if kind == "polynomial":
+        return _polynomial_map_candidate(data, algebra, mode, seed, command, options)
+    if kind != "network":
+        raise ValueError(f"map_options['kind'] must be 'polynomial' or 'network', got {kind!r}")
+    return _network_map_candidate(data, algebra, mode, seed, command, options)
+
+
+def _polynomial_map_candidate(data, algebra, mode, seed, command, options):
+    from ..systems import Polynomial
+    from .map import fit_polynomial_map
+
+    if "degree" not in options:
+        # Degree by held-out one-step error: the larger S fits exact data to round-off, the
+        # smaller one overfits noise less.
+        tried = [
+            _polynomial_map_candidate(data, algebra, mode, seed, command, {**options, "degree": d})
+            for d in MAP_DEGREES
+        ]
+        best = min(tried, key=lambda c: c.one_step)
+        best.seconds = sum(c.seconds for c in tried)
+        return best
+    t0 = time.perf_counter()
+    s, basis, n_params = fit_polynomial_map(data, algebra, **options)
+    seconds = time.perf_counter() - t0
+    nz = s != 0.0
+    powers = np.concatenate([np.full((basis.size, 1), 2, np.int64), basis.powers], axis=1)
+    family = f"map-poly{basis.degree}"
+    raw = model_bytes(
+        # S(t, p) = (t/h)²·S(h, p): the map is learned at the data's h only, and with no t¹
+        # term the file records no H (H is never formed).
+        powers=powers[nz],
+        coeffs=s[nz] / data.h**2,
+        layers=[],
+        mlp_power=1,
+        chart="exp",
+        system=LiePoissonSystem(algebra, Polynomial({(0,) * algebra.dim: 0.0}), name="learned-map"),
+        h_max=data.h,
+        domain=_domain(data),
+        record=_record(data, family, mode, seed, command, seconds),
+    )
+    stepper = LearnedIntegrator(raw)
+    one, roll = _errors(stepper, data)
+    return Candidate(
+        family=family,
+        parameters=n_params,
+        order=0,
+        seconds=seconds,
+        one_step=one,
+        rollout=roll,
+        stepper=stepper,
+        model_bytes=raw,
+    )
+
+
+def _network_map_candidate(data, algebra, mode, seed, command, options):
     from .map import fit_map
 
     t0 = time.perf_counter()
@@ -131,7 +208,7 @@ def _map_candidate(data, algebra, mode, seed, command, options):
         mlp_power=s_fn.mlp_power,
         mlp_inputs=s_fn.inputs,
         chart="exp",
-        system=LiePoissonSystem(algebra, _zero(algebra.dim), name="learned-map"),
+        system=_map_base(s_fn, algebra),
         h_max=data.h,
         domain=_domain(data),
         record=_record(data, "map", mode, seed, command, seconds),
@@ -150,10 +227,55 @@ def _map_candidate(data, algebra, mode, seed, command, options):
     )
 
 
-def _zero(n: int) -> Any:
+def _blend_candidate(data, known, order, lam, mode, seed, command, options):
+    from .blend import fit_blended_map
+
+    t0 = time.perf_counter()
+    s_fn, _ = fit_blended_map(data, known, order=order or 3, lam=lam, seed=seed, **(options or {}))
+    seconds = time.perf_counter() - t0
+    raw = model_bytes(
+        powers=s_fn.powers.numpy(),
+        coeffs=s_fn.coeffs.detach().numpy(),
+        layers=s_fn.exported_layers(),
+        mlp_power=s_fn.mlp_power,
+        mlp_inputs=s_fn.inputs,
+        chart="exp",
+        system=known,
+        h_max=data.h,
+        domain=_domain(data),
+        taylor_order=order or 3,
+        record=_record(data, "known+network", mode, seed, command, seconds),
+    )
+    stepper = LearnedIntegrator(raw)
+    one, roll = _errors(stepper, data)
+    return Candidate(
+        family="known+network",
+        parameters=s_fn.n_parameters(),
+        order=order or 3,
+        seconds=seconds,
+        one_step=one,
+        rollout=roll,
+        stepper=stepper,
+        model_bytes=raw,
+        system=None,
+    )
+
+
+def _map_base(s_fn: Any, algebra: LieAlgebra) -> LiePoissonSystem:
+    """The system a map's file records: H₀ of its t¹ terms −t·H₀ (model files check that the
+    t¹ terms are −t·H of the recorded system); the map itself is the learned S, not H₀'s flow."""
     from ..systems import Polynomial
 
-    return Polynomial({(0,) * n: 0.0})
+    powers = s_fn.powers.numpy()
+    coeffs = s_fn.coeffs.detach().numpy()
+    terms = {
+        tuple(int(v) for v in row[1:]): -float(c)
+        for row, c in zip(powers, coeffs, strict=True)
+        if row[0] == 1
+    }
+    return LiePoissonSystem(
+        algebra, Polynomial(terms or {(0,) * algebra.dim: 0.0}), name="learned-map"
+    )
 
 
 def learn(
@@ -172,6 +294,9 @@ def learn(
     map_options: dict[str, Any] | None = None,
     command: str | None = None,
     verbose: bool = False,
+    refit: bool = True,
+    correction: str = "polynomial",
+    lam: float = 1.0,
 ) -> tuple[Any, LearnReport]:
     """Learns a Poisson integrator from trajectories whose Poisson structure is known.
 
@@ -183,17 +308,27 @@ def learn(
     h : float
         The record spacing (time units), > 0.
     algebra, system : the Lie algebra (a LieAlgebra or "so3", "se3", "sl2"), or a system whose
-        algebra it is (its Hamiltonian is not used: H is learned).
+        algebra it is (its Hamiltonian is used by mode "hj+data" only, as the known part).
     mode : "auto" (smallest model that explains the data: polynomial H of degree 2, 3, 4, then
         a map), "hamiltonian" (polynomial H of ``degree``, or the degrees in turn), "map" (the
-        time-h map's generating function, H never formed), "hj+data" (not available yet).
+        time-h map's generating function, H never formed), "hj+data" (``system``'s H is known
+        or its known part; a correction is learned, see :mod:`poisson_rs.learn.blend`).
     degree, order : polynomial degree of H and Taylor-HJ order K (default: chosen, see
         :func:`poisson_rs.learn.hamiltonian.default_order`).
     test_fraction, seed : held-out share of the trajectories (of the records when there is only
         one) and the seed that picks them.
     horizon, max_iter : longest multi-step residual and Levenberg–Marquardt iterations.
-    map_options : keyword arguments for :func:`poisson_rs.learn.map.fit_map`.
+    map_options : the map's family and options: ``kind`` "polynomial" (default: S(h, ·) a
+        polynomial in p, :func:`poisson_rs.learn.map.fit_polynomial_map`, e.g. ``degree``) or
+        "network" (:func:`poisson_rs.learn.map.fit_map`); for mode "hj+data" with
+        ``correction="network"``, options of :func:`poisson_rs.learn.blend.fit_blended_map`.
     command : recorded in the model file.
+    correction, lam : mode "hj+data": "polynomial" (H = known + a polynomial of ``degree``;
+        default the known H's degree, at least 2) or "network" (S = the known H's Taylor series
+        of ``order`` (default 3) + t^(K+1)·MLP, ``map_options`` for
+        :func:`poisson_rs.learn.blend.fit_blended_map`), and λ of loss_HJ + λ·loss_data.
+    refit : after the choice on held-out data, refit the kept polynomial's coefficients on every
+        record (its one-step and rollout errors in the report stay the held-out ones).
 
     Returns
     -------
@@ -207,10 +342,14 @@ def learn(
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if mode == "hj+data":
-        raise NotImplementedError(
-            "mode 'hj+data' (known H plus data, the blended loss) is not available yet; use "
-            "'hamiltonian' or 'map'"
-        )
+        if system is None:
+            raise ValueError(
+                "mode 'hj+data' needs the known part of H: give system= (a LiePoissonSystem)"
+            )
+        if correction not in CORRECTIONS:
+            raise ValueError(f"correction must be one of {CORRECTIONS}, got {correction!r}")
+        if isinstance(lam, bool) or not isinstance(lam, (int, float)) or not 0 <= lam < math.inf:
+            raise ValueError(f"lam must be a finite number >= 0, got {lam!r}")
     if degree is not None and (
         isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= 4
     ):
@@ -223,6 +362,19 @@ def learn(
     candidates: list[Candidate] = []
     kept: Candidate | None = None
     degrees = [degree] if degree is not None else list(AUTO_DEGREES)
+    if mode == "hj+data" and correction == "network":
+        kept = _blend_candidate(data, system, order, lam, mode, seed, command, map_options)
+        kept.reason = "the known H's series plus a network trained on loss_HJ + λ·loss_data"
+        candidates.append(kept)
+    elif mode == "hj+data":
+        known = system.polynomial
+        d = degree or max(2, max((sum(e) for e in known.terms), default=2))
+        kept = _polynomial_candidate(
+            data, alg, d, order, mode, seed, command, {**options, "known": known}
+        )
+        kept.family = f"known+poly{d}"
+        kept.reason = "the known H plus a polynomial correction fitted to the data"
+        candidates.append(kept)
     if mode in ("auto", "hamiltonian"):
         for d in degrees:
             cand = _polynomial_candidate(data, alg, d, order, mode, seed, command, options)
@@ -265,6 +417,29 @@ def learn(
         else:
             kept = next(c for c in candidates if c.one_step == best)
             kept.reason = "no family reached the noise level; the best held-out error"
+    if refit and mode != "hj+data" and kept.system is not None and data.test:
+        # The family is chosen on held-out data; its coefficients are then fitted on every
+        # record (with one trajectory, the held-out end is the longest lever on the phase).
+        terms = [e for e, c in kept.system.polynomial.terms.items() if c != 0.0]
+        if terms:
+            whole = _all_records(data)
+            final = _polynomial_candidate(
+                whole,
+                alg,
+                max(map(sum, terms)),
+                kept.order,
+                mode,
+                seed,
+                command,
+                options,
+                family=terms,
+                sparse=False,
+            )
+            final.one_step, final.rollout = kept.one_step, kept.rollout
+            final.seconds += kept.seconds
+            final.reason = kept.reason + "; coefficients refitted on all records"
+            candidates[candidates.index(kept)] = final
+            kept = final
     kept.kept = True
     for c in candidates:
         if c is not kept and c.reason.startswith("the smallest"):

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from ..files import atomic_write_bytes, check_output_path
-from ..systems import LieAlgebra
+from ..systems import LieAlgebra, LiePoissonSystem
 from ..untrusted import parsing
 
 __all__ = ["add_parser", "run"]
@@ -44,7 +44,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--h", required=True, help="time between records (> 0)")
     p.add_argument("--mode", default="auto", choices=("auto", "hamiltonian", "map", "hj+data"))
-    p.add_argument("--degree", default=None, help="polynomial degree of H (mode hamiltonian)")
+    p.add_argument(
+        "--degree",
+        default=None,
+        help="polynomial degree of H (mode hamiltonian) or of the correction (mode hj+data)",
+    )
+    p.add_argument(
+        "--system",
+        default=None,
+        help="mode hj+data: JSON file of the known system (LiePoissonSystem.to_dict())",
+    )
     p.add_argument("--out", required=True, help="model file to write (.safetensors)")
     p.add_argument("--seed", default="0", help="seed of the held-out split and of the network")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
@@ -77,6 +86,11 @@ def run(args: argparse.Namespace) -> int:
     if args.degree is not None:
         with parsing("--degree", None):
             degree = int(args.degree)
+    system = None
+    if args.system is not None:
+        with parsing(f"--system {args.system}", "system"):
+            with open(args.system, encoding="utf-8") as fh:
+                system = LiePoissonSystem.from_dict(json.load(fh))
     out = Path(args.out)
     check_output_path(out)
     if out.exists() and not args.force:
@@ -86,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     _, report = learn(
         args.data,
         h,
-        algebra=_algebra(args.algebra),
+        algebra=None if system is not None else _algebra(args.algebra),
+        system=system,
         mode=args.mode,
         degree=degree,
         seed=seed,

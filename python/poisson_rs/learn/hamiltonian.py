@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,6 +33,11 @@ __all__ = ["PolynomialFit", "default_order", "fit_polynomial", "vector_field_des
 #: Singular values of the (column-normalised) design matrix below this fraction of the largest
 #: are gauge directions (constants, Casimirs) and are projected out.
 GAUGE_RTOL = 1e-8
+#: Records per shooting window (see :func:`shooting_refine`): long enough that the phase over
+#: the window pins the frequencies, short enough that the rollout stays near the records.
+SHOOTING_LENGTH = 128
+#: Trajectories shorter than this are fitted by one- and multi-step residuals only.
+SHOOTING_MIN_RECORDS = 8
 
 
 def default_order(degree: int, dim: int) -> int:
@@ -98,6 +104,7 @@ class PolynomialFit:
     history: list[float] = field(default_factory=list)
     seconds: float = 0.0
     gauge_dropped: int = 0
+    correction: np.ndarray | None = None
 
     @property
     def hamiltonian(self) -> Polynomial:
@@ -105,13 +112,14 @@ class PolynomialFit:
 
     @property
     def n_parameters(self) -> int:
-        return int(np.count_nonzero(self.theta))
+        return int(np.count_nonzero(self.theta if self.correction is None else self.correction))
 
 
 class _Model:
     """θ ↦ S(h, ·) coefficients and their Jacobian, and the residuals of the Taylor-HJ map."""
 
     def __init__(self, algebra: LieAlgebra, family, order: int, h: float) -> None:
+        self.algebra = algebra
         self.c = algebra.c
         self.family = family
         self.order = order
@@ -155,6 +163,150 @@ class _Model:
         r = torch.cat(res).numpy()
         return r, (torch.cat(jac).numpy() if jacobian else None)
 
+    def states(self, theta, starts, steps: int) -> np.ndarray:
+        """Φ^k(starts), k = 0..steps, (B, steps + 1, n): the Rust integrator of S(h, ·) (the
+        same map as :func:`bisection_step`, to round-off), so the sequential part is fast."""
+        from ..export import model_bytes
+        from ..integrators import LearnedIntegrator, integrate
+
+        b, s, _ = self.coeffs(theta, False)
+        n = b.n
+        powers = np.concatenate([np.full((b.size, 1), 2, np.int64), b.powers], axis=1)
+        # S(t, p) = (t/h)²·S(h, p): exact at t = h, and with no t¹ term the file's system
+        # (H = 0, a map at the one h) loads without the first-order check against −t·H.
+        coeffs = s.detach().numpy() / self.h**2
+        nz = coeffs != 0.0
+        raw = model_bytes(
+            powers=powers[nz],
+            coeffs=coeffs[nz],
+            layers=[],
+            mlp_power=1,
+            chart="exp",
+            system=LiePoissonSystem(self.algebra, Polynomial({(0,) * n: 0.0})),
+            h_max=self.h,
+            domain={"kind": "all"},
+        )
+        start = np.asarray(starts, dtype=np.float64)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = integrate(LearnedIntegrator(raw), start, self.h, steps, on_failure="ignore")
+        return np.asarray(out).reshape(len(start), steps + 1, n)
+
+    def rollout(self, theta, starts, steps: int):
+        """Φ^k(starts), k = 0..steps, with derivatives in θ and in the start states:
+        (B, steps + 1, n), (B, steps + 1, n, P), (B, steps + 1, n, n). The states come from
+        :meth:`states`; the derivatives from one batched implicit-function step at all of them,
+        chained."""
+        b, s, ds = self.coeffs(theta, True)
+        traj = self.states(theta, starts, steps)
+        bsz, _, n = traj.shape
+        flat = torch.as_tensor(traj[:, :-1].reshape(-1, n))
+        step = bisection_step(b, self.c, s, flat, derivatives=True)
+        dc = (step.d_coeffs @ ds).reshape(bsz, steps, n, -1)
+        dsx = step.d_state.reshape(bsz, steps, n, n)
+        dth = torch.zeros(bsz, n, ds.shape[1], dtype=torch.float64)
+        dst = torch.eye(n, dtype=torch.float64).expand(bsz, n, n).clone()
+        dths, dsts = [dth], [dst]
+        for k in range(steps):
+            dth = dc[:, k] + dsx[:, k] @ dth
+            dst = dsx[:, k] @ dst
+            dths.append(dth)
+            dsts.append(dst)
+        return torch.as_tensor(traj), torch.stack(dths, 1), torch.stack(dsts, 1)
+
+
+def _shooting_windows(trajs: list[np.ndarray], length: int) -> list[np.ndarray]:
+    """Consecutive windows of at most ``length`` records (≥ 2) covering every trajectory."""
+    out = []
+    for t in trajs:
+        k = 0
+        while len(t) - k >= 2:
+            out.append(t[k : k + length])
+            k += length - 1
+    return out
+
+
+def shooting_refine(
+    model: _Model,
+    q: np.ndarray,
+    z: np.ndarray,
+    trajs: list[np.ndarray],
+    *,
+    length: int = SHOOTING_LENGTH,
+    max_iter: int = 30,
+    verbose: bool = False,
+    offset: np.ndarray | float = 0.0,
+) -> tuple[np.ndarray, float, int]:
+    """Maximum likelihood under white noise on every record: θ = offset + q z and one free start
+    state per window of ``length`` records are fitted so that the rollout Φ^k(start) matches
+    every record of the window (residuals relative to |record|). Errors-in-variables, where
+    one-step residuals put the noise of μ_k into the model; and a window's k-th record
+    constrains H with weight k·h, so the long-time phase (the error at large T) is fitted from
+    the whole span. Levenberg–Marquardt from z and the recorded starts; returns (z, RMS residual
+    per coordinate, residuals count)."""
+    wins = _shooting_windows(trajs, length)
+    groups: dict[int, list[int]] = {}
+    for i, w in enumerate(wins):
+        groups.setdefault(len(w), []).append(i)
+    n = wins[0].shape[1]
+    pz = len(z)
+    starts = np.array([w[0] for w in wins])
+
+    def evaluate(zz, st, jacobian):
+        rs, rows = [], []
+        for ln, idx in groups.items():
+            tg = np.stack([wins[i] for i in idx])  # (G, ln, n)
+            if jacobian:
+                out, dth, dst = model.rollout(offset + q @ zz, st[idx], ln - 1)
+            else:
+                out = torch.as_tensor(model.states(offset + q @ zz, st[idx], ln - 1))
+            scale = np.linalg.norm(tg, axis=2, keepdims=True).clip(1e-300)
+            rs.append(((out.numpy() - tg) / scale).reshape(-1))
+            if jacobian:
+                jt = (dth.numpy() @ q) / scale[..., None]  # (G, ln, n, pz)
+                js = dst.numpy() / scale[..., None]  # (G, ln, n, n)
+                block = np.zeros((len(idx), ln, n, pz + n * len(wins)))
+                block[..., :pz] = jt
+                for g, i in enumerate(idx):
+                    block[g, :, :, pz + n * i : pz + n * (i + 1)] = js[g]
+                rows.append(block.reshape(-1, block.shape[-1]))
+        r = np.concatenate(rs)
+        return r, (np.concatenate(rows) if jacobian else None)
+
+    r, jac = evaluate(z, starts, True)
+    cost = float(np.mean(r * r))
+    lam = 1e-6
+    for it in range(max_iter):
+        if not np.isfinite(cost):
+            break
+        jtj = jac.T @ jac
+        g = jac.T @ r
+        improved = False
+        for _ in range(12):
+            step = -np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-300), g)
+            z_new = z + step[:pz]
+            st_new = starts + step[pz:].reshape(-1, n)
+            r_new, _ = evaluate(z_new, st_new, False)
+            c_new = float(np.mean(r_new * r_new))
+            if np.isfinite(c_new) and c_new < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        rel = abs(cost - c_new) / max(cost, 1e-300)
+        z, starts = z_new, st_new
+        lam = max(lam / 10.0, 1e-12)
+        r, jac = evaluate(z, starts, True)
+        cost = float(np.mean(r * r))
+        if verbose:
+            print(f"  shooting LM {it}: cost {cost:.3e}")
+        if rel < 1e-4 or cost < 1e-30:
+            break
+    # Unbiased noise per coordinate: residual dof = residuals − fitted parameters.
+    dof = max(len(r) - jac.shape[1], 1)
+    return z, math.sqrt(float(r @ r) / dof), len(r)
+
 
 def _windows(trajs: list[np.ndarray], horizon: int) -> tuple[np.ndarray, np.ndarray]:
     """Start states (B, n) and the next ``horizon`` records (B, horizon, n), for every record
@@ -181,15 +333,27 @@ def fit_polynomial(
     family: list[tuple[int, ...]] | None = None,
     verbose: bool = False,
     sparse: bool = True,
+    shooting: bool = True,
+    known: Polynomial | None = None,
 ) -> PolynomialFit:
     """Fits H_θ of total degree ≤ ``degree`` (no constant) to ``data.train``; see the module
     docstring. ``horizon``: the longest multi-step residual (records permitting); ``sparse``:
-    drop the terms the data do not resolve and refit (kept when the fit is as good)."""
+    drop the terms the data do not resolve and refit (kept when the fit is as good);
+    ``shooting``: refine by :func:`shooting_refine` where trajectories are long enough;
+    ``known``: a known part of H, fixed: H = known + H_θ and only the correction H_θ is
+    learned (mode "hj+data")."""
     t0 = time.perf_counter()
     n = algebra.dim
     family = family or monomials(n, degree, min_degree=1)
-    order = order or default_order(max(sum(e) for e in family), n)
+    known_terms = {} if known is None else {e: c for e, c in known.terms.items() if sum(e) > 0}
+    full = list(family) + [e for e in known_terms if e not in family]
+    offset = np.array([known_terms.get(e, 0.0) for e in full])
+    embed = np.eye(len(full))[:, : len(family)]  # correction coefficients → full family
+    order = order or default_order(max(sum(e) for e in full), n)
     x, v = velocities(data.train, data.h)
+    if known_terms:
+        # The correction fits what the known part leaves of the velocities.
+        v = v - np.einsum("bjp,p->bj", vector_field_design(algebra, full, x), offset)
     a = vector_field_design(algebra, family, x)  # (B, n, P)
     w = 1.0 / np.linalg.norm(x, axis=1).clip(1e-300)
     a2 = (a * w[:, None, None]).reshape(-1, len(family))
@@ -199,7 +363,8 @@ def fit_polynomial(
     keep = sv > GAUGE_RTOL * sv[0]
     q = (vt[keep].T) / col[:, None]  # θ = q z
     z = (u[:, keep].T @ (v * w[:, None]).reshape(-1)) / sv[keep]
-    model = _Model(algebra, family, order, data.h)
+    qf = embed @ q  # H's coefficients over ``full``: offset + qf z
+    model = _Model(algebra, full, order, data.h)
     # Residuals: one step over every pair, several steps over windows.
     s1, t1 = _windows(data.train, 1)
     sets = [(s1, t1, 1)]
@@ -211,11 +376,11 @@ def fit_polynomial(
     def evaluate(zz, jacobian):
         rs, js = [], []
         for st, tg, hz in sets:
-            r, j = model.residuals(q @ zz, st, tg, hz, jacobian)
+            r, j = model.residuals(offset + qf @ zz, st, tg, hz, jacobian)
             rs.append(r)
             js.append(j)
         r = np.concatenate(rs)
-        return r, (np.concatenate(js) @ q if jacobian else None)
+        return r, (np.concatenate(js) @ qf if jacobian else None)
 
     history = []
     lam = 1e-6
@@ -248,6 +413,19 @@ def fit_polynomial(
             print(f"  LM {it}: cost {cost:.3e} lambda {lam:.1e}")
         if rel < 1e-3 or cost < 1e-28:
             break
+    shoot_sigma = math.nan
+    if shooting and any(len(t) >= SHOOTING_MIN_RECORDS for t in data.train) and np.isfinite(cost):
+        z, shoot_sigma, _ = shooting_refine(
+            model,
+            qf,
+            z,
+            [t for t in data.train if len(t) >= SHOOTING_MIN_RECORDS],
+            offset=offset,
+            max_iter=max_iter,
+            verbose=verbose,
+        )
+        r, _ = evaluate(z, False)
+        history.append(float(np.mean(r * r)))
     theta = q @ z
     if sparse and len(family) > 1:
         # Terms whose share of the vector field is below what the data resolve are dropped and
@@ -255,7 +433,15 @@ def fit_polynomial(
         share = np.abs(theta) * col / max(float(np.linalg.norm(v * w[:, None])), 1e-300)
         # Noise per coordinate: the finite-difference estimate, or, where the records are too
         # few for it (pairs), the fit's own residual (one-step RMS ≈ √2 σ per coordinate).
-        sigma = data.noise if math.isfinite(data.noise) else math.sqrt(history[-1] / 2.0)
+        # With shooting, the fit's own residual per coordinate (consistent, where the
+        # finite-difference estimate is only an upper bound).
+        sigma = (
+            shoot_sigma
+            if math.isfinite(shoot_sigma)
+            else data.noise
+            if math.isfinite(data.noise)
+            else math.sqrt(history[-1] / 2.0)
+        )
         floor = max(10.0 * sigma, 1e-9)
         kept = [e for e, s in zip(family, share, strict=True) if s > floor]
         if kept and len(kept) < len(family):
@@ -269,15 +455,19 @@ def fit_polynomial(
                 family=kept,
                 verbose=verbose,
                 sparse=False,
+                shooting=shooting,
+                known=known,
             )
             if sub.history[-1] <= 1.5 * history[-1] + 1e-28:
                 sub.seconds = time.perf_counter() - t0
                 return sub
-    poly = Polynomial({e: float(t) for e, t in zip(family, theta, strict=True) if t != 0.0})
+    theta_full = offset + embed @ theta
+    poly = Polynomial({e: float(t) for e, t in zip(full, theta_full, strict=True) if t != 0.0})
     system = LiePoissonSystem(algebra, poly, name="learned")
     return PolynomialFit(
-        family=list(family),
-        theta=theta,
+        family=list(full),
+        theta=theta_full,
+        correction=theta if known_terms else None,
         order=order,
         system=system,
         history=history,

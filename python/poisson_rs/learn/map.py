@@ -83,7 +83,9 @@ def fit_map(
     if base:
         # The best quadratic S = −t·H₀ (Taylor-HJ of order 1) through the step map itself:
         # a few LM iterations, and the network only has to learn the O(t³) rest.
-        fit = fit_polynomial(data, algebra, 2, order=1, horizon=1, max_iter=8, sparse=False)
+        fit = fit_polynomial(
+            data, algebra, 2, order=1, horizon=1, max_iter=8, sparse=False, shooting=False
+        )
         h0 = {e: float(t) for e, t in zip(fit.family, fit.theta, strict=True)}
     else:
         h0 = {(0,) * algebra.dim: 0.0}
@@ -115,3 +117,80 @@ def fit_map(
         if verbose:
             print(f"  map LBFGS: {float(data_loss(s_fn, mu_k, mu_k1, data.h)):.3e}")
     return s_fn, s_fn.n_parameters()
+
+
+def fit_polynomial_map(
+    data: TrajectoryData,
+    algebra: LieAlgebra,
+    *,
+    degree: int = 6,
+    max_iter: int = 30,
+    verbose: bool = False,
+) -> tuple[np.ndarray, Any, int]:
+    """The time-h map's S(h, ·) as a polynomial in p of ``degree`` (no constant), H never formed:
+    its coefficients fitted by Levenberg–Marquardt on the one-step residuals of the bisection map
+    (derivatives by the implicit function theorem, :func:`poisson_rs.learn.step.bisection_step`),
+    from the quadratic whose order-1 map fits best. Polynomial features in place of a network:
+    for a polynomial H every Taylor term of S is a polynomial in p, so a few dozen coefficients
+    do what hundreds of tanh weights only approximate. Returns (S(h, ·)'s coefficients over the
+    basis, the basis, the number of non-zero coefficients)."""
+    from .series import basis as make_basis
+    from .step import bisection_step
+
+    n = algebra.dim
+    b = make_basis(n, degree)
+    fit = fit_polynomial(
+        data, algebra, 2, order=1, horizon=1, max_iter=8, sparse=False, shooting=False
+    )
+    s = np.zeros(b.size)
+    for e, t in zip(fit.family, fit.theta, strict=True):
+        s[b.index[e]] = -data.h * t
+    free = np.array([sum(e) > 0 for e in b.exponents])
+    mu_k, mu_k1 = data.pairs("train")
+    start = torch.as_tensor(mu_k)
+    scale = np.linalg.norm(mu_k, axis=1, keepdims=True)
+
+    def evaluate(coeffs: np.ndarray, jacobian: bool):
+        try:
+            step = bisection_step(
+                b, algebra.c, torch.as_tensor(coeffs), start, derivatives=jacobian
+            )
+        except FloatingPointError:  # a trial step far outside the chart: rejected
+            return np.full(mu_k.size, np.inf), None
+        r = ((step.out.numpy() - mu_k1) / scale).reshape(-1)
+        j = None
+        if jacobian:
+            j = (step.d_coeffs.numpy()[:, :, free] / scale[..., None]).reshape(len(r), -1)
+        return r, j
+
+    r, jac = evaluate(s, True)
+    cost = float(np.mean(r * r))
+    lam = 1e-3
+    for it in range(max_iter):
+        if not np.isfinite(cost):
+            break
+        jtj = jac.T @ jac
+        g = jac.T @ r
+        improved = False
+        for _ in range(12):
+            d = -np.linalg.solve(jtj + lam * (np.diag(np.diag(jtj)) + 1e-30 * np.eye(len(g))), g)
+            trial = s.copy()
+            trial[free] += d
+            r_new, _ = evaluate(trial, False)
+            c_new = float(np.mean(r_new * r_new))
+            if np.isfinite(c_new) and c_new < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        rel = abs(cost - c_new) / max(cost, 1e-300)
+        s = trial
+        lam = max(lam / 10.0, 1e-12)
+        r, jac = evaluate(s, True)
+        cost = float(np.mean(r * r))
+        if verbose:
+            print(f"  map-poly LM {it}: cost {cost:.3e}")
+        if rel < 1e-4 or cost < 1e-30:
+            break
+    return s, b, int(np.count_nonzero(s))
