@@ -937,15 +937,7 @@ fn rollout_log_classical<'py>(
                 bb.shape()
             )));
         }
-        let mut terms = Vec::with_capacity(co.len());
-        for (row, &a) in pw.rows().into_iter().zip(co.iter()) {
-            if let Some(&bad) = row.iter().find(|&&e| !(0..=64).contains(&e)) {
-                return Err(PyValueError::new_err(format!(
-                    "Hamiltonian exponent {bad} is outside 0..=64"
-                )));
-            }
-            terms.push((std::array::from_fn(|i| row[i] as u32), a));
-        }
+        let terms = polynomial_terms::<N>(pw, co)?;
         let system = LogSystem::new(structure, terms, std::array::from_fn(|i| bb[i]))?;
         let stepper = LogClassical::new(method, system, newton)?;
         let s0 = states::<N>(&s0, "s0")?;
@@ -1012,7 +1004,22 @@ fn lie_poisson_system<const N: usize>(
     let algebra = LieAlgebra::<N>::new(std::array::from_fn(|i| {
         std::array::from_fn(|j| std::array::from_fn(|k| c[[i, j, k]]))
     }))?;
-    let mut terms = Vec::with_capacity(coeffs.len());
+    Ok(LiePoisson {
+        algebra,
+        hamiltonian: Hamiltonian::new(polynomial_terms::<N>(powers, coeffs)?)?,
+    })
+}
+
+/// The monomials Σ coeffs[m] Π x_i^powers[m, i] of a Hamiltonian (powers (M, N), already checked
+/// to have N columns and M rows), each exponent in 0..=64; the term list allocated fallibly.
+fn polynomial_terms<const N: usize>(
+    powers: numpy::ndarray::ArrayView2<'_, i64>,
+    coeffs: numpy::ndarray::ArrayView1<'_, f64>,
+) -> PyResult<Vec<([u32; N], f64)>> {
+    let mut terms = Vec::new();
+    terms
+        .try_reserve_exact(coeffs.len())
+        .map_err(|_| PyMemoryError::new_err("cannot allocate the Hamiltonian's terms"))?;
     for (row, &coeff) in powers.rows().into_iter().zip(coeffs.iter()) {
         if let Some(&bad) = row.iter().find(|&&e| !(0..=64).contains(&e)) {
             return Err(PyValueError::new_err(format!(
@@ -1021,10 +1028,7 @@ fn lie_poisson_system<const N: usize>(
         }
         terms.push((std::array::from_fn(|i| row[i] as u32), coeff));
     }
-    Ok(LiePoisson {
-        algebra,
-        hamiltonian: Hamiltonian::new(terms)?,
-    })
+    Ok(terms)
 }
 
 #[pymodule]
