@@ -321,13 +321,14 @@ fn bench_kernel(c: &mut Criterion) {
     group.finish();
 }
 
-/// RK4 of the rigid body and the heavy top, 4096 trajectories × 20 steps (final state kept):
-/// one trajectory at a time (the scalar oracle), and in SIMD lanes on the portable and the
-/// widest dispatch path. `cargo bench --bench rollout -- classical`.
+/// RK4 and the implicit midpoint (masked Newton lanes) of the rigid body and the heavy top,
+/// 4096 trajectories × 20 steps (final state kept): one trajectory at a time (the scalar
+/// oracle), and in SIMD lanes on the portable and the widest dispatch path. `cargo bench --bench rollout -- classical`.
 fn bench_classical(c: &mut Criterion) {
+    use poisson_rs::classical::ImplicitMidpoint;
     use poisson_rs::lanes::{Isa, Lanes};
     use poisson_rs::rollout::{ChunkKernel, PerStep, Rollout};
-    use poisson_rs::{Hamiltonian, LieAlgebra, LiePoisson, RigidBody, Rk4};
+    use poisson_rs::{Hamiltonian, LieAlgebra, LiePoisson, NewtonOptions, RigidBody, Rk4};
 
     fn run<const N: usize, K: ChunkKernel<N>>(k: &K, mu0: &[[f64; N]], n: usize, out: &mut [f64]) {
         let mut r = Rollout::start(mu0, H, n, n, out).unwrap();
@@ -336,9 +337,14 @@ fn bench_classical(c: &mut Criterion) {
     }
     fn group<const N: usize, F>(c: &mut Criterion, name: &str, field: F, mu0: Vec<[f64; N]>)
     where
-        F: poisson_rs::lanes::LaneField<N> + poisson_rs::VectorField<N>,
+        F: poisson_rs::lanes::LaneField<N> + poisson_rs::VectorField<N> + Clone,
+        nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
     {
         let n = 20;
+        let mid = ImplicitMidpoint {
+            system: field.clone(),
+            newton: NewtonOptions::default(),
+        };
         let rk4 = Rk4 { system: field };
         let mut out = vec![0.0; mu0.len() * 2 * N];
         let mut g = c.benchmark_group(format!("classical/{name}"));
@@ -352,6 +358,15 @@ fn bench_classical(c: &mut Criterion) {
         for isa in [Isa::Portable, Isa::detect()] {
             let k = Lanes { stepper: &rk4, isa };
             g.bench_function(format!("lanes-{}", isa.name()), |b| {
+                b.iter(|| run(&k, &mu0, n, &mut out))
+            });
+        }
+        g.bench_function("midpoint-scalar", |b| {
+            b.iter(|| run(&PerStep(&mid), &mu0, n, &mut out))
+        });
+        for isa in [Isa::Portable, Isa::detect()] {
+            let k = Lanes { stepper: &mid, isa };
+            g.bench_function(format!("midpoint-lanes-{}", isa.name()), |b| {
                 b.iter(|| run(&k, &mu0, n, &mut out))
             });
         }

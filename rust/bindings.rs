@@ -694,10 +694,19 @@ fn rollout_classical<'py>(
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let angles = |m: &[[f64; 3]], o: &mut [f64]| angles_of(&body, h, m, o);
     let (traj, diagnostics) = match method.stepper(body, newton) {
-        // RK4 in SIMD lanes; the others one trajectory at a time.
+        // RK4 and midpoint in SIMD lanes; the others one trajectory at a time.
         ClassicalStepper::Rk4(rk4) => run_rollout_lazy(
             py,
             &Lanes::new(&rk4),
+            &mu0,
+            h,
+            n_steps,
+            every,
+            Some(&angles),
+        )?,
+        ClassicalStepper::Midpoint(midpoint) => run_rollout_lazy(
+            py,
+            &Lanes::new(&midpoint),
             &mu0,
             h,
             n_steps,
@@ -784,9 +793,12 @@ fn rollout_lie_poisson<'py>(
             return Ok(None);
         };
         let (traj, diagnostics) = match &stepper {
-            // RK4 in SIMD lanes; the others one trajectory at a time.
+            // RK4 and midpoint in SIMD lanes; the splitting one trajectory at a time.
             LieStepper::Rk4(rk4) => {
                 run_rollout_lazy(py, &Lanes::new(rk4), &mu0, h, n_steps, every, Some(&angles))?
+            }
+            LieStepper::Midpoint(mid) => {
+                run_rollout_lazy(py, &Lanes::new(mid), &mu0, h, n_steps, every, Some(&angles))?
             }
             _ => run_rollout_lazy(py, &PerStep(&stepper), &mu0, h, n_steps, every, Some(&angles))?,
         };

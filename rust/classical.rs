@@ -136,7 +136,7 @@ fn axpy<const N: usize>(a: f64, x: &[f64; N], y: &[f64; N]) -> [f64; N] {
 }
 
 #[inline]
-fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
+pub(crate) fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
     a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
 }
 
@@ -158,7 +158,7 @@ fn explicit_result<const N: usize>(mu: &[f64; N]) -> Result<StepStats, StepFailu
 
 /// Solves J δ = −f for a Newton update; a singular or overflowing solve is a step failure.
 #[inline]
-fn newton_update<const N: usize>(
+pub(crate) fn newton_update<const N: usize>(
     j: SMatrix<f64, N, N>,
     f: &[f64; N],
 ) -> Result<[f64; N], StepFailure>

@@ -20,10 +20,13 @@
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use crate::classical::{RigidBody, Rk4};
+use nalgebra::{Const, DimMin, SMatrix};
+
+use crate::classical::{max_abs, newton_update, ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
-use crate::system::CompiledLiePoisson;
+use crate::stepper::{StepResult, StepStats};
+use crate::system::{CompiledLiePoisson, VectorField};
 
 /// Lanes per block: 8 f64, two AVX2 registers (or four SSE2 ones) per coordinate, which gives the
 /// core independent chains to overlap; 4 was slower (see docs/performance.md).
@@ -64,9 +67,29 @@ impl LaneField<3> for RigidBody {
 }
 
 /// A stepper that advances a block of L states by one step. Explicit steppers cannot fail
-/// except by overflow, which [`Lanes`] detects after each step.
+/// except by overflow, which [`Lanes`] detects after each step; implicit ones set
+/// [`LaneStepper::REPORTS`] and give each lane its own outcome.
 pub trait LaneStepper<const N: usize>: Sync {
+    /// Whether [`LaneStepper::step_lanes_reporting`] gives per-lane outcomes (Newton counts,
+    /// residuals, failures) that the block loop must record after every step.
+    const REPORTS: bool = false;
+
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]);
+
+    /// Advances the `live` lanes, writing each one's outcome into `result` (a lane that fails
+    /// holds what the scalar step leaves in its state). Explicit steppers report success and
+    /// leave the overflow check to the block loop.
+    #[inline(always)]
+    fn step_lanes_reporting<const L: usize>(
+        &self,
+        h: f64,
+        mu: &mut [[f64; L]; N],
+        _live: &[bool; L],
+        result: &mut [StepResult; L],
+    ) {
+        self.step_lanes(h, mu);
+        result.fill(Ok(StepStats::default()));
+    }
 }
 
 impl<const N: usize, F: LaneField<N>> LaneStepper<N> for Rk4<F> {
@@ -89,6 +112,105 @@ impl<const N: usize, F: LaneField<N>> LaneStepper<N> for Rk4<F> {
             for l in 0..L {
                 mu[i][l] += sixth * (k1[i][l] + 2.0 * (k2[i][l] + k3[i][l]) + k4[i][l]);
             }
+        }
+    }
+}
+
+impl<const N: usize, F: LaneField<N> + VectorField<N>> LaneStepper<N> for ImplicitMidpoint<F>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    const REPORTS: bool = true;
+
+    #[inline(always)]
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
+        let mut result = [Ok(StepStats::default()); L];
+        self.step_lanes_reporting(h, mu, &[true; L], &mut result);
+    }
+
+    /// The scalar [`ImplicitMidpoint`] step lane by lane: the field (and so the residual) for
+    /// the whole block at once, then each unconverged lane's exact Jacobian and LU solve by the
+    /// scalar functions on that lane's values (the same bits). A lane that converges is frozen
+    /// while the others iterate; one that fails stops with the scalar path's failure alone.
+    #[inline(always)]
+    fn step_lanes_reporting<const L: usize>(
+        &self,
+        h: f64,
+        mu: &mut [[f64; L]; N],
+        live: &[bool; L],
+        result: &mut [StepResult; L],
+    ) {
+        let f = &self.system;
+        let mu0 = *mu;
+        let half = 0.5 * h;
+        let mut fm = [[0.0; L]; N];
+        let mut m = [[0.0; L]; N];
+        f.field_lanes(&mu0, &mut fm);
+        axpy_lanes(half, &fm, &mu0, &mut m);
+        // `active`: still iterating; `done`: converged. Every active lane has taken the same
+        // number of updates, so one counter serves them all.
+        let mut active = *live;
+        let mut done = [false; L];
+        let mut iterations = [0u32; L];
+        let mut count = 0u32;
+        while active.contains(&true) {
+            if count >= self.newton.max_iter {
+                for l in 0..L {
+                    if active[l] {
+                        result[l] = Err(StepFailure::NotConverged);
+                        active[l] = false;
+                    }
+                }
+                break;
+            }
+            f.field_lanes(&m, &mut fm);
+            count += 1;
+            for l in 0..L {
+                if !active[l] {
+                    continue;
+                }
+                let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
+                let r: [f64; N] = std::array::from_fn(|i| ml[i] - mu0[i][l] - half * fm[i][l]);
+                let df = f.jacobian(&ml);
+                let delta = match newton_update(SMatrix::identity() - half * df, &r) {
+                    Ok(d) => d,
+                    Err(e) => {
+                        result[l] = Err(e);
+                        active[l] = false;
+                        continue;
+                    }
+                };
+                for i in 0..N {
+                    m[i][l] += delta[i];
+                }
+                let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
+                if max_abs(&delta) <= self.newton.tol * max_abs(&ml).max(1e-300) {
+                    active[l] = false;
+                    done[l] = true;
+                    iterations[l] = count;
+                }
+            }
+        }
+        f.field_lanes(&m, &mut fm);
+        for l in 0..L {
+            if !done[l] {
+                continue;
+            }
+            let r: [f64; N] = std::array::from_fn(|i| m[i][l] - mu0[i][l] - half * fm[i][l]);
+            let residual = max_abs(&r);
+            let mut finite = true;
+            for i in 0..N {
+                mu[i][l] = mu0[i][l] + h * fm[i][l];
+                finite &= mu[i][l].is_finite();
+            }
+            result[l] = if finite {
+                Ok(StepStats {
+                    iterations: iterations[l],
+                    residual,
+                })
+            } else {
+                Err(StepFailure::NonFinite)
+            };
         }
     }
 }
@@ -254,6 +376,25 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
         return;
     }
     for k in steps {
+        if S::REPORTS {
+            let mut result = [Ok(StepStats::default()); L];
+            stepper.step_lanes_reporting(h, &mut lanes, &live, &mut result);
+            for l in 0..n {
+                if !live[l] {
+                    continue;
+                }
+                let state: [f64; N] = std::array::from_fn(|c| lanes[c][l]);
+                if result[l].is_err() {
+                    mu[l] = state;
+                }
+                let o = &mut out[l * row..(l + 1) * row];
+                live[l] = record_step(result[l], k, every, &state, &mut info[l], o);
+            }
+            if !live.contains(&true) {
+                return;
+            }
+            continue;
+        }
         stepper.step_lanes(h, &mut lanes);
         // x · 0 is 0 for finite x and NaN for ±∞ and NaN: one multiply-add per coordinate.
         let mut probe = [0.0; L];

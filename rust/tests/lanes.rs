@@ -5,10 +5,12 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::*;
-use crate::classical::{RigidBody, Rk4};
+use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
+use crate::error::StepFailure;
 use crate::groupoid::LieAlgebra;
 use crate::lanes::{Isa, Lanes, LANES};
 use crate::rollout::{ChunkKernel, PerStep, Rollout};
+use crate::stepper::NewtonOptions;
 use crate::system::{spectral_norm, Hamiltonian, LiePoisson, VectorField};
 
 const EPS3: [(usize, usize, usize); 3] = [(0, 1, 2), (1, 2, 0), (2, 0, 1)];
@@ -264,6 +266,84 @@ fn simd_rk4_equals_the_scalar_path_bit_for_bit() {
         hamiltonian: random_hamiltonian::<3>(&mut rng, 6, 4),
     };
     check_lanes_equal_scalar(sys.compile(), &mut rng, 1.0, 0.01);
+}
+
+/// Masked Newton lanes: the implicit midpoint in lanes against the scalar step, bit for bit
+/// (states, records, Newton counts, residuals, failure codes and steps), on batches that are
+/// not multiples of the lane count, with one overflowing state in the middle of a block and,
+/// with `max_iter` tight, lanes that stop at the cap while their neighbours converge.
+fn check_midpoint_lanes_equal_scalar<const N: usize, F>(
+    field: F,
+    rng: &mut Rng,
+    scale: f64,
+    h: f64,
+    newton: NewtonOptions,
+) -> Vec<TrajectoryInfo>
+where
+    F: crate::lanes::LaneField<N> + VectorField<N> + Clone,
+    nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
+{
+    let mid = ImplicitMidpoint {
+        system: field,
+        newton,
+    };
+    let mut all = Vec::new();
+    for n in [1, 3, LANES + 1, 2 * LANES - 1, 67] {
+        // Scales spread over two decades: lanes converge after different numbers of updates.
+        let mut mu0: Vec<[f64; N]> = (0..n)
+            .map(|_| {
+                let s = scale * 10f64.powf(rng.range(-1.0, 1.0));
+                std::array::from_fn(|_| rng.range(-s, s))
+            })
+            .collect();
+        if n > 2 {
+            mu0[n / 2] = [1e80; N];
+        }
+        let args = (h, 13, 2);
+        let scalar = run(&PerStep(&mid), &mu0, args, 13, false);
+        if n > 2 {
+            assert!(!scalar.1[n / 2].converged, "the huge state should fail");
+        }
+        for isa in isas() {
+            let lanes = Lanes { stepper: &mid, isa };
+            let what = format!("midpoint N = {N}, n = {n}, {}", isa.name());
+            assert_same_bits(&run(&lanes, &mu0, args, 13, false), &scalar, &what);
+            assert_same_bits(&run(&lanes, &mu0, args, 4, true), &scalar, &what);
+            assert_same_bits(&run(&lanes, &mu0, args, 1, true), &scalar, &what);
+        }
+        // Every lane that succeeds equals its own scalar run, alone in its batch.
+        for (i, m) in mu0.iter().enumerate().take(9) {
+            let alone = run(&PerStep(&mid), std::slice::from_ref(m), args, 13, false);
+            let row = alone.0.len();
+            let lanes = Lanes::new(&mid);
+            let batch = run(&lanes, &mu0, args, 13, false);
+            let mine = (batch.0[i * row..(i + 1) * row].to_vec(), vec![batch.1[i]]);
+            assert_same_bits(&mine, &alone, &format!("midpoint N = {N}, lane {i} alone"));
+        }
+        all.extend(scalar.1);
+    }
+    all
+}
+
+#[test]
+fn simd_midpoint_equals_the_scalar_path_bit_for_bit() {
+    let mut rng = Rng::new(29);
+    let newton = NewtonOptions::default();
+    let body = RigidBody::new(INERTIA).unwrap();
+    let info = check_midpoint_lanes_equal_scalar(body, &mut rng, 3.0, 0.1, newton);
+    assert!(info
+        .iter()
+        .any(|i| i.converged && i.max_newton_iterations > 0));
+    check_midpoint_lanes_equal_scalar(heavy_top().compile(), &mut rng, 2.0, 0.05, newton);
+    // A tight iteration cap: some lanes stop at it (NotConverged) while others converge.
+    let tight = NewtonOptions::validated(1e-15, 3).unwrap();
+    let info = check_midpoint_lanes_equal_scalar(body, &mut rng, 3.0, 0.1, tight);
+    let capped = info
+        .iter()
+        .filter(|i| i.failure == Some(StepFailure::NotConverged))
+        .count();
+    let fine = info.iter().filter(|i| i.converged).count();
+    assert!(capped > 0 && fine > 0, "capped {capped}, converged {fine}");
 }
 
 #[test]
