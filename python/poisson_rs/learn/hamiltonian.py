@@ -25,6 +25,7 @@ import torch
 
 from ..systems import LieAlgebra, LiePoissonSystem, Polynomial
 from .data import TrajectoryData
+from .optimize import levenberg_marquardt
 from .series import basis, monomials, series_jacobian, taylor_series
 from .step import bisection_step
 
@@ -273,36 +274,16 @@ def shooting_refine(
         r = np.concatenate(rs)
         return r, (np.concatenate(rows) if jacobian else None)
 
-    r, jac = evaluate(z, starts, True)
-    cost = float(np.mean(r * r))
-    lam = 1e-6
-    for it in range(max_iter):
-        if not np.isfinite(cost):
-            break
-        jtj = jac.T @ jac
-        g = jac.T @ r
-        improved = False
-        for _ in range(12):
-            step = -np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-300), g)
-            z_new = z + step[:pz]
-            st_new = starts + step[pz:].reshape(-1, n)
-            r_new, _ = evaluate(z_new, st_new, False)
-            c_new = float(np.mean(r_new * r_new))
-            if np.isfinite(c_new) and c_new < cost:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            break
-        rel = abs(cost - c_new) / max(cost, 1e-300)
-        z, starts = z_new, st_new
-        lam = max(lam / 10.0, 1e-12)
-        r, jac = evaluate(z, starts, True)
-        cost = float(np.mean(r * r))
-        if verbose:
-            print(f"  shooting LM {it}: cost {cost:.3e}")
-        if rel < 1e-4 or cost < 1e-30:
-            break
+    fit = levenberg_marquardt(
+        lambda x, jacobian: evaluate(x[:pz], x[pz:].reshape(-1, n), jacobian),
+        np.concatenate([z, starts.reshape(-1)]),
+        max_iter=max_iter,
+        rel_tol=1e-4,
+        cost_floor=1e-30,
+        label="shooting LM",
+        verbose=verbose,
+    )
+    z, r, jac = fit.x[:pz], fit.r, fit.jac
     # Unbiased noise per coordinate: residual dof = residuals − fitted parameters.
     dof = max(len(r) - jac.shape[1], 1)
     return z, math.sqrt(float(r @ r) / dof), len(r)
@@ -382,37 +363,10 @@ def fit_polynomial(
         r = np.concatenate(rs)
         return r, (np.concatenate(js) @ qf if jacobian else None)
 
-    history = []
-    lam = 1e-6
-    r, jz = evaluate(z, True)
-    cost = float(np.mean(r * r))
-    history.append(cost)
-    for it in range(max_iter):
-        if not np.isfinite(cost):
-            break
-        jtj = jz.T @ jz
-        g = jz.T @ r
-        improved = False
-        for _ in range(12):
-            step = -np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-300), g)
-            r_new, _ = evaluate(z + step, False)
-            c_new = float(np.mean(r_new * r_new))
-            if np.isfinite(c_new) and c_new < cost:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            break
-        rel = abs(cost - c_new) / max(cost, 1e-300)
-        z = z + step
-        lam = max(lam / 10.0, 1e-12)
-        r, jz = evaluate(z, True)
-        cost = float(np.mean(r * r))
-        history.append(cost)
-        if verbose:
-            print(f"  LM {it}: cost {cost:.3e} lambda {lam:.1e}")
-        if rel < 1e-3 or cost < 1e-28:
-            break
+    fit = levenberg_marquardt(
+        evaluate, z, max_iter=max_iter, rel_tol=1e-3, cost_floor=1e-28, verbose=verbose
+    )
+    z, r, cost, history = fit.x, fit.r, fit.cost, fit.history
     shoot_sigma = math.nan
     if shooting and any(len(t) >= SHOOTING_MIN_RECORDS for t in data.train) and np.isfinite(cost):
         z, shoot_sigma, _ = shooting_refine(

@@ -21,6 +21,7 @@ from ..systems import LieAlgebra
 from ..train import data_loss
 from .data import TrajectoryData
 from .hamiltonian import fit_polynomial, vector_field_design, velocities
+from .optimize import levenberg_marquardt
 from .series import monomials
 
 __all__ = ["fit_map", "quadratic_guess"]
@@ -163,34 +164,22 @@ def fit_polynomial_map(
             j = (step.d_coeffs.numpy()[:, :, free] / scale[..., None]).reshape(len(r), -1)
         return r, j
 
-    r, jac = evaluate(s, True)
-    cost = float(np.mean(r * r))
-    lam = 1e-3
-    for it in range(max_iter):
-        if not np.isfinite(cost):
-            break
-        jtj = jac.T @ jac
-        g = jac.T @ r
-        improved = False
-        for _ in range(12):
-            d = -np.linalg.solve(jtj + lam * (np.diag(np.diag(jtj)) + 1e-30 * np.eye(len(g))), g)
-            trial = s.copy()
-            trial[free] += d
-            r_new, _ = evaluate(trial, False)
-            c_new = float(np.mean(r_new * r_new))
-            if np.isfinite(c_new) and c_new < cost:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            break
-        rel = abs(cost - c_new) / max(cost, 1e-300)
-        s = trial
-        lam = max(lam / 10.0, 1e-12)
-        r, jac = evaluate(s, True)
-        cost = float(np.mean(r * r))
-        if verbose:
-            print(f"  map-poly LM {it}: cost {cost:.3e}")
-        if rel < 1e-4 or cost < 1e-30:
-            break
+    def evaluate_free(x: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        trial = s.copy()
+        trial[free] = x
+        return evaluate(trial, jacobian)
+
+    fit = levenberg_marquardt(
+        evaluate_free,
+        s[free],
+        max_iter=max_iter,
+        lam=1e-3,
+        rel_tol=1e-4,
+        cost_floor=1e-30,
+        floor=1e-30,
+        label="map-poly LM",
+        verbose=verbose,
+    )
+    s = s.copy()
+    s[free] = fit.x
     return s, b, int(np.count_nonzero(s))
