@@ -195,12 +195,20 @@ def _polynomial_map_candidate(data, algebra, mode, seed, command, options):
     )
 
 
-def _network_map_candidate(data, algebra, mode, seed, command, options):
-    from .map import fit_map
-
-    t0 = time.perf_counter()
-    s_fn, n_params = fit_map(data, algebra, seed=seed, **options)
-    seconds = time.perf_counter() - t0
+def _network_candidate(
+    s_fn: Any,
+    system: LiePoissonSystem,
+    family: str,
+    parameters: int,
+    order: int,
+    seconds: float,
+    data: TrajectoryData,
+    mode: str,
+    seed: int,
+    command: str | None,
+) -> Candidate:
+    """A learned generating function (Taylor terms + MLP, exp chart) as a model file recording
+    ``system`` and its provenance, stepped in Rust and scored on the held-out data."""
     raw = model_bytes(
         powers=s_fn.powers.numpy(),
         coeffs=s_fn.coeffs.detach().numpy(),
@@ -208,23 +216,35 @@ def _network_map_candidate(data, algebra, mode, seed, command, options):
         mlp_power=s_fn.mlp_power,
         mlp_inputs=s_fn.inputs,
         chart="exp",
-        system=_map_base(s_fn, algebra),
+        system=system,
         h_max=data.h,
         domain=_domain(data),
-        record=_record(data, "map", mode, seed, command, seconds),
+        taylor_order=order,
+        record=_record(data, family, mode, seed, command, seconds),
     )
     stepper = LearnedIntegrator(raw)
     one, roll = _errors(stepper, data)
     return Candidate(
-        family="map",
-        parameters=n_params,
-        order=0,
+        family=family,
+        parameters=parameters,
+        order=order,
         seconds=seconds,
         one_step=one,
         rollout=roll,
         stepper=stepper,
         model_bytes=raw,
+        system=None,
     )
+
+
+def _network_map_candidate(data, algebra, mode, seed, command, options):
+    from .map import fit_map
+
+    t0 = time.perf_counter()
+    s_fn, n_params = fit_map(data, algebra, seed=seed, **options)
+    seconds = time.perf_counter() - t0
+    system = _map_base(s_fn, algebra)
+    return _network_candidate(s_fn, system, "map", n_params, 0, seconds, data, mode, seed, command)
 
 
 def _blend_candidate(data, known, order, lam, mode, seed, command, options):
@@ -233,32 +253,10 @@ def _blend_candidate(data, known, order, lam, mode, seed, command, options):
     t0 = time.perf_counter()
     s_fn, _ = fit_blended_map(data, known, order=order or 3, lam=lam, seed=seed, **(options or {}))
     seconds = time.perf_counter() - t0
-    raw = model_bytes(
-        powers=s_fn.powers.numpy(),
-        coeffs=s_fn.coeffs.detach().numpy(),
-        layers=s_fn.exported_layers(),
-        mlp_power=s_fn.mlp_power,
-        mlp_inputs=s_fn.inputs,
-        chart="exp",
-        system=known,
-        h_max=data.h,
-        domain=_domain(data),
-        taylor_order=order or 3,
-        record=_record(data, "known+network", mode, seed, command, seconds),
-    )
-    stepper = LearnedIntegrator(raw)
-    one, roll = _errors(stepper, data)
-    return Candidate(
-        family="known+network",
-        parameters=s_fn.n_parameters(),
-        order=order or 3,
-        seconds=seconds,
-        one_step=one,
-        rollout=roll,
-        stepper=stepper,
-        model_bytes=raw,
-        system=None,
-    )
+    return _network_candidate(
+        s_fn, known, "known+network", s_fn.n_parameters(), order or 3, seconds, data, mode,
+        seed, command,
+    )  # fmt: skip
 
 
 def _map_base(s_fn: Any, algebra: LieAlgebra) -> LiePoissonSystem:
