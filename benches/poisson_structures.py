@@ -168,7 +168,7 @@ def approximate_realization() -> dict[str, object]:
     xr = np.random.default_rng(0).uniform(-0.6, 0.6, (10, 3))
     out: dict[str, object] = {"nambu": []}
     for m in (1, 3):
-        integ = RealizationTaylorIntegrator(nambu, m)
+        integ = RealizationTaylorIntegrator(nambu, m, 2)
         errs = [
             np.abs(pr.integrate(integ, x0, 1.0 / n, n)[:, -1] - ref).max() for n in (10, 20, 40)
         ]
@@ -195,7 +195,7 @@ def approximate_realization() -> dict[str, object]:
     k = np.array([1.0, -1.0, 1.0])
     drifts = {}
     for label, stepper in (
-        ("order-2 realization", RealizationTaylorIntegrator(poly, 3)),
+        ("order-2 realization", RealizationTaylorIntegrator(poly, 3, 2)),
         ("exact groupoid", pr.log_canonical_taylor(exact, 3)),
     ):
         traj = pr.integrate(stepper, x0, 0.1, 1000)

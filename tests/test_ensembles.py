@@ -186,6 +186,46 @@ def test_cluster_rollouts_bit_identical(client: Any, kind: str, chunk: int) -> N
     assert_same((out[0], got_info), in_process(stepper, mu0, h, n, every))
 
 
+def nambu_steppers() -> list[Any]:
+    from poisson_rs.structures.polynomial import (
+        PolynomialBivector,
+        PolynomialPoissonSystem,
+        RealizationTaylorIntegrator,
+        VectorFieldIntegrator,
+    )
+
+    system = PolynomialPoissonSystem(
+        PolynomialBivector.nambu("x1**2/2 + x2**2/2 + x3**2/2 + x1**3/3"), "x1**2/2 + x2**2/3"
+    )
+    return [
+        RealizationTaylorIntegrator(system, 3),
+        RealizationTaylorIntegrator(system, 1, 2, tol=1e-12),
+        VectorFieldIntegrator(system, "midpoint", max_iter=60),
+    ]
+
+
+def test_polynomial_bivector_steppers_pickle_to_identical_rollouts() -> None:
+    """The NumPy steppers of a polynomial bivector hold lambdified sympy; they pickle as their
+    sympy text and options and roll out the same bits after the round trip."""
+    mu0 = np.random.default_rng(8).uniform(-0.6, 0.6, (5, 3))
+    for stepper in nambu_steppers():
+        copy = pickle.loads(pickle.dumps(stepper))
+        assert (copy.name, copy.tol, copy.max_iter) == (stepper.name, stepper.tol, stepper.max_iter)
+        assert_same(in_process(copy, mu0, 0.1, 6), in_process(stepper, mu0, 0.1, 6))
+
+
+def test_polynomial_bivector_on_cluster_bit_identical(client: Any) -> None:
+    stepper = nambu_steppers()[0]
+    mu0 = np.random.default_rng(9).uniform(-0.6, 0.6, (30, 3))
+    traj, info = pr.integrate(
+        stepper, da.from_array(mu0, chunks=(11, -1)), 0.1, 8, every=2, return_info=True
+    )
+    fields = [getattr(info, k) for k in ensembles.INFO_FIELDS]
+    out = client.gather(client.compute([traj, *fields]))
+    got_info = pr.RolloutInfo(**dict(zip(ensembles.INFO_FIELDS, out[1:], strict=True)))
+    assert_same((out[0], got_info), in_process(stepper, mu0, 0.1, 8, 2))
+
+
 class DieOnce:
     """A stepper whose first rollout of some states, anywhere, kills the process running it (the
     marker file says it happened); later rollouts are the wrapped stepper's."""

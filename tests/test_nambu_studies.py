@@ -14,7 +14,7 @@ import poisson_rs as pr
 from poisson_rs.cli import main
 from poisson_rs.scenes import load_scene
 from poisson_rs.structures.polynomial import VectorFieldIntegrator
-from poisson_rs.studies.methods import classical_names, taylor_charts, taylor_orders
+from poisson_rs.studies.methods import classical_names, taylor, taylor_charts, taylor_orders
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "nambu_cubic.toml"
 
@@ -25,7 +25,7 @@ def test_scene_parses_the_nambu_system() -> None:
     x = np.random.default_rng(2).normal(size=(5, 3))
     c = system.casimirs(x)[:, 0]
     np.testing.assert_allclose(c, (x**2).sum(1) / 2 + x[:, 0] ** 3 / 3, rtol=1e-13)
-    assert taylor_charts(system) == ("realization2",)
+    assert taylor_charts(system) == ("realization",)
     assert taylor_orders(system) == (1, 3, 5)
     assert classical_names(system) == ["rk4", "midpoint", "dop853"]
 
@@ -60,7 +60,20 @@ def test_demo_on_the_nambu_scene(tmp_path: Path) -> None:
     with (out / "metrics.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     methods = {r["method"] for r in rows}
-    assert methods == {"taylor3-realization2", "taylor5-realization2", "rk4", "midpoint"}
+    assert methods == {"taylor3-realization", "taylor5-realization", "rk4", "midpoint"}
     drift = {r["method"]: float(r["max_rel_dC"]) for r in rows}
-    # The order-2 realization keeps C only to O(h³) a step: a drift, not round-off, reported.
-    assert 1e-12 < drift["taylor3-realization2"] < 1e-4
+    print(drift)
+    # The realizations of order 3 and 5 keep C only to O(h⁵) and O(h⁷) a step: a drift, not
+    # round-off, is reported, and the higher order drifts less.
+    assert 1e-12 < drift["taylor3-realization"] < 1e-6
+    assert drift["taylor5-realization"] < drift["taylor3-realization"] / 10
+
+
+def test_realization_charts() -> None:
+    """"realization" matches the Taylor order; "realization{n}" names n; others are refused."""
+    system = load_scene(SCENE).lie_system
+    assert taylor(system, 5).realization_order == 5  # type: ignore[attr-defined]
+    assert taylor(system, 1, "realization2").name == "taylor1-realization2"
+    for bad in ("realization0", "realization7", "realizationx", "exp", "log"):
+        with pytest.raises(ValueError, match="realization1"):
+            taylor(system, 3, bad)

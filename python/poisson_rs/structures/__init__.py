@@ -1,6 +1,6 @@
 """Poisson structures beyond g* and the systems built on them: log-canonical structures
 π_ij = c_ij x_i x_j with log-polynomial Hamiltonians (Lotka–Volterra), and any polynomial
-bivector (checked for Jacobi) with its order-2 approximate realization, and affine brackets
+bivector (checked for Jacobi) with its approximate realizations of order n, and affine brackets
 (Lie–Poisson plus a constant 2-cocycle) through their central extension at level 1."""
 
 from .affine import (

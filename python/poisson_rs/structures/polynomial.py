@@ -1,16 +1,21 @@
-"""Any polynomial Poisson bivector π(x) on R^n, checked on construction, with an approximate
-symplectic realization of order 2 and a Taylor-HJ integrator on it (NumPy Newton).
+"""Any polynomial Poisson bivector π(x) on R^n, checked on construction, with approximate
+symplectic realizations of any order up to :data:`MAX_REALIZATION_ORDER` and a Taylor-HJ
+integrator on them (NumPy Newton).
 
 - Antisymmetry is checked symbolically and the Jacobi identity
   π^{il}∂_lπ^{jk} + π^{jl}∂_lπ^{ki} + π^{kl}∂_lπ^{ij} = 0 at seeded random points: a bracket
   that fails is refused with an error naming the failing triple (i, j, k).
-- The order-2 realization (canonical {x^i, p_j} = δ^i_j, convention ẋ = π∇H):
-  β^i(x, p) = x^i − ½π^{ij}p_j + (1/12)π^{lm}∂_lπ^{ij}p_m p_j and α(x, p) = β(x, −p).
-  Then {β^i, β^j} − π^{ij}(β) and {α^i, β^j} are O(|p|²) and a Casimir C has
-  C(β) − C(α) = O(|p|³): an integrator on it keeps C to O(h³) per step.
-- The Taylor-HJ series S = Σ_{k≤m} t^k S_k of ∂S/∂t + H(β(x, ∇S)) = 0 is derived with sympy;
-  a step solves α(x, ∇S(h, x)) = x_k by Newton and returns β(x, ∇S(h, x)): order min(2, m),
-  or 2 for m = 1 (S₂ = 0).
+- The order-n realization (canonical {x^i, p_j} = δ^i_j, convention ẋ = π∇H):
+  β = x + β_1 + … + β_n, β_k of degree k in p, solved order by order from the realization
+  condition with the homotopy formula of the Poincaré lemma (:meth:`PolynomialBivector.
+  realization_terms`); β_1 = −½π p, β_2 = (1/12)π^{lm}∂_lπ^{ij}p_m p_j; α(x, p) = β(x, −p).
+  {β^i, β^j} − π^{ij}(β), {α^i, α^j} + π^{ij}(α) and {α^i, β^j} are then O(|p|^n), and a
+  Casimir C has C(β) − C(α) = O(|p|^{n+1}) (n even) or O(|p|^{n+2}) (n odd: the defect is odd
+  in p).
+- The Taylor-HJ series S = Σ_{k≤m} t^k S_k of ∂S/∂t + H(β(x, ∇S)) = 0 is derived with sympy
+  (:func:`hj_series`, truncated power series in t); a step solves α(x, ∇S(h, x)) = x_k by
+  Newton and returns β(x, ∇S(h, x)). The scheme is symmetric: measured global order
+  min(n, m) rounded up to even (m = 3 on n = 3: 4; m = 5 on n = 5: 6; any m on n = 2: 2).
 - Nambu structures on R³, {f, g} = ∇C·(∇f × ∇g), i.e. π^{ij} = ε_ijk ∂_k C, satisfy Jacobi for
   any C and keep C: :meth:`PolynomialBivector.nambu`.
 """
@@ -25,8 +30,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
-#: Highest order of the approximate realization built here.
-MAX_REALIZATION_ORDER = 2
+#: Highest order of the approximate realization built here (the recursion has no limit; sympy's
+#: cost does: order 5 takes about 5 s on a cubic Nambu bracket, order 6 about 8 s).
+MAX_REALIZATION_ORDER = 6
+
+_REALIZATION_TERMS: dict[tuple[int, tuple[str, ...]], list[list[Any]]] = {}
+_HJ_SERIES: dict[tuple[Any, ...], list[Any]] = {}
 
 
 def _symbols(n: int) -> tuple[Any, ...]:
@@ -84,6 +93,9 @@ class PolynomialBivector:
         self.x = x
         self.pi = pi
         self._pi_num = _lambdify(x, list(pi))
+        self._key = (dim, tuple(str(e) for e in pi))
+        # Shared by every bivector with the same entries: the terms depend on π alone.
+        self._realization_terms = _REALIZATION_TERMS.setdefault(self._key, [])
         self._check_jacobi(seed)
 
     @classmethod
@@ -99,6 +111,16 @@ class PolynomialBivector:
         return out
 
     casimir: Any = None
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # The lambdified functions do not pickle; the entries (exact sympy text) rebuild them,
+        # and a Nambu bracket is rebuilt from its Casimir so that it keeps it.
+        if self.casimir is not None:
+            return (PolynomialBivector.nambu, (str(self.casimir),))
+        entries = {
+            (i, j): str(self.pi[i, j]) for i in range(self.dim) for j in range(i + 1, self.dim)
+        }
+        return (PolynomialBivector, (self.dim, entries))
 
     def jacobiator(self) -> list[tuple[tuple[int, int, int], Any]]:
         """The Jacobi expressions J^{ijk} for i < j < k, symbolic."""
@@ -138,32 +160,70 @@ class PolynomialBivector:
 
     def realization(self, order: int = 2) -> tuple[list[Any], list[Any], tuple[Any, ...]]:
         """(β, α, p): sympy expressions of the order-``order`` realization in (x, p), and p's
-        symbols. Order 1 is x ∓ ½π p; order 2 adds (1/12)π^{lm}∂_lπ^{ij}p_m p_j."""
+        symbols, for ``order`` in 1..=:data:`MAX_REALIZATION_ORDER`.
+
+        β = x + Σ_{k≤order} β_k with β_k homogeneous of degree k in p, built by
+        :meth:`realization_terms`; α(x, p) = β(x, −p). Order 1 is x ∓ ½π p; order 2 adds
+        (1/12)π^{lm}∂_lπ^{ij}p_m p_j. The realization conditions then hold to O(|p|^order).
+        """
         import sympy
 
-        if order not in (1, 2):
+        if isinstance(order, bool) or not isinstance(order, int):
+            raise ValueError(f"realization order must be an integer, got {order!r}")
+        if not 1 <= order <= MAX_REALIZATION_ORDER:
             raise ValueError(
-                f"realization order must be 1 or 2 (highest built: {MAX_REALIZATION_ORDER}), "
-                f"got {order!r}"
+                f"realization order must be in 1..={MAX_REALIZATION_ORDER}, got {order!r}"
             )
+        terms, p = self.realization_terms(order)
+        beta = [sympy.expand(xi + sum(t[i] for t in terms[:order])) for i, xi in enumerate(self.x)]
+        flip = {pj: -pj for pj in p}
+        alpha = [sympy.expand(b.subs(flip, simultaneous=True)) for b in beta]
+        return beta, alpha, p
+
+    def realization_terms(self, order: int) -> tuple[list[list[Any]], tuple[Any, ...]]:
+        """([β_1, …, β_order], p): the homogeneous terms of β in p, each a list of n sympy
+        expressions, computed once per bivector and cached.
+
+        With b = β_1 + … + β_{k−1} and the canonical bracket {x^i, p_j} = δ^i_j, the
+        degree-(k−1) part of {β^i, β^j} − π^{ij}(β) = 0 reads
+
+            ∂β_k^j/∂p_i − ∂β_k^i/∂p_j = Q^{ij},   Q^{ij} = [π^{ij}(x + b) − {b^i, b^j}]_{k−1}.
+
+        Q is a closed 2-form in p (Jacobi and the lower orders make it so), homogeneous of
+        degree k − 1, and the homotopy formula of the Poincaré lemma solves it in the radial
+        gauge p_j β_k^j = 0: β_k^j = p_i Q^{ij} / (k + 1). k = 1 gives −½π p, k = 2 the
+        (1/12) term; on a linear (Lie–Poisson) π the recursion returns the Bernoulli series
+        of the exact groupoid (β_3 = 0). Taking α(x, p) = β(x, −p) (β for −π) makes
+        {α^i, β^j} vanish to the same order (measured in the tests).
+        """
+        import sympy
+
         n, x, pi = self.dim, self.x, self.pi
         p = tuple(sympy.symbols(f"p1:{n + 1}", real=True))
-
-        def side(sign: int) -> list[Any]:
-            out = []
+        eps = sympy.Dummy("eps")
+        scale = {pj: eps * pj for pj in p}
+        terms = self._realization_terms
+        for k in range(len(terms) + 1, order + 1):
+            b = [sum((t[i] for t in terms), sympy.Integer(0)) for i in range(n)]
+            shift = {x[i]: x[i] + b[i] for i in range(n)}
+            q = sympy.zeros(n, n)
             for i in range(n):
-                e = x[i] + sympy.Rational(sign, 2) * sum(pi[i, j] * p[j] for j in range(n))
-                if order >= 2:
-                    e += sympy.Rational(1, 12) * sum(
-                        pi[l_, m] * sympy.diff(pi[i, j], x[l_]) * p[m] * p[j]
-                        for l_ in range(n)
-                        for m in range(n)
-                        for j in range(n)
+                for j in range(i + 1, n):
+                    bracket = sum(
+                        sympy.diff(b[i], x[c]) * sympy.diff(b[j], p[c])
+                        - sympy.diff(b[i], p[c]) * sympy.diff(b[j], x[c])
+                        for c in range(n)
                     )
-                out.append(sympy.expand(e))
-            return out
+                    e = pi[i, j].subs(shift, simultaneous=True) - bracket
+                    e = sympy.expand(sympy.expand(e).subs(scale, simultaneous=True))
+                    q[i, j] = e.coeff(eps, k - 1)
+                    q[j, i] = -q[i, j]
+            terms.append(
+                [sympy.expand(sum(p[i] * q[i, j] for i in range(n)) / (k + 1)) for j in range(n)]
+            )
+        return terms[:order], p
 
-        return side(-1), side(1), p
+    _realization_terms: list[list[Any]]
 
 
 class PolynomialPoissonSystem:
@@ -200,6 +260,9 @@ class PolynomialPoissonSystem:
         self._h = _lambdify(x, [self.h])
         self._f = _lambdify(x, field)
         self._c = None if structure.casimir is None else _lambdify(x, [structure.casimir])
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_system, (self.structure, str(self.h), self.name))
 
     @property
     def dim(self) -> int:
@@ -253,6 +316,84 @@ class PolynomialPoissonSystem:
         return cls(structure, data["hamiltonian"])
 
 
+def matched_realization_order(order: int) -> int:
+    """The realization order that lets Taylor-HJ of ``order`` reach its full order: the odd
+    n ≥ max(3, order). With α(x, p) = β(x, −p) the scheme is symmetric, so the global order is
+    min(n, m) rounded up to even (measured: n = 3 gives 4, n = 5 gives 6), and an odd n costs
+    less than the even n + 1 for the same order. n = 3 for m = 1 keeps C to O(h⁵) a step
+    instead of O(h³) for little extra work."""
+    return max(3, order + 1 - order % 2)
+
+
+Series = list[Any]
+
+
+def _series_mul(a: Series, b: Series, top: int) -> Series:
+    """Product of two truncated power series in t (coefficient lists), kept to degree ``top``."""
+    import sympy
+
+    out = [sympy.Integer(0)] * (top + 1)
+    for i, ai in enumerate(a):
+        if ai == 0:
+            continue
+        for j, bj in enumerate(b[: top + 1 - i]):
+            if bj != 0:
+                out[i + j] += ai * bj
+    return [sympy.expand(c) for c in out]
+
+
+def _series_compose(poly: Any, gens: Sequence[Any], values: Sequence[Series], top: int) -> Series:
+    """poly(values) as a truncated series in t: ``poly`` a sympy polynomial in ``gens`` (its
+    coefficients may hold other symbols), each value a coefficient list in t."""
+    import sympy
+
+    out = [sympy.Integer(0)] * (top + 1)
+    powers: dict[tuple[int, int], Series] = {}
+
+    def power(i: int, e: int) -> Series:
+        if (i, e) not in powers:
+            powers[(i, e)] = (
+                [sympy.Integer(1)] if e == 0 else _series_mul(power(i, e - 1), values[i], top)
+            )
+        return powers[(i, e)]
+
+    for exps, coef in sympy.Poly(poly, *gens).terms():
+        term: Series = [coef]
+        for i, e in enumerate(exps):
+            if e:
+                term = _series_mul(term, power(i, e), top)
+        for d, c in enumerate(term):
+            out[d] += c
+    return [sympy.expand(c) for c in out]
+
+
+def hj_series(system: PolynomialPoissonSystem, order: int, realization_order: int) -> list[Any]:
+    """[S_1, …, S_order]: the Taylor terms of S(t, x) = Σ t^k S_k solving
+    ∂S/∂t + H(β(x, ∇S)) = 0 on the order-``realization_order`` realization (S_1 = −H).
+
+    S_k = −[H(β(x, ∇S_{<k}))]_{t^{k−1}} / k. Every quantity is carried as a power series in t
+    truncated at t^{order−1}, so the work grows with the orders kept, not with the expanded
+    composition (whose full expansion is what made the direct substitution slow).
+    """
+    import sympy
+
+    key = (system.structure._key, str(system.h), order, realization_order)
+    if key in _HJ_SERIES:
+        return list(_HJ_SERIES[key])
+    x = system.structure.x
+    beta, _, p = system.structure.realization(realization_order)
+    s_terms: list[Any] = [-system.h]
+    for k in range(2, order + 1):
+        # ∇S_{<k} = Σ_j t^j ∇S_j: a series with zero constant term.
+        grad = [[sympy.Integer(0)] + [sympy.diff(s, xi) for s in s_terms] for xi in x]
+        # β(x, ∇S) as series: β is polynomial in p with x-dependent coefficients.
+        beta_t = [_series_compose(b, p, grad, k - 1) for b in beta]
+        h_t = _series_compose(system.h, x, beta_t, k - 1)
+        s_terms.append(sympy.expand(-h_t[k - 1] / k))
+    _HJ_SERIES[key] = list(s_terms)
+    return s_terms
+
+
 class RealizationTaylorIntegrator:
     """Taylor-HJ of order ``order`` on the order-``realization_order`` realization of a
     polynomial bivector, stepped in NumPy (vectorised Newton over trajectories); usable with
@@ -262,7 +403,7 @@ class RealizationTaylorIntegrator:
         self,
         system: PolynomialPoissonSystem,
         order: int = 3,
-        realization_order: int = 2,
+        realization_order: int | None = None,
         *,
         tol: float = 1e-13,
         max_iter: int = 50,
@@ -275,24 +416,20 @@ class RealizationTaylorIntegrator:
             )
         if isinstance(order, bool) or not isinstance(order, int) or not 1 <= order <= 5:
             raise ValueError(f"order must be an integer in 1..=5, got {order!r}")
+        self._requested = realization_order
+        if realization_order is None:
+            suffix = ""
+            realization_order = matched_realization_order(order)
+        else:
+            suffix = str(realization_order)
         self.system, self.order, self.realization_order = system, order, realization_order
         self.tol, self.max_iter = float(tol), int(max_iter)
-        self.name = f"taylor{order}-realization{realization_order}"
+        self.name = f"taylor{order}-realization{suffix}"
         x = system.structure.x
         n = system.dim
         beta, alpha, p = system.structure.realization(realization_order)
-        t = sympy.Symbol("t")
-        s_terms = [-system.h]
-        for k in range(2, order + 1):
-            s_partial = sum(t**j * s for j, s in enumerate(s_terms, start=1))
-            grad = [sympy.diff(s_partial, xi) for xi in x]
-            sub = dict(zip(p, grad, strict=True))
-            h_beta = system.h.subs(
-                dict(zip(x, [b.subs(sub) for b in beta], strict=True)), simultaneous=True
-            )
-            coef = sympy.expand(h_beta).coeff(t, k - 1)
-            s_terms.append(sympy.expand(-coef / k))
-        self.s_terms = s_terms
+        self.s_terms = hj_series(system, order, realization_order)
+        s_terms = self.s_terms
         hh = sympy.Symbol("h")
         s_full = sum(hh**j * s for j, s in enumerate(s_terms, start=1))
         grad_s = [sympy.diff(s_full, xi) for xi in x]
@@ -308,6 +445,12 @@ class RealizationTaylorIntegrator:
     @property
     def dim(self) -> int:
         return self._n
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (
+            _realization_integrator,
+            (self.system, self.order, self._requested, self.tol, self.max_iter),
+        )
 
     def step(self, xk: FloatArray, h: float) -> tuple[FloatArray, NDArray[np.bool_]]:
         """One step of every row of xk (B, n); returns the new states and which converged."""
@@ -407,6 +550,9 @@ class VectorFieldIntegrator:
     def dim(self) -> int:
         return self.system.dim
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_vector_field_integrator, (self.system, self.name, self.tol, self.max_iter))
+
     @property
     def order(self) -> int:
         return VECTOR_FIELD_METHODS[self.name][0]
@@ -476,3 +622,20 @@ class VectorFieldIntegrator:
 
     def __repr__(self) -> str:
         return f"VectorFieldIntegrator(name={self.name!r})"
+
+
+# Pickling (Dask ships steppers to worker processes): sympy text in, the same objects out.
+def _system(structure: PolynomialBivector, h: str, name: str | None) -> PolynomialPoissonSystem:
+    return PolynomialPoissonSystem(structure, h, name=name)
+
+
+def _realization_integrator(
+    system: PolynomialPoissonSystem, order: int, n: int | None, tol: float, max_iter: int
+) -> RealizationTaylorIntegrator:
+    return RealizationTaylorIntegrator(system, order, n, tol=tol, max_iter=max_iter)
+
+
+def _vector_field_integrator(
+    system: PolynomialPoissonSystem, name: str, tol: float, max_iter: int
+) -> VectorFieldIntegrator:
+    return VectorFieldIntegrator(system, name, tol=tol, max_iter=max_iter)

@@ -9,10 +9,11 @@ in q = ln x) and :func:`~poisson_rs.log_canonical_classical` (RK4, midpoint, the
 of order 2 and 4, DOP853 as the reference); affine systems (Lie–Poisson plus a constant
 cocycle) with the same Lie–Poisson methods run on their central extension at level 1
 (:func:`~poisson_rs.affine_taylor`, :func:`~poisson_rs.affine_classical`: Taylor-exp, RK4,
-midpoint, DOP853); polynomial bivectors (a cubic Nambu bracket, ...) with Taylor-HJ on the
-order-2 realization (chart name "realization2", NumPy) and RK4, midpoint and DOP853 on the vector
-field (NumPy). Names follow one pattern everywhere:
-``taylor{k}-{chart}`` and the classical method's own name.
+midpoint, DOP853); polynomial bivectors (a cubic Nambu bracket, ...) with Taylor-HJ on an
+approximate realization (chart name "realization": the order that matches the Taylor order, see
+:func:`~poisson_rs.structures.polynomial.matched_realization_order`; "realization1" to
+"realization6" pick one; NumPy) and RK4, midpoint and DOP853 on the vector field (NumPy).
+Names follow one pattern everywhere: ``taylor{k}-{chart}`` and the classical method's own name.
 """
 
 from __future__ import annotations
@@ -40,14 +41,31 @@ def is_affine(system: Any) -> bool:
 
 
 def is_polynomial_bivector(system: Any) -> bool:
-    """Whether ``system`` is a polynomial-bivector system (order-2 realization)."""
+    """Whether ``system`` is a polynomial-bivector system (approximate realization)."""
     from ..structures.polynomial import PolynomialPoissonSystem
 
     return isinstance(system, PolynomialPoissonSystem)
 
 
-#: The chart name of the order-2 realization of a polynomial bivector.
-REALIZATION_CHART = "realization2"
+#: The chart name of a polynomial bivector's approximate realization of matched order
+#: ("realization{n}" names order n).
+REALIZATION_CHART = "realization"
+
+
+def realization_order_of(chart: str) -> int | None:
+    """None for "realization" (matched to the Taylor order), n for "realization{n}";
+    ValueError for any other chart."""
+    from ..structures.polynomial import MAX_REALIZATION_ORDER
+
+    if chart == REALIZATION_CHART:
+        return None
+    tail = chart.removeprefix(REALIZATION_CHART)
+    if tail != chart and tail.isdigit() and 1 <= int(tail) <= MAX_REALIZATION_ORDER:
+        return int(tail)
+    raise ValueError(
+        f"chart {chart!r}: a polynomial bivector has {REALIZATION_CHART!r} (matched order) or "
+        f"'realization1' to 'realization{MAX_REALIZATION_ORDER}'"
+    )
 
 
 def is_supported(system: Any) -> bool:
@@ -64,7 +82,7 @@ def is_supported(system: Any) -> bool:
 
 def taylor_orders(system: Any, wanted: tuple[int, ...] = (1, 3, 5, 7)) -> tuple[int, ...]:
     """The Taylor-HJ orders of ``wanted`` the system's integrator takes (at most 5 on the
-    order-2 realization of a polynomial bivector, whose sympy series grows fast)."""
+    realization of a polynomial bivector, whose sympy series grows fast)."""
     if is_polynomial_bivector(system):
         return tuple(k for k in wanted if k <= 5)
     return wanted
@@ -106,11 +124,10 @@ def taylor(system: Any, order: int, chart: str | None = None) -> Stepper:
 
         return log_canonical_taylor(system, order)
     if is_polynomial_bivector(system):
-        if chart != REALIZATION_CHART:
-            raise ValueError(f"chart {chart!r}: a polynomial bivector has {REALIZATION_CHART!r}")
+        realization_order = realization_order_of(chart)
         from ..structures.polynomial import RealizationTaylorIntegrator
 
-        return RealizationTaylorIntegrator(system, order)
+        return RealizationTaylorIntegrator(system, order, realization_order)
     if is_affine(system):
         if chart != "exp":
             raise ValueError(f"chart {chart!r}: an affine system is integrated in the exp chart")
