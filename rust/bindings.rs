@@ -957,6 +957,140 @@ fn rollout_log_classical<'py>(
     }, Err(dim_error(dim)))
 }
 
+// ---------------------------------------------------------------------------------------------
+// Any polynomial bivector: Taylor-HJ bisection on an approximate realization whose maps and
+// generating function arrive as polynomial coefficients.
+// ---------------------------------------------------------------------------------------------
+
+use crate::structures::{
+    PolynomialBisection, PolynomialGenerating, PolynomialRealization, SparsePolynomial,
+};
+
+/// One polynomial in `vars` variables from the rows `rows` of a term table.
+fn polynomial(
+    what: &str,
+    coeffs: &numpy::ndarray::ArrayView1<'_, f64>,
+    exponents: &numpy::ndarray::ArrayView2<'_, i64>,
+    rows: &[usize],
+    vars: usize,
+) -> PyResult<SparsePolynomial> {
+    let mut e = Vec::new();
+    e.try_reserve_exact(rows.len() * vars)
+        .map_err(|_| PyMemoryError::new_err("too many polynomial terms"))?;
+    for &k in rows {
+        for v in 0..vars {
+            let value = exponents[[k, v]];
+            e.push(u32::try_from(value).map_err(|_| {
+                PyValueError::new_err(format!(
+                    "{what} exponents[{k}, {v}] = {value} must not be negative"
+                ))
+            })?);
+        }
+    }
+    let c: Vec<f64> = rows.iter().map(|&k| coeffs[k]).collect();
+    SparsePolynomial::new(vars, &c, &e)
+        .map_err(|err| PyValueError::new_err(format!("{what}: {err}")))
+}
+
+/// Checks a term table: `coeffs` (M,), `exponents` (M, vars).
+fn term_table<'a>(
+    what: &str,
+    coeffs: &'a PyReadonlyArray1<'_, f64>,
+    exponents: &'a PyReadonlyArray2<'_, i64>,
+    vars: usize,
+) -> PyResult<(
+    numpy::ndarray::ArrayView1<'a, f64>,
+    numpy::ndarray::ArrayView2<'a, i64>,
+)> {
+    let (co, ex) = (coeffs.as_array(), exponents.as_array());
+    rows_match(&format!("{what} exponents"), ex.shape()[0], co.len())?;
+    if ex.shape()[1] != vars {
+        return Err(PyValueError::new_err(format!(
+            "{what} exponents must have {vars} columns, got {}",
+            ex.shape()[1]
+        )));
+    }
+    Ok((co, ex))
+}
+
+/// N polynomials in 2N variables from one term table: term m adds coeffs[m] · v^exponents[m]
+/// to component index[m].
+fn component_polynomials<const N: usize>(
+    what: &str,
+    index: &PyReadonlyArray1<'_, i64>,
+    coeffs: &PyReadonlyArray1<'_, f64>,
+    exponents: &PyReadonlyArray2<'_, i64>,
+) -> PyResult<Vec<SparsePolynomial>> {
+    let (co, ex) = term_table(what, coeffs, exponents, 2 * N)?;
+    let ix = index.as_array();
+    rows_match(&format!("{what} index"), ix.len(), co.len())?;
+    if let Some(k) = (0..ix.len()).find(|&k| !(0..N as i64).contains(&ix[k])) {
+        return Err(PyValueError::new_err(format!(
+            "{what} index[{k}] = {} is outside 0..{N}",
+            ix[k]
+        )));
+    }
+    let mut out = Vec::new();
+    out.try_reserve_exact(N)
+        .map_err(|_| PyMemoryError::new_err("too many polynomials"))?;
+    for target in 0..N {
+        let rows: Vec<usize> = (0..ix.len()).filter(|&k| ix[k] == target as i64).collect();
+        out.push(polynomial(
+            &format!("{what}[{target}]"),
+            &co,
+            &ex,
+            &rows,
+            2 * N,
+        )?);
+    }
+    Ok(out)
+}
+
+/// Rolls out Taylor-HJ on an approximate realization of a polynomial bivector, from each row of
+/// `x0` (n, N). β (sou) and α (tar) are N polynomials each in (p, x) (2N variables: the fibre p
+/// then the base x), given as term tables (index: which component, coeffs, exponents (M, 2N));
+/// S(t, x) is one polynomial in (t, x) (exponents (K, N + 1)). A step solves
+/// α(∇S(h, x), x) = x_k for x by Newton (|δ|∞ ≤ tol · max(|x|∞, 1)) and returns
+/// β(∇S(h, x), x).
+#[pyfunction]
+#[pyo3(signature = (sou_index, sou_coeffs, sou_exponents, tar_index, tar_coeffs, tar_exponents, s_coeffs, s_exponents, x0, h, n_steps, every=1, tol=1e-13, max_iter=50))]
+#[allow(clippy::too_many_arguments)]
+fn rollout_polynomial_realization<'py>(
+    py: Python<'py>,
+    sou_index: PyReadonlyArray1<'py, i64>,
+    sou_coeffs: PyReadonlyArray1<'py, f64>,
+    sou_exponents: PyReadonlyArray2<'py, i64>,
+    tar_index: PyReadonlyArray1<'py, i64>,
+    tar_coeffs: PyReadonlyArray1<'py, f64>,
+    tar_exponents: PyReadonlyArray2<'py, i64>,
+    s_coeffs: PyReadonlyArray1<'py, f64>,
+    s_exponents: PyReadonlyArray2<'py, i64>,
+    x0: PyReadonlyArray2<'py, f64>,
+    h: f64,
+    n_steps: usize,
+    every: usize,
+    tol: f64,
+    max_iter: u32,
+) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+    let newton = NewtonOptions::validated(tol, max_iter)?;
+    let dim = x0.shape()[1];
+    with_dim!(dim, N => {
+        let sou = component_polynomials::<N>("sou", &sou_index, &sou_coeffs, &sou_exponents)?;
+        let tar = component_polynomials::<N>("tar", &tar_index, &tar_coeffs, &tar_exponents)?;
+        let (co, ex) = term_table("S", &s_coeffs, &s_exponents, N + 1)?;
+        let all: Vec<usize> = (0..co.len()).collect();
+        let s = polynomial("S", &co, &ex, &all, N + 1)?;
+        let stepper: PolynomialBisection<N> = PolynomialBisection {
+            generating: PolynomialGenerating::new(s)?,
+            realization: PolynomialRealization::new(sou, tar)?,
+            newton,
+            scale_floor: 1.0,
+        };
+        let x0 = states::<N>(&x0, "x0")?;
+        run_rollout(py, &PerStep(&stepper), &x0, h, n_steps, every, None)
+    }, Err(dim_error(dim)))
+}
+
 /// h × the local rate at each row of `mu` (n, N) for the Lie–Poisson system with structure
 /// constants `c` (N, N, N) and polynomial Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: the angle
 /// a step of size h turns each state by, max(‖ad_∇H‖_F/√2, ‖∂f/∂μ‖_F) · h. Returns (n,) float64.
@@ -1055,6 +1189,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(serial_rollouts, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_log_canonical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_log_classical, m)?)?;
+    m.add_function(wrap_pyfunction!(rollout_polynomial_realization, m)?)?;
     m.add("MAX_DIM", MAX_DIM)?;
     m.add("MODEL_FORMAT", FORMAT)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

@@ -205,3 +205,56 @@ def test_system_round_trip_and_interface() -> None:
     grad_h = np.array([x1, 2 * x2 / 3, x3 / 2])
     grad_c = np.array([x1 + x1**2, x2, x3])
     np.testing.assert_allclose(system.vector_field(x)[0], np.cross(grad_h, grad_c), rtol=1e-14)
+
+
+@pytest.mark.parametrize(("m", "n"), [(1, 2), (3, 3), (5, 5)])
+def test_rust_rollout_equals_the_numpy_step(m: int, n: int) -> None:
+    """The core steps the same Newton bisection from the polynomial coefficients as the NumPy
+    oracle does from the lambdified sympy expressions."""
+    system = cubic()
+    integ = RealizationTaylorIntegrator(system, m, n)
+    x0 = np.random.default_rng(11).uniform(-0.7, 0.7, (13, 3))
+    state, oracle = x0.copy(), [x0]
+    for _ in range(15):
+        state, ok = integ.step(state, 0.1)
+        assert ok.all()
+        oracle.append(state)
+    traj, info = pr.integrate(integ, x0, 0.1, 15, return_info=True)
+    np.testing.assert_allclose(traj, np.stack(oracle, 1), rtol=0, atol=1e-13)
+    assert info.converged.all() and (info.newton_iterations > 0).all()
+
+
+def test_rust_rollout_reports_a_failed_newton_solve() -> None:
+    """A step far too large for Newton fails with a code, its later states NaN, the other
+    trajectories unchanged."""
+    integ = RealizationTaylorIntegrator(cubic(), 3, 3, max_iter=8)
+    x0 = np.array([[0.3, 0.5, -0.4], [40.0, -30.0, 25.0]])
+    traj, info = pr.integrate(integ, x0, 0.5, 4, return_info=True, on_failure="ignore")
+    assert info.converged.tolist() == [True, False]
+    assert info.failure_code[1] != 0 and np.isnan(traj[1, -1]).all()
+    alone = pr.integrate(integ, x0[:1], 0.5, 4)
+    assert traj[0].tobytes() == alone[0].tobytes()
+
+
+def test_core_refuses_bad_term_tables() -> None:
+    from poisson_rs import _core
+
+    integ = RealizationTaylorIntegrator(cubic(), 1, 2)
+    good = list(integ._tables)
+    x0 = np.zeros((1, 3))
+
+    def call(i: int, value: np.ndarray) -> None:
+        args = list(good)
+        args[i] = value
+        _core.rollout_polynomial_realization(*args, x0, 0.1, 1)
+
+    with pytest.raises(ValueError, match="sou exponents must have 6 columns"):
+        call(2, good[2][:, :5].copy())
+    with pytest.raises(ValueError, match="sou index"):
+        call(0, np.full_like(good[0], 3))
+    with pytest.raises(ValueError, match="must not be negative"):
+        call(5, -good[5])
+    with pytest.raises(ValueError, match="not finite"):
+        call(6, np.full_like(good[6], np.nan))
+    with pytest.raises(ValueError, match="tar exponents has"):
+        call(5, good[5][:-1].copy())

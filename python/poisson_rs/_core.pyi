@@ -162,6 +162,27 @@ def rollout_log_classical(
     "rk4", "midpoint" (state x; leaving the orthant fails with code 5), "log_splitting",
     "log_splitting4" (state q = ln x; exact one-variable flows, Strang / Suzuki)."""
 
+def rollout_polynomial_realization(
+    sou_index: npt.NDArray[np.int64],
+    sou_coeffs: npt.NDArray[np.float64],
+    sou_exponents: npt.NDArray[np.int64],
+    tar_index: npt.NDArray[np.int64],
+    tar_coeffs: npt.NDArray[np.float64],
+    tar_exponents: npt.NDArray[np.int64],
+    s_coeffs: npt.NDArray[np.float64],
+    s_exponents: npt.NDArray[np.int64],
+    x0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-13,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    """Taylor-HJ on an approximate realization of a polynomial bivector, from each row of x0
+    (n, N): β (sou) and α (tar) as term tables over (p, x) (index (M,): the component;
+    exponents (M, 2N)), S(t, x) as one over (t, x) (exponents (K, N + 1)). A step solves
+    α(∇S(h, x), x) = x_k by Newton and returns β(∇S(h, x), x)."""
+
 def step_angles(
     c: npt.NDArray[np.float64],
     powers: npt.NDArray[np.int64],

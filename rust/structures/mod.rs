@@ -2,10 +2,16 @@
 //!
 //! - [`log_canonical`]: π_ij = c_ij x_i x_j (Lotka–Volterra in any dimension), stepped in
 //!   q = ln x where the bracket is the constant matrix c and the groupoid is linear.
+//! - [`polynomial`]: any polynomial bivector, through an approximate realization of order n
+//!   whose maps and generating function arrive as polynomial coefficients.
 
 pub mod log_canonical;
+pub mod polynomial;
 
 pub use log_canonical::{
     ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
     OrthantChecked,
+};
+pub use polynomial::{
+    PolynomialBisection, PolynomialGenerating, PolynomialRealization, SparsePolynomial,
 };

@@ -224,5 +224,6 @@ mod lanes;
 mod lie_poisson;
 mod log_canonical;
 mod model_files;
+mod polynomial;
 mod rollouts;
 mod steps;

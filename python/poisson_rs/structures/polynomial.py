@@ -1,6 +1,6 @@
 """Any polynomial Poisson bivector π(x) on R^n, checked on construction, with approximate
 symplectic realizations of any order up to :data:`MAX_REALIZATION_ORDER` and a Taylor-HJ
-integrator on them (NumPy Newton).
+integrator on them (stepped by the Rust core; NumPy Newton as its oracle).
 
 - Antisymmetry is checked symbolically and the Jacobi identity
   π^{il}∂_lπ^{jk} + π^{jl}∂_lπ^{ki} + π^{kl}∂_lπ^{ij} = 0 at seeded random points: a bracket
@@ -325,6 +325,26 @@ def matched_realization_order(order: int) -> int:
     return max(3, order + 1 - order % 2)
 
 
+def _term_table(
+    polys: Sequence[Any], gens: Sequence[Any]
+) -> tuple[NDArray[np.int64], FloatArray, NDArray[np.int64]]:
+    """(index, coeffs, exponents): every term of every polynomial in ``polys`` over ``gens``,
+    index naming its polynomial, for the core."""
+    import sympy
+
+    index, coeffs, exponents = [], [], []
+    for i, poly in enumerate(polys):
+        for exps, coef in sympy.Poly(poly, *gens).terms():
+            index.append(i)
+            coeffs.append(float(coef))
+            exponents.append(exps)
+    return (
+        np.array(index, dtype=np.int64),
+        np.array(coeffs, dtype=np.float64),
+        np.array(exponents, dtype=np.int64).reshape(len(coeffs), len(gens)),
+    )
+
+
 Series = list[Any]
 
 
@@ -396,7 +416,8 @@ def hj_series(system: PolynomialPoissonSystem, order: int, realization_order: in
 
 class RealizationTaylorIntegrator:
     """Taylor-HJ of order ``order`` on the order-``realization_order`` realization of a
-    polynomial bivector, stepped in NumPy (vectorised Newton over trajectories); usable with
+    polynomial bivector, rolled out by the Rust core from polynomial coefficients
+    (:meth:`step`: the same Newton in NumPy, the oracle); usable with
     :func:`poisson_rs.integrate`."""
 
     def __init__(
@@ -441,6 +462,11 @@ class RealizationTaylorIntegrator:
         self._alpha_p = _lambdify((*x, *p), [sympy.diff(a, pj) for a in alpha for pj in p])
         self._beta = _lambdify((*x, *p), beta)
         self._n = n
+        self._tables = (
+            *_term_table(beta, (*p, *x)),
+            *_term_table(alpha, (*p, *x)),
+            *_term_table([s_full], (hh, *x))[1:],  # S(t, x): t first
+        )
 
     @property
     def dim(self) -> int:
@@ -481,32 +507,19 @@ class RealizationTaylorIntegrator:
     def _rollout(
         self, mu0: FloatArray, h: float, n_steps: int, every: int
     ) -> tuple[FloatArray, dict[str, np.ndarray]]:
-        n_traj = len(mu0)
-        records = n_steps // every + 1
-        out = np.full((n_traj, records, self._n), np.nan)
-        out[:, 0] = mu0
-        state = mu0.copy()
-        live = np.ones(n_traj, dtype=bool)
-        failed = np.full(n_traj, -1, dtype=np.int64)
-        for k in range(n_steps):
-            if not live.any():
-                break
-            new, ok = self.step(state[live], h)
-            idx = np.flatnonzero(live)
-            failed[idx[~ok]] = k
-            live[idx[~ok]] = False
-            state[idx[ok]] = new[ok]
-            if (k + 1) % every == 0:
-                out[live, (k + 1) // every] = state[live]
-        info = {
-            "converged": failed < 0,
-            "failed_step": failed,
-            "failure_code": np.where(failed < 0, 0, 1).astype(np.int8),
-            "newton_iterations": np.zeros(n_traj, dtype=np.uint64),
-            "max_newton_iterations": np.zeros(n_traj, dtype=np.uint32),
-            "max_residual": np.zeros(n_traj, dtype=np.float64),
-        }
-        return out, info
+        """The rollout, in the Rust core (``_core.rollout_polynomial_realization``): the same
+        Newton bisection as :meth:`step`, with the maps and S as polynomial coefficients."""
+        from .. import _core
+
+        return _core.rollout_polynomial_realization(
+            *self._tables,
+            np.ascontiguousarray(mu0, dtype=np.float64),
+            float(h),
+            int(n_steps),
+            int(every),
+            self.tol,
+            self.max_iter,
+        )
 
 
 #: The classical integrators of a polynomial-bivector system: (order, Poisson map).

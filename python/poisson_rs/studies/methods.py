@@ -12,7 +12,7 @@ cocycle) with the same Lie–Poisson methods run on their central extension at l
 midpoint, DOP853); polynomial bivectors (a cubic Nambu bracket, ...) with Taylor-HJ on an
 approximate realization (chart name "realization": the order that matches the Taylor order, see
 :func:`~poisson_rs.structures.polynomial.matched_realization_order`; "realization1" to
-"realization6" pick one; NumPy) and RK4, midpoint and DOP853 on the vector field (NumPy).
+"realization6" pick one; Rust) and RK4, midpoint and DOP853 on the vector field (NumPy).
 Names follow one pattern everywhere: ``taylor{k}-{chart}`` and the classical method's own name.
 """
 
