@@ -16,6 +16,7 @@ use nalgebra::{Const, DimMin, SMatrix, SVector};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
+use crate::generating::{GeneratingFunction, Workspace};
 use crate::realization::{Generating, Realization, RealizationStepper};
 use crate::stepper::{NewtonOptions, StepMap, StepResult, StepStats};
 
@@ -151,6 +152,56 @@ impl<const N: usize> Generating<N> for ExpPolynomial<N> {
         Dual1 { v: j.v, g: j.g }
     }
 }
+
+/// A learned generating function on the log-canonical groupoid: exact Taylor terms
+/// ([`ExpPolynomial`]) plus t^m · N(t, q), the network term of a [`GeneratingFunction`] with
+/// plain inputs (t, q) and no polynomial part. Both derivatives are exact: closed form for the
+/// Taylor terms, forward-mode duals through the MLP.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LearnedExp<const N: usize> {
+    pub taylor: ExpPolynomial<N>,
+    pub network: GeneratingFunction<N>,
+}
+
+impl<const N: usize> LearnedExp<N> {
+    /// Refuses a network part with polynomial terms of its own (they would be read as
+    /// polynomials in q, not in y = e^q).
+    pub fn new(
+        taylor: ExpPolynomial<N>,
+        network: GeneratingFunction<N>,
+    ) -> Result<Self, CoreError> {
+        if !network.polynomial.terms.is_empty() {
+            return Err(CoreError::Invalid(
+                "the network part of a log-canonical generating function must hold no \
+                 polynomial terms (the Taylor terms are exponential monomials)"
+                    .into(),
+            ));
+        }
+        Ok(LearnedExp { taylor, network })
+    }
+}
+
+impl<const N: usize> Generating<N> for LearnedExp<N> {
+    type Workspace = Workspace<N>;
+    fn workspace(&self) -> Workspace<N> {
+        self.network.workspace()
+    }
+    fn jet(&self, t: f64, p: &[f64; N], ws: &mut Workspace<N>) -> Jet2<N> {
+        self.taylor.jet_at(t, p) + self.network.jet(t, p, ws)
+    }
+    fn gradient(&self, t: f64, p: &[f64; N], ws: &mut Workspace<N>) -> Dual1<N> {
+        let taylor = self.taylor.jet_at(t, p);
+        let net = self.network.gradient(t, p, ws);
+        Dual1 {
+            v: taylor.v + net.v,
+            g: std::array::from_fn(|i| taylor.g[i] + net.g[i]),
+        }
+    }
+}
+
+/// The learned bisection integrator of a log-canonical structure, state q = ln x.
+pub type LearnedLogBisection<const N: usize> =
+    RealizationStepper<N, LogCanonical<N>, LearnedExp<N>>;
 
 /// A log-canonical system: the structure c and H = Σ_m a_m x^{e_m} − Σ_i b_i ln x_i
 /// (exponents ≥ 0), ẋ_i = x_i Σ_j c_ij (x_j ∂H/∂x_j) = x_i Σ_j c_ij (Σ_m a_m e_mj x^{e_m} − b_j).

@@ -6,6 +6,6 @@
 pub mod log_canonical;
 
 pub use log_canonical::{
-    ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
-    OrthantChecked,
+    ExpMonomial, ExpPolynomial, LearnedExp, LearnedLogBisection, LogBisection, LogCanonical,
+    LogClassical, LogMethod, LogSystem, OrthantChecked,
 };
