@@ -195,7 +195,7 @@ def step_map(
     """One step of the bisection integrator of ``s_fn`` in torch (the oracle of the Rust step):
     Newton on q + ½ c ∇S(h, q) = q_k from q = q_k with the autograd Hessian, then
     q_{k+1} = q − ½ c ∇S(h, q). q (B, n) float64 → (B, n); NaN rows where Newton fails."""
-    c = torch.as_tensor(system.c, dtype=q.dtype)
+    c = torch.tensor(np.array(system.c), dtype=q.dtype)
     n = q.shape[1]
     t = torch.full((q.shape[0],), float(h), dtype=q.dtype)
     z = q.detach().clone()
