@@ -3,7 +3,7 @@ the classical integrators: error at the PNN horizon (1500 steps of h = 0.1) agai
 (rtol = atol = 1e-13), energy drift, and steps per second, for several seeds.
 
     taskset -c 0 .venv/bin/python benches/learned_log_canonical.py --seeds 0 1 2 \\
-        --widths 8 8 --iterations 6000 --out docs/learned_log_canonical.json
+        --widths 8 8 --iterations 3000 --lbfgs 2000 --out docs/learned_log_canonical.json
 
 Writes the table as JSON (and CSV beside it) and prints it. ``--save-model PATH`` keeps the
 model of the first seed.
@@ -52,6 +52,7 @@ def main() -> None:
     ap.add_argument("--widths", type=int, nargs="+", default=[8, 8])
     ap.add_argument("--iterations", type=int, default=6000)
     ap.add_argument("--taylor-order", type=int, default=3)
+    ap.add_argument("--lbfgs", type=int, default=0, help="L-BFGS iterations after Adam")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--save-model", type=Path, default=None)
@@ -74,6 +75,7 @@ def main() -> None:
             widths=tuple(args.widths),
             iterations=args.iterations,
             seed=seed,
+            lbfgs_iterations=args.lbfgs,
         )
         result = hj.train_log_canonical(cfg, progress=False)
         model = LearnedLogCanonicalIntegrator(hj.model_bytes(result.model, cfg))
@@ -89,7 +91,8 @@ def main() -> None:
             command = (
                 "taskset -c 0 .venv/bin/python benches/learned_log_canonical.py --seeds "
                 f"{seed} --widths {' '.join(map(str, args.widths))} --iterations "
-                f"{args.iterations} --taylor-order {k} --save-model {args.save_model}"
+                f"{args.iterations} --lbfgs {args.lbfgs} --taylor-order {k} "
+                f"--save-model {args.save_model}"
             )
             hj.save_result(result, args.save_model, name=args.save_model.stem, command=command)
     for r in rows:
