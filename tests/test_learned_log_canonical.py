@@ -224,3 +224,22 @@ def test_states_outside_the_orthant_are_refused(x0):
     model = LearnedLogCanonicalIntegrator(hj.model_bytes(hj.build_model(cfg), cfg))
     with pytest.raises(ValueError, match="positive orthant"):
         pr.integrate(model, x0, h=0.1, n_steps=1)
+
+
+def test_shipped_model_beats_its_taylor_base_on_the_pnn_scene():
+    # The rule for a shipped network: it must beat the Taylor terms it is built on. Error at
+    # PNN's horizon (1500 steps of h = 0.1) against a tight DOP853 reference.
+    model = pr.load_model("lotka_volterra_h01")
+    assert isinstance(model, LearnedLogCanonicalIntegrator)
+    assert model.system == PNN and model.taylor_order == 3 and model.n_parameters == 41
+    assert "benches/learned_log_canonical.py" in model.metadata["command"]
+    assert model.metadata["seed"] == "0"
+    x0 = np.array([[1.0, 0.8], [1.0, 1.0], [1.0, 1.2]])
+    ref = pr.integrate(
+        pr.log_canonical_classical(PNN, "dop853", tol=1e-13), x0, h=0.1, n_steps=1500
+    )
+    learned = pr.integrate(model, x0, h=0.1, n_steps=1500)
+    taylor = pr.integrate(pr.log_canonical_taylor(PNN, 3), x0, h=0.1, n_steps=1500)
+    err_learned = np.abs(learned[:, -1] - ref[:, -1]).max()
+    err_taylor = np.abs(taylor[:, -1] - ref[:, -1]).max()
+    assert err_learned < err_taylor / 30
