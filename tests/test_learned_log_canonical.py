@@ -243,3 +243,14 @@ def test_shipped_model_beats_its_taylor_base_on_the_pnn_scene():
     err_learned = np.abs(learned[:, -1] - ref[:, -1]).max()
     err_taylor = np.abs(taylor[:, -1] - ref[:, -1]).max()
     assert err_learned < err_taylor / 30
+
+
+def test_reading_the_structure_never_blocks_on_a_fifo(tmp_path):
+    # load_model reads the header to find the structure before the loader's own checks: a FIFO
+    # must still get the loader's error, not hang the call.
+    import os
+
+    fifo = tmp_path / "model.safetensors"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="FIFO"):
+        pr.load_model(fifo)

@@ -25,6 +25,7 @@ import json
 import math
 import os
 import re
+import stat
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -386,7 +387,12 @@ def model_structure(path: str | os.PathLike[str]) -> str:
     ``lie_poisson``, so that the loader names what is wrong with it; a readable header with an
     unknown structure raises one :class:`~poisson_rs.untrusted.InputError` (ValueError)."""
     try:
-        with open(path, "rb") as f:
+        # Non-blocking open and a regular-file check on the open descriptor: a FIFO or a device
+        # is left to the loader, which refuses it by name (check_input_file), never read here.
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                return STRUCTURES[0]
             size = int.from_bytes(f.read(8), "little")
             if not 0 < size <= _MAX_HEADER_BYTES:
                 return STRUCTURES[0]
