@@ -24,7 +24,8 @@ use crate::generating::Workspace;
 use crate::groupoid::LieAlgebra;
 use crate::lanes::Lanes;
 use crate::memory::try_with_capacity;
-use crate::model::{Model, FORMAT};
+use crate::model::{LogModel, Model, FORMAT};
+use crate::realization::Generating;
 use crate::rollout::{n_records, ChunkKernel, PerStep, Rollout, TrajectoryInfo};
 use crate::stepper::{batch_size, NewtonOptions};
 use crate::system::{self, Hamiltonian, LiePoisson, VectorField};
@@ -912,6 +913,143 @@ fn rollout_log_canonical<'py>(
     }, Err(dim_error(dim)))
 }
 
+/// A learned generating function of a log-canonical structure π_ij = c_ij x_i x_j, loaded from
+/// a model file whose metadata says `structure = log_canonical`: S(t, q) = exact Taylor terms
+/// + t^m · MLP(t, q) in q = ln x, stepped on the exact groupoid (every monomial Casimir kept to
+/// round-off, whatever the network learned).
+#[pyclass(name = "LogCanonicalModel", module = "poisson_rs._core", frozen)]
+struct PyLogModel {
+    inner: LogModel,
+}
+
+#[pymethods]
+impl PyLogModel {
+    /// Loads a log-canonical model file. Raises FileNotFoundError or ValueError.
+    #[staticmethod]
+    fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        let inner = detached(py, || LogModel::from_file(&path))?;
+        Ok(PyLogModel { inner })
+    }
+
+    /// Parses the bytes of a log-canonical model file. Raises ValueError.
+    #[staticmethod]
+    fn from_bytes(py: Python<'_>, data: &[u8]) -> PyResult<Self> {
+        let inner = detached(py, || LogModel::from_bytes(data))?;
+        Ok(PyLogModel { inner })
+    }
+
+    /// The dimension N (number of species).
+    #[getter]
+    fn dim(&self) -> usize {
+        self.inner.dim
+    }
+
+    /// The structure matrix c, shape (N, N).
+    #[getter]
+    fn c<'py>(&self, py: Python<'py>) -> PyResult<Array<'py, Ix2>> {
+        let n = self.inner.dim;
+        Array2::from_shape_vec((n, n), self.inner.c.clone())
+            .map(|a| a.into_pyarray(py))
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))
+    }
+
+    /// The file's metadata, as strings.
+    #[getter]
+    fn metadata<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        for (k, v) in &self.inner.metadata {
+            d.set_item(k, v)?;
+        }
+        Ok(d)
+    }
+
+    #[getter]
+    fn mlp_power(&self) -> u32 {
+        self.inner.mlp_power
+    }
+
+    #[getter]
+    fn n_parameters(&self) -> usize {
+        self.inner.mlp.as_ref().map_or(0, |m| m.n_parameters())
+    }
+
+    #[getter]
+    fn n_polynomial_terms(&self) -> usize {
+        self.inner.n_polynomial_terms()
+    }
+
+    /// S, ∂S/∂q and ∂²S/∂q² at time t for q of shape (n, N): arrays (n,), (n, N), (n, N, N).
+    fn derivatives<'py>(
+        &self,
+        py: Python<'py>,
+        t: f64,
+        q: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
+        with_dim!(self.inner.dim, N => {
+            let q = states::<N>(&q, "q")?;
+            let g = self.inner.generating::<N>()?;
+            let n = q.len();
+            check_output_bytes(n.saturating_mul(1 + N + N * N), Workspace::bytes(&g.network))?;
+            let (s, grad, hess) = detached(py, || {
+                let mut ws = g.network.try_workspace()?;
+                let (mut s, mut grad, mut hess) = (
+                    try_with_capacity(n, "the output S")?,
+                    try_with_capacity(N * n, "the output dS/dq")?,
+                    try_with_capacity(N * N * n, "the output d2S/dq2")?,
+                );
+                for qi in &q {
+                    let jet = g.jet(t, qi, &mut ws);
+                    s.push(jet.v);
+                    grad.extend(jet.grad());
+                    hess.extend(jet.hess().iter().flatten());
+                }
+                Ok((s, grad, hess))
+            })?;
+            let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
+            Ok((
+                Array1::from_vec(s).into_pyarray(py),
+                Array2::from_shape_vec((n, N), grad).map_err(shape_err)?.into_pyarray(py),
+                Array3::from_shape_vec((n, N, N), hess).map_err(shape_err)?.into_pyarray(py),
+            ))
+        }, Err(dim_error(self.inner.dim)))
+    }
+
+    /// Rolls out the model's bisection integrator from each row of `q0` (n, N), in q = ln x:
+    /// solve q + ½ c ∇S(h, q) = q_k by Newton (|δ|∞ ≤ tol · max(|q|∞, 1)), then
+    /// q_{k+1} = q − ½ c ∇S(h, q). A step whose e^q leaves the float64 orthant fails (code 5
+    /// or 3). Returns the trajectories in q (n, n_steps // every + 1, N) and a dict of
+    /// per-trajectory arrays. Ctrl-C interrupts it (KeyboardInterrupt).
+    #[pyo3(signature = (q0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
+    #[allow(clippy::too_many_arguments)]
+    fn rollout<'py>(
+        &self,
+        py: Python<'py>,
+        q0: PyReadonlyArray2<'py, f64>,
+        h: f64,
+        n_steps: usize,
+        every: usize,
+        tol: f64,
+        max_iter: u32,
+    ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+        let newton = NewtonOptions::validated(tol, max_iter)?;
+        with_dim!(self.inner.dim, N => {
+            let stepper = self.inner.stepper::<N>(newton)?;
+            let q0 = finite_states::<N>(&q0, "q0")?;
+            run_rollout(py, &PerStep(&stepper), &q0, h, n_steps, every, None)
+        }, Err(dim_error(self.inner.dim)))
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "LogCanonicalModel(dim={}, polynomial_terms={}, mlp_parameters={}, mlp_power={})",
+            self.inner.dim,
+            self.n_polynomial_terms(),
+            self.n_parameters(),
+            self.inner.mlp_power
+        )
+    }
+}
+
 /// Rolls out the classical integrator `name` of the log-canonical system with structure `c`
 /// (N, N) and H = Σ_m coeffs[m] x^powers[m] − Σ_i b_i ln x_i (powers int64 (M, N) ≥ 0), from
 /// each row of `s0` (n, N): "rk4" and "midpoint" step x, "log_splitting" (Strang, order 2) and
@@ -1181,6 +1319,7 @@ fn polynomial_terms<const N: usize>(
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyModel>()?;
     m.add_class::<PyDiagnostics>()?;
+    m.add_class::<PyLogModel>()?;
     m.add_function(wrap_pyfunction!(rollout_model, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_classical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_lie_poisson, m)?)?;

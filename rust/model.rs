@@ -11,6 +11,10 @@
 //! Metadata (strings): `format` = [`FORMAT`], `chart` (`cayley` | `exp`; cayley for so(3) only);
 //! with an MLP also `mlp_power` (m ≥ 1) and `mlp_inputs` (`t,p` | `homogeneous`, see
 //! [`MlpInputs`]). Other keys (system, training record, …) are kept for the caller.
+//!
+//! A file whose metadata says `structure` = `log_canonical` holds a generating function of the
+//! log-canonical groupoid instead ([`LogModel`]); [`Model`] refuses it, and any other
+//! `structure` than `lie_poisson`, by name.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -22,6 +26,8 @@ use crate::generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Pol
 use crate::groupoid::{Chart, Groupoid, LieAlgebra};
 use crate::memory::{check_fits, try_collect, try_with_capacity};
 use crate::stepper::{BisectionStepper, NewtonOptions};
+use crate::structures::LearnedLogBisection;
+use crate::structures::{ExpMonomial, ExpPolynomial, LearnedExp, LogCanonical, OrthantChecked};
 use crate::{with_dim, MAX_DIM};
 
 /// The format tag every model file carries.
@@ -192,6 +198,7 @@ impl Model {
                 "format is '{format}', expected '{FORMAT}'"
             )));
         }
+        check_structure(&metadata, LIE_POISSON)?;
         let chart_name = get("chart")?;
         let chart = Chart::from_name(chart_name)
             .ok_or_else(|| format_err(format!("unknown chart '{chart_name}' (cayley or exp)")))?;
@@ -383,4 +390,279 @@ fn unreachable_dim(dim: usize) -> Result<(), CoreError> {
     Err(format_err(format!(
         "dimension {dim} is outside 1..={MAX_DIM}"
     )))
+}
+
+/// The `structure` metadata of a Lie–Poisson model file (also what a file without the key is).
+pub const LIE_POISSON: &str = "lie_poisson";
+/// The `structure` metadata of a log-canonical model file ([`LogModel`]).
+pub const LOG_CANONICAL: &str = "log_canonical";
+
+/// Refuses a file whose `structure` metadata is not `expected` (a file without the key is
+/// Lie–Poisson), naming both.
+fn check_structure(metadata: &HashMap<String, String>, expected: &str) -> Result<(), CoreError> {
+    let found = metadata
+        .get("structure")
+        .map_or(LIE_POISSON, String::as_str);
+    if found == expected {
+        return Ok(());
+    }
+    let known = [LIE_POISSON, LOG_CANONICAL];
+    Err(format_err(if known.contains(&found) {
+        format!("the model's structure is '{found}', not '{expected}': load it as such")
+    } else {
+        format!(
+            "unknown model structure '{}' (known: {})",
+            found.chars().take(60).collect::<String>(),
+            known.join(", ")
+        )
+    }))
+}
+
+/// An int64 tensor's shape and values.
+fn read_i64(st: &SafeTensors<'_>, name: &str) -> Result<(Vec<usize>, Vec<i64>), CoreError> {
+    let t = st
+        .tensor(name)
+        .map_err(|e| format_err(format!("tensor {name}: {e}")))?;
+    if t.dtype() != Dtype::I64 {
+        return Err(format_err(format!(
+            "tensor {name} must be int64, found {:?}",
+            t.dtype()
+        )));
+    }
+    let data = t.data();
+    let v = try_collect(
+        data.len() / 8,
+        data.chunks_exact(8).map(|b| {
+            let mut a = [0u8; 8];
+            a.copy_from_slice(b);
+            i64::from_le_bytes(a)
+        }),
+        &format!("tensor {name}"),
+    )?;
+    Ok((t.shape().to_vec(), v))
+}
+
+/// One term c · t^k · e^{e·q} as read.
+type RawExpMonomial = (u32, Vec<i32>, f64);
+
+/// A learned generating function of a log-canonical structure π_ij = c_ij x_i x_j, in q = ln x:
+/// S(t, q) = Σ coeffs · t^k e^{e·q} + t · linear·q + t^m · N(t, q).
+///
+/// Tensors: `structure.c` (N, N) antisymmetric; `poly.powers` int64 (M, 1 + N), rows
+/// (k, e₁, …, e_N) with 0 ≤ k ≤ 64 and |e_i| ≤ 256, `poly.coeffs` (M,), `poly.linear` (N,);
+/// `mlp.{i}.weight`/`.bias` as in a Lie–Poisson file, inputs (t, q₁, …, q_N). Metadata:
+/// `format`, `structure` = `log_canonical`, and with an MLP `mlp_power` (≥ 1) and
+/// `mlp_inputs` = `t,p`.
+#[derive(Clone, Debug)]
+pub struct LogModel {
+    pub dim: usize,
+    /// c flattened row-major, N² numbers.
+    pub c: Vec<f64>,
+    terms: Vec<RawExpMonomial>,
+    pub linear: Vec<f64>,
+    pub mlp: Option<Mlp>,
+    pub mlp_power: u32,
+    pub metadata: HashMap<String, String>,
+}
+
+impl LogModel {
+    /// Parses a log-canonical model from the bytes of a safetensors file.
+    pub fn from_bytes(bytes: &[u8]) -> Result<LogModel, CoreError> {
+        let (_, header) = SafeTensors::read_metadata(bytes)
+            .map_err(|e| format_err(format!("not a readable safetensors file ({e})")))?;
+        let metadata = header
+            .metadata()
+            .clone()
+            .ok_or_else(|| format_err("the file has no metadata; is it a poisson_rs model?"))?;
+        let format = metadata
+            .get("format")
+            .ok_or_else(|| format_err("metadata key 'format' is missing"))?;
+        if format != FORMAT {
+            return Err(format_err(format!(
+                "format is '{format}', expected '{FORMAT}'"
+            )));
+        }
+        if !metadata.contains_key("structure") {
+            return Err(format_err(format!(
+                "metadata key 'structure' is missing (a log-canonical model says \
+                 '{LOG_CANONICAL}')"
+            )));
+        }
+        check_structure(&metadata, LOG_CANONICAL)?;
+        let st = SafeTensors::deserialize(bytes)
+            .map_err(|e| format_err(format!("not a readable safetensors file ({e})")))?;
+        let mut n_layers = 0;
+        for name in st.names() {
+            match name {
+                "structure.c" | "poly.powers" | "poly.coeffs" | "poly.linear" => {}
+                _ => match layer_index(name).filter(|&i| i < MAX_LAYERS) {
+                    Some(i) => n_layers = n_layers.max(i + 1),
+                    None => return Err(format_err(format!("unexpected tensor '{name}'"))),
+                },
+            }
+        }
+        let tensor_bytes = st
+            .tensors()
+            .iter()
+            .map(|(_, t)| t.data().len())
+            .fold(0usize, usize::saturating_add);
+        check_fits(
+            tensor_bytes.saturating_mul(4),
+            "loading this model",
+            "the model is too large for this machine",
+        )?;
+        let (cshape, c) = read_f64(&st, "structure.c")?;
+        let dim = match cshape[..] {
+            [a, b] if a == b && (1..=MAX_DIM).contains(&a) => a,
+            _ => {
+                return Err(format_err(format!(
+                    "structure.c must have shape (N, N) with 1 <= N <= {MAX_DIM}, found \
+                     {cshape:?}"
+                )))
+            }
+        };
+        let (lshape, linear) = read_f64(&st, "poly.linear")?;
+        if lshape != [dim] {
+            return Err(format_err(format!(
+                "poly.linear must have shape ({dim},), found {lshape:?}"
+            )));
+        }
+        let (pshape, powers) = read_i64(&st, "poly.powers")?;
+        let (cs, coeffs) = read_f64(&st, "poly.coeffs")?;
+        if pshape.len() != 2 || pshape[1] != dim + 1 || cs != [pshape[0]] {
+            return Err(format_err(format!(
+                "poly.powers must have shape (M, {}) and poly.coeffs (M,), found {pshape:?} and \
+                 {cs:?}",
+                dim + 1
+            )));
+        }
+        let mut terms = try_with_capacity(coeffs.len(), "the polynomial terms")?;
+        for (row, &coeff) in powers.chunks_exact(dim + 1).zip(&coeffs) {
+            let t_power = u32::try_from(row[0])
+                .ok()
+                .filter(|&k| i64::from(k) <= MAX_POWER)
+                .ok_or_else(|| {
+                    format_err(format!(
+                        "poly.powers holds t-power {}, outside 0..={MAX_POWER}",
+                        row[0]
+                    ))
+                })?;
+            let max_e = i64::from(crate::structures::log_canonical::MAX_EXPONENT);
+            if let Some(&bad) = row[1..].iter().find(|&&e| !(-max_e..=max_e).contains(&e)) {
+                return Err(format_err(format!(
+                    "poly.powers holds exponent {bad}, outside -{max_e}..={max_e}"
+                )));
+            }
+            terms.push((t_power, row[1..].iter().map(|&e| e as i32).collect(), coeff));
+        }
+        let mlp = if n_layers > 0 {
+            Some(read_mlp(&st, n_layers)?)
+        } else {
+            None
+        };
+        let mlp_power = match (&mlp, metadata.get("mlp_power")) {
+            (None, _) => 0,
+            (Some(_), None) => return Err(format_err("metadata key 'mlp_power' is missing")),
+            (Some(_), Some(s)) => s
+                .parse::<u32>()
+                .ok()
+                .filter(|&m| (1..=MAX_POWER).contains(&i64::from(m)))
+                .ok_or_else(|| {
+                    format_err(format!(
+                        "mlp_power '{s}' is not an integer in 1..={MAX_POWER}"
+                    ))
+                })?,
+        };
+        if mlp.is_some() {
+            match metadata.get("mlp_inputs").map(String::as_str) {
+                Some("t,p") => {}
+                Some(s) => {
+                    return Err(format_err(format!(
+                        "mlp_inputs '{s}' is not supported by a log-canonical model (t,p)"
+                    )))
+                }
+                None => return Err(format_err("metadata key 'mlp_inputs' is missing")),
+            }
+        }
+        let model = LogModel {
+            dim,
+            c,
+            terms,
+            linear,
+            mlp,
+            mlp_power,
+            metadata,
+        };
+        with_dim!(dim, N => {
+            model.generating::<N>()?;
+            model.structure::<N>().map_err(|e| format_err(e.to_string()))?;
+        }, unreachable_dim(dim)?);
+        Ok(model)
+    }
+
+    /// Reads and parses a log-canonical model file.
+    pub fn from_file(path: &Path) -> Result<LogModel, CoreError> {
+        let bytes = std::fs::read(path).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => CoreError::NotFound(path.display().to_string()),
+            _ => CoreError::Io(format!("{}: {e}", path.display())),
+        })?;
+        LogModel::from_bytes(&bytes)
+    }
+
+    fn check_dim<const N: usize>(&self) -> Result<(), CoreError> {
+        if N != self.dim || self.c.len() != N * N || self.linear.len() != N {
+            return Err(CoreError::Invalid(format!(
+                "the model has dimension {}, not {N}",
+                self.dim
+            )));
+        }
+        Ok(())
+    }
+
+    /// The structure c, for dimension N = `self.dim`.
+    pub fn structure<const N: usize>(&self) -> Result<LogCanonical<N>, CoreError> {
+        self.check_dim::<N>()?;
+        LogCanonical::new(std::array::from_fn(|i| {
+            std::array::from_fn(|j| self.c[i * N + j])
+        }))
+    }
+
+    /// The generating function, for dimension N = `self.dim`.
+    pub fn generating<const N: usize>(&self) -> Result<LearnedExp<N>, CoreError> {
+        self.check_dim::<N>()?;
+        let mut terms = try_with_capacity(self.terms.len(), "the polynomial terms")?;
+        terms.extend(self.terms.iter().map(|(k, e, c)| ExpMonomial {
+            t_power: *k,
+            exponents: std::array::from_fn(|i| e[i]),
+            coeff: *c,
+        }));
+        let taylor = ExpPolynomial::new(terms, std::array::from_fn(|i| self.linear[i]))
+            .map_err(|e| format_err(e.to_string()))?;
+        let network = GeneratingFunction::new(
+            Polynomial::default(),
+            self.mlp.clone(),
+            self.mlp_power,
+            MlpInputs::Plain,
+        )?;
+        LearnedExp::new(taylor, network)
+    }
+
+    /// The model's integrator in q = ln x (Newton stops once |δ|∞ ≤ tol · max(|q|∞, 1); a step
+    /// whose e^q leaves the float64 orthant fails), for dimension N = `self.dim`.
+    pub fn stepper<const N: usize>(
+        &self,
+        newton: NewtonOptions,
+    ) -> Result<OrthantChecked<LearnedLogBisection<N>>, CoreError> {
+        Ok(OrthantChecked(LearnedLogBisection {
+            generating: self.generating::<N>()?,
+            realization: self.structure::<N>()?,
+            newton,
+            scale_floor: 1.0,
+        }))
+    }
+
+    /// Terms of the exponential-polynomial (Taylor) part.
+    pub fn n_polynomial_terms(&self) -> usize {
+        self.terms.len()
+    }
 }

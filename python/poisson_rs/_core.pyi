@@ -70,6 +70,46 @@ class Model:
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """S (n,) and ∂S/∂t (n,) at time t; MemoryError as for :meth:`derivatives`."""
 
+class LogCanonicalModel:
+    """A learned generating function of a log-canonical structure π_ij = c_ij x_i x_j, from a
+    model file whose metadata says ``structure = log_canonical``: S(t, q) = Taylor terms
+    (exponential monomials t^k e^{e·q} and t·linear·q) + t^m · MLP(t, q), q = ln x."""
+
+    @staticmethod
+    def load(path: str | PathLike[str]) -> LogCanonicalModel:
+        """FileNotFoundError, ValueError for a malformed file or one of another structure."""
+    @staticmethod
+    def from_bytes(data: bytes) -> LogCanonicalModel: ...
+    @property
+    def dim(self) -> int: ...
+    @property
+    def c(self) -> npt.NDArray[np.float64]:
+        """The structure matrix, shape (N, N)."""
+    @property
+    def metadata(self) -> dict[str, str]: ...
+    @property
+    def mlp_power(self) -> int: ...
+    @property
+    def n_parameters(self) -> int: ...
+    @property
+    def n_polynomial_terms(self) -> int: ...
+    def derivatives(
+        self, t: float, q: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """S (n,), ∂S/∂q (n, N), ∂²S/∂q² (n, N, N) at time t, exact (forward-mode duals)."""
+    def rollout(
+        self,
+        q0: npt.NDArray[np.float64],
+        h: float,
+        n_steps: int,
+        every: int = 1,
+        tol: float = 1e-12,
+        max_iter: int = 50,
+    ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+        """Trajectories in q (n, n_steps // every + 1, N) and per-trajectory diagnostics (n,);
+        full Newton on q + ½ c ∇S(h, q) = q_k, then q − ½ c ∇S(h, q). A step whose e^q leaves
+        the float64 orthant fails (code 5 or 3)."""
+
 def rollout_model(
     model: Model,
     mu0: npt.NDArray[np.float64],

@@ -13,6 +13,10 @@ parameters, so :func:`poisson_rs.load_model` rebuilds it), ``inertia`` (rigid bo
 ``domain``, ``final_loss``, ``command``, ``seed``, ``train_seconds``, ``package_version``,
 ``name``. Files written before other systems existed say ``system = "rigid_body"`` and give the
 body by ``inertia``; they still load.
+
+A ``structure`` metadata key names what the generating function lives on: absent or
+``lie_poisson`` for the layout above, ``log_canonical`` for a log-canonical model
+(:mod:`poisson_rs.realizations.log_canonical_hj`, read by :func:`parse_log_canonical_metadata`).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import json
 import math
 import os
 import re
+import stat
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -367,3 +372,98 @@ def load_generating(
             layer.weight.copy_(torch.from_numpy(tensors[f"mlp.{i}.weight"]))
             layer.bias.copy_(torch.from_numpy(tensors[f"mlp.{i}.bias"]))
     return s_fn.eval()
+
+
+#: Values of a model file's ``structure`` metadata (``lie_poisson`` where the key is absent).
+STRUCTURES = ("lie_poisson", "log_canonical")
+
+#: Largest safetensors header read to find a file's structure (the format's own limit).
+_MAX_HEADER_BYTES = 100_000_000
+
+
+def model_structure(path: str | os.PathLike[str]) -> str:
+    """The ``structure`` a model file's metadata states (``lie_poisson`` where it states none),
+    from the safetensors header alone. A file whose header cannot be read is reported as
+    ``lie_poisson``, so that the loader names what is wrong with it; a readable header with an
+    unknown structure raises one :class:`~poisson_rs.untrusted.InputError` (ValueError)."""
+    try:
+        # Non-blocking open and a regular-file check on the open descriptor: a FIFO or a device
+        # is left to the loader, which refuses it by name (check_input_file), never read here.
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                return STRUCTURES[0]
+            size = int.from_bytes(f.read(8), "little")
+            if not 0 < size <= _MAX_HEADER_BYTES:
+                return STRUCTURES[0]
+            header = json.loads(f.read(size))
+        meta = header.get("__metadata__") if isinstance(header, dict) else None
+        value = meta.get("structure", STRUCTURES[0]) if isinstance(meta, dict) else STRUCTURES[0]
+    except (OSError, ValueError, UnicodeDecodeError):
+        return STRUCTURES[0]
+    with parsing(f"model file {os.fspath(path)}", "structure"):
+        if value not in STRUCTURES:
+            text = value[:60] if isinstance(value, str) else repr(value)[:60]
+            raise ValueError(f"unknown model structure {text!r}; known: {', '.join(STRUCTURES)}")
+    return str(value)
+
+
+_LOG_REQUIRED = ("format", "structure", "widths", "system", "h_max", "domain")
+
+
+def parse_log_canonical_metadata(
+    raw: Mapping[str, str], source: str = "model metadata"
+) -> dict[str, Any]:
+    """Checks and decodes the metadata of a log-canonical model file: ``system`` becomes a
+    :class:`~poisson_rs.structures.log_canonical.LogCanonicalSystem`, ``h_max`` a positive
+    float, ``domain`` a box ``{"kind": "box", "x_min": [...], "x_max": [...]}`` in the open
+    positive orthant, ``widths`` a tuple. Any problem raises one
+    :class:`~poisson_rs.untrusted.InputError` (ValueError) naming ``source`` and the field."""
+    from .structures.log_canonical import LogCanonicalSystem
+
+    with parsing(source):
+        if not isinstance(raw, Mapping):
+            raise TypeError(f"metadata must be a mapping of strings, got {type(raw).__name__}")
+        missing = [k for k in _LOG_REQUIRED if k not in raw]
+        if missing:
+            raise ValueError(f"model metadata lacks {', '.join(missing)}")
+    meta: dict[str, Any] = dict(raw)
+    with parsing(source, "structure"):
+        if raw["structure"] != "log_canonical":
+            raise ValueError(f"structure is {raw['structure'][:40]!r}, not 'log_canonical'")
+    with parsing(source, "system"):
+        spec = _json(raw, "system")
+        meta["system"] = LogCanonicalSystem.from_dict(spec)
+    dim = meta["system"].dim
+    with parsing(source, "h_max"):
+        meta["h_max"] = _float(raw, "h_max")
+        if not 0 < meta["h_max"] < math.inf:
+            raise ValueError(f"metadata 'h_max' must be a finite number > 0, got {raw['h_max']!r}")
+    with parsing(source, "widths"):
+        widths = _json(raw, "widths")
+        if not isinstance(widths, list) or not all(
+            isinstance(w, int) and not isinstance(w, bool) and w > 0 for w in widths
+        ):
+            raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
+        meta["widths"] = tuple(widths)
+    with parsing(source, "taylor_order"):
+        meta["taylor_order"] = (
+            _int(raw, "taylor_order", 0, _MAX_ORDER) if "taylor_order" in raw else 0
+        )
+    with parsing(source, "domain"):
+        domain = _json(raw, "domain")
+        ok = isinstance(domain, dict) and domain.get("kind") == "box"
+        lo, hi = (domain.get(k) if ok else None for k in ("x_min", "x_max"))
+        ok = ok and all(
+            isinstance(v, list)
+            and len(v) == dim
+            and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in v)
+            for v in (lo, hi)
+        )
+        if not ok or not all(0 < a < b < math.inf for a, b in zip(lo, hi, strict=True)):
+            raise ValueError(
+                f"metadata 'domain' must be a box with {dim} bounds 0 < x_min < x_max: "
+                f"{raw['domain'][:80]!r}"
+            )
+        meta["domain"] = domain
+    return meta

@@ -18,7 +18,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from . import _core
-from .export import DOMAIN_KINDS, load_generating, model_bytes, parse_metadata, read_tensor
+from .export import (
+    DOMAIN_KINDS,
+    load_generating,
+    model_bytes,
+    model_structure,
+    parse_log_canonical_metadata,
+    parse_metadata,
+    read_tensor,
+)
 from .files import check_input_file
 from .groupoid import sou
 from .systems import HeavyTop, LiePoissonSystem, RigidBody
@@ -388,7 +396,7 @@ def load_model(
     tol: float = 1e-12,
     max_iter: int = 50,
     newton: Literal["simplified", "full"] = "simplified",
-) -> LearnedIntegrator:
+) -> LearnedIntegrator | LearnedLogCanonicalIntegrator:
     """Loads a learned integrator.
 
     ``path`` is a model file, the name of a shipped model (see :func:`list_models`), or None for
@@ -396,7 +404,9 @@ def load_model(
     iteration cap). Models large enough to be solved in batches (``batch > 1``, e.g. the paper's)
     use simplified Newton by default: the Jacobian of a step's first update is kept while the
     updates contract by 4× or more; ``newton="full"`` recomputes it every update. Both agree to
-    ``tol``. Raises FileNotFoundError for a missing file, ValueError for a corrupt one.
+    ``tol``. Raises FileNotFoundError for a missing file, ValueError for a corrupt one or one
+    whose metadata names an unknown ``structure``. A file recording ``structure =
+    log_canonical`` loads as a :class:`LearnedLogCanonicalIntegrator` (full Newton always).
     """
     if path is None:
         path = DEFAULT_MODEL
@@ -409,6 +419,8 @@ def load_model(
             f"no model file {os.fspath(path)!r}, and no shipped model of that name; shipped "
             f"models: {', '.join(list_models())}"
         )
+    if model_structure(path) == "log_canonical":
+        return LearnedLogCanonicalIntegrator(Path(path), tol=tol, max_iter=max_iter)
     return LearnedIntegrator(Path(path), tol=tol, max_iter=max_iter, newton=newton)
 
 
@@ -793,6 +805,12 @@ def integrate(
     if on_failure not in _ON_FAILURE:
         raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
     domain: dict[str, Any] | None = None
+    if isinstance(stepper, LearnedLogCanonicalIntegrator):
+        if strict and h > stepper.h_max:
+            raise ValueError(
+                f"h = {h} exceeds h_max = {stepper.h_max}, the largest step {stepper.name!r} "
+                "was trained for; pass strict=False to extrapolate"
+            )
     if isinstance(stepper, BisectionIntegrator):
         domain = stepper.domain
         if strict and math.isfinite(stepper.h_max) and h > stepper.h_max:
@@ -1289,6 +1307,85 @@ def _restore_log_taylor(
     from .structures.log_canonical import LogCanonicalSystem
 
     return cls(LogCanonicalSystem.from_dict(data), order, tol=tol, max_iter=max_iter)
+
+
+class LearnedLogCanonicalIntegrator:
+    """A learned generating function on the exact log-canonical groupoid, read from a model file
+    whose metadata says ``structure = log_canonical``
+    (:mod:`poisson_rs.realizations.log_canonical_hj`): S(t, q) = exact Taylor terms +
+    t^m·MLP(t, q) in q = ln x. A step solves q + ½ c ∇S(h, q) = ln x_k by full Newton in Rust
+    (|δ|∞ ≤ tol · max(|q|∞, 1)) and returns x_{k+1} = exp(q − ½ c ∇S(h, q)): a Poisson map that
+    keeps every monomial Casimir to round-off whatever the network learned. States are x > 0.
+    Built by :func:`load_model`.
+    """
+
+    def __init__(self, source: Path | bytes, *, tol: float = 1e-12, max_iter: int = 50) -> None:
+        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        if isinstance(source, bytes):
+            data, where = source, "model bytes"
+        else:
+            check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
+            data, where = Path(source).read_bytes(), f"model file {source}"
+        self._bytes = data
+        with parsing(where):
+            self._core = _core.LogCanonicalModel.from_bytes(data)
+        self.metadata: dict[str, Any] = parse_log_canonical_metadata(self._core.metadata, where)
+        self.system = self.metadata["system"]
+        with parsing(where, "system"):
+            if self.system.dim != self._core.dim or not np.array_equal(self.system.c, self._core.c):
+                raise ValueError(
+                    f"metadata 'system' ({self.system!r}) does not match the file's structure.c"
+                )
+        self.h_max = float(self.metadata["h_max"])
+        self.domain: dict[str, Any] = self.metadata["domain"]
+        self.name = str(self.metadata.get("name", "learned-log-canonical"))
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+
+    @property
+    def dim(self) -> int:
+        return int(self._core.dim)
+
+    @property
+    def n_parameters(self) -> int:
+        return int(self._core.n_parameters)
+
+    @property
+    def mlp_power(self) -> int:
+        return int(self._core.mlp_power)
+
+    @property
+    def taylor_order(self) -> int:
+        return int(self.metadata["taylor_order"])
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_restore_learned_log, (type(self), self._bytes, self.tol, self.max_iter))
+
+    def derivatives(self, t: float, q: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """S, ∇_q S and ∇²_q S at time t for q (n, dim) = ln x, from the Rust core."""
+        arr = np.ascontiguousarray(np.asarray(q, dtype=np.float64).reshape(-1, self.dim))
+        return self._core.derivatives(float(t), arr)  # type: ignore[no-any-return]
+
+    def _rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        q, info = self._core.rollout(_positive_log(mu0), h, n_steps, every, self.tol, self.max_iter)
+        return _exp_states(q), info
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(name={self.name!r}, taylor_order={self.taylor_order}, "
+            f"mlp_power={self.mlp_power}, parameters={self.n_parameters}, system={self.system!r})"
+        )
+
+
+def _restore_learned_log(
+    cls: type[LearnedLogCanonicalIntegrator], data: bytes, tol: float, max_iter: int
+) -> LearnedLogCanonicalIntegrator:
+    return cls(data, tol=tol, max_iter=max_iter)
 
 
 #: Order of accuracy and whether a step is a Poisson map, for the classical integrators of a

@@ -183,6 +183,7 @@ class TrainConfig:
             return RigidBody(tuple(self.inertia))  # type: ignore[arg-type]
         if isinstance(self.system, LiePoissonSystem):  # assigned after construction
             return self.system
+        _refuse_log_canonical(self.system)
         with parsing("TrainConfig", "system"):
             return _decode_system(json.dumps(self.system, sort_keys=True))
 
@@ -333,6 +334,17 @@ class TrainConfig:
             # M and Γ scaled alike, so that each of the cube's and the shell's extents is O(1).
             return max(self.half_width, self.r_max)
         return self.r_max
+
+
+def _refuse_log_canonical(system: Any) -> None:
+    """ValueError for a log-canonical system given to the Lie–Poisson configuration, saying
+    which configuration trains it."""
+    kind = system.get("kind") if isinstance(system, Mapping) else getattr(system, "kind", None)
+    if kind == "log_canonical":
+        raise ValueError(
+            "TrainConfig field system: a log-canonical system is trained with "
+            "LogCanonicalTrainConfig (poisson_rs.realizations.log_canonical_hj), not TrainConfig"
+        )
 
 
 #: Values of ``TrainConfig.domain``.
@@ -829,6 +841,21 @@ def train(
     as the command line (:func:`default_threads`: 1 on a machine with at most 2 cores). The
     previous setting is restored afterwards.
     """
+    from .realizations.log_canonical_hj import LogCanonicalTrainConfig
+
+    if isinstance(cfg, LogCanonicalTrainConfig):
+        return _train_log_canonical(  # type: ignore[return-value]
+            cfg,
+            checkpoint=checkpoint,
+            resume=resume,
+            progress=progress,
+            log_every=log_every,
+            callback=callback,
+            stop=stop,
+            data=data,
+            max_seconds=max_seconds,
+            threads=threads,
+        )
     cfg.validate()
     _check_train_options(checkpoint_every, max_seconds)
     n_threads = resolve_threads(threads)
@@ -851,6 +878,52 @@ def train(
             evaluate_every=evaluate_every,
             stop=stop,
             data=data,
+            max_seconds=max_seconds,
+        )
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _train_log_canonical(
+    cfg: Any,
+    *,
+    checkpoint: str | Path | None,
+    resume: bool,
+    progress: bool,
+    log_every: int,
+    callback: Callable[[int, float], None] | None,
+    stop: Callable[[int, GeneratingFunction], bool] | None,
+    data: tuple[np.ndarray, np.ndarray] | None,
+    max_seconds: float | None,
+    threads: int | None,
+) -> Any:
+    """:func:`train` for a log-canonical configuration: the HJ loss alone, with the package's
+    thread policy (:func:`~poisson_rs.realizations.log_canonical_hj.train_log_canonical`).
+    Checkpoints, data terms and early stops are Lie–Poisson features: asking for one is a
+    ValueError naming it."""
+    from .realizations.log_canonical_hj import train_log_canonical
+
+    unsupported = {
+        "checkpoint": checkpoint is not None,
+        "resume": resume,
+        "stop": stop is not None,
+        "data": data is not None,
+    }
+    for name, given in unsupported.items():
+        if given:
+            raise ValueError(
+                f"train(): {name} is not supported for a log-canonical configuration "
+                "(LogCanonicalTrainConfig trains on the HJ residual alone)"
+            )
+    n_threads = resolve_threads(threads)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n_threads)
+    try:
+        return train_log_canonical(
+            cfg,
+            progress=progress,
+            log_every=log_every,
+            callback=callback,
             max_seconds=max_seconds,
         )
     finally:

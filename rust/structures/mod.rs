@@ -9,8 +9,8 @@ pub mod log_canonical;
 pub mod polynomial;
 
 pub use log_canonical::{
-    ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
-    OrthantChecked,
+    ExpMonomial, ExpPolynomial, LearnedExp, LearnedLogBisection, LogBisection, LogCanonical,
+    LogClassical, LogMethod, LogSystem, OrthantChecked,
 };
 pub use polynomial::{
     PolynomialBisection, PolynomialGenerating, PolynomialRealization, SparsePolynomial,
