@@ -74,13 +74,25 @@ fn format_err(m: impl Into<String>) -> CoreError {
     CoreError::Format(m.into())
 }
 
-fn read_f64(st: &SafeTensors<'_>, name: &str) -> Result<(Vec<usize>, Vec<f64>), CoreError> {
+/// A tensor's shape and values, `dtype` checked and each 8-byte little-endian value decoded
+/// by `decode`.
+fn read_tensor<T>(
+    st: &SafeTensors<'_>,
+    name: &str,
+    dtype: Dtype,
+    decode: fn([u8; 8]) -> T,
+) -> Result<(Vec<usize>, Vec<T>), CoreError> {
     let t = st
         .tensor(name)
         .map_err(|e| format_err(format!("tensor {name}: {e}")))?;
-    if t.dtype() != Dtype::F64 {
+    if t.dtype() != dtype {
         return Err(format_err(format!(
-            "tensor {name} must be float64, found {:?}",
+            "tensor {name} must be {}, found {:?}",
+            if dtype == Dtype::F64 {
+                "float64"
+            } else {
+                "int64"
+            },
             t.dtype()
         )));
     }
@@ -90,11 +102,15 @@ fn read_f64(st: &SafeTensors<'_>, name: &str) -> Result<(Vec<usize>, Vec<f64>), 
         data.chunks_exact(8).map(|b| {
             let mut a = [0u8; 8];
             a.copy_from_slice(b);
-            f64::from_le_bytes(a)
+            decode(a)
         }),
         &format!("tensor {name}"),
     )?;
     Ok((t.shape().to_vec(), v))
+}
+
+fn read_f64(st: &SafeTensors<'_>, name: &str) -> Result<(Vec<usize>, Vec<f64>), CoreError> {
+    read_tensor(st, name, Dtype::F64, f64::from_le_bytes)
 }
 
 fn read_polynomial(st: &SafeTensors<'_>) -> Result<(usize, Vec<RawMonomial>), CoreError> {
@@ -420,26 +436,7 @@ fn check_structure(metadata: &HashMap<String, String>, expected: &str) -> Result
 
 /// An int64 tensor's shape and values.
 fn read_i64(st: &SafeTensors<'_>, name: &str) -> Result<(Vec<usize>, Vec<i64>), CoreError> {
-    let t = st
-        .tensor(name)
-        .map_err(|e| format_err(format!("tensor {name}: {e}")))?;
-    if t.dtype() != Dtype::I64 {
-        return Err(format_err(format!(
-            "tensor {name} must be int64, found {:?}",
-            t.dtype()
-        )));
-    }
-    let data = t.data();
-    let v = try_collect(
-        data.len() / 8,
-        data.chunks_exact(8).map(|b| {
-            let mut a = [0u8; 8];
-            a.copy_from_slice(b);
-            i64::from_le_bytes(a)
-        }),
-        &format!("tensor {name}"),
-    )?;
-    Ok((t.shape().to_vec(), v))
+    read_tensor(st, name, Dtype::I64, i64::from_le_bytes)
 }
 
 /// One term c · t^k · e^{e·q} as read.

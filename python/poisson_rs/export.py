@@ -201,6 +201,25 @@ def save_model(
     return atomic_write_bytes(path, data)
 
 
+def _read_widths(source: str, raw: Mapping[str, str], meta: dict[str, Any]) -> None:
+    """meta["widths"]: the MLP's layer widths, a list of positive integers."""
+    with parsing(source, "widths"):
+        widths = _json(raw, "widths")
+        if not isinstance(widths, list) or not all(
+            isinstance(w, int) and not isinstance(w, bool) and w > 0 for w in widths
+        ):
+            raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
+        meta["widths"] = tuple(widths)
+
+
+def _read_taylor_order(source: str, raw: Mapping[str, str], meta: dict[str, Any]) -> None:
+    """meta["taylor_order"]: the order of the exact Taylor terms (0 when not recorded)."""
+    with parsing(source, "taylor_order"):
+        meta["taylor_order"] = (
+            _int(raw, "taylor_order", 0, _MAX_ORDER) if "taylor_order" in raw else 0
+        )
+
+
 def _json(meta: Mapping[str, str], key: str) -> Any:
     """The JSON value of metadata ``key`` (the caller runs it inside :func:`parsing`)."""
     value = meta[key]
@@ -312,17 +331,8 @@ def parse_metadata(raw: Mapping[str, str], source: str = "model metadata") -> di
             raise ValueError(f"metadata 'h_max' overflows float64: {raw['h_max']!r}")
     with parsing(source, "mlp_power"):
         meta["mlp_power"] = _int(raw, "mlp_power", 0, _MAX_ORDER)
-    with parsing(source, "taylor_order"):
-        meta["taylor_order"] = (
-            _int(raw, "taylor_order", 0, _MAX_ORDER) if "taylor_order" in raw else 0
-        )
-    with parsing(source, "widths"):
-        widths = _json(raw, "widths")
-        if not isinstance(widths, list) or not all(
-            isinstance(w, int) and not isinstance(w, bool) and w > 0 for w in widths
-        ):
-            raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
-        meta["widths"] = tuple(widths)
+    _read_taylor_order(source, raw, meta)
+    _read_widths(source, raw, meta)
     with parsing(source, "domain"):
         domain = _json(raw, "domain")
         if not isinstance(domain, dict) or domain.get("kind") not in DOMAIN_KINDS:
@@ -439,17 +449,8 @@ def parse_log_canonical_metadata(
         meta["h_max"] = _float(raw, "h_max")
         if not 0 < meta["h_max"] < math.inf:
             raise ValueError(f"metadata 'h_max' must be a finite number > 0, got {raw['h_max']!r}")
-    with parsing(source, "widths"):
-        widths = _json(raw, "widths")
-        if not isinstance(widths, list) or not all(
-            isinstance(w, int) and not isinstance(w, bool) and w > 0 for w in widths
-        ):
-            raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
-        meta["widths"] = tuple(widths)
-    with parsing(source, "taylor_order"):
-        meta["taylor_order"] = (
-            _int(raw, "taylor_order", 0, _MAX_ORDER) if "taylor_order" in raw else 0
-        )
+    _read_widths(source, raw, meta)
+    _read_taylor_order(source, raw, meta)
     with parsing(source, "domain"):
         domain = _json(raw, "domain")
         ok = isinstance(domain, dict) and domain.get("kind") == "box"
