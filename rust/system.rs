@@ -224,7 +224,7 @@ const MAX_POWER: usize = MAX_HAMILTONIAN_DEGREE as usize;
 
 /// One product c · Π μ_v^p of a derivative of H, added into slot `out` (a gradient component,
 /// or a Hessian entry i·N + m); its factors (v, p ≥ 1) are `factors[start..end]`.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 struct Product {
     out: usize,
     coeff: f64,
@@ -253,6 +253,24 @@ pub struct CompiledLiePoisson<const N: usize> {
     grad_degree: usize,
     /// bracket[row_end[j − 1]..row_end[j]] are the entries of component j.
     row_end: [usize; N],
+    /// The field's terms, ordered by j: the bracket without the entries whose ∂ᵢH vanishes
+    /// identically, and with a constant ∂ᵢH folded into the coefficient (the heavy top's
+    /// mgl χ: 4 of its 18 entries dropped, 2 folded).
+    field_terms: Vec<FieldTerm>,
+    /// field_terms[field_row_end[j − 1]..field_row_end[j]] are the terms of component j.
+    field_row_end: [usize; N],
+    /// The products of ∇H whose component depends on μ (the field needs no others).
+    field_grad: Vec<Product>,
+}
+
+/// One term of the compiled field, μ̇_j += w μ_k: w = c ∂ᵢH(μ) for `grad: Some(i)`, or the
+/// constant w = c for `grad: None`, where c already holds c[i][j][k] ∂ᵢH computed as the
+/// scalar path computes it, so (c ∂ᵢH) μ_k has the same bits as c · ∂ᵢH · μ_k.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct FieldTerm {
+    grad: Option<usize>,
+    k: usize,
+    c: f64,
 }
 
 impl<const N: usize> CompiledLiePoisson<N> {
@@ -317,7 +335,42 @@ impl<const N: usize> CompiledLiePoisson<N> {
             .max()
             .unwrap_or(0);
         let row_end = std::array::from_fn(|j| bracket.iter().filter(|e| e.1 <= j).count());
+        // ∂ᵢH is constant when every product of component i has no factor; its value is the
+        // sum of their coefficients in order, from 0, as `gradient` sums them.
+        let mut constant = [true; N];
+        let mut value = [0.0; N];
+        let mut present = [false; N];
+        for t in &grad {
+            present[t.out] = true;
+            constant[t.out] &= t.start == t.end;
+            value[t.out] += t.coeff;
+        }
+        let mut field_terms = Vec::new();
+        for &(i, _, k, c) in &bracket {
+            if !present[i] {
+                continue;
+            }
+            field_terms.push(if constant[i] {
+                FieldTerm {
+                    grad: None,
+                    k,
+                    c: c * value[i],
+                }
+            } else {
+                FieldTerm {
+                    grad: Some(i),
+                    k,
+                    c,
+                }
+            });
+        }
+        let field_row_end =
+            std::array::from_fn(|j| bracket.iter().filter(|e| e.1 <= j && present[e.0]).count());
+        let field_grad = grad.iter().filter(|t| !constant[t.out]).copied().collect();
         CompiledLiePoisson {
+            field_terms,
+            field_row_end,
+            field_grad,
             row_end,
             bracket,
             grad,
@@ -381,16 +434,6 @@ impl<const N: usize> CompiledLiePoisson<N> {
         self.grad_degree > 1
     }
 
-    /// μ̇ given ∇H(μ) = g.
-    #[inline(always)]
-    fn bracket_apply(&self, g: &[f64; N], mu: &[f64; N]) -> [f64; N] {
-        let mut f = [0.0; N];
-        for &(i, j, k, c) in &self.bracket {
-            f[j] += c * g[i] * mu[k];
-        }
-        f
-    }
-
     /// Hess H(μ), symmetric.
     fn hessian(&self, mu: &[f64; N]) -> [[f64; N]; N] {
         let pw = self.powers(mu);
@@ -420,9 +463,28 @@ impl<const N: usize> CompiledLiePoisson<N> {
 }
 
 impl<const N: usize> VectorField<N> for CompiledLiePoisson<N> {
+    /// Σ over the compiled field terms, component by component (the lanes' order).
     #[inline]
     fn field(&self, mu: &[f64; N]) -> [f64; N] {
-        self.bracket_apply(&self.gradient(mu), mu)
+        let mut g = [0.0; N];
+        if self.needs_powers() {
+            let pw = self.powers(mu);
+            self.sum_products(&self.field_grad, |v, p| pw[v][p], &mut g);
+        } else {
+            self.sum_products(&self.field_grad, |v, _| mu[v], &mut g);
+        }
+        let mut f = [0.0; N];
+        let mut start = 0;
+        for j in 0..N {
+            for t in &self.field_terms[start..self.field_row_end[j]] {
+                f[j] += match t.grad {
+                    Some(i) => t.c * g[i] * mu[t.k],
+                    None => t.c * mu[t.k],
+                };
+            }
+            start = self.field_row_end[j];
+        }
+        f
     }
 
     /// J[j][m] = Σ c[i][j][k] (∂ᵢH δ_km + ∂ᵢ∂_mH μ_k).
@@ -470,23 +532,33 @@ impl<const N: usize> CompiledLiePoisson<N> {
         let mut start = 0;
         for j in 0..N {
             let mut acc = [0.0; L];
-            for &(i, _, k, c) in &self.bracket[start..self.row_end[j]] {
-                if c == 1.0 {
-                    for l in 0..L {
-                        acc[l] += g[i][l] * mu[k][l];
+            for t in &self.field_terms[start..self.field_row_end[j]] {
+                let (c, k) = (t.c, t.k);
+                match t.grad {
+                    Some(i) if c == 1.0 => {
+                        for l in 0..L {
+                            acc[l] += g[i][l] * mu[k][l];
+                        }
                     }
-                } else if c == -1.0 {
-                    for l in 0..L {
-                        acc[l] += -g[i][l] * mu[k][l];
+                    Some(i) if c == -1.0 => {
+                        for l in 0..L {
+                            acc[l] += -g[i][l] * mu[k][l];
+                        }
                     }
-                } else {
-                    for l in 0..L {
-                        acc[l] += c * g[i][l] * mu[k][l];
+                    Some(i) => {
+                        for l in 0..L {
+                            acc[l] += c * g[i][l] * mu[k][l];
+                        }
+                    }
+                    None => {
+                        for l in 0..L {
+                            acc[l] += c * mu[k][l];
+                        }
                     }
                 }
             }
             out[j] = acc;
-            start = self.row_end[j];
+            start = self.field_row_end[j];
         }
     }
 
@@ -496,7 +568,7 @@ impl<const N: usize> CompiledLiePoisson<N> {
         pow: impl Fn(usize, usize) -> &'a [f64; L],
         g: &mut [[f64; L]; N],
     ) {
-        for t in &self.grad {
+        for t in &self.field_grad {
             let mut x = [t.coeff; L];
             for &(var, p) in &self.factors[t.start..t.end] {
                 let y = pow(var, p);
@@ -549,6 +621,51 @@ mod tests {
             for r in 0..3 {
                 assert!((j[(r, c)] - (fa[r] - fb[r]) / 2e-6).abs() < 1e-8);
             }
+        }
+    }
+
+    /// The heavy top's field drops the 4 bracket entries of Γ₁, Γ₂ (∂H ≡ 0) and folds mgl
+    /// into the 2 of Γ₃ (∂H constant), and still equals the full bracket sum bit for bit.
+    #[test]
+    fn compiled_field_drops_zero_and_folds_constant_gradients() {
+        let mut c = [[[0.0; 6]; 6]; 6];
+        for (i, j, k) in [(0, 1, 2), (1, 2, 0), (2, 0, 1)] {
+            c[i][j][k] = 1.0;
+            c[j][i][k] = -1.0;
+            c[i][3 + j][3 + k] = 1.0;
+            c[3 + j][i][3 + k] = -1.0;
+            c[j][3 + i][3 + k] = -1.0;
+            c[3 + i][j][3 + k] = 1.0;
+        }
+        let mut terms: Vec<([u32; 6], f64)> = (0..3)
+            .map(|i| {
+                let mut e = [0; 6];
+                e[i] = 2;
+                (e, 0.5 / [1.0, 1.5, 2.0][i])
+            })
+            .collect();
+        terms.push(([0, 0, 0, 0, 0, 1], 0.981));
+        let sys = LiePoisson {
+            algebra: LieAlgebra::new(c).unwrap(),
+            hamiltonian: Hamiltonian::new(terms).unwrap(),
+        }
+        .compile();
+        assert_eq!(sys.bracket.len(), 18);
+        assert_eq!(sys.field_terms.len(), 14);
+        assert_eq!(
+            sys.field_terms.iter().filter(|t| t.grad.is_none()).count(),
+            2
+        );
+        for mu in [
+            [0.3, -1.2, 2.0, 0.6, 0.0, -0.8],
+            [1e-3, 4.0, -2.5, -0.1, 0.99, 0.1],
+        ] {
+            let g = sys.gradient(&mu);
+            let mut full = [0.0; 6];
+            for &(i, j, k, c) in &sys.bracket {
+                full[j] += c * g[i] * mu[k];
+            }
+            assert_eq!(sys.field(&mu), full);
         }
     }
 

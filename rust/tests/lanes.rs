@@ -165,6 +165,8 @@ fn sparse_field_equals_dense_on_random_algebras() {
     };
     assert_eq!(sys.compile().bracket().len(), 18);
     check_sparse_equals_dense(&sys, &mut rng, 50);
+    // The heavy top's ∇H has two zero components and a constant one (dropped and folded terms).
+    check_sparse_equals_dense(&heavy_top(), &mut rng, 50);
 }
 
 /// The heavy top with DPNN's parameters.
