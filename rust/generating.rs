@@ -11,6 +11,8 @@
 use crate::dual::{Dual1, Jet2, Scalar, Variable};
 use crate::error::CoreError;
 use crate::kernel;
+use crate::lanes::Isa;
+use crate::lanes_bisection;
 use crate::memory::{try_collect, try_filled};
 use std::sync::Arc;
 
@@ -37,12 +39,32 @@ impl<const N: usize> Default for Polynomial<N> {
     }
 }
 
-/// (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) without negative powers.
+/// Exponents up to this are read from a table of powers built by repeated multiplication (one
+/// multiply per entry, shared by every term); higher ones (a model file allows 64) use `powi`.
+pub(crate) const TABLE_POWER: usize = 8;
+
+/// A table of x⁰ … x^[`TABLE_POWER`].
+type PowerTable = [f64; TABLE_POWER + 1];
+
+/// Fills `pw` with x⁰ … x^max by repeated multiplication (max capped at [`TABLE_POWER`]).
 #[inline(always)]
-fn power_jet(x: f64, n: u32) -> [f64; 3] {
+fn power_table(x: f64, max: u32, pw: &mut PowerTable) {
+    pw[0] = 1.0;
+    for k in 1..=(max as usize).min(TABLE_POWER) {
+        pw[k] = pw[k - 1] * x;
+    }
+}
+
+/// (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) without negative powers, from the table `pw` of x's powers.
+#[inline(always)]
+fn power_jet(x: f64, pw: &PowerTable, n: u32) -> [f64; 3] {
     match n {
         0 => [1.0, 0.0, 0.0],
         1 => [x, 1.0, 0.0],
+        _ if n as usize <= TABLE_POWER => {
+            let (k, nf) = (n as usize, n as f64);
+            [pw[k], nf * pw[k - 1], nf * (nf - 1.0) * pw[k - 2]]
+        }
         _ => {
             let xn2 = x.powi(n as i32 - 2);
             let nf = n as f64;
@@ -52,12 +74,51 @@ fn power_jet(x: f64, n: u32) -> [f64; 3] {
 }
 
 impl<const N: usize> Polynomial<N> {
+    /// Fills the tables of powers of t and of each p_i, up to the largest exponent of any term.
+    #[inline(always)]
+    fn powers(&self, t: f64, p: &[f64; N], tp: &mut PowerTable, pp: &mut [PowerTable; N]) {
+        let (mut tmax, mut pmax) = (0u32, [0u32; N]);
+        for m in &self.terms {
+            tmax = tmax.max(m.t_power);
+            for i in 0..N {
+                pmax[i] = pmax[i].max(m.p_powers[i]);
+            }
+        }
+        power_table(t, tmax, tp);
+        for i in 0..N {
+            power_table(p[i], pmax[i], &mut pp[i]);
+        }
+    }
+
+    /// The coefficient times t^k of one term, and the jets (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of its
+    /// factors.
+    #[inline(always)]
+    fn term_factors(
+        m: &Monomial<N>,
+        t: f64,
+        p: &[f64; N],
+        tp: &PowerTable,
+        pp: &[PowerTable; N],
+    ) -> (f64, [[f64; 3]; N]) {
+        let tk = if m.t_power as usize <= TABLE_POWER {
+            tp[m.t_power as usize]
+        } else {
+            t.powi(m.t_power as i32)
+        };
+        let mut j = [[0.0; 3]; N];
+        for i in 0..N {
+            j[i] = power_jet(p[i], &pp[i], m.p_powers[i]);
+        }
+        (m.coeff * tk, j)
+    }
+
     /// P(t, ·) with its p-gradient and p-Hessian, in closed form.
     pub fn jet(&self, t: f64, p: &[f64; N]) -> Jet2<N> {
         let mut out = Jet2::<N>::default();
+        let (mut tp, mut pp) = ([0.0; TABLE_POWER + 1], [[0.0; TABLE_POWER + 1]; N]);
+        self.powers(t, p, &mut tp, &mut pp);
         for m in &self.terms {
-            let c = m.coeff * t.powi(m.t_power as i32);
-            let j: [[f64; 3]; N] = std::array::from_fn(|i| power_jet(p[i], m.p_powers[i]));
+            let (c, j) = Self::term_factors(m, t, p, &tp, &pp);
             // ∂/∂p_i picks the derivative factor of variable i, the value of the others.
             let factor = |d: [usize; N]| {
                 let mut f = c;
@@ -82,6 +143,31 @@ impl<const N: usize> Polynomial<N> {
                     packed[k] += factor(d);
                     k += 1;
                 }
+            }
+        }
+        out
+    }
+
+    /// P(t, ·) and its p-gradient only: the value and gradient of [`Polynomial::jet`] bit for
+    /// bit (the same products summed in the same order), without the Hessian's sums.
+    pub fn gradient(&self, t: f64, p: &[f64; N]) -> Dual1<N> {
+        let mut out = Dual1::<N>::default();
+        let (mut tp, mut pp) = ([0.0; TABLE_POWER + 1], [[0.0; TABLE_POWER + 1]; N]);
+        self.powers(t, p, &mut tp, &mut pp);
+        for m in &self.terms {
+            let (c, j) = Self::term_factors(m, t, p, &tp, &pp);
+            let factor = |d: [usize; N]| {
+                let mut f = c;
+                for i in 0..N {
+                    f *= j[i][d[i]];
+                }
+                f
+            };
+            out.v += factor([0; N]);
+            for i in 0..N {
+                let mut d = [0; N];
+                d[i] = 1;
+                out.g[i] += factor(d);
             }
         }
         out
@@ -528,9 +614,7 @@ impl<const N: usize> GeneratingFunction<N> {
     ) {
         let n = p.len();
         assert!(n <= MAX_BATCH && out.len() == n, "batch of {n} momenta");
-        for (o, pj) in out.iter_mut().zip(p) {
-            *o = Dual1::from_jet(&self.polynomial.jet(t, pj));
-        }
+        lanes_bisection::polynomial_gradients(&self.polynomial, Isa::detect(), t, p, out);
         let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
             return;
         };
@@ -589,9 +673,42 @@ impl<const N: usize> GeneratingFunction<N> {
         }
     }
 
+    /// The polynomial part P(t, ·) as a `T`: its gradient alone where `T` carries no Hessian.
+    #[inline(always)]
+    fn polynomial_part<T: Variable<N>>(&self, t: f64, p: &[f64; N]) -> T {
+        if T::COMPONENTS == 1 + N {
+            let d = self.polynomial.gradient(t, p);
+            T::from_components(|c| if c == 0 { d.v } else { d.g[c - 1] })
+        } else {
+            T::from_jet(&self.polynomial.jet(t, p))
+        }
+    }
+
+    /// [`Self::polynomial_part`] at every momentum of a batch, in SIMD lanes (the same bits).
+    #[inline]
+    fn polynomial_parts<T: Variable<N>>(&self, t: f64, p: &[[f64; N]], out: &mut [T]) {
+        let isa = Isa::detect();
+        for (pb, ob) in p.chunks(MAX_BATCH).zip(out.chunks_mut(MAX_BATCH)) {
+            let n = pb.len();
+            if T::COMPONENTS == 1 + N {
+                let mut d = [Dual1::<N>::default(); MAX_BATCH];
+                lanes_bisection::polynomial_gradients(&self.polynomial, isa, t, pb, &mut d[..n]);
+                for (o, d) in ob.iter_mut().zip(&d) {
+                    *o = T::from_components(|c| if c == 0 { d.v } else { d.g[c - 1] });
+                }
+            } else {
+                let mut j = [Jet2::<N>::default(); MAX_BATCH];
+                lanes_bisection::polynomial_jets(&self.polynomial, isa, t, pb, &mut j[..n]);
+                for (o, j) in ob.iter_mut().zip(&j) {
+                    *o = T::from_jet(j);
+                }
+            }
+        }
+    }
+
     /// S at fixed t with p seeded as the dual variables of `T`.
     fn derivatives<T: Variable<N>>(&self, t: f64, p: &[f64; N], a: &mut [T], b: &mut [T]) -> T {
-        let s = T::from_jet(&self.polynomial.jet(t, p));
+        let s = self.polynomial_part::<T>(t, p);
         match (&self.mlp, self.mlp_inputs::<T>(t, p)) {
             (Some(mlp), Some((t_in, p_in, factor))) => {
                 a[0] = t_in;
@@ -613,9 +730,7 @@ impl<const N: usize> GeneratingFunction<N> {
     ) {
         let n = p.len();
         assert!(n <= MAX_BATCH && out.len() == n, "batch of {n} momenta");
-        for (o, pj) in out.iter_mut().zip(p) {
-            *o = T::from_jet(&self.polynomial.jet(t, pj));
-        }
+        self.polynomial_parts::<T>(t, p, out);
         let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
             return;
         };
