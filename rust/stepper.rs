@@ -134,9 +134,10 @@ pub struct BisectionStepper<const N: usize, R = Groupoid<N>> {
 const BISECTION_BATCH: usize = 16;
 
 /// Below this many MLP parameters a step is dominated by the per-trajectory work (polynomial,
-/// chart, 3×3 solve), and batching only adds gathering: the 121-parameter default model is no
-/// faster batched, the 253,501-parameter paper-sized one is 2.5× faster.
-const BATCH_MIN_PARAMETERS: usize = 1000;
+/// chart, 3×3 solve), and batching only adds gathering. The 121-parameter default model is
+/// about 2× faster batched (its tanh rows in SIMD lanes, its polynomial in lanes: see
+/// docs/performance_bisection.md), the 253,501-parameter paper-sized one 2.5×.
+const BATCH_MIN_PARAMETERS: usize = 100;
 
 fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
     a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
