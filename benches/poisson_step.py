@@ -13,9 +13,10 @@ Rows (rigid body, I = (1.5, 2, 2.5), h = 0.1, batches 64 and 4096):
 Each contender rolls the batch out for a fixed number of steps and keeps only the final state;
 the cell is the median of ``--rounds`` (≥ 5) timed rollouts after a warm-up, rounds alternating
 the contenders, and is reported as seconds per trajectory-step and as a ratio to the JAX RK4
-step of the same run. With ``--baseline PATH`` the ``_core`` extension of an earlier build is
-loaded beside this one and timed on the same rows (what a change bought). JAX installs with
-``pip install 'poisson_rs[bench]'``; without it the ratios are skipped with a message.
+step of the same run. With ``--baseline LABEL=PATH`` (repeatable) the ``_core`` extension of an
+earlier build is loaded beside this one and timed on the same rows (what each change bought).
+JAX installs with ``pip install 'poisson_rs[bench]'``; without it the ratios are skipped with a
+message.
 ``--json FILE`` writes the numbers. The Newton iterations per step (from the rollout's
 diagnostics) are printed too.
 """
@@ -68,7 +69,10 @@ def jax_runner() -> Runner | None:
         import jax
         import jax.numpy as jnp
     except ImportError:
-        print("jax is not installed: ratios skipped (pip install 'poisson_rs[bench]')", file=sys.stderr)
+        print(
+            "jax is not installed: ratios skipped (pip install 'poisson_rs[bench]')",
+            file=sys.stderr,
+        )
         return None
     jax.config.update("jax_enable_x64", True)
     inv = jnp.array([1.0 / v for v in RIGID_I])
@@ -136,11 +140,22 @@ def timed(run: Runner, mu0: np.ndarray, n: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=7, help="timed rounds per cell (>= 5)")
-    parser.add_argument("--baseline", type=Path, help="an earlier build's _core extension")
+    parser.add_argument(
+        "--baseline",
+        action="append",
+        default=[],
+        metavar="LABEL=PATH",
+        help="an earlier build's _core extension, timed beside this one (repeatable)",
+    )
     parser.add_argument("--json", type=Path, help="write the numbers here")
     args = parser.parse_args()
     rounds = max(5, args.rounds)
-    baseline = load_core(args.baseline) if args.baseline else None
+    baselines: dict[str, ModuleType] = {}
+    for spec in args.baseline:
+        label, sep, path = spec.partition("=")
+        if not sep or not label or not path:
+            raise SystemExit(f"--baseline wants LABEL=PATH, got {spec!r}")
+        baselines[label] = load_core(Path(path))
     steppers = {
         "taylor5-exp": pr.taylor_integrator(order=5, chart="exp"),
         "default": pr.load_model("default"),
@@ -156,12 +171,12 @@ def main() -> None:
             run, iterations = bisection_runner(stepper)
             runners[name] = (run, n)
             per_step[name] = iterations(mu0, n)
-            if baseline is not None:
-                base_run, base_iterations = bisection_runner(stepper, baseline)
-                runners[f"{name} (baseline)"] = (base_run, n)
-                per_step[f"{name} (baseline)"] = base_iterations(mu0, n)
+            for label, core in baselines.items():
+                base_run, base_iterations = bisection_runner(stepper, core)
+                runners[f"{name} ({label})"] = (base_run, n)
+                per_step[f"{name} ({label})"] = base_iterations(mu0, n)
                 diff = float(np.abs(base_run(mu0, n) - run(mu0, n)).max())
-                print(f"{name} batch {batch}: max |this - baseline| after {n} steps {diff:.1e}")
+                print(f"{name} batch {batch}: max |this - {label}| after {n} steps {diff:.1e}")
         if jax_run is not None:
             runners["jax rk4"] = (jax_run, 20 * n)
         for run, steps in runners.values():  # warm-up (JAX compiles here)
@@ -176,7 +191,7 @@ def main() -> None:
         for name, seconds in cost.items():
             r = f"{ratio[name]:7.1f}x JAX RK4" if ratio else "(no JAX)"
             it = f", {per_step[name]:.2f} Newton updates/step" if name in per_step else ""
-            print(f"batch {batch:5d} {name:24s} {seconds * 1e9:9.1f} ns/trajectory-step {r}{it}")
+            print(f"batch {batch:5d} {name:34s} {seconds * 1e9:9.1f} ns/trajectory-step {r}{it}")
         rows.append(
             {
                 "batch": batch,
@@ -190,9 +205,7 @@ def main() -> None:
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
     print(f"machine: {machine}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     if args.json:
-        args.json.write_text(
-            json.dumps({"rows": rows, "load": load, "machine": machine}, indent=1)
-        )
+        args.json.write_text(json.dumps({"rows": rows, "load": load, "machine": machine}, indent=1))
 
 
 if __name__ == "__main__":
