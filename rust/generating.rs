@@ -283,8 +283,8 @@ pub fn tanh_fast(x: f64) -> f64 {
     const SHIFT: f64 = 6755399441055744.0;
     const LOG2E: f64 = std::f64::consts::LOG2_E;
     // ln 2 split so that k · LN2_HI is exact for |k| < 2^11 (fdlibm's constants).
-    const LN2_HI: f64 = 6.93147180369123816490e-01;
-    const LN2_LO: f64 = 1.90821492927058770002e-10;
+    const LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
+    const LN2_LO: f64 = f64::from_bits(0x3DEA_39EF_3579_3C76);
     // 1/n! for n = 13 down to 2.
     const C: [f64; 12] = [
         1.0 / 6227020800.0,
