@@ -325,7 +325,10 @@ where
         results: &mut [StepResult],
         ws: &mut Workspace<N>,
     ) {
-        if self.batch() == 1 {
+        // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
+        // small to fill the lanes takes the cheaper path (a rollout of one state, say).
+        let few = self.generating.mlp.is_none() && live.iter().filter(|&&l| l).count() <= 2;
+        if self.batch() == 1 || few {
             return step_each(self, h, mu, live, results, ws);
         }
         let n = mu.len();
