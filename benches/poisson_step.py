@@ -1,7 +1,7 @@
 """The cost of one bisection (Poisson) step against one JAX RK4 step, in one process, one thread:
 ``taskset -c 0 python benches/poisson_step.py``.
 
-Rows (rigid body, I = (1.5, 2, 2.5), h = 0.1, batches 64 and 4096):
+Rows (rigid body, I = (1.5, 2, 2.5), h = 0.1, batches 1, 64 and 4096):
 
 - Taylor-exp K=5: ``taylor_integrator(order=5, chart="exp")`` (13 polynomial terms of S in the
   exponential chart);
@@ -49,7 +49,7 @@ import poisson_rs as pr
 
 H = 0.1
 RIGID_I = (1.5, 2.0, 2.5)
-BATCHES = (64, 4096)
+BATCHES = (1, 64, 4096)
 #: Trajectory-steps per timed rollout of a bisection stepper (JAX takes 20× more: it is faster).
 WORK = 131_072
 
