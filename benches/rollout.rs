@@ -4,7 +4,8 @@
 //! else a seeded random stand-in of the same kind: the Taylor K=3 polynomial for
 //! I = (1.5, 2, 2.5) (Cayley chart) plus t⁵ · MLP with hidden widths (32, 32).
 //!
-//! Also: the batched layer kernel alone on a 250×250 layer, and rollouts of the 500-250-250-250
+//! Also: Taylor-HJ bisection steps in lockstep SIMD lanes against one trajectory at a time
+//! (`bisection_lanes`), the batched layer kernel alone on a 250×250 layer, and rollouts of the 500-250-250-250
 //! `paper` model (or a random stand-in of its size) in steps/s and, under full Newton, flops/s.
 //!
 //! Each rollout size does a few thousand to twenty thousand steps per iteration, so
@@ -409,9 +410,56 @@ fn bench_classical(c: &mut Criterion) {
     group(c, "heavy_top", top.compile(), states);
 }
 
+/// A stepper taken one trajectory at a time: the scalar path the lanes are measured against.
+struct OneAtATime<'a>(&'a BisectionStepper<3>);
+
+impl StepMap<3> for OneAtATime<'_> {
+    type Workspace = <BisectionStepper<3> as StepMap<3>>::Workspace;
+    fn workspace(&self) -> Self::Workspace {
+        self.0.workspace()
+    }
+    fn step(
+        &self,
+        h: f64,
+        mu: &mut [f64; 3],
+        ws: &mut Self::Workspace,
+    ) -> poisson_rs::stepper::StepResult {
+        self.0.step(h, mu, ws)
+    }
+}
+
+/// Taylor K=3 (Cayley chart) bisection steps of 4096 states: Newton in lockstep blocks with the
+/// polynomial jets in SIMD lanes (the stepper's own batch) against one trajectory at a time (the
+/// same bits). `cargo bench --bench rollout -- bisection_lanes`.
+fn bench_bisection_lanes(c: &mut Criterion) {
+    let stepper = BisectionStepper {
+        generating: GeneratingFunction::new(taylor3(), None, 0, MlpInputs::Plain).unwrap(),
+        groupoid: Groupoid::so3(Chart::Cayley).unwrap(),
+        newton: NewtonOptions::default(),
+    };
+    let (batch, n_steps) = (4096usize, 5usize);
+    let mu0 = initial_states(batch);
+    let mut out = vec![0.0; batch * (n_steps + 1) * 3];
+    let mut group = c.benchmark_group("bisection_lanes");
+    group.sample_size(10);
+    group.warm_up_time(Duration::from_secs(1));
+    group.measurement_time(Duration::from_secs(3));
+    group.sampling_mode(SamplingMode::Flat);
+    group.throughput(Throughput::Elements((batch * n_steps) as u64));
+    group.bench_function("taylor3-cayley/lockstep-lanes", |b| {
+        b.iter(|| black_box(rollout(&stepper, black_box(&mu0), H, n_steps, 1, &mut out).unwrap()))
+    });
+    let scalar = OneAtATime(&stepper);
+    group.bench_function("taylor3-cayley/one-at-a-time", |b| {
+        b.iter(|| black_box(rollout(&scalar, black_box(&mu0), H, n_steps, 1, &mut out).unwrap()))
+    });
+    group.finish();
+}
+
 criterion_group!(
     benches,
     bench_classical,
+    bench_bisection_lanes,
     bench_rollout,
     bench_step,
     bench_kernel,

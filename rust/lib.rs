@@ -17,6 +17,7 @@ pub mod generating;
 pub mod groupoid;
 pub mod kernel;
 pub mod lanes;
+pub mod lanes_bisection;
 pub mod memory;
 pub mod model;
 pub mod realization;

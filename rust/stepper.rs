@@ -3,7 +3,7 @@
 //! sou and tar ([`Realization`]: the Lie-algebra groupoid by default, or the log-canonical one);
 //! the Newton Jacobian is an N×N nalgebra matrix on the stack.
 
-use nalgebra::{Const, DimMin, SMatrix, SVector};
+use nalgebra::{linalg::LU, Const, DimMin, SMatrix, SVector};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
@@ -134,34 +134,44 @@ pub struct BisectionStepper<const N: usize, R = Groupoid<N>> {
 const BISECTION_BATCH: usize = 16;
 
 /// Below this many MLP parameters a step is dominated by the per-trajectory work (polynomial,
-/// chart, 3×3 solve), and batching only adds gathering: the 121-parameter default model is no
-/// faster batched, the 253,501-parameter paper-sized one is 2.5× faster.
-const BATCH_MIN_PARAMETERS: usize = 1000;
+/// chart, 3×3 solve), and batching only adds gathering. The 121-parameter default model is
+/// about 2× faster batched (its tanh rows in SIMD lanes, its polynomial in lanes: see
+/// docs/performance_bisection.md), the 253,501-parameter paper-sized one 2.5×.
+const BATCH_MIN_PARAMETERS: usize = 100;
 
 fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
     a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
 }
 
+/// Trajectories per lockstep solve of a polynomial S (no MLP): its jets are evaluated in SIMD
+/// lanes across them ([`crate::lanes_bisection`]), each lane bit-identical to the scalar
+/// evaluation, so the batched step equals [`StepMap::step`] bit for bit.
+const POLYNOMIAL_BATCH: usize = MAX_BATCH;
+
 /// Trajectories per batched solve for a generating function whose MLP is `mlp`:
-/// [`BISECTION_BATCH`] for MLPs of [`BATCH_MIN_PARAMETERS`] or more, else 1 (one at a time).
+/// [`POLYNOMIAL_BATCH`] without an MLP, [`BISECTION_BATCH`] for MLPs of
+/// [`BATCH_MIN_PARAMETERS`] or more, else 1 (one at a time).
 pub fn batch_size(mlp: Option<&Mlp>) -> usize {
-    let weights = mlp.map_or(0, Mlp::n_parameters);
-    if weights >= BATCH_MIN_PARAMETERS {
-        BISECTION_BATCH
-    } else {
-        1
+    match mlp {
+        None => POLYNOMIAL_BATCH,
+        Some(m) if m.n_parameters() >= BATCH_MIN_PARAMETERS => BISECTION_BATCH,
+        Some(_) => 1,
     }
 }
 
 /// The Newton Jacobian of an N-dimensional step.
 type Jacobian<const N: usize> = SMatrix<f64, N, N>;
 
+/// Its LU factorisation, kept between updates: simplified Newton solves with it again without
+/// refactoring (the same bits as refactoring the same matrix).
+type Factors<const N: usize> = LU<f64, Const<N>, Const<N>>;
+
 impl<const N: usize, R: Realization<N>> BisectionStepper<N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
     /// One Newton update of p for tar(∂S/∂p(h,p), p) = μ from the jet of S at p, keeping its
-    /// Jacobian. Returns whether the update met the tolerance and |δ|∞.
+    /// Jacobian's factors. Returns whether the update met the tolerance and |δ|∞.
     #[inline]
     fn newton_update(
         &self,
@@ -169,7 +179,7 @@ where
         target: &[f64; N],
         p: &mut [f64; N],
         iterations: &mut u32,
-        jacobian: &mut Jacobian<N>,
+        factors: &mut Option<Factors<N>>,
     ) -> Result<(bool, f64), StepFailure> {
         if !jet.is_finite() {
             return Err(StepFailure::NonFinite);
@@ -179,8 +189,8 @@ where
         let x: [Dual1<N>; N] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
         let pd: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(p[i], i));
         let t = self.groupoid.tar(&x, &pd)?;
-        *jacobian = Jacobian::from_fn(|r, c| t[r].g[c]);
-        self.update(&t.map(|ti| ti.v), jacobian, target, p, iterations)
+        let lu = factors.insert(Jacobian::<N>::from_fn(|r, c| t[r].g[c]).lu());
+        self.update(&t.map(|ti| ti.v), lu, target, p, iterations)
     }
 
     /// One simplified-Newton update of p from ∂S/∂p at p and a kept Jacobian.
@@ -192,13 +202,15 @@ where
         target: &[f64; N],
         p: &mut [f64; N],
         iterations: &mut u32,
-        jacobian: &Jacobian<N>,
+        factors: &Option<Factors<N>>,
     ) -> Result<(bool, f64), StepFailure> {
         if !grad.is_finite() {
             return Err(StepFailure::NonFinite);
         }
+        // A simplified update always follows a full one, which kept the factors.
+        let lu = factors.as_ref().ok_or(StepFailure::SingularJacobian)?;
         let t = self.groupoid.tar(&grad.g, p)?;
-        self.update(&t, jacobian, target, p, iterations)
+        self.update(&t, lu, target, p, iterations)
     }
 
     /// p += δ with J δ = μ − tar(x, p), given tar(x, p) at the current p, unless the iteration
@@ -207,7 +219,7 @@ where
     fn update(
         &self,
         tar: &[f64; N],
-        jacobian: &Jacobian<N>,
+        lu: &Factors<N>,
         target: &[f64; N],
         p: &mut [f64; N],
         iterations: &mut u32,
@@ -216,10 +228,7 @@ where
             return Err(StepFailure::NotConverged);
         }
         let f = SVector::<f64, N>::from_fn(|i, _| target[i] - tar[i]);
-        let delta = jacobian
-            .lu()
-            .solve(&f)
-            .ok_or(StepFailure::SingularJacobian)?;
+        let delta = lu.solve(&f).ok_or(StepFailure::SingularJacobian)?;
         if !delta.iter().all(|d| d.is_finite()) {
             return Err(StepFailure::SingularJacobian);
         }
@@ -274,21 +283,30 @@ where
         Workspace::bytes(&self.generating)
     }
 
+    /// One trajectory's Newton solve: the same updates as [`StepMap::step_batch`] (full Newton
+    /// refreshes the Jacobian every update; simplified Newton keeps the first one's factors
+    /// while the updates contract by [`SIMPLIFIED_RATE`] or better, needing ∂S/∂p only).
     fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
         let target = *mu;
         let mut p = target;
         let mut iterations = 0;
-        let mut jacobian = Jacobian::zeros();
+        let mut factors = None;
+        let (mut refresh, mut last) = (true, f64::INFINITY);
         loop {
-            let jet = self.generating.jet(h, &p, ws);
-            if self
-                .newton_update(&jet, &target, &mut p, &mut iterations, &mut jacobian)?
-                .0
-            {
-                // Converged: x at the final p needs the gradient of S only, not its Hessian.
+            let (converged, size) = if refresh {
+                let jet = self.generating.jet(h, &p, ws);
+                self.newton_update(&jet, &target, &mut p, &mut iterations, &mut factors)?
+            } else {
+                let g = self.generating.gradient(h, &p, ws);
+                self.simplified_update(&g, &target, &mut p, &mut iterations, &factors)?
+            };
+            if converged {
+                // x at the final p needs the gradient of S only, not its Hessian.
                 let g = self.generating.gradient(h, &p, ws);
                 return self.finish(&g, &target, &p, iterations, mu);
             }
+            refresh = !self.newton.simplified || size > SIMPLIFIED_RATE * last;
+            last = size;
         }
     }
 
@@ -307,14 +325,17 @@ where
         results: &mut [StepResult],
         ws: &mut Workspace<N>,
     ) {
-        if self.batch() == 1 {
+        // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
+        // small to fill the lanes takes the cheaper path (a rollout of one state, say).
+        let few = self.generating.mlp.is_none() && live.iter().filter(|&&l| l).count() <= 2;
+        if self.batch() == 1 || few {
             return step_each(self, h, mu, live, results, ws);
         }
         let n = mu.len();
         assert!(n <= MAX_BATCH, "batch of {n} trajectories");
         let mut p = [[0.0; N]; MAX_BATCH];
         let mut iterations = [0u32; MAX_BATCH];
-        let mut jacobian = [Jacobian::zeros(); MAX_BATCH];
+        let mut factors: [Option<Factors<N>>; MAX_BATCH] = [None; MAX_BATCH];
         // Whether the next update needs a fresh Jacobian, and the size of the last update.
         let mut refresh = [true; MAX_BATCH];
         let mut last = [f64::INFINITY; MAX_BATCH];
@@ -378,14 +399,14 @@ where
                     &target,
                     &mut p[i],
                     &mut iterations[i],
-                    &mut jacobian[i],
+                    &mut factors[i],
                 );
                 settle(i, update);
             }
             for (g, &i) in grads.iter().zip(&grad_of[..ng]) {
                 let target = mu[i];
                 let update =
-                    self.simplified_update(g, &target, &mut p[i], &mut iterations[i], &jacobian[i]);
+                    self.simplified_update(g, &target, &mut p[i], &mut iterations[i], &factors[i]);
                 settle(i, update);
             }
             n_active = still;

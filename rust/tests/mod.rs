@@ -218,6 +218,7 @@ fn richardson(d: impl Fn(f64) -> f64, delta: f64) -> f64 {
 // ---------------------------------------------------------------------------------------------
 
 mod batched;
+mod bisection_lanes;
 mod charts;
 mod derivatives;
 mod lanes;

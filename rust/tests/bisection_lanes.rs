@@ -1,0 +1,187 @@
+//! Bisection steps of a polynomial S in SIMD lanes against the scalar path: the polynomial jets
+//! lane by lane (bit for bit, every dispatch path, batches that are not multiples of the lane
+//! count, exponents beyond the table of powers), the lockstep Newton solve of a block against
+//! one trajectory at a time, and masked lanes (a failing lane leaves the others' bits alone).
+
+#![allow(clippy::needless_range_loop)]
+
+use super::*;
+use crate::dual::Dual1;
+use crate::lanes::{Isa, LANES};
+use crate::lanes_bisection::{polynomial_gradients, polynomial_jets};
+
+/// The dispatch paths this CPU runs: the portable one, and the widest where it differs.
+fn isas() -> Vec<Isa> {
+    let mut v = vec![Isa::Portable];
+    if Isa::detect() != Isa::Portable {
+        v.push(Isa::detect());
+    }
+    v
+}
+
+fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))
+}
+
+/// Random polynomials in N variables with exponents up to 11 (the table of powers stops at 8:
+/// the `powi` fallback runs too).
+fn random_polynomial<const N: usize>(rng: &mut Rng, n_terms: usize) -> Polynomial<N> {
+    Polynomial {
+        terms: (0..n_terms)
+            .map(|_| Monomial {
+                t_power: 1 + rng.below(10) as u32,
+                p_powers: [0; N].map(|_: u32| rng.below(12) as u32),
+                coeff: rng.range(-1.0, 1.0),
+            })
+            .collect(),
+    }
+}
+
+fn check_jets<const N: usize>(rng: &mut Rng) {
+    for n in [1, 7, 8, 13, 37] {
+        let poly = random_polynomial::<N>(rng, 9);
+        let t = rng.range(0.0, 0.5);
+        let p: Vec<[f64; N]> = (0..n)
+            .map(|_| [0.0; N].map(|_: f64| rng.range(-2.0, 2.0)))
+            .collect();
+        for isa in isas() {
+            let mut jets = vec![Jet2::<N>::default(); n];
+            let mut grads = vec![Dual1::<N>::default(); n];
+            polynomial_jets(&poly, isa, t, &p, &mut jets);
+            polynomial_gradients(&poly, isa, t, &p, &mut grads);
+            for (j, q) in p.iter().enumerate() {
+                let (a, b) = (poly.jet(t, q), poly.gradient(t, q));
+                assert!(
+                    same_bits(&a.flat(), &jets[j].flat()),
+                    "{isa:?} N={N} jet {j}"
+                );
+                assert_eq!(a.v.to_bits(), b.v.to_bits());
+                assert!(same_bits(&a.g, &b.g), "scalar gradient = jet's gradient");
+                assert_eq!(b.v.to_bits(), grads[j].v.to_bits(), "{isa:?} gradient {j}");
+                assert!(same_bits(&b.g, &grads[j].g), "{isa:?} N={N} gradient {j}");
+            }
+        }
+    }
+}
+
+/// Lane l of the lane evaluation is the scalar jet at p_l, bit for bit.
+#[test]
+fn polynomial_lanes_equal_the_scalar_jets() {
+    let mut rng = Rng::new(0x1A2E_5001);
+    check_jets::<1>(&mut rng);
+    check_jets::<3>(&mut rng);
+    check_jets::<6>(&mut rng);
+}
+
+/// A Taylor-HJ stepper (polynomial S) in both charts, simplified and full Newton.
+fn taylor_steppers() -> Vec<BisectionStepper<3>> {
+    let mut v = Vec::new();
+    for chart in [Chart::Cayley, Chart::Exp] {
+        for simplified in [true, false] {
+            let mut st = stepper(
+                GeneratingFunction::new(Polynomial { terms: taylor3() }, None, 0, MlpInputs::Plain)
+                    .unwrap(),
+                chart,
+            );
+            st.newton.simplified = simplified;
+            v.push(st);
+        }
+    }
+    v
+}
+
+/// Every trajectory of a lockstep block ends where the scalar step takes it, bit for bit, in
+/// rollouts of 37 states (chunks of 32: blocks of 8 lanes and a ragged tail).
+#[test]
+fn lockstep_block_equals_the_scalar_step() {
+    let mut rng = Rng::new(0x1A2E_5002);
+    for st in taylor_steppers() {
+        assert!(st.batch() > 1 && st.batch() % LANES == 0);
+        let mu0: Vec<[f64; 3]> = (0..37)
+            .map(|_| {
+                let r = rng.range(0.5, 4.0);
+                rng.sphere(r)
+            })
+            .collect();
+        let (h, n_steps) = (0.1, 25);
+        let mut out = vec![0.0; mu0.len() * n_records(n_steps, 1) * 3];
+        let info = rollout(&st, &mu0, h, n_steps, 1, &mut out).unwrap();
+        let mut ws = st.workspace();
+        for (j, m0) in mu0.iter().enumerate() {
+            let mut mu = *m0;
+            let (mut iterations, mut residual) = (0u64, 0.0f64);
+            for k in 0..n_steps {
+                let stats = st.step(h, &mut mu, &mut ws).unwrap();
+                iterations += u64::from(stats.iterations);
+                residual = residual.max(stats.residual);
+                let r = (j * n_records(n_steps, 1) + k + 1) * 3;
+                assert!(same_bits(&mu, &out[r..r + 3]), "trajectory {j} step {k}");
+            }
+            assert!(info[j].converged);
+            assert_eq!(info[j].newton_iterations, iterations);
+            assert_eq!(info[j].max_residual.to_bits(), residual.to_bits());
+        }
+    }
+}
+
+/// One lane whose Newton solve fails (the exp chart's singular angle) stops with the scalar
+/// path's failure; the other lanes of its block keep the bits they have without it.
+#[test]
+fn a_failing_lane_leaves_the_others_unchanged() {
+    let mut rng = Rng::new(0x1A2E_5003);
+    let st = taylor_steppers().swap_remove(2); // exp chart, simplified Newton
+    let mut mu: Vec<[f64; 3]> = (0..11).map(|_| rng.sphere(2.0)).collect();
+    let mut ws = st.workspace();
+    let bad = [400.0, -300.0, 250.0];
+    assert!(st.step(0.1, &mut bad.clone(), &mut ws).is_err());
+    let live = vec![true; mu.len()];
+    let mut clean = mu.clone();
+    let mut clean_results = vec![Ok(StepStats::default()); mu.len()];
+    st.step_batch(0.1, &mut clean, &live, &mut clean_results, &mut ws);
+    mu[3] = bad;
+    let before = mu.clone();
+    let mut results = vec![Ok(StepStats::default()); mu.len()];
+    st.step_batch(0.1, &mut mu, &live, &mut results, &mut ws);
+    let mut scalar = bad;
+    let failure = st.step(0.1, &mut scalar, &mut ws);
+    assert_eq!(results[3], failure);
+    assert!(
+        same_bits(&mu[3], &before[3]),
+        "a failed lane keeps its state"
+    );
+    for j in (0..mu.len()).filter(|&j| j != 3) {
+        assert_eq!(results[j], clean_results[j], "lane {j}");
+        assert!(same_bits(&mu[j], &clean[j]), "lane {j}");
+    }
+}
+
+/// The branch-free tanh of the batched MLP passes against libm's, in units of the last place
+/// of the result: at most 4 over a dense grid, at tiny and huge arguments; NaN stays NaN.
+#[test]
+fn fast_tanh_is_within_four_ulp_of_libm() {
+    use crate::generating::tanh_fast;
+    let ulp = |x: f64| {
+        let (a, b) = (tanh_fast(x), x.tanh());
+        ((a - b) / (b.abs().max(f64::MIN_POSITIVE) * f64::EPSILON)).abs()
+    };
+    let mut worst = (0.0f64, 0.0f64);
+    let mut rng = Rng::new(0x1A2E_5004);
+    let grid = (-400_000..=400_000).map(|i| f64::from(i) * 6.25e-5);
+    let random = (0..200_000).map(|_| rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-300.0, 3.0)));
+    for x in grid.chain(random) {
+        let u = ulp(x);
+        if u > worst.0 {
+            worst = (u, x);
+        }
+    }
+    assert!(worst.0 <= 4.0, "{} ulp at x = {:e}", worst.0, worst.1);
+    for x in [f64::INFINITY, 1e300, 40.0, 19.5] {
+        assert_eq!(tanh_fast(x), 1.0);
+        assert_eq!(tanh_fast(-x), -1.0);
+    }
+    assert!(tanh_fast(f64::NAN).is_nan());
+    eprintln!("fast tanh: worst {} ulp at {:e}", worst.0, worst.1);
+}
