@@ -265,8 +265,10 @@ class BisectionIntegrator:
 
     @property
     def batch(self) -> int:
-        """Trajectories a rollout solves together, each MLP layer one matrix product over them
-        (1: one at a time, for MLPs too small to gain from it)."""
+        """Trajectories a rollout solves together: a polynomial S (Taylor terms only) in
+        lockstep Newton blocks with its jets in SIMD lanes, an MLP of 100 or more parameters with
+        each layer one matrix product over the block; 1 (one at a time) for smaller MLPs. A
+        trajectory's result does not depend on how the batch is chunked or threaded."""
         return int(self._core.batch)
 
     @property
