@@ -322,6 +322,29 @@ def affine_taylor(system: AffinePoissonSystem, order: int = 3) -> AffineIntegrat
     return AffineIntegrator(system, inner, f"taylor{order}-exp")
 
 
+def affine_learned(
+    system: AffinePoissonSystem, model: Any, name: str = "learned"
+) -> AffineIntegrator:
+    """A learned generating function of the extension (a model trained with
+    ``TrainConfig(system=system.extension, chart="exp", inputs="t,p", ...)`` and loaded by
+    :func:`~poisson_rs.load_model`, or any :class:`~poisson_rs.integrators.BisectionIntegrator`
+    of it), run at level 1: a Poisson map on the extension's exact groupoid whatever the network
+    learned, so μ_z = 1 and the Casimirs stay at round-off. ValueError for a model of another
+    system."""
+    from ..integrators import BisectionIntegrator
+
+    if not isinstance(model, BisectionIntegrator):
+        raise TypeError(
+            f"model must be a BisectionIntegrator (pr.load_model), got {type(model).__name__}"
+        )
+    if model.system.to_dict() != system.extension.to_dict():
+        raise ValueError(
+            f"model integrates {model.system!r}, not this system's central extension "
+            f"{system.extension!r}: train it with TrainConfig(system=system.extension, ...)"
+        )
+    return AffineIntegrator(system, model, name)
+
+
 def affine_classical(system: AffinePoissonSystem, name: str, **kw: Any) -> AffineIntegrator:
     """A classical integrator of the extension ("rk4", "midpoint", "dop853"; ``tol`` for
     DOP853's rtol = atol), run at level 1."""
