@@ -70,7 +70,7 @@ def test_demo_on_the_nambu_scene(tmp_path: Path) -> None:
 
 
 def test_realization_charts() -> None:
-    """"realization" matches the Taylor order; "realization{n}" names n; others are refused."""
+    """The chart "realization" matches the Taylor order, "realization{n}" names n; others fail."""
     system = load_scene(SCENE).lie_system
     assert taylor(system, 5).realization_order == 5  # type: ignore[attr-defined]
     assert taylor(system, 1, "realization2").name == "taylor1-realization2"
