@@ -401,8 +401,7 @@ class PolynomialTrainConfig:
             )
         if self.schedule not in ("cosine", "constant"):
             raise ValueError(
-                f"PolynomialTrainConfig field schedule: {self.schedule!r} ('cosine' or "
-                "'constant')"
+                f"PolynomialTrainConfig field schedule: {self.schedule!r} ('cosine' or 'constant')"
             )
         if self.dtype not in ("float32", "float64"):
             raise ValueError(
@@ -760,11 +759,16 @@ def read_model_file(data: bytes, source: str = "model bytes") -> tuple[dict[str,
     with parsing(source, "system"):
         meta["system"] = PolynomialPoissonSystem.from_dict(json.loads(raw["system"]))
     dim = meta["system"].dim
-    for key, hi in (("taylor_order", MAX_TAYLOR_ORDER), ("realization_order", MAX_REALIZATION_ORDER)):
+    for key, hi in (
+        ("taylor_order", MAX_TAYLOR_ORDER),
+        ("realization_order", MAX_REALIZATION_ORDER),
+    ):
         with parsing(source, key):
             value = int(raw[key])
             if str(value) != raw[key].strip() or not 1 <= value <= hi:
-                raise ValueError(f"metadata {key!r} must be an integer in 1..={hi}, got {raw[key]!r}")
+                raise ValueError(
+                    f"metadata {key!r} must be an integer in 1..={hi}, got {raw[key]!r}"
+                )
             meta[key] = value
     with parsing(source, "h_max"):
         meta["h_max"] = float(raw["h_max"])
