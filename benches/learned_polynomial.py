@@ -1,7 +1,8 @@
 """The learned generating function on the order-n realization of the cubic Nambu scene
 (scenes/nambu_cubic.toml) against its own Taylor base on the same realization, Taylor-HJ of the
 next orders and RK4: error at the horizon against DOP853 (rtol = atol = 1e-13), Casimir drift,
-energy drift and steps per second, for several seeds.
+energy drift, steps per second and the one-step error (median and max over 200 seeded states
+in [−0.5, 0.5]³), for several seeds.
 
     taskset -c 0 .venv/bin/python benches/learned_polynomial.py --taylor-order 3 \\
         --realization-order 5 --seeds 0 1 --widths 16 16 --iterations 600 --lbfgs 400 \\
@@ -40,10 +41,21 @@ SYSTEM = PolynomialPoissonSystem(
 )
 
 
+#: 200 seeded states in [−0.5, 0.5]³ for the one-step error.
+POINTS = np.random.default_rng(0).uniform(-0.5, 0.5, (200, 3))
+
+
 def _row(
-    name: str, stepper: Any, ref: np.ndarray, h: float, n_steps: int, repeats: int
+    name: str,
+    stepper: Any,
+    ref: np.ndarray,
+    h: float,
+    n_steps: int,
+    repeats: int,
+    one_step: np.ndarray,
 ) -> dict[str, Any]:
     traj = pr.integrate(stepper, STATES, h=h, n_steps=n_steps)
+    step_err = np.abs(pr.integrate(stepper, POINTS, h=h, n_steps=1)[:, 1] - one_step).max(axis=1)
     best = np.inf
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -58,6 +70,8 @@ def _row(
         "casimir_drift": float(np.abs(c - c[:, :1]).max()),
         "energy_drift": float(np.abs(energy - energy[:, :1]).max()),
         "steps_per_s": len(STATES) * n_steps / best,
+        "one_step_err_median": float(np.median(step_err)),
+        "one_step_err_max": float(step_err.max()),
     }
 
 
@@ -81,12 +95,13 @@ def main() -> None:
     n_steps = round(args.horizon / h)
     times = h * np.arange(n_steps + 1)
     ref = pr.reference_solution(SYSTEM, STATES, times)
+    one = pr.reference_solution(SYSTEM, POINTS, np.array([0.0, h]))[:, 1]
     rows = []
     for k, order in sorted({(m, n), (m + 2, max(n, m + 2))}):
         if k <= hj.MAX_TAYLOR_ORDER:
             stepper = RealizationTaylorIntegrator(SYSTEM, k, order)
-            rows.append(_row(f"taylor{k} n={order}", stepper, ref, h, n_steps, args.repeats))
-    rows.append(_row("rk4", VectorFieldIntegrator(SYSTEM, "rk4"), ref, h, n_steps, 1))
+            rows.append(_row(f"taylor{k} n={order}", stepper, ref, h, n_steps, args.repeats, one))
+    rows.append(_row("rk4", VectorFieldIntegrator(SYSTEM, "rk4"), ref, h, n_steps, 1, one))
     for seed in args.seeds:
         cfg = hj.PolynomialTrainConfig(
             SYSTEM,
@@ -101,7 +116,7 @@ def main() -> None:
         )
         result = hj.train_polynomial(cfg, progress=False)
         model = LearnedPolynomialIntegrator(hj.model_bytes(result.model, cfg))
-        row = _row(f"learned{m} n={n} seed {seed}", model, ref, h, n_steps, args.repeats)
+        row = _row(f"learned{m} n={n} seed {seed}", model, ref, h, n_steps, args.repeats, one)
         row.update(
             parameters=model.n_parameters,
             train_seconds=round(result.seconds, 1),
@@ -121,7 +136,8 @@ def main() -> None:
         print(
             f"{r['method']:>22}  err@T {r['err_final']:.2e}  max err {r['err_max']:.2e}  "
             f"ΔC {r['casimir_drift']:.1e}  ΔH {r['energy_drift']:.1e}  "
-            f"{r['steps_per_s']:.3g} steps/s"
+            f"{r['steps_per_s']:.3g} steps/s  1-step median {r['one_step_err_median']:.1e} "
+            f"max {r['one_step_err_max']:.1e}"
             + (
                 f"  ({r['parameters']} params, {r['train_seconds']} s, HJ rms "
                 f"{r['rms_residual']:.2e} vs {r['taylor_rms_residual']:.2e})"
