@@ -241,3 +241,17 @@ def test_bad_config_fields_are_named(field, value):
 def test_train_refuses_lie_poisson_options():
     with pytest.raises(ValueError, match="checkpoint is not supported"):
         train(_config(iterations=1), checkpoint="x", progress=False)
+
+
+@pytest.mark.parametrize(("n", "slope"), [(3, 5), (4, 5)])
+def test_casimir_defect_per_step_has_the_realization_order(n, slope):
+    # C(β) − C(α) = O(|p|^{n+1}) (n even) or O(|p|^{n+2}) (n odd), p = ∇S = O(h): the one-step
+    # Casimir defect of a model with a random network has the realization's order, not S's.
+    s_fn = _random_network(_config(realization_order=n), seed=5)
+    core = hj.core_model(s_fn)
+    x = _states(32, 6).numpy()
+    steps = 0.1 * 0.5 ** np.arange(4)
+    c0 = NAMBU.casimirs(x)[:, 0]
+    drift = [np.abs(NAMBU.casimirs(core.rollout(x, h, 1)[0][:, 1])[:, 0] - c0).max() for h in steps]
+    fitted = np.polyfit(np.log(steps), np.log(drift), 1)[0]
+    assert abs(fitted - slope) < 0.3, (fitted, drift)
