@@ -202,6 +202,16 @@ def _file_with(path, *, meta=None, drop=(), tensors=None) -> bytes:
         ({"meta": {"realization_order": "9"}}, "realization_order"),
         ({"meta": {"taylor_order": "x"}}, "taylor_order"),
         ({"meta": {"system": "{}"}}, "system"),
+        (
+            {
+                "meta": {
+                    "system": json.dumps(
+                        {**NAMBU.to_dict(), "hamiltonian": "__import__('os').getcwd()"}
+                    )
+                }
+            },
+            "may hold only numbers",
+        ),
         ({"meta": {"h_max": "-1"}}, "h_max"),
         ({"drop": ("tar.index",)}, "tar.index"),
         ({"tensors": {"sou.exponents": -np.ones((1, 6), np.int64)}}, "sou"),

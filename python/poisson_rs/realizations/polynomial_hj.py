@@ -36,6 +36,7 @@ import dataclasses
 import itertools
 import json
 import math
+import re
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -723,6 +724,31 @@ _REQUIRED = (
 )
 
 
+#: What a polynomial in a model file may be written with: variables x1..x99, decimal numbers,
+#: + − * / ** and parentheses. sympy parses text with eval, so a file's text is checked first.
+_POLYNOMIAL_TEXT = re.compile(r"(?:x\d{1,2}|\d+(?:\.\d*)?(?:[eE][-+]?\d+)?|\*\*|[-+*/() ])*")
+
+
+def _check_expressions(spec: Any) -> None:
+    """Refuses a system dictionary whose polynomial texts hold anything but numbers, x1..x99 and
+    arithmetic (ValueError naming the text)."""
+    if not isinstance(spec, dict):
+        raise ValueError(f"metadata 'system' must be a JSON object, got {type(spec).__name__}")
+    texts = [spec.get("hamiltonian"), spec.get("casimir")]
+    entries = spec.get("entries") or []
+    if not isinstance(entries, list):
+        raise ValueError("metadata 'system' field entries must be a list")
+    texts += [e[2] for e in entries if isinstance(e, list) and len(e) == 3]
+    for text in texts:
+        if text is None:
+            continue
+        if not isinstance(text, str) or len(text) > 100_000 or not _POLYNOMIAL_TEXT.fullmatch(text):
+            raise ValueError(
+                f"polynomial {str(text)[:60]!r} may hold only numbers, x1..x99, + - * / ** and "
+                "parentheses"
+            )
+
+
 def read_model_file(data: bytes, source: str = "model bytes") -> tuple[dict[str, Any], Any]:
     """Parses a polynomial-realization model file: (decoded metadata, ``_core`` model).
 
@@ -757,7 +783,9 @@ def read_model_file(data: bytes, source: str = "model bytes") -> tuple[dict[str,
             raise ValueError(f"structure is {raw['structure'][:40]!r}, not {STRUCTURE!r}")
     meta: dict[str, Any] = dict(raw)
     with parsing(source, "system"):
-        meta["system"] = PolynomialPoissonSystem.from_dict(json.loads(raw["system"]))
+        spec = json.loads(raw["system"])
+        _check_expressions(spec)
+        meta["system"] = PolynomialPoissonSystem.from_dict(spec)
     dim = meta["system"].dim
     for key, hi in (
         ("taylor_order", MAX_TAYLOR_ORDER),
