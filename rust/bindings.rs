@@ -1100,8 +1100,10 @@ fn rollout_log_classical<'py>(
 // generating function arrive as polynomial coefficients.
 // ---------------------------------------------------------------------------------------------
 
+use crate::generating::{Layer, Mlp};
 use crate::structures::{
-    PolynomialBisection, PolynomialGenerating, PolynomialRealization, SparsePolynomial,
+    LearnedPolynomialModel, PolynomialBisection, PolynomialGenerating, PolynomialRealization,
+    SparsePolynomial,
 };
 
 /// One polynomial in `vars` variables from the rows `rows` of a term table.
@@ -1229,6 +1231,160 @@ fn rollout_polynomial_realization<'py>(
     }, Err(dim_error(dim)))
 }
 
+/// A learned generating function on an approximate realization of a polynomial bivector:
+/// S(t, x) = exact Taylor-HJ terms + t^m · MLP(t, x), stepped by the same Newton bisection as
+/// `rollout_polynomial_realization`. Built from the term tables (as there) and the MLP's layers
+/// (`weights[i]` (out, in), `biases[i]` (out,), inputs (t, x), tanh after every layer but the
+/// last, one output; empty lists: no network).
+#[pyclass(name = "LearnedPolynomialModel", module = "poisson_rs._core", frozen)]
+struct PyLearnedPolynomialModel {
+    inner: LearnedPolynomialModel,
+}
+
+#[pymethods]
+impl PyLearnedPolynomialModel {
+    #[new]
+    #[pyo3(signature = (sou_index, sou_coeffs, sou_exponents, tar_index, tar_coeffs, tar_exponents, s_coeffs, s_exponents, weights, biases, mlp_power))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        sou_index: PyReadonlyArray1<'_, i64>,
+        sou_coeffs: PyReadonlyArray1<'_, f64>,
+        sou_exponents: PyReadonlyArray2<'_, i64>,
+        tar_index: PyReadonlyArray1<'_, i64>,
+        tar_coeffs: PyReadonlyArray1<'_, f64>,
+        tar_exponents: PyReadonlyArray2<'_, i64>,
+        s_coeffs: PyReadonlyArray1<'_, f64>,
+        s_exponents: PyReadonlyArray2<'_, i64>,
+        weights: Vec<PyReadonlyArray2<'_, f64>>,
+        biases: Vec<PyReadonlyArray1<'_, f64>>,
+        mlp_power: u32,
+    ) -> PyResult<Self> {
+        let dim = s_exponents.shape()[1].saturating_sub(1);
+        rows_match("biases", biases.len(), weights.len())?;
+        let mut layers = Vec::new();
+        layers
+            .try_reserve_exact(weights.len())
+            .map_err(|_| PyMemoryError::new_err("too many layers"))?;
+        for (i, (w, b)) in weights.iter().zip(&biases).enumerate() {
+            let (ws, bs) = (w.shape(), b.shape());
+            if bs[0] != ws[0] {
+                return Err(PyValueError::new_err(format!(
+                    "layer {i}: weight shape {ws:?} and bias shape {bs:?} do not match (out, in) \
+                     and (out,)"
+                )));
+            }
+            let wv: Vec<f64> = w.as_array().iter().copied().collect();
+            let bv: Vec<f64> = b.as_array().iter().copied().collect();
+            layers.push(Layer::new(ws[1], ws[0], wv, bv)?);
+        }
+        let mlp = if layers.is_empty() {
+            None
+        } else {
+            Some(Mlp::new(layers)?)
+        };
+        let inner = with_dim!(dim, N => {
+            let sou = component_polynomials::<N>("sou", &sou_index, &sou_coeffs, &sou_exponents)?;
+            let tar = component_polynomials::<N>("tar", &tar_index, &tar_coeffs, &tar_exponents)?;
+            let (co, ex) = term_table("S", &s_coeffs, &s_exponents, N + 1)?;
+            let all: Vec<usize> = (0..co.len()).collect();
+            let s = polynomial("S", &co, &ex, &all, N + 1)?;
+            LearnedPolynomialModel::new(N, sou, tar, s, mlp, mlp_power)?
+        }, return Err(dim_error(dim)));
+        Ok(PyLearnedPolynomialModel { inner })
+    }
+
+    /// The dimension N.
+    #[getter]
+    fn dim(&self) -> usize {
+        self.inner.dim
+    }
+
+    #[getter]
+    fn mlp_power(&self) -> u32 {
+        self.inner.mlp_power
+    }
+
+    #[getter]
+    fn n_parameters(&self) -> usize {
+        self.inner.mlp.as_ref().map_or(0, |m| m.n_parameters())
+    }
+
+    #[getter]
+    fn n_taylor_terms(&self) -> usize {
+        self.inner.n_taylor_terms()
+    }
+
+    /// S, ∂S/∂x and ∂²S/∂x² at time t for x of shape (n, N): arrays (n,), (n, N), (n, N, N).
+    fn derivatives<'py>(
+        &self,
+        py: Python<'py>,
+        t: f64,
+        x: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
+        with_dim!(self.inner.dim, N => {
+            let x = states::<N>(&x, "x")?;
+            let g = self.inner.generating::<N>()?;
+            let n = x.len();
+            check_output_bytes(n.saturating_mul(1 + N + N * N), Workspace::bytes(&g.network))?;
+            let (s, grad, hess) = detached(py, || {
+                let mut ws = g.network.try_workspace()?;
+                let (mut s, mut grad, mut hess) = (
+                    try_with_capacity(n, "the output S")?,
+                    try_with_capacity(N * n, "the output dS/dx")?,
+                    try_with_capacity(N * N * n, "the output d2S/dx2")?,
+                );
+                for xi in &x {
+                    let jet = g.jet(t, xi, &mut ws);
+                    s.push(jet.v);
+                    grad.extend(jet.grad());
+                    hess.extend(jet.hess().iter().flatten());
+                }
+                Ok((s, grad, hess))
+            })?;
+            let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
+            Ok((
+                Array1::from_vec(s).into_pyarray(py),
+                Array2::from_shape_vec((n, N), grad).map_err(shape_err)?.into_pyarray(py),
+                Array3::from_shape_vec((n, N, N), hess).map_err(shape_err)?.into_pyarray(py),
+            ))
+        }, Err(dim_error(self.inner.dim)))
+    }
+
+    /// Rolls out the learned bisection integrator from each row of `x0` (n, N): solve
+    /// α(∇S(h, x), x) = x_k by Newton (|δ|∞ ≤ tol · max(|x|∞, 1)), then x_{k+1} = β(∇S(h, x), x).
+    /// Returns the trajectories (n, n_steps // every + 1, N) and a dict of per-trajectory
+    /// arrays. Ctrl-C interrupts it (KeyboardInterrupt).
+    #[pyo3(signature = (x0, h, n_steps, every=1, tol=1e-13, max_iter=50))]
+    #[allow(clippy::too_many_arguments)]
+    fn rollout<'py>(
+        &self,
+        py: Python<'py>,
+        x0: PyReadonlyArray2<'py, f64>,
+        h: f64,
+        n_steps: usize,
+        every: usize,
+        tol: f64,
+        max_iter: u32,
+    ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+        let newton = NewtonOptions::validated(tol, max_iter)?;
+        with_dim!(self.inner.dim, N => {
+            let stepper = self.inner.stepper::<N>(newton)?;
+            let x0 = states::<N>(&x0, "x0")?;
+            run_rollout(py, &PerStep(&stepper), &x0, h, n_steps, every, None)
+        }, Err(dim_error(self.inner.dim)))
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "LearnedPolynomialModel(dim={}, taylor_terms={}, mlp_parameters={}, mlp_power={})",
+            self.inner.dim,
+            self.n_taylor_terms(),
+            self.n_parameters(),
+            self.inner.mlp_power
+        )
+    }
+}
+
 /// h × the local rate at each row of `mu` (n, N) for the Lie–Poisson system with structure
 /// constants `c` (N, N, N) and polynomial Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: the angle
 /// a step of size h turns each state by, max(‖ad_∇H‖_F/√2, ‖∂f/∂μ‖_F) · h. Returns (n,) float64.
@@ -1320,6 +1476,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyModel>()?;
     m.add_class::<PyDiagnostics>()?;
     m.add_class::<PyLogModel>()?;
+    m.add_class::<PyLearnedPolynomialModel>()?;
     m.add_function(wrap_pyfunction!(rollout_model, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_classical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_lie_poisson, m)?)?;

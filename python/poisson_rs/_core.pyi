@@ -110,6 +110,51 @@ class LogCanonicalModel:
         full Newton on q + ½ c ∇S(h, q) = q_k, then q − ½ c ∇S(h, q). A step whose e^q leaves
         the float64 orthant fails (code 5 or 3)."""
 
+class LearnedPolynomialModel:
+    """A learned generating function on the order-n realization of a polynomial bivector:
+    S(t, x) = Taylor-HJ terms (a polynomial in (t, x)) + t^m · MLP(t, x), stepped by Newton on
+    α(∇S(h, x), x) = x_k, then β(∇S(h, x), x). β (sou) and α (tar) are term tables over (p, x)
+    as for :func:`rollout_polynomial_realization`; ``weights[i]`` (out, in), ``biases[i]``
+    (out,), inputs (t, x), tanh between layers (empty lists: no network). ValueError for a
+    malformed table or network."""
+
+    def __init__(
+        self,
+        sou_index: npt.NDArray[np.int64],
+        sou_coeffs: npt.NDArray[np.float64],
+        sou_exponents: npt.NDArray[np.int64],
+        tar_index: npt.NDArray[np.int64],
+        tar_coeffs: npt.NDArray[np.float64],
+        tar_exponents: npt.NDArray[np.int64],
+        s_coeffs: npt.NDArray[np.float64],
+        s_exponents: npt.NDArray[np.int64],
+        weights: list[npt.NDArray[np.float64]],
+        biases: list[npt.NDArray[np.float64]],
+        mlp_power: int,
+    ) -> None: ...
+    @property
+    def dim(self) -> int: ...
+    @property
+    def mlp_power(self) -> int: ...
+    @property
+    def n_parameters(self) -> int: ...
+    @property
+    def n_taylor_terms(self) -> int: ...
+    def derivatives(
+        self, t: float, x: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """S (n,), ∂S/∂x (n, N), ∂²S/∂x² (n, N, N) at time t, exact (forward-mode duals)."""
+    def rollout(
+        self,
+        x0: npt.NDArray[np.float64],
+        h: float,
+        n_steps: int,
+        every: int = 1,
+        tol: float = 1e-13,
+        max_iter: int = 50,
+    ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+        """Trajectories (n, n_steps // every + 1, N) and per-trajectory diagnostics (n,)."""
+
 def rollout_model(
     model: Model,
     mu0: npt.NDArray[np.float64],

@@ -16,7 +16,9 @@ body by ``inertia``; they still load.
 
 A ``structure`` metadata key names what the generating function lives on: absent or
 ``lie_poisson`` for the layout above, ``log_canonical`` for a log-canonical model
-(:mod:`poisson_rs.realizations.log_canonical_hj`, read by :func:`parse_log_canonical_metadata`).
+(:mod:`poisson_rs.realizations.log_canonical_hj`, read by :func:`parse_log_canonical_metadata`),
+``polynomial`` for a model on the order-n realization of a polynomial bivector
+(:mod:`poisson_rs.realizations.polynomial_hj`, read by its ``read_model_file``).
 """
 
 from __future__ import annotations
@@ -385,7 +387,7 @@ def load_generating(
 
 
 #: Values of a model file's ``structure`` metadata (``lie_poisson`` where the key is absent).
-STRUCTURES = ("lie_poisson", "log_canonical")
+STRUCTURES = ("lie_poisson", "log_canonical", "polynomial")
 
 #: Largest safetensors header read to find a file's structure (the format's own limit).
 _MAX_HEADER_BYTES = 100_000_000

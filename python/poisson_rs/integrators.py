@@ -398,7 +398,7 @@ def load_model(
     tol: float = 1e-12,
     max_iter: int = 50,
     newton: Literal["simplified", "full"] = "simplified",
-) -> LearnedIntegrator | LearnedLogCanonicalIntegrator:
+) -> LearnedIntegrator | LearnedLogCanonicalIntegrator | LearnedPolynomialIntegrator:
     """Loads a learned integrator.
 
     ``path`` is a model file, the name of a shipped model (see :func:`list_models`), or None for
@@ -408,7 +408,8 @@ def load_model(
     updates contract by 4× or more; ``newton="full"`` recomputes it every update. Both agree to
     ``tol``. Raises FileNotFoundError for a missing file, ValueError for a corrupt one or one
     whose metadata names an unknown ``structure``. A file recording ``structure =
-    log_canonical`` loads as a :class:`LearnedLogCanonicalIntegrator` (full Newton always).
+    log_canonical`` loads as a :class:`LearnedLogCanonicalIntegrator`, one recording
+    ``structure = polynomial`` as a :class:`LearnedPolynomialIntegrator` (full Newton always).
     """
     if path is None:
         path = DEFAULT_MODEL
@@ -421,8 +422,11 @@ def load_model(
             f"no model file {os.fspath(path)!r}, and no shipped model of that name; shipped "
             f"models: {', '.join(list_models())}"
         )
-    if model_structure(path) == "log_canonical":
+    structure = model_structure(path)
+    if structure == "log_canonical":
         return LearnedLogCanonicalIntegrator(Path(path), tol=tol, max_iter=max_iter)
+    if structure == "polynomial":
+        return LearnedPolynomialIntegrator(Path(path), tol=tol, max_iter=max_iter)
     return LearnedIntegrator(Path(path), tol=tol, max_iter=max_iter, newton=newton)
 
 
@@ -807,7 +811,7 @@ def integrate(
     if on_failure not in _ON_FAILURE:
         raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
     domain: dict[str, Any] | None = None
-    if isinstance(stepper, LearnedLogCanonicalIntegrator):
+    if isinstance(stepper, (LearnedLogCanonicalIntegrator, LearnedPolynomialIntegrator)):
         if strict and h > stepper.h_max:
             raise ValueError(
                 f"h = {h} exceeds h_max = {stepper.h_max}, the largest step {stepper.name!r} "
@@ -1387,6 +1391,85 @@ class LearnedLogCanonicalIntegrator:
 def _restore_learned_log(
     cls: type[LearnedLogCanonicalIntegrator], data: bytes, tol: float, max_iter: int
 ) -> LearnedLogCanonicalIntegrator:
+    return cls(data, tol=tol, max_iter=max_iter)
+
+
+class LearnedPolynomialIntegrator:
+    """A learned generating function on the order-n approximate realization of a polynomial
+    bivector, read from a model file whose metadata says ``structure = polynomial``
+    (:mod:`poisson_rs.realizations.polynomial_hj`): S(t, x) = exact Taylor-HJ terms of order m +
+    t^M·MLP(t, x). A step solves α(x, ∇S(h, x)) = x_k by full Newton in Rust
+    (|δ|∞ ≤ tol · max(|x|∞, 1)) and returns β(x, ∇S(h, x)). The realization is Poisson only to
+    order n, so the Casimirs drift by O(h^{n+1}) a step (O(h^{n+2}) for odd n) whatever the
+    network learned. Built by :func:`load_model`.
+    """
+
+    def __init__(self, source: Path | bytes, *, tol: float = 1e-13, max_iter: int = 50) -> None:
+        from .realizations.polynomial_hj import read_model_file
+
+        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        if isinstance(source, bytes):
+            data, where = source, "model bytes"
+        else:
+            check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
+            data, where = Path(source).read_bytes(), f"model file {source}"
+        self._bytes = data
+        self.metadata, self._core = read_model_file(data, where)
+        self.system = self.metadata["system"]
+        self.h_max = float(self.metadata["h_max"])
+        self.domain: dict[str, Any] = self.metadata["domain"]
+        self.name = str(self.metadata.get("name", "learned-polynomial"))
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+
+    @property
+    def dim(self) -> int:
+        return int(self._core.dim)
+
+    @property
+    def n_parameters(self) -> int:
+        return int(self._core.n_parameters)
+
+    @property
+    def mlp_power(self) -> int:
+        return int(self._core.mlp_power)
+
+    @property
+    def taylor_order(self) -> int:
+        return int(self.metadata["taylor_order"])
+
+    @property
+    def realization_order(self) -> int:
+        return int(self.metadata["realization_order"])
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_restore_learned_polynomial, (type(self), self._bytes, self.tol, self.max_iter))
+
+    def derivatives(self, t: float, x: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """S, ∇_x S and ∇²_x S at time t for x (n, dim), from the Rust core."""
+        arr = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, self.dim))
+        return self._core.derivatives(float(t), arr)  # type: ignore[no-any-return]
+
+    def _rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        arr = np.ascontiguousarray(mu0, dtype=np.float64)
+        return self._core.rollout(arr, h, n_steps, every, self.tol, self.max_iter)  # type: ignore[no-any-return]
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(name={self.name!r}, taylor_order={self.taylor_order}, "
+            f"realization_order={self.realization_order}, mlp_power={self.mlp_power}, "
+            f"parameters={self.n_parameters}, system={self.system.to_dict()!r})"
+        )
+
+
+def _restore_learned_polynomial(
+    cls: type[LearnedPolynomialIntegrator], data: bytes, tol: float, max_iter: int
+) -> LearnedPolynomialIntegrator:
     return cls(data, tol=tol, max_iter=max_iter)
 
 

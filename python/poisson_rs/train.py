@@ -842,8 +842,9 @@ def train(
     previous setting is restored afterwards.
     """
     from .realizations.log_canonical_hj import LogCanonicalTrainConfig
+    from .realizations.polynomial_hj import PolynomialTrainConfig
 
-    if isinstance(cfg, LogCanonicalTrainConfig):
+    if isinstance(cfg, (LogCanonicalTrainConfig, PolynomialTrainConfig)):
         return _train_log_canonical(  # type: ignore[return-value]
             cfg,
             checkpoint=checkpoint,
@@ -898,10 +899,15 @@ def _train_log_canonical(
     threads: int | None,
 ) -> Any:
     """:func:`train` for a log-canonical configuration: the HJ loss alone, with the package's
-    thread policy (:func:`~poisson_rs.realizations.log_canonical_hj.train_log_canonical`).
-    Checkpoints, data terms and early stops are Lie–Poisson features: asking for one is a
-    ValueError naming it."""
+    thread policy (:func:`~poisson_rs.realizations.log_canonical_hj.train_log_canonical`), and
+    the same for a polynomial-realization one
+    (:func:`~poisson_rs.realizations.polynomial_hj.train_polynomial`). Checkpoints, data terms
+    and early stops are Lie–Poisson features: asking for one is a ValueError naming it."""
     from .realizations.log_canonical_hj import train_log_canonical
+    from .realizations.polynomial_hj import PolynomialTrainConfig, train_polynomial
+
+    trainer = train_polynomial if isinstance(cfg, PolynomialTrainConfig) else train_log_canonical
+    kind = type(cfg).__name__
 
     unsupported = {
         "checkpoint": checkpoint is not None,
@@ -912,14 +918,14 @@ def _train_log_canonical(
     for name, given in unsupported.items():
         if given:
             raise ValueError(
-                f"train(): {name} is not supported for a log-canonical configuration "
-                "(LogCanonicalTrainConfig trains on the HJ residual alone)"
+                f"train(): {name} is not supported for a {kind} configuration "
+                f"({kind} trains on the HJ residual alone)"
             )
     n_threads = resolve_threads(threads)
     previous = torch.get_num_threads()
     torch.set_num_threads(n_threads)
     try:
-        return train_log_canonical(
+        return trainer(
             cfg,
             progress=progress,
             log_every=log_every,

@@ -13,5 +13,6 @@ pub use log_canonical::{
     LogClassical, LogMethod, LogSystem, OrthantChecked,
 };
 pub use polynomial::{
-    PolynomialBisection, PolynomialGenerating, PolynomialRealization, SparsePolynomial,
+    LearnedPolynomial, LearnedPolynomialBisection, LearnedPolynomialModel, PolynomialBisection,
+    PolynomialGenerating, PolynomialRealization, SparsePolynomial,
 };

@@ -9,7 +9,9 @@
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
+use crate::generating::{GeneratingFunction, Mlp, MlpInputs, Polynomial, Workspace};
 use crate::realization::{Generating, Realization, RealizationStepper};
+use crate::stepper::NewtonOptions;
 
 /// Largest exponent of one variable in a term.
 pub const MAX_EXPONENT: u32 = 64;
@@ -193,3 +195,268 @@ impl<const N: usize> Generating<N> for PolynomialGenerating<N> {
 /// Taylor-HJ on an approximate realization of a polynomial bivector.
 pub type PolynomialBisection<const N: usize> =
     RealizationStepper<N, PolynomialRealization<N>, PolynomialGenerating<N>>;
+
+/// A learned generating function on an approximate realization: the exact Taylor-HJ terms as a
+/// polynomial in (t, x) ([`PolynomialGenerating`]) plus t^m · N(t, x), the network term of a
+/// [`GeneratingFunction`] with plain inputs (t, x) and no polynomial part. Both derivatives are
+/// exact: the Taylor terms evaluated on jets, forward-mode duals through the MLP.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LearnedPolynomial<const N: usize> {
+    pub taylor: PolynomialGenerating<N>,
+    pub network: GeneratingFunction<N>,
+}
+
+impl<const N: usize> LearnedPolynomial<N> {
+    /// Refuses a network part with polynomial terms of its own (the Taylor terms live in
+    /// `taylor`, so a second polynomial would be counted twice).
+    pub fn new(
+        taylor: PolynomialGenerating<N>,
+        network: GeneratingFunction<N>,
+    ) -> Result<Self, CoreError> {
+        if !network.polynomial.terms.is_empty() {
+            return Err(CoreError::Invalid(
+                "the network part of a learned polynomial-realization generating function must \
+                 hold no polynomial terms (the Taylor terms are given separately)"
+                    .into(),
+            ));
+        }
+        Ok(LearnedPolynomial { taylor, network })
+    }
+}
+
+impl<const N: usize> Generating<N> for LearnedPolynomial<N> {
+    type Workspace = Workspace<N>;
+    fn workspace(&self) -> Workspace<N> {
+        self.network.workspace()
+    }
+    fn jet(&self, t: f64, p: &[f64; N], ws: &mut Workspace<N>) -> Jet2<N> {
+        Generating::jet(&self.taylor, t, p, &mut ()) + self.network.jet(t, p, ws)
+    }
+    fn gradient(&self, t: f64, p: &[f64; N], ws: &mut Workspace<N>) -> Dual1<N> {
+        let taylor = Generating::gradient(&self.taylor, t, p, &mut ());
+        let net = self.network.gradient(t, p, ws);
+        Dual1 {
+            v: taylor.v + net.v,
+            g: std::array::from_fn(|i| taylor.g[i] + net.g[i]),
+        }
+    }
+}
+
+/// The learned bisection integrator on an approximate realization of a polynomial bivector.
+pub type LearnedPolynomialBisection<const N: usize> =
+    RealizationStepper<N, PolynomialRealization<N>, LearnedPolynomial<N>>;
+
+/// A learned model on an approximate realization, of any dimension `dim` ≤ [`MAX_DIM`]: the maps
+/// β (sou) and α (tar) as `dim` polynomials each in (fibre, base), the Taylor terms S(t, x) as
+/// one polynomial in (t, x), and the network t^m · N(t, x). [`Self::stepper`] builds the
+/// `dim`-dimensional (monomorphised) integrator; every check runs in [`Self::new`].
+#[derive(Clone, Debug)]
+pub struct LearnedPolynomialModel {
+    pub dim: usize,
+    sou: Vec<SparsePolynomial>,
+    tar: Vec<SparsePolynomial>,
+    taylor: SparsePolynomial,
+    pub mlp: Option<Mlp>,
+    pub mlp_power: u32,
+}
+
+impl LearnedPolynomialModel {
+    pub fn new(
+        dim: usize,
+        sou: Vec<SparsePolynomial>,
+        tar: Vec<SparsePolynomial>,
+        taylor: SparsePolynomial,
+        mlp: Option<Mlp>,
+        mlp_power: u32,
+    ) -> Result<Self, CoreError> {
+        if !(1..=MAX_DIM).contains(&dim) {
+            return Err(CoreError::Invalid(format!(
+                "dimension {dim} is outside 1..={MAX_DIM}"
+            )));
+        }
+        if mlp.is_some() && !(1..=64).contains(&mlp_power) {
+            return Err(CoreError::Invalid(format!(
+                "mlp_power must be in 1..=64, got {mlp_power}"
+            )));
+        }
+        let model = LearnedPolynomialModel {
+            dim,
+            sou,
+            tar,
+            taylor,
+            mlp,
+            mlp_power,
+        };
+        crate::with_dim!(dim, N => {
+            model.stepper::<N>(NewtonOptions::default())?;
+        }, return Err(CoreError::Invalid(format!("dimension {dim} is outside 1..={MAX_DIM}"))));
+        Ok(model)
+    }
+
+    fn check_dim<const N: usize>(&self) -> Result<(), CoreError> {
+        if N != self.dim {
+            return Err(CoreError::Invalid(format!(
+                "the model has dimension {}, not {N}",
+                self.dim
+            )));
+        }
+        Ok(())
+    }
+
+    /// The generating function, for N = `self.dim`.
+    pub fn generating<const N: usize>(&self) -> Result<LearnedPolynomial<N>, CoreError> {
+        self.check_dim::<N>()?;
+        let network = GeneratingFunction::new(
+            Polynomial::default(),
+            self.mlp.clone(),
+            self.mlp_power.max(1),
+            MlpInputs::Plain,
+        )?;
+        LearnedPolynomial::new(PolynomialGenerating::new(self.taylor.clone())?, network)
+    }
+
+    /// The integrator (Newton stops once |δ|∞ ≤ tol · max(|x|∞, 1)), for N = `self.dim`.
+    pub fn stepper<const N: usize>(
+        &self,
+        newton: NewtonOptions,
+    ) -> Result<LearnedPolynomialBisection<N>, CoreError> {
+        Ok(LearnedPolynomialBisection {
+            generating: self.generating::<N>()?,
+            realization: PolynomialRealization::new(self.sou.clone(), self.tar.clone())?,
+            newton,
+            scale_floor: 1.0,
+        })
+    }
+
+    /// Terms of the Taylor part.
+    pub fn n_taylor_terms(&self) -> usize {
+        self.taylor.coeffs.len()
+    }
+}
+
+#[cfg(test)]
+mod learned_tests {
+    //! The learned generating function on a realization: its jet is the sum of its parts, and
+    //! a model with a zero network steps exactly as the Taylor integrator does.
+
+    use super::*;
+    use crate::generating::Layer;
+    use crate::stepper::StepMap;
+
+    /// A fixed tanh MLP R^{1+3} → R, one hidden layer of 5 (weights from a sine pattern),
+    /// its last layer scaled by `gain`.
+    fn mlp(gain: f64) -> Mlp {
+        let w0: Vec<f64> = (0..20).map(|k| 0.7 * (1.3 * k as f64).sin()).collect();
+        let b0: Vec<f64> = (0..5).map(|k| 0.2 * (0.9 * k as f64).cos()).collect();
+        let w1: Vec<f64> = (0..5)
+            .map(|k| gain * (2.1 * k as f64 + 0.3).sin())
+            .collect();
+        Mlp::new(vec![
+            Layer::new(4, 5, w0, b0).unwrap(),
+            Layer::new(5, 1, w1, vec![0.1 * gain]).unwrap(),
+        ])
+        .unwrap()
+    }
+
+    /// so(3) (π = x̂, linear) at order 1: β = x − ½ x × p... written as polynomials in
+    /// (p, x): β_i = x_i − ½ ε_ijk x_k p_j, α with +½; S = −t |x|²/2.
+    fn model(gain: f64) -> LearnedPolynomialModel {
+        let eps = |i: usize, j: usize, k: usize| -> f64 {
+            match (i, j, k) {
+                (0, 1, 2) | (1, 2, 0) | (2, 0, 1) => 1.0,
+                (0, 2, 1) | (2, 1, 0) | (1, 0, 2) => -1.0,
+                _ => 0.0,
+            }
+        };
+        let maps = |sign: f64| -> Vec<SparsePolynomial> {
+            (0..3)
+                .map(|i| {
+                    let mut coeffs = vec![1.0];
+                    let mut exps = vec![0u32; 6];
+                    exps[3 + i] = 1;
+                    for j in 0..3 {
+                        for k in 0..3 {
+                            let e = eps(i, j, k);
+                            if e != 0.0 {
+                                coeffs.push(sign * 0.5 * e);
+                                let mut row = vec![0u32; 6];
+                                row[j] = 1;
+                                row[3 + k] = 1;
+                                exps.extend(row);
+                            }
+                        }
+                    }
+                    SparsePolynomial::new(6, &coeffs, &exps).unwrap()
+                })
+                .collect()
+        };
+        let s = SparsePolynomial::new(
+            4,
+            &[-0.5, -0.5, -0.5],
+            &[1, 2, 0, 0, 1, 0, 2, 0, 1, 0, 0, 2],
+        )
+        .unwrap();
+        LearnedPolynomialModel::new(3, maps(-1.0), maps(1.0), s, Some(mlp(gain)), 3).unwrap()
+    }
+
+    #[test]
+    fn jet_is_the_sum_of_the_taylor_and_network_jets() {
+        let s = model(0.5).generating::<3>().unwrap();
+        let mut ws = Generating::workspace(&s);
+        let x = [0.2, -0.4, 0.7];
+        let jet = Generating::jet(&s, 0.1, &x, &mut ws);
+        let sum = Generating::jet(&s.taylor, 0.1, &x, &mut ()) + s.network.jet(0.1, &x, &mut ws);
+        assert_eq!(jet, sum);
+        let grad = Generating::gradient(&s, 0.1, &x, &mut ws);
+        for i in 0..3 {
+            assert!((grad.g[i] - jet.g[i]).abs() <= 1e-15);
+        }
+    }
+
+    #[test]
+    fn zero_network_steps_as_the_taylor_integrator() {
+        let learned = model(0.0).stepper::<3>(NewtonOptions::default()).unwrap();
+        let taylor = PolynomialBisection::<3> {
+            generating: learned.generating.taylor.clone(),
+            realization: learned.realization.clone(),
+            newton: NewtonOptions::default(),
+            scale_floor: 1.0,
+        };
+        let (mut a, mut b) = ([0.3, 0.5, -0.4], [0.3, 0.5, -0.4]);
+        let mut ws = learned.workspace();
+        for _ in 0..20 {
+            learned.step(0.1, &mut a, &mut ws).unwrap();
+            taylor.step(0.1, &mut b, &mut ()).unwrap();
+        }
+        for i in 0..3 {
+            assert!((a[i] - b[i]).abs() <= 1e-14, "{a:?} vs {b:?}");
+        }
+    }
+
+    #[test]
+    fn bad_models_are_refused() {
+        let m = model(0.5);
+        let err = LearnedPolynomialModel::new(
+            3,
+            m.sou.clone(),
+            m.tar.clone(),
+            m.taylor.clone(),
+            m.mlp.clone(),
+            0,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("mlp_power"), "{err}");
+        let err = LearnedPolynomialModel::new(
+            2,
+            m.sou.clone(),
+            m.tar.clone(),
+            m.taylor.clone(),
+            m.mlp.clone(),
+            3,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("inputs") || err.contains("variables"), "{err}");
+    }
+}
