@@ -30,12 +30,10 @@ S = Taylor + t^m N(t, q) (``_core.LogCanonicalModel``).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import math
-import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +43,7 @@ from torch import Tensor
 
 from ..structures.log_canonical import LogCanonicalSystem
 from .log_canonical import beta_log, taylor_arrays
+from .pinn import NetworkTerm, PinnResult, fit, is_int
 
 #: The ``structure`` metadata of a log-canonical model file.
 STRUCTURE = "log_canonical"
@@ -66,7 +65,7 @@ def _taylor_vanishes(system: LogCanonicalSystem, order: int) -> bool:
     return not bool(np.any(co[tp == order] != 0))
 
 
-class LogCanonicalGenerating(torch.nn.Module):
+class LogCanonicalGenerating(NetworkTerm):
     """S(t, q) = Σ coeffs · t^k e^{e·q} + t·(b·q) + t^m · s_out · N(t·s_t, (q − q_c)·s_q).
 
     ``system``: the log-canonical system; ``taylor_order`` K ≥ 1 (exact terms S_1..S_K, S_1 with
@@ -88,9 +87,7 @@ class LogCanonicalGenerating(torch.nn.Module):
         output_scale: float = 1.0,
         dtype: torch.dtype = torch.float64,
     ) -> None:
-        super().__init__()
-        n = system.dim
-        self.dim = n
+        super().__init__(system.dim, widths, q_center, q_half, h_max, output_scale, dtype)
         self.mlp_power = int(mlp_power)
         self.taylor_order = int(taylor_order)
         tp, ex, co = taylor_arrays(system, taylor_order)
@@ -102,55 +99,17 @@ class LogCanonicalGenerating(torch.nn.Module):
         self._powers_int = np.concatenate([tp[:, None], ex], axis=1).astype(np.int64)
         self._coeffs64 = co.astype(np.float64)
         self._linear64 = np.array(system.log_hamiltonian.b, dtype=np.float64)
-        scale = np.concatenate([[1.0 / h_max], 1.0 / np.asarray(q_half, np.float64)])
-        shift = np.concatenate([[0.0], np.asarray(q_center, np.float64)])
-        self.register_buffer("input_scale", torch.as_tensor(scale, dtype=dtype))
-        self.register_buffer("input_shift", torch.as_tensor(shift, dtype=dtype))
-        self.output_scale = float(output_scale)
-        sizes = [n + 1, *widths, 1] if widths else []
-        self.linears = torch.nn.ModuleList(
-            torch.nn.Linear(a, b, dtype=dtype) for a, b in itertools.pairwise(sizes)
-        )
-
-    def n_parameters(self) -> int:
-        return sum(p.numel() for p in self.parameters())
 
     def taylor(self, t: Tensor, q: Tensor) -> Tensor:
         """The exact Taylor terms Σ_{k≤K} t^k S_k(q) (S_1's log part included): (B,)."""
         w = self.coeffs * t[:, None] ** self.t_powers * torch.exp(q @ self.exponents.T)
         return w.sum(-1) + t * (q @ self.linear)
 
-    def network(self, t: Tensor, q: Tensor) -> Tensor:
-        """N(t, q) with the input scaling, before t^m and s_out: (B,)."""
-        z = (torch.cat([t[:, None], q], 1) - self.input_shift) * self.input_scale
-        for i, layer in enumerate(self.linears):
-            z = layer(z)
-            if i + 1 < len(self.linears):
-                z = torch.tanh(z)
-        return z[:, 0]
-
     def forward(self, t: Tensor, q: Tensor) -> Tensor:
         s = self.taylor(t, q)
         if len(self.linears):
             s = s + t**self.mlp_power * self.output_scale * self.network(t, q)
         return s
-
-    def exported_layers(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(weight (out, in), bias (out,)) float64 pairs with the input shift and scales folded
-        in, so that the exported network is N(t, q) on raw inputs (t, q)."""
-        out = []
-        scale = self.input_scale.detach().to(torch.float64).cpu().numpy()
-        shift = self.input_shift.detach().to(torch.float64).cpu().numpy()
-        for i, layer in enumerate(self.linears):
-            w = layer.weight.detach().to(torch.float64).cpu().numpy().copy()
-            b = layer.bias.detach().to(torch.float64).cpu().numpy().copy()
-            if i == 0:
-                w = w * scale[None, :]
-                b = b - w @ shift
-            if i == len(self.linears) - 1:
-                w, b = w * self.output_scale, b * self.output_scale
-            out.append((w, b))
-        return out
 
     def taylor_tensors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(powers int64 (M, 1 + n) rows (k, e), coeffs (M,), linear (n,)) of the Taylor part."""
@@ -227,10 +186,6 @@ def step_map(
 # ---------------------------------------------------------------------------------------------
 
 
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
 @dataclass
 class LogCanonicalTrainConfig:
     """Everything that determines a training run of a log-canonical generating function (and is
@@ -296,9 +251,9 @@ class LogCanonicalTrainConfig:
         if self.mlp_power is not None:
             ints["mlp_power"] = (self.mlp_power, 1, 64)
         for name, (v, lo, hi) in ints.items():
-            if not _is_int(v) or not lo <= v <= hi:
+            if not is_int(v) or not lo <= v <= hi:
                 raise ValueError(f"invalid {name}: {v!r} (must be an integer in [{lo}, {hi}])")
-        if not all(_is_int(w) and 1 <= w <= 100_000 for w in self.widths):
+        if not all(is_int(w) and 1 <= w <= 100_000 for w in self.widths):
             raise ValueError(f"invalid widths: {self.widths!r} (integers in [1, 100000])")
         for name, v in (("h_max", self.h_max), ("lr", self.lr)):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
@@ -367,29 +322,8 @@ def build_model(cfg: LogCanonicalTrainConfig) -> LogCanonicalGenerating:
     return s_fn
 
 
-@dataclass
-class LogCanonicalTrainResult:
-    model: LogCanonicalGenerating
-    config: LogCanonicalTrainConfig
-    losses: list[float] = field(default_factory=list)
-    """Mean squared HJ residual every ``log_every`` Adam iterations (units of energy²), then
-    once after L-BFGS."""
-    seconds: float = 0.0
-    validation_rms: float = float("nan")
-    """RMS HJ residual on 8192 held-out points of the box (seed + 7919)."""
-    baseline_rms: float = float("nan")
-    """The same for the Taylor terms alone (the network's output zero)."""
-    iterations_run: int = 0
-    timed_out: bool = False
-    lbfgs_iterations_run: int = 0
-
-    @property
-    def final_loss(self) -> float:
-        return self.losses[-1] if self.losses else float("nan")
-
-
-def _rms(s_fn: torch.nn.Module, system: LogCanonicalSystem, t: Tensor, q: Tensor) -> float:
-    return float(hj_residual(s_fn, system, t, q).pow(2).mean().sqrt())
+#: The result of :func:`train_log_canonical`.
+LogCanonicalTrainResult = PinnResult
 
 
 def train_log_canonical(
@@ -399,121 +333,32 @@ def train_log_canonical(
     log_every: int = 10,
     callback: Callable[[int, float], None] | None = None,
     max_seconds: float | None = None,
-) -> LogCanonicalTrainResult:
-    """Trains S = Taylor terms + t^m·N on the mean squared HJ residual with Adam (cosine decay to
-    1 % of lr), the loss taken relative to its value at the start (the Taylor terms' residual
-    is small, so raw gradients would sit below Adam's eps). ``progress`` shows a tqdm bar;
-    ``max_seconds`` ends the run cleanly once that much time has passed. Threads are the
-    caller's (``poisson_rs.train.train`` applies the package's policy)."""
+) -> PinnResult:
+    """Trains S = Taylor terms + t^m·N on the mean squared HJ residual of the exact groupoid
+    (:func:`~poisson_rs.realizations.pinn.fit`: Adam, then ``lbfgs_iterations`` of L-BFGS).
+    ``progress`` shows a tqdm bar; ``max_seconds`` ends the run cleanly once that much time has
+    passed. Threads are the caller's (``poisson_rs.train.train`` applies the package's
+    policy)."""
     cfg.validate()
-    if not _is_int(log_every) or log_every < 1:
-        raise ValueError(f"log_every must be an integer >= 1, got {log_every!r}")
-    if max_seconds is not None and not (
-        isinstance(max_seconds, (int, float)) and not isinstance(max_seconds, bool)
-    ):
-        raise ValueError(f"max_seconds must be a number > 0, got {max_seconds!r}")
-    if max_seconds is not None and not max_seconds > 0:
-        raise ValueError(f"max_seconds must be a number > 0, got {max_seconds!r}")
     system = cfg.log_system()
-    dtype = getattr(torch, cfg.dtype)
-    s_fn = build_model(cfg)
-    pgen = torch.Generator().manual_seed(cfg.seed + 104729)
-    tp, qp = sample_points(cfg, min(cfg.batch, 4096), pgen, dtype)
-    scale = float(hj_residual(s_fn, system, tp, qp).pow(2).mean())
-    if not math.isfinite(scale):
-        raise ValueError(f"the HJ loss is {scale} before training: x_max is too large")
-    scale = scale if scale > 0 else 1.0
-    opt = torch.optim.Adam(s_fn.parameters(), lr=cfg.lr)
 
-    def lr_at(i: int) -> float:
-        if cfg.schedule == "constant":
-            return cfg.lr
-        return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * i / max(cfg.iterations, 1))))
+    def residual(s_fn: torch.nn.Module, t: Tensor, q: Tensor, create_graph: bool) -> Tensor:
+        return hj_residual(s_fn, system, t, q, create_graph=create_graph)
 
-    gen = torch.Generator().manual_seed(cfg.seed)
-    losses: list[float] = []
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    def sample(n: int, gen: torch.Generator, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        return sample_points(cfg, n, gen, dtype)
 
-        bar = tqdm(total=cfg.iterations, desc="train", unit="it", leave=True)
-    t0 = time.perf_counter()
-    done, timed_out = 0, False
-    n_iter = cfg.iterations if s_fn.n_parameters() else 0
-    for i in range(n_iter):
-        if max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
-            timed_out = True
-            break
-        for g in opt.param_groups:
-            g["lr"] = lr_at(i)
-        t, q = sample_points(cfg, cfg.batch, gen, dtype)
-        opt.zero_grad(set_to_none=True)
-        loss = hj_residual(s_fn, system, t, q, create_graph=True).pow(2).mean()
-        (loss / scale).backward()
-        opt.step()
-        if i % log_every == 0 or i == cfg.iterations - 1:
-            value = float(loss.detach())
-            losses.append(value)
-            if bar is not None:
-                bar.set_postfix(loss=f"{value:.3e}", refresh=False)
-            if callback is not None:
-                callback(i, value)
-        if bar is not None:
-            bar.update(1)
-        done = i + 1
-    if bar is not None:
-        bar.close()
-    lbfgs_done = 0
-    if cfg.lbfgs_iterations and s_fn.n_parameters() and not timed_out:
-        lbfgs_done = _polish(s_fn, system, cfg, dtype, losses)
-    seconds = time.perf_counter() - t0
-    s_fn = s_fn.double()
-    vgen = torch.Generator().manual_seed(cfg.seed + 7919)
-    tv, qv = sample_points(cfg, 8192, vgen, torch.float64)
-    rms = _rms(s_fn, system, tv, qv)
-    bare = build_model(dataclasses.replace(cfg, dtype="float64"))
-    baseline = _rms(bare, system, tv, qv)
-    return LogCanonicalTrainResult(
-        s_fn, cfg, losses, seconds, rms, baseline, done, timed_out, lbfgs_done
+    return fit(
+        cfg,
+        build_model(cfg),
+        lambda: build_model(dataclasses.replace(cfg, dtype="float64")),
+        residual,
+        sample,
+        progress=progress,
+        log_every=log_every,
+        callback=callback,
+        max_seconds=max_seconds,
     )
-
-
-def _polish(
-    s_fn: LogCanonicalGenerating,
-    system: LogCanonicalSystem,
-    cfg: LogCanonicalTrainConfig,
-    dtype: torch.dtype,
-    record: list[float],
-) -> int:
-    """L-BFGS (strong Wolfe) on one fixed seeded batch, the loss relative to its value at the
-    start (torch's thresholds are absolute); appends the final HJ loss to ``record`` and returns
-    the iterations taken."""
-    gen = torch.Generator().manual_seed(cfg.seed + 31337)
-    t, q = sample_points(cfg, cfg.lbfgs_batch, gen, dtype)
-    start = float(hj_residual(s_fn, system, t, q).pow(2).mean())
-    scale = start if math.isfinite(start) and start > 0 else 1.0
-    params = list(s_fn.parameters())
-    n = cfg.lbfgs_iterations
-    opt = torch.optim.LBFGS(
-        params,
-        lr=1.0,
-        max_iter=n,
-        max_eval=25 * n,
-        tolerance_grad=1e-12,
-        tolerance_change=1e-15,
-        history_size=50,
-        line_search_fn="strong_wolfe",
-    )
-
-    def closure() -> Tensor:
-        opt.zero_grad(set_to_none=True)
-        loss = hj_residual(s_fn, system, t, q, create_graph=True).pow(2).mean() / scale
-        loss.backward()
-        return loss.detach()
-
-    opt.step(closure)
-    record.append(float(hj_residual(s_fn, system, t, q).pow(2).mean()))
-    return int(opt.state[params[0]].get("n_iter", 0))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -33,13 +33,11 @@ network with its scales folded in; the core steps it (``_core.LearnedPolynomialM
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import math
 import re
-import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +52,7 @@ from ..structures.polynomial import (
     hj_series,
     matched_realization_order,
 )
+from .pinn import NetworkTerm, PinnResult, fit, is_int
 
 #: The ``structure`` metadata of a learned polynomial-realization model file.
 STRUCTURE = "polynomial"
@@ -148,7 +147,7 @@ class TermPolynomials(torch.nn.Module):
         return out.index_add(1, self.index, terms.T)
 
 
-class PolynomialRealizationGenerating(torch.nn.Module):
+class PolynomialRealizationGenerating(NetworkTerm):
     """S(t, x) = Taylor(t, x) + t^M · s_out · N((t, x) scaled), with the maps of the realization.
 
     ``tables``: the system's :class:`RealizationTables`; ``widths`` the hidden widths of N
@@ -170,8 +169,7 @@ class PolynomialRealizationGenerating(torch.nn.Module):
         output_scale: float = 1.0,
         dtype: torch.dtype = torch.float64,
     ) -> None:
-        super().__init__()
-        self.dim = dim
+        super().__init__(dim, widths, x_center, x_half, h_max, output_scale, dtype)
         self.tables = tables
         self.taylor_order = int(taylor_order)
         self.realization_order = int(realization_order)
@@ -180,54 +178,16 @@ class PolynomialRealizationGenerating(torch.nn.Module):
         self.alpha = TermPolynomials(tables.alpha, dim, dtype)
         self.taylor_part = TermPolynomials(tables.taylor, 1, dtype)
         self.hamiltonian = TermPolynomials(tables.hamiltonian, 1, dtype)
-        scale = np.concatenate([[1.0 / h_max], 1.0 / np.asarray(x_half, np.float64)])
-        shift = np.concatenate([[0.0], np.asarray(x_center, np.float64)])
-        self.register_buffer("input_scale", torch.as_tensor(scale, dtype=dtype))
-        self.register_buffer("input_shift", torch.as_tensor(shift, dtype=dtype))
-        self.output_scale = float(output_scale)
-        sizes = [dim + 1, *widths, 1] if widths else []
-        self.linears = torch.nn.ModuleList(
-            torch.nn.Linear(a, b, dtype=dtype) for a, b in itertools.pairwise(sizes)
-        )
-
-    def n_parameters(self) -> int:
-        return sum(p.numel() for p in self.parameters())
 
     def taylor(self, t: Tensor, x: Tensor) -> Tensor:
         """Σ_{k≤m} t^k S_k(x): (B,)."""
         return self.taylor_part(torch.cat([t[:, None], x], 1))[:, 0]
-
-    def network(self, t: Tensor, x: Tensor) -> Tensor:
-        """N with the input scaling, before t^M and s_out: (B,)."""
-        z = (torch.cat([t[:, None], x], 1) - self.input_shift) * self.input_scale
-        for i, layer in enumerate(self.linears):
-            z = layer(z)
-            if i + 1 < len(self.linears):
-                z = torch.tanh(z)
-        return z[:, 0]
 
     def forward(self, t: Tensor, x: Tensor) -> Tensor:
         s = self.taylor(t, x)
         if len(self.linears):
             s = s + t**self.mlp_power * self.output_scale * self.network(t, x)
         return s
-
-    def exported_layers(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(weight (out, in), bias (out,)) float64 pairs with the input shift and scales folded
-        in, so that the exported network is N(t, x) on raw inputs (t, x)."""
-        out = []
-        scale = self.input_scale.detach().to(torch.float64).cpu().numpy()
-        shift = self.input_shift.detach().to(torch.float64).cpu().numpy()
-        for i, layer in enumerate(self.linears):
-            w = layer.weight.detach().to(torch.float64).cpu().numpy().copy()
-            b = layer.bias.detach().to(torch.float64).cpu().numpy().copy()
-            if i == 0:
-                w = w * scale[None, :]
-                b = b - w @ shift
-            if i == len(self.linears) - 1:
-                w, b = w * self.output_scale, b * self.output_scale
-            out.append((w, b))
-        return out
 
 
 def hj_derivatives(
@@ -291,10 +251,6 @@ def step_map(
 # ---------------------------------------------------------------------------------------------
 # Training
 # ---------------------------------------------------------------------------------------------
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def _is_number(v: Any) -> bool:
@@ -370,12 +326,12 @@ class PolynomialTrainConfig:
         if self.mlp_power is not None:
             ints["mlp_power"] = (self.mlp_power, 1, 64)
         for name, (v, lo, hi) in ints.items():
-            if not _is_int(v) or not lo <= v <= hi:
+            if not is_int(v) or not lo <= v <= hi:
                 raise ValueError(
                     f"PolynomialTrainConfig field {name}: {v!r} must be an integer in [{lo}, {hi}]"
                 )
         if not isinstance(self.widths, tuple) or not all(
-            _is_int(w) and 1 <= w <= 100_000 for w in self.widths
+            is_int(w) and 1 <= w <= 100_000 for w in self.widths
         ):
             raise ValueError(
                 f"PolynomialTrainConfig field widths: {self.widths!r} must be integers in "
@@ -468,29 +424,8 @@ def build_model(
     return s_fn
 
 
-@dataclass
-class PolynomialTrainResult:
-    model: PolynomialRealizationGenerating
-    config: PolynomialTrainConfig
-    losses: list[float] = field(default_factory=list)
-    """Mean squared HJ residual every ``log_every`` Adam iterations (units of energy²), then
-    once after L-BFGS."""
-    seconds: float = 0.0
-    validation_rms: float = float("nan")
-    """RMS HJ residual on 8192 held-out points of the box (seed + 7919)."""
-    baseline_rms: float = float("nan")
-    """The same for the Taylor terms alone (the network's output zero)."""
-    iterations_run: int = 0
-    timed_out: bool = False
-    lbfgs_iterations_run: int = 0
-
-    @property
-    def final_loss(self) -> float:
-        return self.losses[-1] if self.losses else float("nan")
-
-
-def _rms(s_fn: PolynomialRealizationGenerating, t: Tensor, x: Tensor) -> float:
-    return float(hj_residual(s_fn, t, x).pow(2).mean().sqrt())
+#: The result of :func:`train_polynomial`.
+PolynomialTrainResult = PinnResult
 
 
 def train_polynomial(
@@ -500,115 +435,32 @@ def train_polynomial(
     log_every: int = 10,
     callback: Callable[[int, float], None] | None = None,
     max_seconds: float | None = None,
-) -> PolynomialTrainResult:
-    """Trains S = Taylor terms + t^M·N on the mean squared HJ residual with Adam (cosine decay
-    to 1 % of lr), the loss taken relative to its value at the start (the Taylor terms'
-    residual is small, so raw gradients would sit below Adam's eps), then optionally L-BFGS.
-    ``progress`` shows a tqdm bar; ``max_seconds`` ends the run cleanly once that much time has
-    passed."""
+) -> PinnResult:
+    """Trains S = Taylor terms + t^M·N on the mean squared HJ residual of the order-n
+    realization (:func:`~poisson_rs.realizations.pinn.fit`: Adam, then ``lbfgs_iterations`` of
+    L-BFGS). ``progress`` shows a tqdm bar; ``max_seconds`` ends the run cleanly once that much
+    time has passed."""
     cfg.validate()
-    if not _is_int(log_every) or log_every < 1:
-        raise ValueError(f"log_every must be an integer >= 1, got {log_every!r}")
-    if max_seconds is not None and not (_is_number(max_seconds) and max_seconds > 0):
-        raise ValueError(f"max_seconds must be a number > 0, got {max_seconds!r}")
-    dtype = getattr(torch, cfg.dtype)
     s_fn = build_model(cfg)
     tables = s_fn.tables
-    pgen = torch.Generator().manual_seed(cfg.seed + 104729)
-    tp, xp = sample_points(cfg, min(cfg.batch, 4096), pgen, dtype)
-    scale = float(hj_residual(s_fn, tp, xp).pow(2).mean())
-    if not math.isfinite(scale):
-        raise ValueError(f"the HJ loss is {scale} before training: the box is too large")
-    scale = scale if scale > 0 else 1.0
-    opt = torch.optim.Adam(s_fn.parameters(), lr=cfg.lr)
 
-    def lr_at(i: int) -> float:
-        if cfg.schedule == "constant":
-            return cfg.lr
-        return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * i / max(cfg.iterations, 1))))
+    def residual(s: torch.nn.Module, t: Tensor, x: Tensor, create_graph: bool) -> Tensor:
+        return hj_residual(s, t, x, create_graph=create_graph)
 
-    gen = torch.Generator().manual_seed(cfg.seed)
-    losses: list[float] = []
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    def sample(n: int, gen: torch.Generator, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        return sample_points(cfg, n, gen, dtype)
 
-        bar = tqdm(total=cfg.iterations, desc="train", unit="it", leave=True)
-    t0 = time.perf_counter()
-    done, timed_out = 0, False
-    n_iter = cfg.iterations if s_fn.n_parameters() else 0
-    for i in range(n_iter):
-        if max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
-            timed_out = True
-            break
-        for g in opt.param_groups:
-            g["lr"] = lr_at(i)
-        t, x = sample_points(cfg, cfg.batch, gen, dtype)
-        opt.zero_grad(set_to_none=True)
-        loss = hj_residual(s_fn, t, x, create_graph=True).pow(2).mean()
-        (loss / scale).backward()
-        opt.step()
-        if i % log_every == 0 or i == cfg.iterations - 1:
-            value = float(loss.detach())
-            losses.append(value)
-            if bar is not None:
-                bar.set_postfix(loss=f"{value:.3e}", refresh=False)
-            if callback is not None:
-                callback(i, value)
-        if bar is not None:
-            bar.update(1)
-        done = i + 1
-    if bar is not None:
-        bar.close()
-    lbfgs_done = 0
-    if cfg.lbfgs_iterations and s_fn.n_parameters() and not timed_out:
-        lbfgs_done = _polish(s_fn, cfg, dtype, losses)
-    seconds = time.perf_counter() - t0
-    s_fn = s_fn.double()
-    vgen = torch.Generator().manual_seed(cfg.seed + 7919)
-    tv, xv = sample_points(cfg, 8192, vgen, torch.float64)
-    rms = _rms(s_fn, tv, xv)
-    bare = build_model(dataclasses.replace(cfg, dtype="float64"), tables)
-    baseline = _rms(bare, tv, xv)
-    return PolynomialTrainResult(
-        s_fn, cfg, losses, seconds, rms, baseline, done, timed_out, lbfgs_done
+    return fit(
+        cfg,
+        s_fn,
+        lambda: build_model(dataclasses.replace(cfg, dtype="float64"), tables),
+        residual,
+        sample,
+        progress=progress,
+        log_every=log_every,
+        callback=callback,
+        max_seconds=max_seconds,
     )
-
-
-def _polish(
-    s_fn: PolynomialRealizationGenerating,
-    cfg: PolynomialTrainConfig,
-    dtype: torch.dtype,
-    record: list[float],
-) -> int:
-    """L-BFGS (strong Wolfe) on one fixed seeded batch, the loss relative to its value at the
-    start; appends the final HJ loss to ``record`` and returns the iterations taken."""
-    gen = torch.Generator().manual_seed(cfg.seed + 31337)
-    t, x = sample_points(cfg, cfg.lbfgs_batch, gen, dtype)
-    start = float(hj_residual(s_fn, t, x).pow(2).mean())
-    scale = start if math.isfinite(start) and start > 0 else 1.0
-    params = list(s_fn.parameters())
-    n = cfg.lbfgs_iterations
-    opt = torch.optim.LBFGS(
-        params,
-        lr=1.0,
-        max_iter=n,
-        max_eval=25 * n,
-        tolerance_grad=1e-12,
-        tolerance_change=1e-15,
-        history_size=50,
-        line_search_fn="strong_wolfe",
-    )
-
-    def closure() -> Tensor:
-        opt.zero_grad(set_to_none=True)
-        loss = hj_residual(s_fn, t, x, create_graph=True).pow(2).mean() / scale
-        loss.backward()
-        return loss.detach()
-
-    opt.step(closure)
-    record.append(float(hj_residual(s_fn, t, x).pow(2).mean()))
-    return int(opt.state[params[0]].get("n_iter", 0))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -804,7 +656,7 @@ def read_model_file(data: bytes, source: str = "model bytes") -> tuple[dict[str,
             raise ValueError(f"metadata 'h_max' must be a finite number > 0, got {raw['h_max']!r}")
     with parsing(source, "widths"):
         widths = json.loads(raw["widths"])
-        if not isinstance(widths, list) or not all(_is_int(w) and w > 0 for w in widths):
+        if not isinstance(widths, list) or not all(is_int(w) and w > 0 for w in widths):
             raise ValueError(f"metadata 'widths' must be a list of positive integers: {widths!r}")
         meta["widths"] = tuple(widths)
     with parsing(source, "domain"):
