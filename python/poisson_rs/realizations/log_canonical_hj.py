@@ -30,7 +30,6 @@ S = Taylor + t^m N(t, q) (``_core.LogCanonicalModel``).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -43,7 +42,7 @@ from torch import Tensor
 
 from ..structures.log_canonical import LogCanonicalSystem
 from .log_canonical import beta_log, taylor_arrays
-from .pinn import NetworkTerm, PinnResult, fit, is_int
+from .pinn import NetworkTerm, PinnResult, fit, is_int, model_file, provenance
 
 #: The ``structure`` metadata of a log-canonical model file.
 STRUCTURE = "log_canonical"
@@ -377,37 +376,17 @@ def model_bytes(
     ``structure = log_canonical``, ``mlp_power``, ``mlp_inputs = t,p``, ``widths``,
     ``taylor_order``, ``system`` (JSON), ``h_max``, ``domain`` (JSON), and ``record`` entries
     (non-strings as JSON). Refuses NaN or infinite weights (a diverged run)."""
-    from ..export import FORMAT, PACKAGE_VERSION, safetensors_bytes
-
     system = cfg.log_system()
     powers, coeffs, linear = s_fn.taylor_tensors()
-    layers = s_fn.exported_layers()
-    if not all(np.isfinite(a).all() for layer in layers for a in layer):
-        raise ValueError("the model has NaN or infinite weights (training diverged?)")
     tensors: dict[str, np.ndarray] = {
         "structure.c": np.ascontiguousarray(system.c, dtype=np.float64),
         "poly.powers": np.ascontiguousarray(powers, dtype=np.int64),
         "poly.coeffs": np.ascontiguousarray(coeffs, dtype=np.float64),
         "poly.linear": np.ascontiguousarray(linear, dtype=np.float64),
     }
-    for i, (w, b) in enumerate(layers):
-        tensors[f"mlp.{i}.weight"] = np.ascontiguousarray(w, dtype=np.float64)
-        tensors[f"mlp.{i}.bias"] = np.ascontiguousarray(b, dtype=np.float64)
-    meta: dict[str, str] = {
-        "format": FORMAT,
-        "structure": STRUCTURE,
-        "mlp_power": str(s_fn.mlp_power),
-        "mlp_inputs": "t,p",
-        "widths": json.dumps([int(w.shape[0]) for w, _ in layers[:-1]]),
-        "taylor_order": str(s_fn.taylor_order),
-        "system": json.dumps(system.to_dict()),
-        "h_max": repr(float(cfg.h_max)),
-        "domain": json.dumps(cfg.domain_dict()),
-        "package_version": PACKAGE_VERSION,
-    }
-    for k, v in (record or {}).items():
-        meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
-    return safetensors_bytes(tensors, meta)
+    return model_file(
+        tensors, s_fn, cfg, structure=STRUCTURE, system=system, inputs="t,p", record=record
+    )
 
 
 def save_result(
@@ -421,17 +400,5 @@ def save_result(
     """Writes a trained model with its provenance (command, seed, residuals, time) atomically."""
     from ..files import atomic_write_bytes
 
-    cfg = result.config
-    record = {
-        "name": name,
-        "command": command,
-        "seed": cfg.seed,
-        "final_loss": result.final_loss,
-        "validation_rms_residual": result.validation_rms,
-        "baseline_rms_residual": result.baseline_rms,
-        "train_seconds": round(result.seconds, 2),
-        "iterations": cfg.iterations,
-        "config": json.dumps(dataclasses.asdict(cfg)),
-        **(dict(extra) if extra else {}),
-    }
-    return atomic_write_bytes(Path(path), model_bytes(result.model, cfg, record))
+    record = provenance(result, name=name, command=command, extra=extra)
+    return atomic_write_bytes(Path(path), model_bytes(result.model, result.config, record))

@@ -255,3 +255,69 @@ def _polish(
     opt.step(closure)
     record.append(float(residual(s_fn, t, x, False).pow(2).mean()))
     return int(opt.state[params[0]].get("n_iter", 0))
+
+
+def model_file(
+    tensors: dict[str, np.ndarray],
+    s_fn: NetworkTerm,
+    cfg: Any,
+    *,
+    structure: str,
+    system: Any,
+    inputs: str,
+    fields: dict[str, str] | None = None,
+    record: Any = None,
+) -> bytes:
+    """A learned S's model file: ``tensors`` plus the MLP's (``mlp.{i}.weight``/``.bias`` on
+    raw inputs), and the metadata every realization records (``format``, ``structure``,
+    ``mlp_power``, ``mlp_inputs``, ``widths``, ``taylor_order``, ``system`` as JSON, ``h_max``,
+    ``domain``), then ``fields`` and the ``record`` entries (non-strings as JSON). Refuses NaN
+    or infinite weights (a diverged run)."""
+    import json
+
+    from ..export import FORMAT, PACKAGE_VERSION, safetensors_bytes
+
+    layers = s_fn.exported_layers()
+    if not all(np.isfinite(a).all() for layer in layers for a in layer):
+        raise ValueError("the model has NaN or infinite weights (training diverged?)")
+    tensors = dict(tensors)
+    for i, (w, b) in enumerate(layers):
+        tensors[f"mlp.{i}.weight"] = np.ascontiguousarray(w, dtype=np.float64)
+        tensors[f"mlp.{i}.bias"] = np.ascontiguousarray(b, dtype=np.float64)
+    meta: dict[str, str] = {
+        "format": FORMAT,
+        "structure": structure,
+        "mlp_power": str(s_fn.mlp_power),
+        "mlp_inputs": inputs,
+        "widths": json.dumps([int(w.shape[0]) for w, _ in layers[:-1]]),
+        "taylor_order": str(s_fn.taylor_order),
+        **(fields or {}),
+        "system": json.dumps(system.to_dict()),
+        "h_max": repr(float(cfg.h_max)),
+        "domain": json.dumps(cfg.domain_dict()),
+        "package_version": PACKAGE_VERSION,
+    }
+    for k, v in (record or {}).items():
+        meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
+    return safetensors_bytes(tensors, meta)
+
+
+def provenance(result: PinnResult, *, name: str, command: str, extra: Any = None) -> dict[str, Any]:
+    """The training record a saved model carries: its name and command, the seed, the losses
+    and residuals, the time and the whole config (JSON), plus ``extra``."""
+    import dataclasses
+    import json
+
+    cfg = result.config
+    return {
+        "name": name,
+        "command": command,
+        "seed": cfg.seed,
+        "final_loss": result.final_loss,
+        "validation_rms_residual": result.validation_rms,
+        "baseline_rms_residual": result.baseline_rms,
+        "train_seconds": round(result.seconds, 2),
+        "iterations": cfg.iterations,
+        "config": json.dumps(dataclasses.asdict(cfg)),
+        **(dict(extra) if extra else {}),
+    }

@@ -52,7 +52,7 @@ from ..structures.polynomial import (
     hj_series,
     matched_realization_order,
 )
-from .pinn import NetworkTerm, PinnResult, fit, is_int
+from .pinn import NetworkTerm, PinnResult, fit, is_int, model_file, provenance
 
 #: The ``structure`` metadata of a learned polynomial-realization model file.
 STRUCTURE = "polynomial"
@@ -512,28 +512,17 @@ def model_bytes(
     the Hamiltonian), ``taylor_order`` m, ``realization_order`` n, ``mlp_power``,
     ``mlp_inputs = t,x``, ``widths``, ``h_max``, ``domain`` (JSON), and ``record`` entries
     (non-strings as JSON). Refuses NaN or infinite weights (a diverged run)."""
-    from ..export import FORMAT, PACKAGE_VERSION, safetensors_bytes
-
-    tensors = model_tensors(s_fn)
-    if not all(np.isfinite(a).all() for k, a in tensors.items() if k.startswith("mlp.")):
-        raise ValueError("the model has NaN or infinite weights (training diverged?)")
-    system = cfg.poisson_system()
-    meta: dict[str, str] = {
-        "format": FORMAT,
-        "structure": STRUCTURE,
-        "mlp_power": str(s_fn.mlp_power),
-        "mlp_inputs": "t,x",
-        "widths": json.dumps([int(w.shape[0]) for w, _ in s_fn.exported_layers()[:-1]]),
-        "taylor_order": str(s_fn.taylor_order),
-        "realization_order": str(s_fn.realization_order),
-        "system": json.dumps(system.to_dict()),
-        "h_max": repr(float(cfg.h_max)),
-        "domain": json.dumps(cfg.domain_dict()),
-        "package_version": PACKAGE_VERSION,
-    }
-    for k, v in (record or {}).items():
-        meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
-    return safetensors_bytes(tensors, meta)
+    tensors = {k: v for k, v in model_tensors(s_fn).items() if not k.startswith("mlp.")}
+    return model_file(
+        tensors,
+        s_fn,
+        cfg,
+        structure=STRUCTURE,
+        system=cfg.poisson_system(),
+        inputs="t,x",
+        fields={"realization_order": str(s_fn.realization_order)},
+        record=record,
+    )
 
 
 def save_result(
@@ -547,20 +536,8 @@ def save_result(
     """Writes a trained model with its provenance (command, seed, residuals, time) atomically."""
     from ..files import atomic_write_bytes
 
-    cfg = result.config
-    record = {
-        "name": name,
-        "command": command,
-        "seed": cfg.seed,
-        "final_loss": result.final_loss,
-        "validation_rms_residual": result.validation_rms,
-        "baseline_rms_residual": result.baseline_rms,
-        "train_seconds": round(result.seconds, 2),
-        "iterations": cfg.iterations,
-        "config": json.dumps(dataclasses.asdict(cfg)),
-        **(dict(extra) if extra else {}),
-    }
-    return atomic_write_bytes(Path(path), model_bytes(result.model, cfg, record))
+    record = provenance(result, name=name, command=command, extra=extra)
+    return atomic_write_bytes(Path(path), model_bytes(result.model, result.config, record))
 
 
 _DTYPES = {"F64": np.dtype("<f8"), "I64": np.dtype("<i8")}
