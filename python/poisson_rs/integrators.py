@@ -1315,7 +1315,77 @@ def _restore_log_taylor(
     return cls(LogCanonicalSystem.from_dict(data), order, tol=tol, max_iter=max_iter)
 
 
-class LearnedLogCanonicalIntegrator:
+class _LearnedRealizationIntegrator:
+    """What the learned S of every non-Lie–Poisson realization shares: the model file read
+    once (bytes kept for pickling), ``tol`` and ``max_iter`` checked, the core's model, and the
+    properties and pickling built on them. A subclass reads its file (:meth:`_load`) and rolls
+    out (:meth:`_rollout`)."""
+
+    _default_name = "learned"
+
+    def __init__(self, source: Path | bytes, *, tol: float, max_iter: int) -> None:
+        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        if isinstance(source, bytes):
+            data, where = source, "model bytes"
+        else:
+            check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
+            data, where = Path(source).read_bytes(), f"model file {source}"
+        self._bytes = data
+        self.metadata, self._core = self._load(data, where)
+        self.system = self.metadata["system"]
+        self.h_max = float(self.metadata["h_max"])
+        self.domain: dict[str, Any] = self.metadata["domain"]
+        self.name = str(self.metadata.get("name", self._default_name))
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+
+    def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
+        raise NotImplementedError
+
+    @property
+    def dim(self) -> int:
+        return int(self._core.dim)
+
+    @property
+    def n_parameters(self) -> int:
+        return int(self._core.n_parameters)
+
+    @property
+    def mlp_power(self) -> int:
+        return int(self._core.mlp_power)
+
+    @property
+    def taylor_order(self) -> int:
+        return int(self.metadata["taylor_order"])
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_restore_learned, (type(self), self._bytes, self.tol, self.max_iter))
+
+    def derivatives(self, t: float, x: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """S, ∇S and ∇²S at time t for x (n, dim) in the core's coordinates, from Rust."""
+        arr = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, self.dim))
+        return self._core.derivatives(float(t), arr)  # type: ignore[no-any-return]
+
+    def _describe(self) -> str:
+        return f"taylor_order={self.taylor_order}"
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(name={self.name!r}, {self._describe()}, "
+            f"mlp_power={self.mlp_power}, parameters={self.n_parameters}, system={self.system!r})"
+        )
+
+
+def _restore_learned(
+    cls: type[_LearnedRealizationIntegrator], data: bytes, tol: float, max_iter: int
+) -> _LearnedRealizationIntegrator:
+    return cls(data, tol=tol, max_iter=max_iter)
+
+
+class LearnedLogCanonicalIntegrator(_LearnedRealizationIntegrator):
     """A learned generating function on the exact log-canonical groupoid, read from a model file
     whose metadata says ``structure = log_canonical``
     (:mod:`poisson_rs.realizations.log_canonical_hj`): S(t, q) = exact Taylor terms +
@@ -1325,55 +1395,22 @@ class LearnedLogCanonicalIntegrator:
     Built by :func:`load_model`.
     """
 
+    _default_name = "learned-log-canonical"
+
     def __init__(self, source: Path | bytes, *, tol: float = 1e-12, max_iter: int = 50) -> None:
-        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
-            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
-        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
-            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
-        if isinstance(source, bytes):
-            data, where = source, "model bytes"
-        else:
-            check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
-            data, where = Path(source).read_bytes(), f"model file {source}"
-        self._bytes = data
+        super().__init__(source, tol=tol, max_iter=max_iter)
+
+    def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
         with parsing(where):
-            self._core = _core.LogCanonicalModel.from_bytes(data)
-        self.metadata: dict[str, Any] = parse_log_canonical_metadata(self._core.metadata, where)
-        self.system = self.metadata["system"]
+            core = _core.LogCanonicalModel.from_bytes(data)
+        metadata = parse_log_canonical_metadata(core.metadata, where)
+        system = metadata["system"]
         with parsing(where, "system"):
-            if self.system.dim != self._core.dim or not np.array_equal(self.system.c, self._core.c):
+            if system.dim != core.dim or not np.array_equal(system.c, core.c):
                 raise ValueError(
-                    f"metadata 'system' ({self.system!r}) does not match the file's structure.c"
+                    f"metadata 'system' ({system!r}) does not match the file's structure.c"
                 )
-        self.h_max = float(self.metadata["h_max"])
-        self.domain: dict[str, Any] = self.metadata["domain"]
-        self.name = str(self.metadata.get("name", "learned-log-canonical"))
-        self.tol = float(tol)
-        self.max_iter = int(max_iter)
-
-    @property
-    def dim(self) -> int:
-        return int(self._core.dim)
-
-    @property
-    def n_parameters(self) -> int:
-        return int(self._core.n_parameters)
-
-    @property
-    def mlp_power(self) -> int:
-        return int(self._core.mlp_power)
-
-    @property
-    def taylor_order(self) -> int:
-        return int(self.metadata["taylor_order"])
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        return (_restore_learned_log, (type(self), self._bytes, self.tol, self.max_iter))
-
-    def derivatives(self, t: float, q: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """S, ∇_q S and ∇²_q S at time t for q (n, dim) = ln x, from the Rust core."""
-        arr = np.ascontiguousarray(np.asarray(q, dtype=np.float64).reshape(-1, self.dim))
-        return self._core.derivatives(float(t), arr)  # type: ignore[no-any-return]
+        return metadata, core
 
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
@@ -1381,20 +1418,8 @@ class LearnedLogCanonicalIntegrator:
         q, info = self._core.rollout(_positive_log(mu0), h, n_steps, every, self.tol, self.max_iter)
         return _exp_states(q), info
 
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(name={self.name!r}, taylor_order={self.taylor_order}, "
-            f"mlp_power={self.mlp_power}, parameters={self.n_parameters}, system={self.system!r})"
-        )
 
-
-def _restore_learned_log(
-    cls: type[LearnedLogCanonicalIntegrator], data: bytes, tol: float, max_iter: int
-) -> LearnedLogCanonicalIntegrator:
-    return cls(data, tol=tol, max_iter=max_iter)
-
-
-class LearnedPolynomialIntegrator:
+class LearnedPolynomialIntegrator(_LearnedRealizationIntegrator):
     """A learned generating function on the order-n approximate realization of a polynomial
     bivector, read from a model file whose metadata says ``structure = polynomial``
     (:mod:`poisson_rs.realizations.polynomial_hj`): S(t, x) = exact Taylor-HJ terms of order m +
@@ -1404,73 +1429,28 @@ class LearnedPolynomialIntegrator:
     network learned. Built by :func:`load_model`.
     """
 
+    _default_name = "learned-polynomial"
+
     def __init__(self, source: Path | bytes, *, tol: float = 1e-13, max_iter: int = 50) -> None:
+        super().__init__(source, tol=tol, max_iter=max_iter)
+
+    def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
         from .realizations.polynomial_hj import read_model_file
 
-        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
-            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
-        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
-            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
-        if isinstance(source, bytes):
-            data, where = source, "model bytes"
-        else:
-            check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
-            data, where = Path(source).read_bytes(), f"model file {source}"
-        self._bytes = data
-        self.metadata, self._core = read_model_file(data, where)
-        self.system = self.metadata["system"]
-        self.h_max = float(self.metadata["h_max"])
-        self.domain: dict[str, Any] = self.metadata["domain"]
-        self.name = str(self.metadata.get("name", "learned-polynomial"))
-        self.tol = float(tol)
-        self.max_iter = int(max_iter)
-
-    @property
-    def dim(self) -> int:
-        return int(self._core.dim)
-
-    @property
-    def n_parameters(self) -> int:
-        return int(self._core.n_parameters)
-
-    @property
-    def mlp_power(self) -> int:
-        return int(self._core.mlp_power)
-
-    @property
-    def taylor_order(self) -> int:
-        return int(self.metadata["taylor_order"])
+        return read_model_file(data, where)  # type: ignore[no-any-return]
 
     @property
     def realization_order(self) -> int:
         return int(self.metadata["realization_order"])
 
-    def __reduce__(self) -> tuple[Any, ...]:
-        return (_restore_learned_polynomial, (type(self), self._bytes, self.tol, self.max_iter))
-
-    def derivatives(self, t: float, x: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """S, ∇_x S and ∇²_x S at time t for x (n, dim), from the Rust core."""
-        arr = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, self.dim))
-        return self._core.derivatives(float(t), arr)  # type: ignore[no-any-return]
+    def _describe(self) -> str:
+        return f"taylor_order={self.taylor_order}, realization_order={self.realization_order}"
 
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         arr = np.ascontiguousarray(mu0, dtype=np.float64)
         return self._core.rollout(arr, h, n_steps, every, self.tol, self.max_iter)  # type: ignore[no-any-return]
-
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(name={self.name!r}, taylor_order={self.taylor_order}, "
-            f"realization_order={self.realization_order}, mlp_power={self.mlp_power}, "
-            f"parameters={self.n_parameters}, system={self.system.to_dict()!r})"
-        )
-
-
-def _restore_learned_polynomial(
-    cls: type[LearnedPolynomialIntegrator], data: bytes, tol: float, max_iter: int
-) -> LearnedPolynomialIntegrator:
-    return cls(data, tol=tol, max_iter=max_iter)
 
 
 #: Order of accuracy and whether a step is a Poisson map, for the classical integrators of a

@@ -264,6 +264,11 @@ class PolynomialPoissonSystem:
     def __reduce__(self) -> tuple[Any, ...]:
         return (_system, (self.structure, str(self.h), self.name))
 
+    def __repr__(self) -> str:
+        c = self.structure.casimir
+        bracket = f"nambu={str(c)!r}" if c is not None else f"dim={self.dim}"
+        return f"PolynomialPoissonSystem({bracket}, hamiltonian={str(self.h)!r})"
+
     @property
     def dim(self) -> int:
         return self.structure.dim
