@@ -913,6 +913,44 @@ fn rollout_log_canonical<'py>(
     }, Err(dim_error(dim)))
 }
 
+/// S, ∇S and ∇²S at time t for each of `x`, for a learned S whose network part is `network`
+/// (its workspace sized and checked before the GIL is released): arrays (n,), (n, N), (n, N, N).
+fn learned_jets<'py, const N: usize, G: Generating<N, Workspace = Workspace<N>>>(
+    py: Python<'py>,
+    g: &G,
+    network: &crate::generating::GeneratingFunction<N>,
+    t: f64,
+    x: &[[f64; N]],
+) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
+    let n = x.len();
+    check_output_bytes(n.saturating_mul(1 + N + N * N), Workspace::bytes(network))?;
+    let (s, grad, hess) = detached(py, || {
+        let mut ws = network.try_workspace()?;
+        let (mut s, mut grad, mut hess) = (
+            try_with_capacity(n, "the output S")?,
+            try_with_capacity(N * n, "the output dS/dx")?,
+            try_with_capacity(N * N * n, "the output d2S/dx2")?,
+        );
+        for xi in x {
+            let jet = g.jet(t, xi, &mut ws);
+            s.push(jet.v);
+            grad.extend(jet.grad());
+            hess.extend(jet.hess().iter().flatten());
+        }
+        Ok((s, grad, hess))
+    })?;
+    let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
+    Ok((
+        Array1::from_vec(s).into_pyarray(py),
+        Array2::from_shape_vec((n, N), grad)
+            .map_err(shape_err)?
+            .into_pyarray(py),
+        Array3::from_shape_vec((n, N, N), hess)
+            .map_err(shape_err)?
+            .into_pyarray(py),
+    ))
+}
+
 /// A learned generating function of a log-canonical structure π_ij = c_ij x_i x_j, loaded from
 /// a model file whose metadata says `structure = log_canonical`: S(t, q) = exact Taylor terms
 /// + t^m · MLP(t, q) in q = ln x, stepped on the exact groupoid (every monomial Casimir kept to
@@ -988,29 +1026,7 @@ impl PyLogModel {
         with_dim!(self.inner.dim, N => {
             let q = states::<N>(&q, "q")?;
             let g = self.inner.generating::<N>()?;
-            let n = q.len();
-            check_output_bytes(n.saturating_mul(1 + N + N * N), Workspace::bytes(&g.network))?;
-            let (s, grad, hess) = detached(py, || {
-                let mut ws = g.network.try_workspace()?;
-                let (mut s, mut grad, mut hess) = (
-                    try_with_capacity(n, "the output S")?,
-                    try_with_capacity(N * n, "the output dS/dq")?,
-                    try_with_capacity(N * N * n, "the output d2S/dq2")?,
-                );
-                for qi in &q {
-                    let jet = g.jet(t, qi, &mut ws);
-                    s.push(jet.v);
-                    grad.extend(jet.grad());
-                    hess.extend(jet.hess().iter().flatten());
-                }
-                Ok((s, grad, hess))
-            })?;
-            let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
-            Ok((
-                Array1::from_vec(s).into_pyarray(py),
-                Array2::from_shape_vec((n, N), grad).map_err(shape_err)?.into_pyarray(py),
-                Array3::from_shape_vec((n, N, N), hess).map_err(shape_err)?.into_pyarray(py),
-            ))
+            learned_jets(py, &g, &g.network, t, &q)
         }, Err(dim_error(self.inner.dim)))
     }
 
@@ -1324,29 +1340,7 @@ impl PyLearnedPolynomialModel {
         with_dim!(self.inner.dim, N => {
             let x = states::<N>(&x, "x")?;
             let g = self.inner.generating::<N>()?;
-            let n = x.len();
-            check_output_bytes(n.saturating_mul(1 + N + N * N), Workspace::bytes(&g.network))?;
-            let (s, grad, hess) = detached(py, || {
-                let mut ws = g.network.try_workspace()?;
-                let (mut s, mut grad, mut hess) = (
-                    try_with_capacity(n, "the output S")?,
-                    try_with_capacity(N * n, "the output dS/dx")?,
-                    try_with_capacity(N * N * n, "the output d2S/dx2")?,
-                );
-                for xi in &x {
-                    let jet = g.jet(t, xi, &mut ws);
-                    s.push(jet.v);
-                    grad.extend(jet.grad());
-                    hess.extend(jet.hess().iter().flatten());
-                }
-                Ok((s, grad, hess))
-            })?;
-            let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
-            Ok((
-                Array1::from_vec(s).into_pyarray(py),
-                Array2::from_shape_vec((n, N), grad).map_err(shape_err)?.into_pyarray(py),
-                Array3::from_shape_vec((n, N, N), hess).map_err(shape_err)?.into_pyarray(py),
-            ))
+            learned_jets(py, &g, &g.network, t, &x)
         }, Err(dim_error(self.inner.dim)))
     }
 
