@@ -200,6 +200,8 @@ pub struct Layer {
     /// W and Wᵀ in the batched kernel's panel layout ([`kernel::pack`]).
     packed: Vec<f64>,
     packed_t: Vec<f64>,
+    /// Wᵀ row-major (`n_in × n_out`), for [`narrow_gemm`] in the reverse pass.
+    weight_t: Vec<f64>,
 }
 
 impl Layer {
@@ -242,6 +244,7 @@ impl Layer {
             bias,
             packed,
             packed_t,
+            weight_t: transposed,
         })
     }
 
@@ -249,11 +252,32 @@ impl Layer {
     /// (component-major); the bias enters the value columns `0..n` only.
     fn forward_batch(&self, x: &[f64], n: usize, k: usize, z: &mut [f64]) {
         let cols = k * n;
-        kernel::gemm(&self.packed, self.n_in, self.n_out, x, cols, z);
+        self.product(x, cols, z);
         for (row, &b) in z.chunks_exact_mut(cols).zip(&self.bias) {
             for v in &mut row[..n] {
                 *v += b;
             }
+        }
+    }
+
+    /// z = W x for `cols` columns: [`narrow_gemm`] for a narrow layer, else [`kernel::gemm`]
+    /// (the same bits either way).
+    #[inline]
+    fn product(&self, x: &[f64], cols: usize, z: &mut [f64]) {
+        if self.n_out <= NARROW_ROWS && self.n_in <= NARROW_INPUTS {
+            narrow_gemm(&self.weight, self.n_in, self.n_out, x, cols, z);
+        } else {
+            kernel::gemm(&self.packed, self.n_in, self.n_out, x, cols, z);
+        }
+    }
+
+    /// g = Wᵀ δ for `cols` columns, as [`Self::product`] chooses.
+    #[inline]
+    fn product_t(&self, delta: &[f64], cols: usize, g: &mut [f64]) {
+        if self.n_in <= NARROW_ROWS && self.n_out <= NARROW_INPUTS {
+            narrow_gemm(&self.weight_t, self.n_out, self.n_in, delta, cols, g);
+        } else {
+            kernel::gemm(&self.packed_t, self.n_out, self.n_in, delta, cols, g);
         }
     }
 
@@ -269,6 +293,118 @@ impl Layer {
                 o.add_scaled(xi, w);
             }
         }
+    }
+}
+
+/// Layers with at most this many outputs (and [`NARROW_INPUTS`] inputs) take [`narrow_gemm`]:
+/// the panel kernel computes [`kernel::MR`] = 6 rows a block, so a layer of 8 outputs paid for
+/// 12 and the output layer (1) for 6.
+const NARROW_ROWS: usize = 16;
+/// Inputs of a narrow layer: its block of accumulators stays in registers over the whole sum.
+const NARROW_INPUTS: usize = 64;
+
+/// z = W·x for a narrow layer, W row-major (`n_out × n_in`), `x` (`n_in × cols`) and `z`
+/// (`n_out × cols`) row-major: blocks of up to 4 rows by 8 columns, and no padded rows.
+///
+/// Every element is the chain of multiply-adds of [`kernel::gemm`] (from 0, over k = 0, 1, …,
+/// n_in − 1, fused where the CPU has FMA), so the two kernels give the same bits: the choice
+/// between them never changes a trajectory (tested).
+pub(crate) fn narrow_gemm(
+    weight: &[f64],
+    n_in: usize,
+    n_out: usize,
+    x: &[f64],
+    cols: usize,
+    z: &mut [f64],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if kernel::uses_fma() {
+        // SAFETY: the CPU has the features `narrow_gemm_fma` is compiled for.
+        unsafe { narrow_gemm_fma(weight, n_in, n_out, x, cols, z) };
+        return;
+    }
+    narrow_gemm_body::<false>(weight, n_in, n_out, x, cols, z);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn narrow_gemm_fma(
+    weight: &[f64],
+    n_in: usize,
+    n_out: usize,
+    x: &[f64],
+    cols: usize,
+    z: &mut [f64],
+) {
+    narrow_gemm_body::<true>(weight, n_in, n_out, x, cols, z);
+}
+
+#[inline(always)]
+fn narrow_gemm_body<const FMA: bool>(
+    weight: &[f64],
+    n_in: usize,
+    n_out: usize,
+    x: &[f64],
+    cols: usize,
+    z: &mut [f64],
+) {
+    let (weight, x) = (&weight[..n_out * n_in], &x[..n_in * cols]);
+    let z = &mut z[..n_out * cols];
+    let mut o = 0;
+    while o < n_out {
+        let rows = (n_out - o).min(4);
+        let w = &weight[o * n_in..(o + rows) * n_in];
+        let zo = &mut z[o * cols..(o + rows) * cols];
+        match rows {
+            4 => narrow_rows::<4, FMA>(w, n_in, x, cols, zo),
+            3 => narrow_rows::<3, FMA>(w, n_in, x, cols, zo),
+            2 => narrow_rows::<2, FMA>(w, n_in, x, cols, zo),
+            _ => narrow_rows::<1, FMA>(w, n_in, x, cols, zo),
+        }
+        o += rows;
+    }
+}
+
+/// R rows of [`narrow_gemm_body`]: `w` holds them (`R × n_in`), `z` receives them.
+#[inline(always)]
+fn narrow_rows<const R: usize, const FMA: bool>(
+    w: &[f64],
+    n_in: usize,
+    x: &[f64],
+    cols: usize,
+    z: &mut [f64],
+) {
+    const C: usize = 8;
+    let mut c = 0;
+    while c + C <= cols {
+        let mut acc = [[0.0; C]; R];
+        for k in 0..n_in {
+            let xk: &[f64; C] = x[k * cols + c..k * cols + c + C].try_into().unwrap();
+            for r in 0..R {
+                let wr = w[r * n_in + k];
+                for j in 0..C {
+                    acc[r][j] = madd::<FMA>(wr, xk[j], acc[r][j]);
+                }
+            }
+        }
+        for (r, a) in acc.iter().enumerate() {
+            z[r * cols + c..r * cols + c + C].copy_from_slice(a);
+        }
+        c += C;
+    }
+    // The last columns one at a time: the same chain per element.
+    while c < cols {
+        let mut acc = [0.0; R];
+        for k in 0..n_in {
+            let xv = x[k * cols + c];
+            for r in 0..R {
+                acc[r] = madd::<FMA>(w[r * n_in + k], xv, acc[r]);
+            }
+        }
+        for (r, &a) in acc.iter().enumerate() {
+            z[r * cols + c] = a;
+        }
+        c += 1;
     }
 }
 
@@ -551,7 +687,7 @@ impl Mlp {
         let (mut delta, mut g) = (a, b);
         delta[..n].fill(1.0);
         for (i, layer) in self.layers.iter().enumerate().rev() {
-            kernel::gemm(&layer.packed_t, layer.n_out, layer.n_in, delta, n, g);
+            layer.product_t(delta, n, g);
             off -= layer.n_in * n;
             if i > 0 {
                 let y = &acts[off..off + layer.n_in * n];

@@ -197,3 +197,43 @@ fn fast_tanh_is_within_four_ulp_of_libm() {
         eprintln!("fast tanh ({name}): worst {} ulp at {:e}", worst.0, worst.1);
     }
 }
+
+/// The narrow-layer kernel of the MLP passes against the panel kernel: the same chain of
+/// multiply-adds per element, so the same bits, for every shape up to its limits and column
+/// counts that are not multiples of its 8-column blocks (which kernel a layer takes never
+/// changes a trajectory).
+#[test]
+fn narrow_layer_kernel_equals_the_panel_kernel() {
+    use crate::generating::narrow_gemm;
+    use crate::kernel;
+    let mut rng = Rng::new(0x1A2E_5005);
+    for n_out in 1..=10 {
+        for n_in in [1, 2, 3, 4, 7, 8, 9, 16] {
+            for cols in [1, 3, 8, 10, 13, 40, 97] {
+                let w: Vec<f64> = (0..n_out * n_in).map(|_| rng.range(-2.0, 2.0)).collect();
+                // Some exact zeros and negative products: the sums start from +0 in both.
+                let x: Vec<f64> = (0..n_in * cols)
+                    .map(|i| {
+                        if i % 11 == 0 {
+                            0.0
+                        } else {
+                            rng.range(-3.0, 3.0)
+                        }
+                    })
+                    .collect();
+                let mut a = vec![f64::NAN; n_out * cols];
+                let mut b = vec![f64::NAN; n_out * cols];
+                kernel::gemm(
+                    &kernel::pack(&w, n_in, n_out),
+                    n_in,
+                    n_out,
+                    &x,
+                    cols,
+                    &mut a,
+                );
+                narrow_gemm(&w, n_in, n_out, &x, cols, &mut b);
+                assert!(same_bits(&a, &b), "{n_out}x{n_in}, {cols} columns");
+            }
+        }
+    }
+}
