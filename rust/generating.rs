@@ -19,6 +19,10 @@ use std::sync::Arc;
 /// Most trajectories one batched evaluation takes.
 pub const MAX_BATCH: usize = 32;
 
+/// Batches of at most this many momenta take per-call scratch arrays sized for it rather than
+/// for [`MAX_BATCH`] (a rollout of one state steps through the batched path too).
+const FEW: usize = 4;
+
 /// One monomial c · t^k p₁^e₁ ⋯ p_N^e_N.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Monomial<const N: usize> {
@@ -919,7 +923,25 @@ impl<const N: usize> GeneratingFunction<N> {
         let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
             return;
         };
-        let mut inputs: [Option<Inputs<Dual1<N>, N>>; MAX_BATCH] = [None; MAX_BATCH];
+        if n <= FEW {
+            self.reverse_mlp::<FEW>(mlp, t, p, out, ws);
+        } else {
+            self.reverse_mlp::<MAX_BATCH>(mlp, t, p, out, ws);
+        }
+    }
+
+    /// The MLP term of [`Self::gradients_reverse`], added into `out`, with scratch for
+    /// `CAP` ≥ `p.len()` momenta (a few momenta do not zero 32 momenta's worth).
+    fn reverse_mlp<const CAP: usize>(
+        &self,
+        mlp: &Mlp,
+        t: f64,
+        p: &[[f64; N]],
+        out: &mut [Dual1<N>],
+        ws: &mut Workspace<N>,
+    ) {
+        let n = p.len();
+        let mut inputs: [Option<Inputs<Dual1<N>, N>>; CAP] = [None; CAP];
         for (j, pj) in p.iter().enumerate() {
             inputs[j] = self.mlp_inputs::<Dual1<N>>(t, pj);
             let (t_in, p_in) = inputs[j].map_or((0.0, [0.0; N]), |(a, b, _)| (a.v, b.map(|x| x.v)));
@@ -990,15 +1012,33 @@ impl<const N: usize> GeneratingFunction<N> {
     fn polynomial_parts<T: Variable<N>>(&self, t: f64, p: &[[f64; N]], out: &mut [T]) {
         let isa = Isa::detect();
         for (pb, ob) in p.chunks(MAX_BATCH).zip(out.chunks_mut(MAX_BATCH)) {
+            if pb.len() <= FEW {
+                self.polynomial_chunk::<T, FEW>(isa, t, pb, ob);
+            } else {
+                self.polynomial_chunk::<T, MAX_BATCH>(isa, t, pb, ob);
+            }
+        }
+    }
+
+    /// [`Self::polynomial_parts`] on `CAP` ≥ `p.len()` momenta.
+    #[inline(always)]
+    fn polynomial_chunk<T: Variable<N>, const CAP: usize>(
+        &self,
+        isa: Isa,
+        t: f64,
+        pb: &[[f64; N]],
+        ob: &mut [T],
+    ) {
+        {
             let n = pb.len();
             if T::COMPONENTS == 1 + N {
-                let mut d = [Dual1::<N>::default(); MAX_BATCH];
+                let mut d = [Dual1::<N>::default(); CAP];
                 lanes_bisection::polynomial_gradients(&self.polynomial, isa, t, pb, &mut d[..n]);
                 for (o, d) in ob.iter_mut().zip(&d) {
                     *o = T::from_components(|c| if c == 0 { d.v } else { d.g[c - 1] });
                 }
             } else {
-                let mut j = [Jet2::<N>::default(); MAX_BATCH];
+                let mut j = [Jet2::<N>::default(); CAP];
                 lanes_bisection::polynomial_jets(&self.polynomial, isa, t, pb, &mut j[..n]);
                 for (o, j) in ob.iter_mut().zip(&j) {
                     *o = T::from_jet(j);
@@ -1035,8 +1075,26 @@ impl<const N: usize> GeneratingFunction<N> {
         let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
             return;
         };
+        if n <= FEW {
+            self.forward_mlp::<T, FEW>(mlp, t, p, out, ws);
+        } else {
+            self.forward_mlp::<T, MAX_BATCH>(mlp, t, p, out, ws);
+        }
+    }
+
+    /// The MLP term of [`Self::derivatives_batch`], added into `out`, with scratch for
+    /// `CAP` ≥ `p.len()` momenta.
+    fn forward_mlp<T: Variable<N>, const CAP: usize>(
+        &self,
+        mlp: &Mlp,
+        t: f64,
+        p: &[[f64; N]],
+        out: &mut [T],
+        ws: &mut Workspace<N>,
+    ) {
+        let n = p.len();
         let cols = T::COMPONENTS * n;
-        let mut factors = [None; MAX_BATCH];
+        let mut factors = [None; CAP];
         for (j, pj) in p.iter().enumerate() {
             let inputs = self.mlp_inputs::<T>(t, pj);
             // A vanishing term still gets finite (zero) inputs; its output is not used.
