@@ -19,6 +19,10 @@ use std::sync::Arc;
 /// Most trajectories one batched evaluation takes.
 pub const MAX_BATCH: usize = 32;
 
+/// Batches of at most this many momenta take per-call scratch arrays sized for it rather than
+/// for [`MAX_BATCH`] (a rollout of one state steps through the batched path too).
+const FEW: usize = 4;
+
 /// One monomial c · t^k p₁^e₁ ⋯ p_N^e_N.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Monomial<const N: usize> {
@@ -200,6 +204,8 @@ pub struct Layer {
     /// W and Wᵀ in the batched kernel's panel layout ([`kernel::pack`]).
     packed: Vec<f64>,
     packed_t: Vec<f64>,
+    /// Wᵀ row-major (`n_in × n_out`), for [`narrow_gemm`] in the reverse pass.
+    weight_t: Vec<f64>,
 }
 
 impl Layer {
@@ -242,6 +248,7 @@ impl Layer {
             bias,
             packed,
             packed_t,
+            weight_t: transposed,
         })
     }
 
@@ -249,11 +256,32 @@ impl Layer {
     /// (component-major); the bias enters the value columns `0..n` only.
     fn forward_batch(&self, x: &[f64], n: usize, k: usize, z: &mut [f64]) {
         let cols = k * n;
-        kernel::gemm(&self.packed, self.n_in, self.n_out, x, cols, z);
+        self.product(x, cols, z);
         for (row, &b) in z.chunks_exact_mut(cols).zip(&self.bias) {
             for v in &mut row[..n] {
                 *v += b;
             }
+        }
+    }
+
+    /// z = W x for `cols` columns: [`narrow_gemm`] for a narrow layer, else [`kernel::gemm`]
+    /// (the same bits either way).
+    #[inline]
+    fn product(&self, x: &[f64], cols: usize, z: &mut [f64]) {
+        if self.n_out <= NARROW_ROWS && self.n_in <= NARROW_INPUTS {
+            narrow_gemm(&self.weight, self.n_in, self.n_out, x, cols, z);
+        } else {
+            kernel::gemm(&self.packed, self.n_in, self.n_out, x, cols, z);
+        }
+    }
+
+    /// g = Wᵀ δ for `cols` columns, as [`Self::product`] chooses.
+    #[inline]
+    fn product_t(&self, delta: &[f64], cols: usize, g: &mut [f64]) {
+        if self.n_in <= NARROW_ROWS && self.n_out <= NARROW_INPUTS {
+            narrow_gemm(&self.weight_t, self.n_out, self.n_in, delta, cols, g);
+        } else {
+            kernel::gemm(&self.packed_t, self.n_out, self.n_in, delta, cols, g);
         }
     }
 
@@ -272,13 +300,151 @@ impl Layer {
     }
 }
 
+/// Layers with at most this many outputs (and [`NARROW_INPUTS`] inputs) take [`narrow_gemm`]:
+/// the panel kernel computes [`kernel::MR`] = 6 rows a block, so a layer of 8 outputs paid for
+/// 12 and the output layer (1) for 6.
+const NARROW_ROWS: usize = 16;
+/// Inputs of a narrow layer: its block of accumulators stays in registers over the whole sum.
+const NARROW_INPUTS: usize = 64;
+
+/// z = W·x for a narrow layer, W row-major (`n_out × n_in`), `x` (`n_in × cols`) and `z`
+/// (`n_out × cols`) row-major: blocks of up to 4 rows by 8 columns, and no padded rows.
+///
+/// Every element is the chain of multiply-adds of [`kernel::gemm`] (from 0, over k = 0, 1, …,
+/// n_in − 1, fused where the CPU has FMA), so the two kernels give the same bits: the choice
+/// between them never changes a trajectory (tested).
+pub(crate) fn narrow_gemm(
+    weight: &[f64],
+    n_in: usize,
+    n_out: usize,
+    x: &[f64],
+    cols: usize,
+    z: &mut [f64],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if kernel::uses_fma() {
+        // SAFETY: the CPU has the features `narrow_gemm_fma` is compiled for.
+        unsafe { narrow_gemm_fma(weight, n_in, n_out, x, cols, z) };
+        return;
+    }
+    narrow_gemm_body::<false>(weight, n_in, n_out, x, cols, z);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn narrow_gemm_fma(
+    weight: &[f64],
+    n_in: usize,
+    n_out: usize,
+    x: &[f64],
+    cols: usize,
+    z: &mut [f64],
+) {
+    narrow_gemm_body::<true>(weight, n_in, n_out, x, cols, z);
+}
+
+#[inline(always)]
+fn narrow_gemm_body<const FMA: bool>(
+    weight: &[f64],
+    n_in: usize,
+    n_out: usize,
+    x: &[f64],
+    cols: usize,
+    z: &mut [f64],
+) {
+    let (weight, x) = (&weight[..n_out * n_in], &x[..n_in * cols]);
+    let z = &mut z[..n_out * cols];
+    let mut o = 0;
+    while o < n_out {
+        let rows = (n_out - o).min(4);
+        let w = &weight[o * n_in..(o + rows) * n_in];
+        let zo = &mut z[o * cols..(o + rows) * cols];
+        match rows {
+            4 => narrow_rows::<4, FMA>(w, n_in, x, cols, zo),
+            3 => narrow_rows::<3, FMA>(w, n_in, x, cols, zo),
+            2 => narrow_rows::<2, FMA>(w, n_in, x, cols, zo),
+            _ => narrow_rows::<1, FMA>(w, n_in, x, cols, zo),
+        }
+        o += rows;
+    }
+}
+
+/// R rows of [`narrow_gemm_body`]: `w` holds them (`R × n_in`), `z` receives them.
+#[inline(always)]
+fn narrow_rows<const R: usize, const FMA: bool>(
+    w: &[f64],
+    n_in: usize,
+    x: &[f64],
+    cols: usize,
+    z: &mut [f64],
+) {
+    const C: usize = 8;
+    let mut c = 0;
+    while c + C <= cols {
+        let mut acc = [[0.0; C]; R];
+        for k in 0..n_in {
+            let xk: &[f64; C] = x[k * cols + c..k * cols + c + C].try_into().unwrap();
+            for r in 0..R {
+                let wr = w[r * n_in + k];
+                for j in 0..C {
+                    acc[r][j] = madd::<FMA>(wr, xk[j], acc[r][j]);
+                }
+            }
+        }
+        for (r, a) in acc.iter().enumerate() {
+            z[r * cols + c..r * cols + c + C].copy_from_slice(a);
+        }
+        c += C;
+    }
+    // The last columns one at a time: the same chain per element.
+    while c < cols {
+        let mut acc = [0.0; R];
+        for k in 0..n_in {
+            let xv = x[k * cols + c];
+            for r in 0..R {
+                acc[r] = madd::<FMA>(w[r * n_in + k], xv, acc[r]);
+            }
+        }
+        for (r, &a) in acc.iter().enumerate() {
+            z[r * cols + c] = a;
+        }
+        c += 1;
+    }
+}
+
 /// tanh for the batched passes, without a library call: tanh(x) = e/(e + 2) with
 /// e = expm1(2x), and expm1 by Cody–Waite reduction 2x = k ln 2 + r, |r| ≤ ln 2 / 2, a degree-13
 /// Taylor polynomial for expm1(r) and 2^k from the exponent bits. Branch-free, so a row of
 /// trajectories runs in SIMD lanes; libm's tanh, a call per neuron, took 40 % of a step of the
 /// default model. Within 4 ulp of libm's tanh (tested); ±1 for |x| ≥ 20, NaN for NaN.
+///
+/// This is the portable form (plain multiplies and adds); the AVX2 passes run
+/// [`tanh_fast_fma`], the same formula with its multiply-adds fused.
 #[inline(always)]
 pub fn tanh_fast(x: f64) -> f64 {
+    tanh_with::<false>(x)
+}
+
+/// [`tanh_fast`] with every multiply-add fused (the form the AVX2+FMA passes run: half the
+/// instructions of the degree-13 Horner chain). Within 4 ulp of libm's tanh (tested). Like the
+/// layer kernel ([`kernel::gemm`]), the form is chosen once per CPU, so a trajectory's bits
+/// never depend on its chunk or thread.
+#[inline(always)]
+pub fn tanh_fast_fma(x: f64) -> f64 {
+    tanh_with::<true>(x)
+}
+
+#[inline(always)]
+fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+#[inline(always)]
+fn tanh_with<const FMA: bool>(x: f64) -> f64 {
     // 1.5 · 2^52: adding it rounds to an integer, whose bits land in the mantissa's low bits.
     const SHIFT: f64 = 6755399441055744.0;
     const LOG2E: f64 = std::f64::consts::LOG2_E;
@@ -302,43 +468,44 @@ pub fn tanh_fast(x: f64) -> f64 {
     ];
     // |tanh(x)| rounds to 1 beyond |x| ≈ 19.1; clamping keeps 2^k finite (NaN passes through).
     let y = (2.0 * x).clamp(-40.0, 40.0);
-    let shifted = y * LOG2E + SHIFT;
+    let shifted = madd::<FMA>(y, LOG2E, SHIFT);
     let k = shifted - SHIFT;
-    let r = (y - k * LN2_HI) - k * LN2_LO;
+    // k · LN2_HI is exact, so the fused and the plain form agree on the first subtraction.
+    let r = madd::<FMA>(-k, LN2_LO, madd::<FMA>(-k, LN2_HI, y));
     let mut q = C[0];
     for c in &C[1..] {
-        q = q * r + c;
+        q = madd::<FMA>(q, r, *c);
     }
     // expm1(r) = r + r² (1/2 + r/6 + …)
-    let em = r + r * r * q;
+    let em = madd::<FMA>(r * r, q, r);
     // 2^k: k + 1023 into the exponent field (the shift drops SHIFT's own exponent bits).
     let s = f64::from_bits(shifted.to_bits().wrapping_add(1023) << 52);
-    let e = s * em + (s - 1.0);
+    let e = madd::<FMA>(s, em, s - 1.0);
     e / (e + 2.0)
 }
 
 /// [`tanh_fast`] on every element.
 #[inline(always)]
-fn tanh_slice_body(z: &mut [f64]) {
+fn tanh_slice_body<const FMA: bool>(z: &mut [f64]) {
     for v in z {
-        *v = tanh_fast(*v);
+        *v = tanh_with::<FMA>(*v);
     }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn tanh_slice_avx2(z: &mut [f64]) {
-    tanh_slice_body(z);
+    tanh_slice_body::<true>(z);
 }
 
-/// [`tanh_fast`] on every element, compiled for `isa` (the same bits on every path: no FMA
-/// is contracted).
+/// [`tanh_fast`] on every element, compiled for `isa` ([`tanh_fast_fma`] on the AVX2+FMA
+/// path).
 fn tanh_slice(isa: Isa, z: &mut [f64]) {
     match isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Isa::Avx2` is only chosen where the CPU runs AVX2 and FMA.
         Isa::Avx2 => unsafe { tanh_slice_avx2(z) },
-        _ => tanh_slice_body(z),
+        _ => tanh_slice_body::<false>(z),
     }
 }
 
@@ -347,33 +514,49 @@ fn tanh_slice(isa: Isa, z: &mut [f64]) {
 /// components of `n` trajectories component-major (`row[c·n + j]`): the formulas of
 /// `Variable::tanh_rows`, with [`tanh_fast`] in place of libm's tanh.
 #[inline(always)]
-fn tanh_rows_body<const N: usize>(comps: usize, z: &mut [f64], rows: usize, n: usize) {
+fn tanh_rows_body<const N: usize, const FMA: bool>(
+    comps: usize,
+    z: &mut [f64],
+    rows: usize,
+    n: usize,
+) {
     let hess = comps > 1 + N;
+    // tanh' and tanh'' of the row, reused by every row (each row writes its n first).
+    let (mut d1, mut d2) = ([0.0; MAX_BATCH], [0.0; MAX_BATCH]);
+    let (d1, d2) = (&mut d1[..n], &mut d2[..n]);
+    // Loops over zipped slices, not indices: without bounds checks the row loops run in
+    // SIMD lanes (indexed, the Hessian update ran one element at a time). Same formulas, same
+    // order, so the same bits.
     for row in z.chunks_exact_mut(comps * n).take(rows) {
         let (v, rest) = row.split_at_mut(n);
         let (g, h) = rest.split_at_mut(N * n);
-        let (mut d1, mut d2) = ([0.0; MAX_BATCH], [0.0; MAX_BATCH]);
-        for j in 0..n {
-            let y = tanh_fast(v[j]);
-            v[j] = y;
-            d1[j] = 1.0 - y * y;
-            d2[j] = -2.0 * y * d1[j];
+        for ((vj, d1j), d2j) in v.iter_mut().zip(d1.iter_mut()).zip(d2.iter_mut()) {
+            let y = tanh_with::<FMA>(*vj);
+            *vj = y;
+            *d1j = 1.0 - y * y;
+            *d2j = -2.0 * y * *d1j;
         }
         if hess {
             // The Hessian first: it needs the incoming gradient (Jet2::chain's formula).
-            let mut k = 0;
+            let mut hk = h.chunks_exact_mut(n);
             for a in 0..N {
+                let ga = &g[a * n..(a + 1) * n];
                 for b in a..N {
-                    for j in 0..n {
-                        h[k * n + j] = d1[j] * h[k * n + j] + d2[j] * g[a * n + j] * g[b * n + j];
+                    let gb = &g[b * n..(b + 1) * n];
+                    let Some(hk) = hk.next() else { return };
+                    for ((hj, (&x1, &x2)), (&ua, &ub)) in hk
+                        .iter_mut()
+                        .zip(d1.iter().zip(d2.iter()))
+                        .zip(ga.iter().zip(gb))
+                    {
+                        *hj = x1 * *hj + x2 * ua * ub;
                     }
-                    k += 1;
                 }
             }
         }
         for gi in g.chunks_exact_mut(n) {
-            for j in 0..n {
-                gi[j] *= d1[j];
+            for (gj, &x1) in gi.iter_mut().zip(d1.iter()) {
+                *gj *= x1;
             }
         }
     }
@@ -382,7 +565,7 @@ fn tanh_rows_body<const N: usize>(comps: usize, z: &mut [f64], rows: usize, n: u
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn tanh_rows_avx2<const N: usize>(comps: usize, z: &mut [f64], rows: usize, n: usize) {
-    tanh_rows_body::<N>(comps, z, rows, n);
+    tanh_rows_body::<N, true>(comps, z, rows, n);
 }
 
 /// [`tanh_rows_body`] compiled for `isa`.
@@ -392,7 +575,7 @@ fn tanh_rows<const N: usize>(isa: Isa, comps: usize, z: &mut [f64], rows: usize,
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Isa::Avx2` is only chosen where the CPU runs AVX2 and FMA.
         Isa::Avx2 => unsafe { tanh_rows_avx2::<N>(comps, z, rows, n) },
-        _ => tanh_rows_body::<N>(comps, z, rows, n),
+        _ => tanh_rows_body::<N, false>(comps, z, rows, n),
     }
 }
 
@@ -508,7 +691,7 @@ impl Mlp {
         let (mut delta, mut g) = (a, b);
         delta[..n].fill(1.0);
         for (i, layer) in self.layers.iter().enumerate().rev() {
-            kernel::gemm(&layer.packed_t, layer.n_out, layer.n_in, delta, n, g);
+            layer.product_t(delta, n, g);
             off -= layer.n_in * n;
             if i > 0 {
                 let y = &acts[off..off + layer.n_in * n];
@@ -740,7 +923,25 @@ impl<const N: usize> GeneratingFunction<N> {
         let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
             return;
         };
-        let mut inputs: [Option<Inputs<Dual1<N>, N>>; MAX_BATCH] = [None; MAX_BATCH];
+        if n <= FEW {
+            self.reverse_mlp::<FEW>(mlp, t, p, out, ws);
+        } else {
+            self.reverse_mlp::<MAX_BATCH>(mlp, t, p, out, ws);
+        }
+    }
+
+    /// The MLP term of [`Self::gradients_reverse`], added into `out`, with scratch for
+    /// `CAP` ≥ `p.len()` momenta (a few momenta do not zero 32 momenta's worth).
+    fn reverse_mlp<const CAP: usize>(
+        &self,
+        mlp: &Mlp,
+        t: f64,
+        p: &[[f64; N]],
+        out: &mut [Dual1<N>],
+        ws: &mut Workspace<N>,
+    ) {
+        let n = p.len();
+        let mut inputs: [Option<Inputs<Dual1<N>, N>>; CAP] = [None; CAP];
         for (j, pj) in p.iter().enumerate() {
             inputs[j] = self.mlp_inputs::<Dual1<N>>(t, pj);
             let (t_in, p_in) = inputs[j].map_or((0.0, [0.0; N]), |(a, b, _)| (a.v, b.map(|x| x.v)));
@@ -811,15 +1012,33 @@ impl<const N: usize> GeneratingFunction<N> {
     fn polynomial_parts<T: Variable<N>>(&self, t: f64, p: &[[f64; N]], out: &mut [T]) {
         let isa = Isa::detect();
         for (pb, ob) in p.chunks(MAX_BATCH).zip(out.chunks_mut(MAX_BATCH)) {
+            if pb.len() <= FEW {
+                self.polynomial_chunk::<T, FEW>(isa, t, pb, ob);
+            } else {
+                self.polynomial_chunk::<T, MAX_BATCH>(isa, t, pb, ob);
+            }
+        }
+    }
+
+    /// [`Self::polynomial_parts`] on `CAP` ≥ `p.len()` momenta.
+    #[inline(always)]
+    fn polynomial_chunk<T: Variable<N>, const CAP: usize>(
+        &self,
+        isa: Isa,
+        t: f64,
+        pb: &[[f64; N]],
+        ob: &mut [T],
+    ) {
+        {
             let n = pb.len();
             if T::COMPONENTS == 1 + N {
-                let mut d = [Dual1::<N>::default(); MAX_BATCH];
+                let mut d = [Dual1::<N>::default(); CAP];
                 lanes_bisection::polynomial_gradients(&self.polynomial, isa, t, pb, &mut d[..n]);
                 for (o, d) in ob.iter_mut().zip(&d) {
                     *o = T::from_components(|c| if c == 0 { d.v } else { d.g[c - 1] });
                 }
             } else {
-                let mut j = [Jet2::<N>::default(); MAX_BATCH];
+                let mut j = [Jet2::<N>::default(); CAP];
                 lanes_bisection::polynomial_jets(&self.polynomial, isa, t, pb, &mut j[..n]);
                 for (o, j) in ob.iter_mut().zip(&j) {
                     *o = T::from_jet(j);
@@ -856,8 +1075,26 @@ impl<const N: usize> GeneratingFunction<N> {
         let Some(mlp) = self.mlp.as_ref().filter(|_| n > 0) else {
             return;
         };
+        if n <= FEW {
+            self.forward_mlp::<T, FEW>(mlp, t, p, out, ws);
+        } else {
+            self.forward_mlp::<T, MAX_BATCH>(mlp, t, p, out, ws);
+        }
+    }
+
+    /// The MLP term of [`Self::derivatives_batch`], added into `out`, with scratch for
+    /// `CAP` ≥ `p.len()` momenta.
+    fn forward_mlp<T: Variable<N>, const CAP: usize>(
+        &self,
+        mlp: &Mlp,
+        t: f64,
+        p: &[[f64; N]],
+        out: &mut [T],
+        ws: &mut Workspace<N>,
+    ) {
+        let n = p.len();
         let cols = T::COMPONENTS * n;
-        let mut factors = [None; MAX_BATCH];
+        let mut factors = [None; CAP];
         for (j, pj) in p.iter().enumerate() {
             let inputs = self.mlp_inputs::<T>(t, pj);
             // A vanishing term still gets finite (zero) inputs; its output is not used.

@@ -331,33 +331,52 @@ where
         if self.batch() == 1 || few {
             return step_each(self, h, mu, live, results, ws);
         }
+        // The scratch below is sized at compile time: a chunk of a few trajectories (a rollout
+        // of one state) takes small arrays instead of zeroing 32 trajectories' worth per step.
+        if mu.len() <= FEW {
+            self.lockstep::<FEW>(h, mu, live, results, ws);
+        } else {
+            self.lockstep::<MAX_BATCH>(h, mu, live, results, ws);
+        }
+    }
+}
+
+/// Chunks of at most this many trajectories take the small lockstep scratch.
+const FEW: usize = 4;
+
+impl<const N: usize, R: Realization<N>> BisectionStepper<N, R>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    /// [`StepMap::step_batch`]'s lockstep solve with scratch for `CAP` ≥ `mu.len()`
+    /// trajectories (the same operations whatever `CAP`).
+    fn lockstep<const CAP: usize>(
+        &self,
+        h: f64,
+        mu: &mut [[f64; N]],
+        live: &[bool],
+        results: &mut [StepResult],
+        ws: &mut Workspace<N>,
+    ) {
         let n = mu.len();
-        assert!(n <= MAX_BATCH, "batch of {n} trajectories");
-        let mut p = [[0.0; N]; MAX_BATCH];
-        let mut iterations = [0u32; MAX_BATCH];
-        let mut factors: [Option<Factors<N>>; MAX_BATCH] = [None; MAX_BATCH];
+        assert!(n <= CAP && CAP <= MAX_BATCH, "batch of {n} trajectories");
+        let mut p = [[0.0; N]; CAP];
+        let mut iterations = [0u32; CAP];
+        let mut factors: [Option<Factors<N>>; CAP] = [None; CAP];
         // Whether the next update needs a fresh Jacobian, and the size of the last update.
-        let mut refresh = [true; MAX_BATCH];
-        let mut last = [f64::INFINITY; MAX_BATCH];
+        let mut refresh = [true; CAP];
+        let mut last = [f64::INFINITY; CAP];
         // Indices of the trajectories still iterating, and of those converged.
-        let (mut active, mut n_active) = ([0usize; MAX_BATCH], 0);
-        let (mut done, mut n_done) = ([0usize; MAX_BATCH], 0);
+        let (mut active, mut n_active) = ([0usize; CAP], 0);
+        let (mut done, mut n_done) = ([0usize; CAP], 0);
         for i in (0..n).filter(|&i| live[i]) {
             p[i] = mu[i];
             active[n_active] = i;
             n_active += 1;
         }
         // Gathered momenta of the jet and gradient passes, their results and their owners.
-        let (mut pj, mut jets, mut jet_of) = (
-            [[0.0; N]; MAX_BATCH],
-            [Jet2::default(); MAX_BATCH],
-            [0; MAX_BATCH],
-        );
-        let (mut pg, mut grads, mut grad_of) = (
-            [[0.0; N]; MAX_BATCH],
-            [Dual1::default(); MAX_BATCH],
-            [0; MAX_BATCH],
-        );
+        let (mut pj, mut jets, mut jet_of) = ([[0.0; N]; CAP], [Jet2::default(); CAP], [0; CAP]);
+        let (mut pg, mut grads, mut grad_of) = ([[0.0; N]; CAP], [Dual1::default(); CAP], [0; CAP]);
         while n_active > 0 {
             let (mut nj, mut ng) = (0, 0);
             for &i in &active[..n_active] {
