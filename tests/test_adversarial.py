@@ -427,12 +427,15 @@ def test_to_zarr_killed_by_a_signal_leaves_nothing_at_the_path(tmp_path: Path) -
     path = tmp_path / "ens.zarr"
     code = textwrap.dedent(
         f"""
+        import signal
+        # A job started in the background by a non-interactive shell inherits SIGINT ignored:
+        # restore the handler an interactive session has.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         import numpy as np, poisson_rs as pr
         from poisson_rs import ensembles
         mu0 = np.random.default_rng(0).normal(size=(4000, 3))
         print("start", flush=True)
-        # Taylor-HJ, not RK4: SIMD RK4 finishes this ensemble in under a second, before the
-        # signal (about 40 s of work here).
+        # Taylor-HJ: minutes of work, so the signal always comes first.
         ensembles.to_zarr(pr.taylor_integrator(pr.RigidBody(), 5), mu0, 0.01, 20000,
                           {str(path)!r}, chunk=100)
         """
@@ -440,8 +443,10 @@ def test_to_zarr_killed_by_a_signal_leaves_nothing_at_the_path(tmp_path: Path) -
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     assert proc.stdout is not None and proc.stdout.readline().strip() == "start"
     time.sleep(3)
+    assert proc.poll() is None, "the ensemble ended before the signal"
     proc.send_signal(signal.SIGINT)
     proc.wait(timeout=120)
+    assert proc.returncode != 0  # interrupted, not finished
     assert not path.exists()
     from poisson_rs import ensembles
 
