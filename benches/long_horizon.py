@@ -19,6 +19,7 @@ steps, one thread (``RAYON_NUM_THREADS=1``). The projected RK4 runs in numba
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import sys
@@ -32,6 +33,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 import numpy as np
 
 import poisson_rs as pr
+from poisson_rs.files import atomic_write_bytes, check_output_path
 
 INERTIA = (1.5, 2.0, 2.5)
 TOP_INERTIA, MGL, COM = (1.0, 1.5, 2.0), 0.981, (0.0, 0.0, 1.0)
@@ -189,6 +191,9 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=1000)
     parser.add_argument("--out", type=Path, default=Path("docs/long_horizon"))
     args = parser.parse_args()
+    json_path, png_path = args.out.with_suffix(".json"), args.out.with_suffix(".png")
+    for p in (json_path, png_path):  # before minutes of work, not after
+        check_output_path(p)
     rng = np.random.default_rng(42)
     top = args.system == "heavy-top"
     if top:
@@ -232,14 +237,13 @@ def main() -> None:
             start = time.perf_counter()
             traj = run(mu0, h, n - n % every, every)
             record("rk4 + projection", h, time.perf_counter() - start, traj)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {
         "system": args.system,
         "horizon": args.horizon,
         "states": args.states,
         "inertia": TOP_INERTIA if top else INERTIA,
     }
-    args.out.with_suffix(".json").write_text(json.dumps({**meta, "points": points}, indent=1))
+    atomic_write_bytes(json_path, json.dumps({**meta, "points": points}, indent=1).encode())
     import matplotlib
 
     matplotlib.use("Agg")
@@ -263,7 +267,9 @@ def main() -> None:
     name = "Heavy top" if top else "Rigid body"
     fig.suptitle(f"{name}: cost against invariant errors (error < 1e-17 plotted at 1e-17)")
     fig.tight_layout()
-    fig.savefig(args.out.with_suffix(".png"), dpi=120)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120)
+    atomic_write_bytes(png_path, buf.getvalue())
 
 
 if __name__ == "__main__":

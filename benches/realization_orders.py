@@ -28,6 +28,7 @@ Usage: ``python benches/realization_orders.py --out docs/realization_orders`` (a
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 import time
@@ -164,7 +165,9 @@ def figure(rows: list[dict[str, object]], path: Path) -> None:
     ax_c.legend(fontsize=7, ncol=2)
     fig.suptitle("Taylor-HJ order m on the order-n realization, cubic Nambu bracket")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -62,7 +62,6 @@ def test_demo_on_the_nambu_scene(tmp_path: Path) -> None:
     methods = {r["method"] for r in rows}
     assert methods == {"taylor3-realization", "taylor5-realization", "rk4", "midpoint"}
     drift = {r["method"]: float(r["max_rel_dC"]) for r in rows}
-    print(drift)
     # The realizations of order 3 and 5 keep C only to O(h⁵) and O(h⁷) a step: a drift, not
     # round-off, is reported, and the higher order drifts less.
     assert 1e-12 < drift["taylor3-realization"] < 1e-6
