@@ -383,15 +383,6 @@ fn bench_classical(c: &mut Criterion) {
         RigidBody::new([1.5, 2.0, 2.5]).unwrap(),
         rigid,
     );
-    let mut sc = [[[0.0; 6]; 6]; 6];
-    for (i, j, k) in [(0, 1, 2), (1, 2, 0), (2, 0, 1)] {
-        sc[i][j][k] = 1.0;
-        sc[j][i][k] = -1.0;
-        sc[i][3 + j][3 + k] = 1.0;
-        sc[3 + j][i][3 + k] = -1.0;
-        sc[j][3 + i][3 + k] = -1.0;
-        sc[3 + i][j][3 + k] = 1.0;
-    }
     let mut terms: Vec<([u32; 6], f64)> = (0..3)
         .map(|i| {
             let mut e = [0; 6];
@@ -401,7 +392,7 @@ fn bench_classical(c: &mut Criterion) {
         .collect();
     terms.push(([0, 0, 0, 0, 0, 1], 0.981));
     let top = LiePoisson {
-        algebra: LieAlgebra::new(sc).unwrap(),
+        algebra: LieAlgebra::se3(),
         hamiltonian: Hamiltonian::new(terms).unwrap(),
     };
     let states: Vec<[f64; 6]> = (0..4096)

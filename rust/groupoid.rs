@@ -185,6 +185,27 @@ pub struct LieAlgebra<const N: usize> {
     so3: bool,
 }
 
+impl LieAlgebra<6> {
+    /// se(3) in the basis (R₁, R₂, R₃, T₁, T₂, T₃): [R_i, R_j] = ε_ijk R_k,
+    /// [R_i, T_j] = ε_ijk T_k, [T_i, T_j] = 0 (the heavy top's algebra, μ = (M, Γ)).
+    pub fn se3() -> Self {
+        let mut c = [[[0.0; 6]; 6]; 6];
+        for (i, j, k) in [(0, 1, 2), (1, 2, 0), (2, 0, 1)] {
+            c[i][j][k] = 1.0;
+            c[j][i][k] = -1.0;
+            c[i][3 + j][3 + k] = 1.0;
+            c[3 + j][i][3 + k] = -1.0;
+            c[j][3 + i][3 + k] = -1.0;
+            c[3 + i][j][3 + k] = 1.0;
+        }
+        // Antisymmetric and Jacobi by construction: `new` cannot refuse it.
+        match LieAlgebra::new(c) {
+            Ok(a) => a,
+            Err(_) => unreachable!("se(3) is a Lie algebra"),
+        }
+    }
+}
+
 impl<const N: usize> LieAlgebra<N> {
     /// Checks that every entry is finite, antisymmetry and the Jacobi identity, to a tolerance
     /// relative to max |c| (above 1). Both checks run on c / max(max |c|, 1), so the Jacobi sums

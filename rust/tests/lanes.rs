@@ -13,20 +13,9 @@ use crate::rollout::{ChunkKernel, PerStep, Rollout};
 use crate::stepper::NewtonOptions;
 use crate::system::{spectral_norm, Hamiltonian, LiePoisson, VectorField};
 
-const EPS3: [(usize, usize, usize); 3] = [(0, 1, 2), (1, 2, 0), (2, 0, 1)];
-
 /// se(3): [R_i,R_j] = ε_ijk R_k, [R_i,T_j] = ε_ijk T_k, [T_i,T_j] = 0.
 fn se3() -> [[[f64; 6]; 6]; 6] {
-    let mut c = [[[0.0; 6]; 6]; 6];
-    for (i, j, k) in EPS3 {
-        c[i][j][k] = 1.0;
-        c[j][i][k] = -1.0;
-        c[i][3 + j][3 + k] = 1.0;
-        c[3 + j][i][3 + k] = -1.0;
-        c[j][3 + i][3 + k] = -1.0;
-        c[3 + i][j][3 + k] = 1.0;
-    }
-    c
+    *LieAlgebra::se3().structure_constants()
 }
 
 fn so3() -> [[[f64; 3]; 3]; 3] {

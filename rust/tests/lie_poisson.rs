@@ -9,20 +9,9 @@ use crate::dual::Dual1;
 use crate::groupoid::LieAlgebra;
 use crate::system::{Hamiltonian, LiePoisson};
 
-const EPS: [(usize, usize, usize); 3] = [(0, 1, 2), (1, 2, 0), (2, 0, 1)];
-
 /// se(3), basis R1..R3, T1..T3: [R_i,R_j] = ε_ijk R_k, [R_i,T_j] = ε_ijk T_k, [T_i,T_j] = 0.
 fn se3() -> LieAlgebra<6> {
-    let mut c = [[[0.0; 6]; 6]; 6];
-    for (i, j, k) in EPS {
-        c[i][j][k] = 1.0;
-        c[j][i][k] = -1.0;
-        c[i][3 + j][3 + k] = 1.0;
-        c[3 + j][i][3 + k] = -1.0;
-        c[j][3 + i][3 + k] = -1.0;
-        c[3 + i][j][3 + k] = 1.0;
-    }
-    LieAlgebra::new(c).unwrap()
+    LieAlgebra::se3()
 }
 
 /// sl(2, R), basis (h, e, f): [h,e] = 2e, [h,f] = −2f, [e,f] = h.
