@@ -172,6 +172,45 @@ def _drift_panels(scene: SceneResult) -> list[tuple[Any, str]]:
     ]
 
 
+def _drift_grid(
+    axes: Any,
+    scene: SceneResult,
+    runs: Sequence[Run],
+    steps: np.ndarray,
+    n: int,
+    ncols: int,
+    *,
+    title_size: int,
+) -> None:
+    """Fills a grid of three drift panels per state (rows of 3, ``ncols`` states a row) with
+    every run's drift against the step, log scales (exact zeros at 1e-17), "n/a" where the
+    system knows no Casimir, and hides the cells past the ``n`` states."""
+    panels = _drift_panels(scene)
+    for i in range(n):
+        r0, c = 3 * (i // ncols), i % ncols
+        for p, (f, ylabel) in enumerate(panels):
+            ax = axes[r0 + p, c]
+            for run in runs:
+                values = f(run)[i, 1:]
+                if np.isfinite(values).any():
+                    ax.loglog(
+                        steps[1:], values + 1e-17, lw=0.8, label=run.name, **_line_style(run.name)
+                    )
+            if not ax.lines:
+                ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
+                        va="center", transform=ax.transAxes, fontsize=9, color="0.3")  # fmt: skip
+                ax.set_yticks([])
+            ax.set_ylabel(ylabel, fontsize=8)
+            ax.grid(True, which="major", alpha=0.3)
+        axes[r0, c].set_title(
+            _state_label(scene.states[i], state_symbol(scene.body)), fontsize=title_size
+        )
+        axes[r0 + 2, c].set_xlabel(f"step (h = {scene.h:g})")
+    for i in range(n, (len(axes) // 3) * ncols):
+        for p in range(3):
+            axes[3 * (i // ncols) + p, i % ncols].set_visible(False)
+
+
 def error_figure(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
     """|μ − μ_ref|, relative energy error and Casimir drift against step: one block of three
     panels per initial state, the blocks wrapping after GRID_COLUMNS states. Where no Casimir
@@ -182,30 +221,7 @@ def error_figure(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
     fig = Figure(figsize=(5.2 * ncols + 2.6, 7.5 * nrows), layout="constrained")
     axes = fig.subplots(3 * nrows, ncols, squeeze=False, sharex=True)
     steps = np.arange(len(scene.times))
-    panels = _drift_panels(scene)
-    for i in range(n):
-        r0, c = 3 * (i // ncols), i % ncols
-        for p, (f, ylabel) in enumerate(panels):
-            ax = axes[r0 + p, c]
-            for run in runs:
-                values = f(run)[i, 1:]
-                if not np.isfinite(values).any():
-                    continue
-                # Log scales: exact zeros are drawn at 1e-17.
-                ax.loglog(
-                    steps[1:], values + 1e-17, lw=0.8, label=run.name, **_line_style(run.name)
-                )
-            if not ax.lines:
-                ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
-                        va="center", transform=ax.transAxes, fontsize=9, color="0.3")  # fmt: skip
-                ax.set_yticks([])
-            ax.set_ylabel(ylabel, fontsize=8)
-            ax.grid(True, which="major", alpha=0.3)
-        axes[r0, c].set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=9)
-        axes[r0 + 2, c].set_xlabel(f"step (h = {scene.h:g})")
-    for i in range(n, nrows * ncols):
-        for p in range(3):
-            axes[3 * (i // ncols) + p, i % ncols].set_visible(False)
+    _drift_grid(axes, scene, runs, steps, n, ncols, title_size=9)
     handles, labels = axes[0, 0].get_legend_handles_labels()
     return _save_with_legend(
         fig, path, handles, labels, f"{system_label(scene.body)}, h = {scene.h:g}"
@@ -272,28 +288,7 @@ def state_figure(scene: SceneResult, runs: Sequence[Run], path: Path, t_max: flo
         axes[p // ncols, p % ncols].set_visible(False)
     axes2 = bottom.subplots(3 * drows, ncols, squeeze=False, sharex=True)
     steps = np.arange(len(scene.times))
-    drift = _drift_panels(scene)
-    for i in range(n):
-        r0, c = 3 * (i // ncols), i % ncols
-        for q, (f, ylabel) in enumerate(drift):
-            ax = axes2[r0 + q, c]
-            for run in runs:
-                values = f(run)[i, 1:]
-                if np.isfinite(values).any():
-                    ax.loglog(
-                        steps[1:], values + 1e-17, lw=0.8, label=run.name, **_line_style(run.name)
-                    )
-            if not ax.lines:
-                ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
-                        va="center", transform=ax.transAxes, fontsize=9, color="0.3")  # fmt: skip
-                ax.set_yticks([])
-            ax.set_ylabel(ylabel, fontsize=8)
-            ax.grid(True, which="major", alpha=0.3)
-        axes2[r0, c].set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=8)
-        axes2[r0 + 2, c].set_xlabel(f"step (h = {scene.h:g})")
-    for i in range(n, (len(axes2) // 3) * ncols):
-        for q in range(3):
-            axes2[3 * (i // ncols) + q, i % ncols].set_visible(False)
+    _drift_grid(axes2, scene, runs, steps, n, ncols, title_size=8)
     handles, labels = axes2[0, 0].get_legend_handles_labels()
     return _save_with_legend(fig, path, handles, labels, f"{system_label(system)}, h = {scene.h:g}")
 
