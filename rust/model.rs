@@ -70,6 +70,15 @@ pub struct Model {
     pub metadata: HashMap<String, String>,
 }
 
+/// A model file's bytes; a missing file is [`CoreError::NotFound`], any other failure
+/// [`CoreError::Io`], both naming the path.
+fn read_file(path: &Path) -> Result<Vec<u8>, CoreError> {
+    std::fs::read(path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::NotFound => CoreError::NotFound(path.display().to_string()),
+        _ => CoreError::Io(format!("{}: {e}", path.display())),
+    })
+}
+
 fn format_err(m: impl Into<String>) -> CoreError {
     CoreError::Format(m.into())
 }
@@ -327,10 +336,7 @@ impl Model {
 
     /// Reads and parses a model file.
     pub fn from_file(path: &Path) -> Result<Model, CoreError> {
-        let bytes = std::fs::read(path).map_err(|e| match e.kind() {
-            std::io::ErrorKind::NotFound => CoreError::NotFound(path.display().to_string()),
-            _ => CoreError::Io(format!("{}: {e}", path.display())),
-        })?;
+        let bytes = read_file(path)?;
         Model::from_bytes(&bytes)
     }
 
@@ -599,10 +605,7 @@ impl LogModel {
 
     /// Reads and parses a log-canonical model file.
     pub fn from_file(path: &Path) -> Result<LogModel, CoreError> {
-        let bytes = std::fs::read(path).map_err(|e| match e.kind() {
-            std::io::ErrorKind::NotFound => CoreError::NotFound(path.display().to_string()),
-            _ => CoreError::Io(format!("{}: {e}", path.display())),
-        })?;
+        let bytes = read_file(path)?;
         LogModel::from_bytes(&bytes)
     }
 
