@@ -173,6 +173,33 @@ fn read_polynomial(st: &SafeTensors<'_>) -> Result<(usize, Vec<RawMonomial>), Co
     Ok((width - 1, terms))
 }
 
+/// The number of MLP layers in a model file whose other tensors are `known`: refuses any other
+/// tensor name, and a file whose loading would not fit in memory (each MLP weight is held four
+/// times: as read, packed, transposed and packed again), up front rather than part-way.
+fn count_layers(st: &SafeTensors<'_>, known: &[&str]) -> Result<usize, CoreError> {
+    let mut n_layers = 0;
+    for name in st.names() {
+        if known.contains(&name) {
+            continue;
+        }
+        match layer_index(name).filter(|&i| i < MAX_LAYERS) {
+            Some(i) => n_layers = n_layers.max(i + 1),
+            None => return Err(format_err(format!("unexpected tensor '{name}'"))),
+        }
+    }
+    let tensor_bytes = st
+        .tensors()
+        .iter()
+        .map(|(_, t)| t.data().len())
+        .fold(0usize, usize::saturating_add);
+    check_fits(
+        tensor_bytes.saturating_mul(4),
+        "loading this model",
+        "the model is too large for this machine",
+    )?;
+    Ok(n_layers)
+}
+
 /// The structure constants, if the file holds them: (N, N, N) float64.
 fn read_algebra(st: &SafeTensors<'_>) -> Result<Option<(usize, Vec<f64>)>, CoreError> {
     if !st.names().contains(&"algebra.structure_constants") {
@@ -230,30 +257,12 @@ impl Model {
 
         let st = SafeTensors::deserialize(bytes)
             .map_err(|e| format_err(format!("not a readable safetensors file ({e})")))?;
-        let mut n_layers = 0;
-        let mut has_poly = false;
-        for name in st.names() {
-            match name {
-                "poly.powers" | "poly.coeffs" => has_poly = true,
-                "algebra.structure_constants" => {}
-                _ => match layer_index(name).filter(|&i| i < MAX_LAYERS) {
-                    Some(i) => n_layers = n_layers.max(i + 1),
-                    None => return Err(format_err(format!("unexpected tensor '{name}'"))),
-                },
-            }
-        }
-        // What loading takes beside the file's bytes: each MLP weight is held four times (as
-        // read, packed, transposed and packed again); refused up front rather than part-way.
-        let tensor_bytes = st
-            .tensors()
-            .iter()
-            .map(|(_, t)| t.data().len())
-            .fold(0usize, usize::saturating_add);
-        check_fits(
-            tensor_bytes.saturating_mul(4),
-            "loading this model",
-            "the model is too large for this machine",
+        let n_layers = count_layers(
+            &st,
+            &["poly.powers", "poly.coeffs", "algebra.structure_constants"],
         )?;
+        let names = st.names();
+        let has_poly = names.contains(&"poly.powers") || names.contains(&"poly.coeffs");
         let algebra = read_algebra(&st)?;
         let (poly_dim, terms) = if has_poly {
             let (d, t) = read_polynomial(&st)?;
@@ -494,25 +503,9 @@ impl LogModel {
         check_structure(&metadata, LOG_CANONICAL)?;
         let st = SafeTensors::deserialize(bytes)
             .map_err(|e| format_err(format!("not a readable safetensors file ({e})")))?;
-        let mut n_layers = 0;
-        for name in st.names() {
-            match name {
-                "structure.c" | "poly.powers" | "poly.coeffs" | "poly.linear" => {}
-                _ => match layer_index(name).filter(|&i| i < MAX_LAYERS) {
-                    Some(i) => n_layers = n_layers.max(i + 1),
-                    None => return Err(format_err(format!("unexpected tensor '{name}'"))),
-                },
-            }
-        }
-        let tensor_bytes = st
-            .tensors()
-            .iter()
-            .map(|(_, t)| t.data().len())
-            .fold(0usize, usize::saturating_add);
-        check_fits(
-            tensor_bytes.saturating_mul(4),
-            "loading this model",
-            "the model is too large for this machine",
+        let n_layers = count_layers(
+            &st,
+            &["structure.c", "poly.powers", "poly.coeffs", "poly.linear"],
         )?;
         let (cshape, c) = read_f64(&st, "structure.c")?;
         let dim = match cshape[..] {
