@@ -42,7 +42,7 @@ from torch import Tensor
 
 from ..structures.log_canonical import LogCanonicalSystem
 from .log_canonical import beta_log, taylor_arrays
-from .pinn import NetworkTerm, PinnResult, fit, is_int, model_file, provenance
+from .pinn import NetworkTerm, PinnResult, box_points, fit, is_int, model_file, provenance
 
 #: The ``structure`` metadata of a log-canonical model file.
 STRUCTURE = "log_canonical"
@@ -291,10 +291,7 @@ def sample_points(
     cfg: LogCanonicalTrainConfig, n: int, gen: torch.Generator, dtype: torch.dtype
 ) -> tuple[Tensor, Tensor]:
     """n points: t (n,) uniform in [0, h_max], q (n, dim) uniform in the log box."""
-    center, half = (torch.as_tensor(a, dtype=dtype) for a in cfg.q_box())
-    t = torch.rand(n, generator=gen, dtype=dtype) * cfg.h_max
-    u = 2.0 * torch.rand(n, len(center), generator=gen, dtype=dtype) - 1.0
-    return t, center + half * u
+    return box_points(cfg.q_box(), cfg.h_max, n, gen, dtype)
 
 
 def build_model(cfg: LogCanonicalTrainConfig) -> LogCanonicalGenerating:

@@ -140,6 +140,21 @@ def check_run_options(log_every: Any, max_seconds: Any) -> None:
         raise ValueError(f"max_seconds must be a number > 0, got {max_seconds!r}")
 
 
+def box_points(
+    box: tuple[np.ndarray, np.ndarray],
+    h_max: float,
+    n: int,
+    gen: torch.Generator,
+    dtype: torch.dtype,
+) -> tuple[Tensor, Tensor]:
+    """n training points: t (n,) uniform in [0, h_max] and (n, dim) coordinates uniform in the
+    box (center, half width), t drawn first from ``gen`` (so a seed gives the same points)."""
+    center, half = (torch.as_tensor(a, dtype=dtype) for a in box)
+    t = torch.rand(n, generator=gen, dtype=dtype) * h_max
+    u = 2.0 * torch.rand(n, len(center), generator=gen, dtype=dtype) - 1.0
+    return t, center + half * u
+
+
 def fit(
     cfg: PinnConfig,
     s_fn: torch.nn.Module,

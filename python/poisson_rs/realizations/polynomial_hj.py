@@ -52,7 +52,7 @@ from ..structures.polynomial import (
     hj_series,
     matched_realization_order,
 )
-from .pinn import NetworkTerm, PinnResult, fit, is_int, model_file, provenance
+from .pinn import NetworkTerm, PinnResult, box_points, fit, is_int, model_file, provenance
 
 #: The ``structure`` metadata of a learned polynomial-realization model file.
 STRUCTURE = "polynomial"
@@ -383,10 +383,7 @@ def sample_points(
     cfg: PolynomialTrainConfig, n: int, gen: torch.Generator, dtype: torch.dtype
 ) -> tuple[Tensor, Tensor]:
     """n points: t (n,) uniform in [0, h_max], x (n, dim) uniform in the box."""
-    center, half = (torch.as_tensor(a, dtype=dtype) for a in cfg.box())
-    t = torch.rand(n, generator=gen, dtype=dtype) * cfg.h_max
-    u = 2.0 * torch.rand(n, len(center), generator=gen, dtype=dtype) - 1.0
-    return t, center + half * u
+    return box_points(cfg.box(), cfg.h_max, n, gen, dtype)
 
 
 def build_model(
