@@ -5,8 +5,10 @@ the Casimir level sets (the trick a user reaches for first).
 ``taskset -c 0 python benches/long_horizon.py --out docs/long_horizon`` writes
 ``long_horizon.png`` and ``long_horizon.json`` (every point: method, h, seconds, the Casimir and
 energy errors over the kept states). Defaults: T = 1e5, 16 seeded states, states kept every 1000
-steps, one thread (``RAYON_NUM_THREADS=1``). The projected RK4 runs in numba
-(``pip install 'poisson_rs[bench]'``); without numba it is skipped with a message.
+steps, one thread (``RAYON_NUM_THREADS=1``, XLA single-threaded). The peers: RK4 with
+projection in numba (one trajectory at a time), and RK4 in JAX ``jit(vmap(lax.scan))``, plain and
+with the same projection, compiled before the clock starts (``pip install 'poisson_rs[bench]'``;
+a missing peer is skipped with a message, ``--no-jax`` skips JAX).
 
 - ``--system rigid-body`` (default): I = (1.5, 2, 2.5), μ uniform in [−3, 3]³; errors max
   |C/C₀ − 1| (C = |μ|²) and max |H/H₀ − 1|; projection renormalises |μ|.
@@ -29,6 +31,9 @@ from typing import Any
 
 os.environ.setdefault("RAYON_NUM_THREADS", "1")
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+os.environ.setdefault(
+    "XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+)
 
 import numpy as np
 
@@ -183,6 +188,63 @@ def projected_rk4() -> Any:
     return run
 
 
+def jax_rk4(top: bool, project: bool) -> Any:
+    """RK4 in JAX, ``jit(vmap)`` over the states with ``lax.scan`` over the steps (the 20 lines a
+    user would write), plain or with the same projection as the numba runner after every step;
+    ``run(mu0, h, n, every)`` returns (states, n // every + 1, dim) and excludes compilation
+    (each (h, n, every) is compiled ahead of time before the clock starts). None without JAX."""
+    try:
+        import jax
+        import jax.numpy as jnp
+    except ImportError:
+        print("jax is not installed: JAX RK4 skipped", file=sys.stderr)
+        return None
+    jax.config.update("jax_enable_x64", True)
+    inv = jnp.array([1.0 / v for v in (TOP_INERTIA if top else INERTIA)])
+    arm = MGL * jnp.array(COM)
+
+    def field(mu: Any) -> Any:
+        if not top:
+            return jnp.cross(mu, mu * inv)
+        m, g = mu[:3], mu[3:]
+        w = m * inv
+        return jnp.concatenate([jnp.cross(m, w) + jnp.cross(g, arm), jnp.cross(g, w)])
+
+    def projection(mu: Any, mu0: Any) -> Any:
+        if not top:
+            return mu * (jnp.linalg.norm(mu0) / jnp.linalg.norm(mu))
+        r0, c0 = jnp.linalg.norm(mu0[3:]), jnp.dot(mu0[:3], mu0[3:])
+        g = mu[3:] * (r0 / jnp.linalg.norm(mu[3:]))
+        m = mu[:3] + (c0 - jnp.dot(mu[:3], g)) / (r0 * r0) * g
+        return jnp.concatenate([m, g])
+
+    def trajectory(mu0: Any, h: float, n: int, every: int) -> Any:
+        def step(mu: Any, _: Any) -> tuple[Any, None]:
+            k1 = field(mu)
+            k2 = field(mu + 0.5 * h * k1)
+            k3 = field(mu + 0.5 * h * k2)
+            k4 = field(mu + h * k3)
+            mu = mu + h / 6.0 * (k1 + 2.0 * (k2 + k3) + k4)
+            return (projection(mu, mu0) if project else mu), None
+
+        def block(mu: Any, _: Any) -> tuple[Any, Any]:
+            mu = jax.lax.scan(step, mu, None, length=every)[0]
+            return mu, mu
+
+        records = jax.lax.scan(block, mu0, None, length=n // every)[1]
+        return jnp.concatenate([mu0[None], records])
+
+    def run(mu0: np.ndarray, h: float, n: int, every: int) -> np.ndarray:
+        fn = jax.jit(jax.vmap(lambda m: trajectory(m, h, n, every)))
+        compiled = fn.lower(mu0).compile()
+        start = time.perf_counter()
+        out = np.asarray(compiled(mu0).block_until_ready())
+        run.seconds = time.perf_counter() - start  # type: ignore[attr-defined]
+        return out
+
+    return run
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--system", choices=("rigid-body", "heavy-top"), default="rigid-body")
@@ -190,6 +252,7 @@ def main() -> None:
     parser.add_argument("--states", type=int, default=16)
     parser.add_argument("--every", type=int, default=1000)
     parser.add_argument("--out", type=Path, default=Path("docs/long_horizon"))
+    parser.add_argument("--no-jax", action="store_true", help="skip the JAX RK4 rows")
     args = parser.parse_args()
     json_path, png_path = args.out.with_suffix(".json"), args.out.with_suffix(".png")
     for p in (json_path, png_path):  # before minutes of work, not after
@@ -237,6 +300,15 @@ def main() -> None:
             start = time.perf_counter()
             traj = run(mu0, h, n - n % every, every)
             record("rk4 + projection", h, time.perf_counter() - start, traj)
+    for project, label in ((False, "rk4 (JAX)"), (True, "rk4 + projection (JAX)")):
+        jrun = None if args.no_jax else jax_rk4(top, project)
+        if jrun is None:
+            continue
+        for h in projected if project else sweep["rk4"]:
+            n = round(args.horizon / h)
+            every = min(args.every, n)
+            traj = jrun(mu0, h, n - n % every, every)
+            record(label, h, jrun.seconds, traj)
     meta = {
         "system": args.system,
         "horizon": args.horizon,
