@@ -23,6 +23,7 @@ pub mod model;
 pub mod realization;
 pub mod rollout;
 pub mod stepper;
+pub mod straight_line;
 pub mod structures;
 pub mod system;
 
