@@ -233,8 +233,7 @@ where
             }
             let fm = body.field(&m);
             let r: [f64; N] = std::array::from_fn(|i| m[i] - mu0[i] - half * fm[i]);
-            let df = body.jacobian(&m);
-            let delta = newton_update(SMatrix::identity() - half * df, &r)?;
+            let delta = body.midpoint_update(half, &m, &r)?;
             for i in 0..N {
                 m[i] += delta[i];
             }

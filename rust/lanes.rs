@@ -20,9 +20,9 @@
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use nalgebra::{Const, DimMin, SMatrix};
+use nalgebra::{Const, DimMin};
 
-use crate::classical::{max_abs, newton_update, ImplicitMidpoint, RigidBody, Rk4};
+use crate::classical::{max_abs, ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepResult, StepStats};
@@ -43,6 +43,104 @@ pub const LANE_CHUNK: usize = 8 * LANES;
 /// lane may depend on another: that is what keeps results independent of the chunking.
 pub trait LaneField<const N: usize>: Sync {
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
+
+    /// ∂f/∂μ at L states (`out[r][c][l]`), where the field has it in straight-line form; then
+    /// the implicit midpoint solves its Newton systems for all lanes at once
+    /// ([`midpoint_update_lanes`]). The default has none and returns false.
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        _mu: &[[f64; L]; N],
+        _out: &mut [[[f64; L]; N]; N],
+    ) -> bool {
+        false
+    }
+}
+
+/// The implicit midpoint's Newton updates (I − half J(m)) δ = −r at L states at once, for a field
+/// with a lane-wide Jacobian ([`LaneField::jacobian_lanes`]; returns false for one without):
+/// Gaussian elimination without pivoting in every lane, kept (`solved[l]`) where the lane's
+/// matrix is strictly diagonally dominant by rows (then no pivot vanishes and none is needed:
+/// the Schur complements stay dominant) and δ is finite. The other lanes take the LU with
+/// pivoting one by one. The scalar step of such a field runs this with L = 1
+/// ([`VectorField::midpoint_update`]), so a lane's choice and bits are its scalar step's.
+#[inline(always)]
+pub fn midpoint_update_lanes<const N: usize, const L: usize, F: LaneField<N>>(
+    f: &F,
+    half: f64,
+    m: &[[f64; L]; N],
+    r: &[[f64; L]; N],
+    delta: &mut [[f64; L]; N],
+    solved: &mut [bool; L],
+) -> bool {
+    let mut a = [[[0.0; L]; N]; N];
+    if !f.jacobian_lanes(m, &mut a) {
+        return false;
+    }
+    for i in 0..N {
+        for j in 0..N {
+            let d = if i == j { 1.0 } else { 0.0 };
+            for l in 0..L {
+                a[i][j][l] = d - half * a[i][j][l];
+            }
+        }
+    }
+    let mut ok = [true; L];
+    for i in 0..N {
+        let mut off = [0.0; L];
+        for j in 0..N {
+            if j != i {
+                for l in 0..L {
+                    off[l] += a[i][j][l].abs();
+                }
+            }
+        }
+        for l in 0..L {
+            // False for a NaN anywhere in the row.
+            ok[l] &= a[i][i][l].abs() > off[l];
+        }
+    }
+    let mut b = [[0.0; L]; N];
+    for i in 0..N {
+        for l in 0..L {
+            b[i][l] = -r[i][l];
+        }
+    }
+    let mut inv = [[0.0; L]; N];
+    for k in 0..N {
+        for l in 0..L {
+            inv[k][l] = 1.0 / a[k][k][l];
+        }
+        for i in k + 1..N {
+            let mut p = [0.0; L];
+            for l in 0..L {
+                p[l] = a[i][k][l] * inv[k][l];
+            }
+            for j in k + 1..N {
+                for l in 0..L {
+                    a[i][j][l] -= p[l] * a[k][j][l];
+                }
+            }
+            for l in 0..L {
+                b[i][l] -= p[l] * b[k][l];
+            }
+        }
+    }
+    for k in (0..N).rev() {
+        let mut s = b[k];
+        for j in k + 1..N {
+            for l in 0..L {
+                s[l] -= a[k][j][l] * delta[j][l];
+            }
+        }
+        for l in 0..L {
+            delta[k][l] = s[l] * inv[k][l];
+        }
+    }
+    for l in 0..L {
+        solved[l] = ok[l] && (0..N).all(|i| delta[i][l].is_finite());
+    }
+    true
 }
 
 impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
@@ -182,19 +280,32 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
         }
         f.field_lanes(&m, &mut fm);
         count += 1;
+        let mut r = [[0.0; L]; N];
+        for i in 0..N {
+            for l in 0..L {
+                r[i][l] = m[i][l] - mu0[i][l] - half * fm[i][l];
+            }
+        }
+        // All lanes at once where the field has a lane-wide Jacobian; the others lane by lane.
+        let mut wide = [[0.0; L]; N];
+        let mut solved = [false; L];
+        midpoint_update_lanes(f, half, &m, &r, &mut wide, &mut solved);
         for l in 0..L {
             if !active[l] {
                 continue;
             }
-            let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
-            let r: [f64; N] = std::array::from_fn(|i| ml[i] - mu0[i][l] - half * fm[i][l]);
-            let df = f.jacobian(&ml);
-            let delta = match newton_update(SMatrix::identity() - half * df, &r) {
-                Ok(d) => d,
-                Err(e) => {
-                    result[l] = Err(e);
-                    active[l] = false;
-                    continue;
+            let delta: [f64; N] = if solved[l] {
+                std::array::from_fn(|i| wide[i][l])
+            } else {
+                let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
+                let rl: [f64; N] = std::array::from_fn(|i| r[i][l]);
+                match f.midpoint_update(half, &ml, &rl) {
+                    Ok(d) => d,
+                    Err(e) => {
+                        result[l] = Err(e);
+                        active[l] = false;
+                        continue;
+                    }
                 }
             };
             for i in 0..N {

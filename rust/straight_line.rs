@@ -27,10 +27,12 @@
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use nalgebra::SMatrix;
+use nalgebra::{Const, DimMin, SMatrix};
 
+use crate::classical::newton_update;
+use crate::error::StepFailure;
 use crate::groupoid::LieAlgebra;
-use crate::lanes::LaneField;
+use crate::lanes::{midpoint_update_lanes, LaneField};
 use crate::system::{lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField};
 
 /// μ × (a∘μ) at L states: the rigid body's kernel (a = 1/I), 12 flops a lane.
@@ -62,10 +64,76 @@ pub struct So3Quadratic {
     pub a: [f64; 3],
 }
 
+impl So3Quadratic {
+    /// ∂f/∂μ = [μ]× diag(a) − [a∘μ]×, row-major.
+    #[inline(always)]
+    pub fn jacobian_array(&self, mu: &[f64; 3]) -> [[f64; 3]; 3] {
+        let w = [mu[0] * self.a[0], mu[1] * self.a[1], mu[2] * self.a[2]];
+        let (hm, hw) = (hat(mu), hat(&w));
+        std::array::from_fn(|r| std::array::from_fn(|c| hm[r][c] * self.a[c] - hw[r][c]))
+    }
+}
+
 impl LaneField<3> for So3Quadratic {
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
         weighted_cross_lanes(&self.a, mu, out);
+    }
+
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        mu: &[[f64; L]; 3],
+        out: &mut [[[f64; L]; 3]; 3],
+    ) -> bool {
+        jacobian_lanes_by(mu, out, |m| self.jacobian_array(m))
+    }
+}
+
+/// The Jacobian `jac` of each lane's state, stored lane-wise (`out[r][c][l]`).
+#[inline(always)]
+fn jacobian_lanes_by<const N: usize, const L: usize>(
+    mu: &[[f64; L]; N],
+    out: &mut [[[f64; L]; N]; N],
+    jac: impl Fn(&[f64; N]) -> [[f64; N]; N],
+) -> bool {
+    for l in 0..L {
+        let j = jac(&std::array::from_fn(|i| mu[i][l]));
+        for r in 0..N {
+            for c in 0..N {
+                out[r][c][l] = j[r][c];
+            }
+        }
+    }
+    true
+}
+
+/// The midpoint's Newton update of a pattern kernel: its lane-wide solve on one lane, or where
+/// that lane needs pivoting, the LU of the exact Jacobian (see [`midpoint_update_lanes`]).
+#[inline(always)]
+fn pattern_midpoint_update<const N: usize, F: LaneField<N> + VectorField<N>>(
+    f: &F,
+    half: f64,
+    m: &[f64; N],
+    r: &[f64; N],
+) -> Result<[f64; N], StepFailure>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    let mut delta = [[0.0; 1]; N];
+    let mut solved = [false];
+    midpoint_update_lanes(
+        f,
+        half,
+        &m.map(|v| [v]),
+        &r.map(|v| [v]),
+        &mut delta,
+        &mut solved,
+    );
+    if solved[0] {
+        Ok(delta.map(|v| v[0]))
+    } else {
+        newton_update(SMatrix::identity() - half * f.jacobian(m), r)
     }
 }
 
@@ -78,12 +146,19 @@ impl VectorField<3> for So3Quadratic {
         out.map(|v| v[0])
     }
 
-    /// [μ]× diag(a) − [a∘μ]×.
     #[inline]
     fn jacobian(&self, mu: &[f64; 3]) -> SMatrix<f64, 3, 3> {
-        let w = [mu[0] * self.a[0], mu[1] * self.a[1], mu[2] * self.a[2]];
-        let (hm, hw) = (hat(mu), hat(&w));
-        SMatrix::from_fn(|r, c| hm[r][c] * self.a[c] - hw[r][c])
+        let j = self.jacobian_array(mu);
+        SMatrix::from_fn(|r, c| j[r][c])
+    }
+
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; 3],
+        r: &[f64; 3],
+    ) -> Result<[f64; 3], StepFailure> {
+        pattern_midpoint_update(self, half, m, r)
     }
 
     /// A = −[ω]×, ω = a∘μ (see [`lie_poisson_rate`]).
@@ -196,6 +271,15 @@ impl LaneField<6> for Se3QuadraticLinear {
             }),
         }
     }
+
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        mu: &[[f64; L]; 6],
+        out: &mut [[[f64; L]; 6]; 6],
+    ) -> bool {
+        jacobian_lanes_by(mu, out, |m| self.jacobian_array(m))
+    }
 }
 
 impl Se3QuadraticLinear {
@@ -233,6 +317,15 @@ impl VectorField<6> for Se3QuadraticLinear {
     fn jacobian(&self, mu: &[f64; 6]) -> SMatrix<f64, 6, 6> {
         let j = self.jacobian_array(mu);
         SMatrix::from_fn(|r, c| j[r][c])
+    }
+
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; 6],
+        r: &[f64; 6],
+    ) -> Result<[f64; 6], StepFailure> {
+        pattern_midpoint_update(self, half, m, r)
     }
 
     /// A = ad_{∇H}ᵀ = [[−[Ω]×, −[b]×], [0, −[Ω]×]] (see [`lie_poisson_rate`]).
@@ -384,6 +477,35 @@ impl<const N: usize> VectorField<N> for LieField<N> {
                     SMatrix::from_fn(|r, c| if r < 6 && c < 6 { j[r][c] } else { f64::NAN })
                 }
                 None => copy(&[[f64::NAN; N]; N]),
+            },
+        }
+    }
+
+    /// The variant's own update: the pattern kernels solve as their lanes do.
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; N],
+        r: &[f64; N],
+    ) -> Result<[f64; N], StepFailure>
+    where
+        Const<N>: DimMin<Const<N>, Output = Const<N>>,
+    {
+        // Unreachable mismatches (a variant is built for its own dimension) fail the step.
+        let wrong = Err(StepFailure::NonFinite);
+        match self {
+            LieField::Compiled(f) => f.midpoint_update(half, m, r),
+            LieField::So3(f) => match (sized::<_, N, 3>(m), sized::<_, N, 3>(r)) {
+                (Some(m), Some(r)) => f
+                    .midpoint_update(half, m, r)
+                    .and_then(|d| sized::<_, 3, N>(&d).copied().ok_or(StepFailure::NonFinite)),
+                _ => wrong,
+            },
+            LieField::Se3(f) => match (sized::<_, N, 6>(m), sized::<_, N, 6>(r)) {
+                (Some(m), Some(r)) => f
+                    .midpoint_update(half, m, r)
+                    .and_then(|d| sized::<_, 6, N>(&d).copied().ok_or(StepFailure::NonFinite)),
+                _ => wrong,
             },
         }
     }

@@ -355,9 +355,15 @@ fn simd_midpoint_equals_the_scalar_path_bit_for_bit() {
         .iter()
         .any(|i| i.converged && i.max_newton_iterations > 0));
     check_midpoint_lanes_equal_scalar(heavy_top().compile(), &mut rng, 2.0, 0.05, newton);
-    for b in [[0.0, 0.0, 0.981], [0.3, -0.5, 0.8]] {
+    // The straight-line kernels solve lane-wide where a lane's matrix is diagonally dominant and
+    // fall back to the pivoted LU per lane elsewhere: at h = 0.4 the large states do.
+    for (b, h) in [
+        ([0.0, 0.0, 0.981], 0.05),
+        ([0.3, -0.5, 0.8], 0.05),
+        ([0.3, -0.5, 0.8], 0.4),
+    ] {
         let top = LieField::new(&random_top(&mut rng, b));
-        check_midpoint_lanes_equal_scalar(top, &mut rng, 2.0, 0.05, newton);
+        check_midpoint_lanes_equal_scalar(top, &mut rng, 2.0, h, newton);
     }
     let so3_sys = LieField::new(&diagonal_so3(&mut rng));
     check_midpoint_lanes_equal_scalar(so3_sys, &mut rng, 3.0, 0.1, newton);
@@ -704,4 +710,75 @@ fn systems_off_the_pattern_keep_the_compiled_field() {
         hamiltonian: so3_sys.hamiltonian.clone(),
     };
     check_falls_back(sl2, "so(3) in another basis", &mut rng);
+}
+
+/// The lane-wide Newton solve of the midpoint against the LU with pivoting: the same δ to
+/// rounding where a lane's matrix is diagonally dominant, and the pivoted LU itself, bit for
+/// bit, in the lanes that are not (large states at a large step); a lane's choice and bits do
+/// not depend on its neighbours (the scalar update is the solve with one lane).
+#[test]
+fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
+    use crate::classical::newton_update;
+    use crate::lanes::midpoint_update_lanes;
+    let mut rng = Rng::new(41);
+    let (mut wide, mut pivoted) = (0, 0);
+    for _ in 0..40 {
+        let b = rng.vec3(-1.0, 1.0);
+        let LieField::Se3(f) = LieField::new(&random_top(&mut rng, b)) else {
+            panic!("a heavy top is the se(3) pattern")
+        };
+        let half = 0.5 * rng.range(0.01, 0.5);
+        let mut m = [[0.0; LANES]; 6];
+        let mut r = [[0.0; LANES]; 6];
+        for l in 0..LANES {
+            let s = 10f64.powf(rng.range(-1.0, 1.5));
+            for i in 0..6 {
+                m[i][l] = rng.range(-s, s);
+                r[i][l] = rng.range(-1e-3, 1e-3);
+            }
+        }
+        let (mut delta, mut solved) = ([[0.0; LANES]; 6], [false; LANES]);
+        assert!(midpoint_update_lanes(
+            &f,
+            half,
+            &m,
+            &r,
+            &mut delta,
+            &mut solved
+        ));
+        for l in 0..LANES {
+            let ml: [f64; 6] = std::array::from_fn(|i| m[i][l]);
+            let rl: [f64; 6] = std::array::from_fn(|i| r[i][l]);
+            let lu = newton_update(nalgebra::SMatrix::identity() - half * f.jacobian(&ml), &rl);
+            let scalar = f.midpoint_update(half, &ml, &rl);
+            if solved[l] {
+                wide += 1;
+                let got: [f64; 6] = std::array::from_fn(|i| delta[i][l]);
+                assert_eq!(
+                    scalar,
+                    Ok(got),
+                    "lane {l}: the scalar update is the one-lane solve"
+                );
+                let want = lu.unwrap();
+                let size = max_abs(&want);
+                for i in 0..6 {
+                    assert!(
+                        (got[i] - want[i]).abs() <= 1e-13 * size,
+                        "{got:?} vs {want:?}"
+                    );
+                }
+            } else {
+                pivoted += 1;
+                assert_eq!(scalar, lu, "lane {l}: falls back to the pivoted LU");
+            }
+        }
+    }
+    assert!(
+        wide > 50 && pivoted > 10,
+        "lane-wide {wide}, pivoted {pivoted}"
+    );
+}
+
+fn max_abs(v: &[f64; 6]) -> f64 {
+    v.iter().fold(0.0, |a: f64, x| a.max(x.abs()))
 }
