@@ -272,13 +272,62 @@ impl LaneField<6> for Se3QuadraticLinear {
         }
     }
 
+    /// [`Se3QuadraticLinear::jacobian_array`] entry by entry, each a loop over the lanes (its
+    /// zeros and the constant block −[b]× stored as such).
     #[inline(always)]
     fn jacobian_lanes<const L: usize>(
         &self,
         mu: &[[f64; L]; 6],
         out: &mut [[[f64; L]; 6]; 6],
     ) -> bool {
-        jacobian_lanes_by(mu, out, |m| self.jacobian_array(m))
+        let [a0, a1, a2] = self.a;
+        let b = self.torque.vector();
+        for l in 0..L {
+            let (m0, m1, m2) = (mu[0][l], mu[1][l], mu[2][l]);
+            let (g0, g1, g2) = (mu[3][l], mu[4][l], mu[5][l]);
+            let (w0, w1, w2) = (m0 * a0, m1 * a1, m2 * a2);
+            // [M]× diag(a) − [Ω]×.
+            out[0][0][l] = 0.0;
+            out[0][1][l] = w2 - m2 * a1;
+            out[0][2][l] = m1 * a2 - w1;
+            out[1][0][l] = m2 * a0 - w2;
+            out[1][1][l] = 0.0;
+            out[1][2][l] = w0 - m0 * a2;
+            out[2][0][l] = w1 - m1 * a0;
+            out[2][1][l] = m0 * a1 - w0;
+            out[2][2][l] = 0.0;
+            // −[b]×.
+            out[0][3][l] = 0.0;
+            out[0][4][l] = b[2];
+            out[0][5][l] = -b[1];
+            out[1][3][l] = -b[2];
+            out[1][4][l] = 0.0;
+            out[1][5][l] = b[0];
+            out[2][3][l] = b[1];
+            out[2][4][l] = -b[0];
+            out[2][5][l] = 0.0;
+            // [Γ]× diag(a).
+            out[3][0][l] = 0.0;
+            out[3][1][l] = -g2 * a1;
+            out[3][2][l] = g1 * a2;
+            out[4][0][l] = g2 * a0;
+            out[4][1][l] = 0.0;
+            out[4][2][l] = -g0 * a2;
+            out[5][0][l] = -g1 * a0;
+            out[5][1][l] = g0 * a1;
+            out[5][2][l] = 0.0;
+            // −[Ω]×.
+            out[3][3][l] = 0.0;
+            out[3][4][l] = w2;
+            out[3][5][l] = -w1;
+            out[4][3][l] = -w2;
+            out[4][4][l] = 0.0;
+            out[4][5][l] = w0;
+            out[5][3][l] = w1;
+            out[5][4][l] = -w0;
+            out[5][5][l] = 0.0;
+        }
+        true
     }
 }
 
