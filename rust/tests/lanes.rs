@@ -746,11 +746,20 @@ fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
             &mut delta,
             &mut solved
         ));
+        // The lane-wide Jacobian is the scalar one, entry by entry.
+        let mut jl = [[[0.0; LANES]; 6]; 6];
+        assert!(crate::lanes::LaneField::jacobian_lanes(&f, &m, &mut jl));
         for l in 0..LANES {
             let ml: [f64; 6] = std::array::from_fn(|i| m[i][l]);
             let rl: [f64; 6] = std::array::from_fn(|i| r[i][l]);
             let lu = newton_update(nalgebra::SMatrix::identity() - half * f.jacobian(&ml), &rl);
             let scalar = f.midpoint_update(half, &ml, &rl);
+            let j = f.jacobian(&ml);
+            for a in 0..6 {
+                for c in 0..6 {
+                    assert_eq!(jl[a][c][l], j[(a, c)], "J[{a},{c}]");
+                }
+            }
             if solved[l] {
                 wide += 1;
                 let got: [f64; 6] = std::array::from_fn(|i| delta[i][l]);
