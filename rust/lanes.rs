@@ -242,9 +242,11 @@ where
 }
 
 /// The scalar [`ImplicitMidpoint`] step of the field `f` lane by lane: the field (and so the
-/// residual) for the whole block at once, then each unconverged lane's exact Jacobian and LU
-/// solve by the scalar functions on that lane's values (the same bits). A lane that converges is
-/// frozen while the others iterate; one that fails stops with the scalar path's failure alone.
+/// residual), the update and the convergence test for the whole block at once; the Newton
+/// solve lane-wide where the field has a lane-wide Jacobian ([`midpoint_update_lanes`]), else
+/// (and in the lanes that need pivoting) each unconverged lane's exact Jacobian and LU solve by
+/// the scalar functions on that lane's values (the same bits). A lane that converges is frozen
+/// while the others iterate; one that fails stops with the scalar path's failure alone.
 #[inline(always)]
 fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<N>>(
     f: &F,
@@ -290,29 +292,42 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
         let mut wide = [[0.0; L]; N];
         let mut solved = [false; L];
         midpoint_update_lanes(f, half, &m, &r, &mut wide, &mut solved);
+        // The lanes the lane-wide solve left (all of them for a field without one): the
+        // pivoted LU one by one, or its failure.
         for l in 0..L {
-            if !active[l] {
+            if !active[l] || solved[l] {
                 continue;
             }
-            let delta: [f64; N] = if solved[l] {
-                std::array::from_fn(|i| wide[i][l])
-            } else {
-                let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
-                let rl: [f64; N] = std::array::from_fn(|i| r[i][l]);
-                match f.midpoint_update(half, &ml, &rl) {
-                    Ok(d) => d,
-                    Err(e) => {
-                        result[l] = Err(e);
-                        active[l] = false;
-                        continue;
+            let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
+            let rl: [f64; N] = std::array::from_fn(|i| r[i][l]);
+            match f.midpoint_update(half, &ml, &rl) {
+                Ok(d) => {
+                    for i in 0..N {
+                        wide[i][l] = d[i];
                     }
                 }
-            };
-            for i in 0..N {
-                m[i][l] += delta[i];
+                Err(e) => {
+                    result[l] = Err(e);
+                    active[l] = false;
+                }
             }
-            let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
-            if max_abs(&delta) <= newton.tol * max_abs(&ml).max(1e-300) {
+        }
+        // m += δ in the active lanes and the scalar step's test |δ|∞ ≤ tol·max(|m|∞, 1e-300),
+        // for all lanes at once (the maxima folded in the scalar `max_abs`'s order).
+        let (mut dmax, mut mmax) = ([0.0f64; L], [0.0f64; L]);
+        for i in 0..N {
+            for l in 0..L {
+                m[i][l] = if active[l] {
+                    m[i][l] + wide[i][l]
+                } else {
+                    m[i][l]
+                };
+                dmax[l] = dmax[l].max(wide[i][l].abs());
+                mmax[l] = mmax[l].max(m[i][l].abs());
+            }
+        }
+        for l in 0..L {
+            if active[l] && dmax[l] <= newton.tol * mmax[l].max(1e-300) {
                 active[l] = false;
                 done[l] = true;
                 iterations[l] = count;
