@@ -65,7 +65,7 @@ pub struct So3Quadratic {
 }
 
 impl So3Quadratic {
-    /// ∂f/∂μ = [μ]× diag(a) − [a∘μ]×, row-major.
+    /// ∂f/∂μ = `[μ]× diag(a) − [a∘μ]×`, row-major.
     #[inline(always)]
     pub fn jacobian_array(&self, mu: &[f64; 3]) -> [[f64; 3]; 3] {
         let w = [mu[0] * self.a[0], mu[1] * self.a[1], mu[2] * self.a[2]];
@@ -332,7 +332,7 @@ impl LaneField<6> for Se3QuadraticLinear {
 }
 
 impl Se3QuadraticLinear {
-    /// ∂f/∂μ as a row-major array: [[ [M]× diag(a) − [Ω]×, −[b]× ], [ [Γ]× diag(a), −[Ω]× ]].
+    /// ∂f/∂μ as a row-major array: `[[ [M]× diag(a) − [Ω]×, −[b]× ], [ [Γ]× diag(a), −[Ω]× ]]`.
     #[inline(always)]
     pub fn jacobian_array(&self, mu: &[f64; 6]) -> [[f64; 6]; 6] {
         let a = &self.a;
