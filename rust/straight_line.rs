@@ -161,7 +161,7 @@ impl VectorField<3> for So3Quadratic {
         pattern_midpoint_update(self, half, m, r)
     }
 
-    /// A = −[ω]×, ω = a∘μ (see [`lie_poisson_rate`]).
+    /// A = `−[ω]×`, ω = a∘μ (see [`lie_poisson_rate`]).
     fn step_rate(&self, mu: &[f64; 3]) -> f64 {
         let w = [mu[0] * self.a[0], mu[1] * self.a[1], mu[2] * self.a[2]];
         let a = hat(&w).map(|row| row.map(|v| -v));
@@ -273,7 +273,7 @@ impl LaneField<6> for Se3QuadraticLinear {
     }
 
     /// [`Se3QuadraticLinear::jacobian_array`] entry by entry, each a loop over the lanes (its
-    /// zeros and the constant block −[b]× stored as such).
+    /// zeros and the constant block `−[b]×` stored as such).
     #[inline(always)]
     fn jacobian_lanes<const L: usize>(
         &self,
@@ -377,7 +377,7 @@ impl VectorField<6> for Se3QuadraticLinear {
         pattern_midpoint_update(self, half, m, r)
     }
 
-    /// A = ad_{∇H}ᵀ = [[−[Ω]×, −[b]×], [0, −[Ω]×]] (see [`lie_poisson_rate`]).
+    /// A = ad_{∇H}ᵀ = `[[−[Ω]×, −[b]×], [0, −[Ω]×]]` (see [`lie_poisson_rate`]).
     fn step_rate(&self, mu: &[f64; 6]) -> f64 {
         let w = [mu[0] * self.a[0], mu[1] * self.a[1], mu[2] * self.a[2]];
         let (hw, hb) = (hat(&w), hat(&self.torque.vector()));
