@@ -322,8 +322,8 @@ fn bench_kernel(c: &mut Criterion) {
     group.finish();
 }
 
-/// RK4 and the implicit midpoint (masked Newton lanes) of the rigid body and the heavy top,
-/// 4096 trajectories × 20 steps (final state kept): one trajectory at a time (the scalar
+/// RK4 and the implicit midpoint (masked Newton lanes) of the rigid body and the heavy top (its
+/// straight-line se(3) kernel, and the generic compiled field), 4096 trajectories × 20 steps (final state kept): one trajectory at a time (the scalar
 /// oracle), and in SIMD lanes on the portable and the widest dispatch path. `cargo bench --bench rollout -- classical`.
 fn bench_classical(c: &mut Criterion) {
     use poisson_rs::classical::ImplicitMidpoint;
@@ -338,7 +338,9 @@ fn bench_classical(c: &mut Criterion) {
     }
     fn group<const N: usize, F>(c: &mut Criterion, name: &str, field: F, mu0: Vec<[f64; N]>)
     where
-        F: poisson_rs::lanes::LaneField<N> + poisson_rs::VectorField<N> + Clone,
+        F: poisson_rs::VectorField<N> + Clone,
+        Rk4<F>: poisson_rs::lanes::LaneStepper<N>,
+        ImplicitMidpoint<F>: poisson_rs::lanes::LaneStepper<N>,
         nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
     {
         let n = 20;
@@ -398,7 +400,12 @@ fn bench_classical(c: &mut Criterion) {
     let states: Vec<[f64; 6]> = (0..4096)
         .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0)))
         .collect();
-    group(c, "heavy_top", top.compile(), states);
+    // The same system through the generic compiled field (run-time indices) and through the
+    // straight-line se(3) kernel its data is recognised as (what `LieStepper` uses).
+    group(c, "heavy_top_compiled", top.compile(), states.clone());
+    let field = poisson_rs::straight_line::LieField::new(&top);
+    assert_eq!(field.kernel_name(), "se3-quadratic-linear");
+    group(c, "heavy_top", field, states);
 }
 
 /// A stepper taken one trajectory at a time: the scalar path the lanes are measured against.

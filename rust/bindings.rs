@@ -28,6 +28,7 @@ use crate::model::{LogModel, Model, FORMAT};
 use crate::realization::Generating;
 use crate::rollout::{n_records, ChunkKernel, PerStep, Rollout, TrajectoryInfo};
 use crate::stepper::{batch_size, NewtonOptions};
+use crate::straight_line::LieField;
 use crate::system::{self, Hamiltonian, LiePoisson, VectorField};
 use crate::{with_dim, MAX_DIM};
 
@@ -787,8 +788,10 @@ fn rollout_lie_poisson<'py>(
             terms.push((std::array::from_fn(|i| row[i] as u32), coeff));
         }
         let system = LiePoisson { algebra, hamiltonian: Hamiltonian::new(terms)? };
-        let compiled = system.compile();
-        let angles = |m: &[[f64; N]], o: &mut [f64]| angles_of(&compiled, h, m, o);
+        // The step check's rate from the field the steppers use (straight-line where the
+        // system matches a pattern: a third of the compiled field's cost on the heavy top).
+        let field = LieField::new(&system);
+        let angles = |m: &[[f64; N]], o: &mut [f64]| angles_of(&field, h, m, o);
         let stepper = LieStepper::new(method, system, top, newton)?;
         let Some(mu0) = initial_states::<N>(mu0, "mu0")? else {
             return Ok(None);

@@ -26,7 +26,8 @@ use nalgebra::{Const, DimMin, Matrix3, SMatrix, SVector, Vector3};
 use crate::error::{CoreError, StepFailure};
 use crate::rollout::{rollout, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepMap, StepStats};
-use crate::system::{CompiledLiePoisson, LiePoisson, VectorField};
+use crate::straight_line::LieField;
+use crate::system::{LiePoisson, VectorField};
 
 /// A free rigid body: principal moments of inertia I (any order, all finite and > 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -232,8 +233,7 @@ where
             }
             let fm = body.field(&m);
             let r: [f64; N] = std::array::from_fn(|i| m[i] - mu0[i] - half * fm[i]);
-            let df = body.jacobian(&m);
-            let delta = newton_update(SMatrix::identity() - half * df, &r)?;
+            let delta = body.midpoint_update(half, &m, &r)?;
             for i in 0..N {
                 m[i] += delta[i];
             }
@@ -677,8 +677,8 @@ impl LieMethod {
 /// A classical integrator of a Lie–Poisson system chosen at run time.
 #[derive(Clone, Debug)]
 pub enum LieStepper<const N: usize> {
-    Rk4(Rk4<CompiledLiePoisson<N>>),
-    Midpoint(ImplicitMidpoint<CompiledLiePoisson<N>>),
+    Rk4(Rk4<LieField<N>>),
+    Midpoint(ImplicitMidpoint<LieField<N>>),
     /// Only for N = 6 (the heavy top); built by [`LieStepper::new`] alone.
     HeavyTop(HeavyTopSplitting),
 }
@@ -692,8 +692,9 @@ impl<const N: usize> LieStepper<N> {
         heavy_top: Option<HeavyTop>,
         newton: NewtonOptions,
     ) -> Result<Self, CoreError> {
-        // The steppers evaluate the system compiled to its sparsity.
-        let system = system.compile();
+        // The steppers evaluate a recognised pattern's straight-line field, else the system
+        // compiled to its sparsity.
+        let system = LieField::new(&system);
         Ok(match method {
             LieMethod::Rk4 => LieStepper::Rk4(Rk4 { system }),
             LieMethod::Midpoint => LieStepper::Midpoint(ImplicitMidpoint { system, newton }),

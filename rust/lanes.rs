@@ -20,12 +20,13 @@
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use nalgebra::{Const, DimMin, SMatrix};
+use nalgebra::{Const, DimMin};
 
-use crate::classical::{max_abs, newton_update, ImplicitMidpoint, RigidBody, Rk4};
+use crate::classical::{max_abs, ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
-use crate::stepper::{StepResult, StepStats};
+use crate::stepper::{NewtonOptions, StepResult, StepStats};
+use crate::straight_line::{sized_mut, LieField};
 use crate::system::{CompiledLiePoisson, VectorField};
 
 /// Lanes per block: 8 f64, two AVX2 registers (or four SSE2 ones) per coordinate, which gives the
@@ -42,6 +43,104 @@ pub const LANE_CHUNK: usize = 8 * LANES;
 /// lane may depend on another: that is what keeps results independent of the chunking.
 pub trait LaneField<const N: usize>: Sync {
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
+
+    /// ∂f/∂μ at L states (`out[r][c][l]`), where the field has it in straight-line form; then
+    /// the implicit midpoint solves its Newton systems for all lanes at once
+    /// ([`midpoint_update_lanes`]). The default has none and returns false.
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        _mu: &[[f64; L]; N],
+        _out: &mut [[[f64; L]; N]; N],
+    ) -> bool {
+        false
+    }
+}
+
+/// The implicit midpoint's Newton updates (I − half J(m)) δ = −r at L states at once, for a field
+/// with a lane-wide Jacobian ([`LaneField::jacobian_lanes`]; returns false for one without):
+/// Gaussian elimination without pivoting in every lane, kept (`solved[l]`) where the lane's
+/// matrix is strictly diagonally dominant by rows (then no pivot vanishes and none is needed:
+/// the Schur complements stay dominant) and δ is finite. The other lanes take the LU with
+/// pivoting one by one. The scalar step of such a field runs this with L = 1
+/// ([`VectorField::midpoint_update`]), so a lane's choice and bits are its scalar step's.
+#[inline(always)]
+pub fn midpoint_update_lanes<const N: usize, const L: usize, F: LaneField<N>>(
+    f: &F,
+    half: f64,
+    m: &[[f64; L]; N],
+    r: &[[f64; L]; N],
+    delta: &mut [[f64; L]; N],
+    solved: &mut [bool; L],
+) -> bool {
+    let mut a = [[[0.0; L]; N]; N];
+    if !f.jacobian_lanes(m, &mut a) {
+        return false;
+    }
+    for i in 0..N {
+        for j in 0..N {
+            let d = if i == j { 1.0 } else { 0.0 };
+            for l in 0..L {
+                a[i][j][l] = d - half * a[i][j][l];
+            }
+        }
+    }
+    let mut ok = [true; L];
+    for i in 0..N {
+        let mut off = [0.0; L];
+        for j in 0..N {
+            if j != i {
+                for l in 0..L {
+                    off[l] += a[i][j][l].abs();
+                }
+            }
+        }
+        for l in 0..L {
+            // False for a NaN anywhere in the row.
+            ok[l] &= a[i][i][l].abs() > off[l];
+        }
+    }
+    let mut b = [[0.0; L]; N];
+    for i in 0..N {
+        for l in 0..L {
+            b[i][l] = -r[i][l];
+        }
+    }
+    let mut inv = [[0.0; L]; N];
+    for k in 0..N {
+        for l in 0..L {
+            inv[k][l] = 1.0 / a[k][k][l];
+        }
+        for i in k + 1..N {
+            let mut p = [0.0; L];
+            for l in 0..L {
+                p[l] = a[i][k][l] * inv[k][l];
+            }
+            for j in k + 1..N {
+                for l in 0..L {
+                    a[i][j][l] -= p[l] * a[k][j][l];
+                }
+            }
+            for l in 0..L {
+                b[i][l] -= p[l] * b[k][l];
+            }
+        }
+    }
+    for k in (0..N).rev() {
+        let mut s = b[k];
+        for j in k + 1..N {
+            for l in 0..L {
+                s[l] -= a[k][j][l] * delta[j][l];
+            }
+        }
+        for l in 0..L {
+            delta[k][l] = s[l] * inv[k][l];
+        }
+    }
+    for l in 0..L {
+        solved[l] = ok[l] && (0..N).all(|i| delta[i][l].is_finite());
+    }
+    true
 }
 
 impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
@@ -55,14 +154,7 @@ impl LaneField<3> for RigidBody {
     /// μ × (μ/I), as [`RigidBody::vector_field`].
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
-        let inv = self.inverse_inertia();
-        for l in 0..L {
-            let (a0, a1, a2) = (mu[0][l], mu[1][l], mu[2][l]);
-            let (b0, b1, b2) = (a0 * inv[0], a1 * inv[1], a2 * inv[2]);
-            out[0][l] = a1 * b2 - a2 * b1;
-            out[1][l] = a2 * b0 - a0 * b2;
-            out[2][l] = a0 * b1 - a1 * b0;
-        }
+        crate::straight_line::weighted_cross_lanes(&self.inverse_inertia(), mu, out);
     }
 }
 
@@ -93,25 +185,34 @@ pub trait LaneStepper<const N: usize>: Sync {
 }
 
 impl<const N: usize, F: LaneField<N>> LaneStepper<N> for Rk4<F> {
-    /// The same operations as the scalar [`Rk4`] step, lane by lane.
     #[inline(always)]
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
-        let f = &self.system;
-        let (mut k1, mut k2, mut k3, mut k4) =
-            ([[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N]);
-        let mut y = [[0.0; L]; N];
-        let (half, sixth) = (0.5 * h, h / 6.0);
-        f.field_lanes(mu, &mut k1);
-        axpy_lanes(half, &k1, mu, &mut y);
-        f.field_lanes(&y, &mut k2);
-        axpy_lanes(half, &k2, mu, &mut y);
-        f.field_lanes(&y, &mut k3);
-        axpy_lanes(h, &k3, mu, &mut y);
-        f.field_lanes(&y, &mut k4);
-        for i in 0..N {
-            for l in 0..L {
-                mu[i][l] += sixth * (k1[i][l] + 2.0 * (k2[i][l] + k3[i][l]) + k4[i][l]);
-            }
+        rk4_lanes(&self.system, h, mu);
+    }
+}
+
+/// One [`Rk4`] step of the field `f` at L states: the same operations as the scalar step, lane
+/// by lane.
+#[inline(always)]
+fn rk4_lanes<const N: usize, const L: usize, F: LaneField<N>>(
+    f: &F,
+    h: f64,
+    mu: &mut [[f64; L]; N],
+) {
+    let (mut k1, mut k2, mut k3, mut k4) =
+        ([[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N]);
+    let mut y = [[0.0; L]; N];
+    let (half, sixth) = (0.5 * h, h / 6.0);
+    f.field_lanes(mu, &mut k1);
+    axpy_lanes(half, &k1, mu, &mut y);
+    f.field_lanes(&y, &mut k2);
+    axpy_lanes(half, &k2, mu, &mut y);
+    f.field_lanes(&y, &mut k3);
+    axpy_lanes(h, &k3, mu, &mut y);
+    f.field_lanes(&y, &mut k4);
+    for i in 0..N {
+        for l in 0..L {
+            mu[i][l] += sixth * (k1[i][l] + 2.0 * (k2[i][l] + k3[i][l]) + k4[i][l]);
         }
     }
 }
@@ -128,10 +229,6 @@ where
         self.step_lanes_reporting(h, mu, &[true; L], &mut result);
     }
 
-    /// The scalar [`ImplicitMidpoint`] step lane by lane: the field (and so the residual) for
-    /// the whole block at once, then each unconverged lane's exact Jacobian and LU solve by the
-    /// scalar functions on that lane's values (the same bits). A lane that converges is frozen
-    /// while the others iterate; one that fails stops with the scalar path's failure alone.
     #[inline(always)]
     fn step_lanes_reporting<const L: usize>(
         &self,
@@ -140,77 +237,183 @@ where
         live: &[bool; L],
         result: &mut [StepResult; L],
     ) {
-        let f = &self.system;
-        let mu0 = *mu;
-        let half = 0.5 * h;
-        let mut fm = [[0.0; L]; N];
-        let mut m = [[0.0; L]; N];
-        f.field_lanes(&mu0, &mut fm);
-        axpy_lanes(half, &fm, &mu0, &mut m);
-        // `active`: still iterating; `done`: converged. Every active lane has taken the same
-        // number of updates, so one counter serves them all.
-        let mut active = *live;
-        let mut done = [false; L];
-        let mut iterations = [0u32; L];
-        let mut count = 0u32;
-        while active.contains(&true) {
-            if count >= self.newton.max_iter {
-                for l in 0..L {
-                    if active[l] {
-                        result[l] = Err(StepFailure::NotConverged);
-                        active[l] = false;
-                    }
-                }
-                break;
-            }
-            f.field_lanes(&m, &mut fm);
-            count += 1;
+        midpoint_lanes(&self.system, &self.newton, h, mu, live, result);
+    }
+}
+
+/// The scalar [`ImplicitMidpoint`] step of the field `f` lane by lane: the field (and so the
+/// residual), the update and the convergence test for the whole block at once; the Newton
+/// solve lane-wide where the field has a lane-wide Jacobian ([`midpoint_update_lanes`]), else
+/// (and in the lanes that need pivoting) each unconverged lane's exact Jacobian and LU solve by
+/// the scalar functions on that lane's values (the same bits). A lane that converges is frozen
+/// while the others iterate; one that fails stops with the scalar path's failure alone.
+#[inline(always)]
+fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<N>>(
+    f: &F,
+    newton: &NewtonOptions,
+    h: f64,
+    mu: &mut [[f64; L]; N],
+    live: &[bool; L],
+    result: &mut [StepResult; L],
+) where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    let mu0 = *mu;
+    let half = 0.5 * h;
+    let mut fm = [[0.0; L]; N];
+    let mut m = [[0.0; L]; N];
+    f.field_lanes(&mu0, &mut fm);
+    axpy_lanes(half, &fm, &mu0, &mut m);
+    // `active`: still iterating; `done`: converged. Every active lane has taken the same
+    // number of updates, so one counter serves them all.
+    let mut active = *live;
+    let mut done = [false; L];
+    let mut iterations = [0u32; L];
+    let mut count = 0u32;
+    while active.contains(&true) {
+        if count >= newton.max_iter {
             for l in 0..L {
-                if !active[l] {
-                    continue;
-                }
-                let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
-                let r: [f64; N] = std::array::from_fn(|i| ml[i] - mu0[i][l] - half * fm[i][l]);
-                let df = f.jacobian(&ml);
-                let delta = match newton_update(SMatrix::identity() - half * df, &r) {
-                    Ok(d) => d,
-                    Err(e) => {
-                        result[l] = Err(e);
-                        active[l] = false;
-                        continue;
-                    }
-                };
-                for i in 0..N {
-                    m[i][l] += delta[i];
-                }
-                let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
-                if max_abs(&delta) <= self.newton.tol * max_abs(&ml).max(1e-300) {
+                if active[l] {
+                    result[l] = Err(StepFailure::NotConverged);
                     active[l] = false;
-                    done[l] = true;
-                    iterations[l] = count;
+                }
+            }
+            break;
+        }
+        f.field_lanes(&m, &mut fm);
+        count += 1;
+        let mut r = [[0.0; L]; N];
+        for i in 0..N {
+            for l in 0..L {
+                r[i][l] = m[i][l] - mu0[i][l] - half * fm[i][l];
+            }
+        }
+        // All lanes at once where the field has a lane-wide Jacobian; the others lane by lane.
+        let mut wide = [[0.0; L]; N];
+        let mut solved = [false; L];
+        midpoint_update_lanes(f, half, &m, &r, &mut wide, &mut solved);
+        // The lanes the lane-wide solve left (all of them for a field without one): the
+        // pivoted LU one by one, or its failure.
+        for l in 0..L {
+            if !active[l] || solved[l] {
+                continue;
+            }
+            let ml: [f64; N] = std::array::from_fn(|i| m[i][l]);
+            let rl: [f64; N] = std::array::from_fn(|i| r[i][l]);
+            match f.midpoint_update(half, &ml, &rl) {
+                Ok(d) => {
+                    for i in 0..N {
+                        wide[i][l] = d[i];
+                    }
+                }
+                Err(e) => {
+                    result[l] = Err(e);
+                    active[l] = false;
                 }
             }
         }
-        f.field_lanes(&m, &mut fm);
+        // m += δ in the active lanes and the scalar step's test |δ|∞ ≤ tol·max(|m|∞, 1e-300),
+        // for all lanes at once (the maxima folded in the scalar `max_abs`'s order).
+        let (mut dmax, mut mmax) = ([0.0f64; L], [0.0f64; L]);
+        for i in 0..N {
+            for l in 0..L {
+                m[i][l] = if active[l] {
+                    m[i][l] + wide[i][l]
+                } else {
+                    m[i][l]
+                };
+                dmax[l] = dmax[l].max(wide[i][l].abs());
+                mmax[l] = mmax[l].max(m[i][l].abs());
+            }
+        }
         for l in 0..L {
-            if !done[l] {
-                continue;
+            if active[l] && dmax[l] <= newton.tol * mmax[l].max(1e-300) {
+                active[l] = false;
+                done[l] = true;
+                iterations[l] = count;
             }
-            let r: [f64; N] = std::array::from_fn(|i| m[i][l] - mu0[i][l] - half * fm[i][l]);
-            let residual = max_abs(&r);
-            let mut finite = true;
-            for i in 0..N {
-                mu[i][l] = mu0[i][l] + h * fm[i][l];
-                finite &= mu[i][l].is_finite();
+        }
+    }
+    f.field_lanes(&m, &mut fm);
+    for l in 0..L {
+        if !done[l] {
+            continue;
+        }
+        let r: [f64; N] = std::array::from_fn(|i| m[i][l] - mu0[i][l] - half * fm[i][l]);
+        let residual = max_abs(&r);
+        let mut finite = true;
+        for i in 0..N {
+            mu[i][l] = mu0[i][l] + h * fm[i][l];
+            finite &= mu[i][l].is_finite();
+        }
+        result[l] = if finite {
+            Ok(StepStats {
+                iterations: iterations[l],
+                residual,
+            })
+        } else {
+            Err(StepFailure::NonFinite)
+        };
+    }
+}
+
+/// The heavy top and the rigid body as a Lie–Poisson system: the variant of [`LieField`] is
+/// matched once a step, then its own RK4 runs (a straight-line kernel, or the compiled field).
+impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
+    #[inline(always)]
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
+        match &self.system {
+            LieField::Compiled(f) => rk4_lanes(f, h, mu),
+            LieField::So3(f) => match sized_mut::<_, N, 3>(mu) {
+                Some(m) => rk4_lanes(f, h, m),
+                // Unreachable: the variant is built for N = 3 only (NaN fails the lanes).
+                None => *mu = [[f64::NAN; L]; N],
+            },
+            LieField::Se3(f) => match sized_mut::<_, N, 6>(mu) {
+                Some(m) => rk4_lanes(f, h, m),
+                None => *mu = [[f64::NAN; L]; N],
+            },
+        }
+    }
+}
+
+/// As for [`Rk4`]: the variant matched once a step, then its own masked Newton lanes.
+impl<const N: usize> LaneStepper<N> for ImplicitMidpoint<LieField<N>>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    const REPORTS: bool = true;
+
+    #[inline(always)]
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
+        let mut result = [Ok(StepStats::default()); L];
+        self.step_lanes_reporting(h, mu, &[true; L], &mut result);
+    }
+
+    #[inline(always)]
+    fn step_lanes_reporting<const L: usize>(
+        &self,
+        h: f64,
+        mu: &mut [[f64; L]; N],
+        live: &[bool; L],
+        result: &mut [StepResult; L],
+    ) {
+        let newton = &self.newton;
+        let done = match &self.system {
+            LieField::Compiled(f) => {
+                midpoint_lanes(f, newton, h, mu, live, result);
+                true
             }
-            result[l] = if finite {
-                Ok(StepStats {
-                    iterations: iterations[l],
-                    residual,
-                })
-            } else {
-                Err(StepFailure::NonFinite)
-            };
+            LieField::So3(f) => sized_mut::<_, N, 3>(mu)
+                .map(|m| midpoint_lanes::<3, L, _>(f, newton, h, m, live, result))
+                .is_some(),
+            LieField::Se3(f) => sized_mut::<_, N, 6>(mu)
+                .map(|m| midpoint_lanes::<6, L, _>(f, newton, h, m, live, result))
+                .is_some(),
+        };
+        if !done {
+            // Unreachable: a pattern variant is built for its own dimension only.
+            result.fill(Err(StepFailure::NonFinite));
         }
     }
 }

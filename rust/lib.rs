@@ -4,7 +4,8 @@
 //! S(t, p) = P(t, p) + t^m · MLP(t, p). The layout follows the design: a system ([`system`]:
 //! algebra and Hamiltonian), its groupoid chart ([`groupoid`]), a generating function
 //! ([`generating`], with [`dual`] numbers and the [`kernel`] of batched layers), a stepper
-//! ([`stepper`] for bisection, [`classical`] for the baselines), and the [`rollout`]. Every piece
+//! ([`stepper`] for bisection, [`classical`] for the baselines, stepped in SIMD [`lanes`], with
+//! [`straight_line`] kernels for the Lie–Poisson patterns its data matches), and the [`rollout`]. Every piece
 //! is generic over the dimension N of the algebra, monomorphised for N = 1 … [`MAX_DIM`]; the
 //! rigid body is N = 3. Beyond g*, [`realization`] abstracts what a step needs from a symplectic
 //! realization (sou, tar), and [`structures`] holds the log-canonical (Lotka–Volterra) one. The
@@ -23,6 +24,7 @@ pub mod model;
 pub mod realization;
 pub mod rollout;
 pub mod stepper;
+pub mod straight_line;
 pub mod structures;
 pub mod system;
 

@@ -8,9 +8,10 @@ use super::*;
 use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 use crate::groupoid::LieAlgebra;
-use crate::lanes::{Isa, Lanes, LANES};
+use crate::lanes::{Isa, LaneStepper, Lanes, LANES};
 use crate::rollout::{ChunkKernel, PerStep, Rollout};
 use crate::stepper::NewtonOptions;
+use crate::straight_line::{LieField, Se3QuadraticLinear, So3Quadratic, Torque};
 use crate::system::{spectral_norm, Hamiltonian, LiePoisson, VectorField};
 
 /// se(3): [R_i,R_j] = ε_ijk R_k, [R_i,T_j] = ε_ijk T_k, [T_i,T_j] = 0.
@@ -217,7 +218,8 @@ fn assert_same_bits(
 
 fn check_lanes_equal_scalar<const N: usize, F>(field: F, rng: &mut Rng, scale: f64, h: f64)
 where
-    F: crate::lanes::LaneField<N> + VectorField<N> + Clone,
+    F: VectorField<N> + Clone,
+    Rk4<F>: LaneStepper<N>,
 {
     let rk4 = Rk4 { system: field };
     for n in [1, 3, LANES + 1, 2 * LANES - 1, 67, 133] {
@@ -251,6 +253,32 @@ fn simd_rk4_equals_the_scalar_path_bit_for_bit() {
     let mut rng = Rng::new(23);
     check_lanes_equal_scalar(RigidBody::new(INERTIA).unwrap(), &mut rng, 3.0, 0.1);
     check_lanes_equal_scalar(heavy_top().compile(), &mut rng, 2.0, 0.05);
+    // The straight-line kernels, alone and behind the stepper's dispatch, every pattern of b.
+    for b in [
+        [0.0; 3],
+        [0.7, 0.0, 0.0],
+        [0.0, -0.4, 0.0],
+        [0.0, 0.0, 0.981],
+        [0.3, -0.5, 0.8],
+    ] {
+        let top = random_top(&mut rng, b);
+        check_lanes_equal_scalar(LieField::new(&top), &mut rng, 2.0, 0.05);
+    }
+    let se3 = Se3QuadraticLinear {
+        a: [1.0, 1.0 / 1.5, 0.5],
+        torque: Torque::Z(0.981),
+    };
+    check_lanes_equal_scalar(se3, &mut rng, 2.0, 0.05);
+    check_lanes_equal_scalar(
+        So3Quadratic {
+            a: [0.7, -0.2, 1.3],
+        },
+        &mut rng,
+        3.0,
+        0.1,
+    );
+    let so3_sys = diagonal_so3(&mut rng);
+    check_lanes_equal_scalar(LieField::new(&so3_sys), &mut rng, 3.0, 0.1);
     // A random dense algebra with a quartic H exercises the power tables.
     let sys = LiePoisson {
         algebra: LieAlgebra::new(random_basis(&mut rng, &so3())).unwrap(),
@@ -271,7 +299,8 @@ fn check_midpoint_lanes_equal_scalar<const N: usize, F>(
     newton: NewtonOptions,
 ) -> Vec<TrajectoryInfo>
 where
-    F: crate::lanes::LaneField<N> + VectorField<N> + Clone,
+    F: VectorField<N> + Clone,
+    ImplicitMidpoint<F>: LaneStepper<N>,
     nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
 {
     let mid = ImplicitMidpoint {
@@ -326,6 +355,18 @@ fn simd_midpoint_equals_the_scalar_path_bit_for_bit() {
         .iter()
         .any(|i| i.converged && i.max_newton_iterations > 0));
     check_midpoint_lanes_equal_scalar(heavy_top().compile(), &mut rng, 2.0, 0.05, newton);
+    // The straight-line kernels solve lane-wide where a lane's matrix is diagonally dominant and
+    // fall back to the pivoted LU per lane elsewhere: at h = 0.4 the large states do.
+    for (b, h) in [
+        ([0.0, 0.0, 0.981], 0.05),
+        ([0.3, -0.5, 0.8], 0.05),
+        ([0.3, -0.5, 0.8], 0.4),
+    ] {
+        let top = LieField::new(&random_top(&mut rng, b));
+        check_midpoint_lanes_equal_scalar(top, &mut rng, 2.0, h, newton);
+    }
+    let so3_sys = LieField::new(&diagonal_so3(&mut rng));
+    check_midpoint_lanes_equal_scalar(so3_sys, &mut rng, 3.0, 0.1, newton);
     // A tight iteration cap: some lanes stop at it (NotConverged) while others converge.
     let tight = NewtonOptions::validated(1e-15, 3).unwrap();
     let info = check_midpoint_lanes_equal_scalar(body, &mut rng, 3.0, 0.1, tight);
@@ -447,4 +488,306 @@ fn the_local_rate_sees_the_hessian() {
     let j = quartic.jacobian(&mu);
     assert!((rate - j.norm()).abs() <= 1e-12 * rate);
     assert!(rate >= j.singular_values().max());
+}
+
+/// A heavy top H = ½ Σ Mᵢ²/Iᵢ + b·Γ with random seeded inertia (the squares split over two
+/// monomials on one axis, as a user might write them) and the given b (mgl χ, any direction).
+fn random_top(rng: &mut Rng, b: [f64; 3]) -> LiePoisson<6> {
+    let mut terms: Vec<([u32; 6], f64)> = Vec::new();
+    for i in 0..3 {
+        let mut e = [0; 6];
+        e[i] = 2;
+        let a = 1.0 / rng.range(0.5, 3.0);
+        if i == 1 {
+            terms.push((e, 0.25 * a));
+            terms.push((e, 0.25 * a));
+        } else {
+            terms.push((e, 0.5 * a));
+        }
+        let mut e = [0; 6];
+        e[3 + i] = 1;
+        terms.push((e, b[i]));
+    }
+    // A constant shifts H only.
+    terms.push(([0; 6], 4.2));
+    LiePoisson {
+        algebra: LieAlgebra::se3(),
+        hamiltonian: Hamiltonian::new(terms).unwrap(),
+    }
+}
+
+/// so(3) with H = ½ Σ aᵢ μᵢ², random seeded aᵢ of either sign.
+fn diagonal_so3(rng: &mut Rng) -> LiePoisson<3> {
+    let terms = (0..3)
+        .map(|i| {
+            let mut e = [0; 3];
+            e[i] = 2;
+            (e, rng.range(-1.0, 1.0))
+        })
+        .collect();
+    LiePoisson {
+        algebra: LieAlgebra::new(so3()).unwrap(),
+        hamiltonian: Hamiltonian::new(terms).unwrap(),
+    }
+}
+
+/// The straight-line field of `sys` against its compiled field and the dense oracle: field to
+/// 4 ulps of the sum of the absolute terms, Jacobian to 4 ulps of that sum per unit of μ,
+/// local rate to 1e-12.
+fn check_straight_line<const N: usize>(sys: &LiePoisson<N>, kernel: &str, rng: &mut Rng) {
+    let fast = LieField::new(sys);
+    assert_eq!(fast.kernel_name(), kernel);
+    let compiled = sys.compile();
+    for _ in 0..200 {
+        let s = 10f64.powf(rng.range(-2.0, 1.0));
+        let mu: [f64; N] = std::array::from_fn(|_| rng.range(-s, s));
+        let scale = field_scale(sys, &mu) + f64::MIN_POSITIVE;
+        let tol = 4.0 * f64::EPSILON * scale;
+        let jtol = tol / mu.iter().fold(0.0f64, |a, v| a.max(v.abs())) + 4.0 * f64::EPSILON;
+        let f = fast.field(&mu);
+        let j = fast.jacobian(&mu);
+        for (name, other, oj) in [
+            ("compiled", compiled.field(&mu), compiled.jacobian(&mu)),
+            ("dense", sys.field(&mu), sys.jacobian(&mu)),
+        ] {
+            for r in 0..N {
+                assert!(
+                    (f[r] - other[r]).abs() <= tol,
+                    "{kernel} vs {name}, field {r}: {} vs {} (tol {tol:e})",
+                    f[r],
+                    other[r]
+                );
+                for c in 0..N {
+                    assert!(
+                        (j[(r, c)] - oj[(r, c)]).abs() <= jtol,
+                        "{kernel} vs {name}, J[{r},{c}]: {} vs {}",
+                        j[(r, c)],
+                        oj[(r, c)]
+                    );
+                }
+            }
+        }
+        let (rf, rd) = (fast.step_rate(&mu), sys.step_rate(&mu));
+        assert!((rf - rd).abs() <= 1e-12 * rd, "rate {rf} vs {rd}");
+    }
+}
+
+#[test]
+fn straight_line_fields_match_the_compiled_and_dense_ones() {
+    let mut rng = Rng::new(31);
+    for _ in 0..8 {
+        // χ along each axis, along none (every b nonzero), in a coordinate plane, and b = 0.
+        let dir = rng.vec3(-1.0, 1.0);
+        let m = rng.range(0.1, 2.0);
+        for b in [
+            [m, 0.0, 0.0],
+            [0.0, m, 0.0],
+            [0.0, 0.0, m],
+            dir.map(|v| m * v),
+            [dir[0], 0.0, dir[2]],
+            [0.0; 3],
+        ] {
+            check_straight_line(&random_top(&mut rng, b), "se3-quadratic-linear", &mut rng);
+        }
+        check_straight_line(&diagonal_so3(&mut rng), "so3-quadratic", &mut rng);
+    }
+    check_straight_line(&heavy_top(), "se3-quadratic-linear", &mut rng);
+    // How b is stored: its zero components are not multiplied.
+    let kinds = [
+        [0.0; 3],
+        [1.0, 0.0, 0.0],
+        [0.0, 2.0, 0.0],
+        [0.0, 0.0, 3.0],
+        [1.0, 0.0, 3.0],
+    ]
+    .map(Torque::new);
+    assert_eq!(
+        kinds,
+        [
+            Torque::Zero,
+            Torque::X(1.0),
+            Torque::Y(2.0),
+            Torque::Z(3.0),
+            Torque::General([1.0, 0.0, 3.0])
+        ]
+    );
+}
+
+/// A system the pattern does not cover keeps the compiled field, and its rollouts are what the
+/// compiled field gives, bit for bit (scalar and lanes, RK4 and midpoint).
+fn check_falls_back<const N: usize>(sys: LiePoisson<N>, what: &str, rng: &mut Rng)
+where
+    nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
+{
+    let field = LieField::new(&sys);
+    assert_eq!(field.kernel_name(), "compiled", "{what}");
+    assert_eq!(field, LieField::Compiled(sys.compile()), "{what}");
+    let mu0: Vec<[f64; N]> = (0..LANES + 3)
+        .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0)))
+        .collect();
+    let args = (0.05, 11, 2);
+    let newton = NewtonOptions::default();
+    let before = Rk4 {
+        system: sys.compile(),
+    };
+    let now = Rk4 {
+        system: field.clone(),
+    };
+    let want = run(&PerStep(&before), &mu0, args, 11, false);
+    assert_same_bits(&run(&PerStep(&now), &mu0, args, 11, false), &want, what);
+    assert_same_bits(&run(&Lanes::new(&now), &mu0, args, 11, false), &want, what);
+    let before = ImplicitMidpoint {
+        system: sys.compile(),
+        newton,
+    };
+    let now = ImplicitMidpoint {
+        system: field,
+        newton,
+    };
+    let want = run(&PerStep(&before), &mu0, args, 11, false);
+    assert_same_bits(&run(&PerStep(&now), &mu0, args, 11, false), &want, what);
+    assert_same_bits(&run(&Lanes::new(&now), &mu0, args, 11, false), &want, what);
+}
+
+#[test]
+fn systems_off_the_pattern_keep_the_compiled_field() {
+    let mut rng = Rng::new(37);
+    let top = heavy_top();
+    assert_eq!(LieField::new(&top).kernel_name(), "se3-quadratic-linear");
+    let with = |extra: ([u32; 6], f64)| {
+        let mut terms = top.hamiltonian.terms().to_vec();
+        terms.push(extra);
+        LiePoisson {
+            algebra: top.algebra.clone(),
+            hamiltonian: Hamiltonian::new(terms).unwrap(),
+        }
+    };
+    check_falls_back(with(([3, 0, 0, 0, 0, 0], 0.1)), "a cubic term", &mut rng);
+    check_falls_back(
+        with(([1, 0, 0, 1, 0, 0], 0.2)),
+        "an M·Γ cross term",
+        &mut rng,
+    );
+    check_falls_back(with(([0, 1, 1, 0, 0, 0], 0.2)), "an M₁M₂ term", &mut rng);
+    check_falls_back(with(([0, 0, 0, 0, 2, 0], 0.3)), "a Γ² term", &mut rng);
+    check_falls_back(
+        with(([1, 0, 0, 0, 0, 0], 0.3)),
+        "a term linear in M",
+        &mut rng,
+    );
+    // A zero coefficient is no term: still the pattern.
+    let zero = with(([3, 0, 0, 0, 0, 0], 0.0));
+    assert_eq!(LieField::new(&zero).kernel_name(), "se3-quadratic-linear");
+    // One structure constant pair perturbed (a valid algebra, not exactly se(3)), and se(3) in
+    // another basis.
+    let mut c = se3();
+    c[0][1][2] += 1e-13;
+    c[1][0][2] -= 1e-13;
+    let perturbed = LiePoisson {
+        algebra: LieAlgebra::new(c).expect("within the Jacobi tolerance"),
+        hamiltonian: top.hamiltonian.clone(),
+    };
+    check_falls_back(perturbed, "a perturbed structure constant", &mut rng);
+    let rotated = LiePoisson {
+        algebra: LieAlgebra::new(random_basis(&mut rng, &se3())).unwrap(),
+        hamiltonian: top.hamiltonian.clone(),
+    };
+    check_falls_back(rotated, "se(3) in another basis", &mut rng);
+    // so(3): a quartic or a linear term, or another algebra of dimension 3.
+    let so3_sys = diagonal_so3(&mut rng);
+    let so3_with = |extra: ([u32; 3], f64)| {
+        let mut terms = so3_sys.hamiltonian.terms().to_vec();
+        terms.push(extra);
+        LiePoisson {
+            algebra: so3_sys.algebra.clone(),
+            hamiltonian: Hamiltonian::new(terms).unwrap(),
+        }
+    };
+    check_falls_back(so3_with(([4, 0, 0], 0.1)), "a quartic so(3) term", &mut rng);
+    check_falls_back(so3_with(([0, 1, 0], 0.5)), "a linear so(3) term", &mut rng);
+    let sl2 = LiePoisson {
+        algebra: LieAlgebra::new(random_basis(&mut rng, &so3())).unwrap(),
+        hamiltonian: so3_sys.hamiltonian.clone(),
+    };
+    check_falls_back(sl2, "so(3) in another basis", &mut rng);
+}
+
+/// The lane-wide Newton solve of the midpoint against the LU with pivoting: the same δ to
+/// rounding where a lane's matrix is diagonally dominant, and the pivoted LU itself, bit for
+/// bit, in the lanes that are not (large states at a large step); a lane's choice and bits do
+/// not depend on its neighbours (the scalar update is the solve with one lane).
+#[test]
+fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
+    use crate::classical::newton_update;
+    use crate::lanes::midpoint_update_lanes;
+    let mut rng = Rng::new(41);
+    let (mut wide, mut pivoted) = (0, 0);
+    for _ in 0..40 {
+        let b = rng.vec3(-1.0, 1.0);
+        let LieField::Se3(f) = LieField::new(&random_top(&mut rng, b)) else {
+            panic!("a heavy top is the se(3) pattern")
+        };
+        let half = 0.5 * rng.range(0.01, 0.5);
+        let mut m = [[0.0; LANES]; 6];
+        let mut r = [[0.0; LANES]; 6];
+        for l in 0..LANES {
+            let s = 10f64.powf(rng.range(-1.0, 1.5));
+            for i in 0..6 {
+                m[i][l] = rng.range(-s, s);
+                r[i][l] = rng.range(-1e-3, 1e-3);
+            }
+        }
+        let (mut delta, mut solved) = ([[0.0; LANES]; 6], [false; LANES]);
+        assert!(midpoint_update_lanes(
+            &f,
+            half,
+            &m,
+            &r,
+            &mut delta,
+            &mut solved
+        ));
+        // The lane-wide Jacobian is the scalar one, entry by entry.
+        let mut jl = [[[0.0; LANES]; 6]; 6];
+        assert!(crate::lanes::LaneField::jacobian_lanes(&f, &m, &mut jl));
+        for l in 0..LANES {
+            let ml: [f64; 6] = std::array::from_fn(|i| m[i][l]);
+            let rl: [f64; 6] = std::array::from_fn(|i| r[i][l]);
+            let lu = newton_update(nalgebra::SMatrix::identity() - half * f.jacobian(&ml), &rl);
+            let scalar = f.midpoint_update(half, &ml, &rl);
+            let j = f.jacobian(&ml);
+            for a in 0..6 {
+                for c in 0..6 {
+                    assert_eq!(jl[a][c][l], j[(a, c)], "J[{a},{c}]");
+                }
+            }
+            if solved[l] {
+                wide += 1;
+                let got: [f64; 6] = std::array::from_fn(|i| delta[i][l]);
+                assert_eq!(
+                    scalar,
+                    Ok(got),
+                    "lane {l}: the scalar update is the one-lane solve"
+                );
+                let want = lu.unwrap();
+                let size = max_abs(&want);
+                for i in 0..6 {
+                    assert!(
+                        (got[i] - want[i]).abs() <= 1e-13 * size,
+                        "{got:?} vs {want:?}"
+                    );
+                }
+            } else {
+                pivoted += 1;
+                assert_eq!(scalar, lu, "lane {l}: falls back to the pivoted LU");
+            }
+        }
+    }
+    assert!(
+        wide > 50 && pivoted > 10,
+        "lane-wide {wide}, pivoted {pivoted}"
+    );
+}
+
+fn max_abs(v: &[f64; 6]) -> f64 {
+    v.iter().fold(0.0, |a: f64, x| a.max(x.abs()))
 }
