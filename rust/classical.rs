@@ -59,6 +59,12 @@ impl RigidBody {
         self.inv
     }
 
+    /// The body as the straight-line so(3) kernel with H = ½ Σ aᵢ μᵢ², a = 1/I.
+    #[inline(always)]
+    pub fn pattern(&self) -> crate::straight_line::So3Quadratic {
+        crate::straight_line::So3Quadratic { a: self.inv }
+    }
+
     /// H(μ) = ½ Σ μᵢ²/Iᵢ.
     pub fn hamiltonian(&self, mu: &[f64; 3]) -> f64 {
         0.5 * (0..3).map(|i| mu[i] * mu[i] * self.inv[i]).sum::<f64>()
@@ -117,10 +123,22 @@ impl VectorField<3> for RigidBody {
         self.vector_field(mu)
     }
 
-    /// d/dμ [μ × (μ/I)] = [μ]× diag(1/I) − [μ/I]×.
+    /// d/dμ [μ × (μ/I)] = [μ]× diag(1/I) − [μ/I]×, as the so(3) pattern kernel computes it
+    /// (the same bits as its lanes).
     #[inline]
     fn jacobian(&self, mu: &[f64; 3]) -> Matrix3<f64> {
-        hat(mu) * Matrix3::from_diagonal(&Vector3::from(self.inv)) - hat(&self.velocity(mu))
+        self.pattern().jacobian(mu)
+    }
+
+    /// The pattern kernel's lane-wide solve on one lane: the midpoint's scalar step and its
+    /// lanes agree bit for bit.
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; 3],
+        r: &[f64; 3],
+    ) -> Result<[f64; 3], StepFailure> {
+        self.pattern().midpoint_update(half, m, r)
     }
 
     /// max(|ω|, ‖J‖_F): ‖ad_ω‖₂ = |ω| in closed form (see [`crate::system::lie_poisson_rate`]).

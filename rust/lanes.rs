@@ -156,6 +156,17 @@ impl LaneField<3> for RigidBody {
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
         crate::straight_line::weighted_cross_lanes(&self.inverse_inertia(), mu, out);
     }
+
+    /// The so(3) pattern kernel's Jacobian (the rigid body is that pattern with a = 1/I), so
+    /// the midpoint rule solves its Newton systems lane-wide.
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        mu: &[[f64; L]; 3],
+        out: &mut [[[f64; L]; 3]; 3],
+    ) -> bool {
+        self.pattern().jacobian_lanes(mu, out)
+    }
 }
 
 /// A stepper that advances a block of L states by one step. Explicit steppers cannot fail
