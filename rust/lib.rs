@@ -18,6 +18,7 @@ pub mod groupoid;
 pub mod kernel;
 pub mod lanes;
 pub mod lanes_bisection;
+pub mod lanes_splitting;
 pub mod memory;
 pub mod model;
 pub mod realization;
@@ -25,6 +26,7 @@ pub mod rollout;
 pub mod stepper;
 pub mod structures;
 pub mod system;
+pub mod trig;
 
 #[cfg(feature = "python")]
 mod bindings;
