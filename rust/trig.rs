@@ -42,10 +42,19 @@ const C4: f64 = f64::from_bits(0xBE92_7E4F_809C_52AD);
 const C5: f64 = f64::from_bits(0x3E21_EE9E_BDB4_B1C4);
 const C6: f64 = f64::from_bits(0xBDA8_FAE9_BE88_38D4);
 
-/// (sin x, cos x): the branch-free evaluation for |x| ≤ [`REDUCED_RANGE`], libm beyond.
+/// Below this |x|, k = round(2x/π) is 0 and the reduction leaves (x, 0) exactly.
+const NO_REDUCTION: f64 = 0.99 * std::f64::consts::FRAC_PI_4;
+
+/// (sin x, cos x) of one argument, the same bits as a lane of [`sin_cos_lanes`]. One at a time
+/// a branch is cheap, so small angles (every rotation of a resolved step) skip the reduction,
+/// which would leave them unchanged, and go straight to the kernels.
 #[inline(always)]
 pub fn sin_cos(x: f64) -> (f64, f64) {
-    if in_range(x) {
+    if x.abs() < NO_REDUCTION {
+        // What sin_cos_reduced computes for k = 0: r = x, tail 0, quadrant 0 (and sin(±0) = ±0
+        // comes out of the kernel itself).
+        (kernel_sin(x, 0.0), kernel_cos(x, 0.0))
+    } else if in_range(x) {
         sin_cos_reduced(x)
     } else {
         x.sin_cos()
@@ -56,6 +65,11 @@ pub fn sin_cos(x: f64) -> (f64, f64) {
 /// for the lanes out of range, if any. Lane l equals `sin_cos(x[l])` bit for bit.
 #[inline(always)]
 pub fn sin_cos_lanes<const L: usize>(x: &[f64; L], s: &mut [f64; L], c: &mut [f64; L]) {
+    if L == 1 {
+        // A lone trajectory: the scalar form with its branches is faster than the lane form.
+        (s[0], c[0]) = sin_cos(x[0]);
+        return;
+    }
     let mut all_in = true;
     for l in 0..L {
         (s[l], c[l]) = sin_cos_reduced(x[l]);

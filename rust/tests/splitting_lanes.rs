@@ -117,6 +117,10 @@ fn sin_cos_lanes_equal_the_scalar_call_bit_for_bit() {
         let x: [f64; LANES] = std::array::from_fn(|l| match (round + l) % 11 {
             // Now and then a lane out of range or not finite, among in-range ones.
             0 if round % 3 == 0 => [f64::NAN, 1e7, -f64::INFINITY][round % 3],
+            // Around the scalar path's no-reduction cut (0.99 π/4) and signed zeros.
+            1 if round % 2 == 0 => rng.range(0.77, 0.79) * [1.0, -1.0][(round / 2) % 2],
+            2 if round % 5 == 0 => [0.0, -0.0][round % 2],
+            3 => rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-20.0, 0.0)),
             _ => rng.range(-50.0, 50.0),
         });
         let want: [(u64, u64); LANES] = std::array::from_fn(|l| {
