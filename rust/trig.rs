@@ -5,9 +5,12 @@
 //! them. [`sin_cos`] reduces by π/2 (Cody–Waite, π/2 split in four parts, the reduced argument
 //! kept as a double-double), evaluates fdlibm's minimax polynomials on [−π/4, π/4] (the kernels
 //! that carry the reduced argument's tail), and picks the quadrant by integer masks: no calls and
-//! no branches on the data, only plain multiplies and adds (never contracted into FMAs), so the
-//! same bits come out of the scalar call and out of every lane of [`sin_cos_lanes`] on every
-//! dispatch path.
+//! no branches on a lane's data, only plain multiplies and adds (never contracted into FMAs), so
+//! the same bits come out of the scalar call and out of every lane of [`sin_cos_lanes`] on every
+//! dispatch path. Two tests per block, not per lane, take shortcuts that change no bit: a block
+//! whose angles are all below 0.99 π/4 (every rotation of a resolved step) skips the reduction,
+//! which would leave them unchanged, and a block with an angle out of range sends that lane to
+//! libm after the vectorised pass.
 //!
 //! Accuracy: within 1 ulp of libm's sin and cos over a seeded sample of 10⁶ arguments in
 //! [−100, 100], near multiples of π/2, and across the whole reduced range (tested in
@@ -68,6 +71,19 @@ pub fn sin_cos_lanes<const L: usize>(x: &[f64; L], s: &mut [f64; L], c: &mut [f6
     if L == 1 {
         // A lone trajectory: the scalar form with its branches is faster than the lane form.
         (s[0], c[0]) = sin_cos(x[0]);
+        return;
+    }
+    // One test for the whole block (not per lane): when every angle is below the cut, as in
+    // every rotation of a resolved step, the reduction would leave each unchanged, so the
+    // kernels alone give the same bits at half the work.
+    let mut all_small = true;
+    for l in 0..L {
+        all_small &= x[l].abs() < NO_REDUCTION;
+    }
+    if all_small {
+        for l in 0..L {
+            (s[l], c[l]) = (kernel_sin(x[l], 0.0), kernel_cos(x[l], 0.0));
+        }
         return;
     }
     let mut all_in = true;
