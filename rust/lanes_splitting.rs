@@ -15,8 +15,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::classical::{
-    max_abs, newton_update, CasimirSplitting, HeavyTop, HeavyTopSplitting, MoserVeselov,
-    SplittingComposition,
+    max_abs, CasimirSplitting, HeavyTop, HeavyTopSplitting, MoserVeselov, SplittingComposition,
 };
 use crate::error::StepFailure;
 use crate::lanes::LaneStepper;
@@ -164,19 +163,36 @@ impl MoserVeselov {
         y: &[[f64; L]; 3],
         g: &mut [[f64; L]; 3],
     ) {
-        let (inertia, jj) = (self.body.inertia(), self.moments());
         for l in 0..L {
-            let (y0, y1, y2) = (y[0][l], y[1][l], y[2][l]);
-            let jy = [jj[0] * y0, jj[1] * y1, jj[2] * y2];
-            let c = [
-                jy[1] * y2 - jy[2] * y1,
-                jy[2] * y0 - jy[0] * y2,
-                jy[0] * y1 - jy[1] * y0,
-            ];
-            let s = h * (1.0 + y0 * y0 + y1 * y1 + y2 * y2);
-            let yl = [y0, y1, y2];
+            let r = self.residual(
+                h,
+                &[m[0][l], m[1][l], m[2][l]],
+                &[y[0][l], y[1][l], y[2][l]],
+            );
             for i in 0..3 {
-                g[i][l] = 2.0 * (inertia[i] * yl[i] + c[i]) - s * m[i][l];
+                g[i][l] = r[i];
+            }
+        }
+    }
+
+    /// The Newton update [`MoserVeselov::newton_delta`] in every lane (straight-line code: the
+    /// loop vectorises).
+    #[inline(always)]
+    fn newton_delta_lanes<const L: usize>(
+        &self,
+        h: f64,
+        m: &[[f64; L]; 3],
+        y: &[[f64; L]; 3],
+        delta: &mut [[f64; L]; 3],
+    ) {
+        for l in 0..L {
+            let d = self.newton_delta(
+                h,
+                &[m[0][l], m[1][l], m[2][l]],
+                &[y[0][l], y[1][l], y[2][l]],
+            );
+            for i in 0..3 {
+                delta[i][l] = d[i];
             }
         }
     }
@@ -191,10 +207,10 @@ impl LaneStepper<3> for MoserVeselov {
         self.step_lanes_reporting(h, mu, &[true; L], &mut result);
     }
 
-    /// The scalar [`MoserVeselov`] step lane by lane: G for the whole block, then each
-    /// unconverged lane's Jacobian and LU solve by the scalar functions on that lane's values.
-    /// A converged lane is frozen while the others iterate; a failing one stops alone with the
-    /// scalar path's failure, its state untouched.
+    /// The scalar [`MoserVeselov`] step lane by lane: each Newton update for the whole block,
+    /// then each live lane's bookkeeping. A converged lane is frozen while the others iterate
+    /// (its update computed and dropped); a failing one stops alone with the scalar path's
+    /// failure, its state untouched.
     #[inline(always)]
     fn step_lanes_reporting<const L: usize>(
         &self,
@@ -212,7 +228,7 @@ impl LaneStepper<3> for MoserVeselov {
                 y[i][l] = 0.5 * h * (m[i][l] * inv[i]);
             }
         }
-        let mut g = [[0.0; L]; 3];
+        let (mut g, mut delta) = ([[0.0; L]; 3], [[0.0; L]; 3]);
         let mut active = *live;
         let mut done = [false; L];
         let mut iterations = [0u32; L];
@@ -227,28 +243,23 @@ impl LaneStepper<3> for MoserVeselov {
                 }
                 break;
             }
-            self.residual_lanes(h, &m, &y, &mut g);
+            self.newton_delta_lanes(h, &m, &y, &mut delta);
             count += 1;
             for l in 0..L {
                 if !active[l] {
                     continue;
                 }
-                let ml = [m[0][l], m[1][l], m[2][l]];
-                let yl = [y[0][l], y[1][l], y[2][l]];
-                let gl = [g[0][l], g[1][l], g[2][l]];
-                let delta = match newton_update(self.jacobian(h, &ml, &yl), &gl) {
-                    Ok(d) => d,
-                    Err(e) => {
-                        result[l] = Err(e);
-                        active[l] = false;
-                        continue;
-                    }
-                };
+                let d = [delta[0][l], delta[1][l], delta[2][l]];
+                if !d.iter().all(|v| v.is_finite()) {
+                    result[l] = Err(StepFailure::SingularJacobian);
+                    active[l] = false;
+                    continue;
+                }
                 for i in 0..3 {
-                    y[i][l] += delta[i];
+                    y[i][l] += d[i];
                 }
                 let yl = [y[0][l], y[1][l], y[2][l]];
-                if max_abs(&delta) <= self.newton.tol * max_abs(&yl).max(1e-300) {
+                if max_abs(&d) <= self.newton.tol * max_abs(&yl).max(1e-300) {
                     active[l] = false;
                     done[l] = true;
                     iterations[l] = count;

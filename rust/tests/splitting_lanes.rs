@@ -394,3 +394,36 @@ fn simd_poisson_steppers_keep_the_casimirs_over_many_steps() {
         );
     }
 }
+
+#[test]
+fn dmv_newton_update_solves_with_the_finite_difference_jacobian() {
+    // δ from the closed-form Jacobian and the cofactor solve against −(∂G/∂y)⁻¹ G with ∂G/∂y
+    // by central differences of G itself and nalgebra's LU.
+    let mut rng = Rng::new(59);
+    for inertia in [INERTIA, [0.9, 3.1, 1.7], [1.0, 1.0, 1.9]] {
+        let dmv = MoserVeselov::new(RigidBody::new(inertia).unwrap(), NewtonOptions::default());
+        for _ in 0..50 {
+            let (m, y, h) = (
+                rng.vec3(-3.0, 3.0),
+                rng.vec3(-0.5, 0.5),
+                rng.range(0.01, 0.5),
+            );
+            let eps = 1e-6;
+            let jac = nalgebra::Matrix3::from_fn(|r, k| {
+                let (mut yp, mut ym) = (y, y);
+                yp[k] += eps;
+                ym[k] -= eps;
+                (dmv.residual(h, &m, &yp)[r] - dmv.residual(h, &m, &ym)[r]) / (2.0 * eps)
+            });
+            let g = nalgebra::Vector3::from(dmv.residual(h, &m, &y));
+            let want = -jac.lu().solve(&g).unwrap();
+            let got = dmv.newton_delta(h, &m, &y);
+            for i in 0..3 {
+                assert!(
+                    (got[i] - want[i]).abs() <= 1e-7 * (1.0 + want.amax()),
+                    "{inertia:?}: δ {got:?} vs {want:?}"
+                );
+            }
+        }
+    }
+}
