@@ -409,12 +409,6 @@ impl MoserVeselov {
 }
 
 impl MoserVeselov {
-    /// Jᵢ = (I₁ + I₂ + I₃)/2 − Iᵢ.
-    #[inline(always)]
-    pub(crate) fn moments(&self) -> [f64; 3] {
-        self.j
-    }
-
     /// G(y) = 2(I∘y + (J∘y) × y) − h(1 + |y|²) μ for the step of size h from μ = `m`.
     #[inline(always)]
     pub(crate) fn residual(&self, h: f64, m: &[f64; 3], y: &[f64; 3]) -> [f64; 3] {

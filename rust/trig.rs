@@ -77,8 +77,8 @@ pub fn sin_cos_lanes<const L: usize>(x: &[f64; L], s: &mut [f64; L], c: &mut [f6
     // every rotation of a resolved step, the reduction would leave each unchanged, so the
     // kernels alone give the same bits at half the work.
     let mut all_small = true;
-    for l in 0..L {
-        all_small &= x[l].abs() < NO_REDUCTION;
+    for v in x {
+        all_small &= v.abs() < NO_REDUCTION;
     }
     if all_small {
         for l in 0..L {

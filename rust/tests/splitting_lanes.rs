@@ -55,7 +55,10 @@ fn sin_cos_is_within_one_ulp_of_libm() {
     // reduction cancels the most.
     let mut near = Vec::new();
     let mut ks: Vec<f64> = (-64..=64).map(f64::from).collect();
-    ks.extend((0..2000).map(|_| (rng.range(-1.0, 1.0) * REDUCED_RANGE / 1.5708).round()));
+    ks.extend(
+        (0..2000)
+            .map(|_| (rng.range(-1.0, 1.0) * REDUCED_RANGE / std::f64::consts::FRAC_PI_2).floor()),
+    );
     for k in ks {
         let x0 = k * std::f64::consts::FRAC_PI_2;
         for d in -64i64..=64 {
