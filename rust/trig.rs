@@ -14,14 +14,14 @@
 //!
 //! Accuracy: within 1 ulp of libm's sin and cos over a seeded sample of 10⁶ arguments in
 //! [−100, 100], near multiples of π/2, and across the whole reduced range (tested in
-//! rust/tests/splitting_lanes.rs). Beyond |x| ≤ [`REDUCED_RANGE`] (and for ±∞, NaN) the
+//! rust/tests/splitting_lanes.rs). For |x| > [`REDUCED_RANGE`] (and for ±∞, NaN) the
 //! reduction would lose bits, so those arguments go to libm: nothing is refused or degraded.
 
 /// |x| up to which the Cody–Waite reduction is exact: k = round(2x/π) stays below 2^19, so
 /// k times a 33-bit part of π/2 is exact. Angles of a rotation step are far smaller.
 pub const REDUCED_RANGE: f64 = 524288.0;
 
-// π/2 = P1 + P2 + P3 + P4, the first three with 33 significant bits each (fdlibm's pio2_1,
+// π/2 = P1 + P2 + P3 + P4, the first three with at most 33 significant bits (fdlibm's pio2_1,
 // pio2_2, pio2_3, pio2_3t): k·P1, k·P2, k·P3 are exact for |k| < 2^20.
 const P1: f64 = f64::from_bits(0x3FF9_21FB_5440_0000);
 const P2: f64 = f64::from_bits(0x3DD0_B461_1A60_0000);
