@@ -408,6 +408,108 @@ fn bench_classical(c: &mut Criterion) {
     group(c, "heavy_top", field, states);
 }
 
+/// The splittings, DMV and the heavy top's splitting, 4096 trajectories × 20 steps (final state
+/// kept): one trajectory at a time (the scalar oracle, `PerStep`), and in SIMD lanes on the
+/// portable and the widest dispatch path; for Strang also the scalar step as it was with libm's
+/// sin/cos. `cargo bench --bench rollout -- classical/split`.
+fn bench_splitting_lanes(c: &mut Criterion) {
+    use poisson_rs::classical::{CasimirSplitting, HeavyTop, HeavyTopSplitting, MoserVeselov};
+    use poisson_rs::lanes::{Isa, LaneStepper, Lanes};
+    use poisson_rs::rollout::{ChunkKernel, PerStep, Rollout};
+    use poisson_rs::stepper::StepResult;
+    use poisson_rs::{NewtonOptions, RigidBody, Splitting, Splitting4};
+
+    const STEPS: usize = 20;
+    fn run<const N: usize, K: ChunkKernel<N>>(k: &K, mu0: &[[f64; N]], out: &mut [f64]) {
+        let mut r = Rollout::start(mu0, H, STEPS, STEPS, out).unwrap();
+        r.advance_kernel(k, STEPS, out, false).unwrap();
+        black_box(r.info());
+    }
+    fn group<const N: usize, S>(c: &mut Criterion, name: &str, s: &S, mu0: &[[f64; N]])
+    where
+        S: LaneStepper<N> + StepMap<N, Workspace = ()>,
+    {
+        let mut out = vec![0.0; mu0.len() * 2 * N];
+        let mut g = c.benchmark_group(format!("classical/split/{name}"));
+        g.sample_size(10);
+        g.warm_up_time(Duration::from_millis(500));
+        g.measurement_time(Duration::from_secs(2));
+        g.throughput(Throughput::Elements((mu0.len() * STEPS) as u64));
+        g.bench_function("scalar", |b| b.iter(|| run(&PerStep(s), mu0, &mut out)));
+        for isa in [Isa::Portable, Isa::detect()] {
+            let k = Lanes { stepper: s, isa };
+            g.bench_function(format!("lanes-{}", isa.name()), |b| {
+                b.iter(|| run(&k, mu0, &mut out))
+            });
+        }
+        g.finish();
+    }
+
+    /// The Strang step as it was before the branch-free sin/cos: the same rotations, libm's
+    /// sin_cos one angle at a time.
+    struct StrangLibm([f64; 3]);
+    impl StepMap<3> for StrangLibm {
+        type Workspace = ();
+        fn workspace(&self) {}
+        fn step(&self, h: f64, mu: &mut [f64; 3], _: &mut ()) -> StepResult {
+            for (i, t) in [
+                (0, 0.5 * h),
+                (1, 0.5 * h),
+                (2, h),
+                (1, 0.5 * h),
+                (0, 0.5 * h),
+            ] {
+                let (s, c) = (t * mu[i] * self.0[i]).sin_cos();
+                let (a, b) = ((i + 1) % 3, (i + 2) % 3);
+                let (x, y) = (mu[a], mu[b]);
+                mu[a] = c * x + s * y;
+                mu[b] = c * y - s * x;
+            }
+            if mu.iter().all(|v| v.is_finite()) {
+                Ok(Default::default())
+            } else {
+                Err(poisson_rs::StepFailure::NonFinite)
+            }
+        }
+    }
+
+    let mut rng = Rng(11);
+    let rigid: Vec<[f64; 3]> = (0..4096)
+        .map(|_| std::array::from_fn(|_| rng.range(-3.0, 3.0)))
+        .collect();
+    let body = RigidBody::new([1.5, 2.0, 2.5]).unwrap();
+    let strang = Splitting::strang(body);
+    group(c, "splitting", &strang, &rigid);
+    {
+        let libm = StrangLibm(body.inverse_inertia());
+        let mut out = vec![0.0; rigid.len() * 2 * 3];
+        let mut g = c.benchmark_group("classical/split/splitting");
+        g.sample_size(10);
+        g.warm_up_time(Duration::from_millis(500));
+        g.measurement_time(Duration::from_secs(2));
+        g.throughput(Throughput::Elements((rigid.len() * STEPS) as u64));
+        g.bench_function("scalar-libm", |b| {
+            b.iter(|| run(&PerStep(&libm), &rigid, &mut out))
+        });
+        g.finish();
+    }
+    group(c, "splitting4", &Splitting4::suzuki(body), &rigid);
+    group(c, "splitting_casimir", &CasimirSplitting::new(body), &rigid);
+    group(
+        c,
+        "dmv",
+        &MoserVeselov::new(body, NewtonOptions::default()),
+        &rigid,
+    );
+    let top = HeavyTopSplitting {
+        top: HeavyTop::new([1.0, 1.5, 2.0], 0.981, [0.0, 0.0, 1.0]).unwrap(),
+    };
+    let states: Vec<[f64; 6]> = (0..4096)
+        .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0)))
+        .collect();
+    group::<6, _>(c, "heavy_top_splitting", &top, &states);
+}
+
 /// A stepper taken one trajectory at a time: the scalar path the lanes are measured against.
 struct OneAtATime<'a>(&'a BisectionStepper<3>);
 
@@ -457,6 +559,7 @@ fn bench_bisection_lanes(c: &mut Criterion) {
 criterion_group!(
     benches,
     bench_classical,
+    bench_splitting_lanes,
     bench_bisection_lanes,
     bench_rollout,
     bench_step,

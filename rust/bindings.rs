@@ -695,35 +695,20 @@ fn rollout_classical<'py>(
     };
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let angles = |m: &[[f64; 3]], o: &mut [f64]| angles_of(&body, h, m, o);
+    // One arm per stepper type: the kernel is monomorphised for each.
+    macro_rules! lanes {
+        ($s:expr) => {
+            run_rollout_lazy(py, &Lanes::new(&$s), &mu0, h, n_steps, every, Some(&angles))?
+        };
+    }
     let (traj, diagnostics) = match method.stepper(body, newton) {
-        // RK4 and midpoint in SIMD lanes; the others one trajectory at a time.
-        ClassicalStepper::Rk4(rk4) => run_rollout_lazy(
-            py,
-            &Lanes::new(&rk4),
-            &mu0,
-            h,
-            n_steps,
-            every,
-            Some(&angles),
-        )?,
-        ClassicalStepper::Midpoint(midpoint) => run_rollout_lazy(
-            py,
-            &Lanes::new(&midpoint),
-            &mu0,
-            h,
-            n_steps,
-            every,
-            Some(&angles),
-        )?,
-        stepper => run_rollout_lazy(
-            py,
-            &PerStep(&stepper),
-            &mu0,
-            h,
-            n_steps,
-            every,
-            Some(&angles),
-        )?,
+        // Every method in SIMD lanes (rust/lanes.rs, rust/lanes_splitting.rs).
+        ClassicalStepper::Rk4(s) => lanes!(s),
+        ClassicalStepper::Midpoint(s) => lanes!(s),
+        ClassicalStepper::Splitting(s) => lanes!(s),
+        ClassicalStepper::Splitting4(s) => lanes!(s),
+        ClassicalStepper::Dmv(s) => lanes!(s),
+        ClassicalStepper::CasimirSplitting(s) => lanes!(s),
     };
     Ok(Some((traj, diagnostics.into_python(py, lazy)?)))
 }
@@ -797,14 +782,16 @@ fn rollout_lie_poisson<'py>(
             return Ok(None);
         };
         let (traj, diagnostics) = match &stepper {
-            // RK4 and midpoint in SIMD lanes; the splitting one trajectory at a time.
+            // Every method in SIMD lanes (the splitting in rust/lanes_splitting.rs).
             LieStepper::Rk4(rk4) => {
                 run_rollout_lazy(py, &Lanes::new(rk4), &mu0, h, n_steps, every, Some(&angles))?
             }
             LieStepper::Midpoint(mid) => {
                 run_rollout_lazy(py, &Lanes::new(mid), &mu0, h, n_steps, every, Some(&angles))?
             }
-            _ => run_rollout_lazy(py, &PerStep(&stepper), &mu0, h, n_steps, every, Some(&angles))?,
+            LieStepper::HeavyTop(top) => {
+                run_rollout_lazy(py, &Lanes::new(top), &mu0, h, n_steps, every, Some(&angles))?
+            }
         };
         Ok(Some((traj, diagnostics.into_python(py, lazy)?)))
     }, Err(dim_error(dim)))

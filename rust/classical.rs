@@ -21,13 +21,14 @@
 //!
 //! [`BisectionStepper`]: crate::stepper::BisectionStepper
 
-use nalgebra::{Const, DimMin, Matrix3, SMatrix, SVector, Vector3};
+use nalgebra::{Const, DimMin, Matrix3, SMatrix, SVector};
 
 use crate::error::{CoreError, StepFailure};
 use crate::rollout::{rollout, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepMap, StepStats};
 use crate::straight_line::LieField;
 use crate::system::{LiePoisson, VectorField};
+use crate::trig;
 
 /// A free rigid body: principal moments of inertia I (any order, all finite and > 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -98,11 +99,18 @@ impl RigidBody {
 
 /// Turns the 3-vector `v` about eᵢ by the angle −`angle`: for (i, a, b) cyclic,
 /// v_a ← cos·v_a + sin·v_b, v_b ← cos·v_b − sin·v_a. Every splitting's axis flow is this
-/// rotation, with its own angle.
+/// rotation, with its own angle. sin and cos come from [`trig::sin_cos`], the branch-free
+/// form that the SIMD lanes ([`crate::lanes_splitting`]) evaluate too, so a lane equals this
+/// step bit for bit.
 #[inline]
 fn rotate_about(i: usize, angle: f64, v: &mut [f64]) {
+    rotate_about_by(i, trig::sin_cos(angle), v);
+}
+
+/// [`rotate_about`] with (sin, cos) of the angle given.
+#[inline]
+fn rotate_about_by(i: usize, (s, c): (f64, f64), v: &mut [f64]) {
     let (a, b) = ((i + 1) % 3, (i + 2) % 3);
-    let (s, c) = angle.sin_cos();
     let (x, y) = (v[a], v[b]);
     v[a] = c * x + s * y;
     v[b] = c * y - s * x;
@@ -157,12 +165,6 @@ fn axpy<const N: usize>(a: f64, x: &[f64; N], y: &[f64; N]) -> [f64; N] {
 #[inline]
 pub(crate) fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
     a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
-}
-
-/// The matrix of v ↦ a × v.
-#[inline]
-fn hat(a: &[f64; 3]) -> Matrix3<f64> {
-    Matrix3::new(0.0, -a[2], a[1], a[2], 0.0, -a[0], -a[1], a[0], 0.0)
 }
 
 /// The stats of an explicit step, or NonFinite if it overflowed.
@@ -363,6 +365,12 @@ impl CasimirSplitting {
         }
     }
 
+    /// The two axes kept and their coefficients aᵢ.
+    #[inline(always)]
+    pub(crate) fn axes_and_coefficients(&self) -> ([usize; 2], [f64; 2]) {
+        (self.axes, self.coeff)
+    }
+
     /// Exact flow for time t of ½ a μᵢ²: a rotation about eᵢ by the angle −t a μᵢ.
     #[inline]
     fn axis_flow(i: usize, a: f64, t: f64, mu: &mut [f64; 3]) {
@@ -412,34 +420,93 @@ impl MoserVeselov {
     }
 }
 
+impl MoserVeselov {
+    /// G(y) = 2(I∘y + (J∘y) × y) − h(1 + |y|²) μ for the step of size h from μ = `m`.
+    #[inline(always)]
+    pub(crate) fn residual(&self, h: f64, m: &[f64; 3], y: &[f64; 3]) -> [f64; 3] {
+        let (inertia, jj) = (&self.body.inertia, &self.j);
+        let jy = [jj[0] * y[0], jj[1] * y[1], jj[2] * y[2]];
+        let c = cross(&jy, y);
+        let s = h * (1.0 + y[0] * y[0] + y[1] * y[1] + y[2] * y[2]);
+        std::array::from_fn(|i| 2.0 * (inertia[i] * y[i] + c[i]) - s * m[i])
+    }
+
+    /// The Newton update δ = −(dG/dy)⁻¹ G(y), unchecked (±∞ or NaN where the Jacobian is
+    /// singular). dG/dy = 2(diag(I) − [y]× diag(J) + [J∘y]×) − 2h μ yᵀ, whose off-diagonal part
+    /// is 2 y_k (J_a − J_b) for the pair (a, b) the entry couples; the 3×3 solve by cofactors
+    /// (Cramer's rule), straight-line code that the SIMD lanes run lane-wide with the same bits.
+    /// The Jacobian is 2 diag(I) plus O(h|μ|), well conditioned at any resolved step.
+    #[inline(always)]
+    pub(crate) fn newton_delta(&self, h: f64, m: &[f64; 3], y: &[f64; 3]) -> [f64; 3] {
+        let g = self.residual(h, m, y);
+        let (i, jj) = (&self.body.inertia, &self.j);
+        let (d12, d20, d01) = (jj[1] - jj[2], jj[2] - jj[0], jj[0] - jj[1]);
+        let a = [
+            [i[0], y[2] * d12, y[1] * d12],
+            [y[2] * d20, i[1], y[0] * d20],
+            [y[1] * d01, y[0] * d01, i[2]],
+        ];
+        let th = 2.0 * h;
+        let j: [[f64; 3]; 3] =
+            std::array::from_fn(|r| std::array::from_fn(|k| 2.0 * a[r][k] - th * m[r] * y[k]));
+        // adj(J), row by row, and det J from its first column.
+        let adj = [
+            [
+                j[1][1] * j[2][2] - j[1][2] * j[2][1],
+                j[0][2] * j[2][1] - j[0][1] * j[2][2],
+                j[0][1] * j[1][2] - j[0][2] * j[1][1],
+            ],
+            [
+                j[1][2] * j[2][0] - j[1][0] * j[2][2],
+                j[0][0] * j[2][2] - j[0][2] * j[2][0],
+                j[0][2] * j[1][0] - j[0][0] * j[1][2],
+            ],
+            [
+                j[1][0] * j[2][1] - j[1][1] * j[2][0],
+                j[0][1] * j[2][0] - j[0][0] * j[2][1],
+                j[0][0] * j[1][1] - j[0][1] * j[1][0],
+            ],
+        ];
+        let det = j[0][0] * adj[0][0] + j[1][0] * adj[0][1] + j[2][0] * adj[0][2];
+        let scale = -1.0 / det;
+        std::array::from_fn(|r| (adj[r][0] * g[0] + adj[r][1] * g[1] + adj[r][2] * g[2]) * scale)
+    }
+
+    /// The new state Fᵀ μ from the solution y, and the residual |F J − J Fᵀ − h μ̂| given
+    /// g = G(y).
+    #[inline(always)]
+    pub(crate) fn finish(m: &[f64; 3], y: &[f64; 3], g: &[f64; 3]) -> ([f64; 3], f64) {
+        let n2 = 1.0 + y[0] * y[0] + y[1] * y[1] + y[2] * y[2];
+        // |F J − J Fᵀ − h μ̂| as a vector: G(y)/(1 + |y|²).
+        let residual = max_abs(g) / n2;
+        // Fᵀ μ = μ + 2(−y × μ + y × (y × μ))/(1 + |y|²).
+        let ym = cross(y, m);
+        let yym = cross(y, &ym);
+        let s = 2.0 / n2;
+        (
+            std::array::from_fn(|i| m[i] + s * (yym[i] - ym[i])),
+            residual,
+        )
+    }
+}
+
 impl StepMap<3> for MoserVeselov {
     type Workspace = ();
 
     fn workspace(&self) {}
 
     fn step(&self, h: f64, mu: &mut [f64; 3], _: &mut ()) -> Result<StepStats, StepFailure> {
-        let (inertia, jj) = (&self.body.inertia, &self.j);
         let m = *mu;
-        let g = |y: &[f64; 3]| -> [f64; 3] {
-            let jy = [jj[0] * y[0], jj[1] * y[1], jj[2] * y[2]];
-            let c = cross(&jy, y);
-            let s = h * (1.0 + y[0] * y[0] + y[1] * y[1] + y[2] * y[2]);
-            std::array::from_fn(|i| 2.0 * (inertia[i] * y[i] + c[i]) - s * m[i])
-        };
         let mut y = self.body.velocity(&m).map(|w| 0.5 * h * w);
         let mut iterations = 0;
         loop {
             if iterations >= self.newton.max_iter {
                 return Err(StepFailure::NotConverged);
             }
-            // dG/dy = 2(diag(I) − [y]× diag(J) + [J∘y]×) − 2h μ yᵀ.
-            let jy = [jj[0] * y[0], jj[1] * y[1], jj[2] * y[2]];
-            let jac = 2.0
-                * (Matrix3::from_diagonal(&Vector3::from(*inertia))
-                    - hat(&y) * Matrix3::from_diagonal(&Vector3::from(*jj))
-                    + hat(&jy))
-                - (2.0 * h) * Vector3::from(m) * Vector3::from(y).transpose();
-            let delta = newton_update(jac, &g(&y))?;
+            let delta = self.newton_delta(h, &m, &y);
+            if !delta.iter().all(|v| v.is_finite()) {
+                return Err(StepFailure::SingularJacobian);
+            }
             for i in 0..3 {
                 y[i] += delta[i];
             }
@@ -448,14 +515,8 @@ impl StepMap<3> for MoserVeselov {
                 break;
             }
         }
-        let n2 = 1.0 + y[0] * y[0] + y[1] * y[1] + y[2] * y[2];
-        // |F J − J Fᵀ − h μ̂| as a vector: G(y)/(1 + |y|²).
-        let residual = max_abs(&g(&y)) / n2;
-        // Fᵀ μ = μ + 2(−y × μ + y × (y × μ))/(1 + |y|²).
-        let ym = cross(&y, &m);
-        let yym = cross(&y, &ym);
-        let s = 2.0 / n2;
-        *mu = std::array::from_fn(|i| m[i] + s * (yym[i] - ym[i]));
+        let (next, residual) = Self::finish(&m, &y, &self.residual(h, &m, &y));
+        *mu = next;
         if !mu.iter().all(|v| v.is_finite()) {
             return Err(StepFailure::NonFinite);
         }
@@ -622,16 +683,16 @@ impl HeavyTop {
 
     /// Exact flow for time t of Hᵢ = Mᵢ²/(2Iᵢ): M and Γ turn about eᵢ by the same angle.
     #[inline]
-    fn axis_flow(&self, i: usize, t: f64, mu: &mut [f64; 6]) {
-        let angle = t * mu[i] * self.body.inv[i];
+    pub(crate) fn axis_flow(&self, i: usize, t: f64, mu: &mut [f64; 6]) {
+        let sc = trig::sin_cos(t * mu[i] * self.body.inv[i]);
         let (m, g) = mu.split_at_mut(3);
-        rotate_about(i, angle, m);
-        rotate_about(i, angle, g);
+        rotate_about_by(i, sc, m);
+        rotate_about_by(i, sc, g);
     }
 
     /// Exact flow for time t of the potential mgl χ·Γ: Γ fixed, M += t mgl Γ × χ.
     #[inline]
-    fn potential_flow(&self, t: f64, mu: &mut [f64; 6]) {
+    pub(crate) fn potential_flow(&self, t: f64, mu: &mut [f64; 6]) {
         let g = [mu[3], mu[4], mu[5]];
         let d = cross(&g, &self.torque_arm);
         for i in 0..3 {

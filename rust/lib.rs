@@ -19,6 +19,7 @@ pub mod groupoid;
 pub mod kernel;
 pub mod lanes;
 pub mod lanes_bisection;
+pub mod lanes_splitting;
 pub mod memory;
 pub mod model;
 pub mod realization;
@@ -27,6 +28,7 @@ pub mod stepper;
 pub mod straight_line;
 pub mod structures;
 pub mod system;
+pub mod trig;
 
 #[cfg(feature = "python")]
 mod bindings;

@@ -227,4 +227,5 @@ mod log_canonical;
 mod model_files;
 mod polynomial;
 mod rollouts;
+mod splitting_lanes;
 mod steps;
