@@ -30,7 +30,7 @@ pub enum Chart {
 pub const EXP_CHART_MAX_ANGLE: f64 = 2.0 * std::f64::consts::PI - 0.1;
 
 /// Taylor coefficients of c(θ) = (1 − (θ/2)cot(θ/2))/θ² in s = θ²: |B₂ₙ|/(2n)!.
-const C_SERIES: [f64; 12] = [
+pub(crate) const C_SERIES: [f64; 12] = [
     1.0 / 12.0,
     1.0 / 720.0,
     1.0 / 30240.0,

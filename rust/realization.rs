@@ -15,7 +15,7 @@ use nalgebra::{Const, DimMin};
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, Workspace};
-use crate::groupoid::Groupoid;
+use crate::groupoid::{Chart, Groupoid};
 use crate::stepper::{Inverse, NewtonOptions, StepMap, StepResult, StepStats};
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
@@ -24,6 +24,12 @@ use crate::stepper::{Inverse, NewtonOptions, StepMap, StepResult, StepStats};
 pub trait Realization<const N: usize>: Sync {
     fn sou<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure>;
     fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure>;
+    /// The so(3) chart this realization is, if it is one: the stepper then solves a
+    /// polynomial S's Newton systems with the chart's closed-form Jacobian in SIMD lanes
+    /// ([`crate::lanes_bisection`]).
+    fn so3_chart(&self) -> Option<Chart> {
+        None
+    }
 }
 
 impl<const N: usize> Realization<N> for Groupoid<N> {
@@ -34,6 +40,9 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
     #[inline]
     fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
         Groupoid::tar(self, x, p)
+    }
+    fn so3_chart(&self) -> Option<Chart> {
+        (N == 3 && self.algebra.is_so3()).then_some(self.chart)
     }
 }
 

@@ -10,6 +10,8 @@ use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Mlp, Workspace, MAX_BATCH};
 use crate::groupoid::Groupoid;
+use crate::lanes::Isa;
+use crate::lanes_bisection::{so3_newton_steps, So3Newton};
 use crate::realization::Realization;
 
 /// Newton settings. The defaults converge to round-off, so the Casimir is kept to round-off.
@@ -254,6 +256,47 @@ impl<const N: usize, R: Realization<N>> BisectionStepper<N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
+    /// The lane solver, where it applies: a polynomial S (no MLP) on an so(3) chart with
+    /// simplified Newton. Full Newton keeps the generic dual-number path, bit-identical to
+    /// [`crate::realization::RealizationStepper`].
+    fn so3_lanes(&self) -> Option<So3Newton<'_, N>> {
+        if N != 3 || !self.newton.simplified || self.generating.mlp.is_some() {
+            return None;
+        }
+        Some(So3Newton {
+            poly: &self.generating.polynomial,
+            chart: self.groupoid.so3_chart()?,
+            tol: self.newton.tol,
+            max_iter: self.newton.max_iter,
+        })
+    }
+
+    /// [`StepMap::step`] by the generic path (dual-number Jacobian, explicit inverse), whatever
+    /// the realization and S: the reference the lane solver is tested against.
+    pub fn step_generic(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
+        let target = *mu;
+        let mut p = target;
+        let mut iterations = 0;
+        let mut factors = None;
+        let (mut refresh, mut last) = (true, f64::INFINITY);
+        loop {
+            let (converged, size) = if refresh {
+                let jet = self.generating.jet(h, &p, ws);
+                self.newton_update(&jet, &target, &mut p, &mut iterations, &mut factors)?
+            } else {
+                let g = self.generating.gradient(h, &p, ws);
+                self.simplified_update(&g, &target, &mut p, &mut iterations, &factors)?
+            };
+            if converged {
+                // x at the final p needs the gradient of S only, not its Hessian.
+                let g = self.generating.gradient(h, &p, ws);
+                return self.finish(&g, &target, &p, iterations, mu);
+            }
+            refresh = !self.newton.simplified || size > SIMPLIFIED_RATE * last;
+            last = size;
+        }
+    }
+
     /// One Newton update of p for tar(∂S/∂p(h,p), p) = μ from the jet of S at p, keeping its
     /// Jacobian's factors. Returns whether the update met the tolerance and |δ|∞.
     #[inline]
@@ -374,28 +417,23 @@ where
     /// One trajectory's Newton solve: the same updates as [`StepMap::step_batch`] (full Newton
     /// refreshes the Jacobian every update; simplified Newton keeps the first one's factors
     /// while the updates contract by [`SIMPLIFIED_RATE`] or better, needing ∂S/∂p only).
+    ///
+    /// A polynomial S on an so(3) chart with simplified Newton takes the lane solver with one
+    /// lane: the bits of its lane in any block of [`StepMap::step_batch`].
     fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
-        let target = *mu;
-        let mut p = target;
-        let mut iterations = 0;
-        let mut factors = None;
-        let (mut refresh, mut last) = (true, f64::INFINITY);
-        loop {
-            let (converged, size) = if refresh {
-                let jet = self.generating.jet(h, &p, ws);
-                self.newton_update(&jet, &target, &mut p, &mut iterations, &mut factors)?
-            } else {
-                let g = self.generating.gradient(h, &p, ws);
-                self.simplified_update(&g, &target, &mut p, &mut iterations, &factors)?
-            };
-            if converged {
-                // x at the final p needs the gradient of S only, not its Hessian.
-                let g = self.generating.gradient(h, &p, ws);
-                return self.finish(&g, &target, &p, iterations, mu);
-            }
-            refresh = !self.newton.simplified || size > SIMPLIFIED_RATE * last;
-            last = size;
+        if let Some(sys) = self.so3_lanes() {
+            let mut result = [Err(StepFailure::NotConverged)];
+            so3_newton_steps(
+                &sys,
+                Isa::detect(),
+                h,
+                std::slice::from_mut(mu),
+                &[true],
+                &mut result,
+            );
+            return result[0];
         }
+        self.step_generic(h, mu, ws)
     }
 
     fn batch(&self) -> usize {
@@ -413,6 +451,9 @@ where
         results: &mut [StepResult],
         ws: &mut Workspace<N>,
     ) {
+        if let Some(sys) = self.so3_lanes() {
+            return so3_newton_steps(&sys, Isa::detect(), h, mu, live, results);
+        }
         // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
         // small to fill the lanes takes the cheaper path (a rollout of one state, say).
         let few = self.generating.mlp.is_none() && live.iter().filter(|&&l| l).count() <= 2;
