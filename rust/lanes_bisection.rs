@@ -61,13 +61,27 @@ impl<const N: usize, const L: usize> Scratch<N, L> {
     }
 }
 
-/// `acc[l] += c · Π_k f_k[l]` over the factors `f` (multiplied in the order given).
+/// `acc[l] += c · Π_i j[i][d_i][l]` over the variables i of the term (`powers[i]` > 0), in
+/// increasing i, where d_i counts how many of `a` and `b` equal i (N for neither): the value
+/// (a = b = N), ∂/∂p_a (b = N) or ∂²/∂p_a∂p_b. The orders are computed, not read from an array
+/// of indices: such an array is stored and reloaded per product, a store-forwarding stall.
 #[inline(always)]
-fn add_product<const L: usize>(c: f64, f: &[&[f64; L]], acc: &mut [f64; L]) {
+fn add_product<const N: usize, const L: usize>(
+    c: f64,
+    powers: &[u32; N],
+    j: &[[[f64; L]; 3]; N],
+    a: usize,
+    b: usize,
+    acc: &mut [f64; L],
+) {
     let mut prod = [c; L];
-    for fk in f {
+    for i in 0..N {
+        if powers[i] == 0 {
+            continue;
+        }
+        let d = usize::from(i == a) + usize::from(i == b);
         for l in 0..L {
-            prod[l] *= fk[l];
+            prod[l] *= j[i][d][l];
         }
     }
     for l in 0..L {
@@ -129,16 +143,13 @@ fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool>(
             t.powi(m.t_power as i32)
         };
         let c = m.coeff * tk;
-        // The variables of this term, and their (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) lane by lane
+        // The (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of this term's variables lane by lane
         // (generating::power_jet); the second derivative only where n ≥ 2.
-        let (mut vars, mut nv) = ([0usize; N], 0);
         for i in 0..N {
             let n = m.p_powers[i];
             if n == 0 {
                 continue;
             }
-            vars[nv] = i;
-            nv += 1;
             let ji = &mut j[i];
             if n == 1 {
                 for l in 0..L {
@@ -165,29 +176,23 @@ fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool>(
                 }
             }
         }
-        let vars = &vars[..nv];
-        // c · Π_k j[k][d_k] over the term's variables in increasing k.
-        let mut f: [&[f64; L]; N] = [&j[0][0]; N];
-        for (fk, &k) in f.iter_mut().zip(vars) {
-            *fk = &j[k][0];
-        }
-        add_product(c, &f[..nv], &mut out.v);
-        for (a, &ia) in vars.iter().enumerate() {
-            f[a] = &j[ia][1];
-            add_product(c, &f[..nv], &mut out.g[ia]);
+        let pp = &m.p_powers;
+        add_product(c, pp, j, N, N, &mut out.v);
+        for a in 0..N {
+            if pp[a] == 0 {
+                continue;
+            }
+            add_product(c, pp, j, a, N, &mut out.g[a]);
             if HESS {
-                if m.p_powers[ia] >= 2 {
-                    f[a] = &j[ia][2];
-                    add_product(c, &f[..nv], &mut out.h[ia][ia]);
-                    f[a] = &j[ia][1];
+                if pp[a] >= 2 {
+                    add_product(c, pp, j, a, a, &mut out.h[a][a]);
                 }
-                for (b, &ib) in vars.iter().enumerate().skip(a + 1) {
-                    f[b] = &j[ib][1];
-                    add_product(c, &f[..nv], &mut out.h[ia][ib]);
-                    f[b] = &j[ib][0];
+                for b in a + 1..N {
+                    if pp[b] > 0 {
+                        add_product(c, pp, j, a, b, &mut out.h[a][b]);
+                    }
                 }
             }
-            f[a] = &j[ia][0];
         }
     }
 }
@@ -567,6 +572,42 @@ pub(crate) struct So3Newton<'a, const N: usize> {
     pub max_iter: u32,
 }
 
+/// The jets (the Hessian only when `HESS`) of a block's momenta into `jet`. One lane takes the
+/// scalar [`Polynomial::jet`] / [`Polynomial::gradient`]: the same bits as a lane of a block
+/// (see [`jet_lanes_into`]), without storing every factor to memory as the lane code does.
+#[inline(always)]
+fn evaluate<const N: usize, const L: usize, const HESS: bool>(
+    poly: &Polynomial<N>,
+    t: f64,
+    p: &[[f64; L]; N],
+    scratch: &mut Scratch<N, L>,
+    jet: &mut JetLanes<N, L>,
+) {
+    if L != 1 {
+        return jet_lanes_into::<N, L, HESS>(poly, t, p, scratch, jet);
+    }
+    let q: [f64; N] = std::array::from_fn(|i| p[i][0]);
+    if HESS {
+        let j = poly.jet(t, &q);
+        jet.v[0] = j.v;
+        let packed = j.packed();
+        let mut k = 0;
+        for a in 0..N {
+            jet.g[a][0] = j.g[a];
+            for b in a..N {
+                jet.h[a][b][0] = packed[k];
+                k += 1;
+            }
+        }
+    } else {
+        let d = poly.gradient(t, &q);
+        jet.v[0] = d.v;
+        for a in 0..N {
+            jet.g[a][0] = d.g[a];
+        }
+    }
+}
+
 /// x = ∇S and, when `HESS`, the full symmetric Hessian, from a block's jets (N = 3).
 #[inline(always)]
 fn gradient_and_hessian<const N: usize, const L: usize>(jet: &JetLanes<N, L>) -> (V3<L>, M3<L>) {
@@ -619,9 +660,9 @@ fn so3_block<const N: usize, const L: usize>(
             pl[i] = p[i].0;
         }
         if hess {
-            jet_lanes_into::<N, L, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+            evaluate::<N, L, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
         } else {
-            jet_lanes_into::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+            evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
         }
         let (x, h) = gradient_and_hessian(&jet);
         let (tar, s, jac) = so3_chart_lanes(sys.chart, -1.0, &x, &p, hess.then_some(&h));
@@ -700,7 +741,7 @@ fn so3_block<const N: usize, const L: usize>(
     for i in 0..3 {
         pl[i] = p[i].0;
     }
-    jet_lanes_into::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+    evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
     let (x, _) = gradient_and_hessian(&jet);
     let (tar, s, _) = so3_chart_lanes(sys.chart, -1.0, &x, &p, None);
     let (sou, _, _) = so3_chart_lanes(sys.chart, 1.0, &x, &p, None);
@@ -741,12 +782,30 @@ fn so3_chunk<const N: usize>(
     {
         if lv.iter().filter(|&&l| l).count() <= SCALAR_AT_MOST {
             for j in (0..m.len()).filter(|&j| lv[j]) {
-                so3_block::<N, 1>(sys, t, &mut m[j..=j], &lv[j..=j], &mut r[j..=j]);
+                so3_one(sys, t, &mut m[j], &mut r[j]);
             }
         } else {
             so3_block::<N, LANES>(sys, t, m, lv, r);
         }
     }
+}
+
+/// One trajectory: [`so3_block`] with one lane, compiled on its own (scalar code gains nothing
+/// from the block's vector registers, and a separate function keeps its registers to itself).
+#[inline(never)]
+fn so3_one<const N: usize>(
+    sys: &So3Newton<'_, N>,
+    t: f64,
+    mu: &mut [f64; N],
+    result: &mut StepResult,
+) {
+    so3_block::<N, 1>(
+        sys,
+        t,
+        std::slice::from_mut(mu),
+        &[true],
+        std::slice::from_mut(result),
+    );
 }
 
 #[cfg(target_arch = "x86_64")]
