@@ -97,7 +97,7 @@ fn add_product<const N: usize, const L: usize>(
 /// skipped: a product by 1 is exact, and a zero product added to a non-zero sum (or to +0)
 /// leaves it unchanged, so for finite inputs the sums are the same bits (the tests check it).
 #[inline(always)]
-fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool>(
+fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, const T1: bool>(
     poly: &Polynomial<N>,
     t: f64,
     p: &[[f64; L]; N],
@@ -137,6 +137,10 @@ fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool>(
     }
     let j = &mut scratch.j;
     for m in &poly.terms {
+        // With T1, only the terms linear in t (t ∂S/∂t(0, p)): the Newton predictor's.
+        if T1 && m.t_power != 1 {
+            continue;
+        }
         let tk = if m.t_power as usize <= TABLE_POWER {
             tp[m.t_power as usize]
         } else {
@@ -209,7 +213,7 @@ fn jet_lanes<const N: usize, const L: usize, const HESS: bool>(
         g: [[0.0; L]; N],
         h: [[[0.0; L]; N]; N],
     };
-    jet_lanes_into::<N, L, HESS>(poly, t, p, &mut Scratch::new(), &mut out);
+    jet_lanes_into::<N, L, HESS, false>(poly, t, p, &mut Scratch::new(), &mut out);
     out
 }
 
@@ -570,6 +574,8 @@ pub(crate) struct So3Newton<'a, const N: usize> {
     pub chart: Chart,
     pub tol: f64,
     pub max_iter: u32,
+    /// Start Newton from μ + ½ x₀ × μ (x₀: the t-linear terms' gradient at μ) instead of μ.
+    pub predict: bool,
 }
 
 /// The jets (the Hessian only when `HESS`) of a block's momenta into `jet`. One lane takes the
@@ -584,7 +590,7 @@ fn evaluate<const N: usize, const L: usize, const HESS: bool>(
     jet: &mut JetLanes<N, L>,
 ) {
     if L != 1 {
-        return jet_lanes_into::<N, L, HESS>(poly, t, p, scratch, jet);
+        return jet_lanes_into::<N, L, HESS, false>(poly, t, p, scratch, jet);
     }
     let q: [f64; N] = std::array::from_fn(|i| p[i][0]);
     if HESS {
@@ -641,6 +647,28 @@ fn so3_block<const N: usize, const L: usize>(
     }
     let target: V3<L> = [V(pl[0]), V(pl[1]), V(pl[2])];
     let mut p = target;
+    let mut scratch = Scratch::<N, L>::new();
+    let mut jet = JetLanes {
+        v: [0.0; L],
+        g: [[0.0; L]; N],
+        h: [[[0.0; L]; N]; N],
+    };
+    if sys.predict {
+        // p₀ = μ + ½ x₀ × μ, with x₀ the gradient of the terms of S linear in t at μ: tar(x, p)
+        // = p − ½ x×p + O(|x|²) in both charts, so p₀ is O(h²) from the solution where μ is
+        // O(h). Simplified Newton's contraction is proportional to that first error.
+        jet_lanes_into::<N, L, false, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        let x0: V3<L> = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
+        let turn = cross(&x0, &target);
+        let p0 = v3(|i| target[i] + turn[i].scale(0.5));
+        for l in 0..L {
+            if (0..3).all(|i| p0[i].0[l].is_finite()) {
+                for i in 0..3 {
+                    p[i].0[l] = p0[i].0[l];
+                }
+            }
+        }
+    }
     let mut refresh = [true; L];
     let mut last = [f64::INFINITY; L];
     let mut iterations = [0u32; L];
@@ -648,12 +676,6 @@ fn so3_block<const N: usize, const L: usize>(
     let mut inv: M3<L> = [[V::splat(0.0); 3]; 3];
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
     let exp = sys.chart == Chart::Exp;
-    let mut scratch = Scratch::<N, L>::new();
-    let mut jet = JetLanes {
-        v: [0.0; L],
-        g: [[0.0; L]; N],
-        h: [[[0.0; L]; N]; N],
-    };
     while active.iter().any(|&a| a) {
         let hess = (0..L).any(|l| active[l] && refresh[l]);
         for i in 0..3 {

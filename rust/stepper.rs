@@ -31,6 +31,10 @@ pub struct NewtonOptions {
     pub simplified: bool,
 }
 
+/// Whether the so(3) lane solver starts from the explicit predictor (see
+/// [`crate::lanes_bisection::So3Newton::predict`]).
+const PREDICT: bool = true;
+
 /// Slowest contraction |δₖ| / |δₖ₋₁| simplified Newton accepts before it refreshes the Jacobian.
 pub const SIMPLIFIED_RATE: f64 = 0.25;
 
@@ -268,6 +272,7 @@ where
             chart: self.groupoid.so3_chart()?,
             tol: self.newton.tol,
             max_iter: self.newton.max_iter,
+            predict: PREDICT,
         })
     }
 
