@@ -567,6 +567,9 @@ fn inverse3_lanes<const L: usize>(m: &M3<L>) -> (M3<L>, V<L>) {
     (inv, det)
 }
 
+/// Largest |x₀|² at which the Newton predictor is used (see [`So3Newton::predict`]).
+const PREDICT_MAX_S: f64 = 1.0;
+
 /// What the lane Newton solve of a polynomial S on so(3) needs: S's polynomial (N = 3), the
 /// chart and the simplified-Newton settings.
 pub(crate) struct So3Newton<'a, const N: usize> {
@@ -574,7 +577,8 @@ pub(crate) struct So3Newton<'a, const N: usize> {
     pub chart: Chart,
     pub tol: f64,
     pub max_iter: u32,
-    /// Start Newton from μ + ½ x₀ × μ (x₀: the t-linear terms' gradient at μ) instead of μ.
+    /// Start Newton from μ + ½ x₀ × μ (x₀: the t-linear terms' gradient at μ) instead of μ,
+    /// where |x₀|² ≤ [`PREDICT_MAX_S`].
     pub predict: bool,
 }
 
@@ -661,8 +665,12 @@ fn so3_block<const N: usize, const L: usize>(
         let x0: V3<L> = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
         let turn = cross(&x0, &target);
         let p0 = v3(|i| target[i] + turn[i].scale(0.5));
+        let s0 = dot(&x0, &x0);
         for l in 0..L {
-            if (0..3).all(|i| p0[i].0[l].is_finite()) {
+            // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large
+            // for the series, h = 5 say) the predictor can throw Newton past the exp chart's
+            // singular angle that a start from μ avoids.
+            if s0.0[l] <= PREDICT_MAX_S && (0..3).all(|i| p0[i].0[l].is_finite()) {
                 for i in 0..3 {
                     p[i].0[l] = p0[i].0[l];
                 }
