@@ -148,6 +148,11 @@ def main() -> None:
         help="an earlier build's _core extension, timed beside this one (repeatable)",
     )
     parser.add_argument("--json", type=Path, help="write the numbers here")
+    parser.add_argument(
+        "--only",
+        choices=("taylor5-exp", "default"),
+        help="time this bisection stepper only (with JAX and the baselines)",
+    )
     args = parser.parse_args()
     rounds = max(5, args.rounds)
     baselines: dict[str, ModuleType] = {}
@@ -160,6 +165,8 @@ def main() -> None:
         "taylor5-exp": pr.taylor_integrator(order=5, chart="exp"),
         "default": pr.load_model("default"),
     }
+    if args.only:
+        steppers = {args.only: steppers[args.only]}
     jax_run = jax_runner()
     rows: list[dict[str, Any]] = []
     for batch in BATCHES:

@@ -18,6 +18,9 @@ use std::ops::{Add, Mul, Neg, Sub};
 pub trait Scalar:
     Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Neg<Output = Self>
 {
+    /// The highest derivative order carried (0 for `f64`, 1 for [`Dual1`], 2 for [`Jet2`]):
+    /// lets a smooth function skip the derivatives of its own that [`Scalar::chain`] would drop.
+    const ORDER: u8;
     /// A constant (all derivatives zero).
     fn cst(v: f64) -> Self;
     /// The value part.
@@ -67,6 +70,7 @@ pub trait Scalar:
 }
 
 impl Scalar for f64 {
+    const ORDER: u8 = 0;
     #[inline(always)]
     fn cst(v: f64) -> Self {
         v
@@ -166,6 +170,7 @@ impl<const N: usize> Mul for Dual1<N> {
 }
 
 impl<const N: usize> Scalar for Dual1<N> {
+    const ORDER: u8 = 1;
     fn cst(v: f64) -> Self {
         Dual1 { v, g: [0.0; N] }
     }
@@ -328,6 +333,7 @@ impl<const N: usize> Mul for Jet2<N> {
 }
 
 impl<const N: usize> Scalar for Jet2<N> {
+    const ORDER: u8 = 2;
     fn cst(v: f64) -> Self {
         Jet2 {
             v,

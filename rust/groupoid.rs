@@ -30,7 +30,7 @@ pub enum Chart {
 pub const EXP_CHART_MAX_ANGLE: f64 = 2.0 * std::f64::consts::PI - 0.1;
 
 /// Taylor coefficients of c(θ) = (1 − (θ/2)cot(θ/2))/θ² in s = θ²: |B₂ₙ|/(2n)!.
-const C_SERIES: [f64; 12] = [
+pub(crate) const C_SERIES: [f64; 12] = [
     1.0 / 12.0,
     1.0 / 720.0,
     1.0 / 30240.0,
@@ -46,17 +46,26 @@ const C_SERIES: [f64; 12] = [
 ];
 
 /// c(s), c'(s), c''(s) for s = θ², the coefficient of x×(x×p) in the exponential chart.
+#[cfg(test)]
 fn exp_chart_coefficient(s: f64) -> (f64, f64, f64) {
+    exp_chart_coefficient_to(s, 2)
+}
+
+/// [`exp_chart_coefficient`] up to the derivative `order` (0, 1 or 2); the derivatives beyond
+/// it are returned as 0 and cost nothing. Each returned number has the bits of the full
+/// evaluation: the Horner chains and closed forms are the same, only the unused ones are skipped.
+#[inline(always)]
+pub(crate) fn exp_chart_coefficient_to(s: f64, order: u8) -> (f64, f64, f64) {
     if s < 1.0 {
         // Series (radius 4π²): the closed form cancels catastrophically near 0.
         let (mut c, mut dc, mut d2c) = (0.0, 0.0, 0.0);
         for (n, &a) in C_SERIES.iter().enumerate().rev() {
             let n = n as f64;
             c = c * s + a;
-            if n >= 1.0 {
+            if order >= 1 && n >= 1.0 {
                 dc = dc * s + n * a;
             }
-            if n >= 2.0 {
+            if order >= 2 && n >= 2.0 {
                 d2c = d2c * s + n * (n - 1.0) * a;
             }
         }
@@ -65,9 +74,15 @@ fn exp_chart_coefficient(s: f64) -> (f64, f64, f64) {
     let th = s.sqrt();
     let (sn, cs) = (0.5 * th).sin_cos();
     let cot = cs / sn;
-    let csc2 = 1.0 / (sn * sn);
     let c = 1.0 / s - cot / (2.0 * th);
+    if order == 0 {
+        return (c, 0.0, 0.0);
+    }
+    let csc2 = 1.0 / (sn * sn);
     let c_th = -2.0 / (s * th) + cot / (2.0 * s) + csc2 / (4.0 * th);
+    if order == 1 {
+        return (c, c_th / (2.0 * th), 0.0);
+    }
     let c_thth = 6.0 / (s * s) - cot / (s * th) - csc2 / (2.0 * s) - csc2 * cot / (4.0 * th);
     (c, c_th / (2.0 * th), (c_thth - c_th / th) / (4.0 * s))
 }
@@ -127,7 +142,7 @@ impl Chart {
                 if s.value() >= EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE {
                     return Err(StepFailure::ChartSingular);
                 }
-                let (c, dc, d2c) = exp_chart_coefficient(s.value());
+                let (c, dc, d2c) = exp_chart_coefficient_to(s.value(), T::ORDER);
                 let c = s.chain(c, dc, d2c);
                 let xxp = cross(x, &xp);
                 for i in 0..3 {
@@ -523,6 +538,29 @@ mod tests {
                 assert!((s[i].g[j] - fd).abs() < 1e-8, "d sou_{i}/d x_{j}");
             }
         }
+    }
+
+    /// The value-only and first-order evaluations give the full one's numbers bit for bit, on
+    /// both sides of the switch from the series to the closed form.
+    #[test]
+    fn truncated_chart_coefficient_equals_the_full_one() {
+        let mut s = 1e-6;
+        while s < 38.0 {
+            let (c, dc, d2c) = exp_chart_coefficient(s);
+            assert_eq!(exp_chart_coefficient_to(s, 0), (c, 0.0, 0.0), "s = {s}");
+            assert_eq!(exp_chart_coefficient_to(s, 1), (c, dc, 0.0), "s = {s}");
+            assert_eq!(exp_chart_coefficient_to(s, 2), (c, dc, d2c), "s = {s}");
+            s *= 1.07;
+        }
+        // The chart in f64 keeps the value of its Dual1 evaluation.
+        let (x, p) = ([0.9, -1.1, 0.7], [1.0, 2.0, -0.5]);
+        let xd = x.map(Dual1::<3>::cst);
+        let pd = p.map(Dual1::<3>::cst);
+        let (a, b) = (
+            Chart::Exp.tar(&x, &p).unwrap(),
+            Chart::Exp.tar(&xd, &pd).unwrap(),
+        );
+        assert_eq!(a, b.map(|v| v.v));
     }
 
     #[test]

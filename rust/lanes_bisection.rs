@@ -21,8 +21,11 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::dual::{Dual1, Jet2};
+use crate::error::StepFailure;
 use crate::generating::{Polynomial, TABLE_POWER};
+use crate::groupoid::{exp_chart_coefficient_to, Chart, C_SERIES, EXP_CHART_MAX_ANGLE};
 use crate::lanes::{Isa, LANES};
+use crate::stepper::{StepResult, StepStats, SIMPLIFIED_RATE};
 
 /// Blocks with at most this many momenta take the scalar path: a block of 8 lanes costs about
 /// five scalar evaluations.
@@ -39,19 +42,77 @@ struct JetLanes<const N: usize, const L: usize> {
 /// The powers x⁰ … x^[`TABLE_POWER`] of each coordinate, lane by lane: `pw[i][k][l]`.
 type PowerLanes<const N: usize, const L: usize> = [[[f64; L]; TABLE_POWER + 1]; N];
 
-/// The jets of P(t, ·) at the L momenta `p[i][l]` (the Hessian only when `HESS`): lane l gets
-/// the numbers of the scalar [`Polynomial::jet`] at p[·][l], bit for bit.
+/// Scratch of [`jet_lanes_into`] kept across the evaluations of a block: the tables of powers
+/// (only the rows up to each coordinate's largest exponent are written and read) and the factor
+/// jets of one term (only those of its variables are written and read). Nothing in it needs
+/// clearing between evaluations.
+struct Scratch<const N: usize, const L: usize> {
+    pw: PowerLanes<N, L>,
+    j: [[[f64; L]; 3]; N],
+}
+
+impl<const N: usize, const L: usize> Scratch<N, L> {
+    #[inline(always)]
+    fn new() -> Self {
+        Scratch {
+            pw: [[[0.0; L]; TABLE_POWER + 1]; N],
+            j: [[[0.0; L]; 3]; N],
+        }
+    }
+}
+
+/// `acc[l] += c · Π_i j[i][d_i][l]` over the variables i of the term (`powers[i]` > 0), in
+/// increasing i, where d_i counts how many of `a` and `b` equal i (N for neither): the value
+/// (a = b = N), ∂/∂p_a (b = N) or ∂²/∂p_a∂p_b. The orders are computed, not read from an array
+/// of indices: such an array is stored and reloaded per product, a store-forwarding stall.
 #[inline(always)]
-fn jet_lanes<const N: usize, const L: usize, const HESS: bool>(
+fn add_product<const N: usize, const L: usize>(
+    c: f64,
+    powers: &[u32; N],
+    j: &[[[f64; L]; 3]; N],
+    a: usize,
+    b: usize,
+    acc: &mut [f64; L],
+) {
+    let mut prod = [c; L];
+    for i in 0..N {
+        if powers[i] == 0 {
+            continue;
+        }
+        let d = usize::from(i == a) + usize::from(i == b);
+        for l in 0..L {
+            prod[l] *= j[i][d][l];
+        }
+    }
+    for l in 0..L {
+        acc[l] += prod[l];
+    }
+}
+
+/// The jets of P(t, ·) at the L momenta `p[i][l]` (the Hessian only when `HESS`) into `out`:
+/// lane l gets the numbers of the scalar [`Polynomial::jet`] at p[·][l], bit for bit.
+///
+/// The scalar evaluation multiplies every term by all N factor jets; a variable absent from a
+/// term contributes the factor 1 to the value and 0 to its derivatives. Here such factors are
+/// skipped: a product by 1 is exact, and a zero product added to a non-zero sum (or to +0)
+/// leaves it unchanged, so for finite inputs the sums are the same bits (the tests check it).
+#[inline(always)]
+fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, const T1: bool>(
     poly: &Polynomial<N>,
     t: f64,
     p: &[[f64; L]; N],
-) -> JetLanes<N, L> {
-    let mut out = JetLanes {
-        v: [0.0; L],
-        g: [[0.0; L]; N],
-        h: [[[0.0; L]; N]; N],
-    };
+    scratch: &mut Scratch<N, L>,
+    out: &mut JetLanes<N, L>,
+) {
+    out.v = [0.0; L];
+    for i in 0..N {
+        out.g[i] = [0.0; L];
+        if HESS {
+            for b in i..N {
+                out.h[i][b] = [0.0; L];
+            }
+        }
+    }
     // The tables of powers, as Polynomial::powers builds them.
     let (mut tmax, mut pmax) = (0u32, [0u32; N]);
     for m in &poly.terms {
@@ -65,7 +126,7 @@ fn jet_lanes<const N: usize, const L: usize, const HESS: bool>(
     for k in 1..=(tmax as usize).min(TABLE_POWER) {
         tp[k] = tp[k - 1] * t;
     }
-    let mut pw: PowerLanes<N, L> = [[[0.0; L]; TABLE_POWER + 1]; N];
+    let pw = &mut scratch.pw;
     for i in 0..N {
         pw[i][0] = [1.0; L];
         for k in 1..=(pmax[i] as usize).min(TABLE_POWER) {
@@ -74,24 +135,27 @@ fn jet_lanes<const N: usize, const L: usize, const HESS: bool>(
             }
         }
     }
+    let j = &mut scratch.j;
     for m in &poly.terms {
+        // With T1, only the terms linear in t (t ∂S/∂t(0, p)): the Newton predictor's.
+        if T1 && m.t_power != 1 {
+            continue;
+        }
         let tk = if m.t_power as usize <= TABLE_POWER {
             tp[m.t_power as usize]
         } else {
             t.powi(m.t_power as i32)
         };
         let c = m.coeff * tk;
-        // (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of each factor, lane by lane (generating::power_jet),
-        // written element by element: whole-array moves of lane rows stall on store forwarding.
-        let mut j = [[[0.0; L]; 3]; N];
+        // The (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of this term's variables lane by lane
+        // (generating::power_jet); the second derivative only where n ≥ 2.
         for i in 0..N {
             let n = m.p_powers[i];
-            let ji = &mut j[i];
             if n == 0 {
-                for l in 0..L {
-                    ji[0][l] = 1.0;
-                }
-            } else if n == 1 {
+                continue;
+            }
+            let ji = &mut j[i];
+            if n == 1 {
                 for l in 0..L {
                     ji[0][l] = p[i][l];
                     ji[1][l] = 1.0;
@@ -116,33 +180,40 @@ fn jet_lanes<const N: usize, const L: usize, const HESS: bool>(
                 }
             }
         }
-        // c · Π_i j[i][d_i], multiplied in the order i = 0, 1, …, N − 1, added into `acc`.
-        let add_factor = |d: [usize; N], acc: &mut [f64; L]| {
-            for l in 0..L {
-                let mut f = c;
-                for i in 0..N {
-                    f *= j[i][d[i]][l];
-                }
-                acc[l] += f;
+        let pp = &m.p_powers;
+        add_product(c, pp, j, N, N, &mut out.v);
+        for a in 0..N {
+            if pp[a] == 0 {
+                continue;
             }
-        };
-        add_factor([0; N], &mut out.v);
-        for i in 0..N {
-            let mut d = [0; N];
-            d[i] = 1;
-            add_factor(d, &mut out.g[i]);
-        }
-        if HESS {
-            for a in 0..N {
-                for b in a..N {
-                    let mut d = [0; N];
-                    d[a] += 1;
-                    d[b] += 1;
-                    add_factor(d, &mut out.h[a][b]);
+            add_product(c, pp, j, a, N, &mut out.g[a]);
+            if HESS {
+                if pp[a] >= 2 {
+                    add_product(c, pp, j, a, a, &mut out.h[a][a]);
+                }
+                for b in a + 1..N {
+                    if pp[b] > 0 {
+                        add_product(c, pp, j, a, b, &mut out.h[a][b]);
+                    }
                 }
             }
         }
     }
+}
+
+/// [`jet_lanes_into`] with fresh scratch.
+#[inline(always)]
+fn jet_lanes<const N: usize, const L: usize, const HESS: bool>(
+    poly: &Polynomial<N>,
+    t: f64,
+    p: &[[f64; L]; N],
+) -> JetLanes<N, L> {
+    let mut out = JetLanes {
+        v: [0.0; L],
+        g: [[0.0; L]; N],
+        h: [[[0.0; L]; N]; N],
+    };
+    jet_lanes_into::<N, L, HESS, false>(poly, t, p, &mut Scratch::new(), &mut out);
     out
 }
 
@@ -281,4 +352,526 @@ pub fn polynomial_gradients<const N: usize>(
     out: &mut [Dual1<N>],
 ) {
     dispatch(poly, isa, t, p, out);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The so(3) Newton solve of a polynomial S in lanes
+// ---------------------------------------------------------------------------------------------
+
+/// L numbers, one per lane; every operation acts lane by lane (one SIMD instruction per 4 lanes
+/// with AVX2). Plain multiplies and adds only, never contracted: lane l of any L gives the same
+/// bits, so one trajectory (L = 1) and a block (L = [`LANES`]) agree exactly.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct V<const L: usize>(pub [f64; L]);
+
+impl<const L: usize> V<L> {
+    #[inline(always)]
+    pub(crate) fn splat(x: f64) -> Self {
+        V([x; L])
+    }
+    #[inline(always)]
+    fn zip(self, o: Self, f: impl Fn(f64, f64) -> f64) -> Self {
+        let mut r = self;
+        for l in 0..L {
+            r.0[l] = f(self.0[l], o.0[l]);
+        }
+        r
+    }
+    #[inline(always)]
+    fn scale(self, c: f64) -> Self {
+        let mut r = self;
+        for l in 0..L {
+            r.0[l] = self.0[l] * c;
+        }
+        r
+    }
+}
+
+impl<const L: usize> std::ops::Add for V<L> {
+    type Output = Self;
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        self.zip(o, |a, b| a + b)
+    }
+}
+
+impl<const L: usize> std::ops::Sub for V<L> {
+    type Output = Self;
+    #[inline(always)]
+    fn sub(self, o: Self) -> Self {
+        self.zip(o, |a, b| a - b)
+    }
+}
+
+impl<const L: usize> std::ops::Mul for V<L> {
+    type Output = Self;
+    #[inline(always)]
+    fn mul(self, o: Self) -> Self {
+        self.zip(o, |a, b| a * b)
+    }
+}
+
+type V3<const L: usize> = [V<L>; 3];
+type M3<const L: usize> = [[V<L>; 3]; 3];
+
+/// `[f(0), f(1), f(2)]`, built in place: `array::map` on lane vectors goes through memcpy.
+#[inline(always)]
+fn v3<const L: usize>(f: impl Fn(usize) -> V<L>) -> V3<L> {
+    [f(0), f(1), f(2)]
+}
+
+/// The 3×3 matrix with entries `f(r, c)`, built in place.
+#[inline(always)]
+fn m3<const L: usize>(f: impl Fn(usize, usize) -> V<L>) -> M3<L> {
+    [
+        [f(0, 0), f(0, 1), f(0, 2)],
+        [f(1, 0), f(1, 1), f(1, 2)],
+        [f(2, 0), f(2, 1), f(2, 2)],
+    ]
+}
+
+/// The same products in the same order as the chart's (groupoid::cross).
+#[inline(always)]
+fn cross<const L: usize>(a: &V3<L>, b: &V3<L>) -> V3<L> {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+#[inline(always)]
+fn dot<const L: usize>(a: &V3<L>, b: &V3<L>) -> V<L> {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// tar (`sign` = −1) or sou (+1) of an so(3) chart in lanes, with the exact p-Jacobian of
+/// tar(∇S(p), p) when `hess` (the Hessian of S, symmetric) is given. Also returns |x|².
+///
+/// The values are the chart's own operations ([`Chart::tar`] / [`Chart::sou`] in f64), bit for
+/// bit. With x = ∇S, w = x·p, s = |x|² and, for the exponential chart, c = c(s), c' = dc/ds,
+/// u = x×(x×p) = x w − s p:
+/// - Cayley, T = p − ½ x×p + ¼ x w: ∂T/∂p = I − ½ x̂ + ¼ x xᵀ, ∂T/∂x = ½ p̂ + ¼ (x pᵀ + w I);
+/// - exp, T = p − ½ x×p + c u: ∂T/∂p = (1 − c s) I − ½ x̂ + c x xᵀ,
+///   ∂T/∂x = ½ p̂ + c (x pᵀ + w I) + (2c' u − 2c p) xᵀ;
+///
+/// and J = ∂T/∂p + ∂T/∂x · Hess S. Lanes with s ≥ 1 take c and c' from the scalar closed form
+/// (the series is summed for s < 1 only, as in the chart).
+#[inline(always)]
+pub(crate) fn so3_chart_lanes<const L: usize>(
+    chart: Chart,
+    sign: f64,
+    x: &V3<L>,
+    p: &V3<L>,
+    hess: Option<&M3<L>>,
+) -> (V3<L>, V<L>, Option<M3<L>>) {
+    let xp = cross(x, p);
+    let s = dot(x, x);
+    let half = v3(|i| xp[i].scale(0.5 * sign));
+    let (t, c, dc, u) = match chart {
+        Chart::Cayley => {
+            let q = dot(x, p).scale(0.25);
+            let t = v3(|i| p[i] + half[i] + x[i] * q);
+            (t, V::splat(0.25), V::splat(0.0), [V::splat(0.0); 3])
+        }
+        Chart::Exp => {
+            let order = if hess.is_some() { 1 } else { 0 };
+            // groupoid::exp_chart_coefficient_to's series, lane by lane.
+            let (mut c, mut dc) = (V::splat(0.0), V::splat(0.0));
+            for (n, &a) in C_SERIES.iter().enumerate().rev() {
+                c = c * s + V::splat(a);
+                if order >= 1 && n >= 1 {
+                    dc = dc * s + V::splat(n as f64 * a);
+                }
+            }
+            for l in 0..L {
+                if s.0[l] >= 1.0 {
+                    let (a, b, _) = exp_chart_coefficient_to(s.0[l], order);
+                    (c.0[l], dc.0[l]) = (a, b);
+                }
+            }
+            let u = cross(x, &xp);
+            let t = v3(|i| p[i] + half[i] + c * u[i]);
+            (t, c, dc, u)
+        }
+    };
+    let Some(h) = hess else {
+        return (t, s, None);
+    };
+    let (zero, one) = (V::splat(0.0), V::splat(1.0));
+    let w = dot(x, p);
+    // The exponential chart's extra terms: −c s on the diagonal of ∂T/∂p, v xᵀ in ∂T/∂x.
+    let (diag, v) = match chart {
+        Chart::Cayley => (one, [zero; 3]),
+        Chart::Exp => {
+            let two_dc = dc.scale(2.0);
+            let two_c = c.scale(2.0);
+            (one - c * s, v3(|i| two_dc * u[i] - two_c * p[i]))
+        }
+    };
+    // ∂T/∂p = diag I − ½ x̂ + c x xᵀ, with x̂ = [[0, −x₂, x₁], [x₂, 0, −x₀], [−x₁, x₀, 0]].
+    let hx = v3(|i| x[i].scale(0.5));
+    let mut jp = m3(|r, k| c * x[r] * x[k]);
+    jp[0][1] = jp[0][1] + hx[2];
+    jp[0][2] = jp[0][2] - hx[1];
+    jp[1][0] = jp[1][0] - hx[2];
+    jp[1][2] = jp[1][2] + hx[0];
+    jp[2][0] = jp[2][0] + hx[1];
+    jp[2][1] = jp[2][1] - hx[0];
+    for i in 0..3 {
+        jp[i][i] = jp[i][i] + diag;
+    }
+    // ∂T/∂x = ½ p̂ + c (x pᵀ + w I) + v xᵀ.
+    let hp = v3(|i| p[i].scale(0.5));
+    let mut a = m3(|r, k| c * x[r] * p[k] + v[r] * x[k]);
+    a[0][1] = a[0][1] - hp[2];
+    a[0][2] = a[0][2] + hp[1];
+    a[1][0] = a[1][0] + hp[2];
+    a[1][2] = a[1][2] - hp[0];
+    a[2][0] = a[2][0] - hp[1];
+    a[2][1] = a[2][1] + hp[0];
+    let cw = c * w;
+    for i in 0..3 {
+        a[i][i] = a[i][i] + cw;
+    }
+    let j = m3(|r, k| jp[r][k] + a[r][0] * h[0][k] + a[r][1] * h[1][k] + a[r][2] * h[2][k]);
+    (t, s, Some(j))
+}
+
+/// The cofactor inverse of [`crate::stepper::inverse3`] lane by lane (the same operations), and
+/// the determinant.
+#[inline(always)]
+fn inverse3_lanes<const L: usize>(m: &M3<L>) -> (M3<L>, V<L>) {
+    let c00 = m[1][1] * m[2][2] - m[1][2] * m[2][1];
+    let c01 = m[1][2] * m[2][0] - m[1][0] * m[2][2];
+    let c02 = m[1][0] * m[2][1] - m[1][1] * m[2][0];
+    let det = m[0][0] * c00 + m[0][1] * c01 + m[0][2] * c02;
+    let r = V::splat(1.0).zip(det, |a, b| a / b);
+    let inv = [
+        [
+            c00 * r,
+            (m[0][2] * m[2][1] - m[0][1] * m[2][2]) * r,
+            (m[0][1] * m[1][2] - m[0][2] * m[1][1]) * r,
+        ],
+        [
+            c01 * r,
+            (m[0][0] * m[2][2] - m[0][2] * m[2][0]) * r,
+            (m[0][2] * m[1][0] - m[0][0] * m[1][2]) * r,
+        ],
+        [
+            c02 * r,
+            (m[0][1] * m[2][0] - m[0][0] * m[2][1]) * r,
+            (m[0][0] * m[1][1] - m[0][1] * m[1][0]) * r,
+        ],
+    ];
+    (inv, det)
+}
+
+/// Largest |x₀|² at which the Newton predictor is used (see [`So3Newton::predict`]).
+const PREDICT_MAX_S: f64 = 1.0;
+
+/// What the lane Newton solve of a polynomial S on so(3) needs: S's polynomial (N = 3), the
+/// chart and the simplified-Newton settings.
+pub(crate) struct So3Newton<'a, const N: usize> {
+    pub poly: &'a Polynomial<N>,
+    pub chart: Chart,
+    pub tol: f64,
+    pub max_iter: u32,
+    /// Start Newton from μ + ½ x₀ × μ (x₀: the t-linear terms' gradient at μ) instead of μ,
+    /// where |x₀|² ≤ [`PREDICT_MAX_S`].
+    pub predict: bool,
+}
+
+/// The jets (the Hessian only when `HESS`) of a block's momenta into `jet`. One lane takes the
+/// scalar [`Polynomial::jet`] / [`Polynomial::gradient`]: the same bits as a lane of a block
+/// (see [`jet_lanes_into`]), without storing every factor to memory as the lane code does.
+#[inline(always)]
+fn evaluate<const N: usize, const L: usize, const HESS: bool>(
+    poly: &Polynomial<N>,
+    t: f64,
+    p: &[[f64; L]; N],
+    scratch: &mut Scratch<N, L>,
+    jet: &mut JetLanes<N, L>,
+) {
+    if L != 1 {
+        return jet_lanes_into::<N, L, HESS, false>(poly, t, p, scratch, jet);
+    }
+    let q: [f64; N] = std::array::from_fn(|i| p[i][0]);
+    if HESS {
+        let j = poly.jet(t, &q);
+        jet.v[0] = j.v;
+        let packed = j.packed();
+        let mut k = 0;
+        for a in 0..N {
+            jet.g[a][0] = j.g[a];
+            for b in a..N {
+                jet.h[a][b][0] = packed[k];
+                k += 1;
+            }
+        }
+    } else {
+        let d = poly.gradient(t, &q);
+        jet.v[0] = d.v;
+        for a in 0..N {
+            jet.g[a][0] = d.g[a];
+        }
+    }
+}
+
+/// x = ∇S and, when `HESS`, the full symmetric Hessian, from a block's jets (N = 3).
+#[inline(always)]
+fn gradient_and_hessian<const N: usize, const L: usize>(jet: &JetLanes<N, L>) -> (V3<L>, M3<L>) {
+    let x = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
+    let h = m3(|a, b| V(jet.h[a.min(b)][a.max(b)]));
+    (x, h)
+}
+
+/// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)
+/// by simplified Newton in lanes: the same rule as [`crate::stepper::BisectionStepper`]'s
+/// (refresh the Jacobian while updates contract by less than [`SIMPLIFIED_RATE`], stop once
+/// |δ|∞ ≤ tol · max(|p|∞, 1e-300)) and the same failures in the same order, lane by lane. A
+/// lane that converged or failed is frozen; the block runs until every lane has.
+#[inline(always)]
+fn so3_block<const N: usize, const L: usize>(
+    sys: &So3Newton<'_, N>,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    let n = mu.len();
+    debug_assert!(N == 3 && n <= L);
+    let mut pl = [[0.0; L]; N];
+    let mut active = [false; L];
+    for j in 0..n {
+        for i in 0..3 {
+            pl[i][j] = mu[j][i];
+        }
+        active[j] = live[j];
+    }
+    let target: V3<L> = [V(pl[0]), V(pl[1]), V(pl[2])];
+    let mut p = target;
+    let mut scratch = Scratch::<N, L>::new();
+    let mut jet = JetLanes {
+        v: [0.0; L],
+        g: [[0.0; L]; N],
+        h: [[[0.0; L]; N]; N],
+    };
+    if sys.predict {
+        // p₀ = μ + ½ x₀ × μ, with x₀ the gradient of the terms of S linear in t at μ: tar(x, p)
+        // = p − ½ x×p + O(|x|²) in both charts, so p₀ is O(h²) from the solution where μ is
+        // O(h). Simplified Newton's contraction is proportional to that first error.
+        jet_lanes_into::<N, L, false, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        let x0: V3<L> = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
+        let turn = cross(&x0, &target);
+        let p0 = v3(|i| target[i] + turn[i].scale(0.5));
+        let s0 = dot(&x0, &x0);
+        for l in 0..L {
+            // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large
+            // for the series, h = 5 say) the predictor can throw Newton past the exp chart's
+            // singular angle that a start from μ avoids.
+            if s0.0[l] <= PREDICT_MAX_S && (0..3).all(|i| p0[i].0[l].is_finite()) {
+                for i in 0..3 {
+                    p[i].0[l] = p0[i].0[l];
+                }
+            }
+        }
+    }
+    let mut refresh = [true; L];
+    let mut last = [f64::INFINITY; L];
+    let mut iterations = [0u32; L];
+    let mut converged = [false; L];
+    let mut inv: M3<L> = [[V::splat(0.0); 3]; 3];
+    let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
+    let exp = sys.chart == Chart::Exp;
+    while active.iter().any(|&a| a) {
+        let hess = (0..L).any(|l| active[l] && refresh[l]);
+        for i in 0..3 {
+            pl[i] = p[i].0;
+        }
+        if hess {
+            evaluate::<N, L, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        } else {
+            evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        }
+        let (x, h) = gradient_and_hessian(&jet);
+        let (tar, s, jac) = so3_chart_lanes(sys.chart, -1.0, &x, &p, hess.then_some(&h));
+        let fresh = jac.map(|j| inverse3_lanes(&j));
+        let mut go = [false; L];
+        for l in 0..L {
+            if !active[l] {
+                continue;
+            }
+            let finite = jet.v[l].is_finite()
+                && (0..3).all(|i| x[i].0[l].is_finite())
+                && (!refresh[l] || h.iter().flatten().all(|v| v.0[l].is_finite()));
+            let failure = if !finite {
+                Some(StepFailure::NonFinite)
+            } else if exp && s.0[l] >= max_s {
+                Some(StepFailure::ChartSingular)
+            } else if iterations[l] >= sys.max_iter {
+                Some(StepFailure::NotConverged)
+            } else if let (true, Some((fi, det))) = (refresh[l], &fresh) {
+                let ok = det.0[l] != 0.0
+                    && det.0[l].is_finite()
+                    && fi.iter().flatten().all(|v| v.0[l].is_finite());
+                if ok {
+                    for r in 0..3 {
+                        for c in 0..3 {
+                            inv[r][c].0[l] = fi[r][c].0[l];
+                        }
+                    }
+                    None
+                } else {
+                    Some(StepFailure::SingularJacobian)
+                }
+            } else {
+                None
+            };
+            match failure {
+                Some(e) => {
+                    results[l] = Err(e);
+                    active[l] = false;
+                }
+                None => go[l] = true,
+            }
+        }
+        // δ = J⁻¹ (μ − tar), each component summed in column order (Inverse::apply).
+        let f = v3(|i| target[i] - tar[i]);
+        let delta = v3(|r| inv[r][0] * f[0] + inv[r][1] * f[1] + inv[r][2] * f[2]);
+        for l in 0..L {
+            if !go[l] {
+                continue;
+            }
+            if !(0..3).all(|i| delta[i].0[l].is_finite()) {
+                results[l] = Err(StepFailure::SingularJacobian);
+                active[l] = false;
+                continue;
+            }
+            let (mut size, mut pmax) = (0.0f64, 0.0f64);
+            for i in 0..3 {
+                p[i].0[l] += delta[i].0[l];
+                size = size.max(delta[i].0[l].abs());
+                pmax = pmax.max(p[i].0[l].abs());
+            }
+            iterations[l] += 1;
+            if size <= sys.tol * pmax.max(1e-300) {
+                converged[l] = true;
+                active[l] = false;
+            } else {
+                refresh[l] = size > SIMPLIFIED_RATE * last[l];
+                last[l] = size;
+            }
+        }
+    }
+    if !converged.iter().any(|&c| c) {
+        return;
+    }
+    // μ' = sou(∇S(p), p) at the converged p; the residual of the solved equation.
+    for i in 0..3 {
+        pl[i] = p[i].0;
+    }
+    evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+    let (x, _) = gradient_and_hessian(&jet);
+    let (tar, s, _) = so3_chart_lanes(sys.chart, -1.0, &x, &p, None);
+    let (sou, _, _) = so3_chart_lanes(sys.chart, 1.0, &x, &p, None);
+    for l in (0..n).filter(|&l| converged[l]) {
+        results[l] = if !(jet.v[l].is_finite() && (0..3).all(|i| x[i].0[l].is_finite())) {
+            Err(StepFailure::NonFinite)
+        } else if exp && s.0[l] >= max_s {
+            Err(StepFailure::ChartSingular)
+        } else if !(0..3).all(|i| sou[i].0[l].is_finite()) {
+            Err(StepFailure::NonFinite)
+        } else {
+            let residual = (0..3).fold(0.0f64, |m, i| m.max((tar[i].0[l] - target[i].0[l]).abs()));
+            for i in 0..3 {
+                mu[l][i] = sou[i].0[l];
+            }
+            Ok(StepStats {
+                iterations: iterations[l],
+                residual,
+            })
+        };
+    }
+}
+
+/// [`so3_block`] over a chunk: blocks of [`LANES`] trajectories, or one trajectory at a time
+/// (L = 1, the same bits) where a block has at most [`SCALAR_AT_MOST`] live ones.
+#[inline(always)]
+fn so3_chunk<const N: usize>(
+    sys: &So3Newton<'_, N>,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    for ((m, lv), r) in mu
+        .chunks_mut(LANES)
+        .zip(live.chunks(LANES))
+        .zip(results.chunks_mut(LANES))
+    {
+        if lv.iter().filter(|&&l| l).count() <= SCALAR_AT_MOST {
+            for j in (0..m.len()).filter(|&j| lv[j]) {
+                so3_one(sys, t, &mut m[j], &mut r[j]);
+            }
+        } else {
+            so3_block::<N, LANES>(sys, t, m, lv, r);
+        }
+    }
+}
+
+/// One trajectory: [`so3_block`] with one lane, compiled on its own (scalar code gains nothing
+/// from the block's vector registers, and a separate function keeps its registers to itself).
+#[inline(never)]
+fn so3_one<const N: usize>(
+    sys: &So3Newton<'_, N>,
+    t: f64,
+    mu: &mut [f64; N],
+    result: &mut StepResult,
+) {
+    so3_block::<N, 1>(
+        sys,
+        t,
+        std::slice::from_mut(mu),
+        &[true],
+        std::slice::from_mut(result),
+    );
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn so3_chunk_avx2<const N: usize>(
+    sys: &So3Newton<'_, N>,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    so3_chunk(sys, t, mu, live, results);
+}
+
+/// One simplified-Newton bisection step of every `mu[j]` with `live[j]` (N must be 3), the
+/// Newton solves and the chart in lanes compiled for `isa`; `results[j]` as
+/// [`crate::stepper::StepMap::step`] reports it. Lane j's bits depend neither on the other
+/// lanes, nor on the block size, nor on `isa`.
+pub(crate) fn so3_newton_steps<const N: usize>(
+    sys: &So3Newton<'_, N>,
+    isa: Isa,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    assert!(
+        N == 3 && live.len() == mu.len() && results.len() == mu.len(),
+        "so(3) lanes need N = 3 and one flag and result per state"
+    );
+    match isa {
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 => {
+            // SAFETY: `Isa::Avx2` is only chosen where the CPU runs AVX2 and FMA.
+            unsafe { so3_chunk_avx2(sys, t, mu, live, results) }
+        }
+        _ => so3_chunk(sys, t, mu, live, results),
+    }
 }

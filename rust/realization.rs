@@ -10,13 +10,13 @@
 //! [`crate::stepper::BisectionStepper`] with full Newton on one trajectory, so the two are
 //! bit-identical there (tested).
 
-use nalgebra::{Const, DimMin, SMatrix, SVector};
+use nalgebra::{Const, DimMin};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, Workspace};
-use crate::groupoid::Groupoid;
-use crate::stepper::{NewtonOptions, StepMap, StepResult, StepStats};
+use crate::groupoid::{Chart, Groupoid};
+use crate::stepper::{Inverse, NewtonOptions, StepMap, StepResult, StepStats};
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
 /// p base): sou is the Poisson map (β), tar the anti-Poisson one (α), and sou(0, p) = tar(0, p)
@@ -24,6 +24,12 @@ use crate::stepper::{NewtonOptions, StepMap, StepResult, StepStats};
 pub trait Realization<const N: usize>: Sync {
     fn sou<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure>;
     fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure>;
+    /// The so(3) chart this realization is, if it is one: the stepper then solves a
+    /// polynomial S's Newton systems with the chart's closed-form Jacobian in SIMD lanes
+    /// ([`crate::lanes_bisection`]).
+    fn so3_chart(&self) -> Option<Chart> {
+        None
+    }
 }
 
 impl<const N: usize> Realization<N> for Groupoid<N> {
@@ -34,6 +40,9 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
     #[inline]
     fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
         Groupoid::tar(self, x, p)
+    }
+    fn so3_chart(&self) -> Option<Chart> {
+        (N == 3 && self.algebra.is_so3()).then_some(self.chart)
     }
 }
 
@@ -99,15 +108,13 @@ where
         let x: [Dual1<N>; N] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
         let pd: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(p[i], i));
         let t = self.realization.tar(&x, &pd)?;
-        let jacobian = SMatrix::<f64, N, N>::from_fn(|r, c| t[r].g[c]);
         if *iterations >= self.newton.max_iter {
             return Err(StepFailure::NotConverged);
         }
-        let f = SVector::<f64, N>::from_fn(|i, _| target[i] - t[i].v);
-        let delta = jacobian
-            .lu()
-            .solve(&f)
-            .ok_or(StepFailure::SingularJacobian)?;
+        // The stepper's explicit inverse (the same numbers as BisectionStepper's updates).
+        let inv = Inverse::new(&t.map(|ti| ti.g))?;
+        let f: [f64; N] = std::array::from_fn(|i| target[i] - t[i].v);
+        let delta = inv.apply(&f);
         if !delta.iter().all(|d| d.is_finite()) {
             return Err(StepFailure::SingularJacobian);
         }
@@ -115,7 +122,7 @@ where
             *pi += d;
         }
         *iterations += 1;
-        Ok(delta.amax() <= self.newton.tol * max_abs(p).max(self.scale_floor))
+        Ok(max_abs(&delta) <= self.newton.tol * max_abs(p).max(self.scale_floor))
     }
 }
 

@@ -1,14 +1,17 @@
 //! One step of a bisection integrator: solve tar(∂S/∂p(h,p), p) = μ for p by Newton, then
 //! μ' = sou(∂S/∂p(h,p), p). Generic over the dimension N and over the realization that gives
 //! sou and tar ([`Realization`]: the Lie-algebra groupoid by default, or the log-canonical one);
-//! the Newton Jacobian is an N×N nalgebra matrix on the stack.
+//! the Newton Jacobian is inverted once per refresh (closed form for N = 3, nalgebra's LU
+//! otherwise), so every update, simplified or not, is one matrix–vector product.
 
-use nalgebra::{linalg::LU, Const, DimMin, SMatrix, SVector};
+use nalgebra::{Const, DimMin, SMatrix};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Mlp, Workspace, MAX_BATCH};
 use crate::groupoid::Groupoid;
+use crate::lanes::Isa;
+use crate::lanes_bisection::{so3_newton_steps, So3Newton};
 use crate::realization::Realization;
 
 /// Newton settings. The defaults converge to round-off, so the Casimir is kept to round-off.
@@ -27,6 +30,10 @@ pub struct NewtonOptions {
     /// Newton to the tolerance.
     pub simplified: bool,
 }
+
+/// Whether the so(3) lane solver starts from the explicit predictor (see
+/// [`crate::lanes_bisection::So3Newton::predict`]).
+const PREDICT: bool = true;
 
 /// Slowest contraction |δₖ| / |δₖ₋₁| simplified Newton accepts before it refreshes the Jacobian.
 pub const SIMPLIFIED_RATE: f64 = 0.25;
@@ -159,17 +166,142 @@ pub fn batch_size(mlp: Option<&Mlp>) -> usize {
     }
 }
 
-/// The Newton Jacobian of an N-dimensional step.
-type Jacobian<const N: usize> = SMatrix<f64, N, N>;
+/// The explicit inverse of a Newton Jacobian, kept between updates: simplified Newton reuses
+/// it, and every update is a matrix–vector product instead of a triangular solve.
+///
+/// The Jacobians here are near the identity (I + O(h)), where δ = J⁻¹ f is as accurate as an LU
+/// solve (tested against nalgebra's on random well- and ill-conditioned matrices), and a 3×3
+/// cofactor inverse costs about what one LU factorisation did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Inverse<const N: usize>(pub [[f64; N]; N]);
 
-/// Its LU factorisation, kept between updates: simplified Newton solves with it again without
-/// refactoring (the same bits as refactoring the same matrix).
-type Factors<const N: usize> = LU<f64, Const<N>, Const<N>>;
+/// The inverse of a 3×3 matrix by cofactors (adjugate over the determinant); None where the
+/// determinant is 0 or not finite, or an entry of the inverse is not finite.
+#[inline(always)]
+pub fn inverse3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let c00 = m[1][1] * m[2][2] - m[1][2] * m[2][1];
+    let c01 = m[1][2] * m[2][0] - m[1][0] * m[2][2];
+    let c02 = m[1][0] * m[2][1] - m[1][1] * m[2][0];
+    let det = m[0][0] * c00 + m[0][1] * c01 + m[0][2] * c02;
+    if det == 0.0 || !det.is_finite() {
+        return None;
+    }
+    let r = 1.0 / det;
+    let inv = [
+        [
+            c00 * r,
+            (m[0][2] * m[2][1] - m[0][1] * m[2][2]) * r,
+            (m[0][1] * m[1][2] - m[0][2] * m[1][1]) * r,
+        ],
+        [
+            c01 * r,
+            (m[0][0] * m[2][2] - m[0][2] * m[2][0]) * r,
+            (m[0][2] * m[1][0] - m[0][0] * m[1][2]) * r,
+        ],
+        [
+            c02 * r,
+            (m[0][1] * m[2][0] - m[0][0] * m[2][1]) * r,
+            (m[0][0] * m[1][1] - m[0][1] * m[1][0]) * r,
+        ],
+    ];
+    inv.iter().flatten().all(|v| v.is_finite()).then_some(inv)
+}
+
+impl<const N: usize> Inverse<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    /// The inverse of `j` (row-major), or [`StepFailure::SingularJacobian`] where `j` is
+    /// singular or the inverse is not finite. N = 3 takes the cofactor formula, other N
+    /// nalgebra's LU with partial pivoting.
+    #[inline]
+    pub fn new(j: &[[f64; N]; N]) -> Result<Self, StepFailure> {
+        let mut out = [[0.0; N]; N];
+        if N == 3 {
+            let m: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| j[r][c]));
+            let inv = inverse3(&m).ok_or(StepFailure::SingularJacobian)?;
+            for (o, i) in out.iter_mut().zip(&inv) {
+                o.copy_from_slice(i);
+            }
+            return Ok(Inverse(out));
+        }
+        let inv = SMatrix::<f64, N, N>::from_fn(|r, c| j[r][c])
+            .lu()
+            .try_inverse()
+            .ok_or(StepFailure::SingularJacobian)?;
+        for (r, o) in out.iter_mut().enumerate() {
+            for (c, v) in o.iter_mut().enumerate() {
+                *v = inv[(r, c)];
+            }
+        }
+        if !out.iter().flatten().all(|v| v.is_finite()) {
+            return Err(StepFailure::SingularJacobian);
+        }
+        Ok(Inverse(out))
+    }
+}
+
+impl<const N: usize> Inverse<N> {
+    /// J⁻¹ f, each component summed in column order.
+    #[inline(always)]
+    pub fn apply(&self, f: &[f64; N]) -> [f64; N] {
+        std::array::from_fn(|r| {
+            let row = &self.0[r];
+            let mut s = row[0] * f[0];
+            for c in 1..N {
+                s += row[c] * f[c];
+            }
+            s
+        })
+    }
+}
 
 impl<const N: usize, R: Realization<N>> BisectionStepper<N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
+    /// The lane solver, where it applies: a polynomial S (no MLP) on an so(3) chart with
+    /// simplified Newton. Full Newton keeps the generic dual-number path, bit-identical to
+    /// [`crate::realization::RealizationStepper`].
+    fn so3_lanes(&self) -> Option<So3Newton<'_, N>> {
+        if N != 3 || !self.newton.simplified || self.generating.mlp.is_some() {
+            return None;
+        }
+        Some(So3Newton {
+            poly: &self.generating.polynomial,
+            chart: self.groupoid.so3_chart()?,
+            tol: self.newton.tol,
+            max_iter: self.newton.max_iter,
+            predict: PREDICT,
+        })
+    }
+
+    /// [`StepMap::step`] by the generic path (dual-number Jacobian, explicit inverse), whatever
+    /// the realization and S: the reference the lane solver is tested against.
+    pub fn step_generic(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
+        let target = *mu;
+        let mut p = target;
+        let mut iterations = 0;
+        let mut factors = None;
+        let (mut refresh, mut last) = (true, f64::INFINITY);
+        loop {
+            let (converged, size) = if refresh {
+                let jet = self.generating.jet(h, &p, ws);
+                self.newton_update(&jet, &target, &mut p, &mut iterations, &mut factors)?
+            } else {
+                let g = self.generating.gradient(h, &p, ws);
+                self.simplified_update(&g, &target, &mut p, &mut iterations, &factors)?
+            };
+            if converged {
+                // x at the final p needs the gradient of S only, not its Hessian.
+                let g = self.generating.gradient(h, &p, ws);
+                return self.finish(&g, &target, &p, iterations, mu);
+            }
+            refresh = !self.newton.simplified || size > SIMPLIFIED_RATE * last;
+            last = size;
+        }
+    }
+
     /// One Newton update of p for tar(∂S/∂p(h,p), p) = μ from the jet of S at p, keeping its
     /// Jacobian's factors. Returns whether the update met the tolerance and |δ|∞.
     #[inline]
@@ -179,7 +311,7 @@ where
         target: &[f64; N],
         p: &mut [f64; N],
         iterations: &mut u32,
-        factors: &mut Option<Factors<N>>,
+        factors: &mut Option<Inverse<N>>,
     ) -> Result<(bool, f64), StepFailure> {
         if !jet.is_finite() {
             return Err(StepFailure::NonFinite);
@@ -189,8 +321,12 @@ where
         let x: [Dual1<N>; N] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
         let pd: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(p[i], i));
         let t = self.groupoid.tar(&x, &pd)?;
-        let lu = factors.insert(Jacobian::<N>::from_fn(|r, c| t[r].g[c]).lu());
-        self.update(&t.map(|ti| ti.v), lu, target, p, iterations)
+        // The cap is checked before the inverse, as before the LU factors.
+        if *iterations >= self.newton.max_iter {
+            return Err(StepFailure::NotConverged);
+        }
+        let inv = factors.insert(Inverse::new(&t.map(|ti| ti.g))?);
+        self.update(&t.map(|ti| ti.v), inv, target, p, iterations)
     }
 
     /// One simplified-Newton update of p from ∂S/∂p at p and a kept Jacobian.
@@ -202,15 +338,15 @@ where
         target: &[f64; N],
         p: &mut [f64; N],
         iterations: &mut u32,
-        factors: &Option<Factors<N>>,
+        factors: &Option<Inverse<N>>,
     ) -> Result<(bool, f64), StepFailure> {
         if !grad.is_finite() {
             return Err(StepFailure::NonFinite);
         }
-        // A simplified update always follows a full one, which kept the factors.
-        let lu = factors.as_ref().ok_or(StepFailure::SingularJacobian)?;
+        // A simplified update always follows a full one, which kept the inverse.
+        let inv = factors.as_ref().ok_or(StepFailure::SingularJacobian)?;
         let t = self.groupoid.tar(&grad.g, p)?;
-        self.update(&t, lu, target, p, iterations)
+        self.update(&t, inv, target, p, iterations)
     }
 
     /// p += δ with J δ = μ − tar(x, p), given tar(x, p) at the current p, unless the iteration
@@ -219,7 +355,7 @@ where
     fn update(
         &self,
         tar: &[f64; N],
-        lu: &Factors<N>,
+        inv: &Inverse<N>,
         target: &[f64; N],
         p: &mut [f64; N],
         iterations: &mut u32,
@@ -227,8 +363,8 @@ where
         if *iterations >= self.newton.max_iter {
             return Err(StepFailure::NotConverged);
         }
-        let f = SVector::<f64, N>::from_fn(|i, _| target[i] - tar[i]);
-        let delta = lu.solve(&f).ok_or(StepFailure::SingularJacobian)?;
+        let f: [f64; N] = std::array::from_fn(|i| target[i] - tar[i]);
+        let delta = inv.apply(&f);
         if !delta.iter().all(|d| d.is_finite()) {
             return Err(StepFailure::SingularJacobian);
         }
@@ -236,7 +372,7 @@ where
             *pi += d;
         }
         *iterations += 1;
-        let size = delta.amax();
+        let size = max_abs(&delta);
         Ok((size <= self.newton.tol * max_abs(p).max(1e-300), size))
     }
 
@@ -286,28 +422,23 @@ where
     /// One trajectory's Newton solve: the same updates as [`StepMap::step_batch`] (full Newton
     /// refreshes the Jacobian every update; simplified Newton keeps the first one's factors
     /// while the updates contract by [`SIMPLIFIED_RATE`] or better, needing ∂S/∂p only).
+    ///
+    /// A polynomial S on an so(3) chart with simplified Newton takes the lane solver with one
+    /// lane: the bits of its lane in any block of [`StepMap::step_batch`].
     fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
-        let target = *mu;
-        let mut p = target;
-        let mut iterations = 0;
-        let mut factors = None;
-        let (mut refresh, mut last) = (true, f64::INFINITY);
-        loop {
-            let (converged, size) = if refresh {
-                let jet = self.generating.jet(h, &p, ws);
-                self.newton_update(&jet, &target, &mut p, &mut iterations, &mut factors)?
-            } else {
-                let g = self.generating.gradient(h, &p, ws);
-                self.simplified_update(&g, &target, &mut p, &mut iterations, &factors)?
-            };
-            if converged {
-                // x at the final p needs the gradient of S only, not its Hessian.
-                let g = self.generating.gradient(h, &p, ws);
-                return self.finish(&g, &target, &p, iterations, mu);
-            }
-            refresh = !self.newton.simplified || size > SIMPLIFIED_RATE * last;
-            last = size;
+        if let Some(sys) = self.so3_lanes() {
+            let mut result = [Err(StepFailure::NotConverged)];
+            so3_newton_steps(
+                &sys,
+                Isa::detect(),
+                h,
+                std::slice::from_mut(mu),
+                &[true],
+                &mut result,
+            );
+            return result[0];
         }
+        self.step_generic(h, mu, ws)
     }
 
     fn batch(&self) -> usize {
@@ -325,6 +456,9 @@ where
         results: &mut [StepResult],
         ws: &mut Workspace<N>,
     ) {
+        if let Some(sys) = self.so3_lanes() {
+            return so3_newton_steps(&sys, Isa::detect(), h, mu, live, results);
+        }
         // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
         // small to fill the lanes takes the cheaper path (a rollout of one state, say).
         let few = self.generating.mlp.is_none() && live.iter().filter(|&&l| l).count() <= 2;
@@ -362,7 +496,7 @@ where
         assert!(n <= CAP && CAP <= MAX_BATCH, "batch of {n} trajectories");
         let mut p = [[0.0; N]; CAP];
         let mut iterations = [0u32; CAP];
-        let mut factors: [Option<Factors<N>>; CAP] = [None; CAP];
+        let mut factors: [Option<Inverse<N>>; CAP] = [None; CAP];
         // Whether the next update needs a fresh Jacobian, and the size of the last update.
         let mut refresh = [true; CAP];
         let mut last = [f64::INFINITY; CAP];

@@ -254,3 +254,95 @@ fn newton_failure_is_reported_by_step() {
         Err(StepFailure::NotConverged)
     );
 }
+
+/// The Newton update's explicit inverse against nalgebra's LU solve, on seeded random matrices:
+/// near the identity (as a step's Jacobian is), merely well conditioned, and ill conditioned
+/// (condition numbers up to ~1e10, built as U diag(σ) Vᵀ from rotations). The solution error is
+/// bounded by the conditioning, as an LU solve's is. N = 3 takes the cofactor formula, N = 4
+/// and 6 the LU-based inverse.
+#[test]
+fn explicit_inverse_solves_like_lu() {
+    use crate::stepper::{inverse3, Inverse};
+    use nalgebra::{Matrix3, SMatrix, SVector};
+    let mut rng = Rng::new(0x5EED_0017);
+    let rotation = |rng: &mut Rng| {
+        let a = rng.vec3(-1.0, 1.0);
+        let th = rng.range(0.0, std::f64::consts::PI);
+        nalgebra::Rotation3::new(nalgebra::Vector3::new(a[0], a[1], a[2]).normalize() * th)
+            .into_inner()
+    };
+    for k in 0..3000 {
+        let m: Matrix3<f64> = match k % 3 {
+            0 => Matrix3::identity() + Matrix3::from_fn(|_, _| rng.range(-0.3, 0.3)),
+            1 => Matrix3::from_fn(|_, _| rng.range(-2.0, 2.0)),
+            _ => {
+                let s = 10f64.powf(-rng.range(0.0, 10.0));
+                let d = Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, rng.range(s, 1.0), s));
+                rotation(&mut rng) * d * rotation(&mut rng).transpose() * rng.range(0.1, 10.0)
+            }
+        };
+        let f = SVector::<f64, 3>::from_fn(|_, _| rng.range(-1.0, 1.0));
+        let Some(reference) = m.lu().solve(&f) else {
+            continue;
+        };
+        let rows: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]));
+        let inv = Inverse::<3>::new(&rows).unwrap();
+        let delta = inv.apply(&[f[0], f[1], f[2]]);
+        let cond = m.norm() * m.try_inverse().unwrap().norm();
+        let err = (0..3).fold(0.0f64, |e, i| e.max((delta[i] - reference[i]).abs()));
+        let bound = 20.0 * f64::EPSILON * cond * reference.amax().max(f.amax() / m.norm());
+        assert!(err <= bound, "k = {k}: error {err:e}, bound {bound:e}");
+        assert_eq!(inverse3(&rows), Some(inv.0));
+    }
+    // Other N: nalgebra's LU inverse.
+    for _ in 0..200 {
+        let m = SMatrix::<f64, 6, 6>::identity()
+            + SMatrix::<f64, 6, 6>::from_fn(|_, _| rng.range(-0.2, 0.2));
+        let f = SVector::<f64, 6>::from_fn(|_, _| rng.range(-1.0, 1.0));
+        let rows: [[f64; 6]; 6] = std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]));
+        let delta = Inverse::<6>::new(&rows)
+            .unwrap()
+            .apply(&std::array::from_fn(|i| f[i]));
+        let reference = m.lu().solve(&f).unwrap();
+        for i in 0..6 {
+            assert!((delta[i] - reference[i]).abs() < 1e-14, "N = 6");
+        }
+    }
+}
+
+/// Singular, NaN and infinite Jacobians fail cleanly with SingularJacobian, never a panic.
+#[test]
+fn explicit_inverse_refuses_singular_and_non_finite_matrices() {
+    use crate::stepper::Inverse;
+    let singular = [[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.5, -1.0, 2.0]];
+    let zero = [[0.0; 3]; 3];
+    let mut nan = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    nan[1][2] = f64::NAN;
+    let mut inf = nan;
+    inf[1][2] = f64::INFINITY;
+    // Finite entries whose determinant underflows to 0.
+    let tiny = [[1e-120, 0.0, 0.0], [0.0, 1e-120, 0.0], [0.0, 0.0, 1e-120]];
+    for m in [singular, zero, nan, inf, tiny] {
+        assert_eq!(
+            Inverse::<3>::new(&m),
+            Err(StepFailure::SingularJacobian),
+            "{m:?}"
+        );
+    }
+    let singular4 = [
+        [1.0, 2.0, 0.0, 0.0],
+        [2.0, 4.0, 0.0, 0.0],
+        [0.0; 4],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    assert_eq!(
+        Inverse::<4>::new(&singular4),
+        Err(StepFailure::SingularJacobian)
+    );
+    let mut nan4 = [[0.0; 4]; 4];
+    for i in 0..4 {
+        nan4[i][i] = 1.0;
+    }
+    nan4[0][3] = f64::NAN;
+    assert_eq!(Inverse::<4>::new(&nan4), Err(StepFailure::SingularJacobian));
+}
