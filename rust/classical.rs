@@ -449,25 +449,7 @@ impl MoserVeselov {
         let th = 2.0 * h;
         let j: [[f64; 3]; 3] =
             std::array::from_fn(|r| std::array::from_fn(|k| 2.0 * a[r][k] - th * m[r] * y[k]));
-        // adj(J), row by row, and det J from its first column.
-        let adj = [
-            [
-                j[1][1] * j[2][2] - j[1][2] * j[2][1],
-                j[0][2] * j[2][1] - j[0][1] * j[2][2],
-                j[0][1] * j[1][2] - j[0][2] * j[1][1],
-            ],
-            [
-                j[1][2] * j[2][0] - j[1][0] * j[2][2],
-                j[0][0] * j[2][2] - j[0][2] * j[2][0],
-                j[0][2] * j[1][0] - j[0][0] * j[1][2],
-            ],
-            [
-                j[1][0] * j[2][1] - j[1][1] * j[2][0],
-                j[0][1] * j[2][0] - j[0][0] * j[2][1],
-                j[0][0] * j[1][1] - j[0][1] * j[1][0],
-            ],
-        ];
-        let det = j[0][0] * adj[0][0] + j[1][0] * adj[0][1] + j[2][0] * adj[0][2];
+        let (adj, det) = crate::stepper::adjugate3(&j);
         let scale = -1.0 / det;
         std::array::from_fn(|r| (adj[r][0] * g[0] + adj[r][1] * g[1] + adj[r][2] * g[2]) * scale)
     }

@@ -542,29 +542,9 @@ pub(crate) fn so3_chart_lanes<const L: usize>(
 /// the determinant.
 #[inline(always)]
 fn inverse3_lanes<const L: usize>(m: &M3<L>) -> (M3<L>, V<L>) {
-    let c00 = m[1][1] * m[2][2] - m[1][2] * m[2][1];
-    let c01 = m[1][2] * m[2][0] - m[1][0] * m[2][2];
-    let c02 = m[1][0] * m[2][1] - m[1][1] * m[2][0];
-    let det = m[0][0] * c00 + m[0][1] * c01 + m[0][2] * c02;
+    let (adj, det) = crate::stepper::adjugate3(m);
     let r = V::splat(1.0).zip(det, |a, b| a / b);
-    let inv = [
-        [
-            c00 * r,
-            (m[0][2] * m[2][1] - m[0][1] * m[2][2]) * r,
-            (m[0][1] * m[1][2] - m[0][2] * m[1][1]) * r,
-        ],
-        [
-            c01 * r,
-            (m[0][0] * m[2][2] - m[0][2] * m[2][0]) * r,
-            (m[0][2] * m[1][0] - m[0][0] * m[1][2]) * r,
-        ],
-        [
-            c02 * r,
-            (m[0][1] * m[2][0] - m[0][0] * m[2][1]) * r,
-            (m[0][0] * m[1][1] - m[0][1] * m[1][0]) * r,
-        ],
-    ];
-    (inv, det)
+    (adj.map(|row| row.map(|v| v * r)), det)
 }
 
 /// Largest |x₀|² at which the Newton predictor is used (see [`So3Newton::predict`]).

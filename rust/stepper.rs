@@ -175,35 +175,49 @@ pub fn batch_size(mlp: Option<&Mlp>) -> usize {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Inverse<const N: usize>(pub [[f64; N]; N]);
 
-/// The inverse of a 3×3 matrix by cofactors (adjugate over the determinant); None where the
-/// determinant is 0 or not finite, or an entry of the inverse is not finite.
+/// The adjugate of a 3×3 matrix (its transposed cofactors) and its determinant, expanded along
+/// the first row: straight-line code for one number (`f64`) or a SIMD block of lanes, the same
+/// operations either way, so every 3×3 solve of the package (the bisection Newton, DMV, their
+/// lanes) has one definition.
 #[inline(always)]
-pub fn inverse3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+pub fn adjugate3<T>(m: &[[T; 3]; 3]) -> ([[T; 3]; 3], T)
+where
+    T: Copy + std::ops::Add<Output = T> + std::ops::Sub<Output = T> + std::ops::Mul<Output = T>,
+{
     let c00 = m[1][1] * m[2][2] - m[1][2] * m[2][1];
     let c01 = m[1][2] * m[2][0] - m[1][0] * m[2][2];
     let c02 = m[1][0] * m[2][1] - m[1][1] * m[2][0];
     let det = m[0][0] * c00 + m[0][1] * c01 + m[0][2] * c02;
+    let adj = [
+        [
+            c00,
+            m[0][2] * m[2][1] - m[0][1] * m[2][2],
+            m[0][1] * m[1][2] - m[0][2] * m[1][1],
+        ],
+        [
+            c01,
+            m[0][0] * m[2][2] - m[0][2] * m[2][0],
+            m[0][2] * m[1][0] - m[0][0] * m[1][2],
+        ],
+        [
+            c02,
+            m[0][1] * m[2][0] - m[0][0] * m[2][1],
+            m[0][0] * m[1][1] - m[0][1] * m[1][0],
+        ],
+    ];
+    (adj, det)
+}
+
+/// The inverse of a 3×3 matrix by cofactors (adjugate over the determinant); None where the
+/// determinant is 0 or not finite, or an entry of the inverse is not finite.
+#[inline(always)]
+pub fn inverse3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let (adj, det) = adjugate3(m);
     if det == 0.0 || !det.is_finite() {
         return None;
     }
     let r = 1.0 / det;
-    let inv = [
-        [
-            c00 * r,
-            (m[0][2] * m[2][1] - m[0][1] * m[2][2]) * r,
-            (m[0][1] * m[1][2] - m[0][2] * m[1][1]) * r,
-        ],
-        [
-            c01 * r,
-            (m[0][0] * m[2][2] - m[0][2] * m[2][0]) * r,
-            (m[0][2] * m[1][0] - m[0][0] * m[1][2]) * r,
-        ],
-        [
-            c02 * r,
-            (m[0][1] * m[2][0] - m[0][0] * m[2][1]) * r,
-            (m[0][0] * m[1][1] - m[0][1] * m[1][0]) * r,
-        ],
-    ];
+    let inv = adj.map(|row| row.map(|v| v * r));
     inv.iter().flatten().all(|v| v.is_finite()).then_some(inv)
 }
 
