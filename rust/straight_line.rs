@@ -137,19 +137,31 @@ where
     }
 }
 
+/// A lane field evaluated at one state: its lane code with one lane, so the scalar path and
+/// every lane agree bit for bit.
+#[inline(always)]
+fn one_lane_field<const N: usize, F: LaneField<N>>(f: &F, mu: &[f64; N]) -> [f64; N] {
+    let mut out = [[0.0; 1]; N];
+    f.field_lanes(&mu.map(|v| [v]), &mut out);
+    out.map(|v| v[0])
+}
+
+/// A row-major array as an nalgebra matrix.
+#[inline(always)]
+fn matrix<const N: usize>(j: &[[f64; N]; N]) -> SMatrix<f64, N, N> {
+    SMatrix::from_fn(|r, c| j[r][c])
+}
+
 impl VectorField<3> for So3Quadratic {
     /// The lane code with one lane (the same bits).
     #[inline]
     fn field(&self, mu: &[f64; 3]) -> [f64; 3] {
-        let mut out = [[0.0; 1]; 3];
-        self.field_lanes(&mu.map(|v| [v]), &mut out);
-        out.map(|v| v[0])
+        one_lane_field(self, mu)
     }
 
     #[inline]
     fn jacobian(&self, mu: &[f64; 3]) -> SMatrix<f64, 3, 3> {
-        let j = self.jacobian_array(mu);
-        SMatrix::from_fn(|r, c| j[r][c])
+        matrix(&self.jacobian_array(mu))
     }
 
     fn midpoint_update(
@@ -357,15 +369,12 @@ impl VectorField<6> for Se3QuadraticLinear {
     /// The lane code with one lane (the same bits).
     #[inline]
     fn field(&self, mu: &[f64; 6]) -> [f64; 6] {
-        let mut out = [[0.0; 1]; 6];
-        self.field_lanes(&mu.map(|v| [v]), &mut out);
-        out.map(|v| v[0])
+        one_lane_field(self, mu)
     }
 
     #[inline]
     fn jacobian(&self, mu: &[f64; 6]) -> SMatrix<f64, 6, 6> {
-        let j = self.jacobian_array(mu);
-        SMatrix::from_fn(|r, c| j[r][c])
+        matrix(&self.jacobian_array(mu))
     }
 
     fn midpoint_update(
