@@ -44,7 +44,8 @@ pub const LANE_CHUNK: usize = 8 * LANES;
 pub trait LaneField<const N: usize>: Sync {
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
 
-    /// ∂f/∂μ at L states (`out[r][c][l]`), where the field has it in straight-line form; then
+    /// ∂f/∂μ at L states (`out[r][c][l]`), where the field provides it (in straight-line form, or
+    /// lane by lane from its scalar formula); then
     /// the implicit midpoint solves its Newton systems for all lanes at once
     /// ([`midpoint_update_lanes`]). The default has none and returns false.
     #[inline(always)]
@@ -147,6 +148,20 @@ impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
         CompiledLiePoisson::field_lanes(self, mu, out);
+    }
+
+    /// Each lane's exact Jacobian from the scalar sparse formula (it has no straight-line form
+    /// for an arbitrary algebra), so that the midpoint's solve runs lane-wide.
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        mu: &[[f64; L]; N],
+        out: &mut [[[f64; L]; N]; N],
+    ) -> bool {
+        crate::straight_line::jacobian_lanes_by(mu, out, |m| {
+            let j = VectorField::jacobian(self, m);
+            std::array::from_fn(|r| std::array::from_fn(|c| j[(r, c)]))
+        })
     }
 }
 

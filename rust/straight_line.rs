@@ -92,7 +92,7 @@ impl LaneField<3> for So3Quadratic {
 
 /// The Jacobian `jac` of each lane's state, stored lane-wise (`out[r][c][l]`).
 #[inline(always)]
-fn jacobian_lanes_by<const N: usize, const L: usize>(
+pub(crate) fn jacobian_lanes_by<const N: usize, const L: usize>(
     mu: &[[f64; L]; N],
     out: &mut [[[f64; L]; N]; N],
     jac: impl Fn(&[f64; N]) -> [[f64; N]; N],
@@ -111,7 +111,7 @@ fn jacobian_lanes_by<const N: usize, const L: usize>(
 /// The midpoint's Newton update of a pattern kernel: its lane-wide solve on one lane, or where
 /// that lane needs pivoting, the LU of the exact Jacobian (see [`midpoint_update_lanes`]).
 #[inline(always)]
-fn pattern_midpoint_update<const N: usize, F: LaneField<N> + VectorField<N>>(
+pub(crate) fn pattern_midpoint_update<const N: usize, F: LaneField<N> + VectorField<N>>(
     f: &F,
     half: f64,
     m: &[f64; N],

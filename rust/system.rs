@@ -518,6 +518,20 @@ impl<const N: usize> VectorField<N> for CompiledLiePoisson<N> {
         SMatrix::from_fn(|r, m| j[r][m])
     }
 
+    /// The lane-wide solve on one lane ([`crate::lanes::midpoint_update_lanes`]), so the
+    /// midpoint's scalar step and its lanes agree bit for bit.
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; N],
+        r: &[f64; N],
+    ) -> Result<[f64; N], StepFailure>
+    where
+        Const<N>: DimMin<Const<N>, Output = Const<N>>,
+    {
+        crate::straight_line::pattern_midpoint_update(self, half, m, r)
+    }
+
     fn step_rate(&self, mu: &[f64; N]) -> f64 {
         let a = self.rotation(&self.gradient(mu));
         lie_poisson_rate(&a, self.jacobian(mu).norm())
