@@ -44,10 +44,10 @@ pub const LANE_CHUNK: usize = 8 * LANES;
 pub trait LaneField<const N: usize>: Sync {
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
 
-    /// ∂f/∂μ at L states (`out[r][c][l]`), where the field provides it (in straight-line form, or
-    /// lane by lane from its scalar formula); then
-    /// the implicit midpoint solves its Newton systems for all lanes at once
-    /// ([`midpoint_update_lanes`]). The default has none and returns false.
+    /// ∂f/∂μ at L states (`out[r][c][l]`), where the field provides it (in straight-line form,
+    /// or lane by lane from its scalar formula); then the implicit midpoint solves its Newton
+    /// systems for all lanes at once ([`midpoint_update_lanes`]). The default has none and
+    /// returns false.
     #[inline(always)]
     fn jacobian_lanes<const L: usize>(
         &self,
