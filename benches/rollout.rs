@@ -338,7 +338,7 @@ fn bench_classical(c: &mut Criterion) {
     }
     fn group<const N: usize, F>(c: &mut Criterion, name: &str, field: F, mu0: Vec<[f64; N]>)
     where
-        F: poisson_rs::VectorField<N> + Clone,
+        F: poisson_rs::VectorField<N> + poisson_rs::lanes::MidpointSolve<N> + Clone,
         Rk4<F>: poisson_rs::lanes::LaneStepper<N>,
         ImplicitMidpoint<F>: poisson_rs::lanes::LaneStepper<N>,
         nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,

@@ -24,6 +24,7 @@
 use nalgebra::{Const, DimMin, Matrix3, SMatrix, SVector};
 
 use crate::error::{CoreError, StepFailure};
+use crate::lanes::MidpointSolve;
 use crate::rollout::{rollout, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepMap, StepStats};
 use crate::straight_line::LieField;
@@ -138,17 +139,6 @@ impl VectorField<3> for RigidBody {
         self.pattern().jacobian(mu)
     }
 
-    /// The pattern kernel's lane-wide solve on one lane: the midpoint's scalar step and its
-    /// lanes agree bit for bit.
-    fn midpoint_update(
-        &self,
-        half: f64,
-        m: &[f64; 3],
-        r: &[f64; 3],
-    ) -> Result<[f64; 3], StepFailure> {
-        self.pattern().midpoint_update(half, m, r)
-    }
-
     /// max(|ω|, ‖J‖_F): ‖ad_ω‖₂ = |ω| in closed form (see [`crate::system::lie_poisson_rate`]).
     fn step_rate(&self, mu: &[f64; 3]) -> f64 {
         let w = self.velocity(mu);
@@ -232,7 +222,7 @@ pub struct ImplicitMidpoint<F> {
     pub newton: NewtonOptions,
 }
 
-impl<const N: usize, F: VectorField<N>> StepMap<N> for ImplicitMidpoint<F>
+impl<const N: usize, F: VectorField<N> + MidpointSolve<N>> StepMap<N> for ImplicitMidpoint<F>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {

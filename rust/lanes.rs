@@ -20,9 +20,9 @@
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use nalgebra::{Const, DimMin};
+use nalgebra::{Const, DimMin, SMatrix};
 
-use crate::classical::{max_abs, ImplicitMidpoint, RigidBody, Rk4};
+use crate::classical::{max_abs, newton_update, ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepResult, StepStats};
@@ -64,7 +64,7 @@ pub trait LaneField<const N: usize>: Sync {
 /// matrix is strictly diagonally dominant by rows (then no pivot vanishes and none is needed:
 /// the Schur complements stay dominant) and δ is finite. The other lanes take the LU with
 /// pivoting one by one. The scalar step of such a field runs this with L = 1
-/// ([`VectorField::midpoint_update`]), so a lane's choice and bits are its scalar step's.
+/// ([`MidpointSolve`]), so a lane's choice and bits are its scalar step's.
 #[inline(always)]
 pub fn midpoint_update_lanes<const N: usize, const L: usize, F: LaneField<N>>(
     f: &F,
@@ -142,6 +142,50 @@ pub fn midpoint_update_lanes<const N: usize, const L: usize, F: LaneField<N>>(
         solved[l] = ok[l] && (0..N).all(|i| delta[i][l].is_finite());
     }
     true
+}
+
+/// The implicit midpoint's Newton update at the midpoint `m` with residual `r`: δ solving
+/// (I − half ∂f/∂μ(m)) δ = −r. Every lane field has it: [`midpoint_update_lanes`] on one lane,
+/// or where that lane needs pivoting (or the field has no lane-wide Jacobian) the LU of the
+/// exact Jacobian, so the scalar step takes each lane's choice and bits.
+pub trait MidpointSolve<const N: usize> {
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; N],
+        r: &[f64; N],
+    ) -> Result<[f64; N], StepFailure>
+    where
+        Const<N>: DimMin<Const<N>, Output = Const<N>>;
+}
+
+impl<const N: usize, F: LaneField<N> + VectorField<N>> MidpointSolve<N> for F {
+    #[inline(always)]
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; N],
+        r: &[f64; N],
+    ) -> Result<[f64; N], StepFailure>
+    where
+        Const<N>: DimMin<Const<N>, Output = Const<N>>,
+    {
+        let mut delta = [[0.0; 1]; N];
+        let mut solved = [false];
+        midpoint_update_lanes(
+            self,
+            half,
+            &m.map(|v| [v]),
+            &r.map(|v| [v]),
+            &mut delta,
+            &mut solved,
+        );
+        if solved[0] {
+            Ok(delta.map(|v| v[0]))
+        } else {
+            newton_update(SMatrix::identity() - half * self.jacobian(m), r)
+        }
+    }
 }
 
 impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {

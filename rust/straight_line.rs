@@ -29,10 +29,9 @@
 
 use nalgebra::{Const, DimMin, SMatrix};
 
-use crate::classical::newton_update;
 use crate::error::StepFailure;
 use crate::groupoid::LieAlgebra;
-use crate::lanes::{midpoint_update_lanes, LaneField};
+use crate::lanes::{LaneField, MidpointSolve};
 use crate::system::{lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField};
 
 /// μ × (a∘μ) at L states: the rigid body's kernel (a = 1/I), 12 flops a lane.
@@ -108,35 +107,6 @@ pub(crate) fn jacobian_lanes_by<const N: usize, const L: usize>(
     true
 }
 
-/// The midpoint's Newton update of a pattern kernel: its lane-wide solve on one lane, or where
-/// that lane needs pivoting, the LU of the exact Jacobian (see [`midpoint_update_lanes`]).
-#[inline(always)]
-pub(crate) fn pattern_midpoint_update<const N: usize, F: LaneField<N> + VectorField<N>>(
-    f: &F,
-    half: f64,
-    m: &[f64; N],
-    r: &[f64; N],
-) -> Result<[f64; N], StepFailure>
-where
-    Const<N>: DimMin<Const<N>, Output = Const<N>>,
-{
-    let mut delta = [[0.0; 1]; N];
-    let mut solved = [false];
-    midpoint_update_lanes(
-        f,
-        half,
-        &m.map(|v| [v]),
-        &r.map(|v| [v]),
-        &mut delta,
-        &mut solved,
-    );
-    if solved[0] {
-        Ok(delta.map(|v| v[0]))
-    } else {
-        newton_update(SMatrix::identity() - half * f.jacobian(m), r)
-    }
-}
-
 /// A lane field evaluated at one state: its lane code with one lane, so the scalar path and
 /// every lane agree bit for bit.
 #[inline(always)]
@@ -162,15 +132,6 @@ impl VectorField<3> for So3Quadratic {
     #[inline]
     fn jacobian(&self, mu: &[f64; 3]) -> SMatrix<f64, 3, 3> {
         matrix(&self.jacobian_array(mu))
-    }
-
-    fn midpoint_update(
-        &self,
-        half: f64,
-        m: &[f64; 3],
-        r: &[f64; 3],
-    ) -> Result<[f64; 3], StepFailure> {
-        pattern_midpoint_update(self, half, m, r)
     }
 
     /// A = `−[ω]×`, ω = a∘μ (see [`lie_poisson_rate`]).
@@ -377,15 +338,6 @@ impl VectorField<6> for Se3QuadraticLinear {
         matrix(&self.jacobian_array(mu))
     }
 
-    fn midpoint_update(
-        &self,
-        half: f64,
-        m: &[f64; 6],
-        r: &[f64; 6],
-    ) -> Result<[f64; 6], StepFailure> {
-        pattern_midpoint_update(self, half, m, r)
-    }
-
     /// A = ad_{∇H}ᵀ = `[[−[Ω]×, −[b]×], [0, −[Ω]×]]` (see [`lie_poisson_rate`]).
     fn step_rate(&self, mu: &[f64; 6]) -> f64 {
         let w = [mu[0] * self.a[0], mu[1] * self.a[1], mu[2] * self.a[2]];
@@ -539,7 +491,18 @@ impl<const N: usize> VectorField<N> for LieField<N> {
         }
     }
 
-    /// The variant's own update: the pattern kernels solve as their lanes do.
+    fn step_rate(&self, mu: &[f64; N]) -> f64 {
+        match self {
+            LieField::Compiled(f) => f.step_rate(mu),
+            LieField::So3(f) => sized::<_, N, 3>(mu).map_or(f64::NAN, |m| f.step_rate(m)),
+            LieField::Se3(f) => sized::<_, N, 6>(mu).map_or(f64::NAN, |m| f.step_rate(m)),
+        }
+    }
+}
+
+/// The variant's own midpoint solve ([`LieField`] is matched here, not inside the solve).
+impl<const N: usize> MidpointSolve<N> for LieField<N> {
+    /// The variant's own update, as its lanes solve.
     fn midpoint_update(
         &self,
         half: f64,
@@ -554,25 +517,15 @@ impl<const N: usize> VectorField<N> for LieField<N> {
         match self {
             LieField::Compiled(f) => f.midpoint_update(half, m, r),
             LieField::So3(f) => match (sized::<_, N, 3>(m), sized::<_, N, 3>(r)) {
-                (Some(m), Some(r)) => f
-                    .midpoint_update(half, m, r)
+                (Some(m), Some(r)) => MidpointSolve::<3>::midpoint_update(f, half, m, r)
                     .and_then(|d| sized::<_, 3, N>(&d).copied().ok_or(StepFailure::NonFinite)),
                 _ => wrong,
             },
             LieField::Se3(f) => match (sized::<_, N, 6>(m), sized::<_, N, 6>(r)) {
-                (Some(m), Some(r)) => f
-                    .midpoint_update(half, m, r)
+                (Some(m), Some(r)) => MidpointSolve::<6>::midpoint_update(f, half, m, r)
                     .and_then(|d| sized::<_, 6, N>(&d).copied().ok_or(StepFailure::NonFinite)),
                 _ => wrong,
             },
-        }
-    }
-
-    fn step_rate(&self, mu: &[f64; N]) -> f64 {
-        match self {
-            LieField::Compiled(f) => f.step_rate(mu),
-            LieField::So3(f) => sized::<_, N, 3>(mu).map_or(f64::NAN, |m| f.step_rate(m)),
-            LieField::Se3(f) => sized::<_, N, 6>(mu).map_or(f64::NAN, |m| f.step_rate(m)),
         }
     }
 }

@@ -5,10 +5,10 @@
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use nalgebra::{Const, DimMin, SMatrix};
+use nalgebra::SMatrix;
 
 use crate::dual::{Dual1, Scalar};
-use crate::error::{CoreError, StepFailure};
+use crate::error::CoreError;
 use crate::groupoid::LieAlgebra;
 
 /// Largest exponent a Hamiltonian monomial may carry.
@@ -93,23 +93,6 @@ pub trait VectorField<const N: usize>: Sync {
     /// [`lie_poisson_rate`]).
     fn step_rate(&self, mu: &[f64; N]) -> f64 {
         self.jacobian(mu).norm()
-    }
-
-    /// The implicit midpoint's Newton update at the midpoint `m` with residual `r`: δ solving
-    /// (I − half ∂f/∂μ(m)) δ = −r. The default factors the exact Jacobian by LU with partial
-    /// pivoting. A field with a lane-wide solve ([`crate::lanes::midpoint_update_lanes`])
-    /// overrides it with that solve on one lane, so its scalar step and its lanes agree bit for
-    /// bit.
-    fn midpoint_update(
-        &self,
-        half: f64,
-        m: &[f64; N],
-        r: &[f64; N],
-    ) -> Result<[f64; N], StepFailure>
-    where
-        Const<N>: DimMin<Const<N>, Output = Const<N>>,
-    {
-        crate::classical::newton_update(SMatrix::identity() - half * self.jacobian(m), r)
     }
 }
 
@@ -516,20 +499,6 @@ impl<const N: usize> VectorField<N> for CompiledLiePoisson<N> {
             }
         }
         SMatrix::from_fn(|r, m| j[r][m])
-    }
-
-    /// The lane-wide solve on one lane ([`crate::lanes::midpoint_update_lanes`]), so the
-    /// midpoint's scalar step and its lanes agree bit for bit.
-    fn midpoint_update(
-        &self,
-        half: f64,
-        m: &[f64; N],
-        r: &[f64; N],
-    ) -> Result<[f64; N], StepFailure>
-    where
-        Const<N>: DimMin<Const<N>, Output = Const<N>>,
-    {
-        crate::straight_line::pattern_midpoint_update(self, half, m, r)
     }
 
     fn step_rate(&self, mu: &[f64; N]) -> f64 {

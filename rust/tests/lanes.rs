@@ -299,7 +299,7 @@ fn check_midpoint_lanes_equal_scalar<const N: usize, F>(
     newton: NewtonOptions,
 ) -> Vec<TrajectoryInfo>
 where
-    F: VectorField<N> + Clone,
+    F: VectorField<N> + crate::lanes::MidpointSolve<N> + Clone,
     ImplicitMidpoint<F>: LaneStepper<N>,
     nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
 {
@@ -719,7 +719,7 @@ fn systems_off_the_pattern_keep_the_compiled_field() {
 #[test]
 fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
     use crate::classical::newton_update;
-    use crate::lanes::midpoint_update_lanes;
+    use crate::lanes::{midpoint_update_lanes, MidpointSolve};
     let mut rng = Rng::new(41);
     let (mut wide, mut pivoted) = (0, 0);
     for _ in 0..40 {
