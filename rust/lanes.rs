@@ -236,7 +236,14 @@ pub trait LaneStepper<const N: usize>: Sync {
     /// residuals, failures) that the block loop must record after every step.
     const REPORTS: bool = false;
 
-    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]);
+    /// Advances every lane. An implementation defines this or
+    /// [`LaneStepper::step_lanes_reporting`] (each defaults to the other): the default runs
+    /// the reporting step with every lane live and drops the outcomes.
+    #[inline(always)]
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
+        let mut result = [Ok(StepStats::default()); L];
+        self.step_lanes_reporting(h, mu, &[true; L], &mut result);
+    }
 
     /// Advances the `live` lanes, writing each one's outcome into `result` (a lane that fails
     /// holds what the scalar step leaves in its state). Explicit steppers report success and
@@ -292,12 +299,6 @@ where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
     const REPORTS: bool = true;
-
-    #[inline(always)]
-    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
-        let mut result = [Ok(StepStats::default()); L];
-        self.step_lanes_reporting(h, mu, &[true; L], &mut result);
-    }
 
     #[inline(always)]
     fn step_lanes_reporting<const L: usize>(
@@ -453,12 +454,6 @@ where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
     const REPORTS: bool = true;
-
-    #[inline(always)]
-    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
-        let mut result = [Ok(StepStats::default()); L];
-        self.step_lanes_reporting(h, mu, &[true; L], &mut result);
-    }
 
     #[inline(always)]
     fn step_lanes_reporting<const L: usize>(

@@ -201,12 +201,6 @@ impl MoserVeselov {
 impl LaneStepper<3> for MoserVeselov {
     const REPORTS: bool = true;
 
-    #[inline(always)]
-    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
-        let mut result = [Ok(StepStats::default()); L];
-        self.step_lanes_reporting(h, mu, &[true; L], &mut result);
-    }
-
     /// The scalar [`MoserVeselov`] step lane by lane: each Newton update for the whole block,
     /// then each live lane's bookkeeping. A converged lane is frozen while the others iterate
     /// (its update computed and dropped); a failing one stops alone with the scalar path's
