@@ -276,7 +276,11 @@ impl PyModel {
         t: f64,
         p: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
-        with_dim!(self.inner.dim, N => self.derivatives_n::<N>(py, t, p), Err(dim_error(self.inner.dim)))
+        with_dim!(self.inner.dim, N => {
+            let p = states::<N>(&p, "p")?;
+            let g = self.inner.generating::<N>()?;
+            jets_at(py, &g, &g, t, &p)
+        }, Err(dim_error(self.inner.dim)))
     }
 
     /// S and ∂S/∂t at (t, p) for p of shape (n, N): arrays (n,), (n,).
@@ -302,45 +306,6 @@ impl PyModel {
 }
 
 impl PyModel {
-    fn derivatives_n<'py, const N: usize>(
-        &self,
-        py: Python<'py>,
-        t: f64,
-        p: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
-        let p = states::<N>(&p, "p")?;
-        let g = self.inner.generating::<N>()?;
-        let n = p.len();
-        // The outputs and the workspace (wide layers make it large) are counted, then
-        // allocated fallibly: a refusal is MemoryError, never an abort.
-        check_output_bytes(n.saturating_mul(1 + N + N * N), Workspace::bytes(&g))?;
-        let (s, grad, hess) = detached(py, || {
-            let mut ws = g.try_workspace()?;
-            let (mut s, mut grad, mut hess) = (
-                try_with_capacity(n, "the output S")?,
-                try_with_capacity(N * n, "the output dS/dp")?,
-                try_with_capacity(N * N * n, "the output d2S/dp2")?,
-            );
-            for q in &p {
-                let jet = g.jet(t, q, &mut ws);
-                s.push(jet.v);
-                grad.extend(jet.grad());
-                hess.extend(jet.hess().iter().flatten());
-            }
-            Ok((s, grad, hess))
-        })?;
-        let shape_err = |e: numpy::ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
-        Ok((
-            Array1::from_vec(s).into_pyarray(py),
-            Array2::from_shape_vec((n, N), grad)
-                .map_err(shape_err)?
-                .into_pyarray(py),
-            Array3::from_shape_vec((n, N, N), hess)
-                .map_err(shape_err)?
-                .into_pyarray(py),
-        ))
-    }
-
     fn time_derivative_n<'py, const N: usize>(
         &self,
         py: Python<'py>,
@@ -903,9 +868,10 @@ fn rollout_log_canonical<'py>(
     }, Err(dim_error(dim)))
 }
 
-/// S, ∇S and ∇²S at time t for each of `x`, for a learned S whose network part is `network`
-/// (its workspace sized and checked before the GIL is released): arrays (n,), (n, N), (n, N, N).
-fn learned_jets<'py, const N: usize, G: Generating<N, Workspace = Workspace<N>>>(
+/// S, ∇S and ∇²S at time t for each of `x`, for any S whose network part is `network` (its
+/// workspace and the outputs counted, then allocated fallibly, before the GIL is released: a
+/// refusal is MemoryError, never an abort): arrays (n,), (n, N), (n, N, N).
+fn jets_at<'py, const N: usize, G: Generating<N, Workspace = Workspace<N>>>(
     py: Python<'py>,
     g: &G,
     network: &crate::generating::GeneratingFunction<N>,
@@ -1016,7 +982,7 @@ impl PyLogModel {
         with_dim!(self.inner.dim, N => {
             let q = states::<N>(&q, "q")?;
             let g = self.inner.generating::<N>()?;
-            learned_jets(py, &g, &g.network, t, &q)
+            jets_at(py, &g, &g.network, t, &q)
         }, Err(dim_error(self.inner.dim)))
     }
 
@@ -1330,7 +1296,7 @@ impl PyLearnedPolynomialModel {
         with_dim!(self.inner.dim, N => {
             let x = states::<N>(&x, "x")?;
             let g = self.inner.generating::<N>()?;
-            learned_jets(py, &g, &g.network, t, &x)
+            jets_at(py, &g, &g.network, t, &x)
         }, Err(dim_error(self.inner.dim)))
     }
 
