@@ -10,7 +10,7 @@
 
 use crate::dual::{Dual1, Jet2, Scalar, Variable};
 use crate::error::CoreError;
-use crate::kernel;
+use crate::kernel::{self, madd};
 use crate::lanes::Isa;
 use crate::lanes_bisection;
 use crate::memory::{try_collect, try_filled};
@@ -432,15 +432,6 @@ pub fn tanh_fast(x: f64) -> f64 {
 #[inline(always)]
 pub fn tanh_fast_fma(x: f64) -> f64 {
     tanh_with::<true>(x)
-}
-
-#[inline(always)]
-fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
-    if FMA {
-        a.mul_add(b, c)
-    } else {
-        a * b + c
-    }
 }
 
 #[inline(always)]

@@ -45,8 +45,9 @@ pub fn try_pack(weight: &[f64], n_in: usize, n_out: usize) -> Result<Vec<f64>, C
     Ok(packed)
 }
 
+/// a·b + c: one fused multiply-add (a single rounding) when `FMA`, else a multiply and an add.
 #[inline(always)]
-fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
+pub(crate) fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
     if FMA {
         // A single instruction where the caller enables the `fma` target feature.
         a.mul_add(b, c)
