@@ -21,7 +21,6 @@ use crate::classical::{
 };
 use crate::error::CoreError;
 use crate::generating::Workspace;
-use crate::groupoid::LieAlgebra;
 use crate::lanes::Lanes;
 use crate::memory::try_with_capacity;
 use crate::model::{LogModel, Model, FORMAT};
@@ -29,7 +28,8 @@ use crate::realization::Generating;
 use crate::rollout::{n_records, ChunkKernel, PerStep, Rollout, TrajectoryInfo};
 use crate::stepper::{batch_size, NewtonOptions};
 use crate::straight_line::LieField;
-use crate::system::{self, Hamiltonian, LiePoisson, VectorField};
+use crate::structures::lie_groupoid::LieAlgebra;
+use crate::structures::lie_poisson::{self, Hamiltonian, LiePoisson, VectorField};
 use crate::{with_dim, MAX_DIM};
 
 impl From<CoreError> for PyErr {
@@ -596,9 +596,9 @@ fn angles_of<const N: usize, F: VectorField<N>>(
     if mu.len() > CHUNK && !FORKED.load(Ordering::SeqCst) {
         out.par_chunks_mut(CHUNK)
             .zip(mu.par_chunks(CHUNK))
-            .for_each(|(o, m)| system::step_angles(field, m, h, o));
+            .for_each(|(o, m)| lie_poisson::step_angles(field, m, h, o));
     } else {
-        system::step_angles(field, mu, h, out);
+        lie_poisson::step_angles(field, mu, h, out);
     }
 }
 

@@ -28,7 +28,7 @@ use crate::lanes::MidpointSolve;
 use crate::rollout::{rollout, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepMap, StepStats};
 use crate::straight_line::LieField;
-use crate::system::{LiePoisson, VectorField};
+use crate::structures::lie_poisson::{LiePoisson, VectorField};
 use crate::trig;
 
 /// A free rigid body: principal moments of inertia I (any order, all finite and > 0).
@@ -139,7 +139,7 @@ impl VectorField<3> for RigidBody {
         self.pattern().jacobian(mu)
     }
 
-    /// max(|ω|, ‖J‖_F): ‖ad_ω‖₂ = |ω| in closed form (see [`crate::system::lie_poisson_rate`]).
+    /// max(|ω|, ‖J‖_F): ‖ad_ω‖₂ = |ω| in closed form (see [`crate::structures::lie_poisson::lie_poisson_rate`]).
     fn step_rate(&self, mu: &[f64; 3]) -> f64 {
         let w = self.velocity(mu);
         let rotation = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();

@@ -27,7 +27,7 @@ use crate::error::StepFailure;
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
 use crate::stepper::{NewtonOptions, StepResult, StepStats};
 use crate::straight_line::{sized_mut, LieField};
-use crate::system::{CompiledLiePoisson, VectorField};
+use crate::structures::lie_poisson::{CompiledLiePoisson, VectorField};
 
 /// Lanes per block: 8 f64, two AVX2 registers (or four SSE2 ones) per coordinate, which gives the
 /// core independent chains to overlap; 4 was slower (see docs/performance.md).

@@ -23,9 +23,11 @@
 use crate::dual::{Dual1, Jet2};
 use crate::error::StepFailure;
 use crate::generating::{Polynomial, TABLE_POWER};
-use crate::groupoid::{exp_chart_coefficient_to, Chart, C_SERIES, EXP_CHART_MAX_ANGLE};
 use crate::lanes::{Isa, LANES};
 use crate::stepper::{StepResult, StepStats, SIMPLIFIED_RATE};
+use crate::structures::lie_groupoid::{
+    exp_chart_coefficient_to, Chart, C_SERIES, EXP_CHART_MAX_ANGLE,
+};
 
 /// Blocks with at most this many momenta take the scalar path: a block of 8 lanes costs about
 /// five scalar evaluations.

@@ -23,9 +23,9 @@ use safetensors::{Dtype, SafeTensors};
 
 use crate::error::CoreError;
 use crate::generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
-use crate::groupoid::{Chart, Groupoid, LieAlgebra};
 use crate::memory::{check_fits, try_collect, try_with_capacity};
 use crate::stepper::{BisectionStepper, NewtonOptions};
+use crate::structures::lie_groupoid::{Chart, Groupoid, LieAlgebra};
 use crate::structures::LearnedLogBisection;
 use crate::structures::{ExpMonomial, ExpPolynomial, LearnedExp, LogCanonical, OrthantChecked};
 use crate::{with_dim, MAX_DIM};

@@ -15,8 +15,8 @@ use nalgebra::{Const, DimMin};
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, Workspace};
-use crate::groupoid::{Chart, Groupoid};
 use crate::stepper::{Inverse, NewtonOptions, StepMap, StepResult, StepStats};
+use crate::structures::lie_groupoid::{Chart, Groupoid};
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
 /// p base): sou is the Poisson map (β), tar the anti-Poisson one (α), and sou(0, p) = tar(0, p)

@@ -9,10 +9,10 @@ use nalgebra::{Const, DimMin, SMatrix};
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Mlp, Workspace, MAX_BATCH};
-use crate::groupoid::Groupoid;
 use crate::lanes::Isa;
 use crate::lanes_bisection::{so3_newton_steps, So3Newton};
 use crate::realization::Realization;
+use crate::structures::lie_groupoid::Groupoid;
 
 /// Newton settings. The defaults converge to round-off, so the Casimir is kept to round-off.
 #[derive(Clone, Copy, Debug, PartialEq)]

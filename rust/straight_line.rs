@@ -17,7 +17,7 @@
 //!
 //! **Bits.** Each kernel's scalar field is its lane code with one lane, so every lane equals the
 //! scalar path bit for bit (see [`crate::lanes`]). Against [`CompiledLiePoisson`] and the dense
-//! [`crate::system::LiePoisson`] a kernel differs by rounding only (tested to a few ulps of the
+//! [`crate::structures::lie_poisson::LiePoisson`] a kernel differs by rounding only (tested to a few ulps of the
 //! sum of the absolute terms); for one nonzero bᵢ and one monomial per aᵢ it even performs the
 //! compiled field's operations.
 //!
@@ -30,9 +30,11 @@
 use nalgebra::{Const, DimMin, SMatrix};
 
 use crate::error::StepFailure;
-use crate::groupoid::LieAlgebra;
 use crate::lanes::{LaneField, MidpointSolve};
-use crate::system::{lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField};
+use crate::structures::lie_groupoid::LieAlgebra;
+use crate::structures::lie_poisson::{
+    lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField,
+};
 
 /// μ × (a∘μ) at L states: the rigid body's kernel (a = 1/I), 12 flops a lane.
 #[inline(always)]

@@ -15,7 +15,7 @@ from poisson_rs.casimirs import (
     set_casimirs,
     system_casimirs,
 )
-from poisson_rs.systems import Polynomial
+from poisson_rs.structures.lie_poisson import Polynomial
 
 
 def _values(polys: list[Polynomial], mu: np.ndarray) -> np.ndarray:

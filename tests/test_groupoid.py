@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch.autograd.functional import jacobian
 
-from poisson_rs.groupoid import (
+from poisson_rs.realizations.lie_groupoid import (
     EXP_SERIES_MAX_RADIUS,
     _bernoulli_over_factorial,
     _exp_series,
@@ -17,7 +17,7 @@ from poisson_rs.groupoid import (
     tar,
 )
 from poisson_rs.reference import reference_solution
-from poisson_rs.systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial
+from poisson_rs.structures.lie_poisson import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial
 
 torch.set_num_threads(1)
 

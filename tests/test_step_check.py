@@ -14,7 +14,7 @@ import pytest
 import poisson_rs as pr
 from poisson_rs import _core
 from poisson_rs.integrators import MAX_STEP_ANGLE
-from poisson_rs.systems import LieAlgebra, LiePoissonSystem, Polynomial
+from poisson_rs.structures.lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
 
 BODY = pr.RigidBody((1.5, 2.0, 2.5))
 

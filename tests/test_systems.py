@@ -14,7 +14,13 @@ import torch
 from poisson_rs import reference
 from poisson_rs.reference import RigidBody as ReexportedRigidBody
 from poisson_rs.reference import exact_solution, reference_solution
-from poisson_rs.systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial, RigidBody
+from poisson_rs.structures.lie_poisson import (
+    HeavyTop,
+    LieAlgebra,
+    LiePoissonSystem,
+    Polynomial,
+    RigidBody,
+)
 
 torch.set_num_threads(1)
 

@@ -235,7 +235,7 @@ def test_accepts_ints_and_numpy() -> None:
 
 # ---------------------------------------------------------------------------------------------
 # Any Lie–Poisson system (exponential chart). Structure constants are built here, independently
-# of poisson_rs.systems: [e_i, e_j] = Σ_k c[i,j,k] e_k.
+# of poisson_rs.structures.lie_poisson: [e_i, e_j] = Σ_k c[i,j,k] e_k.
 # ---------------------------------------------------------------------------------------------
 
 
@@ -556,7 +556,7 @@ def test_lie_trivial_cases() -> None:
 
 
 class _Stub:
-    """Duck-typed stand-in for poisson_rs.systems.LiePoissonSystem (written concurrently)."""
+    """Duck-typed stand-in for poisson_rs.structures.lie_poisson.LiePoissonSystem."""
 
     def __init__(self, c: np.ndarray, h: dict, inertia: tuple | None = None) -> None:
         self.algebra = type("Alg", (), {"c": c})()

@@ -42,12 +42,17 @@ from .reference import dop853_solution, exact_solution, reference_solution
 from .structures import (
     AffineIntegrator,
     AffinePoissonSystem,
+    HeavyTop,
+    LieAlgebra,
+    LiePoissonSystem,
     LogCanonical,
     LogCanonicalSystem,
     LogPolynomial,
+    Polynomial,
     PolynomialBivector,
     PolynomialPoissonSystem,
     RealizationTaylorIntegrator,
+    RigidBody,
     affine_classical,
     affine_learned,
     affine_poisson_system,
@@ -55,7 +60,6 @@ from .structures import (
     lotka_volterra,
 )
 from .studies.select import NoCandidateError, SelectionReport, select
-from .systems import HeavyTop, LieAlgebra, LiePoissonSystem, Polynomial, RigidBody
 
 # rayon's thread pool does not survive fork(): a forked child runs its rollouts serially (same
 # results, bit for bit) instead of waiting forever on threads that no longer exist.

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .systems import LieAlgebra, LiePoissonSystem, Polynomial
+from .structures.lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
 
 __all__ = ["casimir_degrees", "casimir_values", "polynomial_casimirs", "system_casimirs"]
 
@@ -264,7 +264,7 @@ def casimir_label(system: Any) -> str:
         return "no Casimir known (drift n/a)"
     own = getattr(system, "casimirs", None)
     if own is not None and own(np.ones((1, int(system.dim)))) is not None:
-        from .systems import _known_algebra
+        from .structures.lie_poisson import _known_algebra
 
         kind = _known_algebra(system.algebra) if isinstance(system, LiePoissonSystem) else None
         return {

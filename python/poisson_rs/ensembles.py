@@ -32,7 +32,7 @@ import numpy as np
 
 from .files import check_output_path, temporary_name
 from .integrators import RolloutInfo, Stepper, integrate
-from .systems import LiePoissonSystem
+from .structures.lie_poisson import LiePoissonSystem
 from .untrusted import parsing
 
 if TYPE_CHECKING:

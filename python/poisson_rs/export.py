@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .files import atomic_write_bytes
-from .systems import LiePoissonSystem, RigidBody
+from .structures.lie_poisson import LiePoissonSystem, RigidBody
 from .untrusted import InputError, parsing
 
 if TYPE_CHECKING:

@@ -15,10 +15,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .groupoid import check_chart, sou, tar
+from .realizations.lie_groupoid import check_chart, sou, tar
 
 if TYPE_CHECKING:
-    from .systems import LieAlgebra
+    from .structures.lie_poisson import LieAlgebra
 
 MLP_INPUTS: tuple[str, ...] = ("t,p", "homogeneous")
 

@@ -28,8 +28,8 @@ from .export import (
     read_tensor,
 )
 from .files import check_input_file
-from .groupoid import sou
-from .systems import HeavyTop, LiePoissonSystem, RigidBody
+from .realizations.lie_groupoid import sou
+from .structures.lie_poisson import HeavyTop, LiePoissonSystem, RigidBody
 from .untrusted import parsing
 
 if TYPE_CHECKING:
@@ -1007,7 +1007,7 @@ LIE_POISSON_METHODS: dict[str, tuple[int, bool]] = {
 
 def classical_methods(system: LiePoissonSystem) -> list[str]:
     """Names of the classical integrators available for ``system``."""
-    from .systems import HeavyTop
+    from .structures.lie_poisson import HeavyTop
 
     if isinstance(system, RigidBody):
         return list(CLASSICAL_METHODS)

@@ -50,7 +50,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .systems import LiePoissonSystem, RigidBody
+from .structures.lie_poisson import LiePoissonSystem, RigidBody
 
 __all__ = ["RigidBody", "dop853_solution", "exact_solution", "reference_solution"]
 
@@ -536,8 +536,8 @@ def reference_solution(
     atol: float = 1e-13,
     failures: Literal["raise", "nan"] = "raise",
 ) -> FloatArray:
-    """Flow of any :class:`~poisson_rs.systems.LiePoissonSystem` (or log-canonical system,
-    integrated in q = ln x) by SciPy's DOP853.
+    """Flow of any :class:`~poisson_rs.structures.lie_poisson.LiePoissonSystem` (or
+    log-canonical system, integrated in q = ln x) by SciPy's DOP853.
 
     μ(0) = mu0 and μ̇_j = Σ_{i,k} c[i,j,k] ∂H/∂μ_i μ_k (the system's ``vector_field``), each
     trajectory integrated separately with dense output at ``times``: forward from t = 0 for the

@@ -70,7 +70,7 @@ import numpy as np
 
 from .integrators import BisectionIntegrator, Stepper, integrate
 from .reference import RigidBody, exact_solution, reference_solution
-from .systems import LieAlgebra, LiePoissonSystem
+from .structures.lie_poisson import LieAlgebra, LiePoissonSystem
 
 _SE3 = LieAlgebra.se3()
 
@@ -434,7 +434,7 @@ def _affine(raw: Mapping[str, Any]) -> Any:
     LieAlgebra.to_dict() table), ``cocycle`` (n × n, antisymmetric, a 2-cocycle), ``hamiltonian``
     (a Polynomial.to_dict() table), optional ``name`` and ``component_names``."""
     from .structures.affine import AffinePoissonSystem
-    from .systems import Polynomial
+    from .structures.lie_poisson import Polynomial
     from .untrusted import parsing
 
     allowed = ("kind", "algebra", "cocycle", "hamiltonian", "name", "component_names")

@@ -635,7 +635,8 @@ def system_taylor_terms(
     """Taylor terms (powers (n_terms, 1 + n), coeffs (n_terms,)) for a Lie–Poisson system.
 
     ``system`` needs ``algebra.c`` (structure constants (n, n, n)) and ``polynomial.terms``
-    ({exponent tuple: coefficient}), as :class:`poisson_rs.systems.LiePoissonSystem` has. A
+    ({exponent tuple: coefficient}), as
+    :class:`poisson_rs.structures.lie_poisson.LiePoissonSystem` has. A
     rigid body on so(3) (H = Σ w_i p_i², w_i > 0, nothing else) goes through
     :func:`taylor_terms` with I_i = 1/(2 w_i), or the ``inertia`` attribute when there is one,
     so the old exact 1/I_i and the Cayley chart are kept; every other system uses

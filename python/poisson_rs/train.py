@@ -38,9 +38,9 @@ from .generating import (
     newton_system,
     solve_momentum,
 )
-from .groupoid import check_chart, sou
+from .realizations.lie_groupoid import check_chart, sou
 from .reference import exact_solution, reference_solution
-from .systems import LieAlgebra, LiePoissonSystem, RigidBody
+from .structures.lie_poisson import LieAlgebra, LiePoissonSystem, RigidBody
 from .taylor import evaluate_terms, system_taylor_terms
 from .threads import MAX_THREADS_PER_CORE, cpu_cores, max_threads
 from .untrusted import parsing

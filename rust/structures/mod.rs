@@ -1,10 +1,15 @@
-//! Poisson structures beyond g*, each with its realization and its classical baselines.
+//! Poisson structures, each with its realization (and, beyond g*, its classical baselines); each
+//! plugs into the generic stepper through [`crate::realization::Realization`].
 //!
+//! - [`lie_poisson`]: Lie–Poisson systems on g* (structure constants, polynomial Hamiltonian,
+//!   vector fields), with [`lie_groupoid`], the exact groupoid T*G ⇉ g* in its charts.
 //! - [`log_canonical`]: π_ij = c_ij x_i x_j (Lotka–Volterra in any dimension), stepped in
 //!   q = ln x where the bracket is the constant matrix c and the groupoid is linear.
 //! - [`polynomial`]: any polynomial bivector, through an approximate realization of order n
 //!   whose maps and generating function arrive as polynomial coefficients.
 
+pub mod lie_groupoid;
+pub mod lie_poisson;
 pub mod log_canonical;
 pub mod polynomial;
 

@@ -7,12 +7,12 @@
 use super::*;
 use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
-use crate::groupoid::LieAlgebra;
 use crate::lanes::{Isa, LaneStepper, Lanes, LANES};
 use crate::rollout::{ChunkKernel, PerStep, Rollout};
 use crate::stepper::NewtonOptions;
 use crate::straight_line::{LieField, Se3QuadraticLinear, So3Quadratic, Torque};
-use crate::system::{spectral_norm, Hamiltonian, LiePoisson, VectorField};
+use crate::structures::lie_groupoid::LieAlgebra;
+use crate::structures::lie_poisson::{spectral_norm, Hamiltonian, LiePoisson, VectorField};
 
 /// se(3): [R_i,R_j] = ε_ijk R_k, [R_i,T_j] = ε_ijk T_k, [T_i,T_j] = 0.
 fn se3() -> [[[f64; 6]; 6]; 6] {
@@ -426,16 +426,19 @@ fn spectral_norm_matches_the_svd() {
     let w = [0.3, -1.2, 2.0];
     let a = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]];
     assert!((spectral_norm(&a) - norm(&w)).abs() <= 1e-14);
-    assert!((crate::system::lie_poisson_rate(&a, 0.0) - norm(&w)).abs() <= 1e-14);
+    assert!((crate::structures::lie_poisson::lie_poisson_rate(&a, 0.0) - norm(&w)).abs() <= 1e-14);
     // On any skew A it bounds ‖A‖₂ from above, and on any A it is within √(N/2) of it.
     for _ in 0..50 {
         let m: [[f64; 6]; 6] =
             std::array::from_fn(|_| std::array::from_fn(|_| rng.range(-3.0, 3.0)));
         let skew: [[f64; 6]; 6] =
             std::array::from_fn(|i| std::array::from_fn(|j| m[i][j] - m[j][i]));
-        let cheap = crate::system::lie_poisson_rate(&skew, 0.0);
+        let cheap = crate::structures::lie_poisson::lie_poisson_rate(&skew, 0.0);
         assert!(cheap >= spectral_norm(&skew) * (1.0 - 1e-12));
-        let (cheap, exact) = (crate::system::lie_poisson_rate(&m, 0.0), spectral_norm(&m));
+        let (cheap, exact) = (
+            crate::structures::lie_poisson::lie_poisson_rate(&m, 0.0),
+            spectral_norm(&m),
+        );
         assert!(
             cheap <= exact * 3f64.sqrt() * (1.0 + 1e-12)
                 && cheap >= exact / 2f64.sqrt() * (1.0 - 1e-12)

@@ -6,8 +6,8 @@
 use super::*;
 use crate::classical::{HeavyTop, HeavyTopSplitting, LieMethod, LieStepper, Rk4};
 use crate::dual::Dual1;
-use crate::groupoid::LieAlgebra;
-use crate::system::{Hamiltonian, LiePoisson};
+use crate::structures::lie_groupoid::LieAlgebra;
+use crate::structures::lie_poisson::{Hamiltonian, LiePoisson};
 
 /// se(3), basis R1..R3, T1..T3: [R_i,R_j] = ε_ijk R_k, [R_i,T_j] = ε_ijk T_k, [T_i,T_j] = 0.
 fn se3() -> LieAlgebra<6> {

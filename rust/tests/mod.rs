@@ -17,10 +17,10 @@ use safetensors::{serialize, Dtype};
 use crate::dual::{Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
-use crate::groupoid::{Chart, Groupoid};
 use crate::model::{Model, FORMAT};
 use crate::rollout::{n_records, rollout, TrajectoryInfo};
 use crate::stepper::{BisectionStepper, NewtonOptions, StepMap, StepStats};
+use crate::structures::lie_groupoid::{Chart, Groupoid};
 
 // ---------------------------------------------------------------------------------------------
 // Helpers

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 from ..threads import max_threads
 
 if TYPE_CHECKING:
-    from ..systems import LiePoissonSystem
+    from ..structures.lie_poisson import LiePoissonSystem
 
 #: Most steps any subcommand takes from one state (the step count, not the memory, is bounded
 #: here; a subcommand that stores every step bounds it again by the memory it needs).
@@ -146,7 +146,7 @@ def system_spec(spec: str) -> LiePoissonSystem:
     """A system from a name in NAMED_SYSTEMS or a JSON file holding ``system.to_dict()``."""
     import json
 
-    from ..systems import HeavyTop, LiePoissonSystem, RigidBody
+    from ..structures.lie_poisson import HeavyTop, LiePoissonSystem, RigidBody
     from ..untrusted import parsing
 
     if spec == "rigid-body":

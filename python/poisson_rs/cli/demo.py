@@ -13,7 +13,7 @@ import numpy as np
 from .common import POSITIVE, STEPS, check_out_dir, system_spec, table
 
 if TYPE_CHECKING:
-    from ..systems import LiePoissonSystem
+    from ..structures.lie_poisson import LiePoissonSystem
 
 NAME = "demo"
 
@@ -103,9 +103,9 @@ def check_memory(n_states: int, dim: int, steps: int, n_methods: int) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..files import check_outputs
     from ..integrators import list_models, load_model, taylor_integrator
+    from ..structures.lie_poisson import RigidBody
     from ..studies import figures
     from ..studies.demo import PAPER_STATES, run_scene
-    from ..systems import RigidBody
 
     check_out_dir(args.out)
     states = PAPER_STATES

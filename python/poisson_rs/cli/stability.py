@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..files import check_outputs
     from ..integrators import load_model
+    from ..structures.lie_poisson import RigidBody
     from ..studies import figures
     from ..studies.stability import (
         QUICK_STEP_SIZES,
@@ -76,7 +77,6 @@ def run(args: argparse.Namespace) -> int:
         stability_map,
         states,
     )
-    from ..systems import RigidBody
 
     out = check_out_dir(args.out)
     check_scheduler(args.scheduler)

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..export import model_bytes
 from ..integrators import LearnedIntegrator, TaylorIntegrator, integrate
-from ..systems import LieAlgebra, LiePoissonSystem
+from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..taylor import system_taylor_terms
 from .data import TrajectoryData, prepare
 from .report import Candidate, LearnReport
@@ -149,7 +149,7 @@ def _map_candidate(data, algebra, mode, seed, command, options):
 
 
 def _polynomial_map_candidate(data, algebra, mode, seed, command, options):
-    from ..systems import Polynomial
+    from ..structures.lie_poisson import Polynomial
     from .map import fit_polynomial_map
 
     if "degree" not in options:
@@ -262,7 +262,7 @@ def _blend_candidate(data, known, order, lam, mode, seed, command, options):
 def _map_base(s_fn: Any, algebra: LieAlgebra) -> LiePoissonSystem:
     """The system a map's file records: H₀ of its t¹ terms −t·H₀ (model files check that the
     t¹ terms are −t·H of the recorded system); the map itself is the learned S, not H₀'s flow."""
-    from ..systems import Polynomial
+    from ..structures.lie_poisson import Polynomial
 
     powers = s_fn.powers.numpy()
     coeffs = s_fn.coeffs.detach().numpy()

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ..generating import GeneratingFunction
-from ..systems import LiePoissonSystem
+from ..structures.lie_poisson import LiePoissonSystem
 from ..taylor import system_taylor_terms
 from ..train import data_loss, hj_residual
 from .data import TrajectoryData

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from ..files import atomic_write_bytes, check_output_path
-from ..systems import LieAlgebra, LiePoissonSystem
+from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..untrusted import parsing
 
 __all__ = ["add_parser", "run"]

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..systems import LieAlgebra, LiePoissonSystem
+from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..untrusted import parsing
 
 __all__ = [
@@ -319,6 +319,6 @@ def prepare(
 
 
 def _zero_polynomial(n: int) -> Any:
-    from ..systems import Polynomial
+    from ..structures.lie_poisson import Polynomial
 
     return Polynomial({(0,) * n: 0.0})

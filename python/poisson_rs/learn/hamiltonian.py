@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..systems import LieAlgebra, LiePoissonSystem, Polynomial
+from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
 from .data import TrajectoryData
 from .optimize import levenberg_marquardt
 from .series import basis, monomials, series_jacobian, taylor_series

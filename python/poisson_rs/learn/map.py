@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..generating import GeneratingFunction
-from ..systems import LieAlgebra
+from ..structures.lie_poisson import LieAlgebra
 from ..train import data_loss
 from .data import TrajectoryData
 from .hamiltonian import fit_polynomial, vector_field_design, velocities

@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..systems import LiePoissonSystem, Polynomial
+from ..structures.lie_poisson import LiePoissonSystem, Polynomial
 
 __all__ = ["Candidate", "LearnReport"]
 

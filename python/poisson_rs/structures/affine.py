@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..systems import LieAlgebra, LiePoissonSystem, Polynomial
+from .lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
 
 FloatArray = NDArray[np.float64]
 

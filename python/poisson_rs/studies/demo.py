@@ -17,7 +17,7 @@ import numpy as np
 
 from ..integrators import Stepper, integrate
 from ..reference import exact_solution, reference_solution
-from ..systems import LiePoissonSystem, RigidBody
+from ..structures.lie_poisson import LiePoissonSystem, RigidBody
 
 PAPER_STATES = np.array([[1.0, 1.0, 2.0], [3.0, 2.0, 0.0]])
 PAPER_H = 0.1

@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.figure import Figure  # the OO API: no pyplot state, no display backend
 
 from ..files import atomic_write_bytes
-from ..systems import HeavyTop, RigidBody
+from ..structures.lie_poisson import HeavyTop, RigidBody
 from .demo import Run, SceneResult
 
 

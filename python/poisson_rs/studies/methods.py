@@ -70,7 +70,7 @@ def realization_order_of(chart: str) -> int | None:
 
 def is_supported(system: Any) -> bool:
     """Whether the studies have integrators for ``system``."""
-    from ..systems import LiePoissonSystem
+    from ..structures.lie_poisson import LiePoissonSystem
 
     return (
         isinstance(system, LiePoissonSystem)

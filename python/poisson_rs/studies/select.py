@@ -54,7 +54,7 @@ from ..integrators import (
     list_models,
     load_model,
 )
-from ..systems import LiePoissonSystem, RigidBody
+from ..structures.lie_poisson import LiePoissonSystem, RigidBody
 from .methods import (
     classical_names,
     classical_stepper,

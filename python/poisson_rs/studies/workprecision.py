@@ -38,7 +38,7 @@ from ..integrators import (
     taylor_integrator,
 )
 from ..reference import RigidBody, exact_solution, reference_solution
-from ..systems import LiePoissonSystem
+from ..structures.lie_poisson import LiePoissonSystem
 from .methods import (
     classical_names,
     classical_stepper,

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 import numpy as np
 
-from .systems import LieAlgebra
+from ..structures.lie_poisson import LieAlgebra
 
 if TYPE_CHECKING:
     import torch

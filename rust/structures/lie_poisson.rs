@@ -9,7 +9,7 @@ use nalgebra::SMatrix;
 
 use crate::dual::{Dual1, Scalar};
 use crate::error::CoreError;
-use crate::groupoid::LieAlgebra;
+use crate::structures::lie_groupoid::LieAlgebra;
 
 /// Largest exponent a Hamiltonian monomial may carry.
 pub const MAX_HAMILTONIAN_DEGREE: u32 = 16;
