@@ -226,6 +226,42 @@ def test_polynomial_bivector_on_cluster_bit_identical(client: Any) -> None:
     assert_same((out[0], got_info), in_process(stepper, mu0, 0.1, 8, 2))
 
 
+def lotka_volterra_steppers() -> dict[str, Any]:
+    pnn = pr.lotka_volterra([[0.0, 1.0], [-1.0, 0.0]], [1.0, 2.0])
+    return {
+        "taylor": pr.log_canonical_taylor(pnn, 5),
+        "learned": pr.load_model("lotka_volterra_h01"),
+        "log_splitting4": pr.log_canonical_classical(pnn, "log_splitting4"),
+        "rk4": pr.log_canonical_classical(pnn, "rk4"),
+    }
+
+
+def lotka_volterra_states(seed: int, n: int) -> np.ndarray:
+    """States within a log distance of 0.4 of PNN's equilibrium (1, 2)."""
+    return np.exp(np.random.default_rng(seed).uniform(-0.4, 0.4, (n, 2))) * [1.0, 2.0]
+
+
+def test_lotka_volterra_steppers_pickle_to_identical_rollouts() -> None:
+    x0 = lotka_volterra_states(10, 5)
+    for label, stepper in lotka_volterra_steppers().items():
+        copy = pickle.loads(pickle.dumps(stepper))
+        assert type(copy) is type(stepper) and repr(copy) == repr(stepper), label
+        assert_same(in_process(copy, x0, 0.1, 20), in_process(stepper, x0, 0.1, 20))
+
+
+@pytest.mark.parametrize("kind", ["taylor", "learned", "log_splitting4"])
+def test_lotka_volterra_on_cluster_bit_identical(client: Any, kind: str) -> None:
+    stepper = lotka_volterra_steppers()[kind]
+    x0 = lotka_volterra_states(11, 50)
+    traj, info = pr.integrate(
+        stepper, da.from_array(x0, chunks=(13, -1)), 0.1, 30, every=3, return_info=True
+    )
+    fields = [getattr(info, k) for k in ensembles.INFO_FIELDS]
+    out = client.gather(client.compute([traj, *fields]))
+    got_info = pr.RolloutInfo(**dict(zip(ensembles.INFO_FIELDS, out[1:], strict=True)))
+    assert_same((out[0], got_info), in_process(stepper, x0, 0.1, 30, 3))
+
+
 class DieOnce:
     """A stepper whose first rollout of some states, anywhere, kills the process running it (the
     marker file says it happened); later rollouts are the wrapped stepper's."""
