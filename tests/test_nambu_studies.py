@@ -1,10 +1,12 @@
 """Polynomial-bivector systems in the studies: the cubic Nambu scene parses (and refuses
 anything but a polynomial text), its classical integrators have their orders against DOP853,
-and ``demo`` runs on it end to end with the Nambu Casimir reported absolute."""
+and ``demo``, ``chart``, ``stability`` and ``select`` run on it end to end with the Nambu Casimir
+reported absolute."""
 
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -76,3 +78,53 @@ def test_realization_charts() -> None:
     for bad in ("realization0", "realization7", "realizationx", "exp", "log"):
         with pytest.raises(ValueError, match="realization1"):
             taylor(system, 3, bad)
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _slope(rows: list[dict[str, str]], method: str, column: str) -> float:
+    pts = sorted((float(r["h"]), float(r[column])) for r in rows if r["method"] == method)
+    return float(np.polyfit(np.log([p[0] for p in pts]), np.log([p[1] for p in pts]), 1)[0])
+
+
+def test_chart_on_the_nambu_scene_fits_the_orders(tmp_path: Path) -> None:
+    out = tmp_path / "chart"
+    assert main(["chart", str(SCENE), "--quick", "--out", str(out)]) == 0
+    rows = [r for r in _rows(out / "workprecision.csv") if r["failed"] == "False"]
+    assert {r["method"] for r in rows} == {
+        "taylor3-realization",
+        "taylor5-realization",
+        "rk4",
+        "midpoint",
+    }
+    assert _slope(rows, "taylor3-realization", "error_T") == pytest.approx(4.0, abs=0.3)
+    assert _slope(rows, "rk4", "error_T") == pytest.approx(4.0, abs=0.3)
+    assert _slope(rows, "midpoint", "error_T") == pytest.approx(2.0, abs=0.2)
+    # On the order-3 realization the Casimir defect is O(h⁵) a step: over a fixed T it drifts
+    # as h⁴, a number, never "n/a".
+    assert _slope(rows, "taylor3-realization", "max_rel_dC") == pytest.approx(4.0, abs=0.3)
+    for name in ("workprecision_error.png", "workprecision_casimirs.png", "long_run_energy.png"):
+        assert (out / name).stat().st_size > 0
+
+
+def test_stability_and_select_on_the_nambu_scene(tmp_path: Path) -> None:
+    out = tmp_path / "stability"
+    argv = ["stability", str(SCENE), "--quick", "--out", str(out), "--horizon", "2"]
+    assert main([*argv, "--no-progress"]) == 0
+    rows = _rows(out / "stability.csv")
+    assert {r["method"] for r in rows} == {
+        "taylor3-realization",
+        "taylor5-realization",
+        "rk4",
+        "midpoint",
+    }
+    small = [r for r in rows if float(r["h"]) == 0.1]
+    assert small and all(float(r["rel_error"]) < 1e-4 for r in small)
+    report = tmp_path / "select.json"
+    assert main(["select", str(SCENE), "--budget", "3", "--json", str(report)]) == 0
+    text = json.dumps(json.loads(report.read_text()))
+    for name in ("taylor3-realization", "taylor5-realization", "rk4", "dop853"):
+        assert name in text

@@ -30,8 +30,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "--metric",
         choices=METRICS,
         default=None,
-        help="error: max |mu(T) - mu_ref(T)|/|mu0|; energy: max |H - H0|/|H0| over [0, T]; "
-        "casimir: max |C - C0|/|mu0|^2 over [0, T] (default: the scene's, else error)",
+        help="error: max |x(T) - x_ref(T)|/|x0|; energy: max |H - H0|/|H0| over [0, T]; "
+        "casimir: max |C - C0|/|x0|^d over [0, T], d the degree of C (0, absolute, for the "
+        "log-form Casimirs of Lotka–Volterra) (default: the scene's, else error)",
     )
     se.add_argument("--T", type=POSITIVE, default=None, help="horizon (default: the scene's)")
     se.add_argument("--h", type=POSITIVE, default=None, help="measure at this step only")

@@ -69,9 +69,9 @@ __all__ = ["CandidateResult", "NoCandidateError", "SelectionReport", "Trial", "s
 
 #: What each metric measures (for tables and messages).
 METRICS = {
-    "error": "max |mu(T) - mu_ref(T)|/|mu0|",
+    "error": "max |x(T) - x_ref(T)|/|x0|",
     "energy": "max |H - H0|/|H0| over [0, T]",
-    "casimir": "max |C - C0|/|mu0|^d over [0, T]",
+    "casimir": "max |C - C0|/|x0|^d over [0, T] (d = 0, absolute, for log-form Casimirs)",
 }
 #: Recorded states per rollout from which energy and Casimir drifts are read.
 RECORDS = 100
