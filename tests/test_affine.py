@@ -4,6 +4,7 @@ refused, the Casimirs of the extension kept, fitted orders against DOP853, scene
 
 from __future__ import annotations
 
+import csv
 import pickle
 from pathlib import Path
 
@@ -143,6 +144,30 @@ def test_demo_and_stability_on_the_scene(tmp_path: Path) -> None:
         assert name in text
     argv = ["stability", str(SCENE), "--quick", "--horizon", "2", "--no-progress"]
     assert main([*argv, "--out", str(tmp_path / "st")]) == 0
+
+
+def test_chart_on_the_scene_fits_the_orders_and_keeps_the_casimir(tmp_path: Path) -> None:
+    out = tmp_path / "chart"
+    assert main(["chart", str(SCENE), "--quick", "--out", str(out)]) == 0
+    with (out / "workprecision.csv").open(newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["failed"] == "False"]
+
+    def slope(method: str) -> float:
+        pts = sorted((float(r["h"]), float(r["error_T"])) for r in rows if r["method"] == method)
+        return float(np.polyfit(np.log([p[0] for p in pts]), np.log([p[1] for p in pts]), 1)[0])
+
+    assert slope("taylor3-exp") == pytest.approx(4.0, abs=0.3)
+    assert slope("taylor5-exp") == pytest.approx(6.0, abs=0.3)
+    assert slope("midpoint") == pytest.approx(2.0, abs=0.2)
+    drift = {
+        r["method"]: max(float(x["max_rel_dC"]) for x in rows if x["method"] == r["method"])
+        for r in rows
+    }
+    # The Poisson maps keep r − u² − v² to round-off (the midpoint rule too: it is quadratic on
+    # the extension); RK4 does not.
+    for name in ("taylor3-exp", "taylor5-exp", "midpoint"):
+        assert drift[name] < 1e-13, (name, drift[name])
+    assert drift["rk4"] > 1e-9
 
 
 def test_bad_cocycle_scene_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
