@@ -1063,7 +1063,11 @@ fn rollout_log_classical<'py>(
         let system = LogSystem::new(structure, terms, std::array::from_fn(|i| bb[i]))?;
         let stepper = LogClassical::new(method, system, newton)?;
         let s0 = states::<N>(&s0, "s0")?;
-        run_rollout(py, &PerStep(&stepper), &s0, h, n_steps, every, None)
+        // The explicit methods step blocks of trajectories in SIMD lanes (the same bits).
+        match stepper.explicit() {
+            Some(explicit) => run_rollout(py, &Lanes::new(&explicit), &s0, h, n_steps, every, None),
+            None => run_rollout(py, &PerStep(&stepper), &s0, h, n_steps, every, None),
+        }
     }, Err(dim_error(dim)))
 }
 

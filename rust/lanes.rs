@@ -236,6 +236,21 @@ pub trait LaneStepper<const N: usize>: Sync {
     /// residuals, failures) that the block loop must record after every step.
     const REPORTS: bool = false;
 
+    /// Whether the stepper has a domain beyond finite states (the block loop then asks
+    /// [`LaneStepper::maybe_outside_lanes`] after every step).
+    const CHECKS_DOMAIN: bool = false;
+
+    /// Flags the lanes that may have left the domain: a cheap test over all lanes that may
+    /// flag too many (never too few); each flagged lane then gets [`LaneStepper::domain`].
+    #[inline(always)]
+    fn maybe_outside_lanes<const L: usize>(&self, _mu: &[[f64; L]; N], _flag: &mut [bool; L]) {}
+
+    /// The scalar step's own check of one state after a step (non-finite states included).
+    #[inline(always)]
+    fn domain(&self, _state: &[f64; N]) -> Result<(), StepFailure> {
+        Ok(())
+    }
+
     /// Advances every lane. An implementation defines this or
     /// [`LaneStepper::step_lanes_reporting`] (each defaults to the other): the default runs
     /// the reporting step with every lane live and drops the outcomes.
@@ -672,8 +687,15 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
             }
         }
         let all_finite = probe.iter().all(|p| *p == 0.0);
+        let mut flagged = [false; L];
+        let mut inside = true;
+        if S::CHECKS_DOMAIN {
+            stepper.maybe_outside_lanes(&lanes, &mut flagged);
+            // Padding lanes (zero states) may be flagged; only live ones count.
+            inside = !(0..n).any(|l| live[l] && flagged[l]);
+        }
         let keep = (k + 1) % every == 0;
-        if !keep && all_finite {
+        if !keep && all_finite && inside {
             continue;
         }
         for l in 0..n {
@@ -681,12 +703,16 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
                 continue;
             }
             let state: [f64; N] = std::array::from_fn(|c| lanes[c][l]);
-            let result = if probe[l] == 0.0 {
-                Ok(Default::default())
-            } else {
-                mu[l] = state;
+            let result = if probe[l] != 0.0 {
                 Err(StepFailure::NonFinite)
+            } else if flagged[l] {
+                stepper.domain(&state).map(|()| StepStats::default())
+            } else {
+                Ok(StepStats::default())
             };
+            if result.is_err() {
+                mu[l] = state;
+            }
             let o = &mut out[l * row..(l + 1) * row];
             live[l] = record_step(result, k, every, &state, &mut info[l], o);
         }

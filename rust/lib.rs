@@ -25,6 +25,7 @@
 pub mod classical;
 pub mod dual;
 pub mod error;
+pub mod exp;
 pub mod generating;
 pub mod kernel;
 pub mod lanes;

@@ -16,7 +16,9 @@ use nalgebra::{Const, DimMin, SMatrix, SVector};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
+use crate::exp::{exp_lanes, EXP_MAX, EXP_MIN};
 use crate::generating::{GeneratingFunction, Workspace};
+use crate::lanes::LaneStepper;
 use crate::realization::{Generating, Realization, RealizationStepper};
 use crate::stepper::{NewtonOptions, StepMap, StepResult, StepStats};
 
@@ -276,6 +278,45 @@ impl<const N: usize> LogSystem<N> {
         })
     }
 
+    /// [`LogSystem::vector_field`] at L states, lane by lane: the explicit steppers' field
+    /// (RK4 takes it for one trajectory too, with L = 1, so every lane has the scalar bits).
+    #[inline(always)]
+    fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        let mut g: [[f64; L]; N] = std::array::from_fn(|j| [-self.b[j]; L]);
+        for (e, a) in &self.terms {
+            let mut m = [*a; L];
+            for i in 0..N {
+                if e[i] > 0 {
+                    for l in 0..L {
+                        m[l] *= pow_u32(x[i][l], e[i]);
+                    }
+                }
+            }
+            for j in 0..N {
+                if e[j] > 0 {
+                    let ej = f64::from(e[j]);
+                    for l in 0..L {
+                        g[j][l] += m[l] * ej;
+                    }
+                }
+            }
+        }
+        let c = self.structure.c();
+        for i in 0..N {
+            let mut acc = [0.0; L];
+            for j in 0..N {
+                if c[i][j] != 0.0 {
+                    for l in 0..L {
+                        acc[l] += g[j][l] * c[i][j];
+                    }
+                }
+            }
+            for l in 0..L {
+                out[i][l] = x[i][l] * acc[l];
+            }
+        }
+    }
+
     /// H' of the one-variable parts: the flow of H_i(q_i) = Σ_{m ∈ i} a_m e^{e_mi q_i} − b_i q_i
     /// is q_j += t c_ji H_i'(q_i) (q_i fixed since c_ii = 0). None unless H is separable (every
     /// monomial in one variable).
@@ -335,6 +376,23 @@ pub struct LogClassical<const N: usize> {
     pub newton: NewtonOptions,
     /// (variable, exponent, coefficient) of each monomial, for the splittings.
     parts: Vec<(usize, u32, f64)>,
+}
+
+/// x^e by binary powering: the same multiplications for every lane (e is the term's, not the
+/// lane's).
+#[inline(always)]
+fn pow_u32(x: f64, mut e: u32) -> f64 {
+    let (mut base, mut acc) = (x, 1.0);
+    loop {
+        if e & 1 == 1 {
+            acc *= base;
+        }
+        e >>= 1;
+        if e == 0 {
+            return acc;
+        }
+        base *= base;
+    }
 }
 
 /// Suzuki's weight p = 1/(4 − 4^{1/3}).
@@ -409,40 +467,90 @@ where
         })
     }
 
-    /// The exact flow of H_i for time t: q_j += t c_ji H_i'(q_i).
-    #[inline]
-    fn flow(&self, i: usize, t: f64, q: &mut [f64; N]) {
-        let mut d = -self.system.b[i];
+    /// The exact flow of H_i for time t at L states: q_j += t c_ji H_i'(q_i).
+    #[inline(always)]
+    fn flow_lanes<const L: usize>(&self, i: usize, t: f64, q: &mut [[f64; L]; N]) {
+        let mut d = [-self.system.b[i]; L];
         for &(v, e, a) in &self.parts {
             if v == i {
                 let ef = f64::from(e);
-                d += a * ef * (ef * q[i]).exp();
+                let arg: [f64; L] = std::array::from_fn(|l| ef * q[i][l]);
+                let mut y = [0.0; L];
+                exp_lanes(&arg, &mut y);
+                for l in 0..L {
+                    d[l] += a * ef * y[l];
+                }
             }
         }
         let c = self.system.structure.c();
         for j in 0..N {
-            q[j] += t * c[j][i] * d;
+            let w = t * c[j][i];
+            for l in 0..L {
+                q[j][l] += w * d[l];
+            }
         }
     }
 
-    fn strang(&self, h: f64, q: &mut [f64; N]) {
+    #[inline(always)]
+    fn strang_lanes<const L: usize>(&self, h: f64, q: &mut [[f64; L]; N]) {
         for i in 0..N - 1 {
-            self.flow(i, 0.5 * h, q);
+            self.flow_lanes(i, 0.5 * h, q);
         }
-        self.flow(N - 1, h, q);
+        self.flow_lanes(N - 1, h, q);
         for i in (0..N - 1).rev() {
-            self.flow(i, 0.5 * h, q);
+            self.flow_lanes(i, 0.5 * h, q);
         }
     }
 
-    fn rk4(&self, h: f64, x: &mut [f64; N]) {
-        let f = |y: &[f64; N]| self.system.vector_field(y);
+    #[inline(always)]
+    fn rk4_lanes<const L: usize>(&self, h: f64, x: &mut [[f64; L]; N]) {
+        let f = |y: &[[f64; L]; N]| {
+            let mut out = [[0.0; L]; N];
+            self.system.field_lanes(y, &mut out);
+            out
+        };
+        let at = |k: &[[f64; L]; N], w: f64| -> [[f64; L]; N] {
+            std::array::from_fn(|i| std::array::from_fn(|l| x[i][l] + w * k[i][l]))
+        };
         let k1 = f(x);
-        let k2 = f(&std::array::from_fn(|i| x[i] + 0.5 * h * k1[i]));
-        let k3 = f(&std::array::from_fn(|i| x[i] + 0.5 * h * k2[i]));
-        let k4 = f(&std::array::from_fn(|i| x[i] + h * k3[i]));
+        let k2 = f(&at(&k1, 0.5 * h));
+        let k3 = f(&at(&k2, 0.5 * h));
+        let k4 = f(&at(&k3, h));
         for i in 0..N {
-            x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
+            for l in 0..L {
+                x[i][l] += h / 6.0 * (k1[i][l] + 2.0 * k2[i][l] + 2.0 * k3[i][l] + k4[i][l]);
+            }
+        }
+    }
+
+    /// One step of an explicit method (RK4 or a log splitting) at L states, lane by lane; the
+    /// scalar step is this with L = 1. The midpoint rule is not explicit: nothing is done.
+    #[inline(always)]
+    fn step_explicit_lanes<const L: usize>(&self, h: f64, s: &mut [[f64; L]; N]) {
+        match self.method {
+            LogMethod::Rk4 => self.rk4_lanes(h, s),
+            LogMethod::Splitting => self.strang_lanes(h, s),
+            LogMethod::Splitting4 => {
+                let p = suzuki_p();
+                for w in [p, p, 1.0 - 4.0 * p, p, p] {
+                    self.strang_lanes(w * h, s);
+                }
+            }
+            LogMethod::Midpoint => {}
+        }
+    }
+
+    /// This stepper in SIMD lanes, for the explicit methods (None for the midpoint rule).
+    pub fn explicit(&self) -> Option<LogExplicit<'_, N>> {
+        (self.method != LogMethod::Midpoint).then_some(LogExplicit(self))
+    }
+
+    /// The scalar step's check: x in the open orthant, or q with e^q in it.
+    fn domain(&self, s: &[f64; N]) -> Result<(), StepFailure> {
+        if self.method.in_log() {
+            log_state_in_orthant(s)
+        } else {
+            in_orthant(s)
         }
     }
 
@@ -501,23 +609,64 @@ where
 
     fn step(&self, h: f64, s: &mut [f64; N], _: &mut ()) -> StepResult {
         let mut stats = StepStats::default();
-        match self.method {
-            LogMethod::Rk4 => self.rk4(h, s),
-            LogMethod::Midpoint => stats = self.midpoint(h, s)?,
-            LogMethod::Splitting => self.strang(h, s),
-            LogMethod::Splitting4 => {
-                let p = suzuki_p();
-                for w in [p, p, 1.0 - 4.0 * p, p, p] {
-                    self.strang(w * h, s);
-                }
+        if self.method == LogMethod::Midpoint {
+            stats = self.midpoint(h, s)?;
+        } else {
+            let mut lane: [[f64; 1]; N] = s.map(|v| [v]);
+            self.step_explicit_lanes(h, &mut lane);
+            *s = lane.map(|v| v[0]);
+        }
+        self.domain(s)?;
+        Ok(stats)
+    }
+}
+
+/// An explicit [`LogClassical`] (RK4 in x, or a log splitting in q) as a [`LaneStepper`]:
+/// blocks of trajectories step in SIMD lanes, each lane with the scalar step's bits and its
+/// orthant check.
+pub struct LogExplicit<'a, const N: usize>(&'a LogClassical<N>);
+
+impl<const N: usize> StepMap<N> for LogExplicit<'_, N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    type Workspace = ();
+    fn workspace(&self) {}
+    fn step(&self, h: f64, s: &mut [f64; N], ws: &mut ()) -> StepResult {
+        self.0.step(h, s, ws)
+    }
+}
+
+impl<const N: usize> LaneStepper<N> for LogExplicit<'_, N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    const CHECKS_DOMAIN: bool = true;
+
+    #[inline(always)]
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
+        self.0.step_explicit_lanes(h, mu);
+    }
+
+    #[inline(always)]
+    fn maybe_outside_lanes<const L: usize>(&self, mu: &[[f64; L]; N], flag: &mut [bool; L]) {
+        // In q: e^q can reach 0 or ∞ only outside exp's vectorised range. In x: x ≤ 0 (NaN
+        // flags too; the block loop has already sent non-finite lanes to NonFinite).
+        let in_log = self.0.method.in_log();
+        for coordinate in mu {
+            for l in 0..L {
+                let v = coordinate[l];
+                flag[l] |= if in_log {
+                    !(EXP_MIN..=EXP_MAX).contains(&v)
+                } else {
+                    v <= 0.0 || v.is_nan()
+                };
             }
         }
-        if self.method.in_log() {
-            log_state_in_orthant(s)?;
-        } else {
-            in_orthant(s)?;
-        }
-        Ok(stats)
+    }
+
+    fn domain(&self, state: &[f64; N]) -> Result<(), StepFailure> {
+        self.0.domain(state)
     }
 }
 

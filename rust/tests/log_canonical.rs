@@ -4,7 +4,10 @@
 
 #![allow(clippy::needless_range_loop)]
 
+use super::splitting_lanes::{check_lanes_equal_scalar, ulps};
 use super::*;
+use crate::exp::{exp, exp_lanes, EXP_MAX, EXP_MIN};
+use crate::lanes::{Isa, LANES};
 use crate::realization::{Realization, RealizationStepper};
 use crate::structures::{
     ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
@@ -278,4 +281,153 @@ fn bisection_stepper_on_the_log_canonical_realization_keeps_the_casimir() {
             assert!((traj[traj.len() - 3] - q[0]).abs() > 1e-4);
         }
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// exp in lanes, and the explicit methods in lanes
+// ---------------------------------------------------------------------------------------------
+
+#[test]
+fn exp_is_within_one_ulp_of_libm() {
+    let mut rng = Rng::new(71);
+    let worst = |xs: &mut dyn Iterator<Item = f64>| {
+        xs.map(|x| (ulps(exp(x), x.exp()), x))
+            .fold((0, 0.0), |a, b| if b.0 > a.0 { b } else { a })
+    };
+    let uniform = worst(&mut (0..1_000_000).map(|_| rng.range(EXP_MIN, EXP_MAX)));
+    let unit = worst(&mut (0..200_000).map(|_| rng.range(-2.0, 2.0)));
+    let small =
+        worst(&mut (0..200_000).map(|_| rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-300.0, 0.0))));
+    // Near the reduction's boundaries, (k + ½) ln 2, where k flips.
+    let mut near = Vec::new();
+    for k in -1000..1000 {
+        let x0 = (f64::from(k) + 0.5) * std::f64::consts::LN_2;
+        for d in -32i64..=32 {
+            near.push(f64::from_bits((x0.to_bits() as i64 + d) as u64));
+        }
+    }
+    let near = worst(&mut near.into_iter());
+    for (what, (u, x)) in [
+        ("uniform", uniform),
+        ("[-2, 2]", unit),
+        ("small", small),
+        ("near (k + 1/2) ln 2", near),
+    ] {
+        println!("exp {what}: worst {u} ulp at x = {x:e}");
+        assert!(u <= 1, "exp {what}: {u} ulp at {x:e}");
+    }
+    assert_eq!(exp(0.0), 1.0);
+    assert_eq!(exp(-0.0), 1.0);
+    // Outside the vectorised range (and for ±∞, NaN): libm's bits.
+    for x in [
+        EXP_MAX + 0.5,
+        709.78,
+        710.0,
+        -708.5,
+        -745.0,
+        -746.0,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    ] {
+        assert_eq!(exp(x).to_bits(), x.exp().to_bits(), "{x:e}");
+    }
+    assert!(exp(f64::NAN).is_nan());
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn exp_lanes_avx2(x: &[f64; LANES], out: &mut [f64; LANES]) {
+    exp_lanes(x, out);
+}
+
+#[test]
+fn exp_lanes_equal_the_scalar_call_bit_for_bit() {
+    let mut rng = Rng::new(72);
+    for round in 0..5000 {
+        let mut x: [f64; LANES] = std::array::from_fn(|_| rng.range(-50.0, 50.0));
+        // Every tenth block has a lane outside the vectorised range (or NaN): libm for it.
+        if round % 10 == 0 {
+            x[round % LANES] = [800.0, -800.0, f64::NAN, 709.5][round % 4];
+        }
+        let want = x.map(exp);
+        let mut got = [0.0; LANES];
+        exp_lanes(&x, &mut got);
+        let same = |g: &[f64; LANES]| {
+            g.iter()
+                .zip(&want)
+                .all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()))
+        };
+        assert!(same(&got), "portable: {x:?}");
+        #[cfg(target_arch = "x86_64")]
+        if Isa::detect() == Isa::Avx2 {
+            // SAFETY: the CPU runs AVX2 and FMA (checked just above).
+            unsafe { exp_lanes_avx2(&x, &mut got) };
+            assert!(same(&got), "avx2: {x:?}");
+        }
+    }
+}
+
+/// The 3D system with the Casimir x₁x₃/x₂ (c k = 0 for k = (1, −1, 1)).
+fn lv3() -> LogSystem<3> {
+    let c = LogCanonical::new([[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]]).unwrap();
+    let h = vec![
+        ([1, 0, 0], 1.0),
+        ([0, 1, 0], 1.0),
+        ([0, 0, 1], 1.0),
+        ([0, 2, 0], 0.1),
+    ];
+    LogSystem::new(c, h, [1.0, 2.0, 1.0]).unwrap()
+}
+
+/// RK4 (in x) and both log splittings (in q) in SIMD lanes equal their scalar steps bit for
+/// bit, on every dispatch path and batch size, with one state that leaves the orthant (RK4:
+/// code 5) or whose e^q overflows (the splittings).
+#[test]
+fn explicit_log_canonical_methods_in_lanes_equal_the_scalar_path() {
+    for method in [LogMethod::Rk4, LogMethod::Splitting, LogMethod::Splitting4] {
+        let in_log = method.in_log();
+        let pnn = LogClassical::new(method, pnn(), NewtonOptions::default()).unwrap();
+        let explicit = pnn.explicit().unwrap();
+        let state2 = |rng: &mut Rng| -> [f64; 2] {
+            let q = [rng.range(-0.6, 0.6), 2f64.ln() + rng.range(-0.6, 0.6)];
+            if in_log {
+                q
+            } else {
+                q.map(f64::exp)
+            }
+        };
+        let bad2 = if in_log { [705.0, 0.0] } else { [6.0, 0.05] };
+        let what = format!("PNN {method:?}");
+        let info = check_lanes_equal_scalar(&explicit, &what, state2, Some(bad2), (0.3, 40, 3));
+        let code = if in_log {
+            None
+        } else {
+            Some(StepFailure::OutOfDomain)
+        };
+        if let Some(code) = code {
+            assert!(info.iter().any(|i| i.failure == Some(code)), "{what}");
+        }
+        let lv = LogClassical::new(method, lv3(), NewtonOptions::default()).unwrap();
+        let state3 = |rng: &mut Rng| -> [f64; 3] {
+            let q = [
+                rng.range(-0.5, 0.5),
+                2f64.ln() + rng.range(-0.5, 0.5),
+                rng.range(-0.5, 0.5),
+            ];
+            if in_log {
+                q
+            } else {
+                q.map(f64::exp)
+            }
+        };
+        check_lanes_equal_scalar(
+            &lv.explicit().unwrap(),
+            &format!("3D {method:?}"),
+            state3,
+            None,
+            (0.1, 30, 1),
+        );
+    }
+    let midpoint = LogClassical::new(LogMethod::Midpoint, pnn(), NewtonOptions::default()).unwrap();
+    assert!(midpoint.explicit().is_none());
 }

@@ -17,7 +17,7 @@ use crate::trig::{sin_cos, sin_cos_lanes, REDUCED_RANGE};
 // ---------------------------------------------------------------------------------------------
 
 /// The distance in units in the last place between two finite doubles (0 between ±0).
-fn ulps(a: f64, b: f64) -> u64 {
+pub(super) fn ulps(a: f64, b: f64) -> u64 {
     let ordered = |x: f64| {
         let bits = x.to_bits() as i64;
         if bits < 0 {
@@ -153,7 +153,7 @@ fn sin_cos_lanes_equal_the_scalar_call_bit_for_bit() {
 // Lane steppers against the scalar steps
 // ---------------------------------------------------------------------------------------------
 
-fn isas() -> Vec<Isa> {
+pub(super) fn isas() -> Vec<Isa> {
     let mut v = vec![Isa::Portable];
     if Isa::detect() != Isa::Portable {
         v.push(Isa::detect());
@@ -161,10 +161,10 @@ fn isas() -> Vec<Isa> {
     v
 }
 
-type Run = (Vec<f64>, Vec<TrajectoryInfo>);
+pub(super) type Run = (Vec<f64>, Vec<TrajectoryInfo>);
 
 /// A rollout of `mu0` with `kernel`, in segments of `segment` steps, serial or on the pool.
-fn run<const N: usize, K: ChunkKernel<N>>(
+pub(super) fn run<const N: usize, K: ChunkKernel<N>>(
     kernel: &K,
     mu0: &[[f64; N]],
     (h, n_steps, every): (f64, usize, usize),
@@ -180,7 +180,7 @@ fn run<const N: usize, K: ChunkKernel<N>>(
     (out, r.into_info())
 }
 
-fn assert_same_bits(a: &Run, b: &Run, what: &str) {
+pub(super) fn assert_same_bits(a: &Run, b: &Run, what: &str) {
     assert_eq!(a.0.len(), b.0.len());
     for (i, (x, y)) in a.0.iter().zip(&b.0).enumerate() {
         assert!(
@@ -195,7 +195,7 @@ fn assert_same_bits(a: &Run, b: &Run, what: &str) {
 /// failures): batch sizes 1, 7, 8, 9, 64 and 67 (a padded last block), one state that fails in
 /// the middle of a block, on every dispatch path, segmented and serial or on the pool; and each
 /// of the first lanes equals its own scalar run alone. Returns the scalar runs' diagnostics.
-fn check_lanes_equal_scalar<const N: usize, S>(
+pub(super) fn check_lanes_equal_scalar<const N: usize, S>(
     stepper: &S,
     what: &str,
     state: impl Fn(&mut Rng) -> [f64; N],
