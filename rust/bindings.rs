@@ -864,7 +864,11 @@ fn rollout_log_canonical<'py>(
             scale_floor: 1.0,
         });
         let q0 = states::<N>(&q0, "q0")?;
-        run_rollout(py, &PerStep(&stepper), &q0, h, n_steps, every, None)
+        // N = 2 and 3 solve their Newton systems in SIMD lanes (every lane the scalar bits).
+        match stepper.0.lanes() {
+            Some(lanes) => run_rollout(py, &Lanes::new(&lanes), &q0, h, n_steps, every, None),
+            None => run_rollout(py, &PerStep(&stepper), &q0, h, n_steps, every, None),
+        }
     }, Err(dim_error(dim)))
 }
 

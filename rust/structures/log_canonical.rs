@@ -287,8 +287,9 @@ impl<const N: usize> LogSystem<N> {
             let mut m = [*a; L];
             for i in 0..N {
                 if e[i] > 0 {
+                    let power = pow_lanes(&x[i], e[i]);
                     for l in 0..L {
-                        m[l] *= pow_u32(x[i][l], e[i]);
+                        m[l] *= power[l];
                     }
                 }
             }
@@ -378,22 +379,30 @@ pub struct LogClassical<const N: usize> {
     parts: Vec<(usize, u32, f64)>,
 }
 
-/// x^e by binary powering: the same multiplications for every lane (e is the term's, not the
-/// lane's).
+/// x^e at L lanes by binary powering: the same multiplications for every lane (e is the
+/// term's, not the lane's), the loop over e's bits outside the lanes so that they vectorise.
 #[inline(always)]
-fn pow_u32(x: f64, mut e: u32) -> f64 {
-    let (mut base, mut acc) = (x, 1.0);
+fn pow_lanes<const L: usize>(x: &[f64; L], mut e: u32) -> [f64; L] {
+    let (mut base, mut acc) = (*x, [1.0; L]);
     loop {
         if e & 1 == 1 {
-            acc *= base;
+            for l in 0..L {
+                acc[l] *= base[l];
+            }
         }
         e >>= 1;
         if e == 0 {
             return acc;
         }
-        base *= base;
+        for l in 0..L {
+            base[l] *= base[l];
+        }
     }
 }
+
+/// Powers y⁰ … y^POWER_TABLE of each coordinate of a generating function's evaluation, lane by
+/// lane; larger exponents take [`pow_lanes`].
+const POWER_TABLE: usize = 8;
 
 /// Suzuki's weight p = 1/(4 − 4^{1/3}).
 fn suzuki_p() -> f64 {
@@ -667,6 +676,291 @@ where
 
     fn domain(&self, state: &[f64; N]) -> Result<(), StepFailure> {
         self.0.domain(state)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Taylor-HJ in SIMD lanes
+// ---------------------------------------------------------------------------------------------
+
+impl<const N: usize> ExpPolynomial<N> {
+    /// ∇S(t, ·) at L points q, and with `HESS` its Hessian (`hs[a][b][l]`, both triangles),
+    /// lane by lane: y = e^q once per coordinate, each term's y^e by binary powering.
+    #[inline(always)]
+    fn derivatives_lanes<const L: usize, const HESS: bool>(
+        &self,
+        t: f64,
+        t_powers: &[f64; T_POWERS],
+        q: &[[f64; L]; N],
+        g: &mut [[f64; L]; N],
+        hs: &mut [[[f64; L]; N]; N],
+    ) {
+        // pw[i][k] = y_i^k for k ≤ POWER_TABLE, y = e^q, by successive products.
+        let mut pw = [[[1.0; L]; POWER_TABLE + 1]; N];
+        for i in 0..N {
+            exp_lanes(&q[i], &mut pw[i][1]);
+            for k in 2..=POWER_TABLE {
+                for l in 0..L {
+                    pw[i][k][l] = pw[i][k - 1][l] * pw[i][1][l];
+                }
+            }
+        }
+        *g = [[0.0; L]; N];
+        if HESS {
+            *hs = [[[0.0; L]; N]; N];
+        }
+        for m in &self.terms {
+            let tk = t_powers
+                .get(m.t_power as usize)
+                .copied()
+                .unwrap_or_else(|| t.powi(m.t_power as i32));
+            let mut w = [m.coeff * tk; L];
+            for i in 0..N {
+                // The exponent is the term's, not the lane's: one loop per case, so no lane
+                // divides for a positive exponent.
+                let e = m.exponents[i];
+                let k = e.unsigned_abs() as usize;
+                if e == 0 {
+                    continue;
+                }
+                let power = if k <= POWER_TABLE {
+                    pw[i][k]
+                } else {
+                    pow_lanes(&pw[i][1], e.unsigned_abs())
+                };
+                if e > 0 {
+                    for l in 0..L {
+                        w[l] *= power[l];
+                    }
+                } else {
+                    for l in 0..L {
+                        w[l] *= 1.0 / power[l];
+                    }
+                }
+            }
+            let e = m.exponents.map(f64::from);
+            for a in 0..N {
+                if e[a] == 0.0 {
+                    continue;
+                }
+                for l in 0..L {
+                    g[a][l] += w[l] * e[a];
+                }
+                if HESS {
+                    for b in a..N {
+                        let eab = e[a] * e[b];
+                        if eab != 0.0 {
+                            for l in 0..L {
+                                hs[a][b][l] += w[l] * eab;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        for i in 0..N {
+            let lt = t * self.linear[i];
+            for l in 0..L {
+                g[i][l] += lt;
+            }
+        }
+        if HESS {
+            for a in 0..N {
+                for b in 0..a {
+                    hs[a][b] = hs[b][a];
+                }
+            }
+        }
+    }
+}
+
+/// t⁰ … t^(T_POWERS − 1), computed once a step (larger powers of t take `powi`).
+const T_POWERS: usize = 16;
+
+/// The table of powers of t that [`ExpPolynomial::derivatives_lanes`] reads.
+#[inline(always)]
+fn t_power_table(t: f64) -> [f64; T_POWERS] {
+    let mut table = [1.0; T_POWERS];
+    for k in 1..T_POWERS {
+        table[k] = table[k - 1] * t;
+    }
+    table
+}
+
+/// δ = J⁻¹ f at L lanes by cofactors (N = 2 or 3); `ok[l]` is false where det J is 0 or not
+/// finite.
+#[inline(always)]
+fn solve_small_lanes<const N: usize, const L: usize>(
+    j: &[[[f64; L]; N]; N],
+    f: &[[f64; L]; N],
+    delta: &mut [[f64; L]; N],
+    ok: &mut [bool; L],
+) {
+    for l in 0..L {
+        let m: [[f64; N]; N] = std::array::from_fn(|r| std::array::from_fn(|c| j[r][c][l]));
+        let (adj, det): ([[f64; N]; N], f64) = if N == 2 {
+            let adj = [[m[1][1], -m[0][1]], [-m[1][0], m[0][0]]];
+            (
+                std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
+                m[0][0] * m[1][1] - m[0][1] * m[1][0],
+            )
+        } else {
+            let m3: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]));
+            let (adj, det) = crate::stepper::adjugate3(&m3);
+            (
+                std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
+                det,
+            )
+        };
+        ok[l] = det != 0.0 && det.is_finite();
+        let r = 1.0 / det;
+        for a in 0..N {
+            let mut acc = 0.0;
+            for b in 0..N {
+                acc += adj[a][b] * f[b][l];
+            }
+            delta[a][l] = acc * r;
+        }
+    }
+}
+
+/// Taylor-HJ on the log-canonical groupoid ([`LogBisection`] of an [`ExpPolynomial`], with the
+/// orthant check of [`OrthantChecked`]) in SIMD lanes, for N = 2 and 3: the Newton solve of
+/// q + ½c∇S(q) = q_k runs lane by lane (exact gradient and Hessian of S from y = e^q, the
+/// cofactor inverse of J = I + ½c∇²S, masked convergence), then q_{k+1} = q − ½c∇S(q). The
+/// scalar step is this with one lane, so every lane has the scalar bits.
+pub struct LogTaylorLanes<'a, const N: usize>(&'a LogBisection<N>);
+
+impl<const N: usize> LogBisection<N> {
+    /// This stepper in SIMD lanes, for N = 2 and 3 (None otherwise).
+    pub fn lanes(&self) -> Option<LogTaylorLanes<'_, N>> {
+        (N == 2 || N == 3).then_some(LogTaylorLanes(self))
+    }
+}
+
+impl<const N: usize> LaneStepper<N> for LogTaylorLanes<'_, N> {
+    const REPORTS: bool = true;
+
+    #[inline(always)]
+    fn step_lanes_reporting<const L: usize>(
+        &self,
+        h: f64,
+        mu: &mut [[f64; L]; N],
+        live: &[bool; L],
+        result: &mut [StepResult; L],
+    ) {
+        let s = self.0;
+        let c = s.realization.c();
+        let half_c: [[f64; N]; N] = std::array::from_fn(|i| c[i].map(|v| 0.5 * v));
+        let (tol, max_iter) = (s.newton.tol, s.newton.max_iter);
+        let t_powers = t_power_table(h);
+        let target = *mu;
+        let mut p = target;
+        let mut active = *live;
+        let mut converged = [false; L];
+        let mut iterations = [0u32; L];
+        let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
+        while active.contains(&true) {
+            s.generating
+                .derivatives_lanes::<L, true>(h, &t_powers, &p, &mut g, &mut hs);
+            // f = q_k − (q + ½c∇S), J = I + ½c∇²S.
+            let mut f = [[0.0; L]; N];
+            let mut j = [[[0.0; L]; N]; N];
+            for i in 0..N {
+                for l in 0..L {
+                    let mut tar = p[i][l];
+                    for k in 0..N {
+                        tar += half_c[i][k] * g[k][l];
+                    }
+                    f[i][l] = target[i][l] - tar;
+                }
+                for r in 0..N {
+                    for l in 0..L {
+                        let mut acc = if i == r { 1.0 } else { 0.0 };
+                        for k in 0..N {
+                            acc += half_c[i][k] * hs[k][r][l];
+                        }
+                        j[i][r][l] = acc;
+                    }
+                }
+            }
+            let mut delta = [[0.0; L]; N];
+            let mut solvable = [true; L];
+            solve_small_lanes(&j, &f, &mut delta, &mut solvable);
+            for l in 0..L {
+                if !active[l] {
+                    continue;
+                }
+                let finite =
+                    (0..N).all(|a| g[a][l].is_finite() && (0..N).all(|b| hs[a][b][l].is_finite()));
+                let failure = if !finite {
+                    Some(StepFailure::NonFinite)
+                } else if iterations[l] >= max_iter {
+                    Some(StepFailure::NotConverged)
+                } else if !solvable[l] || !(0..N).all(|a| delta[a][l].is_finite()) {
+                    Some(StepFailure::SingularJacobian)
+                } else {
+                    None
+                };
+                if let Some(failure) = failure {
+                    result[l] = Err(failure);
+                    active[l] = false;
+                    continue;
+                }
+                let (mut dmax, mut pmax) = (0.0f64, 0.0f64);
+                for a in 0..N {
+                    p[a][l] += delta[a][l];
+                    dmax = dmax.max(delta[a][l].abs());
+                    pmax = pmax.max(p[a][l].abs());
+                }
+                iterations[l] += 1;
+                if dmax <= tol * pmax.max(s.scale_floor) {
+                    active[l] = false;
+                    converged[l] = true;
+                }
+            }
+        }
+        s.generating
+            .derivatives_lanes::<L, false>(h, &t_powers, &p, &mut g, &mut hs);
+        for l in 0..L {
+            if !converged[l] {
+                continue;
+            }
+            if !(0..N).all(|a| g[a][l].is_finite()) {
+                result[l] = Err(StepFailure::NonFinite);
+                continue;
+            }
+            let mut residual = 0.0f64;
+            let mut out = [0.0; N];
+            for i in 0..N {
+                let (mut tar, mut sou) = (p[i][l], p[i][l]);
+                for k in 0..N {
+                    tar += half_c[i][k] * g[k][l];
+                    sou -= half_c[i][k] * g[k][l];
+                }
+                residual = residual.max((tar - target[i][l]).abs());
+                out[i] = sou;
+            }
+            for i in 0..N {
+                mu[i][l] = out[i];
+            }
+            result[l] = log_state_in_orthant(&out).map(|()| StepStats {
+                iterations: iterations[l],
+                residual,
+            });
+        }
+    }
+}
+
+impl<const N: usize> StepMap<N> for LogTaylorLanes<'_, N> {
+    type Workspace = ();
+    fn workspace(&self) {}
+    fn step(&self, h: f64, q: &mut [f64; N], _: &mut ()) -> StepResult {
+        let mut lane: [[f64; 1]; N] = q.map(|v| [v]);
+        let mut result = [Ok(StepStats::default())];
+        self.step_lanes_reporting(h, &mut lane, &[true], &mut result);
+        *q = lane.map(|v| v[0]);
+        result[0]
     }
 }
 

@@ -15,7 +15,7 @@ pub mod polynomial;
 
 pub use log_canonical::{
     ExpMonomial, ExpPolynomial, LearnedExp, LearnedLogBisection, LogBisection, LogCanonical,
-    LogClassical, LogExplicit, LogMethod, LogSystem, OrthantChecked,
+    LogClassical, LogExplicit, LogMethod, LogSystem, LogTaylorLanes, OrthantChecked,
 };
 pub use polynomial::{
     LearnedPolynomial, LearnedPolynomialBisection, LearnedPolynomialModel, PolynomialBisection,

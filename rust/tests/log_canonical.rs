@@ -431,3 +431,77 @@ fn explicit_log_canonical_methods_in_lanes_equal_the_scalar_path() {
     let midpoint = LogClassical::new(LogMethod::Midpoint, pnn(), NewtonOptions::default()).unwrap();
     assert!(midpoint.explicit().is_none());
 }
+
+/// Taylor-HJ in SIMD lanes equals its scalar step bit for bit (every dispatch path, batch
+/// size and segmentation, with one state whose e^q overflows), and the old one-trajectory
+/// Newton stepper to round-off: the same map, by other arithmetic.
+#[test]
+fn taylor_in_lanes_equals_the_scalar_path_and_the_generic_stepper() {
+    let pnn = pnn_taylor(3);
+    let lanes = pnn.lanes().unwrap();
+    let state2 = |rng: &mut Rng| [rng.range(-0.6, 0.6), 2f64.ln() + rng.range(-0.6, 0.6)];
+    let info = check_lanes_equal_scalar(
+        &lanes,
+        "PNN Taylor-3",
+        state2,
+        Some([705.0, 0.0]),
+        (0.2, 30, 3),
+    );
+    assert!(info
+        .iter()
+        .filter(|i| i.converged)
+        .all(|i| i.max_newton_iterations >= 2));
+    // S = t S₁ of the 3D system (N = 3 takes the 3×3 cofactor inverse).
+    let c = [[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]];
+    let terms = (0..3)
+        .map(|i| ExpMonomial {
+            t_power: 1,
+            exponents: std::array::from_fn(|k| i32::from(k == i)),
+            coeff: -1.0,
+        })
+        .collect();
+    let lv3 = LogBisection {
+        generating: ExpPolynomial::new(terms, [1.0, 2.0, 1.0]).unwrap(),
+        realization: LogCanonical::new(c).unwrap(),
+        newton: NewtonOptions::default(),
+        scale_floor: 1.0,
+    };
+    let state3 = |rng: &mut Rng| {
+        [
+            rng.range(-0.5, 0.5),
+            2f64.ln() + rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+        ]
+    };
+    check_lanes_equal_scalar(
+        &lv3.lanes().unwrap(),
+        "3D Taylor-1",
+        state3,
+        None,
+        (0.1, 20, 1),
+    );
+    // Against the generic Newton stepper: agreement to a few ulps of |q| per step.
+    let mut rng = Rng::new(73);
+    for _ in 0..200 {
+        let q0 = state2(&mut rng);
+        let (mut a, mut b) = (q0, q0);
+        for _ in 0..20 {
+            OrthantChecked(pnn_taylor(3))
+                .step(0.2, &mut a, &mut ())
+                .unwrap();
+            lanes.step(0.2, &mut b, &mut ()).unwrap();
+        }
+        assert!(
+            (0..2).all(|i| (a[i] - b[i]).abs() < 1e-13),
+            "{a:?} vs {b:?}"
+        );
+    }
+    assert!(LogBisection::<4> {
+        generating: ExpPolynomial::new(Vec::new(), [0.0; 4]).unwrap(),
+        realization: LogCanonical::new([[0.0; 4]; 4]).unwrap(),
+        newton: NewtonOptions::default(),
+        scale_floor: 1.0,
+    }
+    .lanes()
+    .is_none());
+}
