@@ -1,4 +1,5 @@
-"""Cost against Casimir drift and energy error at a long horizon, rigid body or heavy top: the
+"""Cost against Casimir drift and energy error at a long horizon, rigid body, heavy top or 3D
+Lotka–Volterra: the
 package's fixed-step integrators against RK4 at the step it needs, plain and with projection onto
 the Casimir level sets (the trick a user reaches for first).
 
@@ -16,6 +17,12 @@ a missing peer is skipped with a message, ``--no-jax`` skips JAX).
   random unit vector; the Casimir error is the larger of max ||Γ|² − 1| and max |M·Γ −
   M₀·Γ₀| / (|M₀| |Γ₀|), the energy error max |H − H₀| / (½ M₀·I⁻¹M₀ + mgl |χ| |Γ₀|) (H₀ itself
   can be near 0); projection renormalises Γ to |Γ₀| and then moves M along Γ back to M₀·Γ₀.
+- ``--system lotka-volterra``: the 3D system of ``scenes/lotka_volterra_3d.toml`` (c = [[0, 1,
+  1], [−1, 0, 1], [−1, −1, 0]], b = (1, 2, 1), H = Σ x_i − b_i ln x_i), states within a log
+  distance of 0.4 of x* = b; the Casimir error max |C − C₀| of C = ln x₁ − ln x₂ + ln x₃ (the log
+  form, absolute), the energy error max |H/H₀ − 1|; the package's steppers are RK4 in x, the log
+  splittings and Taylor-HJ on the exact groupoid; projection moves q = ln x back onto the plane
+  k·q = C₀ along k = (1, −1, 1).
 """
 
 from __future__ import annotations
@@ -55,6 +62,17 @@ TOP_SWEEP: dict[str, list[float]] = {
     "rk4": [0.1, 0.025, 0.00625, 0.0015625, 0.00078125, 0.000390625],
     "splitting": [0.1, 0.05],
     "midpoint": [0.1, 0.05],
+}
+LV_C = ((0.0, 1.0, 1.0), (-1.0, 0.0, 1.0), (-1.0, -1.0, 0.0))
+LV_B = (1.0, 2.0, 1.0)
+LV_K = (1.0, -1.0, 1.0)
+LV_SWEEP: dict[str, list[float]] = {
+    "rk4": [0.1, 0.025, 0.00625, 0.0015625],
+    "log_splitting": [0.1, 0.05],
+    "log_splitting4": [0.1, 0.05, 0.025],
+    "midpoint": [0.1],
+    "taylor5": [0.1, 0.05, 0.025],
+    "taylor7": [0.1, 0.05],
 }
 #: Steps of RK4 with projection (the heavy top's energy needs the two smaller ones).
 PROJECTED = [0.1, 0.05, 0.025, 0.0125]
@@ -142,6 +160,70 @@ def invariants(traj: np.ndarray, inv: np.ndarray) -> tuple[float, float]:
     return float(np.max(np.abs(c / c[:, :1] - 1))), float(np.max(np.abs(h / h[:, :1] - 1)))
 
 
+def lv_invariants(traj: np.ndarray) -> tuple[float, float]:
+    """3D Lotka–Volterra, (n, records, 3): max |C − C₀| (log form) and max |H/H₀ − 1|."""
+    q = np.log(traj)
+    c = q @ np.array(LV_K)
+    h = np.sum(traj - np.array(LV_B) * q, axis=-1)
+    return float(np.max(np.abs(c - c[:, :1]))), float(np.max(np.abs(h / h[:, :1] - 1)))
+
+
+def projected_lv_rk4() -> Any:
+    """3D Lotka–Volterra: RK4 in x with q = ln x moved back onto k·q = C₀ after every step, in
+    numba; None without numba."""
+    try:
+        import numba
+    except ImportError:
+        print("numba is not installed: projected RK4 skipped", file=sys.stderr)
+        return None
+    c = np.array(LV_C)
+    b = np.array(LV_B)
+    k = np.array(LV_K)
+
+    @numba.njit(cache=False)
+    def field(x: np.ndarray, out: np.ndarray) -> None:
+        for i in range(3):
+            acc = 0.0
+            for j in range(3):
+                acc += c[i, j] * (x[j] - b[j])
+            out[i] = x[i] * acc
+
+    @numba.njit(cache=False)
+    def run(x0: np.ndarray, h: float, n: int, every: int) -> np.ndarray:
+        out = np.empty((x0.shape[0], n // every + 1, 3))
+        k1, k2, k3, k4, y = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+        for t in range(x0.shape[0]):
+            x = x0[t].copy()
+            c0 = 0.0
+            for i in range(3):
+                c0 += k[i] * np.log(x[i])
+            out[t, 0] = x
+            for s in range(n):
+                field(x, k1)
+                for i in range(3):
+                    y[i] = x[i] + 0.5 * h * k1[i]
+                field(y, k2)
+                for i in range(3):
+                    y[i] = x[i] + 0.5 * h * k2[i]
+                field(y, k3)
+                for i in range(3):
+                    y[i] = x[i] + h * k3[i]
+                field(y, k4)
+                for i in range(3):
+                    x[i] += h / 6.0 * (k1[i] + 2.0 * (k2[i] + k3[i]) + k4[i])
+                d = 0.0
+                for i in range(3):
+                    d += k[i] * np.log(x[i])
+                d = (d - c0) / 3.0  # |k|² = 3
+                for i in range(3):
+                    x[i] *= np.exp(-k[i] * d)
+                if (s + 1) % every == 0:
+                    out[t, (s + 1) // every] = x
+        return out
+
+    return run
+
+
 def projected_rk4() -> Any:
     """RK4 with |μ| renormalised after every step, in numba; None without numba."""
     try:
@@ -188,7 +270,7 @@ def projected_rk4() -> Any:
     return run
 
 
-def jax_rk4(top: bool, project: bool) -> Any:
+def jax_rk4(system: str, project: bool) -> Any:
     """RK4 in JAX, ``jit(vmap)`` over the states with ``lax.scan`` over the steps (the 20 lines a
     user would write), plain or with the same projection as the numba runner after every step;
     ``run(mu0, h, n, every)`` returns (states, n // every + 1, dim) and excludes compilation
@@ -200,10 +282,14 @@ def jax_rk4(top: bool, project: bool) -> Any:
         print("jax is not installed: JAX RK4 skipped", file=sys.stderr)
         return None
     jax.config.update("jax_enable_x64", True)
+    top, lv = system == "heavy-top", system == "lotka-volterra"
     inv = jnp.array([1.0 / v for v in (TOP_INERTIA if top else INERTIA)])
     arm = MGL * jnp.array(COM)
+    lv_c, lv_b, lv_k = jnp.array(LV_C), jnp.array(LV_B), jnp.array(LV_K)
 
     def field(mu: Any) -> Any:
+        if lv:
+            return mu * (lv_c @ (mu - lv_b))
         if not top:
             return jnp.cross(mu, mu * inv)
         m, g = mu[:3], mu[3:]
@@ -211,6 +297,9 @@ def jax_rk4(top: bool, project: bool) -> Any:
         return jnp.concatenate([jnp.cross(m, w) + jnp.cross(g, arm), jnp.cross(g, w)])
 
     def projection(mu: Any, mu0: Any) -> Any:
+        if lv:
+            d = (jnp.dot(lv_k, jnp.log(mu)) - jnp.dot(lv_k, jnp.log(mu0))) / 3.0
+            return mu * jnp.exp(-lv_k * d)
         if not top:
             return mu * (jnp.linalg.norm(mu0) / jnp.linalg.norm(mu))
         r0, c0 = jnp.linalg.norm(mu0[3:]), jnp.dot(mu0[:3], mu0[3:])
@@ -247,7 +336,9 @@ def jax_rk4(top: bool, project: bool) -> Any:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--system", choices=("rigid-body", "heavy-top"), default="rigid-body")
+    parser.add_argument(
+        "--system", choices=("rigid-body", "heavy-top", "lotka-volterra"), default="rigid-body"
+    )
     parser.add_argument("--horizon", type=float, default=1e5)
     parser.add_argument("--states", type=int, default=16)
     parser.add_argument("--every", type=int, default=1000)
@@ -259,7 +350,19 @@ def main() -> None:
         check_output_path(p)
     rng = np.random.default_rng(42)
     top = args.system == "heavy-top"
-    if top:
+    lv = args.system == "lotka-volterra"
+    steppers: dict[str, Any] = {}
+    if lv:
+        mu0 = np.exp(rng.uniform(-0.4, 0.4, (args.states, 3))) * np.array(LV_B)
+        system = pr.lotka_volterra(LV_C, LV_B)
+        sweep, run, measure, projected = LV_SWEEP, projected_lv_rk4(), lv_invariants, PROJECTED
+        for name in sweep:
+            steppers[name] = (
+                pr.log_canonical_taylor(system, int(name[6:]))
+                if name.startswith("taylor")
+                else pr.log_canonical_classical(system, name)
+            )
+    elif top:
         g = rng.normal(size=(args.states, 3))
         mu0 = np.concatenate(
             [rng.uniform(-2, 2, (args.states, 3)), g / np.linalg.norm(g, axis=1, keepdims=True)],
@@ -277,6 +380,9 @@ def main() -> None:
         def measure(traj: np.ndarray) -> tuple[float, float]:
             return invariants(traj, inv)
 
+    if not lv:
+        steppers = {name: pr.classical(body, name) for name in sweep}
+
     points: list[dict[str, Any]] = []
 
     def record(method: str, h: float, seconds: float, traj: np.ndarray) -> None:
@@ -285,7 +391,7 @@ def main() -> None:
         print(f"{method:18s} h={h:<7g} {seconds:8.2f} s  dC {dc:.1e}  dH {dh:.1e}", flush=True)
 
     for method, steps in sweep.items():
-        stepper = pr.classical(body, method)
+        stepper = steppers[method]
         for h in steps:
             n = round(args.horizon / h)
             every = min(args.every, n)
@@ -301,7 +407,7 @@ def main() -> None:
             traj = run(mu0, h, n - n % every, every)
             record("rk4 + projection", h, time.perf_counter() - start, traj)
     for project, label in ((False, "rk4 (JAX)"), (True, "rk4 + projection (JAX)")):
-        jrun = None if args.no_jax else jax_rk4(top, project)
+        jrun = None if args.no_jax else jax_rk4(args.system, project)
         if jrun is None:
             continue
         for h in projected if project else sweep["rk4"]:
@@ -313,7 +419,9 @@ def main() -> None:
         "system": args.system,
         "horizon": args.horizon,
         "states": args.states,
-        "inertia": TOP_INERTIA if top else INERTIA,
+        "system_data": {"c": LV_C, "b": LV_B}
+        if lv
+        else {"inertia": TOP_INERTIA if top else INERTIA},
     }
     atomic_write_bytes(json_path, json.dumps({**meta, "points": points}, indent=1).encode())
     import matplotlib
@@ -325,6 +433,8 @@ def main() -> None:
     labels = (
         ("max Casimir error (|Γ|², M·Γ), relative", "max |ΔH| / H scale")
         if top
+        else ("max |C − C₀|, C = ln(x₁x₃/x₂)", "max |H/H₀ − 1|")
+        if lv
         else ("max |C/C₀ − 1|", "max |H/H₀ − 1|")
     )
     for key, ax, label in (("casimir", axes[0], labels[0]), ("energy", axes[1], labels[1])):
@@ -336,7 +446,7 @@ def main() -> None:
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel(f"seconds, {args.states} states, one thread")
     axes[1].legend(fontsize=8)
-    name = "Heavy top" if top else "Rigid body"
+    name = "Heavy top" if top else "3D Lotka–Volterra" if lv else "Rigid body"
     fig.suptitle(f"{name}: cost against invariant errors (error < 1e-17 plotted at 1e-17)")
     fig.tight_layout()
     buf = io.BytesIO()

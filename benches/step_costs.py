@@ -1,10 +1,13 @@
 """What one step of every stepper of the package costs, in one process, one thread:
 ``RAYON_NUM_THREADS=1 taskset -c 0 python benches/step_costs.py``.
 
-For the rigid body (I = (1.5, 2, 2.5)) and the heavy top (I = (1, 1.5, 2), mgl = 0.981, χ = e₃),
-h = 0.1, a batch of seeded states (``--batch``, default 4096): every fixed-step classical method
-(``pr.classical_methods``, DOP853 left out: it is adaptive and in SciPy), Taylor-HJ K = 3 and 5 in
-each chart the system has, and the shipped learned models of that system. Each stepper rolls the
+For the rigid body (I = (1.5, 2, 2.5)), the heavy top (I = (1, 1.5, 2), mgl = 0.981, χ = e₃) and
+Lotka–Volterra (PNN's 2D system and the 3D one of ``scenes/lotka_volterra_3d.toml``), h = 0.1, a
+batch of seeded states (``--batch``, default 4096): every fixed-step classical method
+(``pr.classical_methods``, or RK4, the midpoint rule and the log splittings on Lotka–Volterra;
+DOP853 left out: it is adaptive and in SciPy), Taylor-HJ K = 3 and 5 in each chart the system has
+(the exact log-canonical groupoid for Lotka–Volterra), and the shipped learned models of that
+system. ``--system`` picks one system. Each stepper rolls the
 batch forward for a fixed amount of work and keeps only the final state; a cell is the median of
 ``--rounds`` timed rollouts after a warm-up, rounds alternating the steppers. Reported: ns per
 trajectory-step, the ratio to the package's own RK4 step in the same run, and the mean Newton
@@ -53,8 +56,21 @@ def top_states(batch: int, rng: np.random.Generator) -> np.ndarray:
     )
 
 
-def steppers(system: pr.LiePoissonSystem, learned: list[str]) -> dict[str, Any]:
+def lotka_volterra_states(batch: int, rng: np.random.Generator, b: np.ndarray) -> np.ndarray:
+    """Within a log distance of 0.4 of the equilibrium x* = b (inside the learned model's box)."""
+    return np.exp(rng.uniform(-0.4, 0.4, (batch, len(b)))) * b
+
+
+def steppers(system: Any, learned: list[str]) -> dict[str, Any]:
     out: dict[str, Any] = {}
+    if isinstance(system, pr.LogCanonicalSystem):
+        for name in ("rk4", "midpoint", "log_splitting", "log_splitting4"):
+            out[name] = pr.log_canonical_classical(system, name)
+        for order in (3, 5):
+            out[f"taylor{order}-log"] = pr.log_canonical_taylor(system, order)
+        for name in learned:
+            out[f"learned:{name}"] = pr.load_model(name)
+        return out
     for name in pr.classical_methods(system):
         if name != "dop853":
             out[name] = pr.classical(system, name)
@@ -72,6 +88,9 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=4096)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument(
+        "--system", choices=("all", "rigid-body", "heavy-top", "lotka-volterra"), default="all"
+    )
     args = parser.parse_args()
     if args.batch < 1 or args.rounds < 1:
         raise SystemExit("--batch and --rounds must be at least 1")
@@ -90,12 +109,30 @@ def main() -> None:
             ["heavy_top_h05"],
         ),
     ]
+    pnn = pr.lotka_volterra([[0.0, 1.0], [-1.0, 0.0]], [1.0, 2.0])
+    lv3 = pr.lotka_volterra([[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]], [1.0, 2.0, 1.0])
+    cases += [
+        (
+            "lotka-volterra",
+            pnn,
+            lotka_volterra_states(args.batch, rng, np.array([1.0, 2.0])),
+            ["lotka_volterra_h01"],
+        ),
+        (
+            "lotka-volterra 3d",
+            lv3,
+            lotka_volterra_states(args.batch, rng, np.array([1.0, 2.0, 1.0])),
+            [],
+        ),
+    ]
+    if args.system != "all":
+        cases = [c for c in cases if c[0].replace(" 3d", "").replace(" ", "-") == args.system]
     rows: list[dict[str, Any]] = []
     for label, system, mu0, learned in cases:
         table = steppers(system, learned)
         n_steps = {name: max(1, WORK // args.batch) for name in table}
         # Cheap explicit steps take more steps a rollout, so every timing is well above noise.
-        for name in ("rk4", "splitting", "splitting_casimir"):
+        for name in ("rk4", "splitting", "splitting_casimir", "log_splitting"):
             if name in n_steps:
                 n_steps[name] *= 20
         updates: dict[str, float] = {}
@@ -127,7 +164,7 @@ def main() -> None:
             )
             note = "" if np.isnan(u) else f", {u:.2f} Newton updates/step"
             print(
-                f"{label:10s} {name:24s} {ns:9.1f} ns/trajectory-step "
+                f"{label:17s} {name:24s} {ns:9.1f} ns/trajectory-step "
                 f"{ns / (base * 1e9):7.1f}x RK4{note}",
                 flush=True,
             )

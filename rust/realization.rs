@@ -30,6 +30,19 @@ pub trait Realization<const N: usize>: Sync {
     fn so3_chart(&self) -> Option<Chart> {
         None
     }
+    /// The step's new state from the converged (x, p) and the state it solved for
+    /// (tar(x, p) = target up to Newton's residual): sou(x, p) by default. A realization where
+    /// sou = tar − (something of x alone) overrides it to take `target` in place of tar, which
+    /// leaves the residual out of the step.
+    #[inline]
+    fn sou_after_solve(
+        &self,
+        x: &[f64; N],
+        p: &[f64; N],
+        _target: &[f64; N],
+    ) -> Result<[f64; N], StepFailure> {
+        self.sou(x, p)
+    }
 }
 
 impl<const N: usize> Realization<N> for Groupoid<N> {
@@ -153,7 +166,7 @@ where
         let x = grad.g;
         let t = self.realization.tar(&x, &p)?;
         let f: [f64; N] = std::array::from_fn(|i| t[i] - target[i]);
-        let out = self.realization.sou(&x, &p)?;
+        let out = self.realization.sou_after_solve(&x, &p, &target)?;
         if !out.iter().all(|v| v.is_finite()) {
             return Err(StepFailure::NonFinite);
         }

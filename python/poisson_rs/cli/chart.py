@@ -181,7 +181,7 @@ def level_summary(rows: Sequence[dict[str, Any]], levels: Sequence[float], scene
 
     horizon = next((r["T"] for r in rows if r["scene"] == scene), 10.0)
     lines = [
-        f"fastest to reach max |μ(T) − μ_exact(T)| ≤ level, {scene} scene, T = {horizon:g} (s per "
+        f"fastest to reach max |x(T) − x_ref(T)| ≤ level, {scene} scene, T = {horizon:g} (s per "
         "trajectory,",
         "interpolated log–log between neighbouring measured points; [cheapest measured point]):",
     ]
