@@ -1,7 +1,13 @@
-"""Shared fixtures: seeded random generating functions, saved to model files and loaded back."""
+"""Shared fixtures: seeded random generating functions, saved to model files and loaded back;
+and the harness that interrupts a long rollout in a subprocess."""
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Protocol
 
@@ -159,3 +165,31 @@ def random_states(
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return d * rng.uniform(r_min, r_max, size=(n, 1))
+
+
+def interrupt_long_rollout(code: str, *args: str) -> tuple[str, str, int, float]:
+    """Runs ``code`` (``python -c``, with ``args``), which prints "ready" just before a rollout
+    far too long to finish, sends it SIGINT one second later and waits for it to stop.
+
+    Returns (stdout after "ready", stderr, return code, seconds from SIGINT to exit). Fails the
+    test if the rollout ended before it was interrupted; the process is killed if it hangs."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "ready"  # however long the imports took
+        time.sleep(1.0)
+        assert proc.poll() is None, "the rollout ended before it was interrupted"
+        sent = time.perf_counter()
+        os.kill(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+        latency = time.perf_counter() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return out, err, proc.returncode, latency

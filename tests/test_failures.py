@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from conftest import PAPER_INERTIA, RandomModel, random_states
+from conftest import PAPER_INERTIA, RandomModel, interrupt_long_rollout, random_states
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -89,29 +89,11 @@ print("finished", flush=True)
 
 @pytest.mark.parametrize(("method", "copies"), [("learned", 1), ("learned", 512), ("splitting", 4)])
 def test_ctrl_c_interrupts_a_long_rollout(method: str, copies: int):
-    proc = subprocess.Popen(
-        [sys.executable, "-c", _LONG_ROLLOUT, method, str(copies)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert proc.stdout is not None
-        assert proc.stdout.readline().strip() == "ready"  # however long the imports took
-        time.sleep(1.0)
-        assert proc.poll() is None, "the rollout ended before it was interrupted"
-        sent = time.perf_counter()
-        os.kill(proc.pid, signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
-        latency = time.perf_counter() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    out, err, code, latency = interrupt_long_rollout(_LONG_ROLLOUT, method, str(copies))
     assert "finished" not in out
     assert "KeyboardInterrupt" in err, err
     # An uncaught KeyboardInterrupt makes Python exit by SIGINT.
-    assert proc.returncode == -signal.SIGINT, (proc.returncode, err)
+    assert code == -signal.SIGINT, (code, err)
     assert latency < 5.0, f"took {latency:.2f} s to stop"
 
 

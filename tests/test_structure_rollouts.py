@@ -15,12 +15,12 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
+from conftest import interrupt_long_rollout
 
 import poisson_rs as pr
 
@@ -194,26 +194,8 @@ print("finished", flush=True)
 )
 def test_ctrl_c_interrupts_a_long_rollout(name: str, copies: int) -> None:
     code = textwrap.dedent(_LONG_ROLLOUT.format(tests=os.path.dirname(__file__)))
-    proc = subprocess.Popen(
-        [sys.executable, "-c", code, name, str(copies)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert proc.stdout is not None
-        assert proc.stdout.readline().strip() == "ready"  # however long the imports took
-        time.sleep(1.0)
-        assert proc.poll() is None, "the rollout ended before it was interrupted"
-        sent = time.perf_counter()
-        os.kill(proc.pid, signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
-        latency = time.perf_counter() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    out, err, returncode, latency = interrupt_long_rollout(code, name, str(copies))
     assert "finished" not in out
     assert "KeyboardInterrupt" in err, err
-    assert proc.returncode == -signal.SIGINT, (proc.returncode, err)
+    assert returncode == -signal.SIGINT, (returncode, err)
     assert latency < 5.0, f"took {latency:.2f} s to stop"
