@@ -1082,8 +1082,8 @@ fn rollout_log_classical<'py>(
 
 use crate::generating::{Layer, Mlp};
 use crate::structures::{
-    LearnedPolynomialModel, PolynomialBisection, PolynomialGenerating, PolynomialRealization,
-    SparsePolynomial,
+    LearnedPolynomialModel, PolynomialBisection, PolynomialField, PolynomialGenerating,
+    PolynomialRealization, SparsePolynomial,
 };
 
 /// One polynomial in `vars` variables from the rows `rows` of a term table.
@@ -1140,8 +1140,9 @@ fn component_polynomials<const N: usize>(
     index: &PyReadonlyArray1<'_, i64>,
     coeffs: &PyReadonlyArray1<'_, f64>,
     exponents: &PyReadonlyArray2<'_, i64>,
+    vars: usize,
 ) -> PyResult<Vec<SparsePolynomial>> {
-    let (co, ex) = term_table(what, coeffs, exponents, 2 * N)?;
+    let (co, ex) = term_table(what, coeffs, exponents, vars)?;
     let ix = index.as_array();
     rows_match(&format!("{what} index"), ix.len(), co.len())?;
     if let Some(k) = (0..ix.len()).find(|&k| !(0..N as i64).contains(&ix[k])) {
@@ -1160,7 +1161,7 @@ fn component_polynomials<const N: usize>(
             &co,
             &ex,
             &rows,
-            2 * N,
+            vars,
         )?);
     }
     Ok(out)
@@ -1195,8 +1196,8 @@ fn rollout_polynomial_realization<'py>(
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let dim = x0.shape()[1];
     with_dim!(dim, N => {
-        let sou = component_polynomials::<N>("sou", &sou_index, &sou_coeffs, &sou_exponents)?;
-        let tar = component_polynomials::<N>("tar", &tar_index, &tar_coeffs, &tar_exponents)?;
+        let sou = component_polynomials::<N>("sou", &sou_index, &sou_coeffs, &sou_exponents, 2 * N)?;
+        let tar = component_polynomials::<N>("tar", &tar_index, &tar_coeffs, &tar_exponents, 2 * N)?;
         let (co, ex) = term_table("S", &s_coeffs, &s_exponents, N + 1)?;
         let all: Vec<usize> = (0..co.len()).collect();
         let s = polynomial("S", &co, &ex, &all, N + 1)?;
@@ -1208,6 +1209,48 @@ fn rollout_polynomial_realization<'py>(
         };
         let x0 = states::<N>(&x0, "x0")?;
         run_rollout(py, &PerStep(&stepper), &x0, h, n_steps, every, None)
+    }, Err(dim_error(dim)))
+}
+
+/// Rolls out a classical baseline of a polynomial vector field ẋ_i = f_i(x) (the components as
+/// one term table: index (which component), coeffs, exponents (M, N)) from each row of `x0`
+/// (n, N): "rk4", or "midpoint" (Newton with the exact Jacobian, |δ|∞ ≤ tol · max(|x|∞, 1e-300)),
+/// stepped in SIMD lanes.
+#[pyfunction]
+#[pyo3(signature = (name, index, coeffs, exponents, x0, h, n_steps, every=1, tol=1e-13, max_iter=50))]
+#[allow(clippy::too_many_arguments)]
+fn rollout_polynomial_field<'py>(
+    py: Python<'py>,
+    name: &str,
+    index: PyReadonlyArray1<'py, i64>,
+    coeffs: PyReadonlyArray1<'py, f64>,
+    exponents: PyReadonlyArray2<'py, i64>,
+    x0: PyReadonlyArray2<'py, f64>,
+    h: f64,
+    n_steps: usize,
+    every: usize,
+    tol: f64,
+    max_iter: u32,
+) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
+    let newton = NewtonOptions::validated(tol, max_iter)?;
+    let dim = x0.shape()[1];
+    with_dim!(dim, N => {
+        let f = component_polynomials::<N>("f", &index, &coeffs, &exponents, N)?;
+        let field = PolynomialField::<N>::new(f)?;
+        let x0 = states::<N>(&x0, "x0")?;
+        match name {
+            "rk4" => {
+                let rk4 = crate::classical::Rk4 { system: field };
+                run_rollout(py, &Lanes::new(&rk4), &x0, h, n_steps, every, None)
+            }
+            "midpoint" => {
+                let midpoint = crate::classical::ImplicitMidpoint { system: field, newton };
+                run_rollout(py, &Lanes::new(&midpoint), &x0, h, n_steps, every, None)
+            }
+            other => Err(PyValueError::new_err(format!(
+                "unknown polynomial-field integrator {other:?}; valid: rk4, midpoint"
+            ))),
+        }
     }, Err(dim_error(dim)))
 }
 
@@ -1263,8 +1306,8 @@ impl PyLearnedPolynomialModel {
             Some(Mlp::new(layers)?)
         };
         let inner = with_dim!(dim, N => {
-            let sou = component_polynomials::<N>("sou", &sou_index, &sou_coeffs, &sou_exponents)?;
-            let tar = component_polynomials::<N>("tar", &tar_index, &tar_coeffs, &tar_exponents)?;
+            let sou = component_polynomials::<N>("sou", &sou_index, &sou_coeffs, &sou_exponents, 2 * N)?;
+            let tar = component_polynomials::<N>("tar", &tar_index, &tar_coeffs, &tar_exponents, 2 * N)?;
             let (co, ex) = term_table("S", &s_coeffs, &s_exponents, N + 1)?;
             let all: Vec<usize> = (0..co.len()).collect();
             let s = polynomial("S", &co, &ex, &all, N + 1)?;
@@ -1442,6 +1485,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_after_fork_in_child, m)?)?;
     m.add_function(wrap_pyfunction!(serial_rollouts, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_log_canonical, m)?)?;
+    m.add_function(wrap_pyfunction!(rollout_polynomial_field, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_log_classical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_polynomial_realization, m)?)?;
     m.add("MAX_DIM", MAX_DIM)?;

@@ -128,3 +128,32 @@ def test_stability_and_select_on_the_nambu_scene(tmp_path: Path) -> None:
     text = json.dumps(json.loads(report.read_text()))
     for name in ("taylor3-realization", "taylor5-realization", "rk4", "dop853"):
         assert name in text
+
+
+@pytest.mark.parametrize("name", ["rk4", "midpoint"])
+def test_core_classical_steps_equal_the_numpy_oracle(name: str) -> None:
+    """RK4 and the midpoint rule run in the core (SIMD lanes) on the field's expanded terms;
+    the NumPy step on the lambdified field is the oracle (the midpoint rule there by
+    fixed-point iteration, so the two agree to the tolerance, not bit for bit)."""
+    system = load_scene(SCENE).lie_system
+    x0 = np.random.default_rng(5).uniform(-0.6, 0.6, (9, 3))
+    stepper = VectorFieldIntegrator(system, name)
+    traj = pr.integrate(stepper, x0, 0.1, 20)
+    x = x0.copy()
+    for _ in range(20):
+        x, ok = stepper.step(x, 0.1)
+        assert ok.all()
+    np.testing.assert_allclose(traj[:, -1], x, rtol=0, atol=1e-12)
+    # One state alone has the bits it has in the batch.
+    assert pr.integrate(stepper, x0[4], 0.1, 20).tobytes() == traj[4].tobytes()
+
+
+def test_core_classical_blow_up_is_a_failure_code() -> None:
+    system = load_scene(SCENE).lie_system
+    x0 = np.array([[0.3, 0.5, -0.4], [40.0, 40.0, 40.0]])
+    traj, info = pr.integrate(
+        VectorFieldIntegrator(system, "rk4"), x0, 0.5, 200, return_info=True, on_failure="ignore"
+    )
+    assert info.converged[0] and np.isfinite(traj[0]).all()
+    assert not info.converged[1] and info.failure_code[1] == 3
+    assert np.isnan(traj[1, info.failed_step[1] + 1 :]).all()

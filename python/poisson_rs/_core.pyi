@@ -247,6 +247,22 @@ def rollout_log_classical(
     "rk4", "midpoint" (state x; leaving the orthant fails with code 5), "log_splitting",
     "log_splitting4" (state q = ln x; exact one-variable flows, Strang / Suzuki)."""
 
+def rollout_polynomial_field(
+    name: str,
+    index: npt.NDArray[np.int64],
+    coeffs: npt.NDArray[np.float64],
+    exponents: npt.NDArray[np.int64],
+    x0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-13,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
+    """A classical baseline ("rk4" or "midpoint") of the polynomial vector field
+    ẋ_i = f_i(x), its components as one term table (index (M,): the component; exponents
+    (M, N)), from each row of x0 (n, N), in SIMD lanes."""
+
 def rollout_polynomial_realization(
     sou_index: npt.NDArray[np.int64],
     sou_coeffs: npt.NDArray[np.float64],

@@ -19,5 +19,5 @@ pub use log_canonical::{
 };
 pub use polynomial::{
     LearnedPolynomial, LearnedPolynomialBisection, LearnedPolynomialModel, PolynomialBisection,
-    PolynomialGenerating, PolynomialRealization, SparsePolynomial,
+    PolynomialField, PolynomialGenerating, PolynomialRealization, SparsePolynomial,
 };

@@ -259,6 +259,8 @@ class PolynomialPoissonSystem:
         ]
         self._h = _lambdify(x, [self.h])
         self._f = _lambdify(x, field)
+        # The field's terms for the core's classical steppers (index, coeffs, exponents).
+        self.field_table = _term_table([sympy.expand(f) for f in field], x)
         self._c = None if structure.casimir is None else _lambdify(x, [structure.casimir])
 
     def __reduce__(self) -> tuple[Any, ...]:
@@ -536,15 +538,18 @@ VECTOR_FIELD_METHODS: dict[str, tuple[int, bool]] = {
 
 
 class VectorFieldIntegrator:
-    """A classical baseline for a :class:`PolynomialPoissonSystem`, in NumPy on its vector
-    field (vectorised over trajectories), driven by :func:`poisson_rs.integrate`:
+    """A classical baseline for a :class:`PolynomialPoissonSystem` on its vector field,
+    driven by :func:`poisson_rs.integrate`:
 
-    - "rk4": explicit RK4;
-    - "midpoint": the implicit midpoint rule by fixed-point iteration (``tol`` relative,
-      ``max_iter`` sweeps; a trajectory that does not converge fails with code 1);
+    - "rk4": explicit RK4, in the Rust core (SIMD lanes; the field's expanded terms);
+    - "midpoint": the implicit midpoint rule, in the core: Newton with the exact Jacobian
+      (``tol`` relative, ``max_iter`` updates; a trajectory that does not converge fails with
+      code 1);
     - "dop853": SciPy's adaptive DOP853 at rtol = atol = ``tol`` (h only spaces the output).
 
     None is a Poisson map for a non-linear π; a non-finite state fails with code 3.
+    :meth:`step` is the same RK4 (and the midpoint rule by fixed-point iteration) in NumPy, the
+    tests' oracle.
     """
 
     def __init__(
@@ -601,6 +606,19 @@ class VectorFieldIntegrator:
         self, mu0: FloatArray, h: float, n_steps: int, every: int
     ) -> tuple[FloatArray, dict[str, np.ndarray]]:
         n_traj = len(mu0)
+        if self.name in ("rk4", "midpoint"):
+            from .. import _core
+
+            return _core.rollout_polynomial_field(
+                self.name,
+                *self.system.field_table,
+                np.ascontiguousarray(mu0, dtype=np.float64),
+                float(h),
+                int(n_steps),
+                int(every),
+                self.tol,
+                self.max_iter,
+            )
         if self.name == "dop853":
             from ..reference import reference_solution
 
