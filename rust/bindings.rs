@@ -1214,7 +1214,8 @@ fn rollout_polynomial_realization<'py>(
 
 /// Rolls out a classical baseline of a polynomial vector field ẋ_i = f_i(x) (the components as
 /// one term table: index (which component), coeffs, exponents (M, N)) from each row of `x0`
-/// (n, N): "rk4", or "midpoint" (Newton with the exact Jacobian, |δ|∞ ≤ tol · max(|x|∞, 1e-300)),
+/// (n, N): "rk4", or "midpoint" (Newton on the midpoint m with the exact Jacobian, |δ|∞ ≤
+/// tol · max(|m|∞, 1e-300)),
 /// stepped in SIMD lanes.
 #[pyfunction]
 #[pyo3(signature = (name, index, coeffs, exponents, x0, h, n_steps, every=1, tol=1e-13, max_iter=50))]
