@@ -814,6 +814,7 @@ fn solve_small_lanes<const N: usize, const L: usize>(
     delta: &mut [[f64; L]; N],
     ok: &mut [bool; L],
 ) {
+    debug_assert!(N == 2 || N == 3, "cofactor solves are for N = 2 and 3");
     for l in 0..L {
         let m: [[f64; N]; N] = std::array::from_fn(|r| std::array::from_fn(|c| j[r][c][l]));
         let (adj, det): ([[f64; N]; N], f64) = if N == 2 {
