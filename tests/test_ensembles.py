@@ -71,6 +71,19 @@ def assert_same(a: tuple[np.ndarray, Any], b: tuple[np.ndarray, Any]) -> None:
         assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), k
 
 
+def on_cluster(
+    client: Any, stepper: Any, mu0: np.ndarray, h: float, n: int, every: int, chunk: int
+) -> tuple[np.ndarray, Any]:
+    """The rollout of ``mu0`` in chunks of ``chunk`` states, computed on the cluster: the
+    trajectories and a RolloutInfo, as :func:`in_process` returns them."""
+    traj, info = pr.integrate(
+        stepper, da.from_array(mu0, chunks=(chunk, -1)), h, n, every=every, return_info=True
+    )
+    fields = [getattr(info, k) for k in ensembles.INFO_FIELDS]
+    out = client.gather(client.compute([traj, *fields]))
+    return out[0], pr.RolloutInfo(**dict(zip(ensembles.INFO_FIELDS, out[1:], strict=True)))
+
+
 # --- pickling ---------------------------------------------------------------------------------
 
 
@@ -177,13 +190,9 @@ def test_cluster_rollouts_bit_identical(client: Any, kind: str, chunk: int) -> N
     else:
         stepper, mu0 = pr.classical(RIGID, "midpoint"), random_states(rng, 100)
         h, n, every = 0.1, 40, 4
-    traj, info = pr.integrate(
-        stepper, da.from_array(mu0, chunks=(chunk, -1)), h, n, every=every, return_info=True
+    assert_same(
+        on_cluster(client, stepper, mu0, h, n, every, chunk), in_process(stepper, mu0, h, n, every)
     )
-    fields = [getattr(info, k) for k in ensembles.INFO_FIELDS]
-    out = client.gather(client.compute([traj, *fields]))
-    got_info = pr.RolloutInfo(**dict(zip(ensembles.INFO_FIELDS, out[1:], strict=True)))
-    assert_same((out[0], got_info), in_process(stepper, mu0, h, n, every))
 
 
 def nambu_steppers() -> list[Any]:
@@ -217,13 +226,9 @@ def test_polynomial_bivector_steppers_pickle_to_identical_rollouts() -> None:
 def test_polynomial_bivector_on_cluster_bit_identical(client: Any) -> None:
     stepper = nambu_steppers()[0]
     mu0 = np.random.default_rng(9).uniform(-0.6, 0.6, (30, 3))
-    traj, info = pr.integrate(
-        stepper, da.from_array(mu0, chunks=(11, -1)), 0.1, 8, every=2, return_info=True
+    assert_same(
+        on_cluster(client, stepper, mu0, 0.1, 8, 2, 11), in_process(stepper, mu0, 0.1, 8, 2)
     )
-    fields = [getattr(info, k) for k in ensembles.INFO_FIELDS]
-    out = client.gather(client.compute([traj, *fields]))
-    got_info = pr.RolloutInfo(**dict(zip(ensembles.INFO_FIELDS, out[1:], strict=True)))
-    assert_same((out[0], got_info), in_process(stepper, mu0, 0.1, 8, 2))
 
 
 def lotka_volterra_steppers() -> dict[str, Any]:
@@ -253,13 +258,9 @@ def test_lotka_volterra_steppers_pickle_to_identical_rollouts() -> None:
 def test_lotka_volterra_on_cluster_bit_identical(client: Any, kind: str) -> None:
     stepper = lotka_volterra_steppers()[kind]
     x0 = lotka_volterra_states(11, 50)
-    traj, info = pr.integrate(
-        stepper, da.from_array(x0, chunks=(13, -1)), 0.1, 30, every=3, return_info=True
+    assert_same(
+        on_cluster(client, stepper, x0, 0.1, 30, 3, 13), in_process(stepper, x0, 0.1, 30, 3)
     )
-    fields = [getattr(info, k) for k in ensembles.INFO_FIELDS]
-    out = client.gather(client.compute([traj, *fields]))
-    got_info = pr.RolloutInfo(**dict(zip(ensembles.INFO_FIELDS, out[1:], strict=True)))
-    assert_same((out[0], got_info), in_process(stepper, x0, 0.1, 30, 3))
 
 
 class DieOnce:

@@ -10,6 +10,7 @@ extension.
 
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import subprocess
@@ -27,9 +28,14 @@ import poisson_rs as pr
 PNN = pr.lotka_volterra([[0.0, 1.0], [-1.0, 0.0]], [1.0, 2.0])
 #: 3D Lotka–Volterra with the Casimir x1 x3 / x2.
 LV3 = pr.lotka_volterra([[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]], [1.0, 2.0, 1.0])
-CUBIC = pr.PolynomialPoissonSystem(
-    pr.PolynomialBivector.nambu("x1**2/2 + x2**2/2 + x3**2/2 + x1**3/3"), "x1**2/2 + x2**2/3"
-)
+
+
+@functools.cache
+def _cubic() -> pr.PolynomialPoissonSystem:
+    """The cubic Nambu system, built (by sympy) once, when a test first needs it."""
+    return pr.PolynomialPoissonSystem(
+        pr.PolynomialBivector.nambu("x1**2/2 + x2**2/2 + x3**2/2 + x1**3/3"), "x1**2/2 + x2**2/3"
+    )
 
 
 def _pendulum() -> pr.AffinePoissonSystem:
@@ -60,7 +66,7 @@ STEPPERS: dict[str, tuple[Callable[[], Any], float]] = {
     "lv3-taylor3": (lambda: pr.log_canonical_taylor(LV3, 3), 0.1),
     "lv3-rk4": (lambda: pr.log_canonical_classical(LV3, "rk4"), 0.1),
     "lv3-midpoint": (lambda: pr.log_canonical_classical(LV3, "midpoint"), 0.1),
-    "nambu-taylor3": (lambda: pr.RealizationTaylorIntegrator(CUBIC, 3), 0.1),
+    "nambu-taylor3": (lambda: pr.RealizationTaylorIntegrator(_cubic(), 3), 0.1),
     "affine-taylor3": (lambda: pr.affine_taylor(_pendulum(), 3), 0.1),
 }
 
