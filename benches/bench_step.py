@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 import poisson_rs as pr
+from poisson_rs.files import atomic_write_bytes, check_output_path
 
 BATCHES = (1, 64, 4096)
 
@@ -147,6 +148,8 @@ def main() -> None:
     ap.add_argument("--budget", type=float, default=1.0, help="seconds per Rust measurement")
     ap.add_argument("--json", default=None, help="also write the rows as JSON")
     args = ap.parse_args()
+    if args.json:  # before the work, not after
+        check_output_path(args.json)
     ceiling = gemm_gflops()
     print(f"NumPy float64 GEMM: {ceiling:.1f} GFLOP/s; torch threads {torch.get_num_threads()}")
     rows = []
@@ -194,8 +197,7 @@ def main() -> None:
                 f"{gflops:>8.2f} {100 * gflops / ceiling:>6.1f}%"
             )
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=1)
+        atomic_write_bytes(args.json, json.dumps(rows, indent=1).encode())
 
 
 if __name__ == "__main__":

@@ -46,6 +46,7 @@ os.environ.setdefault(
 import numpy as np
 
 import poisson_rs as pr
+from poisson_rs.files import atomic_write_bytes, check_output_path
 
 H = 0.1
 RIGID_I = (1.5, 2.0, 2.5)
@@ -154,6 +155,8 @@ def main() -> None:
         help="time this bisection stepper only (with JAX and the baselines)",
     )
     args = parser.parse_args()
+    if args.json:  # before minutes of work, not after
+        check_output_path(args.json)
     rounds = max(5, args.rounds)
     baselines: dict[str, ModuleType] = {}
     for spec in args.baseline:
@@ -212,7 +215,8 @@ def main() -> None:
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
     print(f"machine: {machine}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows, "load": load, "machine": machine}, indent=1))
+        data = {"rows": rows, "load": load, "machine": machine}
+        atomic_write_bytes(args.json, json.dumps(data, indent=1).encode())
 
 
 if __name__ == "__main__":
