@@ -329,7 +329,7 @@ fn bench_classical(c: &mut Criterion) {
     use poisson_rs::classical::ImplicitMidpoint;
     use poisson_rs::lanes::{Isa, Lanes};
     use poisson_rs::rollout::{ChunkKernel, PerStep, Rollout};
-    use poisson_rs::{Hamiltonian, LieAlgebra, LiePoisson, NewtonOptions, RigidBody, Rk4};
+    use poisson_rs::{LiePoisson, NewtonOptions, RigidBody, Rk4};
 
     fn run<const N: usize, K: ChunkKernel<N>>(k: &K, mu0: &[[f64; N]], n: usize, out: &mut [f64]) {
         let mut r = Rollout::start(mu0, H, n, n, out).unwrap();
@@ -385,18 +385,7 @@ fn bench_classical(c: &mut Criterion) {
         RigidBody::new([1.5, 2.0, 2.5]).unwrap(),
         rigid,
     );
-    let mut terms: Vec<([u32; 6], f64)> = (0..3)
-        .map(|i| {
-            let mut e = [0; 6];
-            e[i] = 2;
-            (e, 0.5 / [1.0, 1.5, 2.0][i])
-        })
-        .collect();
-    terms.push(([0, 0, 0, 0, 0, 1], 0.981));
-    let top = LiePoisson {
-        algebra: LieAlgebra::se3(),
-        hamiltonian: Hamiltonian::new(terms).unwrap(),
-    };
+    let top = LiePoisson::heavy_top([1.0, 1.5, 2.0], [0.0, 0.0, 0.981]).unwrap();
     let states: Vec<[f64; 6]> = (0..4096)
         .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0)))
         .collect();

@@ -191,6 +191,31 @@ impl<const N: usize> LiePoisson<N> {
     }
 }
 
+impl LiePoisson<6> {
+    /// The heavy top on se(3)*: H = ½ Σ Mᵢ²/Iᵢ + mgl χ·Γ, with `mgl_chi` = mgl χ (its zero
+    /// entries give no term).
+    pub fn heavy_top(inertia: [f64; 3], mgl_chi: [f64; 3]) -> Result<Self, CoreError> {
+        let mut terms = Vec::new();
+        terms
+            .try_reserve_exact(6)
+            .map_err(|_| CoreError::Invalid("no memory for 6 terms".into()))?;
+        for i in 0..3 {
+            let mut e = [0; 6];
+            e[i] = 2;
+            terms.push((e, 0.5 / inertia[i]));
+        }
+        for i in (0..3).filter(|&i| mgl_chi[i] != 0.0) {
+            let mut e = [0; 6];
+            e[3 + i] = 1;
+            terms.push((e, mgl_chi[i]));
+        }
+        Ok(LiePoisson {
+            algebra: LieAlgebra::se3(),
+            hamiltonian: Hamiltonian::new(terms)?,
+        })
+    }
+}
+
 impl<const N: usize> LiePoisson<N> {
     /// The system compiled to its sparsity (see [`CompiledLiePoisson`]).
     pub fn compile(&self) -> CompiledLiePoisson<N> {
@@ -628,19 +653,9 @@ mod tests {
     /// into the 2 of Γ₃ (∂H constant), and still equals the full bracket sum bit for bit.
     #[test]
     fn compiled_field_drops_zero_and_folds_constant_gradients() {
-        let mut terms: Vec<([u32; 6], f64)> = (0..3)
-            .map(|i| {
-                let mut e = [0; 6];
-                e[i] = 2;
-                (e, 0.5 / [1.0, 1.5, 2.0][i])
-            })
-            .collect();
-        terms.push(([0, 0, 0, 0, 0, 1], 0.981));
-        let sys = LiePoisson {
-            algebra: LieAlgebra::se3(),
-            hamiltonian: Hamiltonian::new(terms).unwrap(),
-        }
-        .compile();
+        let sys = LiePoisson::heavy_top([1.0, 1.5, 2.0], [0.0, 0.0, 0.981])
+            .unwrap()
+            .compile();
         assert_eq!(sys.bracket.len(), 18);
         assert_eq!(sys.field_terms.len(), 14);
         assert_eq!(

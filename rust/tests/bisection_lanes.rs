@@ -10,15 +10,6 @@ use crate::dual::Dual1;
 use crate::lanes::{Isa, LANES};
 use crate::lanes_bisection::{polynomial_gradients, polynomial_jets};
 
-/// The dispatch paths this CPU runs: the portable one, and the widest where it differs.
-fn isas() -> Vec<Isa> {
-    let mut v = vec![Isa::Portable];
-    if Isa::detect() != Isa::Portable {
-        v.push(Isa::detect());
-    }
-    v
-}
-
 fn same_bits(a: &[f64], b: &[f64]) -> bool {
     a.len() == b.len()
         && a.iter()

@@ -6,7 +6,7 @@
 
 use super::*;
 use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
-use crate::lanes::{Isa, LaneStepper, Lanes, LANES};
+use crate::lanes::{LaneStepper, Lanes, LANES};
 use crate::rollout::{ChunkKernel, PerStep, Rollout};
 use crate::stepper::NewtonOptions;
 use crate::straight_line::{LieField, Se3QuadraticLinear, So3Quadratic, Torque};
@@ -160,27 +160,7 @@ fn sparse_field_equals_dense_on_random_algebras() {
 
 /// The heavy top with DPNN's parameters.
 fn heavy_top() -> LiePoisson<6> {
-    let inertia = [1.0, 1.5, 2.0];
-    let mut terms: Vec<([u32; 6], f64)> = (0..3)
-        .map(|i| {
-            let mut e = [0; 6];
-            e[i] = 2;
-            (e, 0.5 / inertia[i])
-        })
-        .collect();
-    terms.push(([0, 0, 0, 0, 0, 1], 0.981));
-    LiePoisson {
-        algebra: LieAlgebra::new(se3()).unwrap(),
-        hamiltonian: Hamiltonian::new(terms).unwrap(),
-    }
-}
-
-fn isas() -> Vec<Isa> {
-    let mut v = vec![Isa::Portable];
-    if Isa::detect() != Isa::Portable {
-        v.push(Isa::detect());
-    }
-    v
+    LiePoisson::heavy_top([1.0, 1.5, 2.0], [0.0, 0.0, 0.981]).unwrap()
 }
 
 /// A rollout of `mu0` with `kernel`, in segments of `segment` steps, serial or on the pool.

@@ -30,27 +30,8 @@ const TOP_INERTIA: [f64; 3] = [1.0, 1.5, 2.0];
 const MGL: f64 = 0.981;
 const COM: [f64; 3] = [0.0, 0.0, 1.0];
 
-/// The heavy top's H = ½ Σ Mᵢ²/Iᵢ + mgl χ·Γ.
-fn heavy_top_hamiltonian() -> Hamiltonian<6> {
-    let mut terms = Vec::new();
-    for i in 0..3 {
-        let mut e = [0; 6];
-        e[i] = 2;
-        terms.push((e, 0.5 / TOP_INERTIA[i]));
-        let mut e = [0; 6];
-        e[3 + i] = 1;
-        if COM[i] != 0.0 {
-            terms.push((e, MGL * COM[i]));
-        }
-    }
-    Hamiltonian::new(terms).unwrap()
-}
-
 fn heavy_top() -> LiePoisson<6> {
-    LiePoisson {
-        algebra: se3(),
-        hamiltonian: heavy_top_hamiltonian(),
-    }
+    LiePoisson::heavy_top(TOP_INERTIA, COM.map(|c| MGL * c)).unwrap()
 }
 
 /// H = ½ (h² + e² + f²)/… on sl(2): a quadratic form with distinct weights.

@@ -76,6 +76,16 @@ const INERTIA: [f64; 3] = [1.5, 2.0, 2.5];
 
 const ALL_INPUTS: [MlpInputs; 2] = [MlpInputs::Plain, MlpInputs::Homogeneous];
 
+/// Every instruction set this CPU runs: the portable path, and the detected one if wider.
+fn isas() -> Vec<crate::lanes::Isa> {
+    use crate::lanes::Isa;
+    let mut v = vec![Isa::Portable];
+    if Isa::detect() != Isa::Portable {
+        v.push(Isa::detect());
+    }
+    v
+}
+
 /// A tight Newton cap must split a batch: some trajectories stop at it (NotConverged) while
 /// others converge, so the lane-wide solve is checked on both outcomes at once.
 fn assert_some_capped_some_converged(info: &[TrajectoryInfo]) {

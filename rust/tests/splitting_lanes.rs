@@ -153,14 +153,6 @@ fn sin_cos_lanes_equal_the_scalar_call_bit_for_bit() {
 // Lane steppers against the scalar steps
 // ---------------------------------------------------------------------------------------------
 
-pub(super) fn isas() -> Vec<Isa> {
-    let mut v = vec![Isa::Portable];
-    if Isa::detect() != Isa::Portable {
-        v.push(Isa::detect());
-    }
-    v
-}
-
 pub(super) type Run = (Vec<f64>, Vec<TrajectoryInfo>);
 
 /// A rollout of `mu0` with `kernel`, in segments of `segment` steps, serial or on the pool.
