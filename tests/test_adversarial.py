@@ -393,11 +393,11 @@ class _FailingStepper:
         self.system = self.inner.system
         self.dim = 3
 
-    def _rollout(self, *args: Any) -> Any:
+    def rollout(self, *args: Any) -> Any:
         self.calls += 1
         if self.calls == self.fail_at:
             raise KeyboardInterrupt
-        return self.inner._rollout(*args)
+        return self.inner.rollout(*args)
 
 
 def test_to_zarr_interrupted_leaves_nothing_and_a_rerun_works(tmp_path: Path) -> None:

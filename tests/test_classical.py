@@ -123,7 +123,7 @@ def test_dop853_agrees_with_exact():
     assert info.converged.all()
     # The same keys and dtypes as a Rust rollout's info.
     _, rust_info = _core.rollout_classical("rk4", BODY.inertia, mu0, 0.1, 2)
-    dop_info = stepper._rollout(mu0, 0.1, 2, 1)[1]
+    dop_info = stepper.rollout(mu0, 0.1, 2, 1)[1]
     assert {k: v.dtype for k, v in dop_info.items()} == {k: v.dtype for k, v in rust_info.items()}
 
 

@@ -274,13 +274,13 @@ class DieOnce:
     def dim(self) -> int:
         return int(self.stepper.dim)
 
-    def _rollout(self, mu0: np.ndarray, h: float, n_steps: int, every: int) -> Any:
+    def rollout(self, mu0: np.ndarray, h: float, n_steps: int, every: int) -> Any:
         if not len(mu0):  # integrate's argument check, in the calling process
-            return self.stepper._rollout(mu0, h, n_steps, every)
+            return self.stepper.rollout(mu0, h, n_steps, every)
         try:
             os.close(os.open(self.marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
         except FileExistsError:
-            return self.stepper._rollout(mu0, h, n_steps, every)
+            return self.stepper.rollout(mu0, h, n_steps, every)
         os._exit(1)  # the worker process dies mid-task
 
 

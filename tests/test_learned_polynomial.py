@@ -128,7 +128,7 @@ def test_untrained_model_steps_as_taylor_hj():
     # The last layer starts at zero: the learned integrator is exactly Taylor-HJ at the start.
     s_fn = hj.build_model(_config())
     got, _ = hj.core_model(s_fn).rollout(STATES, 0.1, 20)
-    want, _ = RealizationTaylorIntegrator(NAMBU, 3, 3)._rollout(STATES, 0.1, 20, 1)
+    want, _ = RealizationTaylorIntegrator(NAMBU, 3, 3).rollout(STATES, 0.1, 20, 1)
     assert np.array_equal(got, want)
 
 

@@ -64,7 +64,7 @@ def test_first_failures_orders_methods_by_the_step_where_they_break() -> None:
     got = first_failures(rows, threshold=0.1)
     assert [r["method"] for r in got] == ["b", "a", "c"]
     assert got[0]["h_breaks"] == 0.1 and "error > 0.1" in got[0]["how"]
-    assert got[1]["h_breaks"] == 1.0 and "Newton failure" in got[1]["how"]
+    assert got[1]["h_breaks"] == 1.0 and "step failure" in got[1]["how"]
     assert got[2]["h_breaks"] == pytest.approx(float("inf"))
 
 

@@ -209,7 +209,7 @@ def test_stability_states_stay_in_the_orthant() -> None:
     assert (mu0 > 0).all() and len(mu0) == len(labels) == 12
     # Log distance ρ from the equilibrium x* = b.
     rho = np.linalg.norm(np.log(mu0 / lv.log_hamiltonian.b), axis=1)
-    np.testing.assert_allclose(sorted(set(np.round(rho, 12))), stability.LOG_RADII)
+    np.testing.assert_allclose(sorted(set(np.round(rho, 12))), lv.sample_radii)
 
 
 def test_select_on_the_pnn_scene(short: Path, tmp_path: Path) -> None:

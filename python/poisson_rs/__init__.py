@@ -38,6 +38,7 @@ from .integrators import (
     taylor_integrator,
 )
 from .learn import learn
+from .protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystem, Stepper
 from .reference import dop853_solution, exact_solution, reference_solution
 from .structures import (
     AffineIntegrator,
@@ -58,6 +59,7 @@ from .structures import (
     affine_poisson_system,
     affine_taylor,
     lotka_volterra,
+    system_from_dict,
 )
 from .studies.select import NoCandidateError, SelectionReport, select
 
@@ -70,6 +72,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "FAILURE_CODES",
+    "NEWTON_MAX_ITER",
+    "NEWTON_TOL",
     "AffineIntegrator",
     "AffinePoissonSystem",
     "BisectionIntegrator",
@@ -84,6 +88,7 @@ __all__ = [
     "LogCanonicalTaylorIntegrator",
     "LogPolynomial",
     "NoCandidateError",
+    "PoissonSystem",
     "Polynomial",
     "PolynomialBivector",
     "PolynomialPoissonSystem",
@@ -91,6 +96,7 @@ __all__ = [
     "RigidBody",
     "RolloutInfo",
     "SelectionReport",
+    "Stepper",
     "TaylorIntegrator",
     "__version__",
     "affine_classical",
@@ -110,5 +116,6 @@ __all__ = [
     "lotka_volterra",
     "reference_solution",
     "select",
+    "system_from_dict",
     "taylor_integrator",
 ]

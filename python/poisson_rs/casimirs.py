@@ -256,9 +256,15 @@ def max_casimir_drift(system: Any, traj: np.ndarray) -> np.ndarray:
 
 
 def casimir_label(system: Any) -> str:
-    """What the Casimir drift measures, for axis labels: "C = |Γ|², M·Γ", or "no Casimir known"."""
-    if isinstance(getattr(system, "casimir_label", None), str):
-        return str(system.casimir_label)
+    """What the Casimir drift measures, for axis labels: "C = |Γ|², M·Γ", or "no Casimir known"
+    (the system's own ``casimir_label``)."""
+    label = getattr(system, "casimir_label", None)
+    return label if isinstance(label, str) else lie_poisson_casimir_label(system)
+
+
+def lie_poisson_casimir_label(system: Any) -> str:
+    """The label of a Lie–Poisson system's Casimirs: the closed forms' (so(3), se(3), sl(2)),
+    or how many polynomial Casimirs the search found."""
     fn = system_casimirs(system)
     if fn is None:
         return "no Casimir known (drift n/a)"

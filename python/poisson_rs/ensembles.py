@@ -32,7 +32,6 @@ import numpy as np
 
 from .files import check_output_path, temporary_name
 from .integrators import RolloutInfo, Stepper, integrate
-from .structures.lie_poisson import LiePoissonSystem
 from .untrusted import parsing
 
 if TYPE_CHECKING:
@@ -283,13 +282,13 @@ def _store_attributes(
         "n_steps": int(n_steps),
         "every": int(every),
         "stepper": repr(stepper),
-        "system": system.to_dict() if isinstance(system, LiePoissonSystem) else None,
+        "system": system.to_dict() if hasattr(system, "to_dict") else None,
         "complete": complete,
     }
 
 
-def zarr_system(path: str | os.PathLike[str]) -> LiePoissonSystem:
-    """The Lie–Poisson system an ensemble written by :func:`to_zarr` integrates, rebuilt from
+def zarr_system(path: str | os.PathLike[str]) -> Any:
+    """The system (any structure's) an ensemble written by :func:`to_zarr` integrates, rebuilt from
     the store's attributes. ValueError (:class:`~poisson_rs.untrusted.InputError`) naming the
     store when it is incomplete or records no valid system."""
     import zarr
@@ -304,7 +303,9 @@ def zarr_system(path: str | os.PathLike[str]) -> LiePoissonSystem:
         spec = attrs.get("system")
         if spec is None:
             raise ValueError("the store records no system")
-        return LiePoissonSystem.from_dict(spec)
+        from .structures import system_from_dict
+
+        return system_from_dict(spec)
 
 
 def connect(address: str, *, timeout: float = CONNECT_TIMEOUT) -> Client:

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol, overload
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -28,6 +28,14 @@ from .export import (
     read_tensor,
 )
 from .files import check_input_file
+from .protocols import (
+    NEWTON_MAX_ITER,
+    NEWTON_TOL,
+    ROLLOUT_KEYS,
+    Stepper,
+    as_stepper,
+    as_system,
+)
 from .realizations.lie_groupoid import sou
 from .structures.lie_poisson import HeavyTop, LiePoissonSystem, RigidBody
 from .untrusted import parsing
@@ -138,17 +146,6 @@ class RolloutInfo:
     Lie–Poisson system)."""
 
 
-class Stepper(Protocol):
-    """Anything ``integrate()`` can drive: a rollout of (n, dim) float64 initial states."""
-
-    @property
-    def dim(self) -> int: ...
-
-    def _rollout(
-        self, mu0: np.ndarray, h: float, n_steps: int, every: int
-    ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
-
-
 class BisectionIntegrator:
     """A Poisson integrator read off the Lagrangian bisection of a generating function S(t, p).
 
@@ -161,8 +158,8 @@ class BisectionIntegrator:
         self,
         source: Path | bytes,
         *,
-        tol: float = 1e-12,
-        max_iter: int = 50,
+        tol: float = NEWTON_TOL,
+        max_iter: int = NEWTON_MAX_ITER,
         newton: Literal["simplified", "full"] = "simplified",
     ) -> None:
         if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
@@ -335,7 +332,7 @@ class BisectionIntegrator:
         out[ok] = r / np.where(energy > 0, energy, 1.0)
         return out.reshape(arr.shape[:-1])
 
-    def _rollout(
+    def rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         return _core.rollout_model(
@@ -395,8 +392,8 @@ def shipped_models(system: LiePoissonSystem) -> dict[str, LearnedIntegrator]:
 def load_model(
     path: str | os.PathLike[str] | None = None,
     *,
-    tol: float = 1e-12,
-    max_iter: int = 50,
+    tol: float = NEWTON_TOL,
+    max_iter: int = NEWTON_MAX_ITER,
     newton: Literal["simplified", "full"] = "simplified",
 ) -> LearnedIntegrator | LearnedLogCanonicalIntegrator | LearnedPolynomialIntegrator:
     """Loads a learned integrator.
@@ -431,31 +428,55 @@ def load_model(
 
 
 def taylor_integrator(
-    body: LiePoissonSystem | None = None,
+    system: Any = None,
     order: int = 3,
     chart: str | None = None,
     *,
-    tol: float = 1e-12,
-    max_iter: int = 50,
-) -> TaylorIntegrator:
-    """The Taylor-in-t integrator, S = Σ_{k≤order} t^k S_k with the S_k exact (order ≥ 1), for
-    any Lie–Poisson system ``body`` (default: the paper's rigid body).
+    tol: float = NEWTON_TOL,
+    max_iter: int = NEWTON_MAX_ITER,
+) -> Stepper:
+    """The Taylor-HJ integrator of ``order`` (S = Σ_{k≤order} t^k S_k, the S_k exact) for any
+    Poisson system (default: the paper's rigid body), in ``chart``, one of
+    ``system.taylor_charts()`` (default: the first; "cayley" on the rigid body, "exp" on any
+    other Lie–Poisson system, "log" on a log-canonical one, "realization" on a polynomial
+    bivector).
 
-    ``chart``: "cayley" (the rigid body only; the default there) or "exp" (any system; the
-    default elsewhere, a quartic H on so(3) included). Its order of accuracy is ``order``, or
-    ``order + 1`` where S_{order+1} vanishes (odd orders for a quadratic Hamiltonian).
+    Its order of accuracy is ``order``, or ``order + 1`` where S_{order+1} vanishes (odd orders
+    for a quadratic Hamiltonian). ``tol`` and ``max_iter`` set the Newton solve of every step
+    (relative update, iteration cap), the same defaults on every structure.
+
+    >>> import poisson_rs as pr
+    >>> lv = pr.lotka_volterra([[0, 1], [-1, 0]], [1, 2])
+    >>> pr.integrate(pr.taylor_integrator(lv, 3), [1.0, 0.8], h=0.1, n_steps=10).shape
+    (11, 2)
     """
+    system = RigidBody() if system is None else as_system(system)
+    _check_newton(tol, max_iter)
+    return system.taylor_integrator(order, chart, tol=tol, max_iter=max_iter)
+
+
+def _check_newton(tol: Any, max_iter: Any) -> None:
+    """ValueError naming ``tol`` or ``max_iter`` outside (0, 1) / the integers >= 1."""
+    if isinstance(tol, bool) or not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+        raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+        raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+
+
+def lie_poisson_taylor(
+    body: LiePoissonSystem,
+    order: int,
+    chart: str,
+    *,
+    tol: float = NEWTON_TOL,
+    max_iter: int = NEWTON_MAX_ITER,
+) -> TaylorIntegrator:
+    """Taylor-HJ on the groupoid T*G of a Lie–Poisson system in ``chart`` ("cayley": the rigid
+    body only; "exp": any algebra), through the learned models' Newton stepper."""
     from .taylor import system_taylor_terms
 
-    body = RigidBody() if body is None else body
-    if not isinstance(body, LiePoissonSystem):
-        raise TypeError(f"body must be a LiePoissonSystem, got {type(body).__name__}")
     if isinstance(order, bool) or not isinstance(order, numbers.Integral) or order < 1:
         raise ValueError(f"order must be an integer >= 1, got {order!r}")
-    if chart is None:
-        # The Cayley chart's series exists for the rigid body only (a quartic H on so(3) would
-        # fail in its own default chart): every other system defaults to exp.
-        chart = "cayley" if isinstance(body, RigidBody) else "exp"
     powers, coeffs = system_taylor_terms(body, int(order), chart)
     data = model_bytes(
         powers=powers,
@@ -772,8 +793,8 @@ def integrate(
         if summary[0] or summary[4] > MAX_STEP_ANGLE:  # NaN compares false
             _report(stepper, h, len(traj), summary, on_failure)
         return traj[0] if single else traj
-    if core_rollout is None and not hasattr(stepper, "_rollout"):
-        raise TypeError(f"stepper must be an integrator, got {type(stepper).__name__}")
+    if core_rollout is None:
+        as_stepper(stepper)
     # A dask array exists only once dask.array is imported (and is no list or ndarray).
     if type(mu0) is not list and type(mu0) is not np.ndarray and "dask.array" in sys.modules:
         from .ensembles import integrate_dask, is_dask_array
@@ -810,20 +831,17 @@ def integrate(
         )
     if on_failure not in _ON_FAILURE:
         raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
-    domain: dict[str, Any] | None = None
-    if isinstance(stepper, (LearnedLogCanonicalIntegrator, LearnedPolynomialIntegrator)):
-        if strict and h > stepper.h_max:
-            raise ValueError(
-                f"h = {h} exceeds h_max = {stepper.h_max}, the largest step {stepper.name!r} "
-                "was trained for; pass strict=False to extrapolate"
-            )
-    if isinstance(stepper, BisectionIntegrator):
-        domain = stepper.domain
-        if strict and math.isfinite(stepper.h_max) and h > stepper.h_max:
-            raise ValueError(
-                f"h = {h} exceeds h_max = {stepper.h_max}, the largest step {stepper.name!r} "
-                "was trained for; pass strict=False to extrapolate (poisson-rs demo: --no-strict)"
-            )
+    # A learned stepper knows the largest step it was trained for and, for some, the states.
+    h_max = getattr(stepper, "h_max", math.inf)
+    if strict and isinstance(h_max, float) and math.isfinite(h_max) and h > h_max:
+        raise ValueError(
+            f"h = {h} exceeds h_max = {h_max}, the largest step "
+            f"{getattr(stepper, 'name', type(stepper).__name__)!r} was trained for; pass "
+            "strict=False to extrapolate (poisson-rs demo: --no-strict)"
+        )
+    domain = getattr(stepper, "domain", None)
+    if not isinstance(domain, Mapping):
+        domain = None
     h = float(h)
     raw: dict[str, np.ndarray] | None
     if core_rollout is not None:
@@ -831,7 +849,7 @@ def integrate(
         summary = diagnostics.summary()
         raw = diagnostics.arrays() if return_info else None
     else:
-        traj, raw = stepper._rollout(arr, h, int(n_steps), int(every))
+        traj, raw = _checked_rollout(stepper, arr, h, int(n_steps), int(every))
         if "step_angle" not in raw:
             raw["step_angle"] = _step_angles(stepper, arr, h)
         summary = _summary(raw)
@@ -850,6 +868,68 @@ def integrate(
 
 
 _ON_FAILURE = ("warn", "raise", "ignore")
+
+
+def dop853_rollout(
+    system: Any, x0: np.ndarray, h: float, n_steps: int, every: int, tol: float
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The rollout of every structure's "dop853": ``system.reference_solution`` at rtol = atol
+    = ``tol`` sampled at t = k·every·h. A trajectory DOP853 cannot finish (over its budget,
+    overflowing) is NaN from there on and reported like a failed step (code 1), the others
+    are kept; no Newton solve, no step angle (it chooses its own steps)."""
+    times = h * np.arange(0, n_steps // every + 1, dtype=np.float64) * every
+    traj = system.reference_solution(x0, times, rtol=tol, atol=tol, failures="nan")
+    n = x0.shape[0]
+    finite = np.isfinite(traj).all(axis=-1)
+    converged = finite.all(axis=1)
+    first_bad = np.where(converged, -1, np.argmin(finite, axis=1) * every - 1)
+    return traj, {
+        "converged": converged,
+        "failed_step": first_bad.astype(np.int64),
+        "failure_code": np.where(converged, 0, 1).astype(np.int8),
+        "newton_iterations": np.zeros(n, dtype=np.uint64),
+        "max_newton_iterations": np.zeros(n, dtype=np.uint32),
+        "max_residual": np.full(n, np.nan),
+        "step_angle": np.full(n, np.nan),
+    }
+
+
+def _checked_rollout(
+    stepper: Stepper, x0: np.ndarray, h: float, n_steps: int, every: int
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """``stepper.rollout`` with its result checked against the :class:`Stepper` contract and
+    its diagnostics completed: a key a stepper leaves out is inferred from the trajectory
+    where it can be (a trajectory with a non-finite record failed, code 3, at the step of its
+    first one) and unknown (NaN, or 0 Newton updates) elsewhere."""
+    n, records = len(x0), n_steps // every + 1
+    out = stepper.rollout(x0, h, n_steps, every)
+    traj, info = out if isinstance(out, tuple) and len(out) == 2 else (out, {})
+    traj = np.asarray(traj)
+    if traj.shape != (n, records, x0.shape[1]) or not isinstance(info, Mapping):
+        raise TypeError(
+            f"{_stepper_name(stepper)}.rollout must return (traj, info) with traj of shape "
+            f"{(n, records, x0.shape[1])} and info a dict; got "
+            f"{getattr(traj, 'shape', type(traj).__name__)} and {type(info).__name__}"
+        )
+    raw = {k: np.asarray(v) for k, v in info.items()}
+    for key, value in raw.items():
+        if key in ROLLOUT_KEYS and value.shape != (n,):
+            raise TypeError(
+                f"{_stepper_name(stepper)}.rollout: info[{key!r}] must have shape ({n},), "
+                f"got {value.shape}"
+            )
+    if "converged" not in raw:
+        bad = ~np.isfinite(traj).all(axis=2)  # (n, records)
+        first = np.where(bad.any(axis=1), bad.argmax(axis=1), -1)
+        raw["converged"] = first < 0
+        raw.setdefault("failed_step", np.where(first < 0, -1, np.maximum(first - 1, 0) * every))
+        raw.setdefault("failure_code", np.where(first < 0, 0, 3))
+    raw.setdefault("failed_step", np.full(n, -1, dtype=np.int64))
+    raw.setdefault("failure_code", np.zeros(n, dtype=np.int64))
+    raw.setdefault("newton_iterations", np.zeros(n, dtype=np.int64))
+    raw.setdefault("max_newton_iterations", np.zeros(n, dtype=np.int64))
+    raw.setdefault("max_residual", np.full(n, np.nan))
+    return np.ascontiguousarray(traj, dtype=np.float64), raw
 
 
 def _report(
@@ -918,37 +998,13 @@ MAX_STEP_ANGLE = 0.5 * math.pi
 
 
 def _step_angles(stepper: Any, states: np.ndarray, h: float) -> np.ndarray:
-    """h × the local rate at each of ``states`` (n, dim), computed in Rust (see
-    :attr:`RolloutInfo.step_angle`); NaN for adaptive DOP853, which chooses its own steps, and
-    for a stepper without a Lie–Poisson system."""
-    system = getattr(stepper, "system", None)
-    # The adaptive method is the classical "dop853" itself, not anything named so (a model file
-    # may carry any name).
-    if not isinstance(system, LiePoissonSystem) or (
-        isinstance(stepper, ClassicalIntegrator) and stepper.name == "dop853"
-    ):
+    """h × the local rate at each of ``states`` (n, dim) (see :attr:`RolloutInfo.step_angle`),
+    from the stepper's system (``system.step_angles``); NaN for an adaptive stepper, which
+    chooses its own steps, and for a system that does not know its rate."""
+    angles = getattr(getattr(stepper, "system", None), "step_angles", None)
+    if angles is None or getattr(stepper, "adaptive", False):
         return np.full(len(states), np.nan)
-    c, powers, coeffs = _system_arrays(system)
-    return _core.step_angles(c, powers, coeffs, states, h)
-
-
-def _system_arrays(system: LiePoissonSystem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Structure constants (dim, dim, dim) and the Hamiltonian's (powers, coeffs) as the core
-    takes them, computed once per system (systems are immutable)."""
-    cached = _SYSTEM_ARRAYS.get(id(system))
-    if cached is not None and cached[0] is system:
-        return cached[1]
-    powers, coeffs = system.polynomial.to_arrays()
-    arrays = (np.ascontiguousarray(system.algebra.c, dtype=np.float64), powers, coeffs)
-    if len(_SYSTEM_ARRAYS) >= 64:
-        _SYSTEM_ARRAYS.clear()
-    _SYSTEM_ARRAYS[id(system)] = (system, arrays)
-    return arrays
-
-
-#: The core's arrays of recently used systems, by id (the system itself is kept with them, so
-#: the id cannot be reused while cached).
-_SYSTEM_ARRAYS: dict[int, tuple[LiePoissonSystem, tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+    return np.asarray(angles(states, h), dtype=np.float64)
 
 
 def _warn_unresolved(stepper: Any, angle: np.ndarray, h: float) -> None:
@@ -1005,16 +1061,9 @@ LIE_POISSON_METHODS: dict[str, tuple[int, bool]] = {
 }
 
 
-def classical_methods(system: LiePoissonSystem) -> list[str]:
-    """Names of the classical integrators available for ``system``."""
-    from .structures.lie_poisson import HeavyTop
-
-    if isinstance(system, RigidBody):
-        return list(CLASSICAL_METHODS)
-    names = list(LIE_POISSON_METHODS)
-    if not isinstance(system, HeavyTop):
-        names.remove("splitting")
-    return names
+def classical_methods(system: Any) -> list[str]:
+    """Names of the classical integrators :func:`classical` builds for ``system``, exactly."""
+    return list(as_system(system).classical_methods())
 
 
 class ClassicalIntegrator:
@@ -1053,11 +1102,16 @@ class ClassicalIntegrator:
     """
 
     def __init__(
-        self, body: LiePoissonSystem, name: str, *, tol: float = 1e-12, max_iter: int = 50
+        self,
+        body: LiePoissonSystem,
+        name: str,
+        *,
+        tol: float = NEWTON_TOL,
+        max_iter: int = NEWTON_MAX_ITER,
     ) -> None:
         if not isinstance(body, LiePoissonSystem):
             raise TypeError(f"body must be a LiePoissonSystem, got {type(body).__name__}")
-        names = classical_methods(body)
+        names = body.classical_methods()
         if not (isinstance(name, str) and name in names):
             raise ValueError(
                 f"unknown classical integrator {name!r} for {body!r}; valid names: "
@@ -1099,6 +1153,11 @@ class ClassicalIntegrator:
         return self._table()[self.name][1]
 
     @property
+    def adaptive(self) -> bool:
+        """Whether it chooses its own steps (DOP853): ``h`` then only spaces the output."""
+        return self.name == "dop853"
+
+    @property
     def _core_rollout(self) -> Any:
         """The rollout in the Rust core that checks the states itself (NaN/∞ included) and
         returns ``(traj, _core.RolloutDiagnostics)``, for :func:`integrate`'s thin path; None
@@ -1115,7 +1174,7 @@ class ClassicalIntegrator:
             return _core.rollout_classical(  # type: ignore[no-any-return]
                 self.name, body.inertia, mu0, h, n_steps, every, self.tol, self.max_iter, lazy
             )
-        c, powers, coeffs = _system_arrays(body)
+        c, powers, coeffs = body.core_arrays()
         top = (
             (body.inertia, body.mgl, body.com)
             if isinstance(body, HeavyTop) and self.name == "splitting"
@@ -1136,7 +1195,7 @@ class ClassicalIntegrator:
             lazy,
         )
 
-    def _rollout(
+    def rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         body = self.body
@@ -1144,35 +1203,7 @@ class ClassicalIntegrator:
             result = self._rust_rollout(mu0, h, n_steps, every, lazy=False)
             assert result is not None  # an array always gives one
             return result  # type: ignore[no-any-return]
-        from .reference import dop853_solution, reference_solution
-
-        n_steps, every = _check_count("n_steps", n_steps), _check_count("every", every, 1)
-        times = h * np.arange(0, n_steps // every + 1, dtype=np.float64) * every
-        # One trajectory DOP853 cannot finish (over its budget, overflowing) comes back NaN and
-        # is reported below; the others are kept.
-        if isinstance(body, RigidBody):
-            traj = dop853_solution(body, mu0, times, rtol=self.tol, atol=self.tol, failures="nan")
-        else:
-            traj = reference_solution(
-                body, mu0, times, rtol=self.tol, atol=self.tol, failures="nan"
-            )
-        n = mu0.shape[0]
-        # Same keys and dtypes as the Rust rollout's; a trajectory DOP853 could not finish is
-        # NaN from there on and reported like a failed step.
-        finite = np.isfinite(traj).all(axis=-1)
-        converged = finite.all(axis=1)
-        first_bad = np.where(converged, -1, np.argmin(finite, axis=1) * every - 1)
-        info = {
-            "converged": converged,
-            "failed_step": first_bad.astype(np.int64),
-            "failure_code": np.where(converged, 0, 1).astype(np.int8),
-            "newton_iterations": np.zeros(n, dtype=np.uint64),
-            "max_newton_iterations": np.zeros(n, dtype=np.uint32),
-            "max_residual": np.zeros(n, dtype=np.float64),
-            # DOP853 chooses its own steps: no step to resolve.
-            "step_angle": np.full(n, np.nan),
-        }
-        return traj, info
+        return dop853_rollout(body, mu0, h, n_steps, every, self.tol)
 
     def __repr__(self) -> str:
         return (
@@ -1189,23 +1220,32 @@ def _restore_classical(
 
 
 def classical(
-    body: LiePoissonSystem, name: str, *, tol: float = 1e-12, max_iter: int = 50
-) -> ClassicalIntegrator:
-    """A classical baseline integrator for the Lie–Poisson system ``body``, usable with
-    :func:`integrate`.
+    system: Any, name: str, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
+) -> Stepper:
+    """A classical baseline integrator for any Poisson system, usable with :func:`integrate`.
 
-    ``name`` is one of :func:`classical_methods` ``(body)``: for the rigid body "rk4",
-    "midpoint", "splitting", "splitting4", "dmv" (fixed step h, Rust) or "dop853" (adaptive,
-    SciPy; h only spaces the output); for other systems "rk4", "midpoint", "dop853", and
-    "splitting" for the heavy top. See :class:`ClassicalIntegrator`. Raises TypeError for a body
-    that is not a LiePoissonSystem, ValueError for an unknown name.
+    ``name`` is one of :func:`classical_methods` ``(system)``: on the rigid body "rk4",
+    "midpoint", "splitting", "splitting4", "dmv", "splitting_casimir" (fixed step h, Rust) and
+    "dop853" (adaptive, SciPy; h only spaces the output); "rk4", "midpoint", "dop853" on every
+    system, plus each structure's own explicit Poisson splittings ("splitting" for the heavy
+    top, "log_splitting" and "log_splitting4" for a log-canonical system). ``tol`` and
+    ``max_iter`` set the implicit methods' Newton solve; for "dop853" ``tol`` is its rtol and
+    atol. TypeError for a ``system`` that is not a Poisson system, ValueError for an unknown
+    name (the message lists the valid ones).
 
     >>> import poisson_rs as pr
     >>> rk4 = pr.classical(pr.RigidBody(), "rk4")
     >>> pr.integrate(rk4, [1.0, 1.0, 2.0], h=0.1, n_steps=10).shape
     (11, 3)
     """
-    return ClassicalIntegrator(body, name, tol=tol, max_iter=max_iter)
+    system = as_system(system)
+    names = system.classical_methods()
+    if not (isinstance(name, str) and name in names):
+        raise ValueError(
+            f"unknown classical integrator {name!r} for {system!r}; valid names: {', '.join(names)}"
+        )
+    _check_newton(tol, max_iter)
+    return system.classical(name, tol=tol, max_iter=max_iter)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1248,7 +1288,14 @@ class LogCanonicalTaylorIntegrator:
     Built by :func:`log_canonical_taylor`.
     """
 
-    def __init__(self, system: Any, order: int = 3, *, tol: float = 1e-12, max_iter: int = 50):
+    def __init__(
+        self,
+        system: Any,
+        order: int = 3,
+        *,
+        tol: float = NEWTON_TOL,
+        max_iter: int = NEWTON_MAX_ITER,
+    ):
         from .realizations.log_canonical import taylor_arrays
 
         self.system = _log_system(system)
@@ -1279,7 +1326,7 @@ class LogCanonicalTaylorIntegrator:
             (type(self), self.system.to_dict(), self.order, self.tol, self.max_iter),
         )
 
-    def _rollout(
+    def rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         t_powers, exponents, coeffs = self._arrays
@@ -1319,7 +1366,7 @@ class _LearnedRealizationIntegrator:
     """What the learned S of every non-Lie–Poisson realization shares: the model file read
     once (bytes kept for pickling), ``tol`` and ``max_iter`` checked, the core's model, and the
     properties and pickling built on them. A subclass reads its file (:meth:`_load`) and rolls
-    out (:meth:`_rollout`)."""
+    out (:meth:`rollout`)."""
 
     _default_name = "learned"
 
@@ -1397,7 +1444,9 @@ class LearnedLogCanonicalIntegrator(_LearnedRealizationIntegrator):
 
     _default_name = "learned-log-canonical"
 
-    def __init__(self, source: Path | bytes, *, tol: float = 1e-12, max_iter: int = 50) -> None:
+    def __init__(
+        self, source: Path | bytes, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
+    ) -> None:
         super().__init__(source, tol=tol, max_iter=max_iter)
 
     def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
@@ -1412,7 +1461,7 @@ class LearnedLogCanonicalIntegrator(_LearnedRealizationIntegrator):
                 )
         return metadata, core
 
-    def _rollout(
+    def rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         q, info = self._core.rollout(_positive_log(mu0), h, n_steps, every, self.tol, self.max_iter)
@@ -1431,7 +1480,9 @@ class LearnedPolynomialIntegrator(_LearnedRealizationIntegrator):
 
     _default_name = "learned-polynomial"
 
-    def __init__(self, source: Path | bytes, *, tol: float = 1e-13, max_iter: int = 50) -> None:
+    def __init__(
+        self, source: Path | bytes, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
+    ) -> None:
         super().__init__(source, tol=tol, max_iter=max_iter)
 
     def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
@@ -1446,7 +1497,7 @@ class LearnedPolynomialIntegrator(_LearnedRealizationIntegrator):
     def _describe(self) -> str:
         return f"taylor_order={self.taylor_order}, realization_order={self.realization_order}"
 
-    def _rollout(
+    def rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         arr = np.ascontiguousarray(mu0, dtype=np.float64)
@@ -1476,7 +1527,9 @@ class LogCanonicalClassicalIntegrator:
     - "dop853": SciPy's adaptive DOP853 in q with rtol = atol = ``tol`` (h only spaces output).
     """
 
-    def __init__(self, system: Any, name: str, *, tol: float = 1e-12, max_iter: int = 50):
+    def __init__(
+        self, system: Any, name: str, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
+    ):
         self.system = _log_system(system)
         if not (isinstance(name, str) and name in LOG_CANONICAL_METHODS):
             raise ValueError(
@@ -1509,25 +1562,12 @@ class LogCanonicalClassicalIntegrator:
             (type(self), self.system.to_dict(), self.name, self.tol, self.max_iter),
         )
 
-    def _rollout(
+    def rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         q0 = _positive_log(mu0)
         if self.name == "dop853":
-            from .reference import reference_solution
-
-            times = h * np.arange(0, n_steps + 1, every, dtype=np.float64)
-            traj = reference_solution(self.system, mu0, times, rtol=self.tol, atol=self.tol)
-            n = mu0.shape[0]
-            info = {
-                "converged": np.ones(n, dtype=bool),
-                "failed_step": np.full(n, -1, dtype=np.int64),
-                "failure_code": np.zeros(n, dtype=np.int8),
-                "newton_iterations": np.zeros(n, dtype=np.uint64),
-                "max_newton_iterations": np.zeros(n, dtype=np.uint32),
-                "max_residual": np.zeros(n, dtype=np.float64),
-            }
-            return traj, info
+            return dop853_rollout(self.system, mu0, h, n_steps, every, self.tol)
         powers, coeffs, b = self.system.log_hamiltonian.to_arrays()
         in_log = self.name.startswith("log_")
         traj, info = _core.rollout_log_classical(
@@ -1558,7 +1598,7 @@ def _restore_log_classical(
 
 
 def log_canonical_taylor(
-    system: Any, order: int = 3, *, tol: float = 1e-12, max_iter: int = 50
+    system: Any, order: int = 3, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
 ) -> LogCanonicalTaylorIntegrator:
     """The Taylor-HJ integrator of order ``order`` for a log-canonical system (e.g.
     :func:`~poisson_rs.lotka_volterra`), usable with :func:`integrate`. Its order of accuracy is
@@ -1573,7 +1613,7 @@ def log_canonical_taylor(
 
 
 def log_canonical_classical(
-    system: Any, name: str, *, tol: float = 1e-12, max_iter: int = 50
+    system: Any, name: str, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
 ) -> LogCanonicalClassicalIntegrator:
     """A classical baseline ("rk4", "midpoint", "log_splitting", "log_splitting4", "dop853")
     for a log-canonical system; see :class:`LogCanonicalClassicalIntegrator`."""

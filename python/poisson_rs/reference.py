@@ -45,7 +45,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -498,9 +498,6 @@ def dop853_solution(
 def _system_rhs(system: LiePoissonSystem) -> Callable[[FloatArray], FloatArray]:
     """ẏ = f(y) for one state y (n,), with the per-call overhead of the generic
     :meth:`LiePoissonSystem.vector_field` (validation, einsum parsing) taken out."""
-    if isinstance(system, RigidBody):
-        inv = 1.0 / np.asarray(system.inertia)
-        return lambda y: np.cross(y, y * inv)
     powers, _ = system.polynomial.to_arrays()
     n = system.dim
     degree = system.polynomial.degree
@@ -528,7 +525,7 @@ def _system_rhs(system: LiePoissonSystem) -> Callable[[FloatArray], FloatArray]:
 
 
 def reference_solution(
-    system: LiePoissonSystem,
+    system: Any,
     mu0: ArrayLike,
     times: ArrayLike,
     *,
@@ -536,19 +533,18 @@ def reference_solution(
     atol: float = 1e-13,
     failures: Literal["raise", "nan"] = "raise",
 ) -> FloatArray:
-    """Flow of any :class:`~poisson_rs.structures.lie_poisson.LiePoissonSystem` (or
-    log-canonical system, integrated in q = ln x) by SciPy's DOP853.
-
-    μ(0) = mu0 and μ̇_j = Σ_{i,k} c[i,j,k] ∂H/∂μ_i μ_k (the system's ``vector_field``), each
+    """Flow of any Poisson system (:class:`poisson_rs.PoissonSystem`) by SciPy's DOP853, each
     trajectory integrated separately with dense output at ``times``: forward from t = 0 for the
-    positive times, backward for negative ones (any order is accepted; t = 0 returns mu0).
+    positive times, backward for negative ones (any order is accepted; t = 0 returns mu0). Each
+    structure integrates in its own coordinates (a log-canonical system in q = ln x, an affine
+    one on its central extension).
 
     Parameters
     ----------
-    system : LiePoissonSystem
-        Of dimension n (a RigidBody, HeavyTop or a generic system).
+    system : PoissonSystem
+        Of dimension n.
     mu0 : array_like, shape (n,) or (m, n)
-        Initial states, finite.
+        Initial states, finite and in the system's domain.
     times : array_like, shape (T,)
         Evaluation times, finite, in the time unit of the system.
     rtol, atol : float, keyword-only
@@ -563,43 +559,52 @@ def reference_solution(
     Raises
     ------
     TypeError
-        If ``system`` is not a LiePoissonSystem.
+        If ``system`` is not a Poisson system.
     ValueError
         If mu0, times or the tolerances are malformed or not finite.
     RuntimeError
         If the integrator fails, a trajectory would take more than 200,000 steps (the cost grows
         with the state's size times T), or the right-hand side overflows (fails at once).
     """
-    from .structures.affine import AffinePoissonSystem
-    from .structures.log_canonical import LogCanonicalSystem
+    from .protocols import as_system
 
-    if isinstance(system, AffinePoissonSystem):
-        # On the central extension at level 1 (μ_z = 1 is kept), its first n components.
-        lifted = system.lift(np.asarray(mu0, dtype=np.float64))
-        out = reference_solution(
-            system.extension, lifted, times, rtol=rtol, atol=atol, failures=failures
-        )
-        return np.ascontiguousarray(out[..., : system.dim])
-    from .structures.polynomial import PolynomialPoissonSystem
-
-    if isinstance(system, PolynomialPoissonSystem):
-        rtol, atol = _check_tolerances(rtol, atol)
-        states, t, single = _check_states_and_times(mu0, times, system.dim)
-        field = system.vector_field
-        out = _dop853(lambda y: field(y[None])[0], states, t, rtol, atol, failures)
-        return out[0] if single else out
-    if isinstance(system, LogCanonicalSystem):
-        # In q = ln x (the positive orthant is kept, the tolerances are relative in x).
-        rtol, atol = _check_tolerances(rtol, atol)
-        states, t, single = _check_states_and_times(mu0, times, system.dim)
-        system.hamiltonian(states)  # ValueError for a state outside the positive orthant
-        out = np.exp(_dop853(system.vector_field_log, np.log(states), t, rtol, atol))
-        return out[0] if single else out
-    if not isinstance(system, LiePoissonSystem):
-        raise TypeError(f"system must be a LiePoissonSystem, got {type(system).__name__}")
     if failures not in ("raise", "nan"):
         raise ValueError(f"failures must be 'raise' or 'nan', got {failures!r}")
+    return as_system(system).reference_solution(  # type: ignore[no-any-return]
+        mu0, times, rtol=rtol, atol=atol, failures=failures
+    )
+
+
+def field_reference(
+    field: Callable[[FloatArray], FloatArray],
+    dim: int,
+    mu0: ArrayLike,
+    times: ArrayLike,
+    *,
+    rtol: float,
+    atol: float,
+    failures: Literal["raise", "nan"],
+) -> FloatArray:
+    """DOP853 on ẏ = field(y) for one state y (dim,): the reference of a structure with no
+    better coordinates. Shapes as :func:`reference_solution`."""
     rtol, atol = _check_tolerances(rtol, atol)
-    states, t, single = _check_states_and_times(mu0, times, system.dim)
-    out = _dop853(_system_rhs(system), states, t, rtol, atol, failures)
+    states, t, single = _check_states_and_times(mu0, times, dim)
+    out = _dop853(field, states, t, rtol, atol, failures)
     return out[0] if single else out
+
+
+def lie_poisson_reference(
+    system: LiePoissonSystem,
+    mu0: ArrayLike,
+    times: ArrayLike,
+    *,
+    rtol: float = 1e-13,
+    atol: float = 1e-13,
+    failures: Literal["raise", "nan"] = "raise",
+) -> FloatArray:
+    """:func:`reference_solution` of a Lie–Poisson system, μ̇_j = Σ_{i,k} c[i,j,k] ∂H/∂μ_i μ_k."""
+    if failures not in ("raise", "nan"):
+        raise ValueError(f"failures must be 'raise' or 'nan', got {failures!r}")
+    return field_reference(
+        _system_rhs(system), system.dim, mu0, times, rtol=rtol, atol=atol, failures=failures
+    )

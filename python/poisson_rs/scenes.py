@@ -55,8 +55,6 @@ norms, against :func:`~poisson_rs.reference.exact_solution`.
 from __future__ import annotations
 
 import dataclasses
-import math
-import re
 import shlex
 import time
 import tomllib
@@ -69,8 +67,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .integrators import BisectionIntegrator, Stepper, integrate
-from .reference import RigidBody, exact_solution, reference_solution
-from .structures.lie_poisson import LieAlgebra, LiePoissonSystem
+from .protocols import PoissonSystem
+from .reference import RigidBody, reference_solution
+from .structures.lie_poisson import LieAlgebra
+from .tables import number as _number
 
 _SE3 = LieAlgebra.se3()
 
@@ -80,21 +80,6 @@ if TYPE_CHECKING:
 
 _TOP_KEYS = ("name", "description", "system", "states", "steps", "target", "model", "select")
 _SECTION_KEYS: dict[str, tuple[str, ...]] = {
-    "system": (
-        "kind",
-        "inertia",
-        "mgl",
-        "com",
-        "name",
-        "algebra",
-        "hamiltonian",
-        "system_file",
-        "c",
-        "b",
-        "cocycle",
-        "component_names",
-        "casimir",
-    ),
     "select": ("target", "T", "h", "models", "metric"),
     "states": ("points", "shell"),
     "steps": ("h", "horizon"),
@@ -145,17 +130,18 @@ inputs only τ = |p|t ≤ r_max·h_max matters, so the margin mainly buys headro
 
 @dataclass(frozen=True)
 class ShellStates:
-    """n held-out states with |μ| uniform in [r_min, r_max] and uniform directions."""
+    """n held-out states with |μ| uniform in [r_min, r_max] and uniform directions in R^dim."""
 
     r_min: float
     r_max: float
     n: int
     seed: int = 0
+    dim: int = 3
 
     def sample(self) -> np.ndarray:
-        """The states, (n, 3) float64; the same for the same seed."""
+        """The states, (n, dim) float64; the same for the same seed."""
         rng = np.random.default_rng(self.seed)
-        d = rng.normal(size=(self.n, 3))
+        d = rng.normal(size=(self.n, self.dim))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return d * rng.uniform(self.r_min, self.r_max, size=(self.n, 1))
 
@@ -248,17 +234,6 @@ class Scene:
 # Parsing and validation
 
 
-def _number(value: Any, key: str, *, positive: bool = True) -> float:
-    """A finite real from TOML (int or float, not bool); raises ValueError naming ``key``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"scene key '{key}' must be a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v) or (positive and v <= 0):
-        what = "finite positive" if positive else "finite"
-        raise ValueError(f"scene key '{key}' must be a {what} number, got {value!r}")
-    return v
-
-
 def _integer(value: Any, key: str, *, low: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise ValueError(f"scene key '{key}' must be an integer >= {low}, got {value!r}")
@@ -266,15 +241,16 @@ def _integer(value: Any, key: str, *, low: int) -> int:
 
 
 def _table(
-    data: Mapping[str, Any], key: str, allowed: tuple[str, ...], *, prefix: str = ""
+    data: Mapping[str, Any], key: str, allowed: tuple[str, ...] | None, *, prefix: str = ""
 ) -> Mapping[str, Any]:
-    """The sub-table ``data[key]`` (empty if absent), refusing keys outside ``allowed``;
-    ``prefix`` is the dotted path of ``data`` itself, for the messages."""
+    """The sub-table ``data[key]`` (empty if absent), refusing keys outside ``allowed`` (None:
+    the caller checks them); ``prefix`` is the dotted path of ``data`` itself, for the
+    messages."""
     value = data.get(key, {})
     name = f"{prefix}{key}"
     if not isinstance(value, Mapping):
         raise ValueError(f"scene key '{name}' must be a table, got {value!r}")
-    for k in value:
+    for k in value if allowed is not None else ():
         if k not in allowed:
             raise ValueError(
                 f"scene key '{name}.{k}' is not known; expected one of {', '.join(allowed)}"
@@ -308,170 +284,22 @@ def _model_overrides(raw: Mapping[str, Any]) -> dict[str, Any]:
 
 
 #: Algebras a scene may name instead of giving the structure constants.
-NAMED_ALGEBRAS = ("so3", "se3", "sl2")
+def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> PoissonSystem:
+    """The [system] table as a system, read by the structure that owns its ``kind`` (the rigid
+    body when absent, or "lie_poisson" when it gives an ``algebra``); ``system_file`` names a
+    JSON file of any system's ``to_dict()`` (relative to the scene) instead of the whole table.
+    ValueError naming the key otherwise."""
+    from .structures import system_from_scene_table
 
-
-def _lie_system(raw: Mapping[str, Any], path: Path | None = None) -> LiePoissonSystem:
-    """The [system] table as a system: the rigid body unless ``kind`` names another (its
-    ``to_dict()`` keys); ``algebra`` may be a name in NAMED_ALGEBRAS instead of the structure
-    constants, and ``system_file`` a JSON file of ``system.to_dict()`` (relative to the scene)
-    instead of the whole table. ValueError naming 'system' otherwise."""
     if "system_file" in raw:
         extra = [k for k in raw if k != "system_file"]
         if extra:
             raise ValueError(f"scene key 'system.{extra[0]}': give system_file alone")
         return _system_file(raw["system_file"], path)
-    kind = raw.get("kind", "lie_poisson" if "algebra" in raw else "rigid_body")
-    if kind == "lotka_volterra":
-        return _lotka_volterra(raw)
-    if kind == "affine":
-        return _affine(raw)
-    if kind == "nambu":
-        return _nambu(raw)
-    if isinstance(raw.get("algebra"), str):
-        name = raw["algebra"]
-        if name not in NAMED_ALGEBRAS:
-            raise ValueError(
-                f"scene key 'system.algebra' = {name!r} is not one of {NAMED_ALGEBRAS}; give "
-                "the structure constants as a table instead"
-            )
-        raw = {**raw, "algebra": getattr(LieAlgebra, name)().to_dict()}
-    if kind == "rigid_body":
-        extra = [k for k in raw if k not in ("kind", "inertia")]
-        if extra:
-            raise ValueError(
-                f"scene key 'system.{extra[0]}' is not known for the rigid body; set "
-                'system.kind = "heavy_top" or "lie_poisson" for another system'
-            )
-        if "inertia" not in raw:
-            raise ValueError("scene key 'system.inertia' is missing")
-    from .untrusted import parsing
-
-    with parsing("scene", "system"):
-        return LiePoissonSystem.from_dict({**raw, "kind": kind})
+    return system_from_scene_table(raw, "lie_poisson" if "algebra" in raw else "rigid_body")
 
 
-def _lotka_volterra(raw: Mapping[str, Any]) -> Any:
-    """A ``kind = "lotka_volterra"`` [system] table: the log-canonical structure ``c`` (n × n,
-    antisymmetric) with H = Σ (x_i − b_i ln x_i) (``b``: n numbers), optional ``name``."""
-    from .structures.log_canonical import lotka_volterra
-    from .untrusted import parsing
-
-    extra = [k for k in raw if k not in ("kind", "c", "b", "name")]
-    if extra:
-        raise ValueError(
-            f"scene key 'system.{extra[0]}' is not known for kind = \"lotka_volterra\" "
-            "(give c, b and optionally name)"
-        )
-    for key in ("c", "b"):
-        if key not in raw:
-            raise ValueError(f"scene key 'system.{key}' is missing")
-    c, b = raw["c"], raw["b"]
-    if not (isinstance(c, list) and all(isinstance(row, list) for row in c)):
-        raise ValueError(
-            f"scene key 'system.c' must be a list of rows (an n × n matrix), got {c!r}"
-        )
-    for j, row in enumerate(c):
-        if len(row) != len(c):
-            raise ValueError(f"scene key 'system.c' must be square: row {j} has {len(row)} entries")
-        for v in row:
-            _number(v, "system.c", positive=False)
-    if not isinstance(b, list) or len(b) != len(c):
-        raise ValueError(f"scene key 'system.b' must be {len(c)} numbers (one per species)")
-    b_values = [_number(v, "system.b", positive=False) for v in b]
-    name = raw.get("name")
-    if name is not None and not isinstance(name, str):
-        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
-    with parsing("scene", "system.c"):
-        return lotka_volterra(c, b_values, name=name)
-
-
-#: A polynomial in x1, x2, x3 as a scene may write it: numbers, the variables, + − * / ** and
-#: parentheses, nothing else (the string then goes to sympy, which must never see a name).
-_POLYNOMIAL_TEXT = re.compile(r"(?:x[1-3]|[0-9.+\-*/() ])+")
-
-
-def _polynomial_text(value: Any, key: str) -> str:
-    if not isinstance(value, str) or not 0 < len(value) <= 2000:
-        raise ValueError(f"scene key '{key}' must be a polynomial in x1, x2, x3 (a string)")
-    if not _POLYNOMIAL_TEXT.fullmatch(value):
-        raise ValueError(
-            f"scene key '{key}' = {value!r}: only numbers, x1, x2, x3, + - * / ** and "
-            "parentheses are allowed"
-        )
-    return value
-
-
-def _nambu(raw: Mapping[str, Any]) -> Any:
-    """A ``kind = "nambu"`` [system] table: the Nambu bracket {f, g} = ∇C·(∇f × ∇g) on R³ of the
-    polynomial ``casimir`` C, with the polynomial ``hamiltonian`` (strings in x1, x2, x3),
-    optional ``name``."""
-    from .structures.polynomial import PolynomialBivector, PolynomialPoissonSystem
-    from .untrusted import parsing
-
-    extra = [k for k in raw if k not in ("kind", "casimir", "hamiltonian", "name")]
-    if extra:
-        raise ValueError(
-            f"scene key 'system.{extra[0]}' is not known for kind = \"nambu\" (give casimir, "
-            "hamiltonian and optionally name)"
-        )
-    for key in ("casimir", "hamiltonian"):
-        if key not in raw:
-            raise ValueError(f"scene key 'system.{key}' is missing")
-    casimir = _polynomial_text(raw["casimir"], "system.casimir")
-    hamiltonian = _polynomial_text(raw["hamiltonian"], "system.hamiltonian")
-    name = raw.get("name")
-    if name is not None and not isinstance(name, str):
-        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
-    with parsing("scene", "system.casimir"):
-        structure = PolynomialBivector.nambu(casimir)
-    with parsing("scene", "system.hamiltonian"):
-        return PolynomialPoissonSystem(structure, hamiltonian, name=name)
-
-
-def _affine(raw: Mapping[str, Any]) -> Any:
-    """A ``kind = "affine"`` [system] table: ``algebra`` (a name in NAMED_ALGEBRAS or a
-    LieAlgebra.to_dict() table), ``cocycle`` (n × n, antisymmetric, a 2-cocycle), ``hamiltonian``
-    (a Polynomial.to_dict() table), optional ``name`` and ``component_names``."""
-    from .structures.affine import AffinePoissonSystem
-    from .structures.lie_poisson import Polynomial
-    from .untrusted import parsing
-
-    allowed = ("kind", "algebra", "cocycle", "hamiltonian", "name", "component_names")
-    extra = [k for k in raw if k not in allowed]
-    if extra:
-        raise ValueError(
-            f"scene key 'system.{extra[0]}' is not known for kind = \"affine\" (give "
-            "algebra, cocycle, hamiltonian and optionally name, component_names)"
-        )
-    for key in ("algebra", "cocycle", "hamiltonian"):
-        if key not in raw:
-            raise ValueError(f"scene key 'system.{key}' is missing")
-    with parsing("scene", "system.algebra"):
-        algebra = raw["algebra"]
-        if isinstance(algebra, str):
-            if algebra not in NAMED_ALGEBRAS:
-                raise ValueError(f"{algebra!r} is not one of {NAMED_ALGEBRAS}")
-            algebra = getattr(LieAlgebra, algebra)()
-        else:
-            algebra = LieAlgebra.from_dict(algebra)
-    with parsing("scene", "system.hamiltonian"):
-        hamiltonian = Polynomial.from_dict(raw["hamiltonian"])
-    names = raw.get("component_names")
-    if names is not None and not (
-        isinstance(names, list) and all(isinstance(v, str) and v for v in names)
-    ):
-        raise ValueError(f"scene key 'system.component_names' must be a list of names: {names!r}")
-    name = raw.get("name")
-    if name is not None and not isinstance(name, str):
-        raise ValueError(f"scene key 'system.name' must be a string, got {name!r}")
-    with parsing("scene", "system.cocycle"):
-        return AffinePoissonSystem(
-            algebra, raw["cocycle"], hamiltonian, name=name, component_names=names
-        )
-
-
-def _system_file(value: Any, path: Path | None) -> LiePoissonSystem:
+def _system_file(value: Any, path: Path | None) -> PoissonSystem:
     """The system of a JSON file named by ``system.system_file`` (relative to the scene)."""
     import json
 
@@ -488,7 +316,9 @@ def _system_file(value: Any, path: Path | None) -> LiePoissonSystem:
         data = json.loads(file.read_text(encoding="utf-8"))
         if not isinstance(data, dict):
             raise ValueError("must hold a JSON object (a system's to_dict())")
-        return LiePoissonSystem.from_dict(data)
+        from .structures import system_from_dict
+
+        return system_from_dict(data)
 
 
 def _select_spec(raw: Mapping[str, Any], horizon: float) -> SelectSpec | None:
@@ -542,20 +372,12 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
     if not isinstance(description, str):
         raise ValueError(f"scene key 'description' must be a string, got {description!r}")
 
-    system = _table(data, "system", _SECTION_KEYS["system"])
-    generic = "algebra" in system or "system_file" in system
-    if "inertia" not in system and system.get("kind", "rigid_body") == "rigid_body" and not generic:
-        raise ValueError("scene key 'system.inertia' is missing")
-    # A generic system has no inertia: the TrainConfig default stands in (unused with a system).
-    inertia = system.get("inertia", [1.5, 2.0, 2.5])
-    if not isinstance(inertia, list) or len(inertia) != 3:
-        raise ValueError(f"scene key 'system.inertia' must be 3 numbers, got {inertia!r}")
-    i1, i2, i3 = (_number(v, "system.inertia") for v in inertia)
+    # The structure that owns the table's kind checks its keys.
+    system = _table(data, "system", None)
     lie_system = _lie_system(system, path)
+    # Training's TrainConfig takes the rigid body's inertia (its default where there is none).
+    i1, i2, i3 = (float(v) for v in getattr(lie_system, "inertia", (1.5, 2.0, 2.5)))
     dim = lie_system.dim
-    from .studies.methods import is_positive_orthant
-
-    positive_orthant = is_positive_orthant(lie_system)
 
     states = _table(data, "states", _SECTION_KEYS["states"])
     if "points" not in states and "shell" not in states:
@@ -571,21 +393,16 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         if not isinstance(pt, list) or len(pt) != dim:
             raise ValueError(f"scene key '{key}' must be {dim} numbers, got {pt!r}")
         values = tuple(_number(v, key, positive=False) for v in pt)
-        if positive_orthant and not all(v > 0 for v in values):
+        if not lie_system.in_domain(np.array([values]))[0]:
             raise ValueError(
-                f"scene key '{key}' = {list(values)} must lie in the open positive orthant "
-                f"(every component > 0) for {_system_label(lie_system)}"
+                f"scene key '{key}' = {list(values)} must lie in the "
+                f"{lie_system.domain_text()} domain of {_system_label(lie_system)}"
             )
         # H₀ = 0 there: the relative energy error is undefined (and μ = 0 never moves).
         if not any(values):
             raise ValueError(f"scene key '{key}' must not be the zero state")
         points.append(values)  # type: ignore[arg-type]
     shell = None
-    if "shell" in states and not isinstance(lie_system, RigidBody):
-        raise ValueError(
-            "scene key 'states.shell' samples rigid-body momenta; give 'states.points' for "
-            f"{lie_system!r}"
-        )
     if "shell" in states:
         raw_shell = _table(states, "shell", _SHELL_KEYS, prefix="states.")
         for k in ("r_min", "r_max", "n"):
@@ -600,7 +417,15 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
             r_max,
             _integer(raw_shell["n"], "states.shell.n", low=1),
             _integer(raw_shell.get("seed", 0), "states.shell.seed", low=0),
+            dim,
         )
+        outside = ~lie_system.in_domain(shell.sample())
+        if outside.any():
+            raise ValueError(
+                f"scene key 'states.shell': {int(outside.sum())} of its {shell.n} states lie "
+                f"outside the {lie_system.domain_text()} domain of {_system_label(lie_system)}; "
+                "give 'states.points' instead"
+            )
     if not points and shell is None:
         raise ValueError("scene key 'states.points' is empty and there is no shell")
 
@@ -642,9 +467,9 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         newton=newton,
     )
 
-    if "model" in data and not isinstance(lie_system, LiePoissonSystem):
+    if "model" in data and not getattr(lie_system, "trainable", False):
         raise ValueError(
-            "scene key 'model': training is for Lie–Poisson systems, not "
+            "scene key 'model': training a learned S is not available for "
             + _system_label(lie_system)
         )
     model = _model_overrides(_table(data, "model", tuple(_MODEL_TYPES)))
@@ -671,7 +496,7 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
         system=lie_system,
         select=select,
     )
-    if isinstance(lie_system, LiePoissonSystem):
+    if getattr(lie_system, "trainable", False):
         try:
             derive_config(scene).validate()
         except ValueError as e:
@@ -730,9 +555,9 @@ def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
     from .train import TrainConfig
 
     system = scene.lie_system
-    if not isinstance(system, LiePoissonSystem):
+    if not getattr(system, "trainable", False):
         raise ValueError(
-            f"scene {scene.name!r}: training a learned S is for Lie–Poisson systems, not "
+            f"scene {scene.name!r}: training a learned S is not available for "
             f"{_system_label(system)}; its Taylor-HJ and classical methods run in demo, chart, "
             "stability and select"
         )
@@ -789,29 +614,19 @@ def evaluate(model: Stepper, scene: Scene, *, strict: bool = True) -> dict[str, 
     model refuses h beyond its h_max).
     """
     system = scene.lie_system
-    if isinstance(model, BisectionIntegrator) and not isinstance(system, RigidBody):
-        if model.system != system:
-            raise ValueError(
-                f"the model is for {model.system!r}, the scene {scene.name!r} for {system!r}"
-            )
-    elif isinstance(model, BisectionIntegrator):
-        if not np.allclose(model.metadata["inertia"], scene.inertia, rtol=1e-12, atol=0):
-            raise ValueError(
-                f"the model is for inertia {model.metadata['inertia']}, "
-                f"the scene {scene.name!r} for {scene.inertia}"
-            )
+    own = getattr(model, "system", None)
+    if own is not None and own != system:
+        raise ValueError(f"the model is for {own!r}, the scene {scene.name!r} for {system!r}")
     body = system
     mu0 = scene.states()
-    if isinstance(system, RigidBody):
-        exact = exact_solution(system, mu0, [scene.horizon])[:, 0]
-    else:
-        exact = reference_solution(system, mu0, [scene.horizon])[:, 0]
+    exact = system.reference(mu0, [scene.horizon])[:, 0]
     h0, c0 = body.hamiltonian(mu0), _casimirs(system, mu0)
-    # Casimir drift relative to |μ₀|² (for the rigid body, C₀ itself); absolute for the
-    # log-form Casimirs Σ k_i ln x_i of a log-canonical system (they are not homogeneous).
-    c_scale = np.einsum("nd,nd->n", mu0, mu0)
-    if not isinstance(system, LiePoissonSystem):
-        c_scale = np.ones(len(mu0))
+    # Casimir drift relative to |μ₀|^d for a Casimir of degree d (for the rigid body, C₀
+    # itself); absolute (d = 0) for the log-form Casimirs Σ k_i ln x_i of a log-canonical system.
+    from .casimirs import casimir_degrees
+
+    degrees = casimir_degrees(system) or (0,)
+    c_scale = np.linalg.norm(mu0, axis=1) ** max(degrees)
     per_h = []
     for h in scene.h:
         with warnings.catch_warnings():
@@ -858,7 +673,7 @@ def evaluate(model: Stepper, scene: Scene, *, strict: bool = True) -> dict[str, 
     return result
 
 
-def _casimirs(system: LiePoissonSystem, mu: np.ndarray) -> np.ndarray:
+def _casimirs(system: PoissonSystem, mu: np.ndarray) -> np.ndarray:
     """The system's Casimirs at μ (..., n) → (..., m); zeros (m = 1) when none is known."""
     c = system.casimirs(mu)
     return np.zeros((*np.shape(mu)[:-1], 1)) if c is None else np.asarray(c)

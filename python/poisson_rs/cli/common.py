@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 from ..threads import max_threads
 
 if TYPE_CHECKING:
-    from ..structures.lie_poisson import LiePoissonSystem
+    pass
 
 #: Most steps any subcommand takes from one state (the step count, not the memory, is bounded
 #: here; a subcommand that stores every step bounds it again by the memory it needs).
@@ -142,11 +142,13 @@ def vectors(values: Sequence[float], dim: int, flag: str) -> tuple[tuple[float, 
 NAMED_SYSTEMS = ("rigid-body", "heavy-top")
 
 
-def system_spec(spec: str) -> LiePoissonSystem:
-    """A system from a name in NAMED_SYSTEMS or a JSON file holding ``system.to_dict()``."""
+def system_spec(spec: str) -> Any:
+    """A system from a name in NAMED_SYSTEMS or a JSON file holding any system's
+    ``to_dict()``."""
     import json
 
-    from ..structures.lie_poisson import HeavyTop, LiePoissonSystem, RigidBody
+    from ..structures import system_from_dict
+    from ..structures.lie_poisson import HeavyTop, RigidBody
     from ..untrusted import parsing
 
     if spec == "rigid-body":
@@ -164,7 +166,7 @@ def system_spec(spec: str) -> LiePoissonSystem:
         data = json.loads(path.read_text(encoding="utf-8"))
         if not isinstance(data, dict):
             raise ValueError("must hold a JSON object (a system's to_dict())")
-        return LiePoissonSystem.from_dict(data)
+        return system_from_dict(data)
 
 
 def sampling_flags(p: argparse.ArgumentParser) -> None:

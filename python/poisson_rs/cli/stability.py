@@ -99,8 +99,6 @@ def run(args: argparse.Namespace) -> int:
         system = sc.lie_system
         mu0 = sc.states()
         labels = ["(" + ", ".join(f"{v:g}" for v in s) + ")" for s in mu0]
-        if isinstance(system, RigidBody):
-            mu0, labels = states(system)  # the rigid body's grid: both sides of the separatrix
     methods = default_methods(system)
     for path in args.model or ():
         model = load_model(path)  # checked here, before the map's work

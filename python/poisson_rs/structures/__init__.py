@@ -10,6 +10,12 @@
   realizations of order n.
 """
 
+import importlib
+import pkgutil
+from collections.abc import Callable, Mapping
+from functools import cache
+from typing import Any
+
 from .affine import (
     AffineIntegrator,
     AffinePoissonSystem,
@@ -28,6 +34,55 @@ from .log_canonical import (
     lotka_volterra,
 )
 from .polynomial import PolynomialBivector, PolynomialPoissonSystem, RealizationTaylorIntegrator
+
+
+@cache
+def _kinds(table: str) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
+    """``table`` ("SYSTEM_KINDS" or "SCENE_KINDS") of every structure module of this package,
+    merged: a structure module is found by being here, so a new structure is one new module."""
+    found: dict[str, Callable[[Mapping[str, Any]], Any]] = {}
+    for info in pkgutil.iter_modules(__path__):
+        module = importlib.import_module(f"{__name__}.{info.name}")
+        for kind, reader in getattr(module, table, {}).items():
+            if kind in found:
+                raise RuntimeError(f"structure kind {kind!r} is defined twice")
+            found[kind] = reader
+    return found
+
+
+def system_kinds() -> tuple[str, ...]:
+    """The ``kind`` of every system dictionary :func:`system_from_dict` reads."""
+    return tuple(_kinds("SYSTEM_KINDS"))
+
+
+def scene_kinds() -> tuple[str, ...]:
+    """The ``kind`` of every scene [system] table :func:`system_from_scene_table` reads."""
+    return tuple(_kinds("SCENE_KINDS"))
+
+
+def system_from_dict(data: Mapping[str, Any]) -> Any:
+    """Any structure's system from its ``to_dict()``, by its ``kind``; ValueError naming the
+    kinds there are otherwise."""
+    kind = data.get("kind") if isinstance(data, Mapping) else None
+    readers = _kinds("SYSTEM_KINDS")
+    if kind not in readers:
+        raise ValueError(
+            f"a system dictionary needs a 'kind' among {', '.join(sorted(readers))}; got {kind!r}"
+        )
+    return readers[kind](data)
+
+
+def system_from_scene_table(raw: Mapping[str, Any], default: str) -> Any:
+    """A scene's [system] table as a system, by its ``kind`` (``default`` when absent);
+    ValueError naming 'system.kind' and the kinds there are otherwise."""
+    kind = raw.get("kind", default)
+    readers = _kinds("SCENE_KINDS")
+    if not isinstance(kind, str) or kind not in readers:
+        raise ValueError(
+            f"scene key 'system.kind' = {kind!r} is not one of {', '.join(sorted(readers))}"
+        )
+    return readers[kind]({**raw, "kind": kind})
+
 
 __all__ = [
     "AffineIntegrator",
@@ -50,4 +105,8 @@ __all__ = [
     "central_extension",
     "integer_null_space",
     "lotka_volterra",
+    "scene_kinds",
+    "system_from_dict",
+    "system_from_scene_table",
+    "system_kinds",
 ]

@@ -24,11 +24,12 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystemBase
 from .lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
 
 FloatArray = NDArray[np.float64]
@@ -90,7 +91,7 @@ def _lift_polynomial(h: Polynomial) -> Polynomial:
     return Polynomial({(*e, 0): a for e, a in h.terms.items()} or {(0,) * (h.dim + 1): 0.0})
 
 
-class AffinePoissonSystem:
+class AffinePoissonSystem(PoissonSystemBase):
     """An affine Poisson system on Rⁿ: {x_i, x_j} = −Σ_k c[i,j,k] x_k + ω_ij with a polynomial
     H, ẋ = π(x)∇H(x). Integrated on its central extension at level 1 (:attr:`extension`, a
     :class:`~poisson_rs.LiePoissonSystem` of dimension n + 1); see the module docstring.
@@ -202,6 +203,54 @@ class AffinePoissonSystem:
             return "no Casimir known (drift n/a)"
         return f"{m} Casimir{'s' if m != 1 else ''} of the central extension, at level 1"
 
+    # --- the PoissonSystem protocol (poisson_rs.protocols): the extension's, at level 1 -----
+
+    @property
+    def title(self) -> str:
+        return f"{self.name or 'affine system'}: Lie–Poisson + constant cocycle, dim {self.dim}"
+
+    def step_angles(self, states: np.ndarray, h: float) -> FloatArray:
+        """The extension's step angles at (x, 1)."""
+        return self.extension.step_angles(np.ascontiguousarray(self.lift(states)), h)
+
+    def taylor_charts(self) -> tuple[str, ...]:
+        """("exp",): the exponential chart of the extension's groupoid."""
+        return ("exp",)
+
+    def taylor_integrator(
+        self, order: int, chart: str | None = None, *, tol: float, max_iter: int
+    ) -> AffineIntegrator:
+        """Taylor-HJ of ``order`` on the extension's exact groupoid, run at level 1: a Poisson
+        map that keeps μ_z = 1 and every Casimir of the extension to round-off."""
+        chart = self.chart_or_default(chart)
+        inner = self.extension.taylor_integrator(order, chart, tol=tol, max_iter=max_iter)
+        return AffineIntegrator(self, inner, f"taylor{order}-{chart}")
+
+    def classical_methods(self) -> list[str]:
+        return self.extension.classical_methods()
+
+    def classical(self, name: str, *, tol: float, max_iter: int) -> AffineIntegrator:
+        """The extension's classical integrator ``name``, run at level 1."""
+        inner = self.extension.classical(name, tol=tol, max_iter=max_iter)
+        return AffineIntegrator(self, inner, name)
+
+    def reference_solution(
+        self,
+        x0: ArrayLike,
+        times: ArrayLike,
+        *,
+        rtol: float = 1e-13,
+        atol: float = 1e-13,
+        failures: Literal["raise", "nan"] = "raise",
+    ) -> FloatArray:
+        """DOP853 on the central extension at level 1 (μ_z = 1 is kept), its first n
+        components."""
+        lifted = self.lift(self.check_states(x0))
+        out = self.extension.reference_solution(
+            lifted, times, rtol=rtol, atol=atol, failures=failures
+        )
+        return np.ascontiguousarray(out[..., : self.dim])
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
@@ -298,28 +347,30 @@ class AffineIntegrator:
     def order(self) -> int | None:
         return getattr(self.inner, "order", None)
 
-    def _rollout(
+    def rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        from ..integrators import _step_angles
-
         lifted = np.ascontiguousarray(self.system.lift(mu0))
-        traj, raw = self.inner._rollout(lifted, h, n_steps, every)
-        if "step_angle" not in raw:
-            raw["step_angle"] = _step_angles(self.inner, lifted, h)
-        return np.ascontiguousarray(traj[..., : self.dim]), raw
+        traj, raw = self.inner.rollout(lifted, h, n_steps, every)
+        return np.ascontiguousarray(traj[..., : self.dim]), dict(raw)
+
+    @property
+    def adaptive(self) -> bool:
+        return bool(getattr(self.inner, "adaptive", False))
 
     def __repr__(self) -> str:
         return f"AffineIntegrator({self.name!r}, system={self.system!r})"
 
 
-def affine_taylor(system: AffinePoissonSystem, order: int = 3) -> AffineIntegrator:
-    """Taylor-HJ of ``order`` in the exp chart of the extension's exact groupoid: a Poisson map
-    that keeps μ_z = 1 and every Casimir of the extension to round-off."""
-    from ..integrators import taylor_integrator
-
-    inner = taylor_integrator(system.extension, order, "exp")
-    return AffineIntegrator(system, inner, f"taylor{order}-exp")
+def affine_taylor(
+    system: AffinePoissonSystem,
+    order: int = 3,
+    *,
+    tol: float = NEWTON_TOL,
+    max_iter: int = NEWTON_MAX_ITER,
+) -> AffineIntegrator:
+    """Deprecated alias of ``pr.taylor_integrator(system, order)`` (kept one release)."""
+    return system.taylor_integrator(order, tol=tol, max_iter=max_iter)
 
 
 def affine_learned(
@@ -345,9 +396,53 @@ def affine_learned(
     return AffineIntegrator(system, model, name)
 
 
-def affine_classical(system: AffinePoissonSystem, name: str, **kw: Any) -> AffineIntegrator:
-    """A classical integrator of the extension ("rk4", "midpoint", "dop853"; ``tol`` for
-    DOP853's rtol = atol), run at level 1."""
+def affine_classical(
+    system: AffinePoissonSystem,
+    name: str,
+    *,
+    tol: float = NEWTON_TOL,
+    max_iter: int = NEWTON_MAX_ITER,
+) -> AffineIntegrator:
+    """Deprecated alias of ``pr.classical(system, name)`` (kept one release)."""
     from ..integrators import classical
 
-    return AffineIntegrator(system, classical(system.extension, name, **kw), name)
+    return classical(system, name, tol=tol, max_iter=max_iter)  # type: ignore[return-value]
+
+
+def _scene_table(raw: Mapping[str, Any]) -> AffinePoissonSystem:
+    """A ``kind = "affine"`` [system] table: ``algebra`` (a name of a standard algebra or a
+    LieAlgebra.to_dict() table), ``cocycle`` (n × n, antisymmetric, a 2-cocycle),
+    ``hamiltonian`` (a Polynomial.to_dict() table), optional ``name`` and
+    ``component_names``."""
+    from ..tables import only_keys, optional_name, required
+    from ..untrusted import parsing
+    from .lie_poisson import NAMED_ALGEBRAS
+
+    allowed = ("kind", "algebra", "cocycle", "hamiltonian", "name", "component_names")
+    only_keys(raw, allowed, "affine")
+    required(raw, "algebra", "cocycle", "hamiltonian")
+    with parsing("scene", "system.algebra"):
+        algebra = raw["algebra"]
+        if isinstance(algebra, str):
+            if algebra not in NAMED_ALGEBRAS:
+                raise ValueError(f"{algebra!r} is not one of {NAMED_ALGEBRAS}")
+            algebra = getattr(LieAlgebra, algebra)()
+        else:
+            algebra = LieAlgebra.from_dict(algebra)
+    with parsing("scene", "system.hamiltonian"):
+        hamiltonian = Polynomial.from_dict(raw["hamiltonian"])
+    names = raw.get("component_names")
+    if names is not None and not (
+        isinstance(names, list) and all(isinstance(v, str) and v for v in names)
+    ):
+        raise ValueError(f"scene key 'system.component_names' must be a list of names: {names!r}")
+    name = optional_name(raw)
+    with parsing("scene", "system.cocycle"):
+        return AffinePoissonSystem(
+            algebra, raw["cocycle"], hamiltonian, name=name, component_names=names
+        )
+
+
+#: The kinds of system dictionaries and scene [system] tables this module reads.
+SYSTEM_KINDS = {AffinePoissonSystem.kind: AffinePoissonSystem.from_dict}
+SCENE_KINDS = {"affine": _scene_table}

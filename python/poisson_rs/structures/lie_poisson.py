@@ -21,11 +21,12 @@ import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..protocols import PoissonSystemBase
 from ..untrusted import parsing
 
 __all__ = ["HeavyTop", "LieAlgebra", "LiePoissonSystem", "Polynomial", "RigidBody"]
@@ -538,7 +539,7 @@ class Polynomial:
 # --- Lie–Poisson systems -------------------------------------------------------------------------
 
 
-class LiePoissonSystem:
+class LiePoissonSystem(PoissonSystemBase):
     """A Lie–Poisson system on g*: an algebra and a polynomial Hamiltonian H on g* ≅ Rⁿ.
 
     μ̇_j = Σ_{i,k} c[i,j,k] ∂H/∂μ_i μ_k (on so(3): μ̇ = μ × ∇H). Immutable, hashable; equality
@@ -656,6 +657,93 @@ class LiePoissonSystem:
 
             return torch.stack(values, -1)
         return np.stack(values, -1)
+
+    # --- the PoissonSystem protocol (poisson_rs.protocols) ---------------------------------
+
+    state_symbol: ClassVar[str] = "μ"
+    #: A learned S can be trained for it (``poisson_rs.train``, the PINN on T*G).
+    trainable: ClassVar[bool] = True
+
+    def bivector(self, mu: Any) -> Any:
+        """π(μ) = :meth:`poisson_tensor`: (..., n) → (..., n, n)."""
+        return self.poisson_tensor(mu)
+
+    @property
+    def casimir_label(self) -> str:
+        from ..casimirs import lie_poisson_casimir_label
+
+        return lie_poisson_casimir_label(self)
+
+    @property
+    def title(self) -> str:
+        """The system for titles and messages: its name and algebra."""
+        name = self.name or type(self).__name__
+        pretty = {"so3": "so(3)", "se3": "se(3)", "sl2": "sl(2)"}
+        algebra = self.algebra.name
+        if algebra in pretty:
+            return f"{name} on {pretty[algebra]}*"
+        return f"{name} on {algebra}*" if algebra else f"{name} on a {self.dim}-dimensional g*"
+
+    @property
+    def demo_states(self) -> FloatArray:
+        """Two states for demos: on se(3)* a slow precession and a fast top with |Γ| = 1,
+        else the base's two seeded states of norm 2."""
+        if _known_algebra(self.algebra) == "se3":
+            return np.array([[0.3, -0.8, 1.2, 0.6, 0.0, 0.8], [2.0, 0.5, -1.0, 0.0, 0.6, 0.8]])
+        return super().demo_states
+
+    def core_arrays(self) -> tuple[FloatArray, NDArray[np.int64], FloatArray]:
+        """Structure constants (n, n, n) and the Hamiltonian's (powers, coeffs) as the Rust core
+        takes them, computed once (the system is immutable)."""
+        cached = self.__dict__.get("_core_arrays")
+        if cached is None:
+            powers, coeffs = self.polynomial.to_arrays()
+            cached = (np.ascontiguousarray(self.algebra.c, dtype=np.float64), powers, coeffs)
+            object.__setattr__(self, "_core_arrays", cached)
+        return cached  # type: ignore[no-any-return]
+
+    def step_angles(self, states: np.ndarray, h: float) -> FloatArray:
+        """h × the local rate max(‖ad_∇H(μ)‖_F/√2, ‖∂f/∂μ‖_F) at each state (n, n) → (n,),
+        in radians (see :attr:`poisson_rs.RolloutInfo.step_angle`)."""
+        from .. import _core
+
+        c, powers, coeffs = self.core_arrays()
+        return _core.step_angles(c, powers, coeffs, states, h)  # type: ignore[no-any-return]
+
+    def taylor_charts(self) -> tuple[str, ...]:
+        """("exp",): the exponential chart of T*G exists for every algebra."""
+        return ("exp",)
+
+    def taylor_integrator(
+        self, order: int, chart: str | None = None, *, tol: float, max_iter: int
+    ) -> Any:
+        from ..integrators import lie_poisson_taylor
+
+        chart = self.chart_or_default(chart)
+        return lie_poisson_taylor(self, order, chart, tol=tol, max_iter=max_iter)
+
+    def classical_methods(self) -> list[str]:
+        from ..integrators import LIE_POISSON_METHODS
+
+        return [m for m in LIE_POISSON_METHODS if m != "splitting"]
+
+    def classical(self, name: str, *, tol: float, max_iter: int) -> Any:
+        from ..integrators import ClassicalIntegrator
+
+        return ClassicalIntegrator(self, name, tol=tol, max_iter=max_iter)
+
+    def reference_solution(
+        self,
+        x0: ArrayLike,
+        times: ArrayLike,
+        *,
+        rtol: float = 1e-13,
+        atol: float = 1e-13,
+        failures: Literal["raise", "nan"] = "raise",
+    ) -> FloatArray:
+        from ..reference import lie_poisson_reference
+
+        return lie_poisson_reference(self, x0, times, rtol=rtol, atol=atol, failures=failures)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe form with a "kind" key ("lie_poisson", "rigid_body" or "heavy_top")."""
@@ -795,6 +883,45 @@ class RigidBody(LiePoissonSystem):
     def to_dict(self) -> dict[str, Any]:
         return {"kind": self.kind, "inertia": list(self.inertia)}
 
+    def _directions(self) -> dict[str, FloatArray]:
+        """Circulating about the smallest- and the largest-inertia axis, and within 1e-2 of the
+        separatrix (on the smallest-axis side), as unit vectors."""
+        i1, i2, i3 = self.inertia
+        # On the unit sphere the separatrix is d₁²(I₂/I₁ − 1) = d₃²(1 − I₂/I₃) (with d₂ small).
+        a, c = abs(i2 / i1 - 1.0), abs(1.0 - i2 / i3)
+        out = {
+            "axis 1 side": np.array([0.9, 0.3, 0.3]),
+            "axis 3 side": np.array([0.3, 0.3, 0.9]),
+            "separatrix": np.array([1.0, 0.05, np.sqrt(a / c) * (1.0 - 1e-2)]),
+        }
+        return {k: v / np.linalg.norm(v) for k, v in out.items()}
+
+    @property
+    def title(self) -> str:
+        return f"free rigid body, I = {tuple(float(i) for i in self.inertia)}"
+
+    @property
+    def demo_states(self) -> FloatArray:
+        """The paper's two states, (1, 1, 2) and (3, 2, 0)."""
+        return np.array([[1.0, 1.0, 2.0], [3.0, 2.0, 0.0]])
+
+    def taylor_charts(self) -> tuple[str, ...]:
+        """("cayley", "exp"): the Cayley chart's closed forms exist for the rigid body only."""
+        return ("cayley", "exp")
+
+    def classical_methods(self) -> list[str]:
+        from ..integrators import CLASSICAL_METHODS
+
+        return list(CLASSICAL_METHODS)
+
+    def reference(self, x0: np.ndarray, times: ArrayLike) -> FloatArray:
+        """The closed form in Jacobi elliptic functions."""
+        from ..reference import exact_solution
+
+        return exact_solution(self, x0, times)
+
+    reference_name: ClassVar[str] = "exact flow"
+
 
 @dataclass(frozen=True)
 class HeavyTop(LiePoissonSystem):
@@ -836,6 +963,16 @@ class HeavyTop(LiePoissonSystem):
             terms[tuple(1 if j == 3 + i else 0 for j in range(6))] = mgl * com[i]
         self._init_system(_STANDARD["se3"], Polynomial(terms), "heavy_top")
 
+    @property
+    def title(self) -> str:
+        return f"heavy top, I = {self.inertia}, mgl = {self.mgl:g}, χ = {self.com}"
+
+    def classical_methods(self) -> list[str]:
+        """The generic methods and the heavy top's own explicit Poisson splitting."""
+        from ..integrators import LIE_POISSON_METHODS
+
+        return list(LIE_POISSON_METHODS)
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
@@ -843,3 +980,45 @@ class HeavyTop(LiePoissonSystem):
             "mgl": self.mgl,
             "com": list(self.com),
         }
+
+
+#: Standard algebras a table may name instead of giving structure constants.
+NAMED_ALGEBRAS = ("so3", "se3", "sl2")
+
+#: The keys a scene [system] table of each Lie–Poisson kind takes.
+_SCENE_KEYS = {
+    "rigid_body": ("kind", "inertia"),
+    "heavy_top": ("kind", "inertia", "mgl", "com"),
+    "lie_poisson": ("kind", "name", "algebra", "hamiltonian"),
+}
+
+
+def _scene_table(raw: Mapping[str, Any]) -> LiePoissonSystem:
+    """A Lie–Poisson [system] table: ``kind = "rigid_body"`` (``inertia``), ``"heavy_top"``
+    (``inertia``, ``mgl``, ``com``) or ``"lie_poisson"`` (``algebra``: a name of
+    :data:`NAMED_ALGEBRAS` or a LieAlgebra.to_dict() table, ``hamiltonian``: a
+    Polynomial.to_dict() table, optional ``name``)."""
+    from ..tables import only_keys, required
+    from ..untrusted import parsing
+
+    kind = raw.get("kind", "lie_poisson" if "algebra" in raw else "rigid_body")
+    only_keys(raw, _SCENE_KEYS[kind], kind)
+    if kind == "rigid_body":
+        required(raw, "inertia")
+    if isinstance(raw.get("algebra"), str):
+        name = raw["algebra"]
+        if name not in NAMED_ALGEBRAS:
+            raise ValueError(
+                f"scene key 'system.algebra' = {name!r} is not one of {NAMED_ALGEBRAS}; give "
+                "the structure constants as a table instead"
+            )
+        raw = {**raw, "algebra": getattr(LieAlgebra, name)().to_dict()}
+    with parsing("scene", "system"):
+        return LiePoissonSystem.from_dict({**raw, "kind": kind})
+
+
+#: The kinds of system dictionaries and scene [system] tables this module reads.
+SYSTEM_KINDS = {
+    kind: LiePoissonSystem.from_dict for kind in ("lie_poisson", "rigid_body", "heavy_top")
+}
+SCENE_KINDS = {kind: _scene_table for kind in _SCENE_KEYS}

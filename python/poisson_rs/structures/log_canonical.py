@@ -15,10 +15,12 @@ import math
 import numbers
 from collections.abc import Mapping, Sequence
 from fractions import Fraction
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from ..protocols import PoissonSystemBase
 
 FloatArray = NDArray[np.float64]
 
@@ -263,7 +265,7 @@ def _log(x: Any) -> Any:
     return np.log(x)
 
 
-class LogCanonicalSystem:
+class LogCanonicalSystem(PoissonSystemBase):
     """A log-canonical structure with a log-polynomial Hamiltonian: ẋ = π(x)∇H(x), i.e.
     q̇ = c ∇_q H in q = ln x. The system interface of the studies: ``dim``, ``hamiltonian``,
     ``vector_field``, ``casimirs`` (None when c is invertible), ``component_names``,
@@ -375,6 +377,93 @@ class LogCanonicalSystem:
             forms.append(text[2:] if text.startswith("+ ") else "−" + text[2:])
         return "C = " + ", ".join(forms) + " (absolute drift)"
 
+    # --- the PoissonSystem protocol (poisson_rs.protocols) ---------------------------------
+
+    def bivector(self, x: Any) -> Any:
+        """π(x)_ij = c_ij x_i x_j. x: (..., n) positive → (..., n, n)."""
+        return self.structure.bivector(_positive_states(x, self.dim))
+
+    def in_domain(self, x: np.ndarray) -> NDArray[np.bool_]:
+        """(n,) bool: states in the open positive orthant (finite, every x_i > 0)."""
+        arr = np.asarray(x, dtype=np.float64)
+        return (np.isfinite(arr) & (arr > 0)).all(axis=-1)
+
+    def domain_text(self) -> str:
+        return "open positive orthant (finite, every x_i > 0)"
+
+    def sample_states(self, radii: Sequence[float]) -> tuple[FloatArray, list[str]]:
+        """States x = x* ∘ exp(ρ d), all in the open positive orthant, for each fixed unit
+        direction d and each log distance ρ in ``radii`` from x* = b, the equilibrium of a
+        Lotka–Volterra H = Σ (x_i − b_i ln x_i) (x* = 1 when b is not positive)."""
+        b = np.asarray(self.log_hamiltonian.b, dtype=np.float64)
+        center = b if (b > 0).all() else np.ones_like(b)
+        rows, labels = [], []
+        for r in radii:
+            for label, d in self._directions().items():
+                rows.append(center * np.exp(r * d))
+                labels.append(f"|ln x − ln x*|={r:g}, {label}")
+        return np.array(rows), labels
+
+    @property
+    def demo_states(self) -> FloatArray:
+        """Two states at log distance 0.5 from the equilibrium (in the positive orthant)."""
+        return self.sample_states((0.5,))[0][:2]
+
+    @property
+    def title(self) -> str:
+        rows = ", ".join("[" + ", ".join(f"{v:g}" for v in row) + "]" for row in self.c.tolist())
+        return f"{self.name or 'Lotka–Volterra'}, log-canonical π_ij = c_ij x_i x_j, c = [{rows}]"
+
+    #: Sizes the stability studies use: log distances |ln x − ln x*| from the equilibrium.
+    sample_radii: tuple[float, ...] = (0.25, 0.5, 1.0, 1.5)
+
+    def taylor_charts(self) -> tuple[str, ...]:
+        """("log",): the exact groupoid, the step working in q = ln x."""
+        return ("log",)
+
+    def taylor_integrator(
+        self, order: int, chart: str | None = None, *, tol: float, max_iter: int
+    ) -> Any:
+        from ..integrators import LogCanonicalTaylorIntegrator
+
+        self.chart_or_default(chart)
+        return LogCanonicalTaylorIntegrator(self, order, tol=tol, max_iter=max_iter)
+
+    def classical_methods(self) -> list[str]:
+        from ..integrators import LOG_CANONICAL_METHODS
+
+        return list(LOG_CANONICAL_METHODS)
+
+    def classical(self, name: str, *, tol: float, max_iter: int) -> Any:
+        from ..integrators import LogCanonicalClassicalIntegrator
+
+        return LogCanonicalClassicalIntegrator(self, name, tol=tol, max_iter=max_iter)
+
+    def reference_solution(
+        self,
+        x0: ArrayLike,
+        times: ArrayLike,
+        *,
+        rtol: float = 1e-13,
+        atol: float = 1e-13,
+        failures: Literal["raise", "nan"] = "raise",
+    ) -> FloatArray:
+        """DOP853 in q = ln x (the positive orthant is kept; the tolerances are relative in x)."""
+        from ..reference import field_reference
+
+        x0 = self.check_states(x0)
+        q = field_reference(
+            self.vector_field_log,
+            self.dim,
+            np.log(x0),
+            times,
+            rtol=rtol,
+            atol=atol,
+            failures=failures,
+        )
+        with np.errstate(over="ignore"):
+            return np.exp(q)
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
@@ -434,3 +523,27 @@ def lotka_volterra(c: ArrayLike, b: ArrayLike, *, name: str | None = None) -> Lo
         raise ValueError(f"b must have {n} entries (one per species), got {b_arr.size}")
     terms = {tuple(int(i == j) for j in range(n)): 1.0 for i in range(n)}
     return LogCanonicalSystem(structure, LogPolynomial(terms, b_arr), name=name)
+
+
+def _scene_table(raw: Mapping[str, Any]) -> LogCanonicalSystem:
+    """A ``kind = "lotka_volterra"`` [system] table: the log-canonical structure ``c`` (n × n,
+    antisymmetric) with H = Σ (x_i − b_i ln x_i) (``b``: n numbers), optional ``name``."""
+    from ..tables import matrix, number, only_keys, optional_name, required
+    from ..untrusted import parsing
+
+    only_keys(raw, ("kind", "c", "b", "name"), "lotka_volterra")
+    required(raw, "c", "b")
+    c = matrix(raw["c"], "system.c")
+    b = raw["b"]
+    if not isinstance(b, list) or len(b) != len(c):
+        raise ValueError(f"scene key 'system.b' must be {len(c)} numbers (one per species)")
+    b_values = [number(v, "system.b", positive=False) for v in b]
+    name = optional_name(raw)
+    with parsing("scene", "system.c"):
+        return lotka_volterra(c, b_values, name=name)
+
+
+#: The kinds of system dictionaries (``to_dict()``) and of scene [system] tables this module
+#: reads (found by :func:`poisson_rs.structures.system_from_dict` and the scenes).
+SYSTEM_KINDS = {LogCanonicalSystem.kind: LogCanonicalSystem.from_dict}
+SCENE_KINDS = {"lotka_volterra": _scene_table}

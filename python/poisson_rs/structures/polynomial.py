@@ -24,15 +24,19 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+
+from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystemBase
 
 FloatArray = NDArray[np.float64]
 #: Highest order of the approximate realization built here (the recursion has no limit; sympy's
 #: cost does: order 5 takes about 5 s on a cubic Nambu bracket, order 6 about 8 s).
 MAX_REALIZATION_ORDER = 6
+#: Highest Taylor-HJ order built on a realization (sympy's series cost).
+MAX_TAYLOR_ORDER = 5
 
 _REALIZATION_TERMS: dict[tuple[int, tuple[str, ...]], list[list[Any]]] = {}
 _HJ_SERIES: dict[tuple[Any, ...], list[Any]] = {}
@@ -226,7 +230,7 @@ class PolynomialBivector:
     _realization_terms: list[list[Any]]
 
 
-class PolynomialPoissonSystem:
+class PolynomialPoissonSystem(PoissonSystemBase):
     """A polynomial bivector with a polynomial Hamiltonian: ẋ = π(x)∇H(x). The studies'
     system interface: ``dim``, ``hamiltonian``, ``vector_field``, ``casimirs`` (the Nambu
     function when known, else None), ``component_names``, ``to_dict``."""
@@ -299,6 +303,70 @@ class PolynomialPoissonSystem:
             return None
         x = np.asarray(x, dtype=np.float64)
         return self._c(*np.moveaxis(x, -1, 0))
+
+    # --- the PoissonSystem protocol (poisson_rs.protocols) ---------------------------------
+
+    def bivector(self, x: Any) -> FloatArray:
+        """π(x). x: (..., n) → (..., n, n)."""
+        x = np.asarray(x, dtype=np.float64)
+        flat = self.structure(x.reshape(-1, self.dim))
+        return flat.reshape(*x.shape[:-1], self.dim, self.dim)
+
+    @property
+    def title(self) -> str:
+        nambu = self.structure.casimir
+        what = f"Nambu bracket of C = {nambu}" if nambu is not None else "polynomial bivector"
+        return f"{self.name or 'polynomial Poisson system'}: {what}, H = {self.h}"
+
+    def taylor_charts(self) -> tuple[str, ...]:
+        """ "realization" (the order matched to the Taylor order, see
+        :func:`matched_realization_order`), then "realization1" … "realization6" for one order."""
+        return (
+            "realization",
+            *(f"realization{n}" for n in range(1, MAX_REALIZATION_ORDER + 1)),
+        )
+
+    def taylor_orders(self, wanted: Sequence[int]) -> tuple[int, ...]:
+        """At most 5: the sympy series grows fast beyond."""
+        return tuple(k for k in wanted if k <= MAX_TAYLOR_ORDER)
+
+    def taylor_integrator(
+        self, order: int, chart: str | None = None, *, tol: float, max_iter: int
+    ) -> RealizationTaylorIntegrator:
+        chart = self.chart_or_default(chart)
+        tail = chart.removeprefix("realization")
+        return RealizationTaylorIntegrator(
+            self, order, int(tail) if tail else None, tol=tol, max_iter=max_iter
+        )
+
+    def classical_methods(self) -> list[str]:
+        return list(VECTOR_FIELD_METHODS)
+
+    def classical(self, name: str, *, tol: float, max_iter: int) -> VectorFieldIntegrator:
+        return VectorFieldIntegrator(self, name, tol=tol, max_iter=max_iter)
+
+    def reference_solution(
+        self,
+        x0: Any,
+        times: Any,
+        *,
+        rtol: float = 1e-13,
+        atol: float = 1e-13,
+        failures: Literal["raise", "nan"] = "raise",
+    ) -> FloatArray:
+        """DOP853 on the vector field."""
+        from ..reference import field_reference
+
+        field = self.vector_field
+        return field_reference(
+            lambda y: field(y[None])[0],
+            self.dim,
+            x0,
+            times,
+            rtol=rtol,
+            atol=atol,
+            failures=failures,
+        )
 
     def to_dict(self) -> dict[str, Any]:
         s = self.structure
@@ -433,8 +501,8 @@ class RealizationTaylorIntegrator:
         order: int = 3,
         realization_order: int | None = None,
         *,
-        tol: float = 1e-13,
-        max_iter: int = 50,
+        tol: float = NEWTON_TOL,
+        max_iter: int = NEWTON_MAX_ITER,
     ) -> None:
         import sympy
 
@@ -511,7 +579,7 @@ class RealizationTaylorIntegrator:
         ok &= np.isfinite(out).all(axis=1)
         return out, ok
 
-    def _rollout(
+    def rollout(
         self, mu0: FloatArray, h: float, n_steps: int, every: int
     ) -> tuple[FloatArray, dict[str, np.ndarray]]:
         """The rollout, in the Rust core (``_core.rollout_polynomial_realization``): the same
@@ -553,7 +621,12 @@ class VectorFieldIntegrator:
     """
 
     def __init__(
-        self, system: PolynomialPoissonSystem, name: str, *, tol: float = 1e-13, max_iter: int = 100
+        self,
+        system: PolynomialPoissonSystem,
+        name: str,
+        *,
+        tol: float = NEWTON_TOL,
+        max_iter: int = NEWTON_MAX_ITER,
     ) -> None:
         if not isinstance(system, PolynomialPoissonSystem):
             raise TypeError(
@@ -602,10 +675,9 @@ class VectorFieldIntegrator:
                     break
         return new, ok & np.isfinite(new).all(axis=1)
 
-    def _rollout(
+    def rollout(
         self, mu0: FloatArray, h: float, n_steps: int, every: int
     ) -> tuple[FloatArray, dict[str, np.ndarray]]:
-        n_traj = len(mu0)
         if self.name in ("rk4", "midpoint"):
             from .. import _core
 
@@ -619,42 +691,9 @@ class VectorFieldIntegrator:
                 self.tol,
                 self.max_iter,
             )
-        if self.name == "dop853":
-            from ..reference import reference_solution
+        from ..integrators import dop853_rollout
 
-            times = h * np.arange(0, n_steps + 1, every, dtype=np.float64)
-            out = reference_solution(self.system, mu0, times, rtol=self.tol, atol=self.tol)
-            failed = np.full(n_traj, -1, dtype=np.int64)
-            codes = np.zeros(n_traj, dtype=np.int8)
-        else:
-            records = n_steps // every + 1
-            out = np.full((n_traj, records, self.dim), np.nan)
-            out[:, 0] = mu0
-            state = mu0.copy()
-            live = np.ones(n_traj, dtype=bool)
-            failed = np.full(n_traj, -1, dtype=np.int64)
-            codes = np.zeros(n_traj, dtype=np.int8)
-            for k in range(n_steps):
-                if not live.any():
-                    break
-                new, ok = self.step(state[live], h)
-                idx = np.flatnonzero(live)
-                bad = idx[~ok]
-                failed[bad] = k
-                codes[bad] = np.where(np.isfinite(new[~ok]).all(axis=1), 1, 3)
-                live[bad] = False
-                state[idx[ok]] = new[ok]
-                if (k + 1) % every == 0:
-                    out[live, (k + 1) // every] = state[live]
-        info = {
-            "converged": failed < 0,
-            "failed_step": failed,
-            "failure_code": codes,
-            "newton_iterations": np.zeros(n_traj, dtype=np.uint64),
-            "max_newton_iterations": np.zeros(n_traj, dtype=np.uint32),
-            "max_residual": np.zeros(n_traj, dtype=np.float64),
-        }
-        return out, info
+        return dop853_rollout(self.system, mu0, h, n_steps, every, self.tol)
 
     def __repr__(self) -> str:
         return f"VectorFieldIntegrator(name={self.name!r})"
@@ -675,3 +714,26 @@ def _vector_field_integrator(
     system: PolynomialPoissonSystem, name: str, tol: float, max_iter: int
 ) -> VectorFieldIntegrator:
     return VectorFieldIntegrator(system, name, tol=tol, max_iter=max_iter)
+
+
+def _scene_table(raw: Mapping[str, Any]) -> PolynomialPoissonSystem:
+    """A ``kind = "nambu"`` [system] table: the Nambu bracket {f, g} = ∇C·(∇f × ∇g) on R³ of the
+    polynomial ``casimir`` C, with the polynomial ``hamiltonian`` (strings in x1, x2, x3),
+    optional ``name``."""
+    from ..tables import only_keys, optional_name, polynomial_text, required
+    from ..untrusted import parsing
+
+    only_keys(raw, ("kind", "casimir", "hamiltonian", "name"), "nambu")
+    required(raw, "casimir", "hamiltonian")
+    casimir = polynomial_text(raw["casimir"], "system.casimir")
+    hamiltonian = polynomial_text(raw["hamiltonian"], "system.hamiltonian")
+    name = optional_name(raw)
+    with parsing("scene", "system.casimir"):
+        structure = PolynomialBivector.nambu(casimir)
+    with parsing("scene", "system.hamiltonian"):
+        return PolynomialPoissonSystem(structure, hamiltonian, name=name)
+
+
+#: The kinds of system dictionaries and scene [system] tables this module reads.
+SYSTEM_KINDS = {PolynomialPoissonSystem.kind: PolynomialPoissonSystem.from_dict}
+SCENE_KINDS = {"nambu": _scene_table}

@@ -2,7 +2,7 @@
 
 The paper's scene is the default: rigid body with I = (1.5, 2, 2.5); initial states (1, 1, 2)
 and (3, 2, 0); 10,000 steps of h = 0.1. Any other Lie–Poisson system works too, measured against a
-tight DOP853 reference (the heavy top: :data:`HEAVY_TOP_STATES`). Errors are Euclidean norms
+tight DOP853 reference, from the system's ``demo_states``. Errors are Euclidean norms
 |μ − μ_ref|; ΔH is relative to |H₀|, ΔC (every Casimir known or found, of degree d) relative to
 |μ₀|^d, and NaN when no Casimir is known.
 """
@@ -16,15 +16,12 @@ from typing import Any
 import numpy as np
 
 from ..integrators import Stepper, integrate
-from ..reference import exact_solution, reference_solution
-from ..structures.lie_poisson import LiePoissonSystem, RigidBody
+from ..protocols import PoissonSystem
+from ..structures.lie_poisson import RigidBody
 
 PAPER_STATES = np.array([[1.0, 1.0, 2.0], [3.0, 2.0, 0.0]])
 PAPER_H = 0.1
 PAPER_STEPS = 10_000
-
-#: The heavy top's demo states (M, Γ), |Γ| = 1: a slow precession and a fast, tumbling top.
-HEAVY_TOP_STATES = np.array([[0.3, -0.8, 1.2, 0.6, 0.0, 0.8], [2.0, 0.5, -1.0, 0.0, 0.6, 0.8]])
 
 
 @dataclass
@@ -41,7 +38,7 @@ class Run:
 
 @dataclass
 class SceneResult:
-    body: LiePoissonSystem
+    body: PoissonSystem
     """The system (a RigidBody for the paper's scene)."""
     states: np.ndarray
     h: float
@@ -99,22 +96,15 @@ def _max_or_nan(values: np.ndarray) -> float:
     return float(finite.max()) if finite.size else float("nan")
 
 
-def demo_states(system: LiePoissonSystem) -> np.ndarray:
-    """Initial states of the demo for ``system`` (n, dim): the paper's two for the rigid body,
-    :data:`HEAVY_TOP_STATES` on se(3)* (|Γ| = 1), else two fixed states of norm about 2
-    (seeded, so every run of the demo starts from the same ones)."""
-    if isinstance(system, RigidBody):
-        return PAPER_STATES.copy()
-    if system.dim == 6 and getattr(system, "component_names", ("",))[0] == "M₁":
-        return HEAVY_TOP_STATES.copy()
-    rng = np.random.default_rng(20240601)
-    states = rng.normal(size=(2, system.dim))
-    return 2.0 * states / np.linalg.norm(states, axis=1, keepdims=True)
+def demo_states(system: PoissonSystem) -> np.ndarray:
+    """Initial states of the demo for ``system`` (n, dim): its ``demo_states`` (the paper's two
+    for the rigid body, a slow precession and a fast top on se(3)*, two seeded states elsewhere)."""
+    return np.array(system.demo_states, dtype=np.float64)
 
 
 def run_scene(
     methods: dict[str, Stepper],
-    body: LiePoissonSystem | None = None,
+    body: PoissonSystem | None = None,
     states: np.ndarray = PAPER_STATES,
     h: float = PAPER_H,
     n_steps: int = PAPER_STEPS,
@@ -127,10 +117,7 @@ def run_scene(
     body = RigidBody() if body is None else body
     times = h * np.arange(n_steps + 1)
     states = np.asarray(states, float)
-    if isinstance(body, RigidBody):
-        exact = exact_solution(body, states, times)
-    else:
-        exact = reference_solution(body, states, times)
+    exact = body.reference(states, times)
     result = SceneResult(body, states, h, times, exact)
     for name, method in methods.items():
         t0 = time.perf_counter()

@@ -15,7 +15,6 @@ import numpy as np
 from matplotlib.figure import Figure  # the OO API: no pyplot state, no display backend
 
 from ..files import atomic_write_bytes
-from ..structures.lie_poisson import HeavyTop, RigidBody
 from .demo import Run, SceneResult
 
 
@@ -53,34 +52,13 @@ GRID_COLUMNS = 4
 
 
 def system_label(system: Any) -> str:
-    """The system for titles and messages: its kind and parameters, or its name (not a repr)."""
-    if isinstance(system, RigidBody):
-        return f"free rigid body, I = {tuple(float(i) for i in system.inertia)}"
-    if isinstance(system, HeavyTop):
-        return f"heavy top, I = {system.inertia}, mgl = {system.mgl:g}, χ = {system.com}"
-    name = getattr(system, "name", None)
-    if getattr(system, "kind", None) == "polynomial_bivector":
-        nambu = getattr(system.structure, "casimir", None)
-        what = f"Nambu bracket of C = {nambu}" if nambu is not None else "polynomial bivector"
-        return f"{name or 'polynomial Poisson system'}: {what}, H = {system.h}"
-    if getattr(system, "kind", None) == "affine":
-        return f"{name or 'affine system'}: Lie–Poisson + constant cocycle, dim {system.dim}"
-    if getattr(system, "kind", None) == "log_canonical":
-        c = np.asarray(system.c).tolist()
-        rows = ", ".join("[" + ", ".join(f"{v:g}" for v in row) + "]" for row in c)
-        return f"{name or 'Lotka–Volterra'}, log-canonical π_ij = c_ij x_i x_j, c = [{rows}]"
-    algebra = getattr(system, "algebra", None)
-    on = ""
-    pretty = {"so3": "so(3)", "se3": "se(3)", "sl2": "sl(2)"}
-    if algebra is not None and getattr(algebra, "name", None) in pretty:
-        return f"{name or type(system).__name__} on {pretty[algebra.name]}*"
-    if algebra is not None:
-        on = (
-            f" on {algebra.name}*"
-            if getattr(algebra, "name", None)
-            else f" on a {algebra.dim}-dimensional g*"
-        )
-    return f"{name or type(system).__name__}{on}"
+    """The system for titles and messages: its ``title`` (kind and parameters, or its name)."""
+    title = getattr(system, "title", None)
+    return (
+        title
+        if isinstance(title, str)
+        else f"{getattr(system, 'name', None) or type(system).__name__}"
+    )
 
 
 def component_names(system: Any) -> tuple[str, ...]:
@@ -93,10 +71,8 @@ def component_names(system: Any) -> tuple[str, ...]:
 
 
 def state_symbol(system: Any) -> str:
-    """The letter of the system's states: μ on g*, x for the other structures (a log-canonical
-    or affine system, whose ``kind`` says so)."""
-    kinds = ("log_canonical", "affine", "polynomial_bivector")
-    return "x" if getattr(system, "kind", None) in kinds else "μ"
+    """The letter of the system's states (its ``state_symbol``: μ on g*, x elsewhere)."""
+    return str(getattr(system, "state_symbol", "x"))
 
 
 def _state_label(mu0: np.ndarray, symbol: str = "μ") -> str:
@@ -143,7 +119,7 @@ def orbit_figure(
             ax.set_zlabel(names[cols[2]])  # type: ignore[attr-defined]
         ax.set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=9)
     handles, labels = fig.axes[0].get_legend_handles_labels()
-    kind = "reference: exact flow" if isinstance(system, RigidBody) else "reference: DOP853"
+    kind = f"reference: {getattr(system, 'reference_name', 'DOP853')}"
     title = f"{system_label(system)}: {len(scene.times) - 1} steps of h = {scene.h:g} ({kind})"
     return _save_with_legend(fig, path, handles, labels, title)
 

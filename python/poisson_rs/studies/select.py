@@ -46,7 +46,6 @@ from numpy.typing import ArrayLike
 
 from ..integrators import (
     FAILURE_CODES,
-    BisectionIntegrator,
     Stepper,
     _describe_domain,
     count_out_of_domain,
@@ -54,12 +53,10 @@ from ..integrators import (
     list_models,
     load_model,
 )
-from ..structures.lie_poisson import LiePoissonSystem, RigidBody
+from ..protocols import PoissonSystem, as_stepper, as_system
 from .methods import (
     classical_names,
     classical_stepper,
-    is_positive_orthant,
-    is_supported,
     taylor_charts,
     taylor_orders,
 )
@@ -152,7 +149,7 @@ class CandidateResult:
 class SelectionReport:
     """What :func:`select` measured; ``str(report)`` is the table."""
 
-    system: LiePoissonSystem
+    system: PoissonSystem
     T: float
     target: float
     n_states: int
@@ -231,7 +228,7 @@ class NoCandidateError(ValueError):
         self.report = report
 
 
-def _params(system: LiePoissonSystem) -> str:
+def _params(system: PoissonSystem) -> str:
     d = system.to_dict()
     keys = [k for k in ("inertia", "mgl", "com") if k in d]
     if not keys:
@@ -255,17 +252,15 @@ class _Candidate:
 _REFERENCES: dict[tuple[Any, ...], tuple[np.ndarray, str]] = {}
 
 
-def _reference(system: LiePoissonSystem, states: np.ndarray, T: float) -> tuple[np.ndarray, str]:
-    """μ_ref(T) for each state, (n, dim), and how it was computed."""
-    from ..reference import exact_solution, reference_solution
-
+def _reference(system: PoissonSystem, states: np.ndarray, T: float) -> tuple[np.ndarray, str]:
+    """μ_ref(T) for each state, (n, dim), and how it was computed (the system's best
+    reference)."""
     key = (system, states.shape, states.tobytes(), T)
     if key not in _REFERENCES:
-        if isinstance(system, RigidBody):
-            _REFERENCES[key] = (exact_solution(system, states, [T])[:, 0], "exact flow")
-        else:
-            ref = reference_solution(system, states, [T])[:, 0]
-            _REFERENCES[key] = (ref, "DOP853 rtol = atol = 1e-13")
+        name = system.reference_name
+        if name == "DOP853":
+            name = "DOP853 rtol = atol = 1e-13"
+        _REFERENCES[key] = (system.reference(states, [T])[:, 0], name)
         while len(_REFERENCES) > 8:
             del _REFERENCES[next(iter(_REFERENCES))]
     ref, name = _REFERENCES[key]
@@ -273,36 +268,43 @@ def _reference(system: LiePoissonSystem, states: np.ndarray, T: float) -> tuple[
 
 
 def _model_candidates(
-    system: LiePoissonSystem,
+    system: PoissonSystem,
     mu0: np.ndarray,
-    models: Sequence[str | os.PathLike[str] | BisectionIntegrator] | None,
+    models: Sequence[str | os.PathLike[str] | Stepper] | None,
     h: float | None,
 ) -> list[_Candidate]:
-    """Learned candidates, each either usable or with the reason it is excluded."""
+    """Learned (or the caller's own) candidates, each either usable or with the reason it is
+    excluded: a shipped or saved model by name or path, or any :class:`~poisson_rs.Stepper`."""
     out = []
     for spec in list_models() if models is None else models:
-        model = spec if isinstance(spec, BisectionIntegrator) else load_model(spec)
-        name = f"learned:{model.name}"
+        model: Any = load_model(spec) if isinstance(spec, (str, os.PathLike)) else spec
+        as_stepper(model, "each of models")
+        name = f"learned:{getattr(model, 'name', type(model).__name__)}"
+        h_max = float(getattr(model, "h_max", math.inf))
+        domain = getattr(model, "domain", None)
+        own = getattr(model, "system", None)
         why = ""
-        if model.system != system:
-            why = f"trained for {model.system!r}"
-        elif h is not None and h > model.h_max:
-            why = f"h = {h:g} > its h_max = {model.h_max:g}"
-        else:
-            outside = int((count_out_of_domain(model.domain, mu0[:, None, :]) > 0).sum())
+        if own is not None and own != system:
+            why = f"trained for {own!r}"
+        elif model.dim != system.dim:
+            why = f"integrates states of dimension {model.dim}, not {system.dim}"
+        elif h is not None and h > h_max:
+            why = f"h = {h:g} > its h_max = {h_max:g}"
+        elif isinstance(domain, dict):
+            outside = int((count_out_of_domain(domain, mu0[:, None, :]) > 0).sum())
             if outside:
                 why = (
                     f"{outside} of {len(mu0)} states outside its training domain "
-                    f"({_describe_domain(model.domain)})"
+                    f"({_describe_domain(domain)})"
                 )
-        out.append(_Candidate(name, "learned", None if why else model, None, model.h_max, why))
+        out.append(_Candidate(name, "learned", None if why else model, None, h_max, why))
     return out
 
 
 def _candidates(
-    system: LiePoissonSystem,
+    system: PoissonSystem,
     mu0: np.ndarray,
-    models: Sequence[str | os.PathLike[str] | BisectionIntegrator] | None,
+    models: Sequence[str | os.PathLike[str] | Stepper] | None,
     h: float | None,
 ) -> list[_Candidate]:
     """Cheap-per-step families first, so the pruning bound is set early."""
@@ -315,9 +317,7 @@ def _candidates(
     for chart in taylor_charts(system):
         for k in taylor_orders(system, ORDERS):
             out.append(_Candidate(f"taylor{k}-{chart}", "taylor", taylor_stepper(system, k, chart)))
-    if isinstance(system, LiePoissonSystem) or models:
-        # Learned models are Lie–Poisson: none of the shipped ones is listed for another system.
-        out += _model_candidates(system, mu0, models, h)
+    out += _model_candidates(system, mu0, models, h)
     if "dop853" in names:
         tols = {tol: classical_stepper(system, "dop853", tol=tol) for tol in DOP853_TOLERANCES}
         out.append(_Candidate("dop853", "adaptive", tolerances=tols))
@@ -557,14 +557,14 @@ def _explain(res: CandidateResult, winner: CandidateResult | None, target: float
 
 
 def select(
-    system: LiePoissonSystem,
+    system: PoissonSystem,
     mu0: ArrayLike,
     *,
     T: float,
     target: float,
     metric: str = "error",
     h: float | None = None,
-    models: Sequence[str | os.PathLike[str] | BisectionIntegrator] | None = None,
+    models: Sequence[str | os.PathLike[str] | Stepper] | None = None,
     reference: ArrayLike | None = None,
     max_steps: int = MAX_STEPS,
     budget_s: float = BUDGET_S,
@@ -574,8 +574,8 @@ def select(
 
     Parameters
     ----------
-    system : LiePoissonSystem
-        E.g. ``RigidBody()`` or ``HeavyTop()``.
+    system : PoissonSystem
+        Any structure's system, e.g. ``RigidBody()``, ``HeavyTop()``, a Lotka–Volterra.
     mu0 : array_like, shape (n, dim) or (dim,)
         Initial states (finite, non-zero).
     T : float
@@ -589,9 +589,10 @@ def select(
     h : float, optional
         Measure every candidate at this step only (T/h must be whole); default: a ladder
         h = T/n, n = n₀·2^k, from min(1, T, the model's h_max) down to T/``max_steps``.
-    models : sequence of names, paths or loaded models, optional
-        Learned candidates (default: every shipped model, :func:`~poisson_rs.list_models`); a
-        model counts only for this system, at h ≤ its h_max, with every μ₀ in its domain.
+    models : sequence of names, paths, loaded models or any steppers, optional
+        Learned (or your own) candidates (default: every shipped model,
+        :func:`~poisson_rs.list_models`); a model counts only for this system (when it names
+        one), at h ≤ its h_max, with every μ₀ in its domain.
     reference : array_like, shape (n, dim), optional
         μ_ref(T) for each state, if already computed; default: the exact flow for a rigid body,
         else DOP853 at rtol = atol = 1e-13.
@@ -613,11 +614,7 @@ def select(
         For a malformed system, states, horizon, target or step.
     """
     t_start = time.perf_counter()
-    if not is_supported(system):
-        raise TypeError(
-            f"system must be a LiePoissonSystem, a log-canonical or an affine system, got "
-            f"{type(system).__name__}"
-        )
+    system = as_system(system)
     for what, v in (("T", T), ("target", target)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
             raise ValueError(f"{what} must be a finite number > 0, got {v!r}")
@@ -651,12 +648,7 @@ def select(
         raise ValueError(f"mu0 must have shape (n, {system.dim}), got {np.shape(mu0)}")
     if not np.isfinite(states).all() or (np.linalg.norm(states, axis=1) == 0).any():
         raise ValueError("mu0 must hold finite, non-zero states")
-    if is_positive_orthant(system) and not (states > 0).all():
-        k = int(np.flatnonzero(~(states > 0).all(axis=1))[0])
-        raise ValueError(
-            f"mu0 must lie in the open positive orthant (every x_i > 0): state {k} is "
-            f"{states[k].tolist()}"
-        )
+    system.check_states(states, "mu0")
     states = np.ascontiguousarray(states)
     ref: np.ndarray | None
     if metric != "error":

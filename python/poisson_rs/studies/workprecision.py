@@ -18,7 +18,6 @@ learned model is also measured past the largest step it was trained for (``extra
 
 from __future__ import annotations
 
-import inspect
 import math
 import time
 import warnings
@@ -35,14 +34,12 @@ from ..integrators import (
     Stepper,
     integrate,
     shipped_models,
-    taylor_integrator,
 )
-from ..reference import RigidBody, exact_solution, reference_solution
-from ..structures.lie_poisson import LiePoissonSystem
+from ..protocols import PoissonSystem
+from ..structures.lie_poisson import RigidBody
 from .methods import (
     classical_names,
     classical_stepper,
-    is_log_canonical,
     taylor_charts,
     taylor_orders,
 )
@@ -61,18 +58,6 @@ QUICK_STEPS = (50, 100, 200)
 SLOW_STEPS = (25, 50, 100, 200)
 TAYLOR_ORDERS = (1, 3, 5, 7)
 CHARTS = ("cayley", "exp")
-CLASSICAL_NAMES = (
-    "rk4",
-    "midpoint",
-    "splitting",
-    "splitting4",
-    "splitting_casimir",
-    "dmv",
-    "dop853",
-)
-#: The classical methods of a log-canonical system besides RK4, midpoint and DOP853: the
-#: explicit Poisson splittings in q = ln x of order 2 and 4.
-LOG_CLASSICAL_NAMES = ("log_splitting", "log_splitting4")
 #: rtol = atol of the adaptive DOP853 sweep; its h only sets the output spacing.
 DOP853_TOLERANCES = tuple(10.0**-k for k in range(4, 13))
 DOP853_SPACING = 0.1
@@ -99,23 +84,22 @@ class Scene:
     units. ``system``: any system with ``dim``, ``hamiltonian`` and ``casimirs``."""
 
     name: str
-    system: LiePoissonSystem
+    system: PoissonSystem
     states: np.ndarray
     T: float = HORIZON
     description: str = ""
 
     @property
-    def body(self) -> LiePoissonSystem:
+    def body(self) -> PoissonSystem:
         """The system (the name the rigid-body-only version used)."""
         return self.system
 
 
-def reference_at(system: LiePoissonSystem, states: np.ndarray, times: Any) -> np.ndarray:
-    """μ_ref at ``times`` for each state, (n, len(times), dim): the exact flow for a rigid body,
-    else DOP853 at rtol = atol = 1e-13."""
-    if isinstance(system, RigidBody):
-        return exact_solution(system, states, times)
-    return reference_solution(system, states, times)
+def reference_at(system: PoissonSystem, states: np.ndarray, times: Any) -> np.ndarray:
+    """The reference at ``times`` for each state, (n, len(times), dim): the system's best
+    (:meth:`~poisson_rs.PoissonSystem.reference`: the exact flow for a rigid body, else DOP853
+    at rtol = atol = 1e-13)."""
+    return system.reference(np.asarray(states, dtype=np.float64), times)
 
 
 def steps_to(T: float, counts: Sequence[int]) -> tuple[int, ...]:
@@ -199,31 +183,8 @@ def separatrix_scene(
     return Scene("separatrix", body, states, HORIZON, desc)
 
 
-def _dop853_stepper(classical: Callable[..., Stepper], body: RigidBody, tol: float) -> Stepper:
-    """``classical(body, "dop853")`` at rtol = atol = tol, through whichever keyword it takes.
-
-    Raises TypeError when it takes no tolerance keyword.
-    """
-    try:
-        params = dict(inspect.signature(classical).parameters)
-    except (TypeError, ValueError):  # no introspectable signature: try the usual keywords
-        params = {}
-    open_ended = not params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-    named = {k: tol for k in ("rtol", "atol") if k in params}
-    if named:
-        return classical(body, "dop853", **named)
-    if "tol" in params:
-        return classical(body, "dop853", tol=tol)
-    if open_ended:
-        try:
-            return classical(body, "dop853", rtol=tol, atol=tol)
-        except TypeError:
-            return classical(body, "dop853", tol=tol)
-    raise TypeError("classical(body, 'dop853') takes no tolerance keyword")
-
-
 def default_methods(
-    body: LiePoissonSystem,
+    body: PoissonSystem,
     *,
     quick: bool = False,
     include_paper: bool = True,
@@ -236,7 +197,6 @@ def default_methods(
     Classical methods come from ``poisson_rs.classical`` when it exists; one that is missing
     is skipped with a line in ``notes``. ``quick`` keeps a handful of cheap methods (tests).
     """
-    import poisson_rs
 
     notes = [] if notes is None else notes
     methods: list[Method] = []
@@ -257,36 +217,19 @@ def default_methods(
         methods.append(Method(f"learned:{name}", "learned", model))
     if not mine:
         notes.append("no shipped learned model integrates this system: none charted")
-    so3 = getattr(getattr(body, "algebra", None), "is_so3", lambda: False)()
     orders = (3, 5) if quick else TAYLOR_ORDERS
     charts = taylor_charts(body)
-    if quick and so3:
-        charts = ("cayley",)
-    for chart in charts:
+    for chart in charts[:1] if quick else charts:
         for k in taylor_orders(body, orders):
             methods.append(Method(f"taylor{k}-{chart}", "taylor", taylor_stepper(body, k, chart)))
-    if quick and so3:
-        methods.append(Method("taylor3-exp", "taylor", taylor_integrator(body, 3, "exp")))
+    if quick and len(charts) > 1:
+        methods.append(Method(f"taylor3-{charts[1]}", "taylor", taylor_stepper(body, 3, charts[1])))
 
-    log_canonical = is_log_canonical(body)
-    classical = getattr(poisson_rs, "classical", None)
-    if classical is None and not log_canonical:
-        notes.append(
-            "classical integrators not available (no poisson_rs.classical): skipped "
-            + ", ".join(CLASSICAL_NAMES)
-        )
-        return methods
-    if not isinstance(body, LiePoissonSystem):
-        classical = classical_stepper  # the structure's own (log-canonical, affine)
-    assert classical is not None
-    available = classical_names(body)
-    wanted = [*CLASSICAL_NAMES, *LOG_CLASSICAL_NAMES]
-    quick_names = (
-        ("rk4", "midpoint", *LOG_CLASSICAL_NAMES) if log_canonical else ("rk4", "midpoint")
-    )
-    for name in quick_names if quick else wanted:
-        if name not in available:
-            continue  # not defined for this system (e.g. the splittings off the rigid body)
+    classical = classical_stepper
+    # Quick runs (tests) keep the fixed-step methods, in the core, and leave out DOP853.
+    for name in classical_names(body):
+        if quick and name == "dop853":
+            continue
         try:
             stepper = classical(body, name)
             # One step, so that a method whose Rust side is not built yet is skipped here
@@ -300,12 +243,9 @@ def default_methods(
             methods.append(Method(name, "classical", stepper))
             continue
         tols = (1e-6, 1e-10) if quick else DOP853_TOLERANCES
-        tolerances: dict[float | None, Stepper]
-        try:
-            tolerances = {tol: _dop853_stepper(classical, body, tol) for tol in tols}
-        except TypeError:
-            notes.append("dop853 exposes no tolerance keyword: one point at its default tolerance")
-            tolerances = {None: stepper}
+        tolerances: dict[float | None, Stepper] = {
+            tol: classical(body, "dop853", tol=tol) for tol in tols
+        }
         # Python-side solve_ivp: a much slower long run, capped by its budget.
         methods.append(
             Method(name, "adaptive", stepper, tolerances=tolerances, long_run_budget_s=60.0)
