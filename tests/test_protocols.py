@@ -267,3 +267,28 @@ def test_charged_particle_pickles_and_reads_from_a_scene(tmp_path: Path) -> None
 def test_unknown_kinds_are_refused_naming_the_kinds() -> None:
     with pytest.raises(ValueError, match=r"charged_particle.*log_canonical"):
         pr.system_from_dict({"kind": "no-such"})
+
+
+def test_dop853_gives_up_on_one_trajectory_the_same_way_on_every_structure(system: Any) -> None:
+    """A state DOP853 cannot reach T from (|x| far too large for its step budget) is NaN from
+    there on and reported as failed; the other trajectory is kept (it never raises out of
+    integrate unless asked to)."""
+    x0 = np.array([system.demo_states[0], system.demo_states[0] * 1e8])
+    stepper = pr.classical(system, "dop853")
+    with pytest.warns(RuntimeWarning, match="1 of 2 trajectories failed"):
+        traj, info = pr.integrate(stepper, x0, 0.1, 10, return_info=True)
+    assert info.converged.tolist() == [True, False] and info.failure_code[1] == 1
+    assert np.isfinite(traj[0]).all() and np.isnan(traj[1, 1:]).all()
+    with pytest.raises(RuntimeError, match="1 of 2"):
+        pr.integrate(stepper, x0, 0.1, 10, on_failure="raise")
+
+
+def test_an_unreachable_reference_is_one_line_on_the_command_line(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from poisson_rs.cli import main
+
+    scene = Path(__file__).parent.parent / "scenes" / "lotka_volterra_pnn.toml"
+    assert main(["select", str(scene), "--T", "1e5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no reference: DOP853" in err

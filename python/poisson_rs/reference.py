@@ -330,6 +330,12 @@ def _local_rate(rhs: Callable[[FloatArray], FloatArray], y: FloatArray) -> float
     return max(rate, jac) if math.isfinite(jac) else math.inf
 
 
+class NoReferenceError(RuntimeError, ValueError):
+    """DOP853 could not compute a trajectory (over its step budget, or overflowing): a
+    RuntimeError as documented, and a ValueError too, since the states or the horizon asked
+    for are what is out of reach (the CLI reports it in one line, exit status 2)."""
+
+
 def _dop853_estimate(
     rhs: Callable[[FloatArray], FloatArray], y0: FloatArray, span: float, rtol: float
 ) -> float:
@@ -413,7 +419,9 @@ def _dop853(
                     raise _Abort(str(sol.message))
             except _Abort as e:
                 if failures == "raise":
-                    raise RuntimeError(f"DOP853 failed for trajectory {k}: {e}") from None
+                    raise NoReferenceError(
+                        f"no reference: DOP853 failed for trajectory {k}: {e}"
+                    ) from None
                 failed.append((k, str(e)))
                 out[k, idx, :] = np.nan
                 continue

@@ -419,13 +419,6 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
             _integer(raw_shell.get("seed", 0), "states.shell.seed", low=0),
             dim,
         )
-        outside = ~lie_system.in_domain(shell.sample())
-        if outside.any():
-            raise ValueError(
-                f"scene key 'states.shell': {int(outside.sum())} of its {shell.n} states lie "
-                f"outside the {lie_system.domain_text()} domain of {_system_label(lie_system)}; "
-                "give 'states.points' instead"
-            )
     if not points and shell is None:
         raise ValueError("scene key 'states.points' is empty and there is no shell")
 
@@ -448,6 +441,14 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
     n_states = len(points) + (shell.n if shell is not None else 0)
     if n_states > _MAX_SCENE_STATES:
         raise ValueError(f"scene has {n_states} states, more than {_MAX_SCENE_STATES}")
+    if shell is not None:
+        outside = ~lie_system.in_domain(shell.sample())
+        if outside.any():
+            raise ValueError(
+                f"scene key 'states.shell': {int(outside.sum())} of its {shell.n} states lie "
+                f"outside the {lie_system.domain_text()} domain of {_system_label(lie_system)}; "
+                "give 'states.points' instead"
+            )
     records = n_states * sum(round(horizon / h) + 1 for h in hs)
     if records > _MAX_SCENE_RECORDS:
         raise ValueError(
