@@ -67,11 +67,17 @@ def test_heavy_top_scene_evaluates_against_dop853() -> None:
 @pytest.mark.parametrize(
     ("changes", "match"),
     [
-        ({"system": {**TOP, "kind": "spinning_plate"}}, "unknown system kind"),
+        ({"system": {**TOP, "kind": "spinning_plate"}}, "'spinning_plate' is not one of"),
         ({"system": {"kind": "heavy_top", "inertia": [1.0, 1.5, 2.0]}}, "'mgl'"),
         ({"system": {"inertia": [1.0, 1.5, 2.0], "mgl": 1.0}}, "system.mgl' is not known"),
         ({"states": {"points": [[1.0, 1.0, 2.0]]}}, r"points\[0\]' must be 6 numbers"),
-        ({"states": {"shell": {"r_min": 1, "r_max": 2, "n": 4}}}, "give 'states.points'"),
+        (
+            {
+                "system": {"kind": "lotka_volterra", "c": [[0, 1], [-1, 0]], "b": [1, 2]},
+                "states": {"shell": {"r_min": 1, "r_max": 2, "n": 4}},
+            },
+            "outside the open positive orthant.*give 'states.points'",
+        ),
         ({"select": {"T": 1.0}}, "select.target' is missing"),
         ({"select": {"target": [1e-3], "h": 0.3}}, "whole number of steps h = 0.3"),
         ({"select": {"target": 1e-3, "models": "default"}}, "list of model names"),
