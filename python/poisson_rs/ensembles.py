@@ -31,7 +31,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from .files import check_output_path, temporary_name
-from .integrators import RolloutInfo, Stepper, integrate
+from .protocols import Stepper
+from .rollout import RolloutInfo, integrate
 from .untrusted import parsing
 
 if TYPE_CHECKING:
@@ -230,7 +231,7 @@ def to_zarr(
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
         raise ValueError(f"chunk must be an integer >= 1, got {chunk!r}")
     if not is_dask_array(mu0):
-        from .integrators import _as_states
+        from .rollout import _as_states
 
         dim = int(getattr(stepper, "dim", 3))
         states, _ = _as_states(mu0, dim=dim)

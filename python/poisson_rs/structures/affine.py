@@ -382,7 +382,7 @@ def affine_learned(
     of it), run at level 1: a Poisson map on the extension's exact groupoid whatever the network
     learned, so μ_z = 1 and the Casimirs stay at round-off. ValueError for a model of another
     system."""
-    from ..integrators import BisectionIntegrator
+    from ..model_files import BisectionIntegrator
 
     if not isinstance(model, BisectionIntegrator):
         raise TypeError(

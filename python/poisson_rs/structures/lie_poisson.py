@@ -717,18 +717,18 @@ class LiePoissonSystem(PoissonSystemBase):
     def taylor_integrator(
         self, order: int, chart: str | None = None, *, tol: float, max_iter: int
     ) -> Any:
-        from ..integrators import lie_poisson_taylor
+        from ..steppers.lie_poisson import lie_poisson_taylor
 
         chart = self.chart_or_default(chart)
         return lie_poisson_taylor(self, order, chart, tol=tol, max_iter=max_iter)
 
     def classical_methods(self) -> list[str]:
-        from ..integrators import LIE_POISSON_METHODS
+        from ..steppers.lie_poisson import LIE_POISSON_METHODS
 
         return [m for m in LIE_POISSON_METHODS if m != "splitting"]
 
     def classical(self, name: str, *, tol: float, max_iter: int) -> Any:
-        from ..integrators import ClassicalIntegrator
+        from ..steppers.lie_poisson import ClassicalIntegrator
 
         return ClassicalIntegrator(self, name, tol=tol, max_iter=max_iter)
 
@@ -910,7 +910,7 @@ class RigidBody(LiePoissonSystem):
         return ("cayley", "exp")
 
     def classical_methods(self) -> list[str]:
-        from ..integrators import CLASSICAL_METHODS
+        from ..steppers.lie_poisson import CLASSICAL_METHODS
 
         return list(CLASSICAL_METHODS)
 
@@ -969,7 +969,7 @@ class HeavyTop(LiePoissonSystem):
 
     def classical_methods(self) -> list[str]:
         """The generic methods and the heavy top's own explicit Poisson splitting."""
-        from ..integrators import LIE_POISSON_METHODS
+        from ..steppers.lie_poisson import LIE_POISSON_METHODS
 
         return list(LIE_POISSON_METHODS)
 

@@ -424,18 +424,18 @@ class LogCanonicalSystem(PoissonSystemBase):
     def taylor_integrator(
         self, order: int, chart: str | None = None, *, tol: float, max_iter: int
     ) -> Any:
-        from ..integrators import LogCanonicalTaylorIntegrator
+        from ..steppers.log_canonical import LogCanonicalTaylorIntegrator
 
         self.chart_or_default(chart)
         return LogCanonicalTaylorIntegrator(self, order, tol=tol, max_iter=max_iter)
 
     def classical_methods(self) -> list[str]:
-        from ..integrators import LOG_CANONICAL_METHODS
+        from ..steppers.log_canonical import LOG_CANONICAL_METHODS
 
         return list(LOG_CANONICAL_METHODS)
 
     def classical(self, name: str, *, tol: float, max_iter: int) -> Any:
-        from ..integrators import LogCanonicalClassicalIntegrator
+        from ..steppers.log_canonical import LogCanonicalClassicalIntegrator
 
         return LogCanonicalClassicalIntegrator(self, name, tol=tol, max_iter=max_iter)
 

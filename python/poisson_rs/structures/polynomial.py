@@ -691,7 +691,7 @@ class VectorFieldIntegrator:
                 self.tol,
                 self.max_iter,
             )
-        from ..integrators import dop853_rollout
+        from ..rollout import dop853_rollout
 
         return dop853_rollout(self.system, mu0, h, n_steps, every, self.tol)
 

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from ..integrators import Stepper, integrate
-from ..protocols import PoissonSystem
+from ..protocols import PoissonSystem, Stepper
+from ..rollout import integrate
 from ..structures.lie_poisson import RigidBody
 
 PAPER_STATES = np.array([[1.0, 1.0, 2.0], [3.0, 2.0, 0.0]])

@@ -1,0 +1,163 @@
+"""Learned generating functions on a structure's realization other than T*G: the log-canonical
+groupoid and the order-n realization of a polynomial bivector, read from model files."""
+
+from __future__ import annotations
+
+import numbers
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .. import _core
+from ..export import parse_log_canonical_metadata
+from ..files import check_input_file
+from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL
+from ..untrusted import parsing
+from .log_canonical import _exp_states, _positive_log
+
+#: Largest model file read (the paper's 253k-parameter model takes 2 MB).
+MAX_MODEL_BYTES = 1 << 30
+
+
+class _LearnedRealizationIntegrator:
+    """What the learned S of every non-Lie–Poisson realization shares: the model file read
+    once (bytes kept for pickling), ``tol`` and ``max_iter`` checked, the core's model, and the
+    properties and pickling built on them. A subclass reads its file (:meth:`_load`) and rolls
+    out (:meth:`rollout`)."""
+
+    _default_name = "learned"
+
+    def __init__(self, source: Path | bytes, *, tol: float, max_iter: int) -> None:
+        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        if isinstance(source, bytes):
+            data, where = source, "model bytes"
+        else:
+            check_input_file(source, max_bytes=MAX_MODEL_BYTES, what="model file")
+            data, where = Path(source).read_bytes(), f"model file {source}"
+        self._bytes = data
+        self.metadata, self._core = self._load(data, where)
+        self.system = self.metadata["system"]
+        self.h_max = float(self.metadata["h_max"])
+        self.domain: dict[str, Any] = self.metadata["domain"]
+        self.name = str(self.metadata.get("name", self._default_name))
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+
+    def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
+        raise NotImplementedError
+
+    @property
+    def dim(self) -> int:
+        return int(self._core.dim)
+
+    @property
+    def n_parameters(self) -> int:
+        return int(self._core.n_parameters)
+
+    @property
+    def mlp_power(self) -> int:
+        return int(self._core.mlp_power)
+
+    @property
+    def taylor_order(self) -> int:
+        return int(self.metadata["taylor_order"])
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_restore_learned, (type(self), self._bytes, self.tol, self.max_iter))
+
+    def derivatives(self, t: float, x: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """S, ∇S and ∇²S at time t for x (n, dim) in the core's coordinates, from Rust."""
+        arr = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, self.dim))
+        return self._core.derivatives(float(t), arr)  # type: ignore[no-any-return]
+
+    def _describe(self) -> str:
+        return f"taylor_order={self.taylor_order}"
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(name={self.name!r}, {self._describe()}, "
+            f"mlp_power={self.mlp_power}, parameters={self.n_parameters}, system={self.system!r})"
+        )
+
+
+def _restore_learned(
+    cls: type[_LearnedRealizationIntegrator], data: bytes, tol: float, max_iter: int
+) -> _LearnedRealizationIntegrator:
+    return cls(data, tol=tol, max_iter=max_iter)
+
+
+class LearnedLogCanonicalIntegrator(_LearnedRealizationIntegrator):
+    """A learned generating function on the exact log-canonical groupoid, read from a model file
+    whose metadata says ``structure = log_canonical``
+    (:mod:`poisson_rs.realizations.log_canonical_hj`): S(t, q) = exact Taylor terms +
+    t^m·MLP(t, q) in q = ln x. A step solves q + ½ c ∇S(h, q) = ln x_k by full Newton in Rust
+    (|δ|∞ ≤ tol · max(|q|∞, 1)) and returns x_{k+1} = exp(q − ½ c ∇S(h, q)): a Poisson map that
+    keeps every monomial Casimir to round-off whatever the network learned. States are x > 0.
+    Built by :func:`load_model`.
+    """
+
+    _default_name = "learned-log-canonical"
+
+    def __init__(
+        self, source: Path | bytes, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
+    ) -> None:
+        super().__init__(source, tol=tol, max_iter=max_iter)
+
+    def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
+        with parsing(where):
+            core = _core.LogCanonicalModel.from_bytes(data)
+        metadata = parse_log_canonical_metadata(core.metadata, where)
+        system = metadata["system"]
+        with parsing(where, "system"):
+            if system.dim != core.dim or not np.array_equal(system.c, core.c):
+                raise ValueError(
+                    f"metadata 'system' ({system!r}) does not match the file's structure.c"
+                )
+        return metadata, core
+
+    def rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        q, info = self._core.rollout(_positive_log(mu0), h, n_steps, every, self.tol, self.max_iter)
+        return _exp_states(q), info
+
+
+class LearnedPolynomialIntegrator(_LearnedRealizationIntegrator):
+    """A learned generating function on the order-n approximate realization of a polynomial
+    bivector, read from a model file whose metadata says ``structure = polynomial``
+    (:mod:`poisson_rs.realizations.polynomial_hj`): S(t, x) = exact Taylor-HJ terms of order m +
+    t^M·MLP(t, x). A step solves α(x, ∇S(h, x)) = x_k by full Newton in Rust
+    (|δ|∞ ≤ tol · max(|x|∞, 1)) and returns β(x, ∇S(h, x)). The realization is Poisson only to
+    order n, so the Casimirs drift by O(h^{n+1}) a step (O(h^{n+2}) for odd n) whatever the
+    network learned. Built by :func:`load_model`.
+    """
+
+    _default_name = "learned-polynomial"
+
+    def __init__(
+        self, source: Path | bytes, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
+    ) -> None:
+        super().__init__(source, tol=tol, max_iter=max_iter)
+
+    def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
+        from ..realizations.polynomial_hj import read_model_file
+
+        return read_model_file(data, where)  # type: ignore[no-any-return]
+
+    @property
+    def realization_order(self) -> int:
+        return int(self.metadata["realization_order"])
+
+    def _describe(self) -> str:
+        return f"taylor_order={self.taylor_order}, realization_order={self.realization_order}"
+
+    def rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        arr = np.ascontiguousarray(mu0, dtype=np.float64)
+        return self._core.rollout(arr, h, n_steps, every, self.tol, self.max_iter)  # type: ignore[no-any-return]

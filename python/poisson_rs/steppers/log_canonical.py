@@ -1,0 +1,223 @@
+"""The log-canonical family's steppers: Taylor-HJ on the exact groupoid in q = ln x, and the
+classical baselines (RK4, the midpoint rule, the log splittings, DOP853)."""
+
+from __future__ import annotations
+
+import numbers
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .. import _core
+from ..protocols import (
+    NEWTON_MAX_ITER,
+    NEWTON_TOL,
+)
+
+if TYPE_CHECKING:
+    pass
+from ..rollout import (
+    dop853_rollout,
+)
+
+
+def _log_system(system: Any) -> Any:
+    from ..structures.log_canonical import LogCanonicalSystem
+
+    if not isinstance(system, LogCanonicalSystem):
+        raise TypeError(f"system must be a LogCanonicalSystem, got {type(system).__name__}")
+    return system
+
+
+def _positive_log(x0: np.ndarray) -> np.ndarray:
+    """q0 = ln x0, ValueError naming the first state outside the open positive orthant."""
+    bad = ~(x0 > 0).all(axis=1)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"mu0 must lie in the open positive orthant (every x_i > 0): state {k} is "
+            f"{x0[k].tolist()}"
+        )
+    return np.ascontiguousarray(np.log(x0))
+
+
+def _exp_states(traj: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):
+        return np.exp(traj)
+
+
+class LogCanonicalTaylorIntegrator:
+    """Taylor-HJ bisection integrator of a log-canonical system on its exact groupoid.
+
+    S = Σ_{k≤order} t^k S_k with the S_k exact polynomials in y = e^q
+    (:func:`poisson_rs.realizations.log_canonical.taylor_terms`); a step solves
+    q + ½ c ∇S(q) = ln x_k by Newton in Rust and returns x_{k+1} = exp(q − ½ c ∇S(q)). Every
+    monomial Casimir Σ k_i ln x_i is kept to round-off whatever the order. States are x > 0.
+    Built by :func:`log_canonical_taylor`.
+    """
+
+    def __init__(
+        self,
+        system: Any,
+        order: int = 3,
+        *,
+        tol: float = NEWTON_TOL,
+        max_iter: int = NEWTON_MAX_ITER,
+    ):
+        from ..realizations.log_canonical import taylor_arrays
+
+        self.system = _log_system(system)
+        if isinstance(order, bool) or not isinstance(order, numbers.Integral) or order < 1:
+            raise ValueError(f"order must be an integer >= 1, got {order!r}")
+        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        self.order = int(order)
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+        self.name = f"taylor{self.order}-log"
+        self._arrays = taylor_arrays(self.system, self.order)
+
+    @property
+    def dim(self) -> int:
+        return int(self.system.dim)
+
+    @property
+    def n_terms(self) -> int:
+        """Monomials of S (the log part t·b·q not counted)."""
+        return int(self._arrays[2].size)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (
+            _restore_log_taylor,
+            (type(self), self.system.to_dict(), self.order, self.tol, self.max_iter),
+        )
+
+    def rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        t_powers, exponents, coeffs = self._arrays
+        # At the fixed t = h, terms with the same y-exponent merge into one (S₁, S₃, S₅ share
+        # most monomials): fewer terms for every Newton update.
+        exponents, inverse = np.unique(exponents, axis=0, return_inverse=True)
+        merged = np.zeros(len(exponents))
+        np.add.at(merged, inverse.ravel(), coeffs * h ** t_powers.astype(np.float64))
+        q, info = _core.rollout_log_canonical(
+            np.ascontiguousarray(self.system.c),
+            np.zeros(len(merged), dtype=np.int64),
+            np.ascontiguousarray(exponents, dtype=np.int64),
+            merged,
+            np.ascontiguousarray(self.system.log_hamiltonian.b),
+            _positive_log(mu0),
+            h,
+            n_steps,
+            every,
+            self.tol,
+            self.max_iter,
+        )
+        return _exp_states(q), info
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(order={self.order}, system={self.system!r})"
+
+
+def _restore_log_taylor(
+    cls: type[LogCanonicalTaylorIntegrator], data: Any, order: int, tol: float, max_iter: int
+) -> LogCanonicalTaylorIntegrator:
+    from ..structures.log_canonical import LogCanonicalSystem
+
+    return cls(LogCanonicalSystem.from_dict(data), order, tol=tol, max_iter=max_iter)
+
+
+#: Order of accuracy and whether a step is a Poisson map, for the classical integrators of a
+#: log-canonical system.
+LOG_CANONICAL_METHODS: dict[str, tuple[int, bool]] = {
+    "rk4": (4, False),
+    "midpoint": (2, False),
+    "log_splitting": (2, True),
+    "log_splitting4": (4, True),
+    "dop853": (8, False),
+}
+
+
+class LogCanonicalClassicalIntegrator:
+    """A classical baseline for a log-canonical system, driven by :func:`integrate`.
+
+    - "rk4", "midpoint": explicit RK4 and the implicit midpoint rule (Newton, exact Jacobian) in
+      x, in Rust; neither is Poisson, and a step that leaves the positive orthant fails (code 5).
+    - "log_splitting", "log_splitting4": in q = ln x, H = Σ_i H_i(q_i) splits into one-variable
+      terms with exact explicit flows q_j += t c_ji H_i'(q_i); Strang's composition (order 2)
+      and Suzuki's 5-stage composition of it (order 4), in Rust. Poisson maps: every monomial
+      Casimir is kept to round-off. Need a separable H (Lotka–Volterra is).
+    - "dop853": SciPy's adaptive DOP853 in q with rtol = atol = ``tol`` (h only spaces output).
+    """
+
+    def __init__(
+        self, system: Any, name: str, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
+    ):
+        self.system = _log_system(system)
+        if not (isinstance(name, str) and name in LOG_CANONICAL_METHODS):
+            raise ValueError(
+                f"unknown classical integrator {name!r} for a log-canonical system; valid "
+                f"names: {', '.join(LOG_CANONICAL_METHODS)}"
+            )
+        if not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+            raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        self.name = name
+        self.tol = float(tol)
+        self.max_iter = int(max_iter)
+
+    @property
+    def dim(self) -> int:
+        return int(self.system.dim)
+
+    @property
+    def order(self) -> int:
+        return LOG_CANONICAL_METHODS[self.name][0]
+
+    @property
+    def poisson(self) -> bool:
+        return LOG_CANONICAL_METHODS[self.name][1]
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (
+            _restore_log_classical,
+            (type(self), self.system.to_dict(), self.name, self.tol, self.max_iter),
+        )
+
+    def rollout(
+        self, mu0: np.ndarray, h: float, n_steps: int, every: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        q0 = _positive_log(mu0)
+        if self.name == "dop853":
+            return dop853_rollout(self.system, mu0, h, n_steps, every, self.tol)
+        powers, coeffs, b = self.system.log_hamiltonian.to_arrays()
+        in_log = self.name.startswith("log_")
+        traj, info = _core.rollout_log_classical(
+            self.name,
+            np.ascontiguousarray(self.system.c),
+            powers,
+            coeffs,
+            b,
+            q0 if in_log else mu0,
+            h,
+            n_steps,
+            every,
+            self.tol,
+            self.max_iter,
+        )
+        return (_exp_states(traj) if in_log else traj), info
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, system={self.system!r})"
+
+
+def _restore_log_classical(
+    cls: type[LogCanonicalClassicalIntegrator], data: Any, name: str, tol: float, max_iter: int
+) -> LogCanonicalClassicalIntegrator:
+    from ..structures.log_canonical import LogCanonicalSystem
+
+    return cls(LogCanonicalSystem.from_dict(data), name, tol=tol, max_iter=max_iter)
