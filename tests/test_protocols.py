@@ -292,3 +292,9 @@ def test_an_unreachable_reference_is_one_line_on_the_command_line(
     assert main(["select", str(scene), "--T", "1e5"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "no reference: DOP853" in err
+
+
+def test_select_by_casimir_on_a_system_without_one_says_what_works() -> None:
+    particle = SYSTEMS["charged_particle"]
+    with pytest.raises(ValueError, match=r"no Casimir is known.*choose metric='error' or 'energy'"):
+        pr.select(particle, [0.3, -0.2, 1.0, 0.5], T=1.0, target=1e-6, metric="casimir")

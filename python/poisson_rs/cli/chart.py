@@ -123,10 +123,14 @@ def _chart(args: argparse.Namespace) -> int:
     scenes = "; ".join(
         s.name if len(s.description) > 80 else f"{s.name}: {s.description}" for s in data.scenes
     )
-    system = charts.system_label(data.scenes[0].system)
+    first = data.scenes[0].system
+    system = charts.system_label(first)
+    # The system's own letter and reference: x and DOP853 off g*, μ and the exact flow on it.
+    m, ref = charts.state_symbol(first), getattr(first, "reference_name", "DOP853")
     charts.work_precision_figure(
         data.rows,
         out / "workprecision_error.png",
+        ylabel=f"max |{m}(T) − {m}_ref(T)|  (reference: {ref})",
         title=f"Error at T against cost: {system} ({scenes})",
         levels=LEVELS,
     )
@@ -141,7 +145,7 @@ def _chart(args: argparse.Namespace) -> int:
         data.rows,
         out / "workprecision_casimirs.png",
         metric="max_rel_dC",
-        ylabel=f"max |C − C₀| / |μ₀|^deg C over [0, T]\n{data.casimir_label}",
+        ylabel=f"max |C − C₀| / |{m}₀|^deg C over [0, T]\n{data.casimir_label}",
         title=f"Casimir drift against cost: {system}",
     )
     n_long = max((r["step"] for r in data.long_rows), default=0)

@@ -631,8 +631,9 @@ def select(
 
         if system_casimirs(system) is None:
             raise ValueError(
-                "metric='casimir': no Casimir is known or found for this system (give your own "
-                "with poisson_rs.casimirs.set_casimirs)"
+                f"metric='casimir': no Casimir is known for {system.title} "
+                f"({system.casimir_label}); choose metric='error' or 'energy' (on a Lie–Poisson "
+                "system, poisson_rs.casimirs.set_casimirs(algebra, [...]) registers your own)"
             )
     if h is not None:
         if isinstance(h, bool) or not isinstance(h, (int, float)) or not 0 < h < math.inf:
