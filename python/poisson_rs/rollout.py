@@ -431,24 +431,33 @@ def _checked_rollout(
             f"{(n, records, x0.shape[1])} and info a dict; got "
             f"{getattr(traj, 'shape', type(traj).__name__)} and {type(info).__name__}"
         )
-    raw = {k: np.asarray(v) for k, v in info.items()}
+    raw = dict(info)
     for key, value in raw.items():
-        if key in ROLLOUT_KEYS and value.shape != (n,):
-            raise TypeError(
-                f"{_stepper_name(stepper)}.rollout: info[{key!r}] must have shape ({n},), "
-                f"got {value.shape}"
-            )
+        if key in ROLLOUT_KEYS and getattr(value, "shape", None) != (n,):
+            raw[key] = value = np.asarray(value)
+            if value.shape != (n,):
+                raise TypeError(
+                    f"{_stepper_name(stepper)}.rollout: info[{key!r}] must have shape ({n},), "
+                    f"got {value.shape}"
+                )
+    if len(raw) >= 6 and all(k in raw for k in ROLLOUT_KEYS[:6]):
+        return np.ascontiguousarray(traj, dtype=np.float64), raw  # the package's own steppers
     if "converged" not in raw:
         bad = ~np.isfinite(traj).all(axis=2)  # (n, records)
         first = np.where(bad.any(axis=1), bad.argmax(axis=1), -1)
         raw["converged"] = first < 0
         raw.setdefault("failed_step", np.where(first < 0, -1, np.maximum(first - 1, 0) * every))
         raw.setdefault("failure_code", np.where(first < 0, 0, 3))
-    raw.setdefault("failed_step", np.full(n, -1, dtype=np.int64))
-    raw.setdefault("failure_code", np.zeros(n, dtype=np.int64))
-    raw.setdefault("newton_iterations", np.zeros(n, dtype=np.int64))
-    raw.setdefault("max_newton_iterations", np.zeros(n, dtype=np.int64))
-    raw.setdefault("max_residual", np.full(n, np.nan))
+    defaults = {
+        "failed_step": lambda: np.full(n, -1, dtype=np.int64),
+        "failure_code": lambda: np.zeros(n, dtype=np.int64),
+        "newton_iterations": lambda: np.zeros(n, dtype=np.int64),
+        "max_newton_iterations": lambda: np.zeros(n, dtype=np.int64),
+        "max_residual": lambda: np.full(n, np.nan),
+    }
+    for key, make in defaults.items():
+        if key not in raw:
+            raw[key] = make()
     return np.ascontiguousarray(traj, dtype=np.float64), raw
 
 
