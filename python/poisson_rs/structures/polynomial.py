@@ -149,8 +149,9 @@ class _Budget:
         value = None
         if a.value is not None and b.value is not None:
             value = self.constant(a.value * b.value)
-        self.charge(a.terms * b.terms)
         degree = a.degree + b.degree
+        self.cap(degree)
+        self.charge(a.terms * b.terms)
         return _Size(degree, self.terms(a.terms * b.terms, degree), value)
 
     def div(self, a: _Size, b: _Size) -> _Size:
