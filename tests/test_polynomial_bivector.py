@@ -306,9 +306,9 @@ def test_model_metadata_polynomials_are_bounded(monkeypatch: pytest.MonkeyPatch)
     """A system dictionary (a model file's metadata) goes through the same bounds."""
     data = cubic().to_dict()
     _no_sympy_work(monkeypatch)
-    with pytest.raises(ValueError, match="^casimir: .*exponent 3000"):
+    with pytest.raises(ValueError, match=r"^casimir: .*exponent 3000"):
         PolynomialPoissonSystem.from_dict({**data, "casimir": "(x1+x2+x3)**3000"})
-    with pytest.raises(ValueError, match="^entry \\(0, 1\\): .*9\\*\\*9|^entry \\(0, 1\\): "):
+    with pytest.raises(ValueError, match=r"^entry \(0, 1\): .*exponent 387420489"):
         PolynomialPoissonSystem.from_dict(
             {**data, "casimir": None, "entries": [[0, 1, "9**9**9**9"]]}
         )
@@ -357,7 +357,7 @@ def test_jacobi_check_is_scale_invariant(scale: float) -> None:
     """The Jacobiator is measured against the size of its own terms (both scale as π²): a
     bracket that fails Jacobi fails at every scale; one that holds passes at every scale."""
     bad = {(0, 1): f"{scale}*x3**2", (1, 2): f"{scale}*x1", (0, 2): f"{scale}*x1*x2"}
-    with pytest.raises(ValueError, match=r"Jacobi identity for the triple \(i, j, k\) = \(0, 1, 2\)"):
+    with pytest.raises(ValueError, match=r"Jacobi identity for the triple \(i, j, k\) = \(0, 1"):
         PolynomialBivector(3, bad)
     good = {(0, 1): f"{scale}*x1*x2", (0, 2): f"{2 * scale}*x1*x3", (1, 2): f"{-scale}*x2*x3"}
     PolynomialBivector(3, good)
@@ -389,13 +389,13 @@ def test_bad_entries_get_one_clear_error(
 def test_nambu_refuses_a_foreign_or_constant_casimir() -> None:
     """x4 is not a variable on R³ (it used to become a free symbol and the zero bracket), and a
     constant Casimir has the zero bracket."""
-    with pytest.raises(ValueError, match="^casimir: .*unknown name 'x4'"):
+    with pytest.raises(ValueError, match=r"^casimir: .*unknown name 'x4'"):
         PolynomialBivector.nambu("x4**2")
-    with pytest.raises(ValueError, match="^casimir: .*unknown symbol 'y'"):
+    with pytest.raises(ValueError, match=r"^casimir: .*unknown symbol 'y'"):
         PolynomialBivector.nambu(sympy.Symbol("y") ** 2)
     with pytest.raises(ValueError, match="casimir '3' is constant"):
         PolynomialBivector.nambu("3")
-    with pytest.raises(ValueError, match="^hamiltonian: .*unknown name 'x4'"):
+    with pytest.raises(ValueError, match=r"^hamiltonian: .*unknown name 'x4'"):
         PolynomialPoissonSystem(PolynomialBivector.nambu(CUBIC_C), "x4**2")
 
 
