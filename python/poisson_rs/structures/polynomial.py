@@ -676,9 +676,28 @@ class PolynomialPoissonSystem:
         return (_system, (self.structure, str(self.h), self.name))
 
     def __repr__(self) -> str:
+        from .recognition import recognize
+
         c = self.structure.casimir
         bracket = f"nambu={str(c)!r}" if c is not None else f"dim={self.dim}"
-        return f"PolynomialPoissonSystem({bracket}, hamiltonian={str(self.h)!r})"
+        found = recognize(self.structure)
+        exact = (found.kind or "none").replace("_", "-")
+        return (
+            f"PolynomialPoissonSystem({bracket}, hamiltonian={str(self.h)!r}, "
+            f"exact realization: {exact})"
+        )
+
+    def exact_system(self, tol: float = 1e-10) -> Any:
+        """The equivalent system with an exact realization, or None: a
+        :class:`~poisson_rs.LiePoissonSystem` (π linear), an
+        :class:`~poisson_rs.AffinePoissonSystem` (linear plus constant) or a
+        :class:`~poisson_rs.LogCanonicalSystem` (π_ij = c_ij x_i x_j) with the same H, when
+        :func:`~poisson_rs.structures.recognition.recognize` finds π to be of that form to
+        ``tol``; its integrators keep the Casimirs to round-off where the order-n realization
+        keeps them to O(h^{n+1}) a step."""
+        from .recognition import exact_system
+
+        return exact_system(self, tol)
 
     @property
     def dim(self) -> int:
