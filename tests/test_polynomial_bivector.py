@@ -416,3 +416,10 @@ def test_system_equality_follows_to_dict() -> None:
     assert system != PolynomialPoissonSystem(PolynomialBivector.nambu(CUBIC_C), "x1**2/2")
     assert system != PolynomialPoissonSystem(PolynomialBivector.nambu("x1**2 + x2**2"), H)
     assert system != "not a system"
+    # Irrational coefficients become the floats their text shows, so the text round-trips.
+    x1, x2, x3 = system.structure.x
+    irrational = PolynomialPoissonSystem(
+        PolynomialBivector.nambu(sympy.sqrt(2) * x1**2 + sympy.pi * x2**2 + x3**2), H
+    )
+    assert PolynomialPoissonSystem.from_dict(irrational.to_dict()) == irrational
+    assert pickle.loads(pickle.dumps(irrational)) == irrational

@@ -306,8 +306,21 @@ def _polynomial(raw: Any, symbols: Sequence[Any], field: str) -> Any:
     expr = sympy.expand(expr)
     if not expr.free_symbols <= set(symbols) or not expr.is_polynomial(*symbols):
         raise budget.fail(f"{str(raw)[:60]!r} is not a polynomial in x1..x{n}")
-    for coef in sympy.Poly(expr, *symbols).coeffs():
+    poly = sympy.Poly(expr, *symbols)
+    for coef in poly.coeffs():
         budget.constant(coef)
+    if not all(c.is_Rational or c.is_Float for c in poly.coeffs()):
+        # sqrt(2), pi, …: as the 15-digit floats sympy prints, so that the text form (to_dict,
+        # pickling) parses back to the same system.
+        def exact(c: Any) -> Any:
+            return c if c.is_Rational or c.is_Float else sympy.Float(f"{float(c):.15g}")
+
+        expr = sympy.Add(
+            *(
+                exact(c) * sympy.Mul(*(v**e for v, e in zip(symbols, m, strict=True)))
+                for m, c in poly.terms()
+            )
+        )
     return expr
 
 
