@@ -18,6 +18,13 @@ integrator on them (stepped by the Rust core; NumPy Newton as its oracle).
   min(n, m) rounded up to even (m = 3 on n = 3: 4; m = 5 on n = 5: 6; any m on n = 2: 2).
 - Nambu structures on R³, {f, g} = ∇C·(∇f × ∇g), i.e. π^{ij} = ε_ijk ∂_k C, satisfy Jacobi for
   any C and keep C: :meth:`PolynomialBivector.nambu`.
+- Bounded work: every polynomial (an entry, H, a Casimir; text from a scene or a model file) is
+  walked before sympy sees it, and refused, naming the field, past degree ``MAX_DEGREE``,
+  :data:`MAX_TERMS` terms, :data:`MAX_EXPANSION_WORK` products or |coefficient|
+  :data:`MAX_COEFFICIENT`; each step of the realization and of the Taylor-HJ series is
+  estimated from the terms already built and refused past :data:`MAX_STEP_WORK`.
+- A bracket that is in fact Lie–Poisson, affine or log-canonical is recognised
+  (:mod:`poisson_rs.structures.recognition`): :meth:`PolynomialPoissonSystem.exact_system`.
 """
 
 from __future__ import annotations
