@@ -252,8 +252,8 @@ def _text_size(text: str, names: Mapping[str, int], budget: _Budget) -> _Size:
             )
         else:
             raise budget.fail(
-                f"is not a polynomial in {allowed}: only numbers, the variables, + - * / ** "
-                "and parentheses are allowed"
+                f"is not a polynomial in {allowed}: {ast.unparse(node)[:40]!r} is not allowed "
+                "(only numbers, the variables, + - * / ** and parentheses)"
             )
     return out[0]
 
