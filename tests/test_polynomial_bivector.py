@@ -393,6 +393,10 @@ def test_nambu_refuses_a_foreign_or_constant_casimir() -> None:
         PolynomialBivector.nambu("x4**2")
     with pytest.raises(ValueError, match=r"^casimir: .*unknown symbol 'y'"):
         PolynomialBivector.nambu(sympy.Symbol("y") ** 2)
+    # The caller's own symbols named x1, x2, x3 (not declared real) are the variables.
+    x1, x2, x3 = sympy.symbols("x1 x2 x3")
+    plain = PolynomialBivector.nambu(x1**2 + x2**2 + x3**2)
+    assert plain.pi == PolynomialBivector.nambu("x1**2 + x2**2 + x3**2").pi
     with pytest.raises(ValueError, match="casimir '3' is constant"):
         PolynomialBivector.nambu("3")
     with pytest.raises(ValueError, match=r"^hamiltonian: .*unknown name 'x4'"):

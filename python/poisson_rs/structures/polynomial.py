@@ -308,7 +308,10 @@ def _polynomial(raw: Any, symbols: Sequence[Any], field: str) -> Any:
     else:
         if not isinstance(raw, sympy.Expr):
             raise TypeError(f"{field} must be a sympy expression, got {type(raw).__name__}")
-        expr = raw
+        # The caller's own symbols named x1.. (without real=True) are the variables too.
+        expr = raw.xreplace(
+            {s: symbols[names[s.name]] for s in raw.free_symbols if str(s) in names}
+        )
         _expr_size(expr, symbols, budget)
     expr = sympy.expand(expr)
     if not expr.free_symbols <= set(symbols) or not expr.is_polynomial(*symbols):
