@@ -417,6 +417,13 @@ def test_system_equality_follows_to_dict() -> None:
     assert again == system and hash(again) == hash(system)
     assert pickle.loads(pickle.dumps(system)) == system
     assert {system: 1}[again] == 1
+    # The scene's system (demo, select and stability compare it with a model's by !=).
+    from pathlib import Path
+
+    from poisson_rs.scenes import load_scene
+
+    scene = load_scene(Path(__file__).resolve().parents[1] / "scenes" / "nambu_cubic.toml")
+    assert not scene.system != system
     assert system != PolynomialPoissonSystem(PolynomialBivector.nambu(CUBIC_C), "x1**2/2")
     assert system != PolynomialPoissonSystem(PolynomialBivector.nambu("x1**2 + x2**2"), H)
     assert system != "not a system"
