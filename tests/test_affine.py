@@ -237,3 +237,19 @@ def test_learned_s_of_another_system_is_refused() -> None:
         pr.affine_learned(system, pr.load_model())
     with pytest.raises(TypeError, match="BisectionIntegrator"):
         pr.affine_learned(system, pr.affine_taylor(system, 3))
+
+
+@pytest.mark.parametrize("size", [1e300, 1e16, np.inf])
+def test_a_huge_cocycle_is_named(size: float) -> None:
+    """ω = 1e300 overflowed in the extension's Taylor terms (OverflowError); |ω| is bounded by
+    1e15, at which the terms stay finite through order 10."""
+    w = [[0, -size, 0], [size, 0, 0], [0, 0, 0]]
+    with pytest.raises(ValueError, match=r"^cocycle"):
+        pr.affine_poisson_system(e2_constants(), w, {(2, 0, 0): 0.5})
+
+
+def test_the_largest_cocycle_integrates() -> None:
+    w = [[0, -1e15, 0], [1e15, 0, 0], [0, 0, 0]]
+    system = pr.affine_poisson_system(e2_constants(), w, {(2, 0, 0): 0.5, (0, 2, 0): 0.5})
+    traj = pr.integrate(pr.affine_taylor(system, 5), STATES, 1e-17, 3)
+    assert np.isfinite(traj).all()

@@ -274,3 +274,43 @@ def test_vector_field_is_pnn() -> None:
     np.testing.assert_allclose(
         pnn().vector_field(x), np.stack([u * (v - 2), v * (1 - u)], -1), rtol=1e-15
     )
+
+
+@pytest.mark.parametrize(
+    ("c", "b", "error", "match"),
+    [
+        ([[0.0]], [1.0], ValueError, r"^c must be a square .* 2 <= n"),
+        ([[0, 1e300], [-1e300, 0]], [1, 2], ValueError, r"^c\[0, 1\] = 1e\+300 exceeds 1e\+15"),
+        ([[0, 1e16], [-1e16, 0]], [1, 2], ValueError, r"^c\[0, 1\] = 1e\+16 exceeds"),
+        (PNN_C, [1e300, 2], ValueError, r"^b\[0\] = 1e\+300 exceeds 1e\+15"),
+        (PNN_C, [1, -1e16], ValueError, r"^b\[1\] = -1e\+16 exceeds"),
+        (PNN_C, [1, np.nan], ValueError, "^b holds NaN"),
+        (PNN_C, [b"1", 2], TypeError, "^b must be an array of real numbers"),
+    ],
+)
+def test_degenerate_and_huge_constructor_input_is_named(
+    c: object, b: object, error: type[Exception], match: str
+) -> None:
+    """One species (c = [[0]]) used to reach sympy's ilcm with one argument (TypeError), and c
+    or b = 1e300 overflowed in the Taylor terms (OverflowError): each is now one error naming
+    the field."""
+    with pytest.raises(error, match=match):
+        pr.lotka_volterra(c, b)
+
+
+def test_largest_magnitudes_keep_the_taylor_terms_finite() -> None:
+    """At the bound (|c|, |b| = 1e15) the exact Taylor terms convert to finite float64 through
+    order 10 (1e150 overflowed at order 3)."""
+    system = pr.lotka_volterra([[0, 1e15], [-1e15, 0]], [1e15, -1e15])
+    for order in (3, 10):
+        assert np.isfinite(lc.taylor_arrays(system, order)[2]).all()
+    with pytest.raises(ValueError, match=r"Hamiltonian coefficient of \(1, 0\) = 2e\+15 exceeds"):
+        pr.LogPolynomial({(1, 0): 2e15}, [0.0, 0.0])
+
+
+def test_integer_null_space_of_one_column() -> None:
+    """A 1 × 1 zero matrix has the null space (1): sympy's ilcm needs two arguments."""
+    from poisson_rs.structures.log_canonical import integer_null_space
+
+    assert integer_null_space(np.zeros((1, 1))).tolist() == [[1]]
+    assert integer_null_space(np.zeros((2, 2))).tolist() == [[1, 0], [0, 1]]

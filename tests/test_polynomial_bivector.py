@@ -258,3 +258,179 @@ def test_core_refuses_bad_term_tables() -> None:
         call(6, np.full_like(good[6], np.nan))
     with pytest.raises(ValueError, match="tar exponents has"):
         call(5, good[5][:-1].copy())
+
+
+def _no_sympy_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Makes any sympy parse or expansion raise: a refusal must come before them."""
+
+    def work(*args: object, **kwargs: object) -> None:
+        raise AssertionError("sympy ran on a polynomial that should have been refused")
+
+    monkeypatch.setattr(sympy, "sympify", work)
+    monkeypatch.setattr(sympy, "expand", work)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("9**9**9**9", "exponent 387420489 of a constant exceeds"),
+        ("(x1+x2+x3)**3000", "exponent 3000 of a variable"),
+        ("((x1+x2+x3)**6)**3", r"degree 18 \(or more\) exceeds"),
+        ("(x1+x2+x3+1)**12 * (x1+x2+x3+1)**12", "degree 24"),
+        ("+".join(f"{k}*x1**{k % 13}*x2" for k in range(3000)), "nested too deeply|terms"),
+        ("x1**2 + 1e400", "not finite"),
+        ("exp(x1)", "not a polynomial"),
+        ("x1**0.5", "exponents must be integer"),
+        ("x1/x2", "only division by a constant"),
+        ("x1^2", "not a polynomial"),
+        ("__import__('os')", "not a polynomial"),
+    ],
+)
+def test_hostile_polynomial_text_is_refused_before_sympy(
+    monkeypatch: pytest.MonkeyPatch, text: str, match: str
+) -> None:
+    """Every polynomial field (a bracket entry, H, a Nambu Casimir) is bounded from its syntax
+    tree: degree <= MAX_DEGREE, terms and expansion work bounded, constants finite. The refusal
+    names the field and comes before sympy parses or expands anything."""
+    structure = PolynomialBivector.nambu(CUBIC_C)
+    _no_sympy_work(monkeypatch)
+    with pytest.raises(ValueError, match=f"^casimir: .*({match})"):
+        PolynomialBivector.nambu(text)
+    with pytest.raises(ValueError, match=f"^entry \\(0, 1\\): .*({match})"):
+        PolynomialBivector(3, {(0, 1): text})
+    with pytest.raises(ValueError, match=f"^hamiltonian: .*({match})"):
+        PolynomialPoissonSystem(structure, text)
+
+
+def test_model_metadata_polynomials_are_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A system dictionary (a model file's metadata) goes through the same bounds."""
+    data = cubic().to_dict()
+    _no_sympy_work(monkeypatch)
+    with pytest.raises(ValueError, match=r"^casimir: .*exponent 3000"):
+        PolynomialPoissonSystem.from_dict({**data, "casimir": "(x1+x2+x3)**3000"})
+    with pytest.raises(ValueError, match=r"^entry \(0, 1\): .*exponent 387420489"):
+        PolynomialPoissonSystem.from_dict(
+            {**data, "casimir": None, "entries": [[0, 1, "9**9**9**9"]]}
+        )
+
+
+def test_a_realization_too_costly_is_refused_before_the_step(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The Nambu bracket of x1**12 + x2**2 + x3**2 is legal, but its order-3 realization (the
+    least any Taylor-HJ uses) expands (x1 + b1)**11 with b1 of 7 terms: about 190,000 products,
+    over a minute and growing past gigabytes with the HJ series. The step is estimated from
+    the terms already built and refused, naming the Casimir, before sympy expands it."""
+    structure = PolynomialBivector.nambu("x1**12 + x2**2 + x3**2")
+    system = PolynomialPoissonSystem(structure, H)
+    structure.realization_terms(2)
+    _no_sympy_work(monkeypatch)
+    with pytest.raises(ValueError, match=r"^casimir 'x1\*\*12 .*realization of order 3"):
+        RealizationTaylorIntegrator(system, 1)
+
+
+def test_a_taylor_hj_term_too_costly_is_refused_before_the_series(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """H = (x1 + x2 + x3)**6 on the cubic bracket: S_3 takes about a minute of sympy (measured
+    58 s) and S_4 more; refused at S_3 from the sizes of β and S_1, S_2, naming H."""
+    import poisson_rs.structures.polynomial as poly
+
+    system = PolynomialPoissonSystem(PolynomialBivector.nambu(CUBIC_C), "(x1 + x2 + x3)**6")
+    poly.hj_series(system, 2, 3)
+    real = poly._series_compose
+    calls: list[int] = []
+
+    def counted(*args: object, **kwargs: object) -> object:
+        calls.append(1)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(poly, "_series_compose", counted)
+    with pytest.raises(ValueError, match=r"^hamiltonian 'x1\*\*6 .*S_3 would cost"):
+        poly.hj_series(system, 3, 3)
+    # S_2 is recomputed (one composition per β component and one for H); S_3 never starts.
+    assert len(calls) == 4
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e-5, 1e-100])
+def test_jacobi_check_is_scale_invariant(scale: float) -> None:
+    """The Jacobiator is measured against the size of its own terms (both scale as π²): a
+    bracket that fails Jacobi fails at every scale; one that holds passes at every scale."""
+    bad = {(0, 1): f"{scale}*x3**2", (1, 2): f"{scale}*x1", (0, 2): f"{scale}*x1*x2"}
+    with pytest.raises(ValueError, match=r"Jacobi identity for the triple \(i, j, k\) = \(0, 1"):
+        PolynomialBivector(3, bad)
+    good = {(0, 1): f"{scale}*x1*x2", (0, 2): f"{2 * scale}*x1*x3", (1, 2): f"{-scale}*x2*x3"}
+    PolynomialBivector(3, good)
+    PolynomialBivector(3, {k: f"1e140*({v})" for k, v in good.items()})
+
+
+@pytest.mark.parametrize(
+    ("entries", "error", "match"),
+    [
+        ({(0, 1): float("nan")}, ValueError, r"^entry \(0, 1\): the constant nan"),
+        ({(0, 1): np.inf}, ValueError, r"^entry \(0, 1\): the constant inf"),
+        ({(0, 1): sympy.nan}, ValueError, r"^entry \(0, 1\): the constant nan"),
+        ({(0, 1): "1e160*x1"}, ValueError, r"^entry \(0, 1\): the constant 1e\+160 .* 1e\+150"),
+        ({(0, 1): b"x1"}, TypeError, r"^entry \(0, 1\) must be a polynomial .* got bytes"),
+        ({(0, 1): True}, TypeError, r"^entry \(0, 1\) must be a polynomial"),
+        ({(0,): "x1"}, TypeError, r"^entry key \(0,\) must be a pair"),
+        ({"01": "x1"}, TypeError, r"^entry key '01' must be a pair"),
+        ({(0.0, 1): "x1"}, TypeError, r"^entry key \(0.0, 1\) must be a pair"),
+        ({(0, 1): "x3"}, ValueError, r"^entry \(0, 1\): .*unknown name 'x3'"),
+    ],
+)
+def test_bad_entries_get_one_clear_error(
+    entries: dict[object, object], error: type[Exception], match: str
+) -> None:
+    with pytest.raises(error, match=match):
+        PolynomialBivector(2, entries)  # type: ignore[arg-type]
+
+
+def test_nambu_refuses_a_foreign_or_constant_casimir() -> None:
+    """x4 is not a variable on R³ (it used to become a free symbol and the zero bracket), and a
+    constant Casimir has the zero bracket."""
+    with pytest.raises(ValueError, match=r"^casimir: .*unknown name 'x4'"):
+        PolynomialBivector.nambu("x4**2")
+    with pytest.raises(ValueError, match=r"^casimir: .*unknown symbol 'y'"):
+        PolynomialBivector.nambu(sympy.Symbol("y") ** 2)
+    # The caller's own symbols named x1, x2, x3 (not declared real) are the variables.
+    x1, x2, x3 = sympy.symbols("x1 x2 x3")
+    plain = PolynomialBivector.nambu(x1**2 + x2**2 + x3**2)
+    assert plain.pi == PolynomialBivector.nambu("x1**2 + x2**2 + x3**2").pi
+    with pytest.raises(ValueError, match="casimir '3' is constant"):
+        PolynomialBivector.nambu("3")
+    with pytest.raises(ValueError, match=r"^hamiltonian: .*unknown name 'x4'"):
+        PolynomialPoissonSystem(PolynomialBivector.nambu(CUBIC_C), "x4**2")
+
+
+def test_system_equality_follows_to_dict() -> None:
+    """Equal systems (the same bracket and H, whatever their names or how H was written) are
+    equal and hash alike, so a model trained on a scene's system is accepted for that scene."""
+    import pickle
+
+    system = cubic()
+    same = PolynomialPoissonSystem(
+        PolynomialBivector.nambu(CUBIC_C), "x3**2/4 + x2**2/3 + x1**2/2", name="other name"
+    )
+    assert same == system and hash(same) == hash(system) and not same != system
+    again = PolynomialPoissonSystem.from_dict(system.to_dict())
+    assert again == system and hash(again) == hash(system)
+    assert pickle.loads(pickle.dumps(system)) == system
+    assert {system: 1}[again] == 1
+    # The scene's system (demo, select and stability compare it with a model's by !=).
+    from pathlib import Path
+
+    from poisson_rs.scenes import load_scene
+
+    scene = load_scene(Path(__file__).resolve().parents[1] / "scenes" / "nambu_cubic.toml")
+    assert not scene.system != system
+    assert system != PolynomialPoissonSystem(PolynomialBivector.nambu(CUBIC_C), "x1**2/2")
+    assert system != PolynomialPoissonSystem(PolynomialBivector.nambu("x1**2 + x2**2"), H)
+    assert system != "not a system"
+    # Irrational coefficients become the floats their text shows, so the text round-trips.
+    x1, x2, x3 = system.structure.x
+    irrational = PolynomialPoissonSystem(
+        PolynomialBivector.nambu(sympy.sqrt(2) * x1**2 + sympy.pi * x2**2 + x3**2), H
+    )
+    assert PolynomialPoissonSystem.from_dict(irrational.to_dict()) == irrational
+    assert pickle.loads(pickle.dumps(irrational)) == irrational

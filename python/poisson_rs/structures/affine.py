@@ -38,6 +38,10 @@ FloatArray = NDArray[np.float64]
 MAX_DIM = 10
 #: Cocycle residual allowed, relative to max|c|·max|ω|.
 COCYCLE_RTOL = 1e-12
+#: Largest |ω_ij|. ω enters the extension's structure constants, and its Taylor-HJ term S_k
+#: multiplies k − 1 of them: with |ω| <= 1e15 the exact terms still convert to finite float64
+#: through order 10 (1e100 overflows at order 3, 1e300 at once).
+MAX_COCYCLE = 1e15
 
 
 def _check_cocycle(c: FloatArray, cocycle: ArrayLike) -> FloatArray:
@@ -52,6 +56,12 @@ def _check_cocycle(c: FloatArray, cocycle: ArrayLike) -> FloatArray:
         raise ValueError(f"cocycle must be an ({n}, {n}) matrix for this algebra, got {w.shape}")
     if not np.isfinite(w).all():
         raise ValueError("cocycle holds NaN or infinite values")
+    if np.abs(w).max(initial=0.0) > MAX_COCYCLE:
+        i, j = np.argwhere(np.abs(w) > MAX_COCYCLE)[0]
+        raise ValueError(
+            f"cocycle[{i}, {j}] = {w[i, j]:.3g} exceeds {MAX_COCYCLE:.0e} in magnitude (the "
+            "Taylor-HJ terms of the central extension would overflow float64)"
+        )
     if not np.array_equal(w, -w.T):
         i, j = np.argwhere(w != -w.T)[0]
         raise ValueError(

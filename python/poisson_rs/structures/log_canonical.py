@@ -28,6 +28,23 @@ FloatArray = NDArray[np.float64]
 MAX_DIM = 10
 #: Largest exponent of a Hamiltonian monomial.
 MAX_EXPONENT = 16
+#: Largest |c_ij|, |b_i| and |a_m|. The Taylor-HJ term S_k is a sum of products of k − 1 entries
+#: of c and k coefficients of H, times factors below 16^k/k! (the exponents): with every
+#: magnitude <= 1e15 the terms stay finite in float64 (< 1.8e308) through order 10, where 1e150
+#: already overflows at order 3 and 1e300 at order 2.
+MAX_MAGNITUDE = 1e15
+
+
+def _check_magnitude(arr: FloatArray, name: str) -> None:
+    """ValueError naming ``name`` and the entry when some |value| exceeds MAX_MAGNITUDE."""
+    big = np.abs(arr) > MAX_MAGNITUDE
+    if big.any():
+        idx = tuple(int(i) for i in np.argwhere(big)[0])
+        where = f"[{', '.join(map(str, idx))}]" if idx else ""
+        raise ValueError(
+            f"{name}{where} = {arr[idx]:.3g} exceeds {MAX_MAGNITUDE:.0e} in magnitude (the "
+            "Taylor-HJ terms multiply such values and would overflow float64)"
+        )
 
 
 def _is_tensor(x: object) -> bool:
@@ -40,12 +57,14 @@ def _check_matrix(c: ArrayLike) -> FloatArray:
     if arr.dtype == object or arr.dtype.kind not in "fiu":
         raise TypeError(f"c must be an array of real numbers, got dtype {arr.dtype}")
     arr = np.array(arr, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[0] != arr.shape[1] or not 1 <= arr.shape[0] <= MAX_DIM:
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1] or not 2 <= arr.shape[0] <= MAX_DIM:
         raise ValueError(
-            f"c must be a square (n, n) matrix with 1 <= n <= {MAX_DIM}, got {arr.shape}"
+            f"c must be a square (n, n) matrix with 2 <= n <= {MAX_DIM} (one species has no "
+            f"bracket), got shape {arr.shape}"
         )
     if not np.isfinite(arr).all():
         raise ValueError("c holds NaN or infinite values")
+    _check_magnitude(arr, "c")
     if not np.array_equal(arr, -arr.T):
         i, j = np.argwhere(arr != -arr.T)[0]
         raise ValueError(
@@ -66,7 +85,7 @@ def integer_null_space(c: FloatArray) -> NDArray[np.int64]:
     mat = sympy.Matrix(n, n, [sympy.Rational(Fraction(float(v))) for v in c.ravel()])
     rows = []
     for v in mat.nullspace():
-        den = sympy.ilcm(*[sympy.fraction(e)[1] for e in v])
+        den = sympy.ilcm(1, 1, *[sympy.fraction(e)[1] for e in v])  # ilcm needs two arguments
         ints = [int(e * den) for e in v]
         g = math.gcd(*ints) or 1
         first = next(k for k in ints if k != 0)
@@ -139,9 +158,13 @@ class LogPolynomial:
     """
 
     def __init__(self, terms: Mapping[Sequence[int], float], b: ArrayLike) -> None:
-        b_arr = np.array(b, dtype=np.float64).reshape(-1)
+        b_raw = np.asarray(b)
+        if b_raw.dtype == object or b_raw.dtype.kind not in "fiu":
+            raise TypeError(f"b must be an array of real numbers, got dtype {b_raw.dtype}")
+        b_arr = np.array(b_raw, dtype=np.float64).reshape(-1)
         if not np.isfinite(b_arr).all():
             raise ValueError("b holds NaN or infinite values")
+        _check_magnitude(b_arr, "b")
         n = b_arr.size
         clean: dict[tuple[int, ...], float] = {}
         for e, a in dict(terms).items():
@@ -156,6 +179,11 @@ class LogPolynomial:
                 )
             if isinstance(a, bool) or not isinstance(a, numbers.Real) or not math.isfinite(a):
                 raise ValueError(f"Hamiltonian coefficient of {e!r} must be finite, got {a!r}")
+            if abs(float(a)) > MAX_MAGNITUDE:
+                raise ValueError(
+                    f"Hamiltonian coefficient of {e!r} = {float(a):.3g} exceeds "
+                    f"{MAX_MAGNITUDE:.0e} in magnitude (the Taylor-HJ terms would overflow)"
+                )
             key = tuple(int(k) for k in key)
             clean[key] = clean.get(key, 0.0) + float(a)
         self._terms = {e: a for e, a in sorted(clean.items()) if a != 0.0}
@@ -518,7 +546,10 @@ def lotka_volterra(c: ArrayLike, b: ArrayLike, *, name: str | None = None) -> Lo
     """
     structure = LogCanonical(c)
     n = structure.dim
-    b_arr = np.asarray(b, dtype=np.float64).reshape(-1)
+    b_raw = np.asarray(b)
+    if b_raw.dtype == object or b_raw.dtype.kind not in "fiu":
+        raise TypeError(f"b must be an array of real numbers, got dtype {b_raw.dtype}")
+    b_arr = np.array(b_raw, dtype=np.float64).reshape(-1)
     if b_arr.size != n:
         raise ValueError(f"b must have {n} entries (one per species), got {b_arr.size}")
     terms = {tuple(int(i == j) for j in range(n)): 1.0 for i in range(n)}

@@ -18,11 +18,22 @@ integrator on them (stepped by the Rust core; NumPy Newton as its oracle).
   min(n, m) rounded up to even (m = 3 on n = 3: 4; m = 5 on n = 5: 6; any m on n = 2: 2).
 - Nambu structures on R³, {f, g} = ∇C·(∇f × ∇g), i.e. π^{ij} = ε_ijk ∂_k C, satisfy Jacobi for
   any C and keep C: :meth:`PolynomialBivector.nambu`.
+- Bounded work: every polynomial (an entry, H, a Casimir; text from a scene or a model file) is
+  walked before sympy sees it, and refused, naming the field, past degree ``MAX_DEGREE``,
+  :data:`MAX_TERMS` terms, :data:`MAX_EXPANSION_WORK` products or |coefficient|
+  :data:`MAX_COEFFICIENT`; each step of the realization and of the Taylor-HJ series is
+  estimated from the terms already built and refused past :data:`MAX_STEP_WORK`.
+- A bracket that is in fact Lie–Poisson, affine or log-canonical is recognised
+  (:mod:`poisson_rs.structures.recognition`): :meth:`PolynomialPoissonSystem.exact_system`.
 """
 
 from __future__ import annotations
 
+import ast
 import itertools
+import json
+import math
+import numbers
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Literal
 
@@ -30,6 +41,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystemBase
+from ..taylor import MAX_WORK
+from .lie_poisson import MAX_DEGREE
 
 FloatArray = NDArray[np.float64]
 #: Highest order of the approximate realization built here (the recursion has no limit; sympy's
@@ -61,6 +74,386 @@ def _lambdify(args: Sequence[Any], exprs: Sequence[Any]) -> Callable[..., FloatA
     return f
 
 
+# --- bounded parsing -----------------------------------------------------------------------------
+#
+# sympy expands whatever it is given, without a bound: `9**9**9**9` never finishes and
+# `(x1+x2+x3)**3000` fills memory. Every polynomial (an entry of π, H, a Nambu Casimir) is
+# first walked here, without sympy, and its degree, its expanded size and the work of expanding
+# it are bounded from above before sympy sees it.
+
+#: Most terms a polynomial may expand to (an upper estimate: a + b for a sum, a·b for a
+#: product, capped by the number of monomials of its degree). sympy spends about a millisecond
+#: per term of a 10-variable polynomial; a learned H of degree 4 on R¹⁰ has 1001.
+MAX_TERMS = 2_000
+#: Most monomial products an expansion may cost (the same ceiling of a few seconds as
+#: :data:`~poisson_rs.taylor.MAX_WORK`, at sympy's ~100 µs per product instead of ~0.5 µs for
+#: exact fractions).
+MAX_EXPANSION_WORK = MAX_WORK // 400
+#: Largest |coefficient|: a product of two (π·∂π in the Jacobi check, π·∇H in the field)
+#: stays finite in float64 (1e150² = 1e300 < 1.8e308).
+MAX_COEFFICIENT = 1e150
+#: Longest polynomial text accepted (the model-file loader's bound).
+MAX_TEXT = 100_000
+#: Largest |exponent| of a constant base (the value itself is bounded by float64 below).
+_MAX_CONSTANT_EXPONENT = 1024
+
+
+class _Size:
+    """Upper estimates for one subexpression: total degree, expanded terms, and its value when
+    it is a constant (no variable)."""
+
+    __slots__ = ("degree", "terms", "value")
+
+    def __init__(self, degree: int, terms: int, value: float | None) -> None:
+        self.degree, self.terms, self.value = degree, terms, value
+
+
+class _Budget:
+    """Counts the estimated expansion work of one polynomial; ValueError naming ``field``."""
+
+    def __init__(self, field: str, n: int) -> None:
+        self.field, self.n, self.work = field, n, 0
+
+    def fail(self, why: str) -> ValueError:
+        return ValueError(f"{self.field}: {why}")
+
+    def cap(self, degree: int) -> int:
+        if degree > MAX_DEGREE:
+            raise self.fail(f"degree {degree} (or more) exceeds the largest allowed, {MAX_DEGREE}")
+        return math.comb(degree + self.n, self.n)
+
+    def terms(self, count: int, degree: int) -> int:
+        count = min(count, self.cap(degree))
+        if count > MAX_TERMS:
+            raise self.fail(
+                f"expands to about {count} terms, more than the {MAX_TERMS} allowed; "
+                "give fewer or lower-degree terms"
+            )
+        return count
+
+    def charge(self, products: int) -> None:
+        self.work += products
+        if self.work > MAX_EXPANSION_WORK:
+            raise self.fail(
+                f"expanding it costs more than {MAX_EXPANSION_WORK} monomial products; "
+                "give it expanded, or with fewer terms"
+            )
+
+    def constant(self, value: Any) -> float:
+        try:
+            v = float(value)
+        except (OverflowError, TypeError, ValueError, ZeroDivisionError):
+            raise self.fail(f"the constant {str(value)[:40]} is not a finite real number") from None
+        if not math.isfinite(v) or abs(v) > MAX_COEFFICIENT:
+            raise self.fail(f"the constant {v:.3g} is not finite or exceeds {MAX_COEFFICIENT:.0e}")
+        return v
+
+    def add(self, a: _Size, b: _Size, sign: float) -> _Size:
+        value = None
+        if a.value is not None and b.value is not None:
+            value = self.constant(a.value + sign * b.value)
+        degree = max(a.degree, b.degree)
+        return _Size(degree, self.terms(a.terms + b.terms, degree), value)
+
+    def mul(self, a: _Size, b: _Size) -> _Size:
+        value = None
+        if a.value is not None and b.value is not None:
+            value = self.constant(a.value * b.value)
+        degree = a.degree + b.degree
+        self.cap(degree)
+        self.charge(a.terms * b.terms)
+        return _Size(degree, self.terms(a.terms * b.terms, degree), value)
+
+    def div(self, a: _Size, b: _Size) -> _Size:
+        if b.value is None:
+            raise self.fail("is not a polynomial: only division by a constant is allowed")
+        if b.value == 0.0:
+            raise self.fail("divides by zero")
+        value = None if a.value is None else self.constant(a.value / b.value)
+        return _Size(a.degree, a.terms, value)
+
+    def pow(self, a: _Size, e: _Size) -> _Size:
+        if e.value is None or not float(e.value).is_integer():
+            raise self.fail("is not a polynomial: exponents must be integer constants")
+        k = int(e.value)
+        if a.value is not None:
+            if abs(k) > _MAX_CONSTANT_EXPONENT:
+                raise self.fail(f"the exponent {k} of a constant exceeds {_MAX_CONSTANT_EXPONENT}")
+            if a.value == 0.0 and k < 0:
+                raise self.fail("divides by zero (0 to a negative power)")
+            try:
+                value = self.constant(a.value**k)
+            except OverflowError:
+                raise self.fail(f"the constant {a.value:.3g}**{k} overflows") from None
+            return _Size(0, 1, value)
+        if not 0 <= k <= MAX_DEGREE:
+            raise self.fail(
+                f"is not a polynomial of degree <= {MAX_DEGREE}: the exponent {k} of a variable "
+                f"must lie in 0..={MAX_DEGREE}"
+            )
+        if k == 0:
+            return _Size(0, 1, 1.0)
+        degree = a.degree * k
+        self.cap(degree)
+        # Repeated multiplication: the k-th power of a t-term sum has at most C(t + k − 1, k)
+        # terms (monomials of degree k in t symbols).
+        terms = a.terms
+        for j in range(2, k + 1):
+            self.charge(terms * a.terms)
+            terms = self.terms(math.comb(a.terms + j - 1, j), a.degree * j)
+        return _Size(degree, terms, None)
+
+
+_BINOPS: dict[type, str] = {ast.Add: "+", ast.Sub: "-", ast.Mult: "*", ast.Div: "/", ast.Pow: "**"}
+
+
+def _text_size(text: str, names: Mapping[str, int], budget: _Budget) -> _Size:
+    """Walks the Python syntax tree of ``text`` (iteratively: long sums nest deeply) allowing
+    only numbers, the variables in ``names``, + - * / ** and parentheses; the bounds as it goes."""
+    allowed = ", ".join(list(names)[:3]) + (", …" if len(names) > 3 else "")
+    if len(text) > MAX_TEXT:
+        raise budget.fail(f"is {len(text)} characters long, more than {MAX_TEXT}")
+    try:
+        tree = ast.parse(text.strip(), mode="eval").body
+    except (SyntaxError, ValueError):
+        raise budget.fail(f"{text[:60]!r} is not a polynomial expression") from None
+    except RecursionError:
+        raise budget.fail("is nested too deeply (too many terms in one sum?)") from None
+    stack: list[tuple[ast.AST, bool]] = [(tree, False)]
+    out: list[_Size] = []
+    while stack:
+        node, ready = stack.pop()
+        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+            if not ready:
+                stack += [(node, True), (node.right, False), (node.left, False)]
+                continue
+            b, a = out.pop(), out.pop()
+            op = _BINOPS[type(node.op)]
+            if op in "+-":
+                out.append(budget.add(a, b, 1.0 if op == "+" else -1.0))
+            elif op == "*":
+                out.append(budget.mul(a, b))
+            elif op == "/":
+                out.append(budget.div(a, b))
+            else:
+                out.append(budget.pow(a, b))
+        elif isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+            if not ready:
+                stack += [(node, True), (node.operand, False)]
+                continue
+            a = out.pop()
+            sign = -1.0 if isinstance(node.op, ast.USub) else 1.0
+            out.append(_Size(a.degree, a.terms, None if a.value is None else sign * a.value))
+        elif isinstance(node, ast.Constant) and type(node.value) in (int, float):
+            out.append(_Size(0, 1, budget.constant(node.value)))
+        elif isinstance(node, ast.Name) and node.id in names:
+            out.append(_Size(1, 1, None))
+        elif isinstance(node, ast.Name):
+            raise budget.fail(
+                f"is not a polynomial in {allowed}: unknown name {node.id!r} "
+                f"(the variables are x1..x{len(names)})"
+            )
+        else:
+            raise budget.fail(
+                f"is not a polynomial in {allowed}: {ast.unparse(node)[:40]!r} is not allowed "
+                "(only numbers, the variables, + - * / ** and parentheses)"
+            )
+    return out[0]
+
+
+def _expr_size(expr: Any, symbols: Sequence[Any], budget: _Budget) -> _Size:
+    """The same bounds for a sympy expression (its tree is flat: Add and Mul hold many args)."""
+    import sympy
+
+    if not expr.free_symbols:
+        return _Size(0, 1, budget.constant(expr))
+    if expr.is_Symbol:
+        if expr not in symbols:
+            raise budget.fail(
+                f"is not a polynomial in x1..x{len(symbols)}: unknown symbol {str(expr)!r}"
+            )
+        return _Size(1, 1, None)
+    if isinstance(expr, sympy.Add | sympy.Mul):
+        parts = [_expr_size(a, symbols, budget) for a in expr.args]
+        acc = parts[0]
+        for part in parts[1:]:
+            acc = budget.add(acc, part, 1.0) if expr.is_Add else budget.mul(acc, part)
+        return acc
+    if expr.is_Pow:
+        base = _expr_size(expr.base, symbols, budget)
+        return budget.pow(base, _expr_size(expr.exp, symbols, budget))
+    raise budget.fail(f"is not a polynomial in x1..x{len(symbols)}: {type(expr).__name__} term")
+
+
+def _polynomial(raw: Any, symbols: Sequence[Any], field: str) -> Any:
+    """``raw`` (text, a real number or a sympy expression) as an expanded sympy polynomial in
+    ``symbols``, after the bounds above; ValueError/TypeError naming ``field`` otherwise.
+    Coefficients must be finite with magnitude <= :data:`MAX_COEFFICIENT`."""
+    import sympy
+
+    n = len(symbols)
+    budget = _Budget(field, n)
+    names = {str(s): i for i, s in enumerate(symbols)}
+    if isinstance(raw, str):
+        _text_size(raw, names, budget)
+        try:
+            expr = sympy.sympify(raw.strip(), locals=dict(zip(names, symbols, strict=True)))
+        except (sympy.SympifyError, SyntaxError, TypeError, ValueError, RecursionError):
+            raise budget.fail(f"{raw[:60]!r} is not a polynomial expression") from None
+    elif isinstance(raw, bool) or not isinstance(raw, numbers.Real | sympy.Basic):
+        raise TypeError(
+            f"{field} must be a polynomial (a string in x1..x{n}, a real number or a sympy "
+            f"expression), got {type(raw).__name__}"
+        )
+    elif isinstance(raw, numbers.Real):
+        value = budget.constant(raw)
+        expr = sympy.Integer(int(raw)) if isinstance(raw, numbers.Integral) else sympy.Float(value)
+    else:
+        if not isinstance(raw, sympy.Expr):
+            raise TypeError(f"{field} must be a sympy expression, got {type(raw).__name__}")
+        # The caller's own symbols named x1.. (without real=True) are the variables too.
+        expr = raw.xreplace(
+            {s: symbols[names[s.name]] for s in raw.free_symbols if str(s) in names}
+        )
+        _expr_size(expr, symbols, budget)
+    expr = sympy.expand(expr)
+    if not expr.free_symbols <= set(symbols) or not expr.is_polynomial(*symbols):
+        raise budget.fail(f"{str(raw)[:60]!r} is not a polynomial in x1..x{n}")
+    poly = sympy.Poly(expr, *symbols)
+    for coef in poly.coeffs():
+        budget.constant(coef)
+    if not all(c.is_Rational or c.is_Float for c in poly.coeffs()):
+        # sqrt(2), pi, …: as the 15-digit floats sympy prints, so that the text form (to_dict,
+        # pickling) parses back to the same system.
+        def exact(c: Any) -> Any:
+            return c if c.is_Rational or c.is_Float else sympy.Float(f"{float(c):.15g}")
+
+        expr = sympy.Add(
+            *(
+                exact(c) * sympy.Mul(*(v**e for v, e in zip(symbols, m, strict=True)))
+                for m, c in poly.terms()
+            )
+        )
+    return expr
+
+
+# --- work bounds of the realization and of the Taylor-HJ series ---------------------------------
+#
+# Their cost is not a function of the degrees alone (sparse brackets are cheap), so each step is
+# estimated just before it runs, from the sizes of the terms already built: an upper bound on
+# the monomial products sympy will form.
+
+#: Most estimated monomial products one step of the realization or of the Taylor-HJ series may
+#: cost (a step of the order-6 realization of the cubic Nambu bracket is about 80,000: ~15 s).
+MAX_STEP_WORK = MAX_WORK // 200
+
+
+def _total_degree(expr: Any, gens: Sequence[Any]) -> int:
+    """Total degree of a sympy polynomial in ``gens``."""
+    import sympy
+
+    return int(sympy.Poly(expr, *gens).total_degree())
+
+
+def _n_terms(expr: Any) -> int:
+    import sympy
+
+    return len(sympy.Add.make_args(expr)) if expr != 0 else 0
+
+
+def _bracket_label(structure: PolynomialBivector) -> str:
+    if structure.casimir is not None:
+        return f"casimir {str(structure.casimir)[:60]!r}"
+    degree = max(
+        (_total_degree(e, structure.x) for e in structure.pi if e != 0),
+        default=0,
+    )
+    return f"the bracket (entries of degree up to {degree})"
+
+
+def _check_realization_work(
+    structure: PolynomialBivector, terms: Sequence[Sequence[Any]], k: int
+) -> None:
+    """Step k of :meth:`PolynomialBivector.realization_terms` expands π^{ij}(x + b) with
+    b = β_1 + … + β_{k−1}: a monomial Π x_l^{e_l} becomes at most Π_l C(T_l + e_l − 1, e_l)
+    products (T_l the terms of x_l + b_l), each weighed 15 (measured: a substituted term costs
+    sympy about 15 times a product of {b^i, b^j}, which costs about 2n T_i T_j). ValueError
+    naming the bracket and the order."""
+    import sympy
+
+    n = structure.dim
+    t = [1 + sum(_n_terms(step[v]) for step in terms[: k - 1]) for v in range(n)]
+    work = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            if structure.pi[i, j] == 0:
+                continue
+            for exps in sympy.Poly(structure.pi[i, j], *structure.x).monoms():
+                work += 15 * math.prod(math.comb(t[v] + e - 1, e) for v, e in enumerate(exps))
+            work += 2 * n * t[i] * t[j]
+    if work > MAX_STEP_WORK:
+        raise ValueError(
+            f"{_bracket_label(structure)}: its realization of order {k} would cost about "
+            f"{work} monomial products, more than the {MAX_STEP_WORK} allowed; "
+            + (
+                f"use a realization order < {k} (a lower Taylor order) or a lower-degree bracket"
+                if k > matched_realization_order(1)
+                else "no Taylor-HJ integrator fits it: use a lower-degree bracket, or a "
+                "classical method (rk4, midpoint)"
+            )
+        )
+
+
+def _count_mul(a: list[int], b: list[int], top: int) -> list[int]:
+    """Term counts of a product of two truncated series, from the counts of their coefficients."""
+    out = [0] * (top + 1)
+    for i, ai in enumerate(a[: top + 1]):
+        if ai:
+            for j, bj in enumerate(b[: top + 1 - i]):
+                out[i + j] += ai * bj
+    return out
+
+
+def _check_hj_work(
+    system: PolynomialPoissonSystem,
+    beta: Sequence[Any],
+    p: Sequence[Any],
+    s_terms: Sequence[Any],
+    k: int,
+) -> None:
+    """Step k of :func:`hj_series` composes β(x, ∇S) and H(β) as series in t truncated at
+    t^{k−1}: the products formed are bounded by the same compositions on term counts
+    (a coefficient of c terms times one of d terms: c·d products). ValueError naming the
+    Hamiltonian, the bracket and the order."""
+    import sympy
+
+    x, top = system.structure.x, k - 1
+    grad = [[0] + [_n_terms(sympy.diff(s, xi)) for s in s_terms] for xi in x]
+    work = 0
+
+    def compose(poly: Any, gens: Sequence[Any], series: Sequence[list[int]]) -> list[int]:
+        nonlocal work
+        out = [0] * (top + 1)
+        for exps, coeff in sympy.Poly(poly, *gens).terms():
+            # β's coefficients are polynomials in x: their terms multiply the count.
+            term = [_n_terms(coeff)]
+            for g, e in zip(series, exps, strict=True):
+                for _ in range(e):
+                    term = _count_mul(term, g, top)
+                    work += sum(term)
+            out = [a + b for a, b in zip(out, term + [0] * (top + 1 - len(term)), strict=True)]
+        return out
+
+    beta_counts = [compose(b, p, grad) for b in beta]
+    compose(system.h, x, beta_counts)
+    if work > MAX_STEP_WORK:
+        raise ValueError(
+            f"hamiltonian {str(system.h)[:60]!r} on {_bracket_label(system.structure)}: the "
+            f"Taylor-HJ term S_{k} would cost about {work} monomial products, more than the "
+            f"{MAX_STEP_WORK} allowed; use a Taylor order < {k} or lower degrees"
+        )
+
+
 class PolynomialBivector:
     """A polynomial Poisson bivector π on R^n.
 
@@ -76,17 +469,23 @@ class PolynomialBivector:
         if isinstance(dim, bool) or not isinstance(dim, int) or not 2 <= dim <= 10:
             raise ValueError(f"dim must be an integer in 2..=10, got {dim!r}")
         x = _symbols(dim)
-        local = {f"x{i + 1}": s for i, s in enumerate(x)}
         pi = sympy.zeros(dim, dim)
         given: dict[tuple[int, int], Any] = {}
-        for key, raw in dict(entries).items():
-            i, j = key
+        if not isinstance(entries, Mapping):
+            raise TypeError(
+                f"entries must be a mapping (i, j) -> polynomial, got {type(entries).__name__}"
+            )
+        for key, raw in entries.items():
+            if (
+                not isinstance(key, tuple)
+                or len(key) != 2
+                or any(isinstance(k, bool) or not isinstance(k, numbers.Integral) for k in key)
+            ):
+                raise TypeError(f"entry key {key!r} must be a pair (i, j) of integers")
+            i, j = int(key[0]), int(key[1])
             if not (0 <= i < dim and 0 <= j < dim) or i == j:
                 raise ValueError(f"entry {key!r}: indices must be distinct and in 0..{dim - 1}")
-            expr = sympy.sympify(raw, locals=local) if isinstance(raw, str) else sympy.sympify(raw)
-            if not expr.free_symbols <= set(x) or not expr.is_polynomial(*x):
-                raise ValueError(f"entry {key!r} = {raw!r} is not a polynomial in x1..x{dim}")
-            given[(i, j)] = sympy.expand(expr)
+            given[(i, j)] = _polynomial(raw, x, f"entry {key!r}")
         for (i, j), e in given.items():
             if (j, i) in given and sympy.expand(given[(j, i)] + e) != 0:
                 raise ValueError(
@@ -108,8 +507,12 @@ class PolynomialBivector:
         import sympy
 
         x = _symbols(3)
-        c = sympy.sympify(casimir, locals={f"x{i + 1}": s for i, s in enumerate(x)})
+        c = _polynomial(casimir, x, "casimir")
         grad = [sympy.diff(c, s) for s in x]
+        if all(g == 0 for g in grad):
+            raise ValueError(
+                f"casimir {str(casimir)[:60]!r} is constant: its Nambu bracket is zero"
+            )
         out = cls(3, {(0, 1): grad[2], (1, 2): grad[0], (0, 2): -grad[1]})
         out.casimir = c
         return out
@@ -142,19 +545,48 @@ class PolynomialBivector:
         return out
 
     def _check_jacobi(self, seed: int) -> None:
-        triples = self.jacobiator()
-        if not triples:
+        """J^{ijk} = Σ_m π^{im}∂_mπ^{jk} + cyclic at seeded points in [−2, 2]^n, relative to the
+        largest Σ_m |π^{im}||∂_mπ^{jk}| + cyclic there: both scale as π², so the verdict does
+        not depend on π's scale (π/max|π| keeps the products finite)."""
+        import sympy
+
+        n = self.dim
+        if n < 3:
             return
         rng = np.random.default_rng(seed)
-        pts = rng.uniform(-2.0, 2.0, size=(16, self.dim))
-        scale = max(1.0, float(np.abs(self._pi_num(*pts.T)).max()) ** 2)
-        f = _lambdify(self.x, [e for _, e in triples])
-        values = np.abs(f(*pts.T)).max(axis=0)
-        for (triple, _), v in zip(triples, values, strict=True):
-            if v > 1e-9 * scale:
+        pts = rng.uniform(-2.0, 2.0, size=(16, n))
+        upper = [(i, j) for i in range(n) for j in range(i + 1, n)]
+        exprs = [self.pi[i, j] for i, j in upper]
+        exprs += [sympy.diff(self.pi[i, j], xm) for xm in self.x for i, j in upper]
+        f = sympy.lambdify(self.x, exprs, "numpy")
+        values = np.array(
+            [np.broadcast_to(np.asarray(v, dtype=np.float64), (len(pts),)) for v in f(*pts.T)]
+        )
+        u = len(upper)
+        pi = np.zeros((len(pts), n, n))
+        dpi = np.zeros((len(pts), n, n, n))  # [b, m, i, j] = ∂_m π^{ij}
+        for a, (i, j) in enumerate(upper):
+            pi[:, i, j], pi[:, j, i] = values[a], -values[a]
+            for m in range(n):
+                d = values[u + m * u + a]
+                dpi[:, m, i, j], dpi[:, m, j, i] = d, -d
+        size = float(np.abs(pi).max())
+        if size == 0.0:
+            return
+        pi, dpi = pi / size, dpi / size
+        t = np.einsum("bim,bmjk->bijk", pi, dpi)
+        a_t = np.einsum("bim,bmjk->bijk", np.abs(pi), np.abs(dpi))
+        jac = t + t.transpose(0, 2, 3, 1) + t.transpose(0, 3, 1, 2)
+        mag = a_t + a_t.transpose(0, 2, 3, 1) + a_t.transpose(0, 3, 1, 2)
+        triples = list(itertools.combinations(range(n), 3))
+        scale = max(float(mag[:, i, j, k].max()) for i, j, k in triples)
+        worst = np.abs(jac).max(axis=0)
+        for i, j, k in triples:
+            if worst[i, j, k] > 1e-9 * scale:
                 raise ValueError(
-                    f"pi fails the Jacobi identity for the triple (i, j, k) = {triple}: "
-                    f"|J^ijk| = {v:.3g} at a random point"
+                    f"pi fails the Jacobi identity for the triple (i, j, k) = {(i, j, k)}: "
+                    f"|J^ijk| = {worst[i, j, k] / scale:.3g} relative to the size of its "
+                    "terms at a random point"
                 )
 
     def __call__(self, x: FloatArray) -> FloatArray:
@@ -208,6 +640,7 @@ class PolynomialBivector:
         scale = {pj: eps * pj for pj in p}
         terms = self._realization_terms
         for k in range(len(terms) + 1, order + 1):
+            _check_realization_work(self, terms, k)
             b = [sum((t[i] for t in terms), sympy.Integer(0)) for i in range(n)]
             shift = {x[i]: x[i] + b[i] for i in range(n)}
             q = sympy.zeros(n, n)
@@ -247,9 +680,7 @@ class PolynomialPoissonSystem(PoissonSystemBase):
                 f"structure must be a PolynomialBivector, got {type(structure).__name__}"
             )
         x = structure.x
-        h = sympy.sympify(hamiltonian, locals={f"x{i + 1}": s for i, s in enumerate(x)})
-        if not h.free_symbols <= set(x) or not h.is_polynomial(*x):
-            raise ValueError(f"hamiltonian {hamiltonian!r} is not a polynomial in x")
+        h = _polynomial(hamiltonian, x, "hamiltonian")
         if name is not None and not isinstance(name, str):
             raise ValueError(f"name must be a string or None, got {name!r}")
         self.name = name
@@ -271,9 +702,28 @@ class PolynomialPoissonSystem(PoissonSystemBase):
         return (_system, (self.structure, str(self.h), self.name))
 
     def __repr__(self) -> str:
+        from .recognition import recognize
+
         c = self.structure.casimir
         bracket = f"nambu={str(c)!r}" if c is not None else f"dim={self.dim}"
-        return f"PolynomialPoissonSystem({bracket}, hamiltonian={str(self.h)!r})"
+        found = recognize(self.structure)
+        exact = (found.kind or "none").replace("_", "-")
+        return (
+            f"PolynomialPoissonSystem({bracket}, hamiltonian={str(self.h)!r}, "
+            f"exact realization: {exact})"
+        )
+
+    def exact_system(self, tol: float = 1e-10) -> Any:
+        """The equivalent system with an exact realization, or None: a
+        :class:`~poisson_rs.LiePoissonSystem` (π linear), an
+        :class:`~poisson_rs.AffinePoissonSystem` (linear plus constant) or a
+        :class:`~poisson_rs.LogCanonicalSystem` (π_ij = c_ij x_i x_j) with the same H, when
+        :func:`~poisson_rs.structures.recognition.recognize` finds π to be of that form to
+        ``tol``; its integrators keep the Casimirs to round-off where the order-n realization
+        keeps them to O(h^{n+1}) a step."""
+        from .recognition import exact_system
+
+        return exact_system(self, tol)
 
     @property
     def dim(self) -> int:
@@ -381,14 +831,31 @@ class PolynomialPoissonSystem(PoissonSystemBase):
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> PolynomialPoissonSystem:
         if not isinstance(data, Mapping) or data.get("kind") != cls.kind:
-            raise ValueError(f"expected a {cls.kind!r} system dictionary, got {data!r}")
+            raise ValueError(f"expected a {cls.kind!r} system dictionary, got {str(data)[:80]}")
+        if "hamiltonian" not in data:
+            raise ValueError("a polynomial_bivector system dictionary needs a 'hamiltonian' entry")
         if data.get("casimir") is not None:
             structure = PolynomialBivector.nambu(data["casimir"])
         else:
-            structure = PolynomialBivector(
-                int(data["dim"]), {(int(i), int(j)): e for i, j, e in data["entries"]}
-            )
+            dim, entries = data.get("dim"), data.get("entries")
+            if isinstance(dim, bool) or not isinstance(dim, int):
+                raise ValueError(f"system 'dim' must be an integer, got {str(dim)[:40]}")
+            if not isinstance(entries, list) or not all(
+                isinstance(e, list | tuple) and len(e) == 3 for e in entries
+            ):
+                raise ValueError("system 'entries' must be a list of [i, j, polynomial] triples")
+            structure = PolynomialBivector(dim, {(i, j): e for i, j, e in entries})
         return cls(structure, data["hamiltonian"])
+
+    def __eq__(self, other: object) -> bool:
+        """Equal when :meth:`to_dict` is: the same bracket (entries, or Nambu Casimir) and the
+        same H, as sympy writes them expanded; the name is ignored, as for the other systems."""
+        if not isinstance(other, PolynomialPoissonSystem):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+    def __hash__(self) -> int:
+        return hash(json.dumps(self.to_dict(), sort_keys=True))
 
 
 def matched_realization_order(order: int) -> int:
@@ -479,6 +946,7 @@ def hj_series(system: PolynomialPoissonSystem, order: int, realization_order: in
     beta, _, p = system.structure.realization(realization_order)
     s_terms: list[Any] = [-system.h]
     for k in range(2, order + 1):
+        _check_hj_work(system, beta, p, s_terms, k)
         # ∇S_{<k} = Σ_j t^j ∇S_j: a series with zero constant term.
         grad = [[sympy.Integer(0)] + [sympy.diff(s, xi) for s in s_terms] for xi in x]
         # β(x, ∇S) as series: β is polynomial in p with x-dependent coefficients.
