@@ -768,22 +768,38 @@ class PolynomialPoissonSystem(PoissonSystemBase):
         what = f"Nambu bracket of C = {nambu}" if nambu is not None else "polynomial bivector"
         return f"{self.name or 'polynomial Poisson system'}: {what}, H = {self.h}"
 
+    def _exact(self) -> Any:
+        """:meth:`exact_system`, computed once (the system is immutable)."""
+        if "_exact_cache" not in self.__dict__:
+            self.__dict__["_exact_cache"] = self.exact_system()
+        return self.__dict__["_exact_cache"]
+
     def taylor_charts(self) -> tuple[str, ...]:
-        """ "realization" (the order matched to the Taylor order, see
-        :func:`matched_realization_order`), then "realization1" … "realization6" for one order."""
-        return (
+        """Where π is recognised as linear, affine or log-canonical, the exact system's charts
+        first (its Casimirs kept to round-off); then "realization" (the order matched to the
+        Taylor order, see :func:`matched_realization_order`) and "realization1" …
+        "realization6" for one order."""
+        exact = self._exact()
+        own = (
             "realization",
             *(f"realization{n}" for n in range(1, MAX_REALIZATION_ORDER + 1)),
         )
+        return (*exact.taylor_charts(), *own) if exact is not None else own
 
     def taylor_orders(self, wanted: Sequence[int]) -> tuple[int, ...]:
-        """At most 5: the sympy series grows fast beyond."""
+        """At most 5 on a realization (the sympy series grows fast beyond); any on an exact
+        groupoid."""
+        if self._exact() is not None:
+            return tuple(wanted)
         return tuple(k for k in wanted if k <= MAX_TAYLOR_ORDER)
 
     def taylor_integrator(
         self, order: int, chart: str | None = None, *, tol: float, max_iter: int
-    ) -> RealizationTaylorIntegrator:
+    ) -> Any:
         chart = self.chart_or_default(chart)
+        if not chart.startswith("realization"):
+            # The exact groupoid of the recognised structure, on the same states x.
+            return self._exact().taylor_integrator(order, chart, tol=tol, max_iter=max_iter)
         tail = chart.removeprefix("realization")
         return RealizationTaylorIntegrator(
             self, order, int(tail) if tail else None, tol=tol, max_iter=max_iter
