@@ -55,7 +55,10 @@ BAD_SCENES = {
     "missing b": (SHORT.replace("b = [1.0, 2.0]\n", ""), "system.b' is missing"),
     "b of the wrong size": (SHORT.replace("b = [1.0, 2.0]", "b = [1.0]"), "system.b"),
     "ragged c": (SHORT.replace("[-1.0, 0.0]]", "[-1.0]]"), "system.c.*square"),
-    "a training table": (SHORT + "[model]\nwidths = [4]\n", "training is for Lie–Poisson"),
+    "a training table": (
+        SHORT + "[model]\nwidths = [4]\n",
+        "training a learned S is not available",
+    ),
 }
 
 
@@ -192,6 +195,7 @@ def test_stability_on_the_pnn_scene(short: Path, tmp_path: Path) -> None:
     assert main([*argv, "--no-progress"]) == 0
     rows = _rows(out / "stability.csv")
     assert {r["method"] for r in rows} == {
+        "learned:lotka_volterra_h01",  # the shipped model of this system
         "taylor3-log",
         "taylor5-log",
         "log_splitting",
@@ -220,7 +224,8 @@ def test_select_on_the_pnn_scene(short: Path, tmp_path: Path) -> None:
     text = json.dumps(data)
     for name in ("taylor5-log", "log_splitting4", "rk4"):
         assert name in text
-    assert "learned:" not in text  # no learned model of this system
+    # The shipped model of this system is a candidate; the rigid body's are excluded, saying why.
+    assert "learned:lotka_volterra_h01" in text and "trained for RigidBody" in text
 
 
 def test_select_api_refuses_states_outside_the_orthant() -> None:
@@ -240,7 +245,7 @@ def test_train_refuses_a_log_canonical_scene_in_one_line(
     argv = ["train", "--scene", str(PNN), "--out", str(tmp_path / "m.safetensors")]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
-    assert "training a learned S is for Lie–Poisson systems" in err and "\n" not in err
+    assert "training a learned S is not available" in err and "\n" not in err
     assert not (tmp_path / "m.safetensors").exists()
 
 

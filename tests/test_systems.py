@@ -383,7 +383,7 @@ def test_reference_solution_shapes_and_bad_input() -> None:
     # Backward in time undoes forward.
     fwd = reference_solution(top, np.ones(6), [1.0])[0]
     np.testing.assert_allclose(reference_solution(top, fwd, [-1.0])[0], np.ones(6), atol=1e-11)
-    with pytest.raises(TypeError, match="system must be a LiePoissonSystem"):
+    with pytest.raises(TypeError, match="system must be a Poisson system"):
         reference_solution("top", np.ones(6), [1.0])  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"mu0 must have shape \(6,\) or \(n, 6\)"):
         reference_solution(top, np.ones(3), [1.0])

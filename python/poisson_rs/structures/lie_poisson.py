@@ -998,13 +998,22 @@ def _scene_table(raw: Mapping[str, Any]) -> LiePoissonSystem:
     (``inertia``, ``mgl``, ``com``) or ``"lie_poisson"`` (``algebra``: a name of
     :data:`NAMED_ALGEBRAS` or a LieAlgebra.to_dict() table, ``hamiltonian``: a
     Polynomial.to_dict() table, optional ``name``)."""
-    from ..tables import only_keys, required
+    from functools import partial
+
+    from ..tables import number, only_keys, required
     from ..untrusted import parsing
 
     kind = raw.get("kind", "lie_poisson" if "algebra" in raw else "rigid_body")
     only_keys(raw, _SCENE_KEYS[kind], kind)
     if kind == "rigid_body":
         required(raw, "inertia")
+    for key in ("inertia", "com"):
+        if key in raw:
+            value = raw[key]
+            if not isinstance(value, list) or len(value) != 3:
+                raise ValueError(f"scene key 'system.{key}' must be 3 numbers, got {value!r}")
+            number_ = number if key == "inertia" else partial(number, positive=False)
+            raw = {**raw, key: [number_(v, f"system.{key}") for v in value]}
     if isinstance(raw.get("algebra"), str):
         name = raw["algebra"]
         if name not in NAMED_ALGEBRAS:
