@@ -40,8 +40,9 @@ from .integrators import (
 from .learn import learn
 from .protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystem, Stepper
 from .reference import dop853_solution, exact_solution, reference_solution
+from .steppers.affine import AffineIntegrator
+from .steppers.polynomial import RealizationTaylorIntegrator
 from .structures import (
-    AffineIntegrator,
     AffinePoissonSystem,
     HeavyTop,
     LieAlgebra,
@@ -52,7 +53,6 @@ from .structures import (
     Polynomial,
     PolynomialBivector,
     PolynomialPoissonSystem,
-    RealizationTaylorIntegrator,
     RigidBody,
     affine_classical,
     affine_learned,

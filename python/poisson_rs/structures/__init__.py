@@ -17,7 +17,6 @@ from functools import cache
 from typing import Any
 
 from .affine import (
-    AffineIntegrator,
     AffinePoissonSystem,
     affine_classical,
     affine_learned,
@@ -33,7 +32,7 @@ from .log_canonical import (
     integer_null_space,
     lotka_volterra,
 )
-from .polynomial import PolynomialBivector, PolynomialPoissonSystem, RealizationTaylorIntegrator
+from .polynomial import PolynomialBivector, PolynomialPoissonSystem
 
 
 @cache
@@ -85,7 +84,6 @@ def system_from_scene_table(raw: Mapping[str, Any], default: str) -> Any:
 
 
 __all__ = [
-    "AffineIntegrator",
     "AffinePoissonSystem",
     "HeavyTop",
     "LieAlgebra",
@@ -96,7 +94,6 @@ __all__ = [
     "Polynomial",
     "PolynomialBivector",
     "PolynomialPoissonSystem",
-    "RealizationTaylorIntegrator",
     "RigidBody",
     "affine_classical",
     "affine_learned",

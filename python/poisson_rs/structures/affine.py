@@ -24,13 +24,16 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystemBase
 from .lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
+
+if TYPE_CHECKING:
+    from ..steppers.affine import AffineIntegrator
 
 FloatArray = NDArray[np.float64]
 
@@ -232,6 +235,8 @@ class AffinePoissonSystem(PoissonSystemBase):
     ) -> AffineIntegrator:
         """Taylor-HJ of ``order`` on the extension's exact groupoid, run at level 1: a Poisson
         map that keeps μ_z = 1 and every Casimir of the extension to round-off."""
+        from ..steppers.affine import AffineIntegrator
+
         chart = self.chart_or_default(chart)
         inner = self.extension.taylor_integrator(order, chart, tol=tol, max_iter=max_iter)
         return AffineIntegrator(self, inner, f"taylor{order}-{chart}")
@@ -241,6 +246,8 @@ class AffinePoissonSystem(PoissonSystemBase):
 
     def classical(self, name: str, *, tol: float, max_iter: int) -> AffineIntegrator:
         """The extension's classical integrator ``name``, run at level 1."""
+        from ..steppers.affine import AffineIntegrator
+
         inner = self.extension.classical(name, tol=tol, max_iter=max_iter)
         return AffineIntegrator(self, inner, name)
 
@@ -336,42 +343,6 @@ def affine_poisson_system(
     return AffinePoissonSystem(algebra, cocycle, poly, name=name, component_names=component_names)
 
 
-class AffineIntegrator:
-    """An integrator of an :class:`AffinePoissonSystem`: ``inner`` (any integrator of its
-    :attr:`~AffinePoissonSystem.extension`) run from (x, 1), returning the first n components.
-    Built by :func:`affine_taylor` and :func:`affine_classical`; driven by
-    :func:`~poisson_rs.integrate`."""
-
-    def __init__(self, system: AffinePoissonSystem, inner: Any, name: str) -> None:
-        if not isinstance(system, AffinePoissonSystem):
-            raise TypeError(f"system must be an AffinePoissonSystem, got {type(system).__name__}")
-        self.system = system
-        self.inner = inner
-        self.name = name
-
-    @property
-    def dim(self) -> int:
-        return self.system.dim
-
-    @property
-    def order(self) -> int | None:
-        return getattr(self.inner, "order", None)
-
-    def rollout(
-        self, mu0: np.ndarray, h: float, n_steps: int, every: int
-    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        lifted = np.ascontiguousarray(self.system.lift(mu0))
-        traj, raw = self.inner.rollout(lifted, h, n_steps, every)
-        return np.ascontiguousarray(traj[..., : self.dim]), dict(raw)
-
-    @property
-    def adaptive(self) -> bool:
-        return bool(getattr(self.inner, "adaptive", False))
-
-    def __repr__(self) -> str:
-        return f"AffineIntegrator({self.name!r}, system={self.system!r})"
-
-
 def affine_taylor(
     system: AffinePoissonSystem,
     order: int = 3,
@@ -403,6 +374,8 @@ def affine_learned(
             f"model integrates {model.system!r}, not this system's central extension "
             f"{system.extension!r}: train it with TrainConfig(system=system.extension, ...)"
         )
+    from ..steppers.affine import AffineIntegrator
+
     return AffineIntegrator(system, model, name)
 
 
@@ -456,3 +429,12 @@ def _scene_table(raw: Mapping[str, Any]) -> AffinePoissonSystem:
 #: The kinds of system dictionaries and scene [system] tables this module reads.
 SYSTEM_KINDS = {AffinePoissonSystem.kind: AffinePoissonSystem.from_dict}
 SCENE_KINDS = {"affine": _scene_table}
+
+
+def __getattr__(name: str) -> Any:
+    # AffineIntegrator lives with the steppers now; importable from here for one release.
+    if name == "AffineIntegrator":
+        from ..steppers.affine import AffineIntegrator
+
+        return AffineIntegrator
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
