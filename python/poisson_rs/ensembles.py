@@ -283,7 +283,7 @@ def _store_attributes(
         "n_steps": int(n_steps),
         "every": int(every),
         "stepper": repr(stepper),
-        "system": system.to_dict() if hasattr(system, "to_dict") else None,
+        "system": system.to_dict() if callable(getattr(system, "to_dict", None)) else None,  # type: ignore[union-attr]
         "complete": complete,
     }
 
@@ -306,6 +306,8 @@ def zarr_system(path: str | os.PathLike[str]) -> Any:
             raise ValueError("the store records no system")
         from .structures import system_from_dict
 
+        if not isinstance(spec, Mapping):
+            raise ValueError(f"the recorded system is not a dictionary: {spec!r}")
         return system_from_dict(spec)
 
 

@@ -61,6 +61,13 @@ class BisectionIntegrator:
     (the truncated Taylor series of the exact S).
     """
 
+    _source: Path | bytes
+    _bytes: bytes
+    _core: Any
+    tol: float
+    max_iter: int
+    newton: str
+
     def __init__(
         self,
         source: Path | bytes,
@@ -143,7 +150,7 @@ class BisectionIntegrator:
     @property
     def system(self) -> LiePoissonSystem:
         """The Lie–Poisson system the model integrates (from its file)."""
-        return self.metadata["system"]  # type: ignore[no-any-return]
+        return self.metadata["system"]
 
     @property
     def dim(self) -> int:
@@ -183,7 +190,7 @@ class BisectionIntegrator:
 
             # From the bytes the core was built from, never the path again: a file replaced
             # since (or turned into a FIFO) would give torch another model than Rust, or hang.
-            name = f"model file {self._source}" if self.path is not None else "model bytes"
+            name = f"model file {self.path}" if self.path is not None else "model bytes"
             with parsing(name):
                 tensors = load(self._bytes)
                 self._generating = load_generating(tensors, self.metadata)
@@ -289,7 +296,7 @@ def list_models() -> list[str]:
     return sorted(n.removesuffix(".safetensors") for n in names)
 
 
-def shipped_models(system: LiePoissonSystem) -> dict[str, LearnedIntegrator]:
+def shipped_models(system: Any) -> dict[str, Any]:
     """The shipped models trained for ``system``, by name (a model of another system would be
     scored against the wrong flow)."""
     models = {name: load_model(name) for name in list_models()}
@@ -426,7 +433,7 @@ def _check_first_order(
     first = None if powers is None or coeffs is None else powers[:, 0] == 1
     with np.errstate(all="ignore"):
         energy = np.asarray(system.hamiltonian(p), dtype=np.float64)
-        if first is not None and first.any():
+        if first is not None and powers is not None and coeffs is not None and first.any():
             exps, cs = powers[first, 1:], coeffs[first]
             s_1 = np.prod(p[:, None, :] ** exps[None, :, :], axis=-1) @ cs
             tol, what = FIRST_ORDER_TOL_EXACT, "polynomial t¹ terms"

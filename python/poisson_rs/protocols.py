@@ -67,9 +67,11 @@ class PoissonSystem(Protocol):
     :meth:`casimirs`, never zeros.
     """
 
-    #: A short name of the structure family ("lie_poisson", "log_canonical", ...), as scenes
-    #: and files spell it.
-    kind: str
+    @property
+    def kind(self) -> str:
+        """A short name of the structure family ("lie_poisson", "log_canonical", ...), as
+        scenes and files spell it."""
+        ...
 
     @property
     def dim(self) -> int: ...
@@ -171,7 +173,7 @@ def as_system(system: Any, name: str = "system") -> PoissonSystem:
             f"{name} must be a Poisson system (poisson_rs.PoissonSystem), got "
             f"{type(system).__name__}, which has no {missing[0]!r}"
         )
-    return system  # type: ignore[no-any-return]
+    return system
 
 
 def as_stepper(stepper: Any, name: str = "stepper") -> Stepper:
@@ -182,7 +184,7 @@ def as_stepper(stepper: Any, name: str = "stepper") -> Stepper:
             f"{name} must be an integrator (poisson_rs.Stepper: a `dim` and a "
             f"`rollout(x0, h, n_steps, every)`), got {type(stepper).__name__}"
         )
-    return stepper  # type: ignore[no-any-return]
+    return stepper
 
 
 _SYSTEM_MEMBERS = (
@@ -226,7 +228,7 @@ class PoissonSystemBase:
 
     def in_domain(self, x: np.ndarray) -> np.ndarray:
         """(n,) bool: finite states (the whole of R^dim)."""
-        return np.isfinite(np.asarray(x, dtype=np.float64)).all(axis=-1)
+        return np.asarray(np.isfinite(np.asarray(x, dtype=np.float64)).all(axis=-1))
 
     def domain_text(self) -> str:
         """The domain in words, for error messages."""
@@ -291,4 +293,4 @@ class PoissonSystemBase:
 
     def reference(self, x0: np.ndarray, times: ArrayLike) -> np.ndarray:
         """DOP853 at rtol = atol = 1e-13."""
-        return self.reference_solution(x0, times)  # type: ignore[attr-defined,no-any-return]
+        return self.reference_solution(x0, times)  # type: ignore[attr-defined]

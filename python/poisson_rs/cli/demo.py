@@ -137,7 +137,9 @@ def run(args: argparse.Namespace) -> int:
             f"the scene integrates {_label(system)} but the model {model.name!r} was trained "
             f"for {_label(model.system)}; give --model with a model of the scene's system"
         )
-    if "cayley" not in model.system.taylor_charts():
+    from ..model_files import BisectionIntegrator
+
+    if not isinstance(model, BisectionIntegrator) or "cayley" not in model.system.taylor_charts():
         # The paper's figures compare the Cayley and exp charts: elsewhere, the generic demo.
         return _demo_system(args, model, model.system, states if system is not None else None)
     body = model.body

@@ -27,6 +27,16 @@ class _LearnedRealizationIntegrator:
     properties and pickling built on them. A subclass reads its file (:meth:`_load`) and rolls
     out (:meth:`rollout`)."""
 
+    _bytes: bytes
+    _source: Any
+    _core: Any
+    metadata: dict[str, Any]
+    system: Any
+    h_max: float
+    name: str
+    tol: float
+    max_iter: int
+
     _default_name = "learned"
 
     def __init__(self, source: Path | bytes, *, tol: float, max_iter: int) -> None:
@@ -73,7 +83,7 @@ class _LearnedRealizationIntegrator:
     def derivatives(self, t: float, x: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """S, ∇S and ∇²S at time t for x (n, dim) in the core's coordinates, from Rust."""
         arr = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, self.dim))
-        return self._core.derivatives(float(t), arr)  # type: ignore[no-any-return]
+        return self._core.derivatives(float(t), arr)
 
     def _describe(self) -> str:
         return f"taylor_order={self.taylor_order}"
@@ -147,7 +157,7 @@ class LearnedPolynomialIntegrator(_LearnedRealizationIntegrator):
     def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
         from ..realizations.polynomial_hj import read_model_file
 
-        return read_model_file(data, where)  # type: ignore[no-any-return]
+        return read_model_file(data, where)
 
     @property
     def realization_order(self) -> int:
@@ -160,4 +170,4 @@ class LearnedPolynomialIntegrator(_LearnedRealizationIntegrator):
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         arr = np.ascontiguousarray(mu0, dtype=np.float64)
-        return self._core.rollout(arr, h, n_steps, every, self.tol, self.max_iter)  # type: ignore[no-any-return]
+        return self._core.rollout(arr, h, n_steps, every, self.tol, self.max_iter)

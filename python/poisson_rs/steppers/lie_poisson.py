@@ -117,6 +117,12 @@ class ClassicalIntegrator:
     rtol and atol.
     """
 
+    body: LiePoissonSystem
+    name: str
+    tol: float
+    max_iter: int
+    _dim: int
+
     def __init__(
         self,
         body: LiePoissonSystem,
@@ -187,7 +193,7 @@ class ClassicalIntegrator:
         dim plain numbers (one state; None where the list holds anything else)."""
         body = self.body
         if isinstance(body, RigidBody):
-            return _core.rollout_classical(  # type: ignore[no-any-return]
+            return _core.rollout_classical(
                 self.name, body.inertia, mu0, h, n_steps, every, self.tol, self.max_iter, lazy
             )
         c, powers, coeffs = body.core_arrays()
@@ -196,7 +202,7 @@ class ClassicalIntegrator:
             if isinstance(body, HeavyTop) and self.name == "splitting"
             else None
         )
-        return _core.rollout_lie_poisson(  # type: ignore[no-any-return]
+        return _core.rollout_lie_poisson(
             self.name,
             c,
             powers,
@@ -218,7 +224,7 @@ class ClassicalIntegrator:
         if self.name != "dop853":
             result = self._rust_rollout(mu0, h, n_steps, every, lazy=False)
             assert result is not None  # an array always gives one
-            return result  # type: ignore[no-any-return]
+            return result
         return dop853_rollout(body, mu0, h, n_steps, every, self.tol)
 
     def __repr__(self) -> str:

@@ -56,6 +56,13 @@ class LogCanonicalTaylorIntegrator:
     Built by :func:`log_canonical_taylor`.
     """
 
+    system: Any
+    order: int
+    tol: float
+    max_iter: int
+    name: str
+    _arrays: Any
+
     def __init__(
         self,
         system: Any,
@@ -152,6 +159,11 @@ class LogCanonicalClassicalIntegrator:
       Casimir is kept to round-off. Need a separable H (Lotka–Volterra is).
     - "dop853": SciPy's adaptive DOP853 in q with rtol = atol = ``tol`` (h only spaces output).
     """
+
+    system: Any
+    name: str
+    tol: float
+    max_iter: int
 
     def __init__(
         self, system: Any, name: str, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER

@@ -195,7 +195,7 @@ class VectorFieldIntegrator:
                 k3 = f(x + 0.5 * h * k2)
                 k4 = f(x + h * k3)
                 new = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-                return new, np.isfinite(new).all(axis=1)
+                return new, np.asarray(np.isfinite(new).all(axis=1))
             new = x + h * f(x)
             ok = np.zeros(len(x), dtype=bool)
             for _ in range(self.max_iter):
