@@ -224,7 +224,9 @@ class PoissonSystemBase:
     #: Sizes of the states a stability study starts from (|x| for most structures).
     sample_radii: tuple[float, ...] = (1.0, 2.5, 4.0, 6.0)
 
-    dim: int
+    @property
+    def dim(self) -> int:
+        raise NotImplementedError
 
     def in_domain(self, x: np.ndarray) -> np.ndarray:
         """(n,) bool: finite states (the whole of R^dim)."""
