@@ -31,6 +31,8 @@ demo: setup
 lint: setup
 	$(VENV)/bin/ruff check python tests benches
 	$(VENV)/bin/ruff format --check python tests benches
+	$(PY) -m mypy
+	$(PY) -m mypy.stubtest poisson_rs._core
 	cargo fmt --check
 	cargo clippy --all-targets --features python -- -D warnings
 

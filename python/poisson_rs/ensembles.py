@@ -304,6 +304,8 @@ def zarr_system(path: str | os.PathLike[str]) -> LiePoissonSystem:
         spec = attrs.get("system")
         if spec is None:
             raise ValueError("the store records no system")
+        if not isinstance(spec, Mapping):
+            raise ValueError(f"the store's system must be a table, got {type(spec).__name__}")
         return LiePoissonSystem.from_dict(spec)
 
 

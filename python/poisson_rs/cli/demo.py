@@ -102,7 +102,13 @@ def check_memory(n_states: int, dim: int, steps: int, n_methods: int) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..files import check_outputs
-    from ..integrators import list_models, load_model, taylor_integrator
+    from ..integrators import (
+        LearnedIntegrator,
+        Stepper,
+        list_models,
+        load_model,
+        taylor_integrator,
+    )
     from ..structures.lie_poisson import RigidBody
     from ..studies import figures
     from ..studies.demo import PAPER_STATES, run_scene
@@ -138,11 +144,12 @@ def run(args: argparse.Namespace) -> int:
             f"the scene integrates {_label(system)} but the model {model.name!r} was trained "
             f"for {_label(model.system)}; give --model with a model of the scene's system"
         )
-    if not isinstance(model.system, RigidBody):
+    # A rigid-body model is a LearnedIntegrator; the other structures' models go the generic way.
+    if not isinstance(model, LearnedIntegrator) or not isinstance(model.system, RigidBody):
         return _demo_system(args, model, model.system, states if system is not None else None)
     body = model.body
     check_outputs(args.out, DEMO_OUTPUTS)
-    methods = {
+    methods: dict[str, Stepper] = {
         f"learned:{model.name}": model,
         f"taylor3-{model.chart}": taylor_integrator(body, 3, model.chart),
         f"taylor5-{model.chart}": taylor_integrator(body, 5, model.chart),
