@@ -9,7 +9,7 @@ WHEELHOUSE ?= $(HOME)/.cache/poisson_rs/wheelhouse
 SOURCES := $(shell find rust python -type f -not -path '*/__pycache__/*') pyproject.toml Cargo.toml Cargo.lock
 OUT ?= out
 
-.PHONY: setup demo test lint rust-test py-test bench clean
+.PHONY: setup demo test lint rust-test py-test docs bench clean
 
 setup: $(VENV)/.installed
 
@@ -31,6 +31,8 @@ demo: setup
 lint: setup
 	$(VENV)/bin/ruff check python tests benches
 	$(VENV)/bin/ruff format --check python tests benches
+	$(PY) -m mypy
+	$(PY) -m mypy.stubtest poisson_rs._core
 	cargo fmt --check
 	cargo clippy --all-targets --features python -- -D warnings
 
@@ -40,7 +42,11 @@ rust-test:
 py-test: setup
 	$(PY) -m pytest -q
 
-test: lint rust-test py-test
+# The API reference from the docstrings (docs/api/), warnings as errors -> out/api/index.html.
+docs: $(VENV)/.deps
+	$(PY) -m mkdocs build --strict --quiet -f docs/api/mkdocs.yml
+
+test: lint rust-test py-test docs
 
 bench: setup
 	cargo bench --bench rollout

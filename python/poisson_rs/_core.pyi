@@ -1,10 +1,30 @@
 """Type stubs for the Rust extension module."""
 
 from os import PathLike
-from typing import Any
+from typing import Any, final
 
 import numpy as np
 import numpy.typing as npt
+
+__all__ = [
+    "MAX_DIM",
+    "MODEL_FORMAT",
+    "LearnedPolynomialModel",
+    "LogCanonicalModel",
+    "Model",
+    "RolloutDiagnostics",
+    "__version__",
+    "_after_fork_in_child",
+    "rollout_classical",
+    "rollout_lie_poisson",
+    "rollout_log_canonical",
+    "rollout_log_classical",
+    "rollout_model",
+    "rollout_polynomial_field",
+    "rollout_polynomial_realization",
+    "serial_rollouts",
+    "step_angles",
+]
 
 MODEL_FORMAT: str
 MAX_DIM: int
@@ -16,6 +36,7 @@ def _after_fork_in_child() -> None:
 def serial_rollouts() -> bool:
     """Whether rollouts in this process run serially (a forked child)."""
 
+@final
 class RolloutDiagnostics:
     """A rollout's per-trajectory diagnostics, kept in the core until asked for."""
 
@@ -27,6 +48,7 @@ class RolloutDiagnostics:
         ``out_of_domain``)."""
     def __len__(self) -> int: ...
 
+@final
 class Model:
     """A generating function loaded from a model file (validated on load)."""
 
@@ -70,6 +92,7 @@ class Model:
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """S (n,) and ∂S/∂t (n,) at time t; MemoryError as for :meth:`derivatives`."""
 
+@final
 class LogCanonicalModel:
     """A learned generating function of a log-canonical structure π_ij = c_ij x_i x_j, from a
     model file whose metadata says ``structure = log_canonical``: S(t, q) = Taylor terms
@@ -110,6 +133,7 @@ class LogCanonicalModel:
         full Newton on q + ½ c ∇S(h, q) = q_k, then q − ½ c ∇S(h, q). A step whose e^q leaves
         the float64 orthant fails (code 5 or 3)."""
 
+@final
 class LearnedPolynomialModel:
     """A learned generating function on the order-n realization of a polynomial bivector:
     S(t, x) = Taylor-HJ terms (a polynomial in (t, x)) + t^m · MLP(t, x), stepped by Newton on
@@ -118,8 +142,8 @@ class LearnedPolynomialModel:
     (out,), inputs (t, x), tanh between layers (empty lists: no network). ValueError for a
     malformed table or network."""
 
-    def __init__(
-        self,
+    def __new__(
+        cls,
         sou_index: npt.NDArray[np.int64],
         sou_coeffs: npt.NDArray[np.float64],
         sou_exponents: npt.NDArray[np.int64],
@@ -131,7 +155,7 @@ class LearnedPolynomialModel:
         weights: list[npt.NDArray[np.float64]],
         biases: list[npt.NDArray[np.float64]],
         mlp_power: int,
-    ) -> None: ...
+    ) -> LearnedPolynomialModel: ...
     @property
     def dim(self) -> int: ...
     @property

@@ -307,7 +307,7 @@ def zarr_system(path: str | os.PathLike[str]) -> Any:
         from .structures import system_from_dict
 
         if not isinstance(spec, Mapping):
-            raise ValueError(f"the recorded system is not a dictionary: {spec!r}")
+            raise ValueError(f"the store's system must be a table, got {type(spec).__name__}")
         return system_from_dict(spec)
 
 

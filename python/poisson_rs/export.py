@@ -456,7 +456,8 @@ def parse_log_canonical_metadata(
     with parsing(source, "domain"):
         domain = _json(raw, "domain")
         ok = isinstance(domain, dict) and domain.get("kind") == "box"
-        lo, hi = (domain.get(k) if ok else None for k in ("x_min", "x_max"))
+        bounds: list[Any] = [domain.get(k) if ok else None for k in ("x_min", "x_max")]
+        lo, hi = bounds
         ok = ok and all(
             isinstance(v, list)
             and len(v) == dim

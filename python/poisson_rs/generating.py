@@ -53,6 +53,13 @@ class GeneratingFunction(nn.Module):
         Scale of the MLP output; folded into the last layer on export.
     """
 
+    # Buffers (registered in ``__init__``), declared so that they type as tensors, not as
+    # ``Tensor | Module`` (what ``nn.Module.__getattr__`` returns).
+    powers: Tensor
+    coeffs: Tensor
+    input_scale: Tensor
+    output_scale: Tensor
+
     def __init__(
         self,
         widths: Sequence[int] = (32, 32),

@@ -757,7 +757,7 @@ def _load_checkpoint(path: Path) -> dict[str, Any]:
         sec = state["seconds"]
         if isinstance(sec, bool) or not isinstance(sec, (int, float)) or not 0 <= sec < math.inf:
             raise ValueError(f"must be a finite number >= 0, got {sec!r}")
-    return state  # type: ignore[no-any-return]
+    return state
 
 
 def _check_train_options(checkpoint_every: Any, max_seconds: Any) -> None:
@@ -845,7 +845,7 @@ def train(
     from .realizations.polynomial_hj import PolynomialTrainConfig
 
     if isinstance(cfg, (LogCanonicalTrainConfig, PolynomialTrainConfig)):
-        return _train_log_canonical(  # type: ignore[return-value]
+        return _train_log_canonical(
             cfg,
             checkpoint=checkpoint,
             resume=resume,

@@ -36,7 +36,7 @@ class Parser(argparse.ArgumentParser):
     """An ArgumentParser whose errors are a :class:`UsageError` (one line, exit status 2 from
     ``main``) instead of a usage block and ``sys.exit``."""
 
-    def error(self, message: str) -> Any:  # type: ignore[override]
+    def error(self, message: str) -> Any:
         one = " ".join(message.split())
         raise UsageError(f"{self.prog}: {one}")
 

@@ -103,6 +103,7 @@ def check_memory(n_states: int, dim: int, steps: int, n_methods: int) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..files import check_outputs
     from ..integrators import list_models, load_model, taylor_integrator
+    from ..protocols import Stepper
     from ..studies import figures
     from ..studies.demo import PAPER_STATES, run_scene
 
@@ -144,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
         return _demo_system(args, model, model.system, states if system is not None else None)
     body = model.body
     check_outputs(args.out, DEMO_OUTPUTS)
-    methods = {
+    methods: dict[str, Stepper] = {
         f"learned:{model.name}": model,
         f"taylor3-{model.chart}": taylor_integrator(body, 3, model.chart),
         f"taylor5-{model.chart}": taylor_integrator(body, 5, model.chart),

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from functools import cache
-from typing import TYPE_CHECKING, Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar, cast
 
 import numpy as np
 
@@ -90,7 +90,8 @@ def _namespace(x: Any) -> Any:
 
 
 def _cross(xp: Any, a: Array, b: Array) -> Array:
-    return xp.linalg.cross(a, b, dim=-1) if xp is not np else np.cross(a, b)
+    # xp is NumPy exactly when the arrays are NumPy's: the cast restates what the branch shows.
+    return cast(Array, xp.linalg.cross(a, b, dim=-1) if xp is not np else np.cross(a, b))
 
 
 def exp_chart_coefficient(s: Array) -> Array:
@@ -142,13 +143,14 @@ def _bernoulli_over_factorial() -> tuple[float, ...]:
     return tuple(b)
 
 
-def _exp_series(c: np.ndarray, x: Array, p: Array, sign: float) -> Array:
+def _exp_series(c: np.ndarray, x: Any, p: Any, sign: float) -> Any:
     """Σₙ (Bₙ/n!) (sign · ad_xᵀ)ⁿ p for the algebra with structure constants c (n, n, n).
 
     x, p: (..., n) arrays or tensors (broadcast together) → (..., n). Summed until two
     consecutive non-zero terms are below 1e-17 of the sum (max norm) in every row; rows whose
     ad_x has a spectral radius ≥ EXP_SERIES_MAX_RADIUS, or that contain NaN/inf, or that did not
     converge within MAX_SERIES_TERMS terms, come back NaN. Differentiable in torch elsewhere.
+    Typed Any: x and p are converted to one array kind below, which ever the caller passed.
     """
     xp = _namespace(x) if _namespace(x) is not np else _namespace(p)
     n = c.shape[0]

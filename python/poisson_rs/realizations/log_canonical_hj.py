@@ -74,6 +74,12 @@ class LogCanonicalGenerating(NetworkTerm):
     q (B, n) → (B,).
     """
 
+    # Buffers, declared so that they type as tensors (not ``nn.Module.__getattr__``'s union).
+    t_powers: Tensor
+    exponents: Tensor
+    coeffs: Tensor
+    linear: Tensor
+
     def __init__(
         self,
         system: LogCanonicalSystem,
@@ -254,9 +260,9 @@ class LogCanonicalTrainConfig:
                 raise ValueError(f"invalid {name}: {v!r} (must be an integer in [{lo}, {hi}])")
         if not all(is_int(w) and 1 <= w <= 100_000 for w in self.widths):
             raise ValueError(f"invalid widths: {self.widths!r} (integers in [1, 100000])")
-        for name, v in (("h_max", self.h_max), ("lr", self.lr)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
-                raise ValueError(f"invalid {name}: {v!r} (must be a finite number > 0)")
+        for name, x in (("h_max", self.h_max), ("lr", self.lr)):
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 < x < math.inf:
+                raise ValueError(f"invalid {name}: {x!r} (must be a finite number > 0)")
         for name, box in (("x_min", self.x_min), ("x_max", self.x_max)):
             if len(box) != n or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf
@@ -312,9 +318,7 @@ def build_model(cfg: LogCanonicalTrainConfig) -> LogCanonicalGenerating:
     s_fn = LogCanonicalGenerating(
         system, cfg.taylor_order, cfg.widths, m, center, half, cfg.h_max, out_scale, dtype
     )
-    with torch.no_grad():
-        s_fn.linears[-1].weight.zero_()
-        s_fn.linears[-1].bias.zero_()
+    s_fn.zero_output_layer()
     return s_fn
 
 

@@ -35,6 +35,10 @@ class NetworkTerm(torch.nn.Module):
     box of x the inputs are scaled from; ``h_max`` the time scale; ``output_scale`` s_out.
     """
 
+    # Buffers, declared so that they type as tensors (not ``nn.Module.__getattr__``'s union).
+    input_scale: Tensor
+    input_shift: Tensor
+
     def __init__(
         self,
         dim: int,
@@ -60,6 +64,16 @@ class NetworkTerm(torch.nn.Module):
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
+    def layers(self) -> list[torch.nn.Linear]:
+        """The MLP's linear layers as such (iterating a ModuleList types them as ``nn.Module``)."""
+        return [m for m in self.linears if isinstance(m, torch.nn.Linear)]
+
+    def zero_output_layer(self) -> None:
+        """Zeroes the last layer, so that the network starts as N = 0 (S = its Taylor terms)."""
+        with torch.no_grad():
+            self.layers()[-1].weight.zero_()
+            self.layers()[-1].bias.zero_()
+
     def network(self, t: Tensor, x: Tensor) -> Tensor:
         """N with the input scaling, before t^M and s_out: t (B,), x (B, n) → (B,)."""
         z = (torch.cat([t[:, None], x], 1) - self.input_shift) * self.input_scale
@@ -75,7 +89,7 @@ class NetworkTerm(torch.nn.Module):
         out = []
         scale = self.input_scale.detach().to(torch.float64).cpu().numpy()
         shift = self.input_shift.detach().to(torch.float64).cpu().numpy()
-        for i, layer in enumerate(self.linears):
+        for i, layer in enumerate(self.layers()):
             w = layer.weight.detach().to(torch.float64).cpu().numpy().copy()
             b = layer.bias.detach().to(torch.float64).cpu().numpy().copy()
             if i == 0:

@@ -39,7 +39,7 @@ import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -124,6 +124,11 @@ class TermPolynomials(torch.nn.Module):
     """Evaluates a term table in torch: out[:, index[k]] += coeffs[k] · Π_j v_j^exponents[k, j].
     Powers by repeated multiplication, so autograd is exact everywhere (v_j^0 = 1 has zero
     derivative, also at v_j = 0). v (B, V) → (B, n_out)."""
+
+    # Buffers, declared so that they type as tensors (not ``nn.Module.__getattr__``'s union).
+    index: Tensor
+    coeffs: Tensor
+    exponents: Tensor
 
     def __init__(self, table: Table, n_out: int, dtype: torch.dtype = torch.float64) -> None:
         super().__init__()
@@ -337,10 +342,10 @@ class PolynomialTrainConfig:
                 f"PolynomialTrainConfig field widths: {self.widths!r} must be integers in "
                 "[1, 100000]"
             )
-        for name, v in (("h_max", self.h_max), ("lr", self.lr)):
-            if not _is_number(v) or not 0 < v < math.inf:
+        for name, x in (("h_max", self.h_max), ("lr", self.lr)):
+            if not _is_number(x) or not 0 < x < math.inf:
                 raise ValueError(
-                    f"PolynomialTrainConfig field {name}: {v!r} must be a finite number > 0"
+                    f"PolynomialTrainConfig field {name}: {x!r} must be a finite number > 0"
                 )
         for name, box in (("x_min", self.x_min), ("x_max", self.x_max)):
             if (
@@ -415,9 +420,7 @@ def build_model(
         tables, system.dim, m, n, cfg.widths, power, center, half, cfg.h_max, out_scale, dtype
     )
     if len(s_fn.linears):
-        with torch.no_grad():
-            s_fn.linears[-1].weight.zero_()
-            s_fn.linears[-1].bias.zero_()
+        s_fn.zero_output_layer()
     return s_fn
 
 
@@ -442,7 +445,9 @@ def train_polynomial(
     tables = s_fn.tables
 
     def residual(s: torch.nn.Module, t: Tensor, x: Tensor, create_graph: bool) -> Tensor:
-        return hj_residual(s, t, x, create_graph=create_graph)
+        # ``fit`` passes back the model it trains or one ``bare`` built: both are this class.
+        model = cast(PolynomialRealizationGenerating, s)
+        return hj_residual(model, t, x, create_graph=create_graph)
 
     def sample(n: int, gen: torch.Generator, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         return sample_points(cfg, n, gen, dtype)
@@ -491,8 +496,17 @@ def core_from_tensors(tensors: Mapping[str, np.ndarray], mlp_power: int) -> Any:
     from .. import _core
 
     n_layers = sum(1 for k in tensors if k.startswith("mlp.") and k.endswith(".weight"))
+    # By name rather than ``*(tensors[k] for k in TABLE_TENSORS)``: a starred generator hides
+    # from the type checker which argument each array is.
     return _core.LearnedPolynomialModel(
-        *(tensors[k] for k in TABLE_TENSORS),
+        tensors["sou.index"],
+        tensors["sou.coeffs"],
+        tensors["sou.exponents"],
+        tensors["tar.index"],
+        tensors["tar.coeffs"],
+        tensors["tar.exponents"],
+        tensors["taylor.coeffs"],
+        tensors["taylor.exponents"],
         [tensors[f"mlp.{i}.weight"] for i in range(n_layers)],
         [tensors[f"mlp.{i}.bias"] for i in range(n_layers)],
         int(mlp_power),
@@ -636,7 +650,8 @@ def read_model_file(data: bytes, source: str = "model bytes") -> tuple[dict[str,
     with parsing(source, "domain"):
         domain = json.loads(raw["domain"])
         ok = isinstance(domain, dict) and domain.get("kind") == "box"
-        lo, hi = (domain.get(k) if ok else None for k in ("x_min", "x_max"))
+        bounds: list[Any] = [domain.get(k) if ok else None for k in ("x_min", "x_max")]
+        lo, hi = bounds
         ok = ok and all(
             isinstance(v, list) and len(v) == dim and all(_is_number(a) for a in v)
             for v in (lo, hi)
