@@ -87,7 +87,7 @@ def taylor_integrator(
 
 def _check_newton(tol: Any, max_iter: Any) -> None:
     """ValueError naming ``tol`` or ``max_iter`` outside (0, 1) / the integers >= 1."""
-    if isinstance(tol, bool) or not (isinstance(tol, numbers.Real) and 0 < tol < 1):
+    if isinstance(tol, bool) or not (isinstance(tol, numbers.Real) and 0 < float(tol) < 1):
         raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
     if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
         raise ValueError(f"max_iter must be an integer >= 1, got {max_iter!r}")

@@ -103,6 +103,25 @@ class PoissonSystem(Protocol):
         """How figures name the Casimirs ("|μ|²", "u v⁻²", ...); "" when none is known."""
         ...
 
+    @property
+    def title(self) -> str:
+        """The system for titles and messages: its kind and parameters, or its name."""
+        ...
+
+    @property
+    def demo_states(self) -> np.ndarray:
+        """Two states for demos, (2, dim), in the domain."""
+        ...
+
+    @property
+    def sample_radii(self) -> tuple[float, ...]:
+        """The sizes :meth:`sample_states` takes by default."""
+        ...
+
+    def domain_text(self) -> str:
+        """The domain in words, for messages ("finite", "open positive orthant ...")."""
+        ...
+
     def check_states(self, x: ArrayLike, name: str = "x0") -> np.ndarray:
         """``x`` as a float64 array of states, ValueError naming ``name`` for a state outside
         the system's domain (e.g. the positive orthant) or not finite."""

@@ -578,9 +578,7 @@ def reference_solution(
 
     if failures not in ("raise", "nan"):
         raise ValueError(f"failures must be 'raise' or 'nan', got {failures!r}")
-    return as_system(system).reference_solution(  # type: ignore[no-any-return]
-        mu0, times, rtol=rtol, atol=atol, failures=failures
-    )
+    return as_system(system).reference_solution(mu0, times, rtol=rtol, atol=atol, failures=failures)
 
 
 def field_reference(

@@ -250,8 +250,8 @@ def _table(
     name = f"{prefix}{key}"
     if not isinstance(value, Mapping):
         raise ValueError(f"scene key '{name}' must be a table, got {value!r}")
-    for k in value if allowed is not None else ():
-        if k not in allowed:
+    for k in value:
+        if allowed is not None and k not in allowed:
             raise ValueError(
                 f"scene key '{name}.{k}' is not known; expected one of {', '.join(allowed)}"
             )

@@ -124,7 +124,7 @@ class LogCanonical:
 
     def bivector(self, x: Any) -> Any:
         """π(x) = c ∘ (x xᵀ). x: (..., n) positive → (..., n, n)."""
-        c = self._c
+        c: Any = self._c
         if _is_tensor(x):
             import torch
 
@@ -157,7 +157,7 @@ class LogPolynomial:
     zero) to finite coefficients a_m; ``b``: (n,) finite log coefficients.
     """
 
-    def __init__(self, terms: Mapping[Sequence[int], float], b: ArrayLike) -> None:
+    def __init__(self, terms: Mapping[Any, float], b: ArrayLike) -> None:
         b_raw = np.asarray(b)
         if b_raw.dtype == object or b_raw.dtype.kind not in "fiu":
             raise TypeError(f"b must be an array of real numbers, got dtype {b_raw.dtype}")
@@ -357,7 +357,7 @@ class LogCanonicalSystem(PoissonSystemBase):
     def vector_field_log(self, q: Any) -> Any:
         """q̇ = c ∇_q H(q) in q = ln x. q: (..., n) → (..., n)."""
         g = self.log_hamiltonian.grad_log(q)
-        c = self.c
+        c: Any = self.c
         if _is_tensor(q):
             import torch
 
@@ -414,7 +414,7 @@ class LogCanonicalSystem(PoissonSystemBase):
     def in_domain(self, x: np.ndarray) -> NDArray[np.bool_]:
         """(n,) bool: states in the open positive orthant (finite, every x_i > 0)."""
         arr = np.asarray(x, dtype=np.float64)
-        return (np.isfinite(arr) & (arr > 0)).all(axis=-1)
+        return np.asarray((np.isfinite(arr) & (arr > 0)).all(axis=-1))
 
     def domain_text(self) -> str:
         return "open positive orthant (finite, every x_i > 0)"

@@ -245,7 +245,8 @@ def state_figure(scene: SceneResult, runs: Sequence[Run], path: Path, t_max: flo
     drows, dcols = _grid(n)
     ncols = max(ncols, dcols)
     fig = Figure(figsize=(5.2 * ncols + 2.6, 2.8 * nrows + 7.5 * drows), layout="constrained")
-    top, bottom = fig.subfigures(2, 1, height_ratios=[2.8 * nrows, 7.5 * drows])
+    # Two rows: an array of SubFigures (the stubs type it as one SubFigure or an array).
+    top, bottom = fig.subfigures(2, 1, height_ratios=[2.8 * nrows, 7.5 * drows])  # type: ignore[misc]
     axes = top.subplots(nrows, ncols, squeeze=False)
     k = min(len(scene.times), int(t_max / scene.h) + 1)
     t = scene.times[:k]

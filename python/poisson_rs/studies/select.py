@@ -333,9 +333,7 @@ def _timed_rollout(
     def call() -> tuple[np.ndarray, Any]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            return integrate(  # type: ignore[no-any-return]
-                stepper, mu0, h, n, every=every, return_info=True, on_failure="ignore"
-            )
+            return integrate(stepper, mu0, h, n, every=every, return_info=True, on_failure="ignore")
 
     t0 = time.perf_counter()
     traj, info = call()

@@ -45,7 +45,7 @@ def directions(body: PoissonSystem) -> dict[str, np.ndarray]:
     """The system's unit test directions: for the rigid body, circulating about the smallest-
     and the largest-inertia axis and within 1e-2 of the separatrix; three seeded directions
     otherwise."""
-    return body._directions()  # type: ignore[attr-defined,no-any-return]
+    return body._directions()  # type: ignore[attr-defined]
 
 
 def states(
@@ -54,7 +54,7 @@ def states(
     """(n, dim) initial states and their labels, every direction of the system at every size
     in ``radii`` (default: the system's ``sample_radii``; |μ| on g*, log distances from the
     equilibrium on a log-canonical system)."""
-    radii = body.sample_radii if radii is None else radii  # type: ignore[attr-defined]
+    radii = body.sample_radii if radii is None else radii
     return body.sample_states(radii)
 
 
@@ -109,7 +109,7 @@ def stability_map(
     if client is not None:
         from ..ensembles import run_all
 
-        jobs = [
+        jobs: list[tuple[tuple[Any, ...], dict[str, Any]]] = [
             ((make(), mu0, h, max(1, round(horizon / h))), {})
             for h in step_sizes
             for make in methods.values()

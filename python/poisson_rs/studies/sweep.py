@@ -294,7 +294,9 @@ def run_sweep(
     else:
         from ..ensembles import run_all
 
-        jobs = [((w, s, cfg, speed_seconds, threads), {}) for w, s, cfg in configs]
+        jobs: list[tuple[tuple[Any, ...], dict[str, Any]]] = [
+            ((w, s, cfg, speed_seconds, threads), {}) for w, s, cfg in configs
+        ]
         trained = iter(run_all(client, _train_row, jobs, desc="training", progress=bool(progress)))
     for (widths, seed, _), (row, result) in zip(configs, trained, strict=True):
         name = label(widths)

@@ -430,15 +430,17 @@ def sweep(
 
         jobs = []
         for scene in scenes:
-            ref = reference_at(scene.system, scene.states, [scene.T])
+            scene_ref = reference_at(scene.system, scene.states, [scene.T])
             for m in methods:
                 for h, n, tol, stepper in _settings(m, steps, scene.T):
-                    args = (scene, m.name, m.family, stepper, h, n, ref)
+                    args = (scene, m.name, m.family, stepper, h, n, scene_ref)
                     jobs.append((args, {"tol": tol, "repeats": repeats}))
         measured = iter(run_all(client, measure, jobs, desc="points", progress=bool(progress)))
     for scene in scenes:
         # Only μ_ref(T) is compared: one reference per scene (h·n = T for every setting).
-        ref = reference_at(scene.system, scene.states, [scene.T]) if measured is None else None
+        ref: np.ndarray | None = (
+            reference_at(scene.system, scene.states, [scene.T]) if measured is None else None
+        )
         for m in methods:
             t0 = time.perf_counter()
             settings = _settings(m, steps, scene.T)
@@ -627,9 +629,9 @@ def rank_at_level(
             if p[metric] <= level:
                 cands.append({**_pick(p), "seconds": p["seconds_per_traj"], "interpolated": False})
             q = pts[i - 1] if i else None
-            ok = q is not None and not q["failed"] and q[metric] is not None
-            if interpolate and ok and q[metric] > level >= p[metric] > 0:
-                assert q is not None  # for the type checker
+            if q is None or q["failed"] or q[metric] is None:
+                continue
+            if interpolate and q[metric] > level >= p[metric] > 0:
                 f = (math.log(level) - math.log(q[metric])) / (
                     math.log(p[metric]) - math.log(q[metric])
                 )
