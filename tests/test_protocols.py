@@ -298,3 +298,19 @@ def test_select_by_casimir_on_a_system_without_one_says_what_works() -> None:
     particle = SYSTEMS["charged_particle"]
     with pytest.raises(ValueError, match=r"no Casimir is known.*choose metric='error' or 'energy'"):
         pr.select(particle, [0.3, -0.2, 1.0, 0.5], T=1.0, target=1e-6, metric="casimir")
+
+
+def test_the_fifth_structure_runs_through_every_tool(tmp_path: Path) -> None:
+    """The shipped charged-particle scene: demo, stability and select on the command line,
+    with nothing outside its module knowing the structure."""
+    from poisson_rs.cli import main
+
+    scene = Path(__file__).parent.parent / "scenes" / "charged_particle.toml"
+    argv = ["demo", "--scene", str(scene), "--steps", "20", "--out", str(tmp_path / "d")]
+    assert main(argv) == 0
+    assert (tmp_path / "d" / "metrics.csv").read_text().count("taylor5-canonical") >= 3
+    argv = ["stability", str(scene), "--quick", "--horizon", "1", "--no-progress"]
+    assert main([*argv, "--out", str(tmp_path / "s")]) == 0
+    out = tmp_path / "select.json"
+    assert main(["select", str(scene), "--T", "1", "--budget", "1", "--json", str(out)]) == 0
+    assert "taylor5-canonical" in out.read_text()

@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     figures.stability_summary_figure(rows, out / "stability_summary.png", system=system)
     first = first_failures(rows, threshold=args.threshold)
     figures.write_rows(first, out / "first_failures.csv")
-    print(f"where each method first breaks (relative error > {args.threshold:g} or Newton fails):")
+    print(f"where each method first breaks (relative error > {args.threshold:g} or a step fails):")
     print(table(first, ["method", "h_breaks", "how"]))
     print(f"wrote {out}/stability_map.png, stability_summary.png, stability.csv/json")
     return 0

@@ -29,7 +29,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystemBase
-from .polynomial import PolynomialBivector, PolynomialPoissonSystem, _lambdify, _symbols
+from .polynomial import (
+    MAX_TAYLOR_ORDER,
+    PolynomialBivector,
+    PolynomialPoissonSystem,
+    _lambdify,
+    _symbols,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -179,7 +185,8 @@ class ChargedParticle(PoissonSystemBase):
         return (CANONICAL_CHART,)
 
     def taylor_orders(self, wanted: Sequence[int]) -> tuple[int, ...]:
-        return self.canonical.taylor_orders(wanted)
+        """At most 5, the realization stepper's (its sympy series grows fast beyond)."""
+        return tuple(k for k in wanted if k <= MAX_TAYLOR_ORDER)
 
     def taylor_integrator(
         self,
