@@ -9,7 +9,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import pytest
@@ -193,3 +193,24 @@ def interrupt_long_rollout(code: str, *args: str) -> tuple[str, str, int, float]
             proc.kill()
             proc.wait()
     return out, err, proc.returncode, latency
+
+
+def count_dop853_rhs(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """From now on, one entry per ``solve_ivp`` run (a DOP853 integration) counting the
+    right-hand sides it evaluated: the work, measured without a clock."""
+    import scipy.integrate
+
+    counts: list[int] = []
+    solve_ivp = scipy.integrate.solve_ivp
+
+    def counting(fun: Any, *args: Any, **kwargs: Any) -> Any:
+        counts.append(0)
+
+        def counted(t: float, y: np.ndarray) -> Any:
+            counts[-1] += 1
+            return fun(t, y)
+
+        return solve_ivp(counted, *args, **kwargs)
+
+    monkeypatch.setattr(scipy.integrate, "solve_ivp", counting)
+    return counts

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import count_dop853_rhs
 from safetensors.numpy import load
 
 import poisson_rs as pr
@@ -369,31 +370,10 @@ def test_a_checkpoint_with_mismatched_shapes_is_refused(tmp_path: Path) -> None:
 # --- DOP853 ------------------------------------------------------------------------------------
 
 
-def _count_dop853_rhs(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """From now on, one entry per ``solve_ivp`` run (a DOP853 integration) counting the
-    right-hand sides it evaluated: the work, measured without a clock."""
-    import scipy.integrate
-
-    counts: list[int] = []
-    solve_ivp = scipy.integrate.solve_ivp
-
-    def counting(fun: Any, *args: Any, **kwargs: Any) -> Any:
-        counts.append(0)
-
-        def counted(t: float, y: np.ndarray) -> Any:
-            counts[-1] += 1
-            return fun(t, y)
-
-        return solve_ivp(counted, *args, **kwargs)
-
-    monkeypatch.setattr(scipy.integrate, "solve_ivp", counting)
-    return counts
-
-
 def test_dop853_refuses_huge_states_at_once_and_keeps_the_rest(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    runs = _count_dop853_rhs(monkeypatch)
+    runs = count_dop853_rhs(monkeypatch)
     with pytest.raises(RuntimeError, match="budget"):
         pr.dop853_solution(pr.RigidBody(), [1e30, 1e30, 1e30], [1.0])
     quartic = pr.LiePoissonSystem(

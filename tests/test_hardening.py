@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from conftest import build_generating
+from conftest import build_generating, count_dop853_rhs
 from matplotlib.figure import Figure
 
 import poisson_rs as pr
@@ -35,27 +35,6 @@ def _save(path: Path) -> Path:
         h_max=0.1,
         domain={"kind": "shell", "r_min": 1.0, "r_max": 4.0},
     )
-
-
-def _count_dop853_rhs(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """From now on, one entry per ``solve_ivp`` run (a DOP853 integration) counting the
-    right-hand sides it evaluated: the work, measured without a clock."""
-    import scipy.integrate
-
-    counts: list[int] = []
-    solve_ivp = scipy.integrate.solve_ivp
-
-    def counting(fun: Any, *args: Any, **kwargs: Any) -> Any:
-        counts.append(0)
-
-        def counted(t: float, y: np.ndarray) -> Any:
-            counts[-1] += 1
-            return fun(t, y)
-
-        return solve_ivp(counted, *args, **kwargs)
-
-    monkeypatch.setattr(scipy.integrate, "solve_ivp", counting)
-    return counts
 
 
 # --- writers: only a regular file or a new path ------------------------------------------------
@@ -266,7 +245,7 @@ def test_train_help_shows_every_default():
 
 
 def test_dop853_fails_fast_on_overflowing_states(monkeypatch: pytest.MonkeyPatch):
-    runs = _count_dop853_rhs(monkeypatch)
+    runs = count_dop853_rhs(monkeypatch)
     with pytest.raises(RuntimeError, match="non-finite"):
         pr.dop853_solution(pr.RigidBody(), [1e200, 1e200, 1e200], [1.0])
     assert runs == []  # refused before any integration
@@ -277,7 +256,7 @@ def test_dop853_work_is_bounded(monkeypatch: pytest.MonkeyPatch):
 
     # The budget scaled down so that the test is fast; |mu| = 1e10 needs ~1e10 times more steps.
     monkeypatch.setattr(reference, "_DOP853_MAX_STEPS", 2000, raising=False)
-    runs = _count_dop853_rhs(monkeypatch)
+    runs = count_dop853_rhs(monkeypatch)
     dop = pr.classical(pr.RigidBody(), "dop853")
     with pytest.raises(RuntimeError, match="failed"), pytest.warns(RuntimeWarning, match="budget"):
         pr.integrate(dop, [1e10, 2e10, 3e10], 0.1, 100, on_failure="raise")

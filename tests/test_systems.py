@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from conftest import count_dop853_rhs
 
 from poisson_rs import reference
 from poisson_rs.reference import RigidBody as ReexportedRigidBody
@@ -396,30 +397,9 @@ def test_reference_solution_shapes_and_bad_input() -> None:
         reference_solution(top, np.ones(6), [1.0], rtol=0.0)
 
 
-def _count_dop853_rhs(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """From now on, one entry per ``solve_ivp`` run (a DOP853 integration) counting the
-    right-hand sides it evaluated: the work, measured without a clock."""
-    import scipy.integrate
-
-    counts: list[int] = []
-    solve_ivp = scipy.integrate.solve_ivp
-
-    def counting(fun: Any, *args: Any, **kwargs: Any) -> Any:
-        counts.append(0)
-
-        def counted(t: float, y: np.ndarray) -> Any:
-            counts[-1] += 1
-            return fun(t, y)
-
-        return solve_ivp(counted, *args, **kwargs)
-
-    monkeypatch.setattr(scipy.integrate, "solve_ivp", counting)
-    return counts
-
-
 def test_reference_solution_work_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
     top = HeavyTop()
-    runs = _count_dop853_rhs(monkeypatch)
+    runs = count_dop853_rhs(monkeypatch)
     with pytest.raises(RuntimeError, match="non-finite"):
         reference_solution(top, np.full(6, 1e200), [1.0])
     assert runs == []  # refused before any integration
