@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from .files import check_output_path, temporary_name
-from .protocols import Stepper
+from .protocols import ROLLOUT_KEYS, Stepper
 from .rollout import RolloutInfo, integrate
 from .untrusted import parsing
 
@@ -44,16 +44,7 @@ DEFAULT_CHUNK = 10_000
 #: Seconds to wait for a scheduler address to answer before giving up.
 CONNECT_TIMEOUT = 10.0
 #: Fields of :class:`~poisson_rs.integrators.RolloutInfo`, in order.
-INFO_FIELDS = (
-    "converged",
-    "failed_step",
-    "failure_code",
-    "newton_iterations",
-    "max_newton_iterations",
-    "max_residual",
-    "out_of_domain",
-    "step_angle",
-)
+INFO_FIELDS = (*ROLLOUT_KEYS[:6], "out_of_domain", "step_angle")
 
 _EXTRA = "pip install 'poisson_rs[distributed]'"
 
