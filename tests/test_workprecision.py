@@ -186,3 +186,15 @@ def test_a_long_run_cut_short_ends_where_its_note_says() -> None:
     assert max(r["step"] for r in rows) == stopped
     assert f"(t = {stopped * 0.1:g})" in note
     assert max(r["t"] for r in rows) == pytest.approx(stopped * 0.1)
+
+
+def test_long_run_energy_error_is_relative_to_a_negative_h0() -> None:
+    """A heavy top hanging down has H₀ < 0: the energy error is |H − H₀| / |H₀| (small for a
+    Poisson integrator), not |H − |H₀|| / |H₀| (2, whatever the method)."""
+    top = pr.HeavyTop()
+    states = np.array([[0.2, -0.1, 0.3, 0.0, 0.0, -1.0], [0.5, 0.3, -0.2, 0.6, 0.0, -0.8]])
+    assert (top.hamiltonian(states) < 0).all()
+    scene = wp.Scene("hanging", top, states, 10.0)
+    method = wp.Method("taylor5-exp", "taylor", pr.taylor_integrator(top, 5, "exp"))
+    rows = wp.long_run(scene, [method], h=0.1, n_steps=200, budget_s=30.0)
+    assert 0 < max(r["max_rel_dH"] for r in rows) < 1e-6

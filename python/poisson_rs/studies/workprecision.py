@@ -511,7 +511,9 @@ def long_run(
         n_states = len(scene.states)
         dh = np.full((n_states, n_steps + 1), np.nan)
         dc = np.full((n_states, n_steps + 1), np.nan)
-        h0 = np.abs(body.hamiltonian(scene.states))
+        # H₀ with its sign (a heavy top's is negative where the potential dominates): the
+        # error is |H − H₀| / |H₀|, never |H − |H₀||.
+        h0 = np.asarray(body.hamiltonian(scene.states), dtype=np.float64)
         c0 = casimirs(scene.states) if casimirs is not None else None  # (n, m)
         dh[:, 0] = 0.0
         dc[:, 0] = 0.0 if c0 is not None else np.nan
@@ -530,7 +532,9 @@ def long_run(
             traj, info = _integrate(stepper, state[alive], h, chunk, return_info=True)
             ids = np.flatnonzero(alive)
             seg = slice(done + 1, done + chunk + 1)
-            dh[ids, seg] = np.abs(body.hamiltonian(traj[:, 1:]) - h0[ids, None]) / h0[ids, None]
+            dh[ids, seg] = np.abs(body.hamiltonian(traj[:, 1:]) - h0[ids, None]) / np.abs(
+                h0[ids, None]
+            )
             if casimirs is not None and c0 is not None:
                 # |C − C₀| / |μ₀|^d, max over the Casimirs (rigid body: |C − C₀| / C₀).
                 drift = np.abs(casimirs(traj[:, 1:]) - c0[ids, None, :])
