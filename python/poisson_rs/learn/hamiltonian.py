@@ -216,6 +216,11 @@ class _Model:
         return torch.as_tensor(traj), torch.stack(dths, 1), torch.stack(dsts, 1)
 
 
+def _rejected(p: int, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The residuals of a point where the step map is undefined: infinite (LM rejects it)."""
+    return np.full(1, np.inf), (np.zeros((1, p)) if jacobian else None)
+
+
 def _shooting_windows(trajs: list[np.ndarray], length: int) -> list[np.ndarray]:
     """Consecutive windows of at most ``length`` records (≥ 2) covering every trajectory."""
     out = []
@@ -274,8 +279,14 @@ def shooting_refine(
         r = np.concatenate(rs)
         return r, (np.concatenate(rows) if jacobian else None)
 
+    def guarded(x: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        try:
+            return evaluate(x[:pz], x[pz:].reshape(-1, n), jacobian)
+        except FloatingPointError:  # a rollout that left the chart: the trial is rejected
+            return _rejected(len(x), jacobian)
+
     fit = levenberg_marquardt(
-        lambda x, jacobian: evaluate(x[:pz], x[pz:].reshape(-1, n), jacobian),
+        guarded,
         np.concatenate([z, starts.reshape(-1)]),
         max_iter=max_iter,
         rel_tol=1e-4,
@@ -356,10 +367,15 @@ def fit_polynomial(
 
     def evaluate(zz, jacobian):
         rs, js = [], []
-        for st, tg, hz in sets:
-            r, j = model.residuals(offset + qf @ zz, st, tg, hz, jacobian)
-            rs.append(r)
-            js.append(j)
+        try:
+            for st, tg, hz in sets:
+                r, j = model.residuals(offset + qf @ zz, st, tg, hz, jacobian)
+                rs.append(r)
+                js.append(j)
+        except FloatingPointError:
+            # A step that leaves the chart (|ad_x| near 2π): the trial is rejected, and a
+            # start there ends the fit with an infinite cost (a candidate that fits nothing).
+            return _rejected(len(zz), jacobian)
         r = np.concatenate(rs)
         return r, (np.concatenate(js) @ qf if jacobian else None)
 
