@@ -494,16 +494,18 @@ def prepare(
             )
         clean.append(np.ascontiguousarray(t, dtype=np.float64))
     allx = np.concatenate(clean)
-    r = np.linalg.norm(allx, axis=1)
-    scale = float(np.sqrt(np.mean(r * r)))
-    lo, hi = SCALE_RANGE
-    if scale == 0.0:
+    # RMS |μ| computed in units of the largest entry: no overflow or underflow on the way.
+    big = float(np.max(np.abs(allx)))
+    if big == 0.0:
         raise ValueError(f"{name}: every record is zero (an equilibrium): nothing to learn")
+    scale = big * float(np.sqrt(np.mean(np.sum((allx / big) ** 2, axis=1))))
+    lo, hi = SCALE_RANGE
     if not lo <= scale <= hi:
         raise ValueError(
             f"{name}: the records' RMS |μ| is {scale:.3g}, outside [{lo:g}, {hi:g}] where the "
             "fits' powers of μ stay in floating-point range; rescale the data"
         )
+    r = np.linalg.norm(allx, axis=1)
     motion = max(float(np.max(np.abs(np.diff(t, axis=0)))) for t in clean) / scale
     if motion <= 1e-12:
         raise ValueError(
