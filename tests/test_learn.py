@@ -622,12 +622,10 @@ def test_casimir_drift_is_compared_with_the_data_noise() -> None:
 def test_with_nothing_held_out_the_report_says_training_error(n_traj, records) -> None:
     rng = np.random.default_rng(24)
     traj = _trajectories(BODY, _sphere(rng, n_traj), 0.1, records)
-    _, report = learn(
-        traj, 0.1, algebra="so3", mode="hamiltonian", degree=2, max_iter=5, progress=False
-    )
+    _, report = learn(traj, 0.1, algebra="so3", mode="hamiltonian", degree=2, max_iter=5)
     text = str(report)
-    assert not report.held_out
     assert "held-out" not in text and "nothing held out" in text
+    assert not report.held_out
     assert "training one-step error" in report.kept.reason
     # What the checks cover: the records' span, and H only up to a Casimir.
     span = 0.1 * (records - 1)
@@ -641,9 +639,7 @@ def test_with_nothing_held_out_the_report_says_training_error(n_traj, records) -
 def test_a_learned_map_steps_at_its_data_h_only() -> None:
     rng = np.random.default_rng(25)
     pairs = _trajectories(BODY, _sphere(rng, 40), 0.1, 2)
-    stepper, report = learn(
-        pairs, 0.1, algebra="so3", mode="map", map_options={"degree": 4}, progress=False
-    )
+    stepper, report = learn(pairs, 0.1, algebra="so3", mode="map", map_options={"degree": 4})
     assert report.kept.family == "map-poly4"
     mu0 = _sphere(rng, 2)
     assert np.isfinite(pr.integrate(stepper, mu0, 0.1, 5)).all()

@@ -36,32 +36,37 @@ def _csv_bytes(traj: np.ndarray) -> bytes:
 
 
 class _FifoWriter:
-    """A writer on a FIFO that feeds ``payload`` to whoever opens it for reading: a reader that
-    opens the FIFO then gets valid data (so code that reads FIFOs fails the test by accepting
-    it, instead of hanging). ``close`` releases the writer when nobody read."""
+    """A writer on a FIFO that feeds ``payload`` to every reader that opens it (a reader that
+    opens the FIFO, even twice, gets valid data: code that reads FIFOs fails the test by
+    accepting it, instead of hanging). ``close`` stops it."""
 
     def __init__(self, path, payload: bytes) -> None:
         self.path = path
+        self.stop = False
         os.mkfifo(path)
-        self.thread = threading.Thread(target=self._write, args=(payload,), daemon=True)
+        self.thread = threading.Thread(target=self._serve, args=(payload,), daemon=True)
         self.thread.start()
 
-    def _write(self, payload: bytes) -> None:
-        try:
-            fd = os.open(self.path, os.O_WRONLY)  # blocks until a reader opens
+    def _serve(self, payload: bytes) -> None:
+        while not self.stop:
             try:
-                os.write(fd, payload)
+                fd = os.open(self.path, os.O_WRONLY)  # blocks until a reader opens
+            except OSError:
+                return
+            try:
+                if not self.stop:
+                    os.write(fd, payload)
+            except OSError:  # the reader closed early (EPIPE): what a refusal does
+                pass
             finally:
                 os.close(fd)
-        except OSError:  # the reader closed early (EPIPE): what a refusal does
-            pass
 
     def close(self) -> None:
-        if self.thread.is_alive():
-            fd = os.open(self.path, os.O_RDONLY | os.O_NONBLOCK)  # unblocks the writer
-            self.thread.join(5.0)
+        self.stop = True
+        while self.thread.is_alive():
+            fd = os.open(self.path, os.O_RDONLY | os.O_NONBLOCK)  # unblocks a waiting writer
+            self.thread.join(0.5)
             os.close(fd)
-        self.thread.join(5.0)
 
 
 @pytest.fixture
