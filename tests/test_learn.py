@@ -719,7 +719,7 @@ def test_cli_does_not_replace_a_file_that_appears_during_the_fit(tmp_path, monke
     real_learn = api.learn
 
     def learn_then_someone_writes(*args, **kwargs):
-        result = real_learn(*args, **kwargs)
+        result = real_learn(*args, **{**kwargs, "max_iter": 2})
         out.write_bytes(b"another run's model")
         return result
 
