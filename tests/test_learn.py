@@ -641,6 +641,7 @@ def test_a_learned_map_steps_at_its_data_h_only() -> None:
     pairs = _trajectories(BODY, _sphere(rng, 40), 0.1, 2)
     stepper, report = learn(pairs, 0.1, algebra="so3", mode="map", map_options={"degree": 4})
     assert report.kept.family == "map-poly4"
+    assert float(stepper.metadata["step_h"]) == 0.1  # what a loader of the file can enforce
     mu0 = _sphere(rng, 2)
     assert np.isfinite(pr.integrate(stepper, mu0, 0.1, 5)).all()
     for h in (0.05, 0.025, 0.1 * (1 - 1e-9)):

@@ -58,9 +58,19 @@ def _domain(data: TrajectoryData) -> dict[str, Any]:
 
 
 def _record(
-    data: TrajectoryData, family: str, mode: str, seed: int, command: str | None, seconds: float
+    data: TrajectoryData,
+    family: str,
+    mode: str,
+    seed: int,
+    command: str | None,
+    seconds: float,
+    fixed_step: bool = False,
 ) -> dict[str, Any]:
+    """The provenance a model file records; ``step_h`` (the one h a learned time-h map steps
+    at) where ``fixed_step``."""
+    extra = {"step_h": data.h} if fixed_step else {}
     return {
+        **extra,
         "name": f"learned-{family}",
         "learn_mode": mode,
         "learn_family": family,
@@ -179,7 +189,7 @@ def _polynomial_map_candidate(data, algebra, mode, seed, command, options):
         system=LiePoissonSystem(algebra, Polynomial({(0,) * algebra.dim: 0.0}), name="learned-map"),
         h_max=data.h,
         domain=_domain(data),
-        record=_record(data, family, mode, seed, command, seconds),
+        record=_record(data, family, mode, seed, command, seconds, fixed_step=True),
     )
     stepper = FixedStepIntegrator(raw)
     one, roll = _errors(stepper, data)
@@ -222,7 +232,7 @@ def _network_candidate(
         h_max=data.h,
         domain=_domain(data),
         taylor_order=order,
-        record=_record(data, family, mode, seed, command, seconds),
+        record=_record(data, family, mode, seed, command, seconds, fixed_step=fixed_step),
     )
     stepper = (FixedStepIntegrator if fixed_step else LearnedIntegrator)(raw)
     one, roll = _errors(stepper, data)

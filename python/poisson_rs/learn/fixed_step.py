@@ -37,13 +37,13 @@ def check_step(h: Any, fitted: float, name: str) -> None:
 
 class FixedStepIntegrator(LearnedIntegrator):
     """A :class:`~poisson_rs.integrators.LearnedIntegrator` of a learned time-h map: steps at
-    :attr:`step_h` (the data's h, from the file's ``data_h``) only; any other h is refused
+    :attr:`step_h` (the data's h, recorded in the file as ``step_h``) only; any other h is refused
     (ValueError) by :func:`poisson_rs.integrate` and :meth:`torch_step`."""
 
     @property
     def step_h(self) -> float:
-        """The one step size the map was fitted for (time units)."""
-        return float(self.metadata["data_h"])
+        """The one step size the map was fitted for (time units): the file's ``step_h``."""
+        return float(self.metadata["step_h"])
 
     def _rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
