@@ -370,8 +370,7 @@ def _check_h(h: Any) -> float:
     if not lo <= hv <= hi:
         raise ValueError(
             f"h = {hv:g} is outside [{lo:g}, {hi:g}], where the fits' powers of h stay in "
-            "floating-point range; express time in units where the records are about a "
-            "step of order 0.01–1 apart"
+            "floating-point range; rescale time (h and H together) to bring h within it"
         )
     return hv
 

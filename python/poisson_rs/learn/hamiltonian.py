@@ -26,7 +26,7 @@ import torch
 from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
 from .data import TrajectoryData
 from .optimize import levenberg_marquardt
-from .series import basis, monomials, series_jacobian, taylor_series
+from .series import MonomialBasis, basis, monomials, series_jacobian, taylor_series
 from .step import bisection_step
 
 __all__ = ["PolynomialFit", "default_order", "fit_polynomial", "vector_field_design"]
@@ -132,6 +132,7 @@ class _Model:
         key = (theta.tobytes(), jacobian)
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
+        out: tuple[MonomialBasis, torch.Tensor, torch.Tensor | None]
         if jacobian:
             out = series_jacobian(self.c, self.family, theta, self.order, self.h)
         else:
@@ -203,6 +204,7 @@ class _Model:
         bsz, _, n = traj.shape
         flat = torch.as_tensor(traj[:, :-1].reshape(-1, n))
         step = bisection_step(b, self.c, s, flat, derivatives=True)
+        assert step.d_coeffs is not None and step.d_state is not None
         dc = (step.d_coeffs @ ds).reshape(bsz, steps, n, -1)
         dsx = step.d_state.reshape(bsz, steps, n, n)
         dth = torch.zeros(bsz, n, ds.shape[1], dtype=torch.float64)

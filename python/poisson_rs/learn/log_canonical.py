@@ -16,6 +16,7 @@ not change the vector field and are set to zero (minimal norm).
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -78,7 +79,9 @@ def fit_lotka_volterra(trajectories: Any, h: float, c: Any, *, order: int = 5) -
     coef, *_ = np.linalg.lstsq(design.reshape(-1, 2 * n), qdot.reshape(-1), rcond=1e-12)
     a, b = coef[:n], coef[n:]
     resid = design.reshape(-1, 2 * n) @ coef - qdot.reshape(-1)
-    terms = {tuple(int(i == j) for j in range(n)): float(a[i]) for i in range(n)}
+    terms: dict[Sequence[int], float] = {
+        tuple(int(i == j) for j in range(n)): float(a[i]) for i in range(n)
+    }
     system = LogCanonicalSystem(structure, LogPolynomial(terms, b), name="learned")
     return LotkaVolterraFit(
         a=a,
