@@ -50,6 +50,8 @@ MAX_DATA_FILE_BYTES = 1 << 30
 #: Largest decoded data (bytes of the arrays once decompressed): checked on the sizes a file
 #: declares before anything is decompressed, so a small compressed file cannot grow past it.
 MAX_DATA_BYTES = 1 << 29
+#: Largest .csv read: its text is split into lines and parsed in memory, several times its size.
+MAX_CSV_BYTES = 1 << 27
 #: Most files in a Zarr store.
 MAX_STORE_ENTRIES = 100_000
 #: Largest system JSON file (``--system``) read.
@@ -60,9 +62,10 @@ def load_trajectories(path: str | os.PathLike[str]) -> list[np.ndarray]:
     """Reads trajectories from ``.npz``, ``.csv`` or a Zarr directory → list of (n_i, dim).
 
     Untrusted input: only regular files (a FIFO would block, a device such as /dev/zero would
-    never end) of at most :data:`MAX_DATA_FILE_BYTES`, whose arrays declare at most
-    :data:`MAX_DATA_BYTES` once decoded (checked before decompressing: a .npz of deflated zeros
-    or a Zarr store declaring a huge shape is refused, not read). A Zarr store must be marked
+    never end) of at most :data:`MAX_DATA_FILE_BYTES` (:data:`MAX_CSV_BYTES` for a .csv),
+    whose arrays declare at most :data:`MAX_DATA_BYTES` once decoded (checked before
+    decompressing: a .npz of deflated zeros or a Zarr store declaring a huge shape is refused,
+    not read). A Zarr store must be marked
     complete (an interrupted writer leaves missing chunks that would read as zeros). Raises
     FileNotFoundError when absent, ValueError naming the file and the problem otherwise."""
     p = Path(path)
@@ -76,7 +79,7 @@ def load_trajectories(path: str | os.PathLike[str]) -> list[np.ndarray]:
         raw = read_input_bytes(p, max_bytes=MAX_DATA_FILE_BYTES, what="data file")
         return _load_npz(raw, source)
     if suffix == ".csv":
-        raw = read_input_bytes(p, max_bytes=MAX_DATA_FILE_BYTES, what="data file")
+        raw = read_input_bytes(p, max_bytes=MAX_CSV_BYTES, what="data file")
         return _load_csv(raw, source)
     raise ValueError(f"{source}: unknown format {suffix!r}; expected .npz, .csv or a Zarr dir")
 
