@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Literal
 
 
-def _describe(mode: int) -> str:
+def describe_mode(mode: int) -> str:
     """What a non-regular file is, for the messages."""
     for test, what in (
         (stat.S_ISDIR, "a directory"),
@@ -52,10 +52,12 @@ def check_output_path(
         st = os.lstat(path)
     except (FileNotFoundError, NotADirectoryError):  # the latter: a parent is a file
         st = None
+    except OSError as exc:  # a name too long, a loop of links, no permission on a parent
+        raise ValueError(f"cannot write {path}: {exc.strerror or exc}") from None
     if st is not None:
         if kind == "file" and not stat.S_ISREG(st.st_mode):
             raise ValueError(
-                f"output {path} is {_describe(st.st_mode)}; only a regular file or a new path "
+                f"output {path} is {describe_mode(st.st_mode)}; only a regular file or a new path "
                 "is written"
             )
         if kind == "dir" and not path.is_dir():
@@ -159,10 +161,12 @@ def probe_writable(path: str | os.PathLike[str], *, kind: Literal["file", "dir"]
     return path
 
 
-def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, *, replace: bool = True) -> Path:
     """Writes ``data`` to ``path`` atomically: readers see the old file or the new one, never a
     half-written one. Creates missing parent folders; refuses to replace anything but a regular
-    file (ValueError). Returns the path.
+    file (ValueError). With ``replace=False`` an existing file is not replaced either, even one
+    that appeared while the caller worked: the new file is linked in place only where nothing is
+    (ValueError otherwise, the file there untouched). Returns the path.
 
     The data is written to a temporary file beside the target (a name that always fits, see
     :func:`temporary_name`), synced, then renamed over the target, and the folder is synced.
@@ -192,12 +196,35 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
             os.fsync(f.fileno())
         # Checked again right before the rename: the target may have changed while writing.
         check_output_path(path)
-        os.replace(tmp, path)
+        if replace:
+            os.replace(tmp, path)
+        else:
+            _link_new(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     _fsync_dir(path.parent)
     return path
+
+
+def _link_new(tmp: Path, path: Path) -> None:
+    """Moves ``tmp`` to ``path`` only where nothing is at ``path``: a hard link fails, atomically,
+    when the name exists (a rename would replace it)."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise ValueError(
+            f"output {path} exists (it appeared while the work ran); not replaced"
+        ) from None
+    except OSError:
+        # A file system without hard links: the check and the rename are then two steps.
+        if os.path.lexists(path):
+            raise ValueError(
+                f"output {path} exists (it appeared while the work ran); not replaced"
+            ) from None
+        os.replace(tmp, path)
+        return
+    tmp.unlink(missing_ok=True)
 
 
 def check_input_file(path: str | os.PathLike[str], *, max_bytes: int, what: str = "file") -> Path:
@@ -210,9 +237,49 @@ def check_input_file(path: str | os.PathLike[str], *, max_bytes: int, what: str 
     except FileNotFoundError:
         raise FileNotFoundError(f"no {what} at {path}") from None
     if not stat.S_ISREG(st.st_mode):
-        raise ValueError(f"{what} {path} is {_describe(st.st_mode)}, not a regular file")
+        raise ValueError(f"{what} {path} is {describe_mode(st.st_mode)}, not a regular file")
     if st.st_size > max_bytes:
         raise ValueError(
             f"{what} {path} holds {st.st_size} bytes, more than the {max_bytes} allowed"
         )
     return path
+
+
+def read_input_bytes(path: str | os.PathLike[str], *, max_bytes: int, what: str = "file") -> bytes:
+    """The bytes of the regular file ``path`` (after links), at most ``max_bytes`` of them.
+
+    Checked on the open file itself, not on the name: the file is opened without blocking (a
+    FIFO put there after a check would otherwise block the open), then its status is read from
+    the open descriptor, and at most ``max_bytes`` + 1 bytes are read (a file that grows past the
+    cap while read is refused too). Raises FileNotFoundError when absent, ValueError for a FIFO,
+    a device, a directory or a file over the cap."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no {what} at {path}") from None
+    except OSError as exc:
+        raise ValueError(f"{what} {path} cannot be read: {exc.strerror or exc}") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{what} {path} is {describe_mode(st.st_mode)}, not a regular file")
+        if st.st_size > max_bytes:
+            raise ValueError(
+                f"{what} {path} holds {st.st_size} bytes, more than the {max_bytes} allowed"
+            )
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        chunks: list[bytes] = []
+        left = max_bytes + 1
+        while left > 0:
+            chunk = os.read(fd, min(left, 1 << 24))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            left -= len(chunk)
+    finally:
+        os.close(fd)
+    if left <= 0:
+        raise ValueError(f"{what} {path} holds more than the {max_bytes} bytes allowed")
+    return b"".join(chunks)

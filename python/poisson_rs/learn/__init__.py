@@ -2,12 +2,14 @@
 
 from .api import MODES, learn
 from .data import CasimirDriftWarning, HullWarning, TrajectoryData, load_trajectories, prepare
+from .fixed_step import FixedStepIntegrator
 from .report import Candidate, LearnReport
 
 __all__ = [
     "MODES",
     "Candidate",
     "CasimirDriftWarning",
+    "FixedStepIntegrator",
     "HullWarning",
     "LearnReport",
     "TrajectoryData",

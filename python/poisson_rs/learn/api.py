@@ -14,7 +14,9 @@ from ..export import model_bytes
 from ..integrators import LearnedIntegrator, TaylorIntegrator, integrate
 from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..taylor import system_taylor_terms
-from .data import TrajectoryData, prepare
+from .data import DRIFT_REFUSE, DRIFT_REFUSE_RATIO, TrajectoryData, check_seed, drift_limit, prepare
+from .fixed_step import FixedStepIntegrator
+from .options import MAX_DEGREE, ORDER_RANGE, check_bool, check_int, check_map_options
 from .report import Candidate, LearnReport
 
 __all__ = ["MODES", "learn", "resolve_algebra"]
@@ -56,9 +58,19 @@ def _domain(data: TrajectoryData) -> dict[str, Any]:
 
 
 def _record(
-    data: TrajectoryData, family: str, mode: str, seed: int, command: str | None, seconds: float
+    data: TrajectoryData,
+    family: str,
+    mode: str,
+    seed: int,
+    command: str | None,
+    seconds: float,
+    fixed_step: bool = False,
 ) -> dict[str, Any]:
+    """The provenance a model file records; ``step_h`` (the one h a learned time-h map steps
+    at) where ``fixed_step``."""
+    extra = {"step_h": data.h} if fixed_step else {}
     return {
+        **extra,
         "name": f"learned-{family}",
         "learn_mode": mode,
         "learn_family": family,
@@ -143,8 +155,6 @@ def _map_candidate(data, algebra, mode, seed, command, options):
     kind = options.pop("kind", "polynomial")
     if kind == "polynomial":
         return _polynomial_map_candidate(data, algebra, mode, seed, command, options)
-    if kind != "network":
-        raise ValueError(f"map_options['kind'] must be 'polynomial' or 'network', got {kind!r}")
     return _network_map_candidate(data, algebra, mode, seed, command, options)
 
 
@@ -179,9 +189,9 @@ def _polynomial_map_candidate(data, algebra, mode, seed, command, options):
         system=LiePoissonSystem(algebra, Polynomial({(0,) * algebra.dim: 0.0}), name="learned-map"),
         h_max=data.h,
         domain=_domain(data),
-        record=_record(data, family, mode, seed, command, seconds),
+        record=_record(data, family, mode, seed, command, seconds, fixed_step=True),
     )
-    stepper = LearnedIntegrator(raw)
+    stepper = FixedStepIntegrator(raw)
     one, roll = _errors(stepper, data)
     return Candidate(
         family=family,
@@ -206,9 +216,11 @@ def _network_candidate(
     mode: str,
     seed: int,
     command: str | None,
+    fixed_step: bool = False,
 ) -> Candidate:
     """A learned generating function (Taylor terms + MLP, exp chart) as a model file recording
-    ``system`` and its provenance, stepped in Rust and scored on the held-out data."""
+    ``system`` and its provenance, stepped in Rust and scored on the held-out data; with
+    ``fixed_step`` (a map trained at the data's h only) it steps at that h alone."""
     raw = model_bytes(
         powers=s_fn.powers.numpy(),
         coeffs=s_fn.coeffs.detach().numpy(),
@@ -220,9 +232,9 @@ def _network_candidate(
         h_max=data.h,
         domain=_domain(data),
         taylor_order=order,
-        record=_record(data, family, mode, seed, command, seconds),
+        record=_record(data, family, mode, seed, command, seconds, fixed_step=fixed_step),
     )
-    stepper = LearnedIntegrator(raw)
+    stepper = (FixedStepIntegrator if fixed_step else LearnedIntegrator)(raw)
     one, roll = _errors(stepper, data)
     return Candidate(
         family=family,
@@ -244,7 +256,9 @@ def _network_map_candidate(data, algebra, mode, seed, command, options):
     s_fn, n_params = fit_map(data, algebra, seed=seed, **options)
     seconds = time.perf_counter() - t0
     system = _map_base(s_fn, algebra)
-    return _network_candidate(s_fn, system, "map", n_params, 0, seconds, data, mode, seed, command)
+    return _network_candidate(
+        s_fn, system, "map", n_params, 0, seconds, data, mode, seed, command, fixed_step=True
+    )
 
 
 def _blend_candidate(data, known, order, lam, mode, seed, command, options):
@@ -284,6 +298,7 @@ def learn(
     system: LiePoissonSystem | None = None,
     mode: str = "auto",
     degree: int | None = None,
+    max_degree: int | None = None,
     order: int | None = None,
     test_fraction: float = 0.2,
     seed: int = 0,
@@ -295,48 +310,65 @@ def learn(
     refit: bool = True,
     correction: str = "polynomial",
     lam: float = 1.0,
+    progress: bool | None = None,
 ) -> tuple[Any, LearnReport]:
     """Learns a Poisson integrator from trajectories whose Poisson structure is known.
 
     Parameters
     ----------
     trajectories : array (n_traj, n_records, dim), one (n_records, dim) array, a list of such
-        arrays (lengths may differ), or a path (.npz, .csv, Zarr from ``ensembles.to_zarr``).
-        Records are ``h`` apart in time.
+        arrays (lengths may differ), a torch tensor, or a path (.npz, .csv, Zarr from
+        ``ensembles.to_zarr``; see :func:`poisson_rs.learn.data.load_trajectories` for the
+        checks on files). Records are ``h`` apart in time.
     h : float
-        The record spacing (time units), > 0.
+        The record spacing (time units), in :data:`poisson_rs.learn.data.H_RANGE`.
     algebra, system : the Lie algebra (a LieAlgebra or "so3", "se3", "sl2"), or a system whose
-        algebra it is (its Hamiltonian is used by mode "hj+data" only, as the known part).
+        algebra it is (its Hamiltonian is used by mode "hj+data" only, as the known part). One
+        of them is required: nothing is assumed.
     mode : "auto" (smallest model that explains the data: polynomial H of degree 2, 3, 4, then
         a map), "hamiltonian" (polynomial H of ``degree``, or the degrees in turn), "map" (the
-        time-h map's generating function, H never formed), "hj+data" (``system``'s H is known
-        or its known part; a correction is learned, see :mod:`poisson_rs.learn.blend`).
-    degree, order : polynomial degree of H and Taylor-HJ order K (default: chosen, see
-        :func:`poisson_rs.learn.hamiltonian.default_order`).
+        time-h map's generating function, H never formed; it steps at the data's h only),
+        "hj+data" (``system``'s H is known or its known part; a correction is learned, see
+        :mod:`poisson_rs.learn.blend`).
+    degree, order : polynomial degree of H (1..4) and Taylor-HJ order K (1..12; default:
+        chosen, see :func:`poisson_rs.learn.hamiltonian.default_order`).
+    max_degree : the largest degree modes "auto" and "hamiltonian" try (1..4; default 4): each
+        degree costs more than the one before.
     test_fraction, seed : held-out share of the trajectories (of the records when there is only
-        one) and the seed that picks them.
-    horizon, max_iter : longest multi-step residual and Levenberg–Marquardt iterations.
+        one) and the seed (an integer >= 0) that picks them. Where nothing can be held out (two
+        trajectories, one of a few records), the report says the errors are training errors.
+    horizon, max_iter : longest multi-step residual (1..64) and Levenberg–Marquardt iterations
+        (1..10000).
     map_options : the map's family and options: ``kind`` "polynomial" (default: S(h, ·) a
         polynomial in p, :func:`poisson_rs.learn.map.fit_polynomial_map`, e.g. ``degree``) or
         "network" (:func:`poisson_rs.learn.map.fit_map`); for mode "hj+data" with
         ``correction="network"``, options of :func:`poisson_rs.learn.blend.fit_blended_map`.
+        Unknown keys are refused.
     command : recorded in the model file.
     correction, lam : mode "hj+data": "polynomial" (H = known + a polynomial of ``degree``;
-        default the known H's degree, at least 2) or "network" (S = the known H's Taylor series
-        of ``order`` (default 3) + t^(K+1)·MLP, ``map_options`` for
-        :func:`poisson_rs.learn.blend.fit_blended_map`), and λ of loss_HJ + λ·loss_data.
+        default the known H's degree, at least 2; the known H's degree must be <= 4) or
+        "network" (S = the known H's Taylor series of ``order`` (default 3) + t^(K+1)·MLP,
+        ``map_options`` for :func:`poisson_rs.learn.blend.fit_blended_map`), and λ of
+        loss_HJ + λ·loss_data.
     refit : after the choice on held-out data, refit the kept polynomial's coefficients on every
         record (its one-step and rollout errors in the report stay the held-out ones).
+    progress : a progress bar with an ETA over the fits on stderr (tqdm); default: when stderr
+        is a terminal.
 
     Returns
     -------
     (stepper, report): ``stepper`` integrates with :func:`poisson_rs.integrate` (a Taylor-HJ
-    integrator of the learned H, any h; or a learned map, the data's h only); ``report`` a
-    :class:`~poisson_rs.learn.report.LearnReport` (``print(report)`` shows every candidate).
+    integrator of the learned H, any h; or a learned map, a
+    :class:`~poisson_rs.learn.fixed_step.FixedStepIntegrator` that refuses any h but the
+    data's); ``report`` a :class:`~poisson_rs.learn.report.LearnReport` (``print(report)``
+    shows every candidate).
 
-    Raises ValueError naming the input and field for bad data (see
-    :func:`poisson_rs.learn.data.prepare`); warns when the data's Casimirs drift.
+    Raises ValueError naming the argument for a bad option and naming the input and field for
+    bad data (see :func:`poisson_rs.learn.data.prepare`), all before any fit; refuses data whose
+    Casimirs drift far beyond what their noise explains (not from a Lie–Poisson system of this
+    algebra) and warns where they drift beyond it at all.
     """
+    # Every option is checked here, before any work.
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if mode == "hj+data":
@@ -348,96 +380,148 @@ def learn(
             raise ValueError(f"correction must be one of {CORRECTIONS}, got {correction!r}")
         if isinstance(lam, bool) or not isinstance(lam, (int, float)) or not 0 <= lam < math.inf:
             raise ValueError(f"lam must be a finite number >= 0, got {lam!r}")
-    if degree is not None and (
-        isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= 4
-    ):
-        raise ValueError(f"degree must be an integer in [1, 4], got {degree!r}")
+    if degree is not None:
+        degree = check_int(degree, "degree", 1, MAX_DEGREE)
+    if max_degree is not None:
+        max_degree = check_int(max_degree, "max_degree", 1, MAX_DEGREE)
+        if degree is not None and degree > max_degree:
+            raise ValueError(f"degree = {degree} exceeds max_degree = {max_degree}")
+    if order is not None:
+        order = check_int(order, "order", *ORDER_RANGE)
+    horizon = check_int(horizon, "horizon", 1, 64)
+    max_iter = check_int(max_iter, "max_iter", 1, 10_000)
+    seed = check_seed(seed)
+    verbose = check_bool(verbose, "verbose")
+    refit = check_bool(refit, "refit")
+    if progress is not None:
+        progress = check_bool(progress, "progress")
+    if command is not None and not isinstance(command, str):
+        raise ValueError(f"command must be a string, got {type(command).__name__}")
+    blend = mode == "hj+data" and correction == "network"
+    map_options = check_map_options(map_options, "blend" if blend else "map")
     alg = resolve_algebra(algebra, system)
+    known_degree = 0
+    if mode == "hj+data" and not blend:
+        assert system is not None
+        known_degree = max(
+            (sum(e) for e, c in system.polynomial.terms.items() if c != 0.0), default=0
+        )
+        if known_degree > MAX_DEGREE:
+            raise ValueError(
+                f"system: the known H has degree {known_degree}; mode 'hj+data' with the "
+                f"polynomial correction fits H = known + correction through its Taylor-HJ "
+                f"series, formed for degrees up to {MAX_DEGREE} (give correction='network', "
+                "or a known part of lower degree)"
+            )
     data = prepare(trajectories, h, alg, test_fraction=test_fraction, seed=seed)
+    _refuse_drift(data)
     n = alg.dim
     threshold = 1.5 * math.sqrt(2 * n) * data.noise + 1e-12
     options = {"horizon": horizon, "max_iter": max_iter, "verbose": verbose}
+    held = bool(data.test)
+    # The words the report uses: with nothing held out the errors are training errors.
+    err = "held-out one-step error" if held else "training one-step error (nothing held out)"
     candidates: list[Candidate] = []
     kept: Candidate | None = None
-    degrees = [degree] if degree is not None else list(AUTO_DEGREES)
-    if mode == "hj+data" and correction == "network":
-        kept = _blend_candidate(data, system, order, lam, mode, seed, command, map_options)
-        kept.reason = "the known H's series plus a network trained on loss_HJ + λ·loss_data"
-        candidates.append(kept)
-    elif mode == "hj+data":
-        known = system.polynomial
-        d = degree or max(2, max((sum(e) for e in known.terms), default=2))
-        kept = _polynomial_candidate(
-            data, alg, d, order, mode, seed, command, {**options, "known": known}
-        )
-        kept.family = f"known+poly{d}"
-        kept.reason = "the known H plus a polynomial correction fitted to the data"
-        candidates.append(kept)
-    if mode in ("auto", "hamiltonian"):
-        for d in degrees:
-            cand = _polynomial_candidate(data, alg, d, order, mode, seed, command, options)
-            candidates.append(cand)
-            if verbose:
-                print(f"poly{d}: one-step {cand.one_step:.3e}, {cand.seconds:.1f} s")
-            if math.isfinite(threshold) and cand.one_step <= threshold:
-                kept = cand
-                cand.reason = "the smallest family that reaches the data's noise level"
-                break
-            if not math.isfinite(threshold) and cand.one_step <= EXACT_LEVEL:
-                kept = cand
+    top = max_degree or MAX_DEGREE
+    degrees = [degree] if degree is not None else [d for d in AUTO_DEGREES if d <= top] or [top]
+    planned = {
+        "auto": len(degrees) + 1 + int(refit and held),
+        "hamiltonian": len(degrees) + int(refit and held),
+        "map": 1,
+        "hj+data": 1,
+    }[mode]
+    bar = _progress_bar(planned, progress)
+    try:
+        if blend:
+            bar.set_postfix_str("known+network")
+            kept = _blend_candidate(data, system, order, lam, mode, seed, command, map_options)
+            kept.reason = "the known H's series plus a network trained on loss_HJ + λ·loss_data"
+            candidates.append(kept)
+            bar.update(1)
+        elif mode == "hj+data":
+            assert system is not None
+            d = degree or max(2, known_degree)
+            bar.set_postfix_str(f"known+poly{d}")
+            kept = _polynomial_candidate(
+                data, alg, d, order, mode, seed, command, {**options, "known": system.polynomial}
+            )
+            kept.family = f"known+poly{d}"
+            kept.reason = "the known H plus a polynomial correction fitted to the data"
+            candidates.append(kept)
+            bar.update(1)
+        if mode in ("auto", "hamiltonian"):
+            for d in degrees:
+                bar.set_postfix_str(f"poly{d}")
+                cand = _polynomial_candidate(data, alg, d, order, mode, seed, command, options)
+                candidates.append(cand)
+                bar.update(1)
+                if verbose:
+                    print(f"poly{d}: one-step {cand.one_step:.3e}, {cand.seconds:.1f} s")
+                if math.isfinite(threshold) and cand.one_step <= threshold:
+                    kept = cand
+                    cand.reason = f"the smallest family whose {err} reaches the data's noise level"
+                    break
+                if not math.isfinite(threshold) and cand.one_step <= EXACT_LEVEL:
+                    kept = cand
+                    cand.reason = f"noise level unknown; {err} below {EXACT_LEVEL:g} (exact data)"
+                    break
                 cand.reason = (
-                    f"noise level unknown; held-out one-step error below {EXACT_LEVEL:g} "
-                    "(exact data)"
+                    f"{err} {cand.one_step:.2e} above the noise level {threshold:.2e}"
+                    if math.isfinite(threshold)
+                    else "noise level unknown"
                 )
-                break
+        if kept is None and mode in ("auto", "map"):
+            bar.set_postfix_str("map")
+            cand = _map_candidate(data, alg, mode, seed, command, map_options)
+            candidates.append(cand)
+            bar.update(1)
             cand.reason = (
-                f"held-out one-step error {cand.one_step:.2e} above the noise level {threshold:.2e}"
-                if math.isfinite(threshold)
-                else "noise level unknown"
+                f"its {err} reaches the data's noise level"
+                if cand.one_step <= threshold
+                else f"{err} {cand.one_step:.2e}"
             )
-    if kept is None and mode in ("auto", "map"):
-        cand = _map_candidate(data, alg, mode, seed, command, dict(map_options or {}))
-        candidates.append(cand)
-        cand.reason = (
-            "reaches the data's noise level"
-            if cand.one_step <= threshold
-            else f"held-out one-step error {cand.one_step:.2e}"
-        )
-        if mode == "map" or cand.one_step <= threshold:
-            kept = cand
-    if kept is None:
-        best = min(c.one_step for c in candidates)
-        if not math.isfinite(threshold):
-            # Noise unknown (too few records per trajectory): the smallest candidate within 2×
-            # of the best held-out error.
-            kept = next(c for c in candidates if c.one_step <= 2.0 * best)
-            kept.reason = "the smallest family within 2× of the best held-out error"
-        else:
-            kept = next(c for c in candidates if c.one_step == best)
-            kept.reason = "no family reached the noise level; the best held-out error"
-    if refit and mode != "hj+data" and kept.system is not None and data.test:
-        # The family is chosen on held-out data; its coefficients are then fitted on every
-        # record (with one trajectory, the held-out end is the longest lever on the phase).
-        terms = [e for e, c in kept.system.polynomial.terms.items() if c != 0.0]
-        if terms:
-            whole = _all_records(data)
-            final = _polynomial_candidate(
-                whole,
-                alg,
-                max(map(sum, terms)),
-                kept.order,
-                mode,
-                seed,
-                command,
-                options,
-                family=terms,
-                sparse=False,
-            )
-            final.one_step, final.rollout = kept.one_step, kept.rollout
-            final.seconds += kept.seconds
-            final.reason = kept.reason + "; coefficients refitted on all records"
-            candidates[candidates.index(kept)] = final
-            kept = final
+            if mode == "map" or cand.one_step <= threshold:
+                kept = cand
+        if kept is None:
+            best = min(c.one_step for c in candidates)
+            if not math.isfinite(threshold):
+                # Noise unknown (too few records per trajectory): the smallest candidate within
+                # 2× of the best error.
+                kept = next(c for c in candidates if c.one_step <= 2.0 * best)
+                kept.reason = f"the smallest family within 2× of the best {err}"
+            else:
+                kept = next(c for c in candidates if c.one_step == best)
+                kept.reason = f"no family reached the noise level; the best {err}"
+        if refit and mode != "hj+data" and kept.system is not None and held:
+            # The family is chosen on held-out data; its coefficients are then fitted on every
+            # record (with one trajectory, the held-out end is the longest lever on the phase).
+            terms = [e for e, c in kept.system.polynomial.terms.items() if c != 0.0]
+            if terms:
+                bar.set_postfix_str(f"{kept.family} on all records")
+                whole = _all_records(data)
+                final = _polynomial_candidate(
+                    whole,
+                    alg,
+                    max(map(sum, terms)),
+                    kept.order,
+                    mode,
+                    seed,
+                    command,
+                    options,
+                    family=terms,
+                    sparse=False,
+                )
+                bar.update(1)
+                final.one_step, final.rollout = kept.one_step, kept.rollout
+                final.seconds += kept.seconds
+                final.reason = kept.reason + "; coefficients refitted on all records"
+                candidates[candidates.index(kept)] = final
+                kept = final
+        bar.total = bar.n  # the fits not needed (a family reached the noise level) are done
+        bar.refresh()
+    finally:
+        bar.close()
     kept.kept = True
     for c in candidates:
         if c is not kept and c.reason.startswith("the smallest"):
@@ -453,5 +537,57 @@ def learn(
         threshold=threshold,
         h=data.h,
         seed=seed,
+        held_out=held,
+        span=data.h * (max(len(t) for t in data.test or data.train) - 1),
     )
     return kept.stepper, report
+
+
+def _refuse_drift(data: TrajectoryData) -> None:
+    """ValueError when the data's Casimirs drift far beyond what their noise explains: they do
+    not come from a Lie–Poisson system of the algebra (damping, forcing, another structure),
+    and no Poisson integrator, which keeps every Casimir, can fit them."""
+    drift, limit = data.casimir_drift, drift_limit(data.noise)
+    if not (math.isfinite(drift) and math.isfinite(data.noise)):
+        return
+    if drift > max(DRIFT_REFUSE, DRIFT_REFUSE_RATIO * limit):
+        raise ValueError(
+            f"trajectories: the Casimirs drift by up to {drift:.3g} (relative) along a "
+            f"trajectory, {drift / limit:.3g}× what the data's noise level {data.noise:.2g} "
+            "explains: these data do not come from a Lie–Poisson system of this algebra "
+            "(damping, forcing or another structure), and a Poisson integrator keeps every "
+            "Casimir, so none can fit them"
+        )
+
+
+class _NoBar:
+    """What the fits call on a progress bar, doing nothing."""
+
+    n = 0
+    total = 0
+
+    def set_postfix_str(self, s: str) -> None:
+        pass
+
+    def update(self, k: int) -> None:
+        self.n += k
+
+    def refresh(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress_bar(total: int, progress: bool | None) -> Any:
+    """A tqdm bar over the planned fits (ETA from the fits done so far), on stderr; none when
+    ``progress`` is False, or None and stderr is not a terminal."""
+    import sys
+
+    if progress is None:
+        progress = bool(getattr(sys.stderr, "isatty", lambda: False)())
+    if not progress:
+        return _NoBar()
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc="learn", unit="fit", file=sys.stderr, leave=True)

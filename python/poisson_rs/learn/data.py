@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ..files import describe_mode, read_input_bytes
 from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..untrusted import parsing
 
@@ -44,42 +45,189 @@ class HullWarning(UserWarning):
     """States to be integrated lie outside the region the data covered."""
 
 
+#: Largest data file read (bytes on disk: a .npz, a .csv, or all the files of a Zarr store).
+MAX_DATA_FILE_BYTES = 1 << 30
+#: Largest decoded data (bytes of the arrays once decompressed): checked on the sizes a file
+#: declares before anything is decompressed, so a small compressed file cannot grow past it.
+MAX_DATA_BYTES = 1 << 29
+#: Largest .csv read: its text is split into lines and parsed in memory, several times its size.
+MAX_CSV_BYTES = 1 << 27
+#: Most files in a Zarr store.
+MAX_STORE_ENTRIES = 100_000
+#: Largest system JSON file (``--system``) read.
+MAX_SYSTEM_FILE_BYTES = 1 << 20
+
+
 def load_trajectories(path: str | os.PathLike[str]) -> list[np.ndarray]:
-    """Reads trajectories from ``.npz``, ``.csv`` or a Zarr directory → list of (n_i, dim)."""
+    """Reads trajectories from ``.npz``, ``.csv`` or a Zarr directory → list of (n_i, dim).
+
+    Untrusted input: only regular files (a FIFO would block, a device such as /dev/zero would
+    never end) of at most :data:`MAX_DATA_FILE_BYTES` (:data:`MAX_CSV_BYTES` for a .csv),
+    whose arrays declare at most :data:`MAX_DATA_BYTES` once decoded (checked before
+    decompressing: a .npz of deflated zeros or a Zarr store declaring a huge shape is refused,
+    not read). A Zarr store must be marked
+    complete (an interrupted writer leaves missing chunks that would read as zeros). Raises
+    FileNotFoundError when absent, ValueError naming the file and the problem otherwise."""
     p = Path(path)
     source = f"data file {os.fspath(path)}"
-    if not p.exists():
+    if not os.path.lexists(p):
         raise FileNotFoundError(f"no data file {os.fspath(path)!r}")
     if p.is_dir():
-        with parsing(source, "trajectories"):
-            import zarr
-
-            arr = np.asarray(zarr.open_group(str(p), mode="r")["trajectories"][...])
-        return _split_array(arr, source)
+        return _load_zarr(p, source)
     suffix = p.suffix.lower()
     if suffix == ".npz":
-        with parsing(source, "npz arrays"), np.load(p, allow_pickle=False) as z:
-            names = list(z.files)
-            if "trajectories" in names:
-                return _split_array(np.asarray(z["trajectories"]), source)
-            ragged = sorted((n for n in names if n.startswith("traj_")), key=lambda s: int(s[5:]))
-            if ragged:
-                return [np.asarray(z[n], dtype=np.float64) for n in ragged]
-            if len(names) == 1:
-                return _split_array(np.asarray(z[names[0]]), source)
-            raise ValueError(
-                f"expected an array 'trajectories' or arrays 'traj_0', 'traj_1', ..., got {names}"
-            )
+        raw = read_input_bytes(p, max_bytes=MAX_DATA_FILE_BYTES, what="data file")
+        return _load_npz(raw, source)
     if suffix == ".csv":
-        with parsing(source, "csv rows"):
-            with open(p, encoding="utf-8") as fh:
-                header = fh.readline().strip().split(",")
-            table = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
-        if header and header[0].strip().lower() == "traj":
-            ids = table[:, 0]
-            return [table[ids == i, 1:] for i in np.unique(ids)]
-        return [table]
+        raw = read_input_bytes(p, max_bytes=MAX_CSV_BYTES, what="data file")
+        return _load_csv(raw, source)
     raise ValueError(f"{source}: unknown format {suffix!r}; expected .npz, .csv or a Zarr dir")
+
+
+def _check_declared(shape: tuple[int, ...], dtype: np.dtype, source: str, field: str) -> None:
+    """Refuses an array whose declared shape and dtype hold more than :data:`MAX_DATA_BYTES`, or
+    whose values are not real numbers, before it is read."""
+    with parsing(source, field):
+        if dtype.kind not in "fiub" or dtype.hasobject:
+            raise ValueError(f"records must be real numbers, got dtype {dtype}")
+        count = math.prod(int(d) for d in shape)
+        if count * max(dtype.itemsize, 8) > MAX_DATA_BYTES:
+            raise ValueError(
+                f"declares shape {tuple(shape)} ({count} values), more than the "
+                f"{MAX_DATA_BYTES // 8} values allowed"
+            )
+
+
+def _load_npz(raw: bytes, source: str) -> list[np.ndarray]:
+    """The arrays of a .npz archive's bytes, each checked by its declared size first."""
+    import io
+    import zipfile
+
+    with parsing(source, "npz arrays"):
+        zf = zipfile.ZipFile(io.BytesIO(raw))
+        infos = {i.filename.removesuffix(".npy"): i for i in zf.infolist()}
+        if not infos:
+            raise ValueError("holds no arrays")
+        total = sum(i.file_size for i in infos.values())
+        if total > MAX_DATA_BYTES:
+            raise ValueError(
+                f"its arrays take {total} bytes decompressed, more than the {MAX_DATA_BYTES} "
+                "allowed"
+            )
+    names = list(infos)
+
+    def array(name: str) -> np.ndarray:
+        with parsing(source, name):
+            with zf.open(infos[name]) as fh:
+                version = np.lib.format.read_magic(fh)
+                read_header = (
+                    np.lib.format.read_array_header_1_0
+                    if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0
+                )
+                shape, _, dtype = read_header(fh)
+        _check_declared(shape, dtype, source, name)
+        with parsing(source, name):
+            with zf.open(infos[name]) as fh:
+                # The zip member yields at most its declared size (checked above).
+                return np.asarray(np.lib.format.read_array(fh, allow_pickle=False))
+
+    if "trajectories" in names:
+        return _split_array(array("trajectories"), source)
+    ragged = [n for n in names if n.startswith("traj_")]
+    if ragged:
+        with parsing(source, "npz arrays"):
+            ragged.sort(key=lambda s: int(s[5:]))
+        return [np.asarray(array(n), dtype=np.float64) for n in ragged]
+    if len(names) == 1:
+        return _split_array(array(names[0]), source)
+    raise ValueError(
+        f"{source}: expected an array 'trajectories' or arrays 'traj_0', 'traj_1', ..., got "
+        f"{names[:10]}"
+    )
+
+
+def _load_csv(raw: bytes, source: str) -> list[np.ndarray]:
+    """Rows ``traj, μ_1..μ_n`` (or ``μ_1..μ_n``) after a header row."""
+    import io
+
+    with parsing(source, "csv rows"):
+        lines = raw.decode("utf-8").splitlines()
+        header = lines[0].strip().split(",") if lines else []
+        body = [line for line in lines[1:] if line.strip()]
+        if not body:
+            raise ValueError("holds no records (a header row and no data)")
+        table = np.loadtxt(io.StringIO("\n".join(body)), delimiter=",", ndmin=2)
+    if header and header[0].strip().lower() == "traj":
+        ids = table[:, 0]
+        return [table[ids == i, 1:] for i in np.unique(ids)]
+    return [table]
+
+
+def _load_zarr(p: Path, source: str) -> list[np.ndarray]:
+    """The ``trajectories`` array of a complete Zarr store, every file in it checked first."""
+    _check_store_files(p, source)
+    with parsing(source, "trajectories"):
+        import zarr
+
+        group = zarr.open_group(str(p), mode="r")
+        attrs = dict(group.attrs)
+    with parsing(source, "complete"):
+        if attrs.get("complete") is not True:
+            raise ValueError(
+                "the store is not marked complete (its writer was interrupted, or it was not "
+                "written by ensembles.to_zarr); missing chunks would read as zeros"
+            )
+    with parsing(source, "trajectories"):
+        arr = group["trajectories"]
+        if not isinstance(arr, zarr.Array):
+            raise ValueError("is not an array")
+        shape, chunks, dtype = tuple(arr.shape), tuple(arr.chunks), np.dtype(arr.dtype)
+    _check_declared(shape, dtype, source, "trajectories")
+    _check_declared(chunks, dtype, source, "trajectories chunks")
+    with parsing(source, "trajectories"):
+        data = np.asarray(arr[...])
+    return _split_array(data, source)
+
+
+def _check_store_files(root: Path, source: str) -> None:
+    """Every entry of a Zarr store is a folder or a regular file (no link, FIFO or device), at
+    most :data:`MAX_STORE_ENTRIES` of them and :data:`MAX_DATA_FILE_BYTES` in all."""
+    import stat
+
+    count, total = 0, 0
+    for folder, dirs, files in os.walk(root, followlinks=False):
+        for name in dirs + files:
+            count += 1
+            if count > MAX_STORE_ENTRIES:
+                raise ValueError(f"{source}: more than {MAX_STORE_ENTRIES} files in the store")
+            entry = Path(folder) / name
+            st = os.lstat(entry)
+            if stat.S_ISDIR(st.st_mode):
+                continue
+            if not stat.S_ISREG(st.st_mode):
+                raise ValueError(
+                    f"{source}: {entry.relative_to(root)} is {describe_mode(st.st_mode)}, not a "
+                    "regular file"
+                )
+            total += st.st_size
+            if total > MAX_DATA_FILE_BYTES:
+                raise ValueError(
+                    f"{source}: the store holds more than the {MAX_DATA_FILE_BYTES} bytes allowed"
+                )
+
+
+def read_system_file(path: str | os.PathLike[str], source: str) -> LiePoissonSystem:
+    """A :class:`LiePoissonSystem` from a JSON file (its ``to_dict()``), read as untrusted input:
+    a regular file of at most :data:`MAX_SYSTEM_FILE_BYTES`."""
+    import json
+
+    with parsing(source, "system"):
+        raw = read_input_bytes(path, max_bytes=MAX_SYSTEM_FILE_BYTES, what="system file")
+        spec = json.loads(raw.decode("utf-8"))
+        if not isinstance(spec, dict):
+            raise ValueError("must hold a JSON object (a system's to_dict())")
+        return LiePoissonSystem.from_dict(spec)
 
 
 def _split_array(arr: np.ndarray, source: str) -> list[np.ndarray]:
@@ -153,20 +301,31 @@ class TrajectoryData:
         return n
 
 
+def _from_tensor(x: Any) -> Any:
+    """A torch tensor as a NumPy array (detached: one with requires_grad=True is data here)."""
+    if type(x).__module__.startswith("torch") and hasattr(x, "detach"):
+        return x.detach().cpu().numpy()
+    return x
+
+
 def _as_list(trajectories: Any) -> list[np.ndarray]:
+    trajectories = _from_tensor(trajectories)
     if isinstance(trajectories, (str, os.PathLike)):
         return load_trajectories(trajectories)
     if isinstance(trajectories, np.ndarray) or (
         hasattr(trajectories, "shape") and hasattr(trajectories, "dtype")
     ):
-        arr = np.asarray(trajectories)
+        with parsing("trajectories"):
+            arr = np.asarray(trajectories)
         if arr.dtype == object:
             return [_one(t, i) for i, t in enumerate(arr)]
+        if arr.ndim == 3 and arr.shape[0] == 0:
+            raise ValueError(f"trajectories: got no trajectories (shape {arr.shape})")
         return _split_array(arr, "trajectories")
     if isinstance(trajectories, Sequence) and not isinstance(trajectories, (str, bytes)):
         if len(trajectories) == 0:
             raise ValueError("trajectories: got an empty list")
-        first = trajectories[0]
+        first = _from_tensor(trajectories[0])
         try:
             depth = np.ndim(first)
         except ValueError:  # numpy refuses ragged nesting
@@ -181,9 +340,12 @@ def _as_list(trajectories: Any) -> list[np.ndarray]:
 
 
 def _one(t: Any, i: int) -> np.ndarray:
+    t = _from_tensor(t)
+    if isinstance(t, Sequence):
+        t = [_from_tensor(r) for r in t]
     try:
         arr = np.asarray(t, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise ValueError(
             f"trajectories[{i}]: records must all have the same length (ragged records) and hold "
             f"real numbers ({exc})"
@@ -191,13 +353,49 @@ def _one(t: Any, i: int) -> np.ndarray:
     return arr
 
 
+#: The record spacings h accepted: the fits raise h to the power of the Taylor order (up to
+#: 12) and divide by it, which must stay far from overflow and from subnormal numbers.
+H_RANGE = (1e-12, 1e12)
+#: The RMS |μ| of the data accepted: the Taylor series hold powers of μ up to the 20s.
+SCALE_RANGE = (1e-12, 1e12)
+
+
 def _check_h(h: Any) -> float:
     if isinstance(h, bool) or not isinstance(h, (int, float, np.floating, np.integer)):
         raise ValueError(f"h must be a real number, got {h!r}")
-    hv = float(h)
+    try:
+        hv = float(h)
+    except OverflowError:
+        raise ValueError(f"h must be finite and > 0, got {h!r} (overflows float64)") from None
     if not (math.isfinite(hv) and hv > 0):
         raise ValueError(f"h must be finite and > 0, got {hv}")
+    lo, hi = H_RANGE
+    if not lo <= hv <= hi:
+        raise ValueError(
+            f"h = {hv:g} is outside [{lo:g}, {hi:g}], where the fits' powers of h stay in "
+            "floating-point range; rescale time (h and H together) to bring h within it"
+        )
     return hv
+
+
+def check_seed(seed: Any, name: str = "seed") -> int:
+    """A seed: an integer in [0, 2**63)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"{name} must be an integer >= 0, got {seed!r}")
+    if not 0 <= int(seed) < 2**63:
+        raise ValueError(f"{name} must be an integer in [0, 2**63), got {seed!r}")
+    return int(seed)
+
+
+def _check_fraction(test_fraction: Any) -> float:
+    if isinstance(test_fraction, bool) or not isinstance(
+        test_fraction, (int, float, np.floating, np.integer)
+    ):
+        raise ValueError(f"test_fraction must be a number in [0, 1), got {test_fraction!r}")
+    f = float(test_fraction)
+    if not 0 <= f < 1:
+        raise ValueError(f"test_fraction must lie in [0, 1), got {test_fraction!r}")
+    return f
 
 
 def estimate_noise(trajs: Sequence[np.ndarray], order: int = 6) -> float:
@@ -226,6 +424,24 @@ def casimir_drift(system: LiePoissonSystem, trajs: Sequence[np.ndarray]) -> floa
     return worst
 
 
+#: How far noise alone moves the relative Casimir drift, per unit of relative noise level σ̂:
+#: a quadratic Casimir's change between two records is 2√2·σ̂ (relative) per standard
+#: deviation, and the largest of up to 10⁵ records about 5 of them; with room to spare.
+NOISE_DRIFT_FACTOR = 30.0
+#: A drift beyond what noise explains by this factor, and at least :data:`DRIFT_REFUSE`
+#: relative, is refused by :func:`poisson_rs.learn` (the data are not Lie–Poisson).
+DRIFT_REFUSE_RATIO = 10.0
+DRIFT_REFUSE = 1e-2
+
+
+def drift_limit(noise: float) -> float:
+    """The relative Casimir drift noise of relative level ``noise`` explains (the fixed
+    :data:`CASIMIR_DRIFT_TOL` where the noise is unknown)."""
+    if not math.isfinite(noise):
+        return CASIMIR_DRIFT_TOL
+    return max(NOISE_DRIFT_FACTOR * noise, 1e-10)
+
+
 def prepare(
     trajectories: Any,
     h: Any,
@@ -237,18 +453,27 @@ def prepare(
 ) -> TrajectoryData:
     """Validates and splits ``trajectories`` (see the module docstring) for ``algebra``.
 
-    Raises one ValueError naming the input and field for: h ≤ 0 or not finite, NaN/inf, ragged
-    records within a trajectory, a dimension other than the algebra's, fewer than two records.
-    Warns (CasimirDriftWarning) when the known Casimirs drift by more than
-    :data:`CASIMIR_DRIFT_TOL` relative. Held-out trajectories are chosen by ``seed``; with a
-    single trajectory its last ``test_fraction`` of records is held out instead.
+    Raises one ValueError naming the input and field for: h ≤ 0, not finite or outside
+    :data:`H_RANGE`, no trajectories or no records, NaN/inf, ragged records within a
+    trajectory, a dimension other than the algebra's, fewer than two records, an RMS |μ|
+    outside :data:`SCALE_RANGE` (or zero), records that do not move (an equilibrium), a split
+    that leaves nothing to train on. Warns (CasimirDriftWarning) when the known Casimirs drift
+    by more than the data's noise level explains (:func:`drift_limit`). Held-out trajectories
+    are chosen by ``seed``; with a single trajectory its last ``test_fraction`` of records is
+    held out instead (nothing is held out where that leaves fewer than two records either side:
+    ``TrajectoryData.test`` is then empty).
     """
     hv = _check_h(h)
+    test_fraction = _check_fraction(test_fraction)
+    seed = check_seed(seed)
     trajs = _as_list(trajectories)
+    if not trajs:
+        raise ValueError(f"{name}: got no trajectories")
     n = algebra.dim
     clean = []
     for i, t in enumerate(trajs):
-        if t.dtype.kind not in "fiu":
+        t = np.asarray(t)
+        if t.dtype.kind not in "fiub":
             raise ValueError(f"{name}[{i}]: records must be real numbers, got dtype {t.dtype}")
         if t.ndim != 2:
             raise ValueError(
@@ -262,6 +487,7 @@ def prepare(
             )
         if t.shape[0] < 2:
             raise ValueError(f"{name}[{i}]: needs at least two records, got {t.shape[0]}")
+        t = np.asarray(t, dtype=np.float64)
         if not np.isfinite(t).all():
             bad = np.argwhere(~np.isfinite(t))[0]
             raise ValueError(
@@ -269,8 +495,25 @@ def prepare(
                 "must be finite)"
             )
         clean.append(np.ascontiguousarray(t, dtype=np.float64))
-    if not 0 <= test_fraction < 1:
-        raise ValueError(f"test_fraction must lie in [0, 1), got {test_fraction}")
+    allx = np.concatenate(clean)
+    # RMS |μ| computed in units of the largest entry: no overflow or underflow on the way.
+    big = float(np.max(np.abs(allx)))
+    if big == 0.0:
+        raise ValueError(f"{name}: every record is zero (an equilibrium): nothing to learn")
+    scale = big * float(np.sqrt(np.mean(np.sum((allx / big) ** 2, axis=1))))
+    lo, hi = SCALE_RANGE
+    if not lo <= scale <= hi:
+        raise ValueError(
+            f"{name}: the records' RMS |μ| is {scale:.3g}, outside [{lo:g}, {hi:g}] where the "
+            "fits' powers of μ stay in floating-point range; rescale the data"
+        )
+    r = np.linalg.norm(allx, axis=1)
+    motion = max(float(np.max(np.abs(np.diff(t, axis=0)))) for t in clean) / scale
+    if motion <= 1e-12:
+        raise ValueError(
+            f"{name}: the records do not move (largest change between consecutive records "
+            f"{motion:.2g} of the RMS |μ|): data at an equilibrium tell nothing about H"
+        )
     rng = np.random.default_rng(seed)
     if len(clean) == 1:
         t = clean[0]
@@ -282,17 +525,28 @@ def prepare(
     else:
         order = rng.permutation(len(clean))
         n_test = round(test_fraction * len(clean))
+        if n_test >= len(clean):
+            raise ValueError(
+                f"test_fraction = {test_fraction:g} holds out {n_test} of {len(clean)} "
+                "trajectories, leaving none to train on"
+            )
         test = [clean[i] for i in sorted(order[:n_test])]
         train = [clean[i] for i in sorted(order[n_test:])]
-    allx = np.concatenate(clean)
     system = LiePoissonSystem(algebra, _zero_polynomial(n))
     drift = casimir_drift(system, clean)
-    if math.isfinite(drift) and drift > CASIMIR_DRIFT_TOL:
+    noise = estimate_noise(clean) / scale
+    limit = drift_limit(noise)
+    if math.isfinite(drift) and drift > limit:
+        explained = (
+            f"the data's noise level {noise:.2g} explains up to {limit:.2g}"
+            if math.isfinite(noise)
+            else f"the noise level cannot be told (too few records), tolerance {limit:.2g}"
+        )
         warnings.warn(
             f"{name}: the Casimirs of {algebra.name or 'the algebra'} drift by up to {drift:.3g} "
-            "(relative) along a trajectory; these data cannot all come from a Lie–Poisson system "
-            "of this algebra (noise, another structure or forcing), and a learned Poisson map "
-            "keeps them exactly",
+            f"(relative) along a trajectory, where {explained}; these data cannot all come "
+            "from a Lie–Poisson system of this algebra (another structure, forcing or "
+            "damping), and a learned Poisson map keeps the Casimirs exactly",
             CasimirDriftWarning,
             stacklevel=3,
         )
@@ -300,14 +554,12 @@ def prepare(
     for t in clean:
         digest.update(np.asarray(t.shape, dtype=np.int64).tobytes())
         digest.update(t.tobytes())
-    r = np.linalg.norm(allx, axis=1)
-    scale = float(np.sqrt(np.mean(r * r))) or 1.0
     return TrajectoryData(
         train=train,
         test=test,
         h=hv,
         dim=n,
-        noise=estimate_noise(clean) / scale,
+        noise=noise,
         scale=scale,
         casimir_drift=drift,
         digest=digest.hexdigest(),

@@ -26,7 +26,7 @@ import torch
 from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
 from .data import TrajectoryData
 from .optimize import levenberg_marquardt
-from .series import basis, monomials, series_jacobian, taylor_series
+from .series import MonomialBasis, basis, monomials, series_jacobian, taylor_series
 from .step import bisection_step
 
 __all__ = ["PolynomialFit", "default_order", "fit_polynomial", "vector_field_design"]
@@ -132,6 +132,7 @@ class _Model:
         key = (theta.tobytes(), jacobian)
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
+        out: tuple[MonomialBasis, torch.Tensor, torch.Tensor | None]
         if jacobian:
             out = series_jacobian(self.c, self.family, theta, self.order, self.h)
         else:
@@ -203,6 +204,7 @@ class _Model:
         bsz, _, n = traj.shape
         flat = torch.as_tensor(traj[:, :-1].reshape(-1, n))
         step = bisection_step(b, self.c, s, flat, derivatives=True)
+        assert step.d_coeffs is not None and step.d_state is not None
         dc = (step.d_coeffs @ ds).reshape(bsz, steps, n, -1)
         dsx = step.d_state.reshape(bsz, steps, n, n)
         dth = torch.zeros(bsz, n, ds.shape[1], dtype=torch.float64)
@@ -214,6 +216,11 @@ class _Model:
             dths.append(dth)
             dsts.append(dst)
         return torch.as_tensor(traj), torch.stack(dths, 1), torch.stack(dsts, 1)
+
+
+def _rejected(p: int, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The residuals of a point where the step map is undefined: infinite (LM rejects it)."""
+    return np.full(1, np.inf), (np.zeros((1, p)) if jacobian else None)
 
 
 def _shooting_windows(trajs: list[np.ndarray], length: int) -> list[np.ndarray]:
@@ -274,8 +281,14 @@ def shooting_refine(
         r = np.concatenate(rs)
         return r, (np.concatenate(rows) if jacobian else None)
 
+    def guarded(x: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        try:
+            return evaluate(x[:pz], x[pz:].reshape(-1, n), jacobian)
+        except FloatingPointError:  # a rollout that left the chart: the trial is rejected
+            return _rejected(len(x), jacobian)
+
     fit = levenberg_marquardt(
-        lambda x, jacobian: evaluate(x[:pz], x[pz:].reshape(-1, n), jacobian),
+        guarded,
         np.concatenate([z, starts.reshape(-1)]),
         max_iter=max_iter,
         rel_tol=1e-4,
@@ -356,10 +369,15 @@ def fit_polynomial(
 
     def evaluate(zz, jacobian):
         rs, js = [], []
-        for st, tg, hz in sets:
-            r, j = model.residuals(offset + qf @ zz, st, tg, hz, jacobian)
-            rs.append(r)
-            js.append(j)
+        try:
+            for st, tg, hz in sets:
+                r, j = model.residuals(offset + qf @ zz, st, tg, hz, jacobian)
+                rs.append(r)
+                js.append(j)
+        except FloatingPointError:
+            # A step that leaves the chart (|ad_x| near 2π): the trial is rejected, and a
+            # start there ends the fit with an infinite cost (a candidate that fits nothing).
+            return _rejected(len(zz), jacobian)
         r = np.concatenate(rs)
         return r, (np.concatenate(js) @ qf if jacobian else None)
 

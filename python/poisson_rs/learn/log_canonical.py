@@ -20,6 +20,7 @@ c (the Casimirs' ln-form) do not change the flow and are set to zero (minimal no
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -96,7 +97,9 @@ def fit_lotka_volterra(
         raise ValueError(f"window must be an integer >= 1, got {window!r}")
     if through_integrator:
         a, b, resid = _through_integrator(trajs, float(h), structure, a, b, order, window)
-    terms = {tuple(int(i == j) for j in range(n)): float(a[i]) for i in range(n)}
+    terms: dict[Sequence[int], float] = {
+        tuple(int(i == j) for j in range(n)): float(a[i]) for i in range(n)
+    }
     system = LogCanonicalSystem(structure, LogPolynomial(terms, b), name="learned")
     return LotkaVolterraFit(
         a=a,

@@ -161,6 +161,7 @@ def fit_polynomial_map(
         r = ((step.out.numpy() - mu_k1) / scale).reshape(-1)
         j = None
         if jacobian:
+            assert step.d_coeffs is not None
             j = (step.d_coeffs.numpy()[:, :, free] / scale[..., None]).reshape(len(r), -1)
         return r, j
 
@@ -169,7 +170,7 @@ def fit_polynomial_map(
         trial[free] = x
         return evaluate(trial, jacobian)
 
-    fit = levenberg_marquardt(
+    lm = levenberg_marquardt(
         evaluate_free,
         s[free],
         max_iter=max_iter,
@@ -181,5 +182,5 @@ def fit_polynomial_map(
         verbose=verbose,
     )
     s = s.copy()
-    s[free] = fit.x
+    s[free] = lm.x
     return s, b, int(np.count_nonzero(s))

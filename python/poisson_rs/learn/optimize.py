@@ -54,7 +54,10 @@ def levenberg_marquardt(
         g = jac.T @ r
         improved = False
         for _ in range(12):
-            step = -np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + floor), g)
+            try:
+                step = -np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + floor), g)
+            except np.linalg.LinAlgError:  # singular even damped (non-finite entries): stop
+                break
             r_new, _ = evaluate(x + step, False)
             c_new = float(np.mean(r_new * r_new))
             if np.isfinite(c_new) and c_new < cost:

@@ -46,7 +46,11 @@ class LearnReport:
     ``noise``: estimated noise level of the data, relative to its RMS |μ| (an upper bound; NaN
     when the records are too few to tell); ``casimir_drift``: the data's own largest relative
     Casimir drift (NaN when the algebra has no known Casimir); ``data_sha256``, ``data_shape``:
-    what was learned from; ``threshold``: the held-out one-step error a candidate had to reach.
+    what was learned from; ``threshold``: the held-out one-step error a candidate had to reach;
+    ``held_out``: whether any records were held out (False: two trajectories, or one of a few
+    records; the errors are then training errors, and the report says so); ``span``: the
+    longest scored trajectory's duration, the horizon the rollout errors cover (nothing beyond
+    it was checked).
     """
 
     mode: str
@@ -59,6 +63,8 @@ class LearnReport:
     threshold: float
     h: float
     seed: int
+    held_out: bool = True
+    span: float = math.nan
 
     @property
     def hamiltonian(self) -> Polynomial | None:
@@ -88,12 +94,23 @@ class LearnReport:
         def num(x: float) -> str:
             return "n/a" if not math.isfinite(x) else f"{x:.2e}"
 
+        scored = "held-out" if self.held_out else "training"
         lines = [
             f"learn (mode {self.mode}): data {self.data_shape[0]} trajectories × up to "
             f"{self.data_shape[1]} records, dim {self.data_shape[2]}, h = {self.h:g}, seed "
             f"{self.seed}",
             f"  noise (relative, upper bound) {num(self.noise)}; data's Casimir drift "
-            f"{num(self.casimir_drift)}; held-out one-step threshold {num(self.threshold)}",
+            f"{num(self.casimir_drift)}; {scored} one-step threshold {num(self.threshold)}",
+        ]
+        if not self.held_out:
+            lines.append(
+                "  nothing held out (too few trajectories or records to split): the errors "
+                "below are training errors, and the choice was made on them"
+            )
+        span = f"T = {self.span:g}" if math.isfinite(self.span) else "the records' span"
+        lines += [
+            f"  errors ({scored}): one step, and rollouts of the scored trajectories up to "
+            f"{span}; nothing beyond {span} was checked",
             f"  {'family':<7} {'params':>6} {'K':>2} {'train s':>8} {'1-step':>9} "
             f"{'rollout':>9}  verdict",
         ]
@@ -106,4 +123,8 @@ class LearnReport:
         if self.hamiltonian is not None:
             terms = ", ".join(f"{coef:+.6g}·μ^{e}" for e, coef in self.hamiltonian.terms.items())
             lines.append(f"  H = {terms}")
+            lines.append(
+                "  (gauge-fixed: no constant and no Casimir component, so it may differ from the "
+                "true H by a Casimir function plus a constant, which change no trajectory)"
+            )
         return "\n".join(lines)

@@ -111,9 +111,9 @@ class MonomialBasis:
                 torch.as_tensor(np.array(dst, dtype=np.int64)),
                 torch.as_tensor(exps[src, i].astype(np.float64)),
             )
-        src, dst, factor = self._diff_tables[key]
+        src_t, dst_t, factor = self._diff_tables[key]
         out = torch.zeros((*a.shape[:-1], self.count[max(d - 1, 0)]), dtype=a.dtype)
-        return out.index_add(-1, dst, a[..., src] * factor.to(a.dtype))
+        return out.index_add(-1, dst_t, a[..., src_t] * factor.to(a.dtype))
 
     def grad(self, a: Tensor) -> Tensor:
         """∇a as n coefficient vectors: a (..., N_d) → (..., n, N_{d−1})."""
