@@ -636,7 +636,7 @@ def test_with_nothing_held_out_the_report_says_training_error(n_traj, records) -
 # --- map mode: one h only ------------------------------------------------------------------------
 
 
-def test_a_learned_map_steps_at_its_data_h_only() -> None:
+def test_a_learned_map_steps_at_its_data_h_only(tmp_path: Path) -> None:
     rng = np.random.default_rng(25)
     pairs = _trajectories(BODY, _sphere(rng, 40), 0.1, 2)
     stepper, report = learn(pairs, 0.1, algebra="so3", mode="map", map_options={"degree": 4})
@@ -652,6 +652,14 @@ def test_a_learned_map_steps_at_its_data_h_only() -> None:
     again = pickle.loads(pickle.dumps(stepper))
     with pytest.raises(ValueError, match="steps at that h only"):
         pr.integrate(again, mu0, 0.05, 5)
+    # Its file, loaded back, keeps the rule (integrate reads the stepper's step_h).
+    path = tmp_path / "map.safetensors"
+    path.write_bytes(stepper._bytes)
+    loaded = pr.load_model(path)
+    assert loaded.step_h == 0.1
+    with pytest.raises(ValueError, match="steps at that h only"):
+        pr.integrate(loaded, mu0, 0.05, 5)
+    assert np.isfinite(pr.integrate(loaded, mu0, 0.1, 5)).all()
 
 
 # --- progress and the degrees tried --------------------------------------------------------------

@@ -166,6 +166,13 @@ class BisectionIntegrator:
         return system
 
     @property
+    def step_h(self) -> float | None:
+        """The one step size a learned time-h map steps at (its file's ``step_h``), or None
+        for a generating function valid for every t up to :attr:`h_max`."""
+        value = self.metadata.get("step_h")
+        return None if value is None else float(value)
+
+    @property
     def h_max(self) -> float:
         return float(self.metadata["h_max"])
 

@@ -356,6 +356,10 @@ def integrate(
             f"{getattr(stepper, 'name', type(stepper).__name__)!r} was trained for; pass "
             "strict=False to extrapolate (poisson-rs demo: --no-strict)"
         )
+    # A learned time-h map steps at the one h it was fitted for (its ``step_h``).
+    step_h = getattr(stepper, "step_h", None)
+    if isinstance(step_h, float):
+        check_step(h, step_h, getattr(stepper, "name", type(stepper).__name__))
     domain = getattr(stepper, "domain", None)
     if not isinstance(domain, Mapping):
         domain = None
@@ -385,6 +389,25 @@ def integrate(
 
 
 _ON_FAILURE = ("warn", "raise", "ignore")
+
+
+#: Relative difference from a learned map's fitted h still taken as that h (a few ulps: h read
+#: back from text, or computed as T/n).
+STEP_RTOL = 1e-12
+
+
+def check_step(h: Any, fitted: float, name: str) -> None:
+    """ValueError naming ``h`` and ``fitted`` unless h is ``fitted`` (to :data:`STEP_RTOL`): a
+    learned time-h map is the flow's map at that h only."""
+    try:
+        hv = float(h)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"h must be a real number, got {h!r}") from None
+    if not (math.isfinite(hv) and abs(hv - fitted) <= STEP_RTOL * fitted):
+        raise ValueError(
+            f"h = {h!r}: {name!r} is a learned time-h map fitted for h = {fitted!r} (the data's "
+            "record spacing) and steps at that h only; at any other h it is not the flow's map"
+        )
 
 
 def dop853_rollout(

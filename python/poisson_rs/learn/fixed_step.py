@@ -8,31 +8,14 @@ so :class:`FixedStepIntegrator` refuses every h but the fitted one.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
 from ..integrators import LearnedIntegrator
+from ..rollout import STEP_RTOL, check_step
 
 __all__ = ["STEP_RTOL", "FixedStepIntegrator", "check_step"]
-
-#: Relative difference from the fitted h still taken as that h (a few ulps: h read back from
-#: text, or computed as T/n).
-STEP_RTOL = 1e-12
-
-
-def check_step(h: Any, fitted: float, name: str) -> None:
-    """ValueError naming ``h`` and ``fitted`` unless h is ``fitted`` (to :data:`STEP_RTOL`)."""
-    try:
-        hv = float(h)
-    except (TypeError, ValueError, OverflowError):
-        raise ValueError(f"h must be a real number, got {h!r}") from None
-    if not (math.isfinite(hv) and abs(hv - fitted) <= STEP_RTOL * fitted):
-        raise ValueError(
-            f"h = {h!r}: {name!r} is a learned time-h map fitted for h = {fitted!r} (the data's "
-            "record spacing) and steps at that h only; at any other h it is not the flow's map"
-        )
 
 
 class FixedStepIntegrator(LearnedIntegrator):
@@ -45,11 +28,11 @@ class FixedStepIntegrator(LearnedIntegrator):
         """The one step size the map was fitted for (time units): the file's ``step_h``."""
         return float(self.metadata["step_h"])
 
-    def _rollout(
+    def rollout(
         self, mu0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         check_step(h, self.step_h, self.name)
-        return super()._rollout(mu0, h, n_steps, every)
+        return super().rollout(mu0, h, n_steps, every)
 
     def torch_step(self, mu: Any, h: float) -> Any:
         check_step(h, self.step_h, self.name)
