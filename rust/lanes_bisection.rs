@@ -15,7 +15,9 @@
 //! and still give every trajectory the scalar step's bits.
 //!
 //! **Dispatch** as in [`crate::lanes`]: the block loop compiled for the baseline and, behind
-//! `#[target_feature(enable = "avx2,fma")]`, for AVX2, chosen once per call by [`Isa::detect`].
+//! `#[target_feature(enable = "avx2,fma")]`, for AVX2, chosen once per call by [`Isa::detect`]. An
+//! [`Isa`] claims AVX2 only where detection found it, so the safe functions here cannot run AVX2
+//! code on a CPU without it.
 
 // Index loops over lanes, coordinates and monomials read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
@@ -322,15 +324,14 @@ fn dispatch<const N: usize, T: FromLanes<N>>(
     out: &mut [T],
 ) {
     assert_eq!(p.len(), out.len(), "one output per momentum");
-    match isa {
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => {
-            // SAFETY: `Isa::Avx2` is only chosen (by `Isa::detect` or a caller that checked)
-            // where the CPU runs AVX2 and FMA.
-            unsafe { blocks_avx2(poly, t, p, out) }
-        }
-        _ => blocks(poly, t, p, out),
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
+        // field is private: safe code cannot forge it).
+        unsafe { blocks_avx2(poly, t, p, out) };
+        return;
     }
+    blocks(poly, t, p, out);
 }
 
 /// `out[j]` = [`Polynomial::jet`] at `p[j]`, bit for bit, evaluated in lanes compiled for `isa`.
@@ -848,12 +849,12 @@ pub(crate) fn so3_newton_steps<const N: usize>(
         N == 3 && live.len() == mu.len() && results.len() == mu.len(),
         "so(3) lanes need N = 3 and one flag and result per state"
     );
-    match isa {
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => {
-            // SAFETY: `Isa::Avx2` is only chosen where the CPU runs AVX2 and FMA.
-            unsafe { so3_chunk_avx2(sys, t, mu, live, results) }
-        }
-        _ => so3_chunk(sys, t, mu, live, results),
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
+        // field is private: safe code cannot forge it).
+        unsafe { so3_chunk_avx2(sys, t, mu, live, results) };
+        return;
     }
+    so3_chunk(sys, t, mu, live, results);
 }

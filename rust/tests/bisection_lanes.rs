@@ -389,7 +389,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
             }
             (mu, res)
         };
-        let (reference, ref_results) = run(Isa::Portable, 29);
+        let (reference, ref_results) = run(Isa::PORTABLE, 29);
         assert_eq!(ref_results[5], Err(StepFailure::NonFinite));
         if chart == Chart::Exp {
             assert_eq!(ref_results[17], Err(StepFailure::ChartSingular));
