@@ -855,12 +855,12 @@ impl<const N: usize> GeneratingFunction<N> {
         })
     }
 
-    /// A workspace for this function. Where the memory is refused it panics (an unwinding
-    /// panic the bindings turn into MemoryError, see [`crate::memory::OUT_OF_MEMORY`]), never
+    /// A workspace for this function. Where the memory is refused it unwinds with a
+    /// [`crate::memory::OutOfMemory`] payload (which the bindings turn into MemoryError), never
     /// aborts; callers check [`Workspace::bytes`] first or use [`Self::try_workspace`].
     pub fn workspace(&self) -> Workspace<N> {
         self.try_workspace()
-            .unwrap_or_else(|e| panic!("{}{e}", crate::memory::OUT_OF_MEMORY))
+            .unwrap_or_else(|e| crate::memory::panic_out_of_memory(&e))
     }
 
     /// A workspace, or [`CoreError::Memory`] where the memory is refused.
