@@ -15,7 +15,7 @@
 //! (four lanes per instruction), chosen once at run time with `is_x86_feature_detected!`
 //! ([`Isa::detect`]). `std::arch` needs no dependency and no `unsafe` beyond the call of the
 //! feature-gated function; AVX-512 (`avx512f` as a target feature) is stable from Rust 1.89,
-//! above this crate's minimum 1.85, so it is not compiled in (see docs/performance.md).
+//! above this crate's minimum 1.87, so it is not compiled in (see docs/performance.md).
 
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
