@@ -28,7 +28,7 @@ use crate::generating::{Polynomial, TABLE_POWER};
 use crate::lanes::{Isa, LANES};
 use crate::stepper::{StepResult, StepStats, SIMPLIFIED_RATE};
 use crate::structures::lie_groupoid::{
-    exp_chart_coefficient_to, Chart, C_SERIES, EXP_CHART_MAX_ANGLE,
+    exp_chart_coefficient_to, Chart, COS_SERIES, C_SERIES, EXP_CHART_MAX_ANGLE, SIN_SERIES,
 };
 
 /// Blocks with at most this many momenta take the scalar path: a block of 8 lanes costs about
@@ -541,6 +541,40 @@ pub(crate) fn so3_chart_lanes<const L: usize>(
     (t, s, Some(j))
 }
 
+/// [`Chart::rotate`] in lanes, bit for bit: R(x) μ = μ + (a x×μ + b x×(x×μ)), with the
+/// coefficients at s = |x|² (given) from [`Chart::rotation_coefficients`]; the exponential
+/// chart's series is summed in lanes below s = 1, its closed form taken lane by lane above.
+#[inline(always)]
+pub(crate) fn so3_rotate_lanes<const L: usize>(
+    chart: Chart,
+    x: &V3<L>,
+    mu: &V3<L>,
+    s: V<L>,
+) -> V3<L> {
+    let (a, b) = match chart {
+        Chart::Cayley => {
+            let r = V::splat(1.0).zip(V::splat(1.0) + s.scale(0.25), |a, b| a / b);
+            (r, r.scale(0.5))
+        }
+        Chart::Exp => {
+            let (mut a, mut b) = (V::splat(0.0), V::splat(0.0));
+            for (&u, &v) in SIN_SERIES.iter().zip(&COS_SERIES).rev() {
+                a = a * s + V::splat(u);
+                b = b * s + V::splat(v);
+            }
+            for l in 0..L {
+                if s.0[l] >= 1.0 {
+                    (a.0[l], b.0[l]) = chart.rotation_coefficients(s.0[l]);
+                }
+            }
+            (a, b)
+        }
+    };
+    let xm = cross(x, mu);
+    let xxm = cross(x, &xm);
+    v3(|i| mu[i] + (a * xm[i] + b * xxm[i]))
+}
+
 /// The cofactor inverse of [`crate::stepper::inverse3`] lane by lane (the same operations), and
 /// the determinant.
 #[inline(always)]
@@ -750,25 +784,26 @@ fn so3_block<const N: usize, const L: usize>(
     if !converged.iter().any(|&c| c) {
         return;
     }
-    // μ' = sou(∇S(p), p) at the converged p; the residual of the solved equation.
+    // μ' = R(x) μ with x = ∇S(p) at the converged p (= sou(x, p) up to the residual, which
+    // R(x) μ leaves out: see Groupoid::coadjoint); the residual of the solved equation.
     for i in 0..3 {
         pl[i] = p[i].0;
     }
     evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
     let (x, _) = gradient_and_hessian(&jet);
     let (tar, s, _) = so3_chart_lanes(sys.chart, -1.0, &x, &p, None);
-    let (sou, _, _) = so3_chart_lanes(sys.chart, 1.0, &x, &p, None);
+    let next = so3_rotate_lanes(sys.chart, &x, &target, s);
     for l in (0..n).filter(|&l| converged[l]) {
         results[l] = if !(jet.v[l].is_finite() && (0..3).all(|i| x[i].0[l].is_finite())) {
             Err(StepFailure::NonFinite)
         } else if exp && s.0[l] >= max_s {
             Err(StepFailure::ChartSingular)
-        } else if !(0..3).all(|i| sou[i].0[l].is_finite()) {
+        } else if !(0..3).all(|i| next[i].0[l].is_finite()) {
             Err(StepFailure::NonFinite)
         } else {
             let residual = (0..3).fold(0.0f64, |m, i| m.max((tar[i].0[l] - target[i].0[l]).abs()));
             for i in 0..3 {
-                mu[l][i] = sou[i].0[l];
+                mu[l][i] = next[i].0[l];
             }
             Ok(StepStats {
                 iterations: iterations[l],
