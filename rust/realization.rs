@@ -4,7 +4,9 @@
 //! g*, fibre x ∈ g) and the log-canonical one ([`crate::structures::LogCanonical`], base q = ln x,
 //! fibre P).
 //!
-//! One step of size h from μ: solve tar(∂S/∂p(h, p), p) = μ for p, then μ' = sou(∂S/∂p, p).
+//! One step of size h from μ: solve tar(∂S/∂p(h, p), p) = μ for p, then μ' = sou(∂S/∂p, p),
+//! formed from μ where the realization can ([`Realization::sou_after_solve`]), so that Newton's
+//! residual does not reach the Casimirs.
 //! On the Lie-algebra groupoid with a [`GeneratingFunction`], a step of [`RealizationStepper`] is
 //! the same sequence of floating-point operations as one of
 //! [`crate::stepper::BisectionStepper`] with full Newton on one trajectory, so the two are
