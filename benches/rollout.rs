@@ -358,7 +358,7 @@ fn bench_classical(c: &mut Criterion) {
         g.bench_function("scalar", |b| {
             b.iter(|| run(&PerStep(&rk4), &mu0, n, &mut out))
         });
-        for isa in [Isa::Portable, Isa::detect()] {
+        for isa in [Isa::PORTABLE, Isa::detect()] {
             let k = Lanes { stepper: &rk4, isa };
             g.bench_function(format!("lanes-{}", isa.name()), |b| {
                 b.iter(|| run(&k, &mu0, n, &mut out))
@@ -367,7 +367,7 @@ fn bench_classical(c: &mut Criterion) {
         g.bench_function("midpoint-scalar", |b| {
             b.iter(|| run(&PerStep(&mid), &mu0, n, &mut out))
         });
-        for isa in [Isa::Portable, Isa::detect()] {
+        for isa in [Isa::PORTABLE, Isa::detect()] {
             let k = Lanes { stepper: &mid, isa };
             g.bench_function(format!("midpoint-lanes-{}", isa.name()), |b| {
                 b.iter(|| run(&k, &mu0, n, &mut out))
@@ -425,7 +425,7 @@ fn bench_splitting_lanes(c: &mut Criterion) {
         g.measurement_time(Duration::from_secs(2));
         g.throughput(Throughput::Elements((mu0.len() * STEPS) as u64));
         g.bench_function("scalar", |b| b.iter(|| run(&PerStep(s), mu0, &mut out)));
-        for isa in [Isa::Portable, Isa::detect()] {
+        for isa in [Isa::PORTABLE, Isa::detect()] {
             let k = Lanes { stepper: s, isa };
             g.bench_function(format!("lanes-{}", isa.name()), |b| {
                 b.iter(|| run(&k, mu0, &mut out))

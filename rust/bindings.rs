@@ -75,13 +75,8 @@ fn detached<T: Send>(
     py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
         .map_err(|payload| {
             // Memory refused where no Result could carry it (a workspace inside the pool).
-            let message = payload
-                .downcast_ref::<String>()
-                .map(String::as_str)
-                .or_else(|| payload.downcast_ref::<&str>().copied())
-                .unwrap_or("");
-            match message.strip_prefix(crate::memory::OUT_OF_MEMORY) {
-                Some(m) => PyMemoryError::new_err(m.to_string()),
+            match crate::memory::out_of_memory(&*payload) {
+                Some(oom) => PyMemoryError::new_err(oom.message.clone()),
                 None => PyRuntimeError::new_err("internal error in the poisson_rs core (panic)"),
             }
         })?

@@ -492,12 +492,13 @@ fn tanh_slice_avx2(z: &mut [f64]) {
 /// [`tanh_fast`] on every element, compiled for `isa` ([`tanh_fast_fma`] on the AVX2+FMA
 /// path).
 fn tanh_slice(isa: Isa, z: &mut [f64]) {
-    match isa {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: `Isa::Avx2` is only chosen where the CPU runs AVX2 and FMA.
-        Isa::Avx2 => unsafe { tanh_slice_avx2(z) },
-        _ => tanh_slice_body::<false>(z),
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA.
+        unsafe { tanh_slice_avx2(z) };
+        return;
     }
+    tanh_slice_body::<false>(z);
 }
 
 /// tanh with its chain rule, in place, on `rows` of a batched layer of `comps` components
@@ -562,12 +563,13 @@ fn tanh_rows_avx2<const N: usize>(comps: usize, z: &mut [f64], rows: usize, n: u
 /// [`tanh_rows_body`] compiled for `isa`.
 fn tanh_rows<const N: usize>(isa: Isa, comps: usize, z: &mut [f64], rows: usize, n: usize) {
     assert!(n <= MAX_BATCH, "batch of {n} trajectories");
-    match isa {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: `Isa::Avx2` is only chosen where the CPU runs AVX2 and FMA.
-        Isa::Avx2 => unsafe { tanh_rows_avx2::<N>(comps, z, rows, n) },
-        _ => tanh_rows_body::<N, false>(comps, z, rows, n),
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA.
+        unsafe { tanh_rows_avx2::<N>(comps, z, rows, n) };
+        return;
     }
+    tanh_rows_body::<N, false>(comps, z, rows, n);
 }
 
 /// A tanh MLP R^{1+N} → R with inputs (t, p₁, …, p_N); tanh after every layer but the last.
@@ -853,12 +855,12 @@ impl<const N: usize> GeneratingFunction<N> {
         })
     }
 
-    /// A workspace for this function. Where the memory is refused it panics (an unwinding
-    /// panic the bindings turn into MemoryError, see [`crate::memory::OUT_OF_MEMORY`]), never
+    /// A workspace for this function. Where the memory is refused it unwinds with a
+    /// [`crate::memory::OutOfMemory`] payload (which the bindings turn into MemoryError), never
     /// aborts; callers check [`Workspace::bytes`] first or use [`Self::try_workspace`].
     pub fn workspace(&self) -> Workspace<N> {
         self.try_workspace()
-            .unwrap_or_else(|e| panic!("{}{e}", crate::memory::OUT_OF_MEMORY))
+            .unwrap_or_else(|e| crate::memory::panic_out_of_memory(&e))
     }
 
     /// A workspace, or [`CoreError::Memory`] where the memory is refused.

@@ -25,7 +25,7 @@ const KC: usize = 128;
 /// W (row-major, `n_out × n_in`) repacked for [`gemm`]: panels of MR rows, each k-major
 /// (`panel[k·MR + r] = W[q·MR + r, k]`), with zero rows past `n_out`.
 pub fn pack(weight: &[f64], n_in: usize, n_out: usize) -> Vec<f64> {
-    try_pack(weight, n_in, n_out).unwrap_or_else(|e| panic!("{}{e}", crate::memory::OUT_OF_MEMORY))
+    try_pack(weight, n_in, n_out).unwrap_or_else(|e| crate::memory::panic_out_of_memory(&e))
 }
 
 /// [`pack`], with the packed copy allocated fallibly ([`CoreError::Memory`] where refused):

@@ -15,7 +15,7 @@
 //! (four lanes per instruction), chosen once at run time with `is_x86_feature_detected!`
 //! ([`Isa::detect`]). `std::arch` needs no dependency and no `unsafe` beyond the call of the
 //! feature-gated function; AVX-512 (`avx512f` as a target feature) is stable from Rust 1.89,
-//! above this crate's minimum 1.85, so it is not compiled in (see docs/performance.md).
+//! above this crate's minimum 1.87, so it is not compiled in (see docs/performance.md).
 
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
@@ -513,31 +513,64 @@ fn axpy_lanes<const L: usize, const N: usize>(
     }
 }
 
-/// The instruction sets the block loop is compiled for.
+/// The instruction set a block loop runs with, as a proof about this CPU: the portable baseline
+/// ([`Isa::PORTABLE`], which every CPU runs) or AVX2 with FMA, which only [`Isa::detect`] and
+/// [`Isa::avx2`] can return, and only where the CPU runs both. The field is private, so safe
+/// code cannot claim AVX2 on a CPU without it: the safe functions that take an `Isa`
+/// ([`Lanes`], [`crate::lanes_bisection::polynomial_jets`], …) call code compiled for the
+/// features it names, which on a CPU without them would be undefined behaviour.
+///
+/// ```
+/// use poisson_rs::lanes::Isa;
+/// let isa = Isa::detect();
+/// assert!(isa == Isa::PORTABLE || Isa::avx2() == Some(isa));
+/// ```
+///
+/// The AVX2 proof cannot be written by hand:
+///
+/// ```compile_fail
+/// use poisson_rs::lanes::Isa;
+/// let forged = Isa { avx2: true };
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Isa {
-    /// The target's baseline (SSE2 on x86-64): runs everywhere.
-    Portable,
-    /// AVX2 and FMA (x86-64 only; FMA is enabled but never contracted into, see the module doc).
-    Avx2,
+pub struct Isa {
+    /// AVX2 and FMA (x86-64 only; FMA is enabled but never contracted into, see the module
+    /// doc). True only where run-time detection found both.
+    avx2: bool,
 }
 
 impl Isa {
-    /// The widest instruction set this CPU runs.
-    pub fn detect() -> Isa {
+    /// The target's baseline (SSE2 on x86-64): runs everywhere.
+    pub const PORTABLE: Isa = Isa { avx2: false };
+
+    /// AVX2 with FMA, where this CPU runs both; None elsewhere. With [`Isa::detect`], the only
+    /// way to obtain an `Isa` that claims them.
+    pub fn avx2() -> Option<Isa> {
         #[cfg(target_arch = "x86_64")]
         {
             if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                return Isa::Avx2;
+                return Some(Isa { avx2: true });
             }
         }
-        Isa::Portable
+        None
+    }
+
+    /// The widest instruction set this CPU runs.
+    pub fn detect() -> Isa {
+        Isa::avx2().unwrap_or(Isa::PORTABLE)
+    }
+
+    /// Whether this is the AVX2 proof: code compiled with `#[target_feature(enable =
+    /// "avx2,fma")]` may then run.
+    pub fn is_avx2(self) -> bool {
+        self.avx2
     }
 
     pub fn name(self) -> &'static str {
-        match self {
-            Isa::Portable => "portable",
-            Isa::Avx2 => "avx2+fma",
+        if self.avx2 {
+            "avx2+fma"
+        } else {
+            "portable"
         }
     }
 }
@@ -608,17 +641,14 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 advance_block::<N, 1, S>(self.stepper, h, steps.clone(), every, block);
                 continue;
             }
-            match self.isa {
-                #[cfg(target_arch = "x86_64")]
-                Isa::Avx2 => {
-                    // SAFETY: `Isa::Avx2` is only chosen (by `Isa::detect` or a caller that
-                    // checked) where the CPU runs AVX2 and FMA.
-                    unsafe {
-                        advance_block_avx2::<N, S>(self.stepper, h, steps.clone(), every, block)
-                    }
-                }
-                _ => advance_block::<N, LANES, S>(self.stepper, h, steps.clone(), every, block),
+            #[cfg(target_arch = "x86_64")]
+            if self.isa.is_avx2() {
+                // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA
+                // (its field is private: safe code cannot forge it).
+                unsafe { advance_block_avx2::<N, S>(self.stepper, h, steps.clone(), every, block) };
+                continue;
             }
+            advance_block::<N, LANES, S>(self.stepper, h, steps.clone(), every, block);
         }
     }
 }

@@ -15,7 +15,9 @@
 //! and still give every trajectory the scalar step's bits.
 //!
 //! **Dispatch** as in [`crate::lanes`]: the block loop compiled for the baseline and, behind
-//! `#[target_feature(enable = "avx2,fma")]`, for AVX2, chosen once per call by [`Isa::detect`].
+//! `#[target_feature(enable = "avx2,fma")]`, for AVX2, chosen once per call by [`Isa::detect`]. An
+//! [`Isa`] claims AVX2 only where detection found it, so the safe functions here cannot run AVX2
+//! code on a CPU without it.
 
 // Index loops over lanes, coordinates and monomials read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
@@ -26,7 +28,7 @@ use crate::generating::{Polynomial, TABLE_POWER};
 use crate::lanes::{Isa, LANES};
 use crate::stepper::{StepResult, StepStats, SIMPLIFIED_RATE};
 use crate::structures::lie_groupoid::{
-    exp_chart_coefficient_to, Chart, C_SERIES, EXP_CHART_MAX_ANGLE,
+    exp_chart_coefficient_to, Chart, COS_SERIES, C_SERIES, EXP_CHART_MAX_ANGLE, SIN_SERIES,
 };
 
 /// Blocks with at most this many momenta take the scalar path: a block of 8 lanes costs about
@@ -322,15 +324,14 @@ fn dispatch<const N: usize, T: FromLanes<N>>(
     out: &mut [T],
 ) {
     assert_eq!(p.len(), out.len(), "one output per momentum");
-    match isa {
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => {
-            // SAFETY: `Isa::Avx2` is only chosen (by `Isa::detect` or a caller that checked)
-            // where the CPU runs AVX2 and FMA.
-            unsafe { blocks_avx2(poly, t, p, out) }
-        }
-        _ => blocks(poly, t, p, out),
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
+        // field is private: safe code cannot forge it).
+        unsafe { blocks_avx2(poly, t, p, out) };
+        return;
     }
+    blocks(poly, t, p, out);
 }
 
 /// `out[j]` = [`Polynomial::jet`] at `p[j]`, bit for bit, evaluated in lanes compiled for `isa`.
@@ -538,6 +539,40 @@ pub(crate) fn so3_chart_lanes<const L: usize>(
     }
     let j = m3(|r, k| jp[r][k] + a[r][0] * h[0][k] + a[r][1] * h[1][k] + a[r][2] * h[2][k]);
     (t, s, Some(j))
+}
+
+/// [`Chart::rotate`] in lanes, bit for bit: R(x) μ = μ + (a x×μ + b x×(x×μ)), with the
+/// coefficients at s = |x|² (given) from [`Chart::rotation_coefficients`]; the exponential
+/// chart's series is summed in lanes below s = 1, its closed form taken lane by lane above.
+#[inline(always)]
+pub(crate) fn so3_rotate_lanes<const L: usize>(
+    chart: Chart,
+    x: &V3<L>,
+    mu: &V3<L>,
+    s: V<L>,
+) -> V3<L> {
+    let (a, b) = match chart {
+        Chart::Cayley => {
+            let r = V::splat(1.0).zip(V::splat(1.0) + s.scale(0.25), |a, b| a / b);
+            (r, r.scale(0.5))
+        }
+        Chart::Exp => {
+            let (mut a, mut b) = (V::splat(0.0), V::splat(0.0));
+            for (&u, &v) in SIN_SERIES.iter().zip(&COS_SERIES).rev() {
+                a = a * s + V::splat(u);
+                b = b * s + V::splat(v);
+            }
+            for l in 0..L {
+                if s.0[l] >= 1.0 {
+                    (a.0[l], b.0[l]) = chart.rotation_coefficients(s.0[l]);
+                }
+            }
+            (a, b)
+        }
+    };
+    let xm = cross(x, mu);
+    let xxm = cross(x, &xm);
+    v3(|i| mu[i] + (a * xm[i] + b * xxm[i]))
 }
 
 /// The cofactor inverse of [`crate::stepper::inverse3`] lane by lane (the same operations), and
@@ -749,25 +784,26 @@ fn so3_block<const N: usize, const L: usize>(
     if !converged.iter().any(|&c| c) {
         return;
     }
-    // μ' = sou(∇S(p), p) at the converged p; the residual of the solved equation.
+    // μ' = R(x) μ with x = ∇S(p) at the converged p (= sou(x, p) up to the residual, which
+    // R(x) μ leaves out: see Groupoid::coadjoint); the residual of the solved equation.
     for i in 0..3 {
         pl[i] = p[i].0;
     }
     evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
     let (x, _) = gradient_and_hessian(&jet);
     let (tar, s, _) = so3_chart_lanes(sys.chart, -1.0, &x, &p, None);
-    let (sou, _, _) = so3_chart_lanes(sys.chart, 1.0, &x, &p, None);
+    let next = so3_rotate_lanes(sys.chart, &x, &target, s);
     for l in (0..n).filter(|&l| converged[l]) {
         results[l] = if !(jet.v[l].is_finite() && (0..3).all(|i| x[i].0[l].is_finite())) {
             Err(StepFailure::NonFinite)
         } else if exp && s.0[l] >= max_s {
             Err(StepFailure::ChartSingular)
-        } else if !(0..3).all(|i| sou[i].0[l].is_finite()) {
+        } else if !(0..3).all(|i| next[i].0[l].is_finite()) {
             Err(StepFailure::NonFinite)
         } else {
             let residual = (0..3).fold(0.0f64, |m, i| m.max((tar[i].0[l] - target[i].0[l]).abs()));
             for i in 0..3 {
-                mu[l][i] = sou[i].0[l];
+                mu[l][i] = next[i].0[l];
             }
             Ok(StepStats {
                 iterations: iterations[l],
@@ -848,12 +884,12 @@ pub(crate) fn so3_newton_steps<const N: usize>(
         N == 3 && live.len() == mu.len() && results.len() == mu.len(),
         "so(3) lanes need N = 3 and one flag and result per state"
     );
-    match isa {
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => {
-            // SAFETY: `Isa::Avx2` is only chosen where the CPU runs AVX2 and FMA.
-            unsafe { so3_chunk_avx2(sys, t, mu, live, results) }
-        }
-        _ => so3_chunk(sys, t, mu, live, results),
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
+        // field is private: safe code cannot forge it).
+        unsafe { so3_chunk_avx2(sys, t, mu, live, results) };
+        return;
     }
+    so3_chunk(sys, t, mu, live, results);
 }

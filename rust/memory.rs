@@ -12,9 +12,34 @@ use std::path::Path;
 
 use crate::error::CoreError;
 
-/// Prefix of the message of a panic raised for refused memory where no `Result` can carry it
-/// (a workspace made inside a thread pool): the bindings turn such a panic into MemoryError.
-pub const OUT_OF_MEMORY: &str = "out of memory: ";
+/// The payload of a panic raised for refused memory where no `Result` can carry it (a workspace
+/// made inside a thread pool, which hands the payload on unchanged): the bindings recognise it
+/// by its type ([`out_of_memory`]) and raise MemoryError with its message. A type, not a
+/// message prefix: no other panic, whatever its text, is taken for it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct OutOfMemory {
+    /// What could not be allocated, in words for the user.
+    pub message: String,
+}
+
+impl std::fmt::Display for OutOfMemory {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "out of memory: {}", self.message)
+    }
+}
+
+/// Unwinds with an [`OutOfMemory`] payload carrying `error`'s text (the panic of an
+/// infallible constructor whose allocation was refused).
+pub fn panic_out_of_memory(error: &CoreError) -> ! {
+    std::panic::panic_any(OutOfMemory {
+        message: error.to_string(),
+    })
+}
+
+/// The [`OutOfMemory`] a caught panic's payload is, if it is one.
+pub fn out_of_memory(payload: &(dyn std::any::Any + Send)) -> Option<&OutOfMemory> {
+    payload.downcast_ref::<OutOfMemory>()
+}
 
 /// Fraction of the usable memory one call may plan to take (the rest is headroom for Python,
 /// NumPy and the allocator's own overhead).
@@ -195,6 +220,34 @@ mod tests {
             "{e:?}"
         );
         assert!(check_fits(usize::MAX, "a test", "use less").is_err());
+    }
+
+    /// A refused allocation inside an infallible constructor unwinds with the typed payload,
+    /// also out of a thread pool; a panic whose text merely looks like one is not taken for it.
+    #[test]
+    fn refused_memory_panics_with_a_typed_payload() {
+        use rayon::prelude::*;
+        use std::panic::{catch_unwind, AssertUnwindSafe};
+        // A packed layer of 0.75 · usize::MAX numbers: the allocator refuses it at once.
+        let direct = catch_unwind(|| crate::kernel::pack(&[], usize::MAX / 16, 7)).unwrap_err();
+        let pooled = catch_unwind(|| {
+            (0..64).into_par_iter().for_each(|i| {
+                if i == 37 {
+                    panic_out_of_memory(&CoreError::Memory("a pooled workspace".into()));
+                }
+            })
+        })
+        .unwrap_err();
+        let forged =
+            catch_unwind(AssertUnwindSafe(|| panic!("out of memory: not really"))).unwrap_err();
+        let plain = catch_unwind(|| panic!("{}", "out of memory: a string")).unwrap_err();
+        let oom = out_of_memory(&*direct).expect("the refused layer is an OutOfMemory");
+        assert!(oom.message.contains("a packed layer"), "{oom}");
+        let oom = out_of_memory(&*pooled).expect("the payload survives the pool");
+        assert_eq!(oom.message, "a pooled workspace");
+        assert_eq!(oom.to_string(), "out of memory: a pooled workspace");
+        assert!(out_of_memory(&*forged).is_none());
+        assert!(out_of_memory(&*plain).is_none());
     }
 
     /// A scratch folder laid out like a cgroup mount.

@@ -4,7 +4,9 @@
 //! g*, fibre x ∈ g) and the log-canonical one ([`crate::structures::LogCanonical`], base q = ln x,
 //! fibre P).
 //!
-//! One step of size h from μ: solve tar(∂S/∂p(h, p), p) = μ for p, then μ' = sou(∂S/∂p, p).
+//! One step of size h from μ: solve tar(∂S/∂p(h, p), p) = μ for p, then μ' = sou(∂S/∂p, p),
+//! formed from μ where the realization can ([`Realization::sou_after_solve`]), so that Newton's
+//! residual does not reach the Casimirs.
 //! On the Lie-algebra groupoid with a [`GeneratingFunction`], a step of [`RealizationStepper`] is
 //! the same sequence of floating-point operations as one of
 //! [`crate::stepper::BisectionStepper`] with full Newton on one trajectory, so the two are
@@ -32,8 +34,9 @@ pub trait Realization<const N: usize>: Sync {
     }
     /// The step's new state from the converged (x, p) and the state it solved for
     /// (tar(x, p) = target up to Newton's residual): sou(x, p) by default. A realization where
-    /// sou = tar − (something of x alone) overrides it to take `target` in place of tar, which
-    /// leaves the residual out of the step.
+    /// sou is a map of x alone applied to tar (sou = tar − c x on the log-canonical groupoid,
+    /// sou = g(x) · tar on a Lie groupoid) overrides it to apply that map to `target`, which
+    /// leaves the residual out of the step: the Casimirs are then kept whatever it is.
     #[inline]
     fn sou_after_solve(
         &self,
@@ -56,6 +59,21 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
     }
     fn so3_chart(&self) -> Option<Chart> {
         (N == 3 && self.algebra.is_so3()).then_some(self.chart)
+    }
+    /// sou(x, p) = g(x) · tar(x, p) for the coadjoint action of the chart's group element g(x),
+    /// so the new state is g(x) · μ ([`Groupoid::coadjoint`]): on μ's own coadjoint orbit,
+    /// every Casimir kept up to the rounding of that one evaluation, whatever Newton's residual.
+    /// sou(x, p) at Newton's last iterate carried C(tar(x, p)) = C(μ + residual) instead, and
+    /// simplified Newton's residual (up to its tolerance) has the same sign from step to step:
+    /// a drift of the Casimirs linear in the number of steps.
+    #[inline]
+    fn sou_after_solve(
+        &self,
+        x: &[f64; N],
+        _p: &[f64; N],
+        target: &[f64; N],
+    ) -> Result<[f64; N], StepFailure> {
+        self.coadjoint(x, target)
     }
 }
 

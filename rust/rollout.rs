@@ -300,7 +300,7 @@ pub(crate) fn record_step<const N: usize>(
             info.newton_iterations += u64::from(stats.iterations);
             info.max_newton_iterations = info.max_newton_iterations.max(stats.iterations);
             info.max_residual = info.max_residual.max(stats.residual);
-            if (k + 1) % every == 0 {
+            if (k + 1).is_multiple_of(every) {
                 let r = N * ((k + 1) / every);
                 o[r..r + N].copy_from_slice(mu);
             }

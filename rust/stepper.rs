@@ -1,6 +1,9 @@
 //! One step of a bisection integrator: solve tar(∂S/∂p(h,p), p) = μ for p by Newton, then
-//! μ' = sou(∂S/∂p(h,p), p). Generic over the dimension N and over the realization that gives
-//! sou and tar ([`Realization`]: the Lie-algebra groupoid by default, or the log-canonical one);
+//! μ' = sou(∂S/∂p(h,p), p), formed from μ by the realization
+//! ([`Realization::sou_after_solve`]: on a Lie groupoid, the coadjoint action of the chart's
+//! group element on μ, which keeps the Casimirs whatever Newton's residual). Generic over the
+//! dimension N and over the realization that gives sou and tar ([`Realization`]: the
+//! Lie-algebra groupoid by default, or the log-canonical one);
 //! the Newton Jacobian is inverted once per refresh (closed form for N = 3, nalgebra's LU
 //! otherwise), so every update, simplified or not, is one matrix–vector product.
 
@@ -390,8 +393,9 @@ where
         Ok((size <= self.newton.tol * max_abs(p).max(1e-300), size))
     }
 
-    /// μ' = sou(∂S/∂p, p) at the converged p, from the gradient of S there; the residual of
-    /// the solved equation goes into the stats.
+    /// μ' = sou(∂S/∂p, p) at the converged p, from the gradient of S there, as the realization
+    /// forms it from μ ([`Realization::sou_after_solve`]); the residual of the solved equation
+    /// goes into the stats.
     #[inline]
     fn finish(
         &self,
@@ -407,7 +411,7 @@ where
         let x = grad.g;
         let t = self.groupoid.tar(&x, p)?;
         let f: [f64; N] = std::array::from_fn(|i| t[i] - target[i]);
-        let out = self.groupoid.sou(&x, p)?;
+        let out = self.groupoid.sou_after_solve(&x, p, target)?;
         if !out.iter().all(|v| v.is_finite()) {
             return Err(StepFailure::NonFinite);
         }

@@ -8,6 +8,11 @@
 //!   tar(x,p) = (ad_x/(1 − e^{−ad_x}))ᵀ p = Σ (Bₙ/n!) (−A)ⁿ p, summed as series (ad_x is
 //!   singular, so never as a quotient). Both lie on one coadjoint orbit, which is why every
 //!   bisection map keeps every Casimir whatever the generating function is.
+//!
+//! Indeed sou(x, p) = g(x) · tar(x, p) for the coadjoint action of the chart's group element
+//! g(x) (e^{−A} in the exponential chart, a rotation on so(3): [`Groupoid::coadjoint`]), so a
+//! step that solved tar(x, p) = μ takes g(x) · μ as its new state: exactly on μ's orbit,
+//! whatever the residual of the solve.
 
 // Index loops over small fixed-size vectors and matrices read as the formulas they implement.
 #![allow(clippy::needless_range_loop)]
@@ -87,6 +92,51 @@ pub(crate) fn exp_chart_coefficient_to(s: f64, order: u8) -> (f64, f64, f64) {
     (c, c_th / (2.0 * th), (c_thth - c_th / th) / (4.0 * s))
 }
 
+/// (−1)ⁿ/(2n+1)! and (−1)ⁿ/(2n+2)!, n = 0 … 9: the series of sin θ/θ and (1 − cos θ)/θ² in
+/// s = θ², summed below s = 1 (the tenth terms are below 2e-20 there).
+pub(crate) const SIN_SERIES: [f64; 10] = [
+    1.0,
+    -1.0 / 6.0,
+    1.0 / 120.0,
+    -1.0 / 5040.0,
+    1.0 / 362880.0,
+    -1.0 / 39916800.0,
+    1.0 / 6227020800.0,
+    -1.0 / 1307674368000.0,
+    1.0 / 355687428096000.0,
+    -1.0 / 121645100408832000.0,
+];
+pub(crate) const COS_SERIES: [f64; 10] = [
+    1.0 / 2.0,
+    -1.0 / 24.0,
+    1.0 / 720.0,
+    -1.0 / 40320.0,
+    1.0 / 3628800.0,
+    -1.0 / 479001600.0,
+    1.0 / 87178291200.0,
+    -1.0 / 20922789888000.0,
+    1.0 / 6402373705728000.0,
+    -1.0 / 2432902008176640000.0,
+];
+
+/// (sin θ/θ, (1 − cos θ)/θ²) at s = θ²: Rodrigues' coefficients of exp(x̂). Series below s = 1,
+/// half-angle closed forms above (2 sin(θ/2) cos(θ/2)/θ and 2 sin²(θ/2)/θ², which do not cancel
+/// near θ = 2π as 1 − cos θ would).
+#[inline(always)]
+pub(crate) fn rodrigues_coefficients(s: f64) -> (f64, f64) {
+    if s < 1.0 {
+        let (mut a, mut b) = (0.0, 0.0);
+        for (&u, &v) in SIN_SERIES.iter().zip(&COS_SERIES).rev() {
+            a = a * s + u;
+            b = b * s + v;
+        }
+        return (a, b);
+    }
+    let th = s.sqrt();
+    let (sn, cs) = (0.5 * th).sin_cos();
+    (2.0 * sn * cs / th, 2.0 * sn * sn / s)
+}
+
 #[inline(always)]
 fn cross<T: Scalar>(a: &[T; 3], b: &[T; 3]) -> [T; 3] {
     [
@@ -153,6 +203,34 @@ impl Chart {
         Ok(out)
     }
 
+    /// The rotation of this chart's group element g(x) applied to μ: sou(x, p) = R(x) tar(x, p)
+    /// for every (x, p), so R(x) μ is the new state of a step that solved tar(x, p) = μ, on the
+    /// sphere |μ| whatever the residual of the solve. Cayley: R = I + (x̂ + ½ x̂²)/(1 + |x|²/4);
+    /// exp: Rodrigues, R = I + (sin θ/θ) x̂ + ((1 − cos θ)/θ²) x̂², θ = |x|.
+    #[inline(always)]
+    pub fn rotate(self, x: &[f64; 3], mu: &[f64; 3]) -> Result<[f64; 3], StepFailure> {
+        let s = dot(x, x);
+        if self == Chart::Exp && s >= EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE {
+            return Err(StepFailure::ChartSingular);
+        }
+        let (a, b) = self.rotation_coefficients(s);
+        let xm = cross(x, mu);
+        let xxm = cross(x, &xm);
+        Ok(std::array::from_fn(|i| mu[i] + (a * xm[i] + b * xxm[i])))
+    }
+
+    /// The coefficients (a, b) of [`Chart::rotate`], R = I + a x̂ + b x̂², at s = |x|².
+    #[inline(always)]
+    pub(crate) fn rotation_coefficients(self, s: f64) -> (f64, f64) {
+        match self {
+            Chart::Cayley => {
+                let r = 1.0 / (1.0 + 0.25 * s);
+                (r, 0.5 * r)
+            }
+            Chart::Exp => rodrigues_coefficients(s),
+        }
+    }
+
     /// Source map of so(3)*: the spatial momentum of the covector with coordinates (x, p).
     pub fn sou<T: Scalar>(self, x: &[T; 3], p: &[T; 3]) -> Result<[T; 3], StepFailure> {
         self.apply_so3(x, p, 1.0)
@@ -168,6 +246,11 @@ impl Chart {
 /// terms shrink like (ρ/2π)ⁿ for ρ the spectral radius of ad_x, so this reaches round-off up to
 /// ρ ≈ 0.85 · 2π.
 pub const MAX_SERIES_TERMS: usize = 240;
+
+/// Relative size below which [`Groupoid::coadjoint`] drops the tail of the exponential series:
+/// far below round-off, so that the neglected terms (the same smooth function of the state at
+/// every step) add up to nothing over 10⁹ steps.
+const COADJOINT_TAIL: f64 = 1e-26;
 
 /// Bₙ/n! for n = 0 … MAX_SERIES_TERMS (B₁ = −½, odd n > 1 vanish). B₂ₖ/(2k)! =
 /// (−1)^{k+1} 2ζ(2k)/(2π)^{2k}; the first twelve are exact ratios (as in C_SERIES).
@@ -434,6 +517,64 @@ impl<const N: usize> Groupoid<N> {
             }
         }
         Err(StepFailure::ChartSingular)
+    }
+
+    /// The coadjoint action of the chart's group element g(x) on μ: sou(x, p) = coadjoint(x,
+    /// tar(x, p)) for every (x, p). It maps μ onto its own coadjoint orbit, so every Casimir of
+    /// the result is μ's up to the rounding of this evaluation (which has no sign), whatever x.
+    /// so(3): the chart's rotation ([`Chart::rotate`]); any other algebra (exponential chart):
+    /// e^{−A} μ with A = ad_xᵀ, summed as Σ (−A)ⁿ μ / n! until two consecutive non-zero terms are
+    /// below round-off.
+    pub fn coadjoint(&self, x: &[f64; N], mu: &[f64; N]) -> Result<[f64; N], StepFailure> {
+        if self.algebra.so3 {
+            if let (Ok(x3), Ok(m3)) = (
+                <&[f64; 3]>::try_from(&x[..]),
+                <&[f64; 3]>::try_from(&mu[..]),
+            ) {
+                let r = self.chart.rotate(x3, m3)?;
+                let mut out = *mu;
+                out.copy_from_slice(&r);
+                return Ok(out);
+            }
+        }
+        let a = self.algebra.ad_transpose(x);
+        // ρ = ‖A‖∞ bounds ‖Aⁿ‖∞ by ρⁿ: the terms past K, Σ_{n>K} ρⁿ/n!, stay below
+        // COADJOINT_TAIL · e^ρ relative to |μ|∞ once ρ^{K+1}/(K+1)! is.
+        let rho = a
+            .iter()
+            .map(|row| row.iter().map(|v| v.abs()).sum::<f64>())
+            .fold(0.0f64, f64::max);
+        if !rho.is_finite() {
+            return Err(StepFailure::NonFinite);
+        }
+        let mut k = 0;
+        let mut bound = 1.0;
+        while bound > COADJOINT_TAIL {
+            k += 1;
+            if k > MAX_SERIES_TERMS {
+                return Err(StepFailure::ChartSingular);
+            }
+            bound *= rho / k as f64;
+        }
+        // Horner from the innermost term: w = μ, then w = μ − (A w)/n for n = K … 2, and
+        // μ − A w. Every addition adds a correction far above μ's last bit, so its rounding has
+        // no sign: summing the terms one after another from the largest would drop the sub-ulp
+        // tail of every component the same way at every step, a bias on the Casimirs. (A
+        // division, not a product by a rounded 1/n, for the same reason.)
+        let mut w = *mu;
+        for n in (2..=k).rev() {
+            let n = n as f64;
+            let aw = apply(&a, &w);
+            w = std::array::from_fn(|i| mu[i] - aw[i] / n);
+        }
+        let out = {
+            let aw = apply(&a, &w);
+            std::array::from_fn(|i| mu[i] - aw[i])
+        };
+        if !out.iter().all(|v: &f64| v.is_finite()) {
+            return Err(StepFailure::NonFinite);
+        }
+        Ok(out)
     }
 
     /// Source map: the momentum sou(x, p) ∈ g*.

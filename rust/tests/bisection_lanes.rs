@@ -229,14 +229,14 @@ fn narrow_layer_kernel_equals_the_panel_kernel() {
     }
 }
 
-/// The so(3) chart in lanes: its values are the chart's own (`Chart::tar` / `Chart::sou` in
-/// f64) bit for bit, and its hand-written Newton Jacobian J = ∂T/∂p + ∂T/∂x · Hess S equals the
+/// The so(3) chart in lanes: its values are the chart's own (`Chart::tar` / `Chart::sou` /
+/// `Chart::rotate` in f64) bit for bit, and its hand-written Newton Jacobian J = ∂T/∂p + ∂T/∂x · Hess S equals the
 /// dual-number one (x seeded with the Hessian as its derivative, p with the identity) to
 /// 1e-13 relative. Angles |x| up to 5 run both the series (|x|² < 1) and the closed form of
 /// the exponential chart's coefficient.
 #[test]
 fn lane_chart_jacobian_matches_dual_numbers() {
-    use crate::lanes_bisection::{so3_chart_lanes, V};
+    use crate::lanes_bisection::{so3_chart_lanes, so3_rotate_lanes, V};
     let mut rng = Rng::new(0x1A2E_5017);
     for k in 0..2000 {
         let chart = [Chart::Cayley, Chart::Exp][k % 2];
@@ -256,9 +256,16 @@ fn lane_chart_jacobian_matches_dual_numbers() {
         let (sou, _, _) = so3_chart_lanes::<1>(chart, 1.0, &xl, &pl, None);
         assert_eq!(s.0[0].to_bits(), dot(&x, &x).to_bits());
         let (t_ref, s_ref) = (chart.tar(&x, &p).unwrap(), chart.sou(&x, &p).unwrap());
+        let turned = so3_rotate_lanes::<1>(chart, &xl, &pl, s);
+        let turned_ref = chart.rotate(&x, &p).unwrap();
         for i in 0..3 {
             assert_eq!(t[i].0[0].to_bits(), t_ref[i].to_bits(), "{chart:?} tar");
             assert_eq!(sou[i].0[0].to_bits(), s_ref[i].to_bits(), "{chart:?} sou");
+            assert_eq!(
+                turned[i].0[0].to_bits(),
+                turned_ref[i].to_bits(),
+                "{chart:?} rotation"
+            );
         }
         let xd: [Dual1<3>; 3] = std::array::from_fn(|i| Dual1 { v: x[i], g: hs[i] });
         let pd: [Dual1<3>; 3] = std::array::from_fn(|i| Dual1::var(p[i], i));
@@ -389,7 +396,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
             }
             (mu, res)
         };
-        let (reference, ref_results) = run(Isa::Portable, 29);
+        let (reference, ref_results) = run(Isa::PORTABLE, 29);
         assert_eq!(ref_results[5], Err(StepFailure::NonFinite));
         if chart == Chart::Exp {
             assert_eq!(ref_results[17], Err(StepFailure::ChartSingular));

@@ -768,3 +768,22 @@ fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
 fn max_abs(v: &[f64; 6]) -> f64 {
     v.iter().fold(0.0, |a: f64, x| a.max(x.abs()))
 }
+
+/// An `Isa` claiming AVX2 comes from run-time detection only: `Isa::avx2()` is Some exactly
+/// where the CPU reports AVX2 and FMA, `Isa::detect()` is it or the portable baseline, and the
+/// baseline claims nothing. (Writing the proof by hand, `Isa { avx2: true }`, does not compile
+/// outside `lanes`: the doctest of `Isa` checks that.)
+#[test]
+fn the_avx2_proof_comes_from_detection_only() {
+    use crate::lanes::Isa;
+    #[cfg(target_arch = "x86_64")]
+    let has = std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma");
+    #[cfg(not(target_arch = "x86_64"))]
+    let has = false;
+    assert_eq!(Isa::avx2().is_some(), has);
+    assert!(Isa::avx2().is_none_or(|isa| isa.is_avx2()));
+    assert_eq!(Isa::detect(), Isa::avx2().unwrap_or(Isa::PORTABLE));
+    assert_eq!(Isa::detect().is_avx2(), has);
+    assert!(!Isa::PORTABLE.is_avx2());
+    assert_eq!(Isa::PORTABLE.name(), "portable");
+}

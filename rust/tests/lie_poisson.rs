@@ -140,6 +140,119 @@ fn exp_series_on_so3_matches_the_closed_form() {
     }
 }
 
+/// sou(x, p) = g(x) · tar(x, p): the coadjoint action (the so(3) rotations in closed form, the
+/// exponential series on sl(2) and se(3)) against the two Bernoulli series or chart maps, to
+/// round-off, for random x (|x| up to 3) and p; and g(x) keeps every Casimir.
+#[test]
+fn coadjoint_action_maps_target_to_source_and_keeps_casimirs() {
+    fn check<const N: usize>(
+        g: &Groupoid<N>,
+        rng: &mut Rng,
+        casimirs: &dyn Fn(&[f64; N]) -> Vec<f64>,
+    ) {
+        for _ in 0..300 {
+            let r = rng.range(1e-3, 3.0);
+            let x0: [f64; N] = std::array::from_fn(|_| rng.range(-1.0, 1.0));
+            let scale = r / x0.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let x = x0.map(|v| v * scale);
+            let p: [f64; N] = std::array::from_fn(|_| rng.range(-2.0, 2.0));
+            let (Ok(t), Ok(s)) = (g.tar(&x, &p), g.sou(&x, &p)) else {
+                continue; // beyond the series' radius for this algebra
+            };
+            let moved = g.coadjoint(&x, &t).unwrap();
+            let size = s.iter().chain(&t).fold(1.0f64, |m, v| m.max(v.abs()));
+            for i in 0..N {
+                assert!(
+                    (moved[i] - s[i]).abs() <= 1e-13 * size,
+                    "{:?} |x| = {r}: component {i}, {} against {}",
+                    g.chart,
+                    moved[i],
+                    s[i]
+                );
+            }
+            for (a, b) in casimirs(&moved).iter().zip(casimirs(&t)) {
+                assert!((a - b).abs() <= 1e-13 * size * size, "{a} against {b}");
+            }
+        }
+    }
+    let mut rng = Rng::new(0xC0AD_0001);
+    let sphere = |m: &[f64; 3]| vec![m[0] * m[0] + m[1] * m[1] + m[2] * m[2]];
+    for chart in [Chart::Cayley, Chart::Exp] {
+        check(&Groupoid::so3(chart).unwrap(), &mut rng, &sphere);
+    }
+    check(
+        &Groupoid::new(sl2(), Chart::Exp).unwrap(),
+        &mut rng,
+        &|m: &[f64; 3]| vec![sl2_casimir(m)],
+    );
+    check(
+        &Groupoid::new(se3(), Chart::Exp).unwrap(),
+        &mut rng,
+        &|m: &[f64; 6]| top_casimirs(m).to_vec(),
+    );
+}
+
+/// The new state is g(x) · μ, not sou at Newton's last iterate: a Newton tolerance of 0.5 stops
+/// after one update and leaves a residual far above round-off in tar(x, p) = μ, yet every
+/// Casimir is kept to round-off (sou(x, p) carried C(μ + residual)). so(3) in both charts (the lane
+/// solver), sl(2) and se(3) (the generic solve, one at a time and in lockstep).
+#[test]
+fn casimirs_do_not_depend_on_the_newton_residual() {
+    fn check<const N: usize>(
+        system: &LiePoisson<N>,
+        chart: Chart,
+        mu0: &[[f64; N]],
+        casimirs: &dyn Fn(&[f64; N]) -> Vec<f64>,
+    ) where
+        nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
+    {
+        let mut st = minus_t_h_stepper(system);
+        st.groupoid = Groupoid::new(system.algebra.clone(), chart).unwrap();
+        st.newton.tol = 0.5;
+        let n = 200;
+        let mut out = vec![0.0; mu0.len() * N * n_records(n, n)];
+        let info = rollout(&st, mu0, 0.1, n, n, &mut out).unwrap();
+        let mut residual = 0.0f64;
+        for (j, m0) in mu0.iter().enumerate() {
+            assert!(info[j].converged, "{:?}", info[j]);
+            let end: [f64; N] = std::array::from_fn(|i| out[(2 * j + 1) * N + i]);
+            for (a, b) in casimirs(&end).iter().zip(casimirs(m0)) {
+                assert!((a - b).abs() <= 1e-13, "{chart:?}: {a} against {b}");
+            }
+            residual = residual.max(info[j].max_residual);
+        }
+        // The residual is there: the Casimirs are kept despite it, not for want of it.
+        assert!(residual > 1e-12, "{chart:?}: residual {residual:e}");
+    }
+    let sphere = |m: &[f64; 3]| vec![m[0] * m[0] + m[1] * m[1] + m[2] * m[2]];
+    let body = LiePoisson {
+        algebra: LieAlgebra::so3().unwrap(),
+        hamiltonian: Hamiltonian::new(vec![
+            ([2, 0, 0], 1.0 / 3.0),
+            ([0, 2, 0], 0.25),
+            ([0, 0, 2], 0.2),
+        ])
+        .unwrap(),
+    };
+    let mut rng = Rng::new(0xC0AD_0002);
+    let states: Vec<[f64; 3]> = (0..11).map(|_| rng.sphere(0.9)).collect();
+    for chart in [Chart::Cayley, Chart::Exp] {
+        check(&body, chart, &states, &sphere);
+    }
+    check(&sl2_system(), Chart::Exp, &states, &|m: &[f64; 3]| {
+        vec![sl2_casimir(m)]
+    });
+    check(&sl2_system(), Chart::Exp, &states[..1], &|m: &[f64; 3]| {
+        vec![sl2_casimir(m)]
+    });
+    let tops: Vec<[f64; 6]> = (0..11)
+        .map(|_| std::array::from_fn(|_| rng.range(-0.6, 0.6)))
+        .collect();
+    check(&heavy_top(), Chart::Exp, &tops, &|m: &[f64; 6]| {
+        top_casimirs(m).to_vec()
+    });
+}
+
 #[test]
 fn exp_series_refuses_beyond_its_radius() {
     let g = Groupoid::so3(Chart::Exp).unwrap();

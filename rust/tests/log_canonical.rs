@@ -359,7 +359,7 @@ fn exp_lanes_equal_the_scalar_call_bit_for_bit() {
         };
         assert!(same(&got), "portable: {x:?}");
         #[cfg(target_arch = "x86_64")]
-        if Isa::detect() == Isa::Avx2 {
+        if Isa::detect().is_avx2() {
             // SAFETY: the CPU runs AVX2 and FMA (checked just above).
             unsafe { exp_lanes_avx2(&x, &mut got) };
             assert!(same(&got), "avx2: {x:?}");

@@ -79,8 +79,8 @@ const ALL_INPUTS: [MlpInputs; 2] = [MlpInputs::Plain, MlpInputs::Homogeneous];
 /// Every instruction set this CPU runs: the portable path, and the detected one if wider.
 fn isas() -> Vec<crate::lanes::Isa> {
     use crate::lanes::Isa;
-    let mut v = vec![Isa::Portable];
-    if Isa::detect() != Isa::Portable {
+    let mut v = vec![Isa::PORTABLE];
+    if Isa::detect() != Isa::PORTABLE {
         v.push(Isa::detect());
     }
     v

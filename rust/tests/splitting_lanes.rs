@@ -139,7 +139,7 @@ fn sin_cos_lanes_equal_the_scalar_call_bit_for_bit() {
         let got: [(u64, u64); LANES] = std::array::from_fn(|l| (s[l].to_bits(), c[l].to_bits()));
         assert_eq!(got, want, "portable, {x:?}");
         #[cfg(target_arch = "x86_64")]
-        if Isa::detect() == Isa::Avx2 {
+        if Isa::detect().is_avx2() {
             // SAFETY: the CPU runs AVX2 and FMA (just detected).
             unsafe { sin_cos_lanes_avx2(&x, &mut s, &mut c) };
             let got: [(u64, u64); LANES] =
