@@ -38,6 +38,7 @@ lint: setup
 
 rust-test:
 	cargo test --lib
+	cargo test --doc
 
 py-test: setup
 	$(PY) -m pytest -q
