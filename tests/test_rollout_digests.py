@@ -1,6 +1,10 @@
 """Every stepper that existed before the structure protocol gives the same bits through it: the
 digests below were taken from the build before the reorganisation (the same Rust core, the
-Python layer of commit 01530b5), with the same calls (the family names kept as aliases)."""
+Python layer of commit 01530b5), with the same calls (the family names kept as aliases); all 28
+held through the reorganisation. Then the Lie–Poisson bisection step changed on purpose: its new
+state is g(x)·μ, not sou from Newton's last iterate, so that the Casimirs no longer drift with
+Newton's residual; the 7 rollouts that take that step changed in their last bits, and
+:data:`AFTER_THE_CASIMIR_FIX` holds them. Nothing else may change."""
 
 from __future__ import annotations
 
@@ -42,6 +46,19 @@ BEFORE = {
     "nambu-taylor3": "fbb37b386197a536",
     "nambu-rk4": "6006a63f0f2dc3af",
     "nambu-midpoint": "dc832386d643d406",
+}
+
+
+#: The Lie–Poisson bisection rollouts (the rigid body's Taylor and learned steps, the heavy
+#: top's, the affine system's on its central extension) after the Casimir fix.
+AFTER_THE_CASIMIR_FIX = {
+    "rb-taylor3-cayley": "d3256ce245bf2718",
+    "rb-taylor3-exp": "edb4ff2d966ecaa0",
+    "rb-taylor5-cayley": "1b88253d1ddf3829",
+    "rb-taylor5-exp": "562430ad2b395389",
+    "rb-learned-default": "8596b247ba6408de",
+    "top-taylor3-exp": "1f0e04a117687026",
+    "affine-taylor3": "52e27fa125676983",
 }
 
 
@@ -95,5 +112,6 @@ def _digests() -> dict[str, str]:
 def test_every_old_stepper_keeps_its_bits() -> None:
     got = _digests()
     assert set(got) == set(BEFORE)
-    changed = sorted(k for k in BEFORE if got[k] != BEFORE[k])
+    want = {**BEFORE, **AFTER_THE_CASIMIR_FIX}
+    changed = sorted(k for k in want if got[k] != want[k])
     assert not changed, f"rollouts changed: {changed}"
