@@ -159,10 +159,13 @@ class BisectionIntegrator:
 
     @property
     def body(self) -> RigidBody:
-        """The rigid body the model integrates; TypeError for another system."""
+        """The rigid body the model integrates (the rigid-body name of :attr:`system`, which
+        every model has); TypeError for another system."""
         system = self.system
         if not isinstance(system, RigidBody):
-            raise TypeError(f"{self.name!r} integrates {system!r}, not a rigid body")
+            raise TypeError(
+                f"{self.name!r} integrates {system!r}, not a rigid body: use model.system"
+            )
         return system
 
     @property
