@@ -168,6 +168,14 @@ class BisectionIntegrator:
             )
         return system
 
+    def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
+        """Writes the model file (the bytes it was built from) to ``path``, atomically; an
+        existing file is kept (ValueError naming the path) unless ``overwrite``. Returns the
+        path; :func:`~poisson_rs.load_model` reads it back to the same steps, bit for bit."""
+        from .files import atomic_write_bytes
+
+        return atomic_write_bytes(path, self._bytes, replace=bool(overwrite))
+
     @property
     def step_h(self) -> float | None:
         """The one step size a learned time-h map steps at (its file's ``step_h``), or None

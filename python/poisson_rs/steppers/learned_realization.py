@@ -4,6 +4,7 @@ groupoid and the order-n realization of a polynomial bivector, read from model f
 from __future__ import annotations
 
 import numbers
+import os
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +77,14 @@ class _LearnedRealizationIntegrator:
     @property
     def taylor_order(self) -> int:
         return int(self.metadata["taylor_order"])
+
+    def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
+        """Writes the model file (the bytes it was built from) to ``path``, atomically; an
+        existing file is kept (ValueError naming the path) unless ``overwrite``. Returns the
+        path; :func:`~poisson_rs.load_model` reads it back to the same steps, bit for bit."""
+        from ..files import atomic_write_bytes
+
+        return atomic_write_bytes(path, self._bytes, replace=bool(overwrite))
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (_restore_learned, (type(self), self._bytes, self.tol, self.max_iter))
