@@ -914,6 +914,20 @@ class RigidBody(LiePoissonSystem):
 
         return list(CLASSICAL_METHODS)
 
+    def reference_solution(
+        self,
+        x0: ArrayLike,
+        times: ArrayLike,
+        *,
+        rtol: float = 1e-13,
+        atol: float = 1e-13,
+        failures: Literal["raise", "nan"] = "raise",
+    ) -> FloatArray:
+        """DOP853 on Euler's equations written out (:func:`~poisson_rs.dop853_solution`)."""
+        from ..reference import dop853_solution
+
+        return dop853_solution(self, x0, times, rtol, atol, failures=failures)
+
     def reference(self, x0: np.ndarray, times: ArrayLike) -> FloatArray:
         """The closed form in Jacobi elliptic functions."""
         from ..reference import exact_solution
