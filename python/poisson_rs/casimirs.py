@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .structures.lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
+from .structures.lie_poisson import LieAlgebra, Polynomial
 
 __all__ = ["casimir_degrees", "casimir_values", "polynomial_casimirs", "system_casimirs"]
 
@@ -202,12 +202,9 @@ def system_casimirs(
         probe = own(np.ones((1, int(system.dim))))
         if probe is not None:
             return lambda mu: np.asarray(own(mu), dtype=np.float64)
-    if not isinstance(system, LiePoissonSystem):
-        return None
-    algebra = system.algebra
-    if algebra not in _CACHE:
-        _CACHE[algebra] = polynomial_casimirs(algebra, max_degree)
-    polys = _CACHE[algebra]
+    # A system on g* (Lie–Poisson) offers its algebra's polynomial Casimirs, searched once.
+    found = getattr(system, "found_casimirs", None)
+    polys = found(max_degree) if found is not None else []
     if not polys:
         return None
     return lambda mu: np.stack([p(np.asarray(mu, dtype=np.float64)) for p in polys], -1)
@@ -255,31 +252,23 @@ def max_casimir_drift(system: Any, traj: np.ndarray) -> np.ndarray:
         return np.max(np.abs(c - c[:, :1]) / scale, axis=-1)
 
 
+def algebra_casimirs(algebra: LieAlgebra, max_degree: int = DEFAULT_DEGREE) -> list[Polynomial]:
+    """:func:`polynomial_casimirs` of ``algebra``, computed once per algebra (or the ones
+    :func:`set_casimirs` recorded)."""
+    if algebra not in _CACHE:
+        _CACHE[algebra] = polynomial_casimirs(algebra, max_degree)
+    return _CACHE[algebra]
+
+
 def casimir_label(system: Any) -> str:
-    """What the Casimir drift measures, for axis labels: "C = |Γ|², M·Γ", or "no Casimir known"
-    (the system's own ``casimir_label``)."""
+    """What the Casimir drift measures, for axis labels: the system's own ``casimir_label``
+    ("C = |Γ|², M·Γ", ...), or "no Casimir known"."""
     label = getattr(system, "casimir_label", None)
-    return label if isinstance(label, str) else lie_poisson_casimir_label(system)
-
-
-def lie_poisson_casimir_label(system: Any) -> str:
-    """The label of a Lie–Poisson system's Casimirs: the closed forms' (so(3), se(3), sl(2)),
-    or how many polynomial Casimirs the search found."""
-    fn = system_casimirs(system)
-    if fn is None:
+    if isinstance(label, str):
+        return label
+    if system_casimirs(system) is None:
         return "no Casimir known (drift n/a)"
-    own = getattr(system, "casimirs", None)
-    if own is not None and own(np.ones((1, int(system.dim)))) is not None:
-        from .structures.lie_poisson import _known_algebra
-
-        kind = _known_algebra(system.algebra) if isinstance(system, LiePoissonSystem) else None
-        return {
-            "so3": "C = |μ|²",
-            "se3": "C = |Γ|², M·Γ",
-            "sl2": "C = μ_h² + 4μ_eμ_f",
-        }.get(kind or "", "the system's Casimirs")
-    n = len(_CACHE.get(system.algebra, []))
-    return f"{n} polynomial Casimir{'s' if n != 1 else ''} found"
+    return "the system's Casimirs"
 
 
 def set_casimirs(algebra: LieAlgebra, casimirs: Sequence[Polynomial]) -> None:

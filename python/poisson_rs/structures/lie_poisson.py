@@ -668,11 +668,25 @@ class LiePoissonSystem(PoissonSystemBase):
         """π(μ) = :meth:`poisson_tensor`: (..., n) → (..., n, n)."""
         return self.poisson_tensor(mu)
 
+    def found_casimirs(self, max_degree: int | None = None) -> list[Polynomial]:
+        """The polynomial Casimirs of its algebra up to ``max_degree`` (a null space, searched
+        once per algebra; see :mod:`poisson_rs.casimirs`), for when :meth:`casimirs` knows
+        no closed form."""
+        from ..casimirs import DEFAULT_DEGREE, algebra_casimirs
+
+        return algebra_casimirs(self.algebra, DEFAULT_DEGREE if max_degree is None else max_degree)
+
     @property
     def casimir_label(self) -> str:
-        from ..casimirs import lie_poisson_casimir_label
-
-        return lie_poisson_casimir_label(self)
+        """ "C = |μ|²" (so(3)), "C = |Γ|², M·Γ" (se(3)), "C = μ_h² + 4μ_eμ_f" (sl(2)), or how
+        many polynomial Casimirs the search found."""
+        if self.casimirs(np.ones((1, self.dim))) is not None:
+            known = {"so3": "C = |μ|²", "se3": "C = |Γ|², M·Γ", "sl2": "C = μ_h² + 4μ_eμ_f"}
+            return known.get(_known_algebra(self.algebra) or "", "the system's Casimirs")
+        n = len(self.found_casimirs())
+        if not n:
+            return "no Casimir known (drift n/a)"
+        return f"{n} polynomial Casimir{'s' if n != 1 else ''} found"
 
     @property
     def title(self) -> str:
