@@ -3,6 +3,7 @@ stepper written outside the package through every tool, and systems read by kind
 
 from __future__ import annotations
 
+import functools
 import pickle
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,9 @@ def _pendulum() -> Any:
     return pr.affine_poisson_system(c, cocycle, {(2, 0, 0): 0.5, (0, 2, 0): 0.5})
 
 
+@functools.cache
 def _systems() -> dict[str, Any]:
+    """One system of each structure, built when a test first asks (two need sympy)."""
     return {
         "rigid_body": pr.RigidBody(),
         "heavy_top": pr.HeavyTop(),
@@ -38,12 +41,12 @@ def _systems() -> dict[str, Any]:
     }
 
 
-SYSTEMS = _systems()
+KINDS = ("rigid_body", "heavy_top", "lotka_volterra", "affine", "nambu", "charged_particle")
 
 
-@pytest.fixture(params=list(SYSTEMS), ids=list(SYSTEMS))
+@pytest.fixture(params=KINDS, ids=KINDS)
 def system(request: pytest.FixtureRequest) -> Any:
-    return SYSTEMS[request.param]
+    return _systems()[request.param]
 
 
 def test_every_structure_implements_the_protocol(system: Any) -> None:
@@ -96,7 +99,8 @@ def test_reference_solution_and_newton_defaults_are_one(system: Any) -> None:
     x0 = system.demo_states
     out = pr.reference_solution(system, x0, [0.0, 0.1])
     np.testing.assert_allclose(out[:, 0], x0)
-    assert getattr(pr.taylor_integrator(system, 1), "tol", pr.NEWTON_TOL) in (pr.NEWTON_TOL, None)
+    for stepper in (pr.taylor_integrator(system, 1), pr.classical(system, "midpoint")):
+        assert (stepper.tol, stepper.max_iter) == (pr.NEWTON_TOL, pr.NEWTON_MAX_ITER)
 
 
 def test_not_a_system_is_refused_naming_what_is_missing() -> None:
@@ -109,14 +113,14 @@ def test_not_a_system_is_refused_naming_what_is_missing() -> None:
 
 
 def test_old_names_are_aliases_with_the_same_bits() -> None:
-    lv = SYSTEMS["lotka_volterra"]
+    lv = _systems()["lotka_volterra"]
     x0 = np.array([[1.0, 0.8], [1.0, 1.2]])
     new = pr.integrate(pr.taylor_integrator(lv, 3), x0, 0.1, 50)
     np.testing.assert_array_equal(pr.integrate(pr.log_canonical_taylor(lv, 3), x0, 0.1, 50), new)
     new = pr.integrate(pr.classical(lv, "log_splitting4"), x0, 0.1, 50)
     old = pr.integrate(pr.log_canonical_classical(lv, "log_splitting4"), x0, 0.1, 50)
     np.testing.assert_array_equal(old, new)
-    affine = SYSTEMS["affine"]
+    affine = _systems()["affine"]
     x0 = affine.demo_states
     np.testing.assert_array_equal(
         pr.integrate(pr.affine_taylor(affine, 3), x0, 0.1, 20),
@@ -214,7 +218,7 @@ def test_a_user_stepper_runs_through_chart_stability_and_select() -> None:
 
 
 def test_charged_particle_taylor_orders_and_energy() -> None:
-    particle = SYSTEMS["charged_particle"]
+    particle = _systems()["charged_particle"]
     x0 = np.array([[0.3, -0.2, 1.0, 0.5]])
     ref = particle.reference_solution(x0, [1.0])[:, -1]
     for m, order in ((1, 2), (3, 4)):
@@ -243,7 +247,7 @@ def test_charged_particle_in_space_needs_a_divergence_free_field() -> None:
 
 
 def test_charged_particle_pickles_and_reads_from_a_scene(tmp_path: Path) -> None:
-    particle = SYSTEMS["charged_particle"]
+    particle = _systems()["charged_particle"]
     stepper = pr.taylor_integrator(particle, 3)
     x0 = np.array([[0.3, -0.2, 1.0, 0.5]])
     again = pickle.loads(pickle.dumps(stepper))
@@ -295,7 +299,7 @@ def test_an_unreachable_reference_is_one_line_on_the_command_line(
 
 
 def test_select_by_casimir_on_a_system_without_one_says_what_works() -> None:
-    particle = SYSTEMS["charged_particle"]
+    particle = _systems()["charged_particle"]
     with pytest.raises(ValueError, match=r"no Casimir is known.*choose metric='error' or 'energy'"):
         pr.select(particle, [0.3, -0.2, 1.0, 0.5], T=1.0, target=1e-6, metric="casimir")
 

@@ -38,6 +38,16 @@ class AffineIntegrator:
         return np.ascontiguousarray(traj[..., : self.dim]), dict(raw)
 
     @property
+    def tol(self) -> float:
+        """The inner stepper's Newton tolerance (relative update)."""
+        return float(self.inner.tol)
+
+    @property
+    def max_iter(self) -> int:
+        """The inner stepper's Newton iteration cap."""
+        return int(self.inner.max_iter)
+
+    @property
     def adaptive(self) -> bool:
         return bool(getattr(self.inner, "adaptive", False))
 

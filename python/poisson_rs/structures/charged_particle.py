@@ -262,6 +262,16 @@ class CanonicalChartStepper:
     def dim(self) -> int:
         return self.system.dim
 
+    @property
+    def tol(self) -> float:
+        """The inner stepper's Newton tolerance (relative update)."""
+        return float(self.inner.tol)
+
+    @property
+    def max_iter(self) -> int:
+        """The inner stepper's Newton iteration cap."""
+        return int(self.inner.max_iter)
+
     def rollout(
         self, x0: np.ndarray, h: float, n_steps: int, every: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -270,7 +280,7 @@ class CanonicalChartStepper:
         return np.ascontiguousarray(self.system.from_canonical(traj)), dict(info)
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return (_taylor, (self.system, self.order, self.inner.tol, self.inner.max_iter))
+        return (_taylor, (self.system, self.order, self.tol, self.max_iter))
 
     def __repr__(self) -> str:
         return f"CanonicalChartStepper({self.name!r}, system={self.system!r})"
