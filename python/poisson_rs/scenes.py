@@ -564,9 +564,9 @@ def derive_config(scene: Scene, **overrides: Any) -> TrainConfig:
         )
     r = np.linalg.norm(scene.states(), axis=1)
     base: dict[str, Any] = {"inertia": scene.inertia}
-    if not isinstance(system, RigidBody):
-        # Other systems: the exp chart (the only one off so(3)) and t,p inputs unless H is
-        # homogeneous quadratic.
+    if "cayley" not in system.taylor_charts():
+        # Systems without the rigid body's Cayley series: the exp chart and t,p inputs unless
+        # H is homogeneous quadratic.
         base.update(system=system.to_dict(), chart="exp")
         if not system.polynomial.is_homogeneous(2):
             base["inputs"] = "t,p"

@@ -37,7 +37,8 @@ _ALGEBRAS = {"so3": LieAlgebra.so3, "se3": LieAlgebra.se3, "sl2": LieAlgebra.sl2
 def resolve_algebra(algebra: Any, system: Any) -> LieAlgebra:
     """The Lie algebra from ``algebra`` (a LieAlgebra or "so3"/"se3"/"sl2") or ``system``."""
     if system is not None:
-        if not isinstance(system, LiePoissonSystem):
+        # Learning through the integrator runs on T*G: a system a learned S trains for.
+        if not getattr(system, "trainable", False):
             raise TypeError(f"system must be a LiePoissonSystem, got {type(system).__name__}")
         if algebra is not None and resolve_algebra(algebra, None) != system.algebra:
             raise ValueError("algebra and system.algebra differ; give one of them")
