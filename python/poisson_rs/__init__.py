@@ -42,6 +42,8 @@ from .protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystem, Stepper
 from .reference import dop853_solution, exact_solution, reference_solution
 from .steppers.affine import AffineIntegrator
 from .steppers.polynomial import RealizationTaylorIntegrator
+from .expressions import Expression, ExpressionError
+from .structures.expression_system import ExpressionSystem, with_hamiltonian
 from .structures import (
     AffinePoissonSystem,
     HeavyTop,
@@ -71,6 +73,10 @@ if hasattr(os, "register_at_fork"):
 __version__ = "0.1.0"
 
 __all__ = [
+    "Expression",
+    "ExpressionError",
+    "ExpressionSystem",
+    "with_hamiltonian",
     "FAILURE_CODES",
     "NEWTON_MAX_ITER",
     "NEWTON_TOL",

@@ -317,3 +317,72 @@ def step_angles(
 ) -> npt.NDArray[np.float64]:
     """h × max(‖ad_∇H(μ)‖_F/√2, ‖∂f/∂μ‖_F) at each row of ``mu`` (n, N) for the Lie–Poisson system
     (c, powers, coeffs): the angle (rad) a step of size h turns each state by. Shape (n,)."""
+
+def expression_jets(
+    code: npt.NDArray[np.int64],
+    a: npt.NDArray[np.int64],
+    b: npt.NDArray[np.int64],
+    c: npt.NDArray[np.float64],
+    x: npt.NDArray[np.float64],
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+def hamiltonian_field(
+    code: npt.NDArray[np.int64],
+    a: npt.NDArray[np.int64],
+    b: npt.NDArray[np.int64],
+    c: npt.NDArray[np.float64],
+    upper_index: npt.NDArray[np.int64],
+    upper_coeffs: npt.NDArray[np.float64],
+    upper_exponents: npt.NDArray[np.int64],
+    x: npt.NDArray[np.float64],
+) -> npt.NDArray[np.float64]: ...
+def rollout_hamiltonian_field(
+    name: str,
+    code: npt.NDArray[np.int64],
+    a: npt.NDArray[np.int64],
+    b: npt.NDArray[np.int64],
+    c: npt.NDArray[np.float64],
+    upper_index: npt.NDArray[np.int64],
+    upper_coeffs: npt.NDArray[np.float64],
+    upper_exponents: npt.NDArray[np.int64],
+    x0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-13,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...
+def rollout_jets_polynomial(
+    code: npt.NDArray[np.int64],
+    a: npt.NDArray[np.int64],
+    b: npt.NDArray[np.int64],
+    c: npt.NDArray[np.float64],
+    hamiltonian_vars: int,
+    order: int,
+    sou_index: npt.NDArray[np.int64],
+    sou_coeffs: npt.NDArray[np.float64],
+    sou_exponents: npt.NDArray[np.int64],
+    tar_index: npt.NDArray[np.int64],
+    tar_coeffs: npt.NDArray[np.float64],
+    tar_exponents: npt.NDArray[np.int64],
+    x0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-13,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...
+def rollout_jets_lie(
+    code: npt.NDArray[np.int64],
+    a: npt.NDArray[np.int64],
+    b: npt.NDArray[np.int64],
+    c: npt.NDArray[np.float64],
+    hamiltonian_vars: int,
+    order: int,
+    c_lie: npt.NDArray[np.float64],
+    x0: npt.NDArray[np.float64],
+    h: float,
+    n_steps: int,
+    every: int = 1,
+    tol: float = 1e-13,
+    max_iter: int = 50,
+) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...

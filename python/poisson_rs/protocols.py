@@ -11,11 +11,13 @@ Every structure of the package implements :class:`PoissonSystem` once, in its ow
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 #: Newton's defaults for every implicit step of every structure: accept a step once the
 #: relative Newton update is below ``NEWTON_TOL`` (round-off), give up after ``NEWTON_MAX_ITER``
@@ -228,6 +230,47 @@ def unit_directions(dim: int, count: int = 3) -> dict[str, np.ndarray]:
     return {k: v / np.linalg.norm(v) for k, v in out.items()}
 
 
+@dataclass(frozen=True)
+class BracketTerms:
+    """π's upper triangle (π_ij, i < j, row by row) as one term table for the core: term m adds
+    ``coeffs[m] · x^exponents[m]`` to entry ``index[m]``; exponents (M, dim)."""
+
+    index: NDArray[np.int64]
+    coeffs: NDArray[np.float64]
+    exponents: NDArray[np.int64]
+
+    @classmethod
+    def from_terms(cls, dim: int, terms: Sequence[tuple[int, int, Sequence[int], float]]) -> BracketTerms:
+        """From (i, j, exponents, coefficient) with i < j."""
+        pair = {(i, j): k for k, (i, j) in enumerate(itertools.combinations(range(dim), 2))}
+        rows = [(pair[(i, j)], c, list(e)) for i, j, e, c in terms if c != 0.0]
+        return cls(
+            np.array([r[0] for r in rows], dtype=np.int64),
+            np.array([r[1] for r in rows], dtype=np.float64),
+            np.array([r[2] for r in rows], dtype=np.int64).reshape(len(rows), dim),
+        )
+
+    def tables(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
+        return self.index, self.coeffs, self.exponents
+
+
+@dataclass(frozen=True)
+class JetRealization:
+    """The realization Taylor-HJ by jets steps a system on: ``lie_constants`` (dim, dim, dim)
+    of a Lie algebra (its exact groupoid, exponential chart), or the polynomial maps ``sou``
+    (β) and ``tar`` (α) as (index, coeffs, exponents (M, 2·dim)) tables in (p, x). ``dim`` may
+    exceed the system's: the extra coordinates are central, held at 1 (an affine bracket's
+    extension); H sees the system's own coordinates only. ``exact``: whether it is an exact
+    realization (Casimirs kept to round-off)."""
+
+    dim: int
+    label: str
+    exact: bool
+    lie_constants: NDArray[np.float64] | None = None
+    sou: tuple[Any, ...] | None = None
+    tar: tuple[Any, ...] | None = None
+
+
 class PoissonSystemBase:
     """What most structures share of :class:`PoissonSystem`, for a structure to inherit and
     override: states anywhere finite in R^dim, three seeded test directions, every Taylor
@@ -315,3 +358,19 @@ class PoissonSystemBase:
     def reference(self, x0: np.ndarray, times: ArrayLike) -> np.ndarray:
         """DOP853 at rtol = atol = 1e-13."""
         return self.reference_solution(x0, times)  # type: ignore[attr-defined]
+
+    def bracket_terms(self) -> BracketTerms:
+        """π as polynomials, for a Hamiltonian given as an expression
+        (:func:`poisson_rs.with_hamiltonian`); NotImplementedError where π is not polynomial."""
+        raise NotImplementedError(
+            f"{self.title} does not give its bracket as polynomials, so it takes no expression "
+            "Hamiltonian"
+        )
+
+    def jet_realization(self, order: int) -> JetRealization:
+        """The realization Taylor-HJ by jets of ``order`` steps on; NotImplementedError where
+        the structure has none for jets."""
+        raise NotImplementedError(
+            f"{self.title} has no realization for Taylor-HJ by jets; its classical methods "
+            "(rk4, midpoint, dop853) take an expression Hamiltonian"
+        )

@@ -254,7 +254,7 @@ const COADJOINT_TAIL: f64 = 1e-26;
 
 /// Bₙ/n! for n = 0 … MAX_SERIES_TERMS (B₁ = −½, odd n > 1 vanish). B₂ₖ/(2k)! =
 /// (−1)^{k+1} 2ζ(2k)/(2π)^{2k}; the first twelve are exact ratios (as in C_SERIES).
-fn bernoulli_over_factorial() -> &'static [f64; MAX_SERIES_TERMS + 1] {
+pub(crate) fn bernoulli_over_factorial() -> &'static [f64; MAX_SERIES_TERMS + 1] {
     static TABLE: OnceLock<[f64; MAX_SERIES_TERMS + 1]> = OnceLock::new();
     TABLE.get_or_init(|| {
         let mut b = [0.0; MAX_SERIES_TERMS + 1];

@@ -5,9 +5,12 @@
 //!   vector fields), with [`lie_groupoid`], the exact groupoid T*G ⇉ g* in its charts.
 //! - [`log_canonical`]: π_ij = c_ij x_i x_j (Lotka–Volterra in any dimension), stepped in
 //!   q = ln x where the bracket is the constant matrix c and the groupoid is linear.
+//! - [`bivector`]: any polynomial bivector with any smooth Hamiltonian (an expression): its
+//!   vector field, for the classical baselines.
 //! - [`polynomial`]: any polynomial bivector, through an approximate realization of order n
 //!   whose maps and generating function arrive as polynomial coefficients.
 
+pub mod bivector;
 pub mod lie_groupoid;
 pub mod lie_poisson;
 pub mod log_canonical;

@@ -79,6 +79,14 @@ impl SparsePolynomial {
         self.vars
     }
 
+    /// The terms: (coefficient, exponents of each variable).
+    pub fn terms(&self) -> impl Iterator<Item = (f64, &[u8])> {
+        self.coeffs
+            .iter()
+            .copied()
+            .zip(self.exponents.chunks_exact(self.vars))
+    }
+
     /// The polynomial at `v` (at least `vars` values), any scalar: powers by repeated
     /// multiplication, so f64, duals and jets all get exact results and derivatives.
     #[inline]

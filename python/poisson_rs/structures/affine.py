@@ -29,8 +29,14 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystemBase
-from .lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial
+from ..protocols import (
+    NEWTON_MAX_ITER,
+    NEWTON_TOL,
+    BracketTerms,
+    JetRealization,
+    PoissonSystemBase,
+)
+from .lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial, linear_bracket_terms
 
 if TYPE_CHECKING:
     from ..steppers.affine import AffineIntegrator
@@ -163,6 +169,17 @@ class AffinePoissonSystem(PoissonSystemBase):
     def hamiltonian(self, x: Any) -> FloatArray:
         """H(x). x: (..., n) → (...,)."""
         return np.asarray(self.polynomial(np.asarray(x, dtype=np.float64)), dtype=np.float64)
+
+    def bracket_terms(self) -> BracketTerms:
+        """π_ij = −Σ_k c[i,j,k] x_k + ω_ij (affine)."""
+        return linear_bracket_terms(self.algebra.c, self.cocycle)
+
+    def jet_realization(self, order: int) -> JetRealization:
+        """The exact groupoid of the central extension at level 1, exponential chart."""
+        ext = central_extension(self.algebra, self.cocycle)
+        return JetRealization(
+            dim=self.dim + 1, label="exp", exact=True, lie_constants=np.array(ext.c)
+        )
 
     def bivector(self, x: Any) -> FloatArray:
         """π(x)_ij = −Σ_k c[i,j,k] x_k + ω_ij. x: (..., n) → (..., n, n)."""

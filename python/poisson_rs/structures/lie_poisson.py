@@ -26,7 +26,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..protocols import PoissonSystemBase
+from ..protocols import BracketTerms, JetRealization, PoissonSystemBase
 from ..untrusted import parsing
 
 __all__ = ["HeavyTop", "LieAlgebra", "LiePoissonSystem", "Polynomial", "RigidBody"]
@@ -144,6 +144,22 @@ def _frozen(self: object, name: str, value: object) -> None:
 
 
 # --- Lie algebras --------------------------------------------------------------------------------
+
+
+def linear_bracket_terms(c: ArrayLike, cocycle: ArrayLike | None = None) -> BracketTerms:
+    """{x_i, x_j} = −Σ_k c[i,j,k] x_k + ω_ij as polynomial entries (i < j)."""
+    c = np.asarray(c, dtype=np.float64)
+    n = c.shape[0]
+    terms: list[tuple[int, int, list[int], float]] = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            for k in range(n):
+                e = [0] * n
+                e[k] = 1
+                terms.append((i, j, e, -float(c[i, j, k])))
+            if cocycle is not None:
+                terms.append((i, j, [0] * n, float(np.asarray(cocycle)[i, j])))
+    return BracketTerms.from_terms(n, terms)
 
 
 class LieAlgebra:
@@ -663,6 +679,16 @@ class LiePoissonSystem(PoissonSystemBase):
     state_symbol: ClassVar[str] = "μ"
     #: A learned S can be trained for it (``poisson_rs.train``, the PINN on T*G).
     trainable: ClassVar[bool] = True
+
+    def bracket_terms(self) -> BracketTerms:
+        """π_ij = −Σ_k c[i,j,k] μ_k (linear)."""
+        return linear_bracket_terms(self.algebra.c)
+
+    def jet_realization(self, order: int) -> JetRealization:
+        """The exact groupoid T*G ⇉ g* in the exponential chart."""
+        return JetRealization(
+            dim=self.dim, label="exp", exact=True, lie_constants=np.array(self.algebra.c)
+        )
 
     def bivector(self, mu: Any) -> Any:
         """π(μ) = :meth:`poisson_tensor`: (..., n) → (..., n, n)."""

@@ -20,7 +20,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..protocols import PoissonSystemBase
+from ..protocols import BracketTerms, PoissonSystemBase
 
 FloatArray = NDArray[np.float64]
 
@@ -410,6 +410,18 @@ class LogCanonicalSystem(PoissonSystemBase):
     def bivector(self, x: Any) -> Any:
         """π(x)_ij = c_ij x_i x_j. x: (..., n) positive → (..., n, n)."""
         return self.structure.bivector(_positive_states(x, self.dim))
+
+    def bracket_terms(self) -> BracketTerms:
+        """π_ij = c_ij x_i x_j (quadratic)."""
+        n, c = self.dim, self.structure.c
+        terms = []
+        for i in range(n):
+            for j in range(i + 1, n):
+                e = [0] * n
+                e[i] += 1
+                e[j] += 1
+                terms.append((i, j, e, float(c[i, j])))
+        return BracketTerms.from_terms(n, terms)
 
     def in_domain(self, x: np.ndarray) -> NDArray[np.bool_]:
         """(n,) bool: states in the open positive orthant (finite, every x_i > 0)."""

@@ -40,7 +40,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from ..protocols import PoissonSystemBase
+from ..protocols import BracketTerms, JetRealization, PoissonSystemBase
 from ..taylor import MAX_WORK
 from .lie_poisson import MAX_DEGREE
 
@@ -755,6 +755,26 @@ class PolynomialPoissonSystem(PoissonSystemBase):
         return self._c(*np.moveaxis(x, -1, 0))
 
     # --- the PoissonSystem protocol (poisson_rs.protocols) ---------------------------------
+
+    def bracket_terms(self) -> BracketTerms:
+        """π's entries above the diagonal, expanded."""
+        s = self.structure
+        upper = [s.pi[i, j] for i in range(s.dim) for j in range(i + 1, s.dim)]
+        return BracketTerms(*_term_table(upper, s.x))
+
+    def jet_realization(self, order: int) -> JetRealization:
+        """The realization of order n matched to ``order`` (exact where π is constant)."""
+        n = matched_realization_order(order)
+        beta, alpha, p = self.structure.realization(n)
+        gens = (*p, *self.structure.x)
+        exact = all(e.is_number for e in self.structure.pi)
+        return JetRealization(
+            dim=self.dim,
+            label=f"realization{n}",
+            exact=exact,
+            sou=_term_table(beta, gens),
+            tar=_term_table(alpha, gens),
+        )
 
     def bivector(self, x: Any) -> FloatArray:
         """π(x). x: (..., n) → (..., n, n)."""

@@ -1,0 +1,440 @@
+"""Hamiltonians as expressions: a bounded grammar of its own, never ``eval``.
+
+A string in the system's coordinates (its component names, or x1 … xn) over ``+ - * /``,
+integer and real powers (``**`` or ``^``, a number as the exponent), ``exp log sin cos tan sqrt
+tanh``, the constant ``pi`` and decimal numbers, e.g. ``"0.5*u**2 - cos(v) + u*(r - u^2 - v^2)"``.
+It is parsed by recursive descent into a straight-line program (common subexpressions shared,
+constants folded) that the Rust core evaluates exactly with its derivatives, and that NumPy and
+torch evaluate here (the torch form gives autograd's ∇H, the core's oracle).
+
+Bounds, each refused with one ValueError naming the field: the text (``MAX_CHARS``), its nesting
+(``MAX_DEPTH``), the program (``MAX_INSTRUCTIONS``, the core's tape), integer exponents
+(``|n| <= MAX_POWER``) and real ones (finite, ``|r| <= MAX_POWER``); numbers must be finite.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+#: Longest text.
+MAX_CHARS = 4096
+#: Deepest nesting of parentheses, functions and operators.
+MAX_DEPTH = 64
+#: Longest program (the core's ``MAX_TAPE``).
+MAX_INSTRUCTIONS = 256
+#: Largest |exponent|.
+MAX_POWER = 64
+
+#: Opcodes in the order the core numbers them.
+OPCODES = (
+    "var", "const", "add", "sub", "mul", "div", "neg", "powi", "powf",
+    "exp", "log", "sin", "cos", "tan", "sqrt", "tanh",
+)  # fmt: skip
+FUNCTIONS = ("exp", "log", "sin", "cos", "tan", "sqrt", "tanh")
+_TOKEN = re.compile(
+    r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<name>[^\W\d]\w*)"
+    r"|(?P<op>\*\*|[-+*/^(),]))"
+)
+
+# A node: (opcode, operand registers..., constant) in the program; registers are indices.
+Node = tuple[Any, ...]
+
+
+class ExpressionError(ValueError):
+    """A Hamiltonian text the grammar refuses."""
+
+
+def _tokens(text: str, field_name: str) -> list[tuple[str, str]]:
+    out: list[tuple[str, str]] = []
+    pos = 0
+    text = text.rstrip()
+    while pos < len(text):
+        m = _TOKEN.match(text, pos)
+        if m is None or m.end() == pos:
+            raise ExpressionError(
+                f"{field_name}: unexpected character {text[pos:].lstrip()[:1]!r} at position "
+                f"{pos} (allowed: numbers, names, + - * / ** ^ ( ) and the functions "
+                f"{', '.join(FUNCTIONS)})"
+            )
+        kind = m.lastgroup or "op"
+        out.append((kind, m.group(kind)))
+        pos = m.end()
+    return out
+
+
+class _Builder:
+    """Hash-consed program: equal subexpressions get one register; constants fold."""
+
+    def __init__(self, field_name: str) -> None:
+        self.nodes: list[Node] = []
+        self.index: dict[Node, int] = {}
+        self.field = field_name
+
+    def add(self, node: Node) -> int:
+        node = self._fold(node)
+        if node in self.index:
+            return self.index[node]
+        if len(self.nodes) >= MAX_INSTRUCTIONS:
+            raise ExpressionError(
+                f"{self.field}: the expression needs more than {MAX_INSTRUCTIONS} instructions"
+            )
+        self.nodes.append(node)
+        self.index[node] = len(self.nodes) - 1
+        return len(self.nodes) - 1
+
+    def const_value(self, r: int) -> float | None:
+        node = self.nodes[r]
+        return float(node[1]) if node[0] == "const" else None
+
+    def _fold(self, node: Node) -> Node:
+        op = node[0]
+        if op in ("var", "const"):
+            return node
+        operands = node[1:2] if op in ("powi", "powf") else node[1:]
+        args = [self.const_value(r) for r in operands]
+        if any(a is None for a in args):
+            return node
+        vals = [float(a) for a in args if a is not None]
+        try:
+            with np.errstate(all="raise"):
+                value = _apply_float(node, vals)
+        except (FloatingPointError, ValueError, ZeroDivisionError, OverflowError):
+            raise ExpressionError(
+                f"{self.field}: a constant part ({op}) is undefined or overflows"
+            ) from None
+        if not math.isfinite(value):
+            raise ExpressionError(f"{self.field}: a constant part ({op}) is not finite")
+        return ("const", value)
+
+
+def _apply_float(node: Node, v: list[float]) -> float:
+    op = node[0]
+    if op == "add":
+        return v[0] + v[1]
+    if op == "sub":
+        return v[0] - v[1]
+    if op == "mul":
+        return v[0] * v[1]
+    if op == "div":
+        return v[0] / v[1]
+    if op == "neg":
+        return -v[0]
+    if op == "powi":
+        return float(v[0] ** int(node[2]))
+    if op == "powf":
+        if v[0] < 0:
+            raise ValueError("negative base")
+        return float(v[0] ** float(node[2]))
+    f = {"exp": math.exp, "log": math.log, "sin": math.sin, "cos": math.cos,
+         "tan": math.tan, "sqrt": math.sqrt, "tanh": math.tanh}[op]  # fmt: skip
+    return float(f(v[0]))
+
+
+class _Parser:
+    def __init__(self, tokens: list[tuple[str, str]], names: dict[str, int], field_name: str):
+        self.tokens, self.pos, self.field = tokens, 0, field_name
+        self.names = names
+        self.b = _Builder(field_name)
+        self.depth = 0
+
+    def error(self, what: str) -> ExpressionError:
+        return ExpressionError(f"{self.field}: {what}")
+
+    def peek(self) -> tuple[str, str] | None:
+        return self.tokens[self.pos] if self.pos < len(self.tokens) else None
+
+    def take(self, value: str) -> bool:
+        t = self.peek()
+        if t is not None and t[0] == "op" and t[1] == value:
+            self.pos += 1
+            return True
+        return False
+
+    def enter(self) -> None:
+        self.depth += 1
+        if self.depth > MAX_DEPTH:
+            raise self.error(f"the expression nests deeper than {MAX_DEPTH}")
+
+    def parse(self) -> int:
+        if not self.tokens:
+            raise self.error("the expression is empty")
+        r = self.expr()
+        rest = self.peek()
+        if rest is not None:
+            raise self.error(f"unexpected {rest[1]!r} after a complete expression")
+        return r
+
+    def expr(self) -> int:
+        self.enter()
+        r = self.term()
+        while True:
+            if self.take("+"):
+                r = self.b.add(("add", r, self.term()))
+            elif self.take("-"):
+                r = self.b.add(("sub", r, self.term()))
+            else:
+                break
+        self.depth -= 1
+        return r
+
+    def term(self) -> int:
+        self.enter()
+        r = self.unary()
+        while True:
+            if self.take("*"):
+                r = self.b.add(("mul", r, self.unary()))
+            elif self.take("/"):
+                r = self.b.add(("div", r, self.unary()))
+            else:
+                break
+        self.depth -= 1
+        return r
+
+    def unary(self) -> int:
+        self.enter()
+        if self.take("-"):
+            r = self.b.add(("neg", self.unary()))
+        elif self.take("+"):
+            r = self.unary()
+        else:
+            r = self.power()
+        self.depth -= 1
+        return r
+
+    def exponent(self) -> float:
+        """The exponent after ** or ^: a signed number (or a parenthesised one)."""
+        sign = 1.0
+        while True:
+            if self.take("-"):
+                sign = -sign
+            elif not self.take("+"):
+                break
+        t = self.peek()
+        if t is not None and t[0] == "num":
+            self.pos += 1
+            return sign * float(t[1])
+        if self.take("("):
+            v = self.exponent()
+            if not self.take(")"):
+                raise self.error("missing ')' in an exponent")
+            return sign * v
+        raise self.error("an exponent must be a number (write exp(y*log(x)) for x**y)")
+
+    def power(self) -> int:
+        self.enter()
+        base = self.atom()
+        if self.take("**") or self.take("^"):
+            e = self.exponent()
+            if not math.isfinite(e) or abs(e) > MAX_POWER:
+                raise self.error(f"exponent {e} is outside [-{MAX_POWER}, {MAX_POWER}]")
+            if e == int(e):
+                n = int(e)
+                if n == 1:
+                    r = base
+                elif n == 0:
+                    r = self.b.add(("const", 1.0))
+                else:
+                    r = self.b.add(("powi", base, n))
+            elif e == 0.5:
+                r = self.b.add(("sqrt", base))
+            else:
+                r = self.b.add(("powf", base, e))
+        else:
+            r = base
+        self.depth -= 1
+        return r
+
+    def atom(self) -> int:
+        t = self.peek()
+        if t is None:
+            raise self.error("the expression ends too early")
+        kind, value = t
+        self.pos += 1
+        if kind == "num":
+            v = float(value)
+            if not math.isfinite(v):
+                raise self.error(f"number {value!r} is not finite")
+            return self.b.add(("const", v))
+        if kind == "name":
+            if value in FUNCTIONS:
+                if not self.take("("):
+                    raise self.error(f"{value} needs an argument in parentheses")
+                r = self.expr()
+                if not self.take(")"):
+                    raise self.error(f"missing ')' after the argument of {value}")
+                return self.b.add((value, r))
+            if value in self.names:
+                return self.b.add(("var", self.names[value]))
+            if value == "pi":
+                return self.b.add(("const", math.pi))
+            raise self.error(
+                f"unknown name {value!r}; the coordinates are {', '.join(self.names)} and the "
+                f"functions {', '.join(FUNCTIONS)}"
+            )
+        if value == "(":
+            r = self.expr()
+            if not self.take(")"):
+                raise self.error("missing ')'")
+            return r
+        raise self.error(f"unexpected {value!r}")
+
+
+@dataclass(frozen=True)
+class Expression:
+    """A Hamiltonian expression in the coordinates ``names`` (parsed at construction).
+
+    ``program``: the straight-line program; its value is the last instruction's.
+    """
+
+    text: str
+    names: tuple[str, ...]
+    #: Other names of the same coordinates (x1 … xn), where they do not clash with ``names``.
+    aliases: tuple[str, ...] = ()
+    program: tuple[Node, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "aliases", tuple(self.aliases))
+        program = parse_program(self.text, self.names, aliases=self.aliases)
+        object.__setattr__(self, "program", program)
+
+    @property
+    def dim(self) -> int:
+        return len(self.names)
+
+    def uses(self) -> tuple[int, ...]:
+        """The coordinates H depends on (by the program's variables)."""
+        return tuple(sorted({int(n[1]) for n in self.program if n[0] == "var"}))
+
+    def tape(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], FloatArray]:
+        """The core's table: opcode, first and second operand (a variable's index for "var", an
+        integer exponent for "powi"), constant ("const", the exponent of "powf")."""
+        n = len(self.program)
+        code, a, b = (np.zeros(n, dtype=np.int64) for _ in range(3))
+        c = np.zeros(n, dtype=np.float64)
+        for k, node in enumerate(self.program):
+            op = node[0]
+            code[k] = OPCODES.index(op)
+            if op in ("var",):
+                a[k] = node[1]
+            elif op == "const":
+                c[k] = node[1]
+            elif op == "powi":
+                a[k], b[k] = node[1], node[2]
+            elif op == "powf":
+                a[k], c[k] = node[1], node[2]
+            else:
+                a[k] = node[1]
+                if len(node) > 2:
+                    b[k] = node[2]
+        return code, a, b, c
+
+    def evaluate(self, x: Any, lib: Any = np) -> Any:
+        """H at ``x`` (..., n) with ``lib`` NumPy or torch (differentiable with torch)."""
+        regs: list[Any] = []
+        for node in self.program:
+            op = node[0]
+            if op == "var":
+                v = x[..., node[1]]
+            elif op == "const":
+                v = node[1]
+            elif op == "add":
+                v = regs[node[1]] + regs[node[2]]
+            elif op == "sub":
+                v = regs[node[1]] - regs[node[2]]
+            elif op == "mul":
+                v = regs[node[1]] * regs[node[2]]
+            elif op == "div":
+                v = regs[node[1]] / regs[node[2]]
+            elif op == "neg":
+                v = -regs[node[1]]
+            elif op == "powi":
+                v = regs[node[1]] ** int(node[2])
+            elif op == "powf":
+                v = regs[node[1]] ** float(node[2])
+            else:
+                v = getattr(lib, op)(regs[node[1]])
+            regs.append(v)
+        out = regs[-1]
+        if not hasattr(out, "shape") or out.shape != x.shape[:-1]:
+            out = out + 0.0 * x[..., 0]
+        return out
+
+    def __call__(self, x: ArrayLike) -> Any:
+        return self.evaluate(np.asarray(x, dtype=np.float64))
+
+    def __str__(self) -> str:
+        return self.text
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (Expression, (self.text, self.names, self.aliases))
+
+
+
+def parse_program(
+    text: Any,
+    names: Sequence[str],
+    field_name: str = "hamiltonian",
+    aliases: Sequence[str] = (),
+) -> tuple[Node, ...]:
+    """The program of ``text`` in the coordinates ``names``; ExpressionError (a ValueError)
+    naming ``field_name`` for anything outside the grammar or its bounds."""
+    if not isinstance(text, str):
+        raise ExpressionError(f"{field_name} must be a string, got {type(text).__name__}")
+    if len(text) > MAX_CHARS:
+        raise ExpressionError(f"{field_name} is longer than {MAX_CHARS} characters")
+    table = {n: i for i, n in enumerate(names)}
+    for i, n in enumerate(aliases):
+        table.setdefault(n, i)
+    # A component name the grammar cannot spell (or a function's) is left out: x1 … xn remain.
+    table = {
+        n: i
+        for n, i in table.items()
+        if n not in FUNCTIONS and n != "pi" and re.fullmatch(r"[^\W\d]\w*", n)
+    }
+    p = _Parser(_tokens(text, field_name), table, field_name)
+    root = p.parse()
+    return _compact(p.b.nodes, root)
+
+
+def _compact(nodes: list[Node], root: int) -> tuple[Node, ...]:
+    """The nodes ``root`` reaches, renumbered in order, ``root`` last (folding leaves dead
+    constants behind)."""
+    live = [False] * len(nodes)
+    live[root] = True
+    for k in range(root, -1, -1):
+        if live[k] and nodes[k][0] not in ("var", "const", "powi", "powf"):
+            for r in nodes[k][1:]:
+                live[r] = True
+        elif live[k] and nodes[k][0] in ("powi", "powf"):
+            live[nodes[k][1]] = True
+    new: dict[int, int] = {}
+    out: list[Node] = []
+    for k in range(root + 1):
+        if not live[k]:
+            continue
+        node = nodes[k]
+        op = node[0]
+        if op in ("var", "const"):
+            renamed = node
+        elif op in ("powi", "powf"):
+            renamed = (op, new[node[1]], node[2])
+        else:
+            renamed = (op, *(new[r] for r in node[1:]))
+        new[k] = len(out)
+        out.append(renamed)
+    return tuple(out)
+
+
+def default_names(dim: int) -> tuple[str, ...]:
+    """x1 … xn."""
+    return tuple(f"x{i + 1}" for i in range(dim))

@@ -1,0 +1,168 @@
+//! Any polynomial bivector with any smooth Hamiltonian: the vector field ẋ = π(x) ∇H(x) of an
+//! [`Expression`] H, with π given entry by entry as polynomials (linear for Lie–Poisson, affine
+//! with a cocycle, quadratic for log-canonical, constant for point vortices). ∇H and ∇²H come
+//! from forward-mode jets of H, ∂π from dual numbers: the classical baselines (RK4, the implicit
+//! midpoint rule) run on it in SIMD lanes with an exact Jacobian.
+
+use nalgebra::SMatrix;
+
+use crate::dual::{Dual1, Jet2};
+use crate::error::CoreError;
+use crate::expression::Expression;
+use crate::lanes::LaneField;
+use crate::structures::lie_poisson::VectorField;
+use crate::structures::polynomial::SparsePolynomial;
+
+/// π's upper triangle, row by row (π_ij for i < j, N(N − 1)/2 polynomials in N variables), and
+/// H.
+#[derive(Clone, Debug)]
+pub struct HamiltonianField<const N: usize> {
+    upper: Vec<SparsePolynomial>,
+    hamiltonian: Expression,
+}
+
+impl<const N: usize> HamiltonianField<N> {
+    pub fn new(upper: Vec<SparsePolynomial>, hamiltonian: Expression) -> Result<Self, CoreError> {
+        if upper.len() != N * (N - 1) / 2 || upper.iter().any(|p| p.vars() != N) {
+            return Err(CoreError::Invalid(format!(
+                "a bivector in dimension {N} needs {} polynomials in {N} variables (its upper \
+                 triangle)",
+                N * (N - 1) / 2
+            )));
+        }
+        if hamiltonian.vars() != N {
+            return Err(CoreError::Invalid(format!(
+                "H has {} variables; the bivector {N}",
+                hamiltonian.vars()
+            )));
+        }
+        Ok(HamiltonianField { upper, hamiltonian })
+    }
+
+    /// H at x.
+    pub fn hamiltonian(&self, x: &[f64; N]) -> f64 {
+        self.hamiltonian.eval(x)
+    }
+
+    /// ∇H at x.
+    pub fn gradient(&self, x: &[f64; N]) -> [f64; N] {
+        let d: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(x[i], i));
+        self.hamiltonian.eval(&d).g
+    }
+
+    /// H, ∇H and ∇²H at x.
+    pub fn jet(&self, x: &[f64; N]) -> Jet2<N> {
+        let d: [Jet2<N>; N] = std::array::from_fn(|i| Jet2::var(x[i], i));
+        self.hamiltonian.eval(&d)
+    }
+}
+
+impl<const N: usize> VectorField<N> for HamiltonianField<N> {
+    fn field(&self, x: &[f64; N]) -> [f64; N] {
+        let g = self.gradient(x);
+        let mut f = [0.0; N];
+        let mut k = 0;
+        for i in 0..N {
+            for j in i + 1..N {
+                let p = self.upper[k].eval(x);
+                f[i] += p * g[j];
+                f[j] -= p * g[i];
+                k += 1;
+            }
+        }
+        f
+    }
+
+    fn jacobian(&self, x: &[f64; N]) -> SMatrix<f64, N, N> {
+        let jet = self.jet(x);
+        let (g, hs) = (jet.grad(), jet.hess());
+        let d: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(x[i], i));
+        let mut out = SMatrix::<f64, N, N>::zeros();
+        let mut k = 0;
+        for i in 0..N {
+            for j in i + 1..N {
+                let p = self.upper[k].eval(&d);
+                k += 1;
+                // ∂_c (π_ij g_j) = ∂_c π_ij g_j + π_ij H_jc, and π_ji = −π_ij.
+                for c in 0..N {
+                    out[(i, c)] += p.g[c] * g[j] + p.v * hs[j][c];
+                    out[(j, c)] -= p.g[c] * g[i] + p.v * hs[i][c];
+                }
+            }
+        }
+        out
+    }
+}
+
+/// Lane by lane through the scalar evaluation (the same bits as [`VectorField::field`]).
+impl<const N: usize> LaneField<N> for HamiltonianField<N> {
+    #[inline(always)]
+    fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        for l in 0..L {
+            let f = self.field(&std::array::from_fn(|i| x[i][l]));
+            for i in 0..N {
+                out[i][l] = f[i];
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        x: &[[f64; L]; N],
+        out: &mut [[[f64; L]; N]; N],
+    ) -> bool {
+        crate::straight_line::jacobian_lanes_by(x, out, |m| {
+            let j = VectorField::jacobian(self, m);
+            std::array::from_fn(|r| std::array::from_fn(|c| j[(r, c)]))
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// so(3)* (π_ij = −ε_ijk x_k) with H = cos x₃ + x₁²/2: the field μ × ∇H, and its Jacobian
+    /// against central differences.
+    #[test]
+    fn field_and_jacobian_on_so3_with_a_cosine() {
+        // π_01 = −x2, π_02 = x1, π_12 = −x0.
+        let upper = vec![
+            SparsePolynomial::new(3, &[-1.0], &[0, 0, 1]).unwrap(),
+            SparsePolynomial::new(3, &[1.0], &[0, 1, 0]).unwrap(),
+            SparsePolynomial::new(3, &[-1.0], &[1, 0, 0]).unwrap(),
+        ];
+        // cos(x2) + 0.5 * x0^2
+        let h = Expression::from_table(
+            3,
+            &[0, 12, 0, 7, 1, 4, 2],
+            &[2, 0, 0, 2, 0, 3, 1],
+            &[0, 0, 0, 2, 0, 4, 5],
+            &[0.0, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0],
+        )
+        .unwrap();
+        let f = HamiltonianField::<3>::new(upper, h).unwrap();
+        let x: [f64; 3] = [0.4, -0.7, 1.1];
+        let g = [x[0], 0.0, -x[2].sin()];
+        let cross = [
+            x[1] * g[2] - x[2] * g[1],
+            x[2] * g[0] - x[0] * g[2],
+            x[0] * g[1] - x[1] * g[0],
+        ];
+        let v = f.field(&x);
+        for i in 0..3 {
+            assert!((v[i] - cross[i]).abs() < 1e-15, "{v:?} vs {cross:?}");
+        }
+        let j = f.jacobian(&x);
+        for c in 0..3 {
+            let (mut a, mut b) = (x, x);
+            a[c] += 1e-6;
+            b[c] -= 1e-6;
+            let (fa, fb) = (f.field(&a), f.field(&b));
+            for r in 0..3 {
+                assert!((j[(r, c)] - (fa[r] - fb[r]) / 2e-6).abs() < 1e-8);
+            }
+        }
+    }
+}
