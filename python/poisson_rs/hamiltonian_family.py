@@ -57,8 +57,8 @@ class MonomialFamily:
     ``build(terms)`` makes the structure's system with H = Σ terms[e]·x^e;
     ``fit_stepper(terms, system)`` (optional) its Taylor-HJ integrator of ``order`` built fast
     (``system`` is the built system or None during the fit; by default the built system's own
-    integrator); ``gauge`` says what H is identifiable up to (besides a constant). ``description`` names
-    the family in reports; ``variables`` the coordinates' names.
+    integrator); ``gauge`` says what H is identifiable up to besides a constant;
+    ``variables`` names the coordinates (:attr:`description` names the family in reports).
     """
 
     def __init__(

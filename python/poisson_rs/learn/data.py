@@ -498,8 +498,7 @@ def prepare(
             )
         if t.shape[1] != n:
             raise ValueError(
-                f"{name}[{i}]: records have dimension {t.shape[1]}, but {what} has "
-                f"dimension {n}"
+                f"{name}[{i}]: records have dimension {t.shape[1]}, but {what} has dimension {n}"
             )
         if t.shape[0] < 2:
             raise ValueError(f"{name}[{i}]: needs at least two records, got {t.shape[0]}")

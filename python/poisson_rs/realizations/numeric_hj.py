@@ -101,9 +101,7 @@ class _Powers:
         return self.cache[(i, e)]
 
 
-def _compose(
-    terms: Poly, n: int, values: Sequence[Series], top: int, x_part: bool
-) -> Series:
+def _compose(terms: Poly, n: int, values: Sequence[Series], top: int, x_part: bool) -> Series:
     """Σ_terms c · x^{e_x} · Π_j values_j^{e_j} as a series in t (to t^top): ``terms`` has
     exponents over (values..., x...) when ``x_part`` (a realization's β_i over (p, x)), over the
     values alone otherwise (H composed with β)."""
@@ -112,9 +110,13 @@ def _compose(
     powers = _Powers(values, top)
     out = [_zero(n) for _ in range(top + 1)]
     for row, c in zip(exps, coeffs, strict=True):
-        head = (row[m:].reshape(1, n), np.array([c])) if x_part else (
-            np.zeros((1, n), dtype=np.int64),
-            np.array([c]),
+        head = (
+            (row[m:].reshape(1, n), np.array([c]))
+            if x_part
+            else (
+                np.zeros((1, n), dtype=np.int64),
+                np.array([c]),
+            )
         )
         term: Series = [head] + [_zero(n)] * top
         for j in range(m):
@@ -132,9 +134,7 @@ def hj_terms(beta: Sequence[Poly], hamiltonian: Poly, order: int) -> list[Poly]:
     s_terms: list[Poly] = [(hamiltonian[0].copy(), -hamiltonian[1])]
     for k in range(2, order + 1):
         top = k - 1
-        grad: list[Series] = [
-            [_zero(n)] + [derivative(s, i) for s in s_terms] for i in range(n)
-        ]
+        grad: list[Series] = [[_zero(n)] + [derivative(s, i) for s in s_terms] for i in range(n)]
         beta_t = [_compose(b, n, grad, top, x_part=True) for b in beta]
         h_t = _compose(hamiltonian, n, beta_t, top, x_part=False)
         e, c = h_t[top]

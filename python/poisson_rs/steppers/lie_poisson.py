@@ -59,7 +59,6 @@ def lie_poisson_taylor(
     return TaylorIntegrator(data, tol=tol, max_iter=max_iter)
 
 
-
 #: Order of accuracy and whether the step is a Poisson map, for each classical integrator of the
 #: rigid body.
 CLASSICAL_METHODS: dict[str, tuple[int, bool]] = {

@@ -292,7 +292,9 @@ class SeriesRealizationIntegrator:
         r = realization_order or matched_realization_order(order)
         tables, beta = realization_tables(structure, r)
         self.s_terms = hj_terms(beta, hamiltonian, order)
-        self._tables = (*tables, *series_table(self.s_terms))
+        bi, bc, be, ai, ac, ae = tables
+        sc, se = series_table(self.s_terms)
+        self._tables = (bi, bc, be, ai, ac, ae, sc, se)
         self._n = structure.dim
         self.system, self.order, self.realization_order = system, order, r
         self.tol, self.max_iter = float(tol), int(max_iter)
@@ -307,7 +309,7 @@ class SeriesRealizationIntegrator:
     ) -> tuple[FloatArray, dict[str, np.ndarray]]:
         from .. import _core
 
-        return _core.rollout_polynomial_realization(  # type: ignore[no-any-return]
+        return _core.rollout_polynomial_realization(
             *self._tables,
             np.ascontiguousarray(mu0, dtype=np.float64),
             float(h),
