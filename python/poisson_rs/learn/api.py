@@ -333,7 +333,9 @@ def learn(
         particle, ...) learns H from the family it offers
         (:meth:`~poisson_rs.protocols.PoissonSystemBase.hamiltonian_family`) through its own
         Taylor-HJ integrator (:mod:`poisson_rs.learn.structure_fit`), in the modes it lists in
-        ``learn_modes()``; another mode is refused, naming the mode and the structure.
+        ``learn_modes()``; another mode is refused, naming the mode and the structure. There
+        the fit is on one-step residuals (``horizon``, shooting and ``map_options`` are the
+        T*G path's).
     mode : "auto" (smallest model that explains the data: polynomial H of degree 2, 3, 4, then
         a map), "hamiltonian" (polynomial H of ``degree``, or the degrees in turn), "map" (the
         time-h map's generating function, H never formed; it steps at the data's h only),
