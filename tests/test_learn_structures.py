@@ -191,9 +191,44 @@ def test_modes_that_do_not_apply_are_refused_naming_mode_and_structure(mode: str
 
 
 def test_a_structure_without_a_hamiltonian_family_is_refused() -> None:
+    from poisson_rs.protocols import PoissonSystemBase
+
+    class Bare(PoissonSystemBase):
+        title = "a bare structure"
+
+    with pytest.raises(
+        ValueError,
+        match=r"mode 'hamiltonian' does not apply to the structure a bare structure; no mode of "
+        "pr.learn applies to it",
+    ):
+        pr.learn(np.ones((2, 5, 2)), H, structure=Bare(), mode="hamiltonian")
+
+
+def test_log_canonical_states_outside_the_orthant_are_refused() -> None:
     lv = pr.lotka_volterra([[0, 1], [-1, 0]], [1.0, 2.0])
-    with pytest.raises(ValueError, match=r"mode 'hamiltonian' does not apply to the structure"):
-        pr.learn(np.ones((2, 5, 2)), H, structure=lv, mode="hamiltonian")
+    trajs = lv.reference_solution(np.array([[1.0, 0.8], [1.0, 1.2]]), np.arange(6) * H)
+    trajs[0, 3, 1] = -0.1
+    with pytest.raises(
+        ValueError, match=r"trajectories\[0\] must be open positive orthant .* states: state 3"
+    ):
+        pr.learn(trajs, H, structure=lv, mode="hamiltonian")
+
+
+def test_lotka_volterra_on_pnn_protocol_sits_on_its_integrators_floor() -> None:
+    """PNN's protocol: u̇ = u(v − 2), v̇ = v(1 − u), h = 0.1, 100 steps from each of (1, 0.8),
+    (1, 1), (1, 1.2); hidden states to T = 100. H = Σ a_i x_i − b_i ln x_i fitted through the
+    log-canonical Taylor-HJ (K = 5) is within 1.2× of the true H through the same
+    integrator."""
+    lv = pr.lotka_volterra([[0, 1], [-1, 0]], [1.0, 2.0])
+    trajs = lv.reference_solution(np.array([[1, 0.8], [1, 1.0], [1, 1.2]]), np.arange(101) * H)
+    stepper, report = pr.learn(trajs, H, structure=lv)
+    assert report.kept.family == "log+poly1" and report.kept.order == 5
+    assert "ln(u)" in report.hamiltonian_text and "no Casimir" in report.gauge
+    hidden = np.array([[1, 0.9], [1, 1.1], [0.8, 1.0]])
+    ref = lv.reference_solution(hidden, np.arange(1001) * H)
+    e_true = np.abs(pr.integrate(pr.taylor_integrator(lv, 5), hidden, H, 1000) - ref).max()
+    e_learned = np.abs(pr.integrate(stepper, hidden, H, 1000) - ref).max()
+    assert e_learned <= 1.2 * e_true, (e_learned, e_true)
 
 
 def test_bad_structure_options_are_refused() -> None:

@@ -103,7 +103,7 @@ class MonomialFamily:
 
     def restrict(self, exponents: Sequence[tuple[int, ...]]) -> MonomialFamily:
         """The same family on fewer monomials."""
-        return MonomialFamily(
+        return type(self)(
             self.dim,
             exponents,
             order=self.order,

@@ -326,6 +326,10 @@ class PoissonSystemBase:
             f"structure: H cannot be learned on {self.title} (it offers no Hamiltonian family)"
         )
 
+    def learn_degrees(self) -> tuple[int, ...]:
+        """The degrees of :meth:`hamiltonian_family` mode "auto" tries, smallest first."""
+        return (2, 3, 4)
+
     def learn_orders(self) -> tuple[int, ...]:
         """The Taylor-HJ orders :meth:`hamiltonian_family` accepts."""
         return tuple(self.taylor_orders(range(1, 13)))

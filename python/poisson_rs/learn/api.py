@@ -638,10 +638,11 @@ def _learn_on_structure(
     refit: bool,
     progress: bool | None,
 ) -> tuple[Any, LearnReport]:
-    """:func:`learn` on a structure that offers its own Hamiltonian family: H of degree 2, 3,
-    4 in turn (or ``degree``) fitted through the structure's Taylor-HJ integrator, the smallest
-    whose held-out one-step error reaches the data's noise level kept, then refitted on every
-    record. Nothing here names a structure: what differs is asked of ``structure``."""
+    """:func:`learn` on a structure that offers its own Hamiltonian family: H of the degrees
+    the structure lists in turn (or ``degree``) fitted through the structure's Taylor-HJ
+    integrator, the smallest whose held-out one-step error reaches the data's noise level kept,
+    then refitted on every record. Nothing here names a structure: what differs is asked of
+    ``structure``."""
     from .structure_fit import fit_structure_hamiltonian
 
     modes = tuple(structure.learn_modes())
@@ -678,7 +679,8 @@ def _learn_on_structure(
     held = bool(data.test)
     err = "held-out one-step error" if held else "training one-step error (nothing held out)"
     top = max_degree or MAX_DEGREE
-    degrees = [degree] if degree is not None else [d for d in AUTO_DEGREES if d <= top] or [top]
+    tried = structure.learn_degrees()
+    degrees = [degree] if degree is not None else [d for d in tried if d <= top] or [top]
 
     def candidate(fit: Any) -> Candidate:
         one, roll = _errors(fit.stepper, data)

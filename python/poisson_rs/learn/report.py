@@ -152,7 +152,7 @@ class LearnReport:
             lines.append(f"  H family: {self.kept.hamiltonian_family}")
             lines.append(f"  H = {self.kept.hamiltonian_text}")
             lines.append(
-                f"  (gauge: H is identifiable only up to a constant and {self.kept.gauge}: the "
+                f"  (gauge: H is identifiable only up to a constant and {self.kept.gauge}; the "
                 "learned H may differ from the true one by those, which change no trajectory)"
             )
         elif self.hamiltonian is not None:
