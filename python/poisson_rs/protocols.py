@@ -355,6 +355,28 @@ class PoissonSystemBase:
             )
         return chart
 
+    def learn_modes(self) -> tuple[str, ...]:
+        """The modes of :func:`poisson_rs.learn` that apply to this structure, "auto" first;
+        () where none does (H cannot be fitted on it through its integrator)."""
+        return ()
+
+    def hamiltonian_family(self, degree: int, order: int | None = None) -> Any:
+        """The Hamiltonians :func:`poisson_rs.learn` fits on this structure (its own H is
+        ignored): a :class:`poisson_rs.hamiltonian_family.MonomialFamily`-like value of
+        total ``degree``, stepped by the structure's Taylor-HJ integrator of ``order``
+        (default: the structure's choice). ValueError where :meth:`learn_modes` is empty."""
+        raise ValueError(
+            f"structure: H cannot be learned on {self.title} (it offers no Hamiltonian family)"
+        )
+
+    def learn_degrees(self) -> tuple[int, ...]:
+        """The degrees of :meth:`hamiltonian_family` mode "auto" tries, smallest first."""
+        return (2, 3, 4)
+
+    def learn_orders(self) -> tuple[int, ...]:
+        """The Taylor-HJ orders :meth:`hamiltonian_family` accepts."""
+        return tuple(self.taylor_orders(range(1, 13)))
+
     def reference(self, x0: np.ndarray, times: ArrayLike) -> np.ndarray:
         """DOP853 at rtol = atol = 1e-13."""
         return self.reference_solution(x0, times)  # type: ignore[attr-defined]

@@ -297,6 +297,7 @@ def learn(
     *,
     algebra: LieAlgebra | str | None = None,
     system: LiePoissonSystem | None = None,
+    structure: Any = None,
     mode: str = "auto",
     degree: int | None = None,
     max_degree: int | None = None,
@@ -325,7 +326,16 @@ def learn(
         The record spacing (time units), in :data:`poisson_rs.learn.data.H_RANGE`.
     algebra, system : the Lie algebra (a LieAlgebra or "so3", "se3", "sl2"), or a system whose
         algebra it is (its Hamiltonian is used by mode "hj+data" only, as the known part). One
-        of them is required: nothing is assumed.
+        of them (or ``structure``) is required: nothing is assumed.
+    structure : the Poisson structure, as any system on it (:class:`poisson_rs.PoissonSystem`;
+        its own H is ignored) or a Lie algebra: a Lie–Poisson system or algebra learns as
+        ``system=``/``algebra=`` do; any other structure (affine, polynomial bivector, charged
+        particle, ...) learns H from the family it offers
+        (:meth:`~poisson_rs.protocols.PoissonSystemBase.hamiltonian_family`) through its own
+        Taylor-HJ integrator (:mod:`poisson_rs.learn.structure_fit`), in the modes it lists in
+        ``learn_modes()``; another mode is refused, naming the mode and the structure. There
+        the fit is on one-step residuals (``horizon``, shooting and ``map_options`` are the
+        T*G path's).
     mode : "auto" (smallest model that explains the data: polynomial H of degree 2, 3, 4, then
         a map), "hamiltonian" (polynomial H of ``degree``, or the degrees in turn), "map" (the
         time-h map's generating function, H never formed; it steps at the data's h only),
@@ -372,6 +382,24 @@ def learn(
     # Every option is checked here, before any work.
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if structure is not None:
+        if algebra is not None or system is not None:
+            raise ValueError("structure: give the structure alone, not with algebra= or system=")
+        if getattr(structure, "trainable", False):
+            system = structure  # a Lie–Poisson system: learning runs on T*G
+        elif hasattr(structure, "learn_modes"):
+            return _learn_on_structure(
+                trajectories, h, structure, mode=mode, degree=degree, max_degree=max_degree,
+                order=order, test_fraction=test_fraction, seed=seed, max_iter=max_iter,
+                verbose=verbose, refit=refit, progress=progress,
+            )  # fmt: skip
+        elif isinstance(structure, (str, LieAlgebra)):
+            algebra = structure
+        else:
+            raise TypeError(
+                "structure must be a Poisson system (poisson_rs.PoissonSystem; its H is "
+                f"ignored) or a Lie algebra, got {type(structure).__name__}"
+            )
     if mode == "hj+data":
         if system is None:
             raise ValueError(
@@ -555,9 +583,9 @@ def _refuse_drift(data: TrajectoryData) -> None:
         raise ValueError(
             f"trajectories: the Casimirs drift by up to {drift:.3g} (relative) along a "
             f"trajectory, {drift / limit:.3g}× what the data's noise level {data.noise:.2g} "
-            "explains: these data do not come from a Lie–Poisson system of this algebra "
-            "(damping, forcing or another structure), and a Poisson integrator keeps every "
-            "Casimir, so none can fit them"
+            f"explains: these data do not come from {data.source} (damping, forcing or "
+            "another structure), and a Poisson integrator keeps every Casimir, so none can "
+            "fit them"
         )
 
 
@@ -592,3 +620,163 @@ def _progress_bar(total: int, progress: bool | None) -> Any:
     from tqdm.auto import tqdm
 
     return tqdm(total=total, desc="learn", unit="fit", file=sys.stderr, leave=True)
+
+
+def _learn_on_structure(
+    trajectories: Any,
+    h: float,
+    structure: Any,
+    *,
+    mode: str,
+    degree: int | None,
+    max_degree: int | None,
+    order: int | None,
+    test_fraction: float,
+    seed: int,
+    max_iter: int,
+    verbose: bool,
+    refit: bool,
+    progress: bool | None,
+) -> tuple[Any, LearnReport]:
+    """:func:`learn` on a structure that offers its own Hamiltonian family: H of the degrees
+    the structure lists in turn (or ``degree``) fitted through the structure's Taylor-HJ
+    integrator, the smallest whose held-out one-step error reaches the data's noise level kept,
+    then refitted on every record. Nothing here names a structure: what differs is asked of
+    ``structure``."""
+    from .structure_fit import fit_structure_hamiltonian
+
+    modes = tuple(structure.learn_modes())
+    title = getattr(structure, "title", type(structure).__name__)
+    if mode not in modes:
+        why = (
+            f"the modes that apply to it: {', '.join(repr(m) for m in modes)}"
+            if modes
+            else "no mode of pr.learn applies to it (it offers no Hamiltonian family)"
+        )
+        raise ValueError(f"mode {mode!r} does not apply to the structure {title}; {why}")
+    if degree is not None:
+        degree = check_int(degree, "degree", 1, MAX_DEGREE)
+    if max_degree is not None:
+        max_degree = check_int(max_degree, "max_degree", 1, MAX_DEGREE)
+        if degree is not None and degree > max_degree:
+            raise ValueError(f"degree = {degree} exceeds max_degree = {max_degree}")
+    if order is not None:
+        order = check_int(order, "order", *ORDER_RANGE)
+        if order not in structure.learn_orders():
+            raise ValueError(
+                f"order = {order} is not available on the structure {title}: its Taylor-HJ "
+                f"orders are {', '.join(map(str, structure.learn_orders()))}"
+            )
+    max_iter = check_int(max_iter, "max_iter", 1, 10_000)
+    seed = check_seed(seed)
+    verbose = check_bool(verbose, "verbose")
+    refit = check_bool(refit, "refit")
+    if progress is not None:
+        progress = check_bool(progress, "progress")
+    data = prepare(trajectories, h, None, test_fraction=test_fraction, seed=seed, system=structure)
+    _refuse_drift(data)
+    threshold = 1.5 * math.sqrt(2 * data.dim) * data.noise + 1e-12
+    held = bool(data.test)
+    err = "held-out one-step error" if held else "training one-step error (nothing held out)"
+    top = max_degree or MAX_DEGREE
+    tried = structure.learn_degrees()
+    degrees = [degree] if degree is not None else [d for d in tried if d <= top] or [top]
+
+    def candidate(fit: Any) -> Candidate:
+        one, roll = _errors(fit.stepper, data)
+        return Candidate(
+            family=fit.family.name,
+            parameters=fit.n_parameters,
+            order=fit.family.order,
+            seconds=fit.seconds,
+            one_step=one,
+            rollout=roll,
+            stepper=fit.stepper,
+            system=fit.system,
+            hamiltonian_family=fit.family.description,
+            hamiltonian_text=fit.family.text(fit.theta),
+            gauge=fit.family.gauge,
+            fit=fit,
+        )
+
+    candidates: list[Candidate] = []
+    kept: Candidate | None = None
+    bar = _progress_bar(len(degrees) + int(refit and held), progress)
+    try:
+        for d in degrees:
+            bar.set_postfix_str(f"poly{d}")
+            fit = fit_structure_hamiltonian(
+                data, structure, d, order=order, max_iter=max_iter, verbose=verbose
+            )
+            cand = candidate(fit)
+            candidates.append(cand)
+            bar.update(1)
+            if verbose:
+                print(f"poly{d}: one-step {cand.one_step:.3e}, {cand.seconds:.1f} s")
+            if math.isfinite(threshold) and cand.one_step <= threshold:
+                kept = cand
+                cand.reason = f"the smallest family whose {err} reaches the data's noise level"
+                break
+            if not math.isfinite(threshold) and cand.one_step <= EXACT_LEVEL:
+                kept = cand
+                cand.reason = f"noise level unknown; {err} below {EXACT_LEVEL:g} (exact data)"
+                break
+            cand.reason = (
+                f"{err} {cand.one_step:.2e} above the noise level {threshold:.2e}"
+                if math.isfinite(threshold)
+                else "noise level unknown"
+            )
+        if kept is None:
+            best = min(c.one_step for c in candidates)
+            if not math.isfinite(threshold):
+                kept = next(c for c in candidates if c.one_step <= 2.0 * best)
+                kept.reason = f"the smallest family within 2× of the best {err}"
+            else:
+                kept = next(c for c in candidates if c.one_step == best)
+                kept.reason = f"no family reached the noise level; the best {err}"
+        if refit and held:
+            # The family is chosen on held-out data; its coefficients are then fitted on every
+            # record.
+            family = kept.fit.family
+            terms = [e for e, t in zip(family.exponents, kept.fit.theta, strict=True) if t != 0]
+            if terms:
+                bar.set_postfix_str(f"{kept.family} on all records")
+                fit = fit_structure_hamiltonian(
+                    _all_records(data),
+                    structure,
+                    family.degree,
+                    family=family.restrict(terms),
+                    max_iter=max_iter,
+                    sparse=False,
+                    verbose=verbose,
+                )
+                bar.update(1)
+                final = candidate(fit)
+                final.one_step, final.rollout = kept.one_step, kept.rollout
+                final.seconds += kept.seconds
+                final.reason = kept.reason + "; coefficients refitted on all records"
+                candidates[candidates.index(kept)] = final
+                kept = final
+        bar.total = bar.n
+        bar.refresh()
+    finally:
+        bar.close()
+    kept.kept = True
+    for c in candidates:
+        if c is not kept and c.reason.startswith("the smallest"):
+            c.reason = "a smaller family was kept"
+    report = LearnReport(
+        mode=mode,
+        candidates=candidates,
+        kept=kept,
+        noise=data.noise,
+        casimir_drift=data.casimir_drift,
+        data_sha256=data.digest,
+        data_shape=data.shape,
+        threshold=threshold,
+        h=data.h,
+        seed=seed,
+        held_out=held,
+        span=data.h * (max(len(t) for t in data.test or data.train) - 1),
+    )
+    return kept.stepper, report

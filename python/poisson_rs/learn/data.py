@@ -261,6 +261,8 @@ class TrajectoryData:
     lo: np.ndarray = field(repr=False)
     hi: np.ndarray = field(repr=False)
     radius: tuple[float, float] = (0.0, math.inf)
+    #: What the data must come from, for messages.
+    source: str = "a Lie–Poisson system of this algebra"
 
     def pairs(self, which: str = "train") -> tuple[np.ndarray, np.ndarray]:
         """(μ_k, μ_{k+1}) stacked over ``which`` ("train", "test" or "all") → (m, dim) each."""
@@ -445,13 +447,17 @@ def drift_limit(noise: float) -> float:
 def prepare(
     trajectories: Any,
     h: Any,
-    algebra: LieAlgebra,
+    algebra: LieAlgebra | None,
     *,
     test_fraction: float = 0.2,
     seed: int = 0,
     name: str = "trajectories",
+    system: Any = None,
 ) -> TrajectoryData:
-    """Validates and splits ``trajectories`` (see the module docstring) for ``algebra``.
+    """Validates and splits ``trajectories`` (see the module docstring) for ``algebra``, or for
+    the structure of ``system`` (any :class:`poisson_rs.PoissonSystem`; its H is not used):
+    then its dimension, its domain (:meth:`~poisson_rs.PoissonSystem.check_states`) and its
+    Casimirs are the ones checked.
 
     Raises one ValueError naming the input and field for: h ≤ 0, not finite or outside
     :data:`H_RANGE`, no trajectories or no records, NaN/inf, ragged records within a
@@ -469,7 +475,17 @@ def prepare(
     trajs = _as_list(trajectories)
     if not trajs:
         raise ValueError(f"{name}: got no trajectories")
-    n = algebra.dim
+    if system is None:
+        assert algebra is not None
+        system = LiePoissonSystem(algebra, _zero_polynomial(algebra.dim))
+        what = f"the algebra {algebra.name or ''}"
+        source = "a Lie–Poisson system of this algebra"
+        casimirs_of = f"the Casimirs of {algebra.name or 'the algebra'}"
+    else:
+        what = f"the structure ({system.title})"
+        source = "a Hamiltonian system on this structure"
+        casimirs_of = "the structure's Casimirs"
+    n = system.dim
     clean = []
     for i, t in enumerate(trajs):
         t = np.asarray(t)
@@ -482,8 +498,7 @@ def prepare(
             )
         if t.shape[1] != n:
             raise ValueError(
-                f"{name}[{i}]: records have dimension {t.shape[1]}, but the algebra "
-                f"{algebra.name or ''} has dimension {n}"
+                f"{name}[{i}]: records have dimension {t.shape[1]}, but {what} has dimension {n}"
             )
         if t.shape[0] < 2:
             raise ValueError(f"{name}[{i}]: needs at least two records, got {t.shape[0]}")
@@ -494,6 +509,8 @@ def prepare(
                 f"{name}[{i}]: record {bad[0]}, component {bad[1]} is {t[bad[0], bad[1]]} (data "
                 "must be finite)"
             )
+        if hasattr(system, "check_states"):
+            system.check_states(t, name=f"{name}[{i}]")
         clean.append(np.ascontiguousarray(t, dtype=np.float64))
     allx = np.concatenate(clean)
     # RMS |μ| computed in units of the largest entry: no overflow or underflow on the way.
@@ -532,7 +549,6 @@ def prepare(
             )
         test = [clean[i] for i in sorted(order[:n_test])]
         train = [clean[i] for i in sorted(order[n_test:])]
-    system = LiePoissonSystem(algebra, _zero_polynomial(n))
     drift = casimir_drift(system, clean)
     noise = estimate_noise(clean) / scale
     limit = drift_limit(noise)
@@ -543,10 +559,10 @@ def prepare(
             else f"the noise level cannot be told (too few records), tolerance {limit:.2g}"
         )
         warnings.warn(
-            f"{name}: the Casimirs of {algebra.name or 'the algebra'} drift by up to {drift:.3g} "
-            f"(relative) along a trajectory, where {explained}; these data cannot all come "
-            "from a Lie–Poisson system of this algebra (another structure, forcing or "
-            "damping), and a learned Poisson map keeps the Casimirs exactly",
+            f"{name}: {casimirs_of} drift by up to {drift:.3g} (relative) along a "
+            f"trajectory, where {explained}; these data cannot all come from {source} "
+            "(another structure, forcing or damping), and a learned Poisson map keeps the "
+            "Casimirs exactly",
             CasimirDriftWarning,
             stacklevel=3,
         )
@@ -567,6 +583,7 @@ def prepare(
         lo=allx.min(0),
         hi=allx.max(0),
         radius=(float(r.min()), float(r.max())),
+        source=source,
     )
 
 

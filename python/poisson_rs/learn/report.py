@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..structures.lie_poisson import LiePoissonSystem, Polynomial
+from ..structures.lie_poisson import Polynomial
 
 __all__ = ["Candidate", "LearnReport"]
 
@@ -20,7 +20,10 @@ class Candidate:
     weights; ``order``: the Taylor-HJ order K (0 for a map); ``seconds``: training time;
     ``one_step``: held-out RMS of |Φ(μ_k) − μ_{k+1}|/|μ_k|; ``rollout``: held-out max of
     |μ(t) − data(t)|/|data(t)| rolling each held-out trajectory out from its first record;
-    ``kept``/``reason``: whether it was chosen, and why (or why not).
+    ``kept``/``reason``: whether it was chosen, and why (or why not); ``hamiltonian_family``,
+    ``hamiltonian_text``, ``gauge``: on a structure learned through its own family (any but
+    T*G), what H ranged over, the learned H as text, and what H is identifiable up to besides
+    a constant.
     """
 
     family: str
@@ -33,7 +36,11 @@ class Candidate:
     reason: str = ""
     stepper: Any = field(default=None, repr=False)
     model_bytes: bytes = field(default=b"", repr=False)
-    system: LiePoissonSystem | None = field(default=None, repr=False)
+    system: Any = field(default=None, repr=False)
+    hamiltonian_family: str = ""
+    hamiltonian_text: str = ""
+    gauge: str = ""
+    fit: Any = field(default=None, repr=False)
 
 
 @dataclass
@@ -68,10 +75,31 @@ class LearnReport:
 
     @property
     def hamiltonian(self) -> Polynomial | None:
-        return None if self.kept.system is None else self.kept.system.polynomial
+        """The learned H as a :class:`Polynomial` where the system holds one (Lie–Poisson,
+        affine), else None (see :attr:`hamiltonian_text`)."""
+        return getattr(self.kept.system, "polynomial", None)
 
     @property
-    def system(self) -> LiePoissonSystem | None:
+    def hamiltonian_text(self) -> str:
+        """The learned H as text ("" for a map)."""
+        if self.kept.hamiltonian_text:
+            return self.kept.hamiltonian_text
+        poly = self.hamiltonian
+        return "" if poly is None else " + ".join(f"{c!r}*mu^{e}" for e, c in poly.terms.items())
+
+    @property
+    def hamiltonian_family(self) -> str:
+        """What H ranged over ("" where the Lie–Poisson path fitted it)."""
+        return self.kept.hamiltonian_family
+
+    @property
+    def gauge(self) -> str:
+        """What the learned H may differ from the true one by (besides a constant)."""
+        return self.kept.gauge or ("a Casimir of the algebra" if self.hamiltonian else "")
+
+    @property
+    def system(self) -> Any:
+        """The learned system (the structure with the learned H), or None for a map."""
         return self.kept.system
 
     def rows(self) -> list[dict[str, Any]]:
@@ -120,7 +148,14 @@ class LearnReport:
                 f"  {c.family:<7} {c.parameters:>6} {c.order:>2} {c.seconds:>8.2f} "
                 f"{num(c.one_step):>9} {num(c.rollout):>9}  {verdict}"
             )
-        if self.hamiltonian is not None:
+        if self.kept.hamiltonian_text:
+            lines.append(f"  H family: {self.kept.hamiltonian_family}")
+            lines.append(f"  H = {self.kept.hamiltonian_text}")
+            lines.append(
+                f"  (gauge: H is identifiable only up to a constant and {self.kept.gauge}; the "
+                "learned H may differ from the true one by those, which change no trajectory)"
+            )
+        elif self.hamiltonian is not None:
             terms = ", ".join(f"{coef:+.6g}·μ^{e}" for e, coef in self.hamiltonian.terms.items())
             lines.append(f"  H = {terms}")
             lines.append(

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL
 from ..structures.polynomial import (
+    PolynomialBivector,
     PolynomialPoissonSystem,
     _lambdify,
     _term_table,
@@ -241,3 +242,82 @@ def _vector_field_integrator(
     system: PolynomialPoissonSystem, name: str, tol: float, max_iter: int
 ) -> VectorFieldIntegrator:
     return VectorFieldIntegrator(system, name, tol=tol, max_iter=max_iter)
+
+
+_TABLES: dict[tuple[Any, ...], tuple[tuple[Any, ...], list[Any]]] = {}
+
+
+def realization_tables(
+    structure: PolynomialBivector, realization_order: int
+) -> tuple[tuple[Any, ...], list[Any]]:
+    """The order-``realization_order`` realization as the core's (β table, α table) and β
+    split by component (sparse polynomials over (p, x)), derived once per bracket."""
+    key = (structure._key, realization_order)
+    if key not in _TABLES:
+        beta, alpha, p = structure.realization(realization_order)
+        x = structure.x
+        b_tab = _term_table(beta, (*p, *x))
+        a_tab = _term_table(alpha, (*p, *x))
+        idx, coeffs, exps = b_tab
+        split = [(exps[idx == i], coeffs[idx == i]) for i in range(structure.dim)]
+        _TABLES[key] = ((*b_tab, *a_tab), split)
+    return _TABLES[key]
+
+
+class SeriesRealizationIntegrator:
+    """Taylor-HJ of ``order`` on the order-``realization_order`` realization of ``structure``
+    for the Hamiltonian ``hamiltonian`` (a sparse polynomial: exponents (T, n), coefficients
+    (T,)), its S_k computed in floating point (:mod:`poisson_rs.realizations.numeric_hj`) and
+    stepped by the Rust core: the map of :class:`RealizationTaylorIntegrator` to rounding, built
+    in milliseconds instead of sympy's seconds. ``system`` is carried for the tools that read
+    it (None while a fit is under way)."""
+
+    poisson = True
+
+    def __init__(
+        self,
+        structure: PolynomialBivector,
+        hamiltonian: tuple[NDArray[np.int64], FloatArray],
+        order: int,
+        realization_order: int | None = None,
+        *,
+        system: Any = None,
+        tol: float = NEWTON_TOL,
+        max_iter: int = NEWTON_MAX_ITER,
+    ) -> None:
+        from ..realizations.numeric_hj import hj_terms, series_table
+
+        if isinstance(order, bool) or not isinstance(order, int) or not 1 <= order <= 5:
+            raise ValueError(f"order must be an integer in 1..=5, got {order!r}")
+        r = realization_order or matched_realization_order(order)
+        tables, beta = realization_tables(structure, r)
+        self.s_terms = hj_terms(beta, hamiltonian, order)
+        bi, bc, be, ai, ac, ae = tables
+        sc, se = series_table(self.s_terms)
+        self._tables = (bi, bc, be, ai, ac, ae, sc, se)
+        self._n = structure.dim
+        self.system, self.order, self.realization_order = system, order, r
+        self.tol, self.max_iter = float(tol), int(max_iter)
+        self.name = f"taylor{order}-realization{'' if realization_order is None else r}"
+
+    @property
+    def dim(self) -> int:
+        return self._n
+
+    def rollout(
+        self, mu0: FloatArray, h: float, n_steps: int, every: int
+    ) -> tuple[FloatArray, dict[str, np.ndarray]]:
+        from .. import _core
+
+        return _core.rollout_polynomial_realization(
+            *self._tables,
+            np.ascontiguousarray(mu0, dtype=np.float64),
+            float(h),
+            int(n_steps),
+            int(every),
+            self.tol,
+            self.max_iter,
+        )
+
+    def __repr__(self) -> str:
+        return f"SeriesRealizationIntegrator({self.name!r}, dim={self._n})"

@@ -201,6 +201,63 @@ class ChargedParticle(PoissonSystemBase):
         inner = self.canonical.taylor_integrator(order, "realization1", tol=tol, max_iter=max_iter)
         return CanonicalChartStepper(self, inner, f"taylor{order}-{chart}", order)
 
+    def learn_modes(self) -> tuple[str, ...]:
+        """H through Taylor-HJ on the exact realization (no Lie algebra for the other modes)."""
+        return ("auto", "hamiltonian")
+
+    def learn_orders(self) -> tuple[int, ...]:
+        return tuple(range(1, MAX_TAYLOR_ORDER + 1))
+
+    def hamiltonian_family(self, degree: int, order: int | None = None) -> Any:
+        """Polynomials in (x, v) of ``degree`` (no constant) in this field B, stepped by
+        Taylor-HJ of ``order`` (default 5) in the canonical chart: each monomial φ(x, v) is
+        written once as φ(x, p − A(x)), so H̃_θ is a sum and its S_k are computed in floating
+        point (:class:`~poisson_rs.steppers.polynomial.SeriesRealizationIntegrator`) at every
+        iterate of a fit."""
+        import sympy
+
+        from ..hamiltonian_family import MonomialFamily, monomial_exponents, polynomial_text
+        from ..steppers.polynomial import SeriesRealizationIntegrator, realization_tables
+        from .polynomial import _term_table
+
+        d, n, k = self.d, self.dim, order or 5
+        z = _symbols(n)
+        local = {str(s): s for s in z}
+        shift = {z[d + i]: z[d + i] - sympy.sympify(a, locals=local) for i, a in
+                 enumerate(self.potential)}  # fmt: skip
+        exponents = monomial_exponents(n, degree)
+        canonical: dict[tuple[int, ...], tuple[Any, Any]] = {}
+        for e in exponents:
+            mono = sympy.Mul(*[s**p for s, p in zip(z, e, strict=True)])
+            _, coeffs, exps = _term_table([sympy.expand(mono.subs(shift, simultaneous=True))], z)
+            canonical[e] = (exps, coeffs)
+        structure = self.canonical.structure
+        realization_tables(structure, 1)  # derived once, before the fit's first step
+        field = self.field[0] if d == 2 else list(self.field)
+        names = [str(s) for s in z]
+
+        def build(terms: Mapping[tuple[int, ...], float]) -> ChargedParticle:
+            return ChargedParticle(field, polynomial_text(terms, names), name="learned")
+
+        def fit_stepper(terms: Mapping[tuple[int, ...], float], system: Any) -> Any:
+            exps = np.concatenate([canonical[e][0] for e in terms])
+            coeffs = np.concatenate([c * canonical[e][1] for e, c in terms.items()])
+            from ..realizations.numeric_hj import combine
+
+            inner = SeriesRealizationIntegrator(structure, combine(exps, coeffs), k, 1)
+            # The coordinates p = v + A(x) depend on B alone: this system's serve the fit.
+            return CanonicalChartStepper(system or self, inner, f"taylor{k}-{CANONICAL_CHART}", k)
+
+        return MonomialFamily(
+            n,
+            exponents,
+            order=k,
+            build=build,
+            fit_stepper=fit_stepper,
+            gauge="nothing else (the bracket is symplectic: no Casimir)",
+            variables=names,
+        )
+
     def classical_methods(self) -> list[str]:
         return self.direct.classical_methods()
 

@@ -762,6 +762,32 @@ class LiePoissonSystem(PoissonSystemBase):
         chart = self.chart_or_default(chart)
         return lie_poisson_taylor(self, order, chart, tol=tol, max_iter=max_iter)
 
+    def learn_modes(self) -> tuple[str, ...]:
+        """Every mode of :func:`poisson_rs.learn`: H through Taylor-HJ on T*G, the time-h map's
+        generating function, a correction to a known H."""
+        return ("auto", "hamiltonian", "map", "hj+data")
+
+    def hamiltonian_family(self, degree: int, order: int | None = None) -> Any:
+        """Polynomials in μ of ``degree`` (no constant), stepped by Taylor-HJ of ``order``
+        (default 7 for degree ≤ 2, else 5) in the exponential chart."""
+        from ..hamiltonian_family import MonomialFamily, monomial_exponents
+
+        algebra, n = self.algebra, self.algebra.dim
+        k = order or (7 if degree <= 2 else 5)
+
+        def build(terms: Mapping[tuple[int, ...], float]) -> LiePoissonSystem:
+            return LiePoissonSystem(algebra, Polynomial(dict(terms) or {(0,) * n: 0.0}))
+
+        return MonomialFamily(
+            n,
+            monomial_exponents(n, degree),
+            order=k,
+            chart="exp",
+            build=build,
+            gauge="a Casimir of the algebra",
+            variables=[f"μ{i + 1}" for i in range(n)],
+        )
+
     def classical_methods(self) -> list[str]:
         from ..steppers.lie_poisson import LIE_POISSON_METHODS
 

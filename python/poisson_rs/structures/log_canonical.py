@@ -20,6 +20,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..hamiltonian_family import MonomialFamily
 from ..protocols import BracketTerms, PoissonSystemBase
 
 FloatArray = NDArray[np.float64]
@@ -469,6 +470,48 @@ class LogCanonicalSystem(PoissonSystemBase):
         self.chart_or_default(chart)
         return LogCanonicalTaylorIntegrator(self, order, tol=tol, max_iter=max_iter)
 
+    def learn_modes(self) -> tuple[str, ...]:
+        """H through Taylor-HJ on the exact log-canonical groupoid (no Lie algebra for the
+        other modes)."""
+        return ("auto", "hamiltonian")
+
+    def learn_degrees(self) -> tuple[int, ...]:
+        """1 first: Σ a_i x_i − b_i ln x_i is Lotka–Volterra's family."""
+        return (1, 2, 3)
+
+    def hamiltonian_family(self, degree: int, order: int | None = None) -> Any:
+        """H = Σ_m a_m x^{e_m} − Σ_i b_i ln x_i, the polynomial part of ``degree`` (no
+        constant), stepped by Taylor-HJ of ``order`` (default 5) on the exact groupoid."""
+        from ..hamiltonian_family import monomial_exponents
+
+        structure, names, n = self.structure, self.component_names, self.dim
+        k = order or 5
+
+        def build(terms: Mapping[tuple[int, ...], float]) -> LogCanonicalSystem:
+            poly = {e: c for e, c in terms.items() if min(e) >= 0}
+            b = np.zeros(n)
+            for e, c in terms.items():
+                if min(e) < 0:
+                    b[e.index(-1)] = -c
+            return LogCanonicalSystem(
+                structure, LogPolynomial(poly, b), name="learned", component_names=names
+            )
+
+        logs = [tuple(-int(i == j) for j in range(n)) for i in range(n)]
+        return LogFamily(
+            n,
+            monomial_exponents(n, degree) + logs,
+            order=k,
+            chart="log",
+            build=build,
+            gauge=(
+                "a Casimir of the bracket (a function of the monomials x^k with c k = 0)"
+                if len(structure.casimir_vectors)
+                else "nothing else (c is invertible: no Casimir)"
+            ),
+            variables=names,
+        )
+
     def classical_methods(self) -> list[str]:
         from ..steppers.log_canonical import LOG_CANONICAL_METHODS
 
@@ -590,3 +633,47 @@ def _scene_table(raw: Mapping[str, Any]) -> LogCanonicalSystem:
 #: reads (found by :func:`poisson_rs.structures.system_from_dict` and the scenes).
 SYSTEM_KINDS = {LogCanonicalSystem.kind: LogCanonicalSystem.from_dict}
 SCENE_KINDS = {"lotka_volterra": _scene_table}
+
+
+class LogFamily(MonomialFamily):
+    """The Hamiltonians of :meth:`LogCanonicalSystem.hamiltonian_family`: monomials x^e, and
+    ln x_i written as the exponent −e_i (its key; not a power)."""
+
+    @property
+    def degree(self) -> int:
+        return max((sum(e) for e in self.exponents if min(e) >= 0), default=0)
+
+    @property
+    def name(self) -> str:
+        return f"log+poly{self.degree}"
+
+    @property
+    def description(self) -> str:
+        return (
+            f"Σ_i θ_i ln x_i plus a polynomial in ({', '.join(self.variables)}) of degree ≤ "
+            f"{self.degree} without constant term ({len(self.exponents)} terms)"
+        )
+
+    def gradients(self, x: Any) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        logs = [m for m, e in enumerate(self.exponents) if min(e) < 0]
+        mono = [m for m in range(len(self.exponents)) if m not in logs]
+        out = np.zeros((len(x), self.dim, len(self.exponents)))
+        if mono:
+            part = self.restrict([self.exponents[m] for m in mono])
+            out[:, :, mono] = MonomialFamily.gradients(part, x)
+        for m in logs:
+            i = self.exponents[m].index(-1)
+            out[:, i, m] = 1.0 / x[:, i]
+        return out
+
+    def text(self, theta: Any) -> str:
+        parts = []
+        for e, c in self.terms(theta).items():
+            if min(e) < 0:
+                parts.append(f"{float(c)!r}*ln({self.variables[e.index(-1)]})")
+            else:
+                pairs = zip(self.variables, e, strict=True)
+                factors = [f"{v}**{k}" if k > 1 else v for v, k in pairs if k]
+                parts.append("*".join([repr(float(c)), *factors]))
+        return " + ".join(parts) or "0"

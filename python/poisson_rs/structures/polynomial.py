@@ -827,6 +827,57 @@ class PolynomialPoissonSystem(PoissonSystemBase):
             self, order, int(tail) if tail else None, tol=tol, max_iter=max_iter
         )
 
+    def learn_modes(self) -> tuple[str, ...]:
+        """H through Taylor-HJ on the realization ("map" and "hj+data" learn on T*G of a Lie
+        algebra)."""
+        return ("auto", "hamiltonian")
+
+    def learn_orders(self) -> tuple[int, ...]:
+        return tuple(range(1, MAX_TAYLOR_ORDER + 1))
+
+    def hamiltonian_family(self, degree: int, order: int | None = None) -> Any:
+        """Polynomials in x of ``degree`` (no constant) on this bracket, stepped by Taylor-HJ of
+        ``order`` (default 3) in the first chart: the exact groupoid where π is recognised as
+        linear or affine, else the realization of matched order, its S_k computed in floating
+        point (:class:`~poisson_rs.steppers.polynomial.SeriesRealizationIntegrator`)."""
+        from ..hamiltonian_family import MonomialFamily, monomial_exponents, polynomial_text
+        from ..steppers.polynomial import SeriesRealizationIntegrator
+
+        structure, names, n = self.structure, self.component_names, self.dim
+        k = order or 3
+        exact = self._exact()
+        inner = (
+            exact.hamiltonian_family(degree, k)
+            if exact is not None and exact.learn_modes()
+            else None
+        )
+
+        def build(terms: Mapping[tuple[int, ...], float]) -> PolynomialPoissonSystem:
+            return PolynomialPoissonSystem(structure, polynomial_text(terms, names))
+
+        def fit_stepper(terms: Mapping[tuple[int, ...], float], system: Any) -> Any:
+            if inner is not None:
+                # The recognised structure's exact groupoid, on the same states x.
+                return inner.stepper([terms.get(e, 0.0) for e in inner.exponents])
+            e = np.array(list(terms), dtype=np.int64).reshape(len(terms), n)
+            c = np.array(list(terms.values()), dtype=np.float64)
+            return SeriesRealizationIntegrator(structure, (e, c), k, system=system)
+
+        casimir = self.structure.casimir
+        return MonomialFamily(
+            n,
+            monomial_exponents(n, degree),
+            order=k,
+            build=build,
+            fit_stepper=fit_stepper,
+            gauge=(
+                f"a function of the Casimir C = {casimir}"
+                if casimir is not None
+                else "a Casimir of the bracket"
+            ),
+            variables=names,
+        )
+
     def classical_methods(self) -> list[str]:
         from ..steppers.polynomial import VECTOR_FIELD_METHODS
 
