@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 
 from . import _core
+from .expressions import Expression, ExpressionError
 from .integrators import (
     FAILURE_CODES,
     BisectionIntegrator,
@@ -42,8 +43,6 @@ from .protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystem, Stepper
 from .reference import dop853_solution, exact_solution, reference_solution
 from .steppers.affine import AffineIntegrator
 from .steppers.polynomial import RealizationTaylorIntegrator
-from .expressions import Expression, ExpressionError
-from .structures.expression_system import ExpressionSystem, with_hamiltonian
 from .structures import (
     AffinePoissonSystem,
     HeavyTop,
@@ -63,6 +62,7 @@ from .structures import (
     lotka_volterra,
     system_from_dict,
 )
+from .structures.expression_system import ExpressionSystem, with_hamiltonian
 from .studies.select import NoCandidateError, SelectionReport, select
 
 # rayon's thread pool does not survive fork(): a forked child runs its rollouts serially (same
@@ -73,10 +73,6 @@ if hasattr(os, "register_at_fork"):
 __version__ = "0.1.0"
 
 __all__ = [
-    "Expression",
-    "ExpressionError",
-    "ExpressionSystem",
-    "with_hamiltonian",
     "FAILURE_CODES",
     "NEWTON_MAX_ITER",
     "NEWTON_TOL",
@@ -84,6 +80,9 @@ __all__ = [
     "AffinePoissonSystem",
     "BisectionIntegrator",
     "ClassicalIntegrator",
+    "Expression",
+    "ExpressionError",
+    "ExpressionSystem",
     "HeavyTop",
     "LearnedIntegrator",
     "LieAlgebra",
@@ -124,4 +123,5 @@ __all__ = [
     "select",
     "system_from_dict",
     "taylor_integrator",
+    "with_hamiltonian",
 ]

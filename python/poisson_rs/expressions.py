@@ -379,7 +379,6 @@ class Expression:
         return (Expression, (self.text, self.names, self.aliases))
 
 
-
 def parse_program(
     text: Any,
     names: Sequence[str],

@@ -230,6 +230,10 @@ def unit_directions(dim: int, count: int = 3) -> dict[str, np.ndarray]:
     return {k: v / np.linalg.norm(v) for k, v in out.items()}
 
 
+#: (index, coeffs, exponents) of polynomials for the core.
+TermTable = tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]
+
+
 @dataclass(frozen=True)
 class BracketTerms:
     """π's upper triangle (π_ij, i < j, row by row) as one term table for the core: term m adds
@@ -240,7 +244,9 @@ class BracketTerms:
     exponents: NDArray[np.int64]
 
     @classmethod
-    def from_terms(cls, dim: int, terms: Sequence[tuple[int, int, Sequence[int], float]]) -> BracketTerms:
+    def from_terms(
+        cls, dim: int, terms: Sequence[tuple[int, int, Sequence[int], float]]
+    ) -> BracketTerms:
         """From (i, j, exponents, coefficient) with i < j."""
         pair = {(i, j): k for k, (i, j) in enumerate(itertools.combinations(range(dim), 2))}
         rows = [(pair[(i, j)], c, list(e)) for i, j, e, c in terms if c != 0.0]
@@ -267,8 +273,8 @@ class JetRealization:
     label: str
     exact: bool
     lie_constants: NDArray[np.float64] | None = None
-    sou: tuple[Any, ...] | None = None
-    tar: tuple[Any, ...] | None = None
+    sou: TermTable | None = None
+    tar: TermTable | None = None
 
 
 class PoissonSystemBase:

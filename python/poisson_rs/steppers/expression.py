@@ -63,17 +63,21 @@ class JetTaylorIntegrator:
         lifted = np.ones((len(x0), r.dim))
         lifted[:, :n] = x0
         lifted = np.ascontiguousarray(lifted)
-        tape = self.system.h.tape()
-        common = (float(h), int(n_steps), int(every), self.tol, self.max_iter)
+        code, a, b, c = self.system.h.tape()
         if r.lie_constants is not None:
             traj, info = _core.rollout_jets_lie(
-                *tape, n, self.order, np.ascontiguousarray(r.lie_constants), lifted, *common
-            )
+                code, a, b, c, n, self.order, np.ascontiguousarray(r.lie_constants), lifted,
+                float(h), int(n_steps), int(every), self.tol, self.max_iter,
+            )  # fmt: skip
         else:
-            assert r.sou is not None and r.tar is not None
+            if r.sou is None or r.tar is None:
+                raise ValueError(
+                    f"the realization {r.label!r} gives neither a Lie algebra nor maps"
+                )
             traj, info = _core.rollout_jets_polynomial(
-                *tape, n, self.order, *r.sou, *r.tar, lifted, *common
-            )
+                code, a, b, c, n, self.order, *r.sou, *r.tar, lifted,
+                float(h), int(n_steps), int(every), self.tol, self.max_iter,
+            )  # fmt: skip
         return np.ascontiguousarray(traj[..., :n]), info
 
     def __repr__(self) -> str:
@@ -128,7 +132,7 @@ class FieldIntegrator:
             return dop853_rollout(self.system, x0, h, n_steps, every, self.tol)
         from .. import _core
 
-        return _core.rollout_hamiltonian_field(  # type: ignore[no-any-return]
+        return _core.rollout_hamiltonian_field(
             self.name,
             *self.system.h.tape(),
             *self.system.terms.tables(),

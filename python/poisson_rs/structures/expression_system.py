@@ -147,7 +147,7 @@ class ExpressionSystem(PoissonSystemBase):
     def jet_realization(self, order: int) -> JetRealization:
         """The structure's realization for Taylor-HJ by jets (NotImplementedError where it has
         none)."""
-        return self.base.jet_realization(order)  # type: ignore[attr-defined, no-any-return]
+        return self.base.jet_realization(order)  # type: ignore[attr-defined]
 
     def taylor_charts(self) -> tuple[str, ...]:
         """("jets",): Taylor-HJ by jets on the structure's realization; () where the
@@ -173,7 +173,10 @@ class ExpressionSystem(PoissonSystemBase):
 
         if chart not in (None, "jets"):
             raise ValueError(f"chart {chart!r} is not available for {self.title}; its charts: jets")
-        return JetTaylorIntegrator(self, order, tol=tol, max_iter=max_iter)
+        try:
+            return JetTaylorIntegrator(self, order, tol=tol, max_iter=max_iter)
+        except NotImplementedError as err:
+            raise ValueError(str(err)) from None
 
     def classical_methods(self) -> list[str]:
         return list(FIELD_METHODS)

@@ -1073,9 +1073,36 @@ def _scene_table(raw: Mapping[str, Any]) -> PolynomialPoissonSystem:
         return PolynomialPoissonSystem(structure, hamiltonian, name=name)
 
 
+def _bivector_scene_table(raw: Mapping[str, Any]) -> PolynomialPoissonSystem:
+    """A ``kind = "bivector"`` [system] table: ``dim``, ``entries`` (a list of [i, j, text]:
+    π_ij = the polynomial text in x1 … xn, i < j, 0-based) and the polynomial ``hamiltonian``,
+    optional ``name``."""
+    from ..tables import only_keys, optional_name, polynomial_text, required
+    from ..untrusted import parsing
+
+    only_keys(raw, ("kind", "dim", "entries", "hamiltonian", "name"), "bivector")
+    required(raw, "dim", "entries", "hamiltonian")
+    dim, entries = raw["dim"], raw["entries"]
+    if isinstance(dim, bool) or not isinstance(dim, int):
+        raise ValueError(f"scene key 'system.dim' must be an integer, got {dim!r}")
+    if not isinstance(entries, list) or not all(
+        isinstance(e, list) and len(e) == 3 and all(isinstance(k, int) for k in e[:2])
+        for e in entries
+    ):
+        raise ValueError("scene key 'system.entries' must be a list of [i, j, polynomial]")
+    table = {
+        (e[0], e[1]): polynomial_text(e[2], f"system.entries[{k}]") for k, e in enumerate(entries)
+    }
+    hamiltonian = polynomial_text(raw["hamiltonian"], "system.hamiltonian")
+    with parsing("scene", "system.entries"):
+        structure = PolynomialBivector(dim, table)
+    with parsing("scene", "system.hamiltonian"):
+        return PolynomialPoissonSystem(structure, hamiltonian, name=optional_name(raw))
+
+
 #: The kinds of system dictionaries and scene [system] tables this module reads.
 SYSTEM_KINDS = {PolynomialPoissonSystem.kind: PolynomialPoissonSystem.from_dict}
-SCENE_KINDS = {"nambu": _scene_table}
+SCENE_KINDS = {"nambu": _scene_table, "bivector": _bivector_scene_table}
 
 
 _MOVED = ("RealizationTaylorIntegrator", "VectorFieldIntegrator", "VECTOR_FIELD_METHODS")
