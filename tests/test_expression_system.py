@@ -1,0 +1,198 @@
+"""Any structure with an expression Hamiltonian (pr.with_hamiltonian / ExpressionSystem): the
+core's field against each family's own on polynomial H, Taylor-HJ by jets against the symbolic
+series on polynomial H, fitted orders and kept Casimirs on the non-polynomial scenes, pickling,
+and bad input."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import poisson_rs as pr
+from poisson_rs.expressions import ExpressionError
+from poisson_rs.scenes import load_scene
+from poisson_rs.structures import system_from_dict
+from poisson_rs.untrusted import InputError
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+
+
+def _scene(name: str) -> pr.Scene:
+    return load_scene(SCENES / f"{name}.toml")
+
+
+def _rigid_body() -> pr.RigidBody:
+    return pr.RigidBody((1.5, 2.0, 2.5))
+
+
+def _pendulum() -> object:
+    return load_scene(SCENES / "extended_pendulum.toml").system
+
+
+def _nambu() -> object:
+    return load_scene(SCENES / "nambu_cubic.toml").system
+
+
+def _lotka_volterra() -> object:
+    return load_scene(SCENES / "lotka_volterra_3d.toml").system
+
+
+# The family's own polynomial (or log-polynomial) H, written as an expression.
+SAME_H = {
+    "rigid body": (_rigid_body, "x1**2/3 + x2**2/4 + x3**2/5"),
+    "affine": (_pendulum, "u**2/2 + v**2/2 - v**4/24"),
+    "nambu": (_nambu, "x1**2/2 + x2**2/3 + x3**2/4"),
+}
+
+
+@pytest.mark.parametrize("case", list(SAME_H))
+def test_field_equals_the_familys_own_on_its_polynomial_h(case: str) -> None:
+    make, text = SAME_H[case]
+    base = make()
+    s = pr.with_hamiltonian(base, text)
+    x = np.random.default_rng(5).uniform(-1.0, 1.0, size=(12, s.dim))
+    np.testing.assert_allclose(s.hamiltonian(x), base.hamiltonian(x), rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(s.vector_field(x), base.vector_field(x), rtol=1e-13, atol=1e-14)
+
+
+def test_log_canonical_field_with_an_expression() -> None:
+    base = _lotka_volterra()
+    x = np.random.default_rng(6).uniform(0.5, 1.5, size=(8, 3))
+    s = pr.with_hamiltonian(base, "x1 + x2 + x3 - log(x1) - 2*log(x2) - 0.5*log(x3)")
+    grad = np.stack([1 - 1 / x[:, 0], 1 - 2 / x[:, 1], 1 - 0.5 / x[:, 2]], axis=1)
+    expected = np.einsum("nij,nj->ni", base.bivector(x), grad)
+    np.testing.assert_allclose(s.vector_field(x), expected, rtol=1e-13, atol=1e-14)
+    with pytest.raises(ValueError, match="positive"):
+        s.check_states([[1.0, -1.0, 1.0]])
+    with pytest.raises(ValueError, match="no realization for Taylor-HJ by jets"):
+        s.taylor_integrator(3)
+    assert s.taylor_charts() == ()
+
+
+@pytest.mark.parametrize("order", [1, 3, 5])
+def test_jets_equal_the_symbolic_series_on_the_rigid_body(order: int) -> None:
+    body = _rigid_body()
+    s = pr.with_hamiltonian(body, SAME_H["rigid body"][1])
+    x0 = np.array([[0.3, -0.2, 0.5], [1.0, 0.5, -0.4]])
+    jets = pr.integrate(s.taylor_integrator(order), x0, 0.1, 60)
+    symbolic = pr.integrate(pr.taylor_integrator(body, order, chart="exp"), x0, 0.1, 60)
+    np.testing.assert_allclose(jets, symbolic, rtol=0, atol=1e-14)
+
+
+def test_jets_equal_the_symbolic_series_on_affine_and_polynomial_brackets() -> None:
+    for make, text, order in ((_pendulum, SAME_H["affine"][1], 3), (_nambu, SAME_H["nambu"][1], 3)):
+        base = make()
+        s = pr.with_hamiltonian(base, text)
+        x0 = np.asarray(base.demo_states)[:1] * 0.5
+        jets = pr.integrate(s.taylor_integrator(order), x0, 0.1, 30)
+        symbolic = pr.integrate(pr.taylor_integrator(base, order), x0, 0.1, 30)
+        np.testing.assert_allclose(jets, symbolic, rtol=0, atol=1e-13)
+
+
+# (scene, order): its initial state 0 to T = 1, errors against DOP853 at h = 0.2, 0.1, 0.05.
+ORDERS = [
+    ("extended_pendulum_pnn", 1),
+    ("extended_pendulum_pnn", 3),
+    ("extended_pendulum_pnn", 5),
+    ("rigid_body_potential", 1),
+    ("rigid_body_potential", 3),
+    ("rigid_body_potential", 5),
+    ("point_vortices", 1),
+    ("point_vortices", 3),
+]
+
+
+@pytest.mark.parametrize(("name", "order"), ORDERS)
+def test_jet_taylor_fits_order_m_plus_one(name: str, order: int) -> None:
+    scene = _scene(name)
+    s = scene.system
+    x0 = np.asarray(scene.points)[:1]
+    hs = np.array([0.2, 0.1, 0.05])
+    ref = s.reference_solution(x0, np.array([0.0, 1.0]))[:, -1]
+    errs = [
+        np.abs(pr.integrate(s.taylor_integrator(order), x0, h, round(1 / h))[:, -1] - ref).max()
+        for h in hs
+    ]
+    slope = np.polyfit(np.log(hs), np.log(errs), 1)[0]
+    assert abs(slope - (order + 1)) < 0.35, (errs, slope)
+
+
+@pytest.mark.parametrize("name", ["extended_pendulum_pnn", "rigid_body_potential"])
+def test_jets_keep_the_casimirs_to_round_off_where_rk4_does_not(name: str) -> None:
+    scene = _scene(name)
+    s = scene.system
+    x0 = np.asarray(scene.points)
+    c0 = s.casimirs(x0)
+    drift = {}
+    for label, stepper in (("jets", s.taylor_integrator(1)), ("rk4", s.classical("rk4"))):
+        traj = pr.integrate(stepper, x0, 0.1, 10_000, every=100)
+        c = s.casimirs(traj.reshape(-1, s.dim)).reshape(len(x0), -1, c0.shape[-1])
+        drift[label] = np.abs(c - c0[:, None]).max() / np.abs(c0).max()
+    assert drift["jets"] <= 1e-13, drift
+    assert drift["rk4"] > 1e3 * drift["jets"], drift
+
+
+def test_vortex_impulses_are_kept_and_the_bracket_has_no_casimir() -> None:
+    scene = _scene("point_vortices")
+    s = scene.system
+    assert s.casimirs(np.asarray(scene.points)) is None
+    gamma = np.array([1.0, 1.0, 0.5])
+    traj = pr.integrate(s.taylor_integrator(1), np.asarray(scene.points), 0.05, 4000, every=40)
+    xs, ys = traj[..., 0::2], traj[..., 1::2]
+    impulses = np.stack(
+        [(gamma * xs).sum(-1), (gamma * ys).sum(-1), (gamma * (xs**2 + ys**2)).sum(-1)], axis=-1
+    )
+    assert np.abs(impulses - impulses[:, :1]).max() < 1e-12
+
+
+def test_pickled_systems_and_steppers_step_bit_identically() -> None:
+    s = _scene("extended_pendulum_pnn").system
+    x0 = np.asarray(s.demo_states) * 0.3
+    for stepper in (s.taylor_integrator(3), s.classical("rk4"), s.classical("midpoint")):
+        back = pickle.loads(pickle.dumps(stepper))
+        np.testing.assert_array_equal(
+            pr.integrate(stepper, x0, 0.1, 20), pr.integrate(back, x0, 0.1, 20)
+        )
+    assert pickle.loads(pickle.dumps(s)) == s
+    assert system_from_dict(s.to_dict()) == s
+
+
+def test_a_step_outside_the_domain_of_h_fails_the_trajectory_not_the_process() -> None:
+    s = _scene("point_vortices").system
+    # Vortices 1 and 2 on top of each other: log(0) in H.
+    x0 = np.array([[0.5, 0.0, 0.5, 0.0, -0.3, -0.8], [1.0, 0.0, -0.5, 0.6, -0.3, -0.8]])
+    with pytest.warns(RuntimeWarning, match="1 of 2 trajectories failed"):
+        traj, info = pr.integrate(s.taylor_integrator(3), x0, 0.05, 5, return_info=True)
+    assert not info.converged[0] and info.converged[1]
+    assert info.failure_code[0] == 3
+    assert np.isnan(traj[0, -1]).all() and np.isfinite(traj[1]).all()
+
+
+def test_bad_input_is_refused_naming_the_field() -> None:
+    with pytest.raises(ExpressionError, match="hamiltonian: unknown name 'w'"):
+        pr.with_hamiltonian(_rigid_body(), "w**2")
+    charged = load_scene(SCENES / "charged_particle.toml").system
+    with pytest.raises(ValueError, match=r"structure: .*does not give its bracket"):
+        pr.with_hamiltonian(charged, "x3**2/2")
+    s = pr.with_hamiltonian(_rigid_body(), "cos(x1)")
+    for order in (0, 9, True):
+        with pytest.raises(ValueError, match="order"):
+            s.taylor_integrator(order)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown method 'rk5'"):
+        s.classical("rk5")
+    with pytest.raises(ValueError, match="chart 'cayley'"):
+        s.taylor_integrator(3, "cayley")
+
+
+def test_scene_errors_name_the_key(tmp_path: Path) -> None:
+    text = (SCENES / "rigid_body_potential.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("cos(x3)", "cos(x3"))
+    with pytest.raises(InputError, match="hamiltonian: missing"):
+        load_scene(bad)
+    bad.write_text(text.replace('[system.structure]\nkind = "rigid_body"', "[system.other]"))
+    with pytest.raises(InputError, match=r"system\.structure"):
+        load_scene(bad)
