@@ -110,3 +110,21 @@ def test_a_user_passes_their_own_casimirs_and_wrong_ones_are_refused() -> None:
     set_casimirs(flat, [_quadratic(2, {(0, 1): 1.0})])
     system = pr.LiePoissonSystem(flat, _quadratic(2, {(0, 0): 1.0}))
     np.testing.assert_allclose(casimir_values(system, np.array([2.0, 3.0])), [6.0])
+
+
+def test_found_casimirs_are_named_by_their_formula() -> None:
+    # so(3) ⊕ R: the search finds μ₄ and μ₁² + μ₂² + μ₃²; the label says which, not how many.
+    c = np.zeros((4, 4, 4))
+    c[:3, :3, :3] = pr.LieAlgebra.so3().c
+    system = pr.LiePoissonSystem(pr.LieAlgebra(c), Polynomial({(2, 0, 0, 0): 1.0}))
+    assert len(system.found_casimirs()) == 2
+    assert system.casimir_label == "C = μ₄, μ₁² + μ₂² + μ₃²"
+    assert "found" not in system.casimir_label
+
+
+def test_a_polynomial_prints_as_its_formula() -> None:
+    p = Polynomial({(1, 1, 0): -2.0, (0, 0, 2): 0.25, (0, 0, 0): 3.0, (2, 0, 0): 1.0})
+    assert p.formula() == "3 + μ₁² − 2 μ₁μ₂ + 0.25 μ₃²"
+    assert p.formula(("a", "b", "c")) == "3 + a² − 2 ab + 0.25 c²"
+    assert Polynomial({(0, 0): 0.0}).formula() == "0"
+    assert Polynomial({(0, 1): -1.0}).formula() == "−μ₂"

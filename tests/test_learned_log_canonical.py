@@ -4,6 +4,7 @@ the Casimirs, and bad input."""
 
 from __future__ import annotations
 
+import json
 import pickle
 
 import numpy as np
@@ -15,6 +16,7 @@ from poisson_rs.export import safetensors_bytes
 from poisson_rs.integrators import LearnedLogCanonicalIntegrator
 from poisson_rs.realizations import log_canonical_hj as hj
 from poisson_rs.train import TrainConfig, train
+from poisson_rs.untrusted import InputError
 
 PNN = pr.lotka_volterra([[0, 1], [-1, 0]], [1, 2])
 #: A 3D Lotka–Volterra system with the Casimir ln x₁ + ln x₂ + ln x₃ (c k = 0 for k = (1, 1, 1)).
@@ -216,6 +218,62 @@ def test_lie_poisson_loader_refuses_a_log_canonical_file(tmp_path):
         pr.LearnedIntegrator(__import__("pathlib").Path(path))
     with pytest.raises(ValueError, match="'structure' is missing"):
         pr._core.LogCanonicalModel.from_bytes(pr.taylor_integrator(order=1)._bytes)
+
+
+def _edited_file(tmp_path, *, meta=None, drop=()) -> str:
+    """A log-canonical model file (the untrained PNN model with widths (3,)) whose metadata is
+    changed by ``meta`` and loses the keys in ``drop``."""
+    cfg = hj.LogCanonicalTrainConfig(PNN, widths=(3,))
+    data = hj.model_bytes(hj.build_model(cfg), cfg)
+    size = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + size])
+    raw = {**header.pop("__metadata__"), **(meta or {})}
+    for key in drop:
+        raw.pop(key)
+    base = 8 + size
+    tensors = {}
+    for name, entry in header.items():
+        a, b = entry["data_offsets"]
+        dtype = {"F64": "<f8", "I64": "<i8"}[entry["dtype"]]
+        tensors[name] = np.frombuffer(data[base + a : base + b], dtype=dtype).reshape(
+            entry["shape"]
+        )
+    path = tmp_path / "edited.safetensors"
+    path.write_bytes(safetensors_bytes(tensors, raw))
+    return str(path)
+
+
+_OTHER_B = pr.lotka_volterra([[0, 1], [-1, 0]], [1, 3]).to_dict()
+#: The same structure and b, H = 2u + v − ln u − 2 ln v: only the polynomial part differs.
+_OTHER_A = {
+    **PNN.to_dict(),
+    "hamiltonian": {"terms": [[[0, 1], 1.0], [[1, 0], 2.0]], "b": [1.0, 2.0]},
+}
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"meta": {"system": json.dumps(_OTHER_B)}}, "system"),
+        ({"meta": {"system": json.dumps(_OTHER_A)}}, "system"),
+        ({"meta": {"taylor_order": "2"}}, "taylor_order"),
+        ({"meta": {"taylor_order": "60"}}, "taylor_order"),
+        ({"meta": {"widths": "[4]"}}, "widths"),
+        ({"drop": ("mlp_power",)}, None),
+    ],
+    ids=["b", "polynomial-part", "taylor_order", "taylor_order-huge", "widths", "mlp_power"],
+)
+def test_metadata_that_disagrees_with_the_tensors_is_refused(tmp_path, change, field):
+    # The core steps the file's Taylor terms and network; ``model.system`` is what the studies
+    # score: metadata naming another H would integrate one system and report another.
+    path = _edited_file(tmp_path, **change)
+    with pytest.raises(InputError) as err:
+        pr.load_model(path)
+    assert path in err.value.source
+    if field is None:  # the core's own check names the key in its message
+        assert "mlp_power" in str(err.value)
+    else:
+        assert err.value.field == field
 
 
 @pytest.mark.parametrize("x0", [[1.0, -0.5], [0.0, 1.0], [[1.0, 1.0], [2.0, -1e-3]]])

@@ -21,6 +21,7 @@ from poisson_rs.structures.polynomial import (
     RealizationTaylorIntegrator,
 )
 from poisson_rs.train import train
+from poisson_rs.untrusted import InputError
 
 #: The cubic Nambu scene (scenes/nambu_cubic.toml).
 NAMBU = PolynomialPoissonSystem(
@@ -224,6 +225,37 @@ def test_bad_model_files_get_one_clear_error(trained, tmp_path, change, match):
     bad.write_bytes(_file_with(path, **change))
     with pytest.raises(ValueError, match=match):
         pr.load_model(bad)
+
+
+_OTHER_H = {**NAMBU.to_dict(), "hamiltonian": "x1**2/2 + x2**2/3 + x3**2/5"}
+#: The so(3) bracket: the cubic Nambu bracket without its x1**2 term (Jacobi holds).
+_OTHER_BIVECTOR = {
+    k: v for k, v in NAMBU.to_dict().items() if k not in ("entries", "casimir", "kind")
+} | {"kind": "polynomial_bivector", "entries": [[0, 1, "x3"], [0, 2, "-x2"], [1, 2, "x1"]]}
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"meta": {"system": json.dumps(_OTHER_H)}}, "system"),
+        ({"meta": {"system": json.dumps(_OTHER_BIVECTOR)}}, "system"),
+        ({"meta": {"realization_order": "4"}}, "realization_order"),
+        ({"meta": {"taylor_order": "2"}}, "taylor_order"),
+        ({"meta": {"widths": "[9]"}}, "widths"),
+        ({"drop": ("mlp_power",)}, "mlp_power"),
+    ],
+    ids=["hamiltonian", "bivector", "realization_order", "taylor_order", "widths", "mlp_power"],
+)
+def test_metadata_that_disagrees_with_the_tensors_is_refused(trained, tmp_path, change, field):
+    # The core steps the tables and the network; the studies score ``system``: a file whose
+    # metadata was edited would step one S and report another system or order.
+    _, path = trained
+    bad = tmp_path / "edited.safetensors"
+    bad.write_bytes(_file_with(path, **change))
+    with pytest.raises(InputError) as err:
+        pr.load_model(bad)
+    assert err.value.field == field
+    assert str(bad) in err.value.source
 
 
 @pytest.mark.parametrize(

@@ -139,3 +139,98 @@ def test_a_rollout_too_large_for_the_limit_is_memory_error() -> None:
     # 100,000 trajectories x 1001 records x 3 float64 = 2.4 GB of output under a 1 GB limit.
     outcome = run_limited(lambda: pr.integrate(model, mu0, 0.1, 1000), GIB)
     assert outcome.startswith("MemoryError"), outcome
+
+
+# ---------------------------------------------------------------------------------------------
+# DOP853 and the exact flow: Python-side references check the memory as the core's rollouts do
+# ---------------------------------------------------------------------------------------------
+
+
+def _pendulum() -> pr.AffinePoissonSystem:
+    c = np.zeros((3, 3, 3))
+    c[0, 2, 1], c[2, 0, 1] = 2.0, -2.0
+    c[1, 2, 0], c[2, 1, 0] = -2.0, 2.0
+    h = {(2, 0, 0): 0.5, (0, 2, 0): 0.5, (0, 4, 0): -1.0 / 24.0}
+    return pr.affine_poisson_system(c, [[0, -1, 0], [1, 0, 0], [0, 0, 0]], h)
+
+
+#: A system of every structure, and a state in its domain.
+DOP853_SYSTEMS: dict[str, tuple[Callable[[], object], list[float]]] = {
+    "rigid_body": (lambda: pr.RigidBody(), [1.0, 0.5, -0.3]),
+    "heavy_top": (lambda: pr.HeavyTop(), [0.1, 0.2, 0.3, 0.0, 0.6, 0.8]),
+    "log_canonical": (lambda: pr.lotka_volterra([[0, 1], [-1, 0]], [1, 2]), [1.0, 0.8]),
+    "affine": (_pendulum, [0.3, 0.1, 1.0]),
+    "polynomial": (
+        lambda: pr.PolynomialPoissonSystem(
+            pr.PolynomialBivector.nambu("x1**2/2 + x2**2/2 + x3**2/2 + x1**3/3"),
+            "x1**2/2 + x2**2/3",
+        ),
+        [0.3, 0.5, -0.4],
+    ),
+}
+
+
+@pytest.fixture
+def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    """DOP853 and the elliptic functions fail the test if they ever run."""
+    import scipy.integrate
+
+    from poisson_rs import reference
+
+    def ran(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the reference was computed before its memory was checked")
+
+    monkeypatch.setattr(scipy.integrate, "solve_ivp", ran)
+    monkeypatch.setattr(reference, "_flow_sorted", ran)
+
+
+@pytest.mark.parametrize("name", sorted(DOP853_SYSTEMS))
+def test_every_dop853_stepper_refuses_an_output_over_the_budget_before_the_work(
+    name: str, no_work: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from poisson_rs import memory
+
+    make, state = DOP853_SYSTEMS[name]
+    stepper = pr.classical(make(), "dop853")
+    monkeypatch.setattr(memory, "usable_bytes", lambda: 1 << 20)  # budget: 0.8 MiB
+    # 100,001 records of one state: 0.8 MiB of output for a 1D system, several for these.
+    with pytest.raises(MemoryError, match=r"dop853 of 1 states at 100001 times needs about "):
+        pr.integrate(stepper, state, h=0.01, n_steps=100_000)
+    # Direct references go through the same check.
+    with pytest.raises(MemoryError, match=r"needs about [\d.]+ MiB"):
+        pr.reference_solution(make(), state, np.linspace(0.0, 1.0, 100_001))
+
+
+def test_the_exact_flow_refuses_an_output_over_the_budget_before_the_work(
+    no_work: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from poisson_rs import memory
+
+    monkeypatch.setattr(memory, "usable_bytes", lambda: 1 << 20)
+    with pytest.raises(MemoryError, match=r"the exact flow of 1 states at 100001 times"):
+        pr.exact_solution(pr.RigidBody(), [1.0, 0.5, -0.3], np.linspace(0.0, 1.0, 100_001))
+
+
+def test_dop853_over_the_real_limit_is_the_memory_error_rk4_gives() -> None:
+    # Under a real address-space limit (1 GiB more than the child holds) an output 20 % over
+    # what is left: RK4 (checked in the core) and DOP853 (checked in Python) both refuse with
+    # MemoryError before any work, DOP853 naming the size it was asked for.
+    import scipy.integrate
+
+    body = pr.RigidBody()
+    n_steps = int(1.2 * GIB / 24)  # one state, 3 float64 a record
+
+    def dop853() -> object:
+        def ran(*args: object, **kwargs: object) -> None:
+            raise AssertionError("DOP853 ran")
+
+        scipy.integrate.solve_ivp = ran  # the child's own copy of the module
+        return pr.integrate(pr.classical(body, "dop853"), [1.0, 0.5, -0.3], 0.01, n_steps)
+
+    outcome = run_limited(dop853, GIB)
+    assert outcome.startswith(f"MemoryError: dop853 of 1 states at {n_steps + 1} times"), outcome
+    assert "GiB" in outcome
+    outcome = run_limited(
+        lambda: pr.integrate(pr.classical(body, "rk4"), [1.0, 0.5, -0.3], 0.01, n_steps), GIB
+    )
+    assert outcome.startswith("MemoryError"), outcome

@@ -212,3 +212,115 @@ def test_learned_colours_stay_distinct_past_the_palette() -> None:
     names = [f"learned:many_{k}" for k in range(3 * len(figures.LEARNED_COLOURS))]
     colours = [figures.learned_colour(n) for n in names]
     assert len(set(colours)) == len(colours)
+
+
+def _breaks_inside_brackets(text: str) -> bool:
+    """Whether ``text`` has a line break inside (), [] or {}."""
+    depth = 0
+    for ch in text:
+        if ch in "([{":
+            depth += 1
+        elif ch in ")]}":
+            depth -= 1
+        elif ch == "\n" and depth > 0:
+            return True
+    return False
+
+
+def test_states_errors_of_six_components_fills_its_canvas(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Two blocks of components (M, Γ) per state: one full column per state, and the legend
+    # right beside the panels, inside the figure.
+    kept = _keep_figures(monkeypatch)
+    top = pr.HeavyTop()
+    methods = {"rk4": pr.classical(top, "rk4"), "midpoint": pr.classical(top, "midpoint")}
+    scene = run_scene(methods, top, top.demo_states, 0.1, 20)
+    figures.state_figure(scene, scene.runs, tmp_path / "states_errors.png")
+    fig = kept[-1]
+    visible = [ax for ax in fig.axes if ax.get_visible()]
+    assert len(visible) == len(fig.axes) == 2 * (2 + 3)
+    columns = {round(ax.get_position().x0, 3) for ax in visible}
+    assert len(columns) == 2  # one per state, none empty
+    (legend,) = fig.legends
+    assert [t.get_text() for t in legend.get_texts()] == ["rk4", "midpoint"]
+    box = legend.get_window_extent()
+    page = fig.bbox
+    assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1
+    right = max(ax.get_window_extent().x1 for ax in visible)
+    assert 0 <= box.x0 - right < 0.1 * page.width  # beside the panels, not detached
+    assert right > 0.75 * page.width  # the panels use the canvas
+
+
+def test_stability_summary_shows_every_failed_method(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Three methods failing at the same h: each keeps a row of its own in the failures panel.
+    kept = _keep_figures(monkeypatch)
+    failing = {"rk4": {0.5, 1.0}, "midpoint": {1.0}, "taylor3-exp": {1.0}}
+    rows = [
+        {
+            "method": method,
+            "h": h,
+            "state": state,
+            "converged": not (h in failing.get(method, set()) and state == "b"),
+            "rel_error": 1e-3 * h,
+            "max_rel_dH": 1e-4 * h,
+            "max_rel_dC": 1e-14,
+        }
+        for method in ("taylor3-exp", "rk4", "midpoint", "splitting")
+        for h in (0.1, 0.5, 1.0)
+        for state in ("a", "b")
+    ]
+    figures.stability_summary_figure(rows, tmp_path / "s.png", system=pr.RigidBody())
+    (panel,) = [ax for ax in kept[-1].axes if ax.get_gid() == figures.FAILURES_GID]
+    drawn = {line.get_label(): line for line in panel.lines}
+    assert set(drawn) == set(failing)
+    for method, hs in failing.items():
+        assert set(drawn[method].get_xdata()) == hs
+    rows_y = {method: set(line.get_ydata()) for method, line in drawn.items()}
+    assert all(len(y) == 1 for y in rows_y.values())
+    assert len({next(iter(y)) for y in rows_y.values()}) == len(failing)  # no two overlap
+
+
+def test_titles_never_embed_a_matrix_nor_break_inside_brackets(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    kept = _keep_figures(monkeypatch)
+    lv3 = pr.lotka_volterra([[0, 1, 1], [-1, 0, 1], [-1, -1, 0]], [1, 2, 1])
+    assert "[[" in figures.system_label(lv3)  # messages keep the matrix
+    label = figures.figure_label(lv3)
+    assert "[" not in label and label.startswith("Lotka–Volterra")
+    scene = run_scene({"rk4": pr.classical(lv3, "rk4")}, lv3, lv3.demo_states, 0.1, 5)
+    figures.state_figure(scene, scene.runs, tmp_path / "s.png")
+    figures.orbit_figure(scene, scene.runs, tmp_path / "o.png")
+    for fig in kept:
+        title = fig.get_suptitle()
+        assert title and "[" not in title and not _breaks_inside_brackets(title)
+    # A long title wraps at spaces outside its brackets only.
+    long = "a system, c = [[0, 1, 1], [-1, 0, 1], [-1, -1, 0]], I = (1.5, 2.0, 2.5), " * 3
+    wrapped = figures.wrap_title(long.strip(), 4.0, 10)
+    assert "\n" in wrapped and not _breaks_inside_brackets(wrapped)
+
+
+def test_the_demo_orbit_figure_shows_the_most_accurate_method(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Chosen by the error measured against the reference, not by the order of the methods
+    # (the first is the lowest Taylor order, the least accurate).
+    kept = _keep_figures(monkeypatch)
+    out = tmp_path / "demo"
+    scene = SCENES / "lotka_volterra_3d.toml"
+    assert main(["demo", "--scene", str(scene), "--steps", "20", "--out", str(out)]) == 0
+    header, *lines = (out / "trajectories.csv").read_text().splitlines()
+    names = header.split(",")
+    worst = {
+        col.removesuffix("_error"): max(float(line.split(",")[k]) for line in lines)
+        for k, col in enumerate(names)
+        if col.endswith("_error")
+    }
+    best = min(worst, key=worst.__getitem__)
+    assert best != next(iter(worst))  # the order alone would have shown another
+    (orbits,) = [f for f in kept if "steps of h" in f.get_suptitle()]
+    (legend,) = orbits.legends
+    assert [t.get_text() for t in legend.get_texts()] == ["reference", best]

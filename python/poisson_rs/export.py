@@ -161,6 +161,53 @@ def read_tensor(data: bytes, name: str) -> np.ndarray | None:
         return np.frombuffer(data[base + a : base + b], dtype=dtype).reshape(entry["shape"])
 
 
+def tensor_shapes(data: bytes) -> dict[str, list[int]]:
+    """The shape of every tensor of a safetensors file's bytes (already validated by the
+    core), from its header alone."""
+    with parsing("model file", "header"):
+        size = int.from_bytes(data[:8], "little")
+        header = json.loads(data[8 : 8 + size])
+        return {
+            str(k): [int(s) for s in v["shape"]] for k, v in header.items() if k != "__metadata__"
+        }
+
+
+def check_widths(data: bytes, widths: Sequence[int], source: str) -> None:
+    """InputError naming ``source`` and ``widths`` unless the metadata's hidden widths are
+    those of the file's ``mlp.{i}.weight`` tensors (none: no network)."""
+    shapes = tensor_shapes(data)
+    n_layers = sum(1 for k in shapes if k.startswith("mlp.") and k.endswith(".weight"))
+    held = [shapes[f"mlp.{i}.weight"][0] for i in range(n_layers - 1)]
+    with parsing(source, "widths"):
+        if list(widths) != held:
+            raise ValueError(f"metadata 'widths' says {list(widths)} but the tensors hold {held}")
+
+
+#: Largest relative difference between a file's exact polynomial terms and those derived again
+#: from its metadata: both come from the same rationals rounded to float64 once.
+EXACT_TERMS_RTOL = 1e-10
+
+
+def terms_agree(
+    found: tuple[np.ndarray, np.ndarray], expected: tuple[np.ndarray, np.ndarray]
+) -> bool:
+    """Whether two term tables (keys (M, k) int rows, coefficients (M,)) are one polynomial to
+    :data:`EXACT_TERMS_RTOL` of its largest coefficient, whatever the row order and however
+    repeated keys are split (absent rows count as zero)."""
+
+    def as_map(keys: np.ndarray, coeffs: np.ndarray) -> dict[tuple[int, ...], float]:
+        out: dict[tuple[int, ...], float] = {}
+        rows = np.asarray(keys).reshape(len(coeffs), -1).tolist() if len(coeffs) else []
+        for row, v in zip(rows, np.asarray(coeffs).tolist(), strict=True):
+            out[tuple(row)] = out.get(tuple(row), 0.0) + float(v)
+        return out
+
+    a, b = as_map(*found), as_map(*expected)
+    scale = max((abs(v) for v in (*a.values(), *b.values())), default=0.0)
+    worst = max((abs(a.get(k, 0.0) - b.get(k, 0.0)) for k in a.keys() | b.keys()), default=0.0)
+    return worst <= EXACT_TERMS_RTOL * scale  # NaN fails
+
+
 def _check_finite_model(s_fn: GeneratingFunction, path: str | os.PathLike[str]) -> None:
     """ValueError when a coefficient or weight is NaN or infinite (a diverged training run):
     such a file would only be refused when loaded."""

@@ -272,6 +272,8 @@ def exact_solution(body: RigidBody, mu0: ArrayLike, times: ArrayLike) -> FloatAr
         If mu0 or times has the wrong shape or contains NaN/inf.
     """
     states, t, single = _check_inputs(body, mu0, times)
+    # The elliptic functions hold about a dozen (n, T) arrays besides the (n, T, 3) output.
+    check_reference_memory(states.shape[0], t.size, 3, "the exact flow", temporaries=12)
     inertia = np.asarray(body.inertia, dtype=np.float64)
     n_distinct = np.unique(inertia).size
     if n_distinct == 2:
@@ -330,6 +332,32 @@ def _local_rate(rhs: Callable[[FloatArray], FloatArray], y: FloatArray) -> float
     return max(rate, jac) if math.isfinite(jac) else math.inf
 
 
+def reference_bytes(n_states: int, n_times: int, dim: int, temporaries: int = 0) -> float:
+    """Bytes a reference of ``n_states`` trajectories at ``n_times`` times in dimension
+    ``dim`` holds at once: its output and one converted copy (exp of q, the affine slice, the
+    rollout's contiguous array), one trajectory's dense output from ``solve_ivp`` and its
+    reordered copy, the times (given, sorted, their order), and ``temporaries`` more (n, T)
+    arrays."""
+    per_time = dim * (2 * n_states + 2) + 4 + temporaries * n_states
+    return 8.0 * n_times * per_time
+
+
+def check_reference_memory(
+    n_states: int, n_times: int, dim: int, what: str, temporaries: int = 0
+) -> None:
+    """MemoryError, before any work, where a reference's arrays (:func:`reference_bytes`)
+    would not fit in the memory this process may use (the estimate the core applies to its
+    rollouts: :func:`poisson_rs.memory.check_fits`)."""
+    from .memory import check_fits
+
+    need = reference_bytes(n_states, n_times, dim, temporaries)
+    check_fits(
+        need,
+        f"{what} of {n_states} states at {n_times} times",
+        "record fewer times (a larger every, or fewer steps) or fewer states at once",
+    )
+
+
 class NoReferenceError(RuntimeError, ValueError):
     """DOP853 could not compute a trajectory (over its step budget, or overflowing): a
     RuntimeError as documented, and a ValueError too, since the states or the horizon asked
@@ -365,6 +393,7 @@ def _dop853(
     """
     from scipy.integrate import solve_ivp
 
+    check_reference_memory(states.shape[0], t.size, states.shape[1], "DOP853")
     # Work bound, in right-hand sides (DOP853 takes 12 per step).
     max_steps = int(globals().get("_DOP853_MAX_STEPS", 200_000))
     max_rhs = 12 * max_steps

@@ -416,7 +416,12 @@ def dop853_rollout(
     """The rollout of every structure's "dop853": ``system.reference_solution`` at rtol = atol
     = ``tol`` sampled at t = k·every·h. A trajectory DOP853 cannot finish (over its budget,
     overflowing) is NaN from there on and reported like a failed step (code 1), the others
-    are kept; no Newton solve, no step angle (it chooses its own steps)."""
+    are kept; no Newton solve, no step angle (it chooses its own steps). MemoryError, before
+    any work, where the output would not fit (the check the core's rollouts make)."""
+    from .reference import check_reference_memory
+
+    # Before the times are made: they alone are a third of a single 3D trajectory's output.
+    check_reference_memory(x0.shape[0], n_steps // every + 1, x0.shape[1], "dop853")
     times = h * np.arange(0, n_steps // every + 1, dtype=np.float64) * every
     # DOP853's own warning says why a trajectory was given up (its budget, an overflow).
     traj = system.reference_solution(x0, times, rtol=tol, atol=tol, failures="nan")

@@ -124,7 +124,7 @@ def _chart(args: argparse.Namespace) -> int:
         s.name if len(s.description) > 80 else f"{s.name}: {s.description}" for s in data.scenes
     )
     first = data.scenes[0].system
-    system = charts.system_label(first)
+    system = charts.figure_label(first)
     # The system's own letter and reference: x and DOP853 off g*, μ and the exact flow on it.
     m, ref = charts.state_symbol(first), getattr(first, "reference_name", "DOP853")
     charts.work_precision_figure(

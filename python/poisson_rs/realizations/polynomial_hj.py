@@ -691,11 +691,84 @@ def read_model_file(data: bytes, source: str = "model bytes") -> tuple[dict[str,
                 f"taylor.exponents must have {dim + 1} columns (t, x) for the {dim}-dimensional "
                 "system of the metadata"
             )
+    with parsing(source, "widths"):
+        held = [int(tensors[f"mlp.{i}.weight"].shape[0]) for i in range(n_layers - 1)]
+        if list(meta["widths"]) != held:
+            raise ValueError(
+                f"metadata 'widths' says {list(meta['widths'])} but the tensors hold {held}"
+            )
     with parsing(source, "mlp_power"):
+        # The network's power of t is part of S: a file with a network must state it (a
+        # default would step another S), as the other structures' files must.
+        if n_layers and "mlp_power" not in raw:
+            raise ValueError("metadata 'mlp_power' is missing (the file holds a network)")
         power = int(raw.get("mlp_power", "1"))
-        if n_layers and not 1 <= power <= 64:
+        if str(power) != raw.get("mlp_power", "1").strip() or not 1 <= power <= 64:
             raise ValueError(f"metadata 'mlp_power' must be in 1..=64, got {raw['mlp_power']!r}")
         meta["mlp_power"] = power
+    with parsing(source, "mlp_inputs"):
+        if raw.get("mlp_inputs", "t,x") != "t,x":
+            raise ValueError(f"metadata 'mlp_inputs' must be 't,x', got {raw['mlp_inputs']!r}")
     with parsing(source):
-        core = core_from_tensors(tensors, power)
+        core = core_from_tensors(tensors, power)  # checks the tables' shapes and values
+    _check_tables(tensors, meta, source)
     return meta, core
+
+
+def _rows(table: Table) -> tuple[np.ndarray, np.ndarray]:
+    """A term table as (keys (K, 1 + V): index then exponents, coeffs) for :func:`terms_agree`."""
+    index, coeffs, exponents = table
+    return np.c_[np.asarray(index).reshape(-1, 1), exponents], coeffs
+
+
+def _check_tables(tensors: Mapping[str, np.ndarray], meta: Mapping[str, Any], source: str) -> None:
+    """InputError unless the file's tables are those its metadata derives: the core steps the
+    tables, the studies score ``system``, so a file whose metadata was edited would step one
+    system and report another. Checked from the cheapest to the costliest, each naming its
+    field: the t¹ terms of S are −H (``system``); β's terms of degree 1 in p are −½π p (the
+    bivector, ``system``); β and α are the realization of ``realization_order``; the Taylor
+    table is S_1..S_m of ``taylor_order``."""
+    from ..export import terms_agree
+    from ..untrusted import parsing
+
+    system: PolynomialPoissonSystem = meta["system"]
+    m, n = meta["taylor_order"], meta["realization_order"]
+    dim = system.dim
+    x = system.structure.x
+    t_exps, t_coeffs = tensors["taylor.exponents"], tensors["taylor.coeffs"]
+    sou = (tensors["sou.index"], tensors["sou.coeffs"], tensors["sou.exponents"])
+    tar = (tensors["tar.index"], tensors["tar.coeffs"], tensors["tar.exponents"])
+    with parsing(source, "system"):
+        _, h_coeffs, h_exps = _term_table([system.h], x)
+        first = t_exps[:, 0] == 1
+        want = (np.c_[np.ones((len(h_coeffs), 1), np.int64), h_exps], -h_coeffs)
+        if not terms_agree((t_exps[first], t_coeffs[first]), want):
+            raise ValueError(
+                f"the file's t¹ terms are not -t·H of the system its metadata records "
+                f"({system!r}): the metadata was edited or belongs to another model"
+            )
+        beta1, _, p = system.structure.realization(1)
+        low = sou[2][:, :dim].sum(1) <= 1
+        found = _rows((sou[0][low], sou[1][low], sou[2][low]))
+        if not terms_agree(found, _rows(_term_table(beta1, (*p, *x)))):
+            raise ValueError(
+                f"the file's β is not x − ½π(x)p to first order in p for the bivector its "
+                f"metadata records ({system!r}): the metadata was edited or belongs to another "
+                "model"
+            )
+    tables = realization_tables(system, m, n)
+    with parsing(source, "realization_order"):
+        if not (
+            terms_agree(_rows(sou), _rows(tables.beta))
+            and terms_agree(_rows(tar), _rows(tables.alpha))
+        ):
+            raise ValueError(
+                f"metadata 'realization_order' says {n} but the file's β and α are not the "
+                f"order-{n} realization of its bivector"
+            )
+    with parsing(source, "taylor_order"):
+        if not terms_agree((t_exps, t_coeffs), (tables.taylor[2], tables.taylor[1])):
+            raise ValueError(
+                f"metadata 'taylor_order' says {m} but the file's Taylor table is not "
+                f"S_1..S_{m} of its system"
+            )

@@ -12,10 +12,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .. import _core
-from ..export import parse_log_canonical_metadata
+from ..export import check_widths, parse_log_canonical_metadata, read_tensor, terms_agree
 from ..files import check_input_file
 from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL
-from ..untrusted import parsing
+from ..untrusted import InputError, parsing
 from .log_canonical import _exp_states, _positive_log
 
 #: Largest model file read (the paper's 253k-parameter model takes 2 MB).
@@ -137,6 +137,8 @@ class LearnedLogCanonicalIntegrator(_LearnedRealizationIntegrator):
                 raise ValueError(
                     f"metadata 'system' ({system!r}) does not match the file's structure.c"
                 )
+        check_widths(data, metadata["widths"], where)
+        _check_log_taylor_terms(data, metadata, where)
         return metadata, core
 
     def rollout(
@@ -144,6 +146,53 @@ class LearnedLogCanonicalIntegrator(_LearnedRealizationIntegrator):
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         q, info = self._core.rollout(_positive_log(mu0), h, n_steps, every, self.tol, self.max_iter)
         return _exp_states(q), info
+
+
+#: Highest Taylor order a log-canonical model file may state (that of its training config).
+MAX_LOG_TAYLOR_ORDER = 9
+
+
+def _check_log_taylor_terms(data: bytes, metadata: dict[str, Any], where: str) -> None:
+    """InputError unless the file's exact Taylor terms (``poly.powers``, ``poly.coeffs``,
+    ``poly.linear``) are S_1..S_K of the system its metadata records, K its ``taylor_order``.
+    The terms are what the core steps; ``system`` is what a study scores against, so a file
+    whose metadata names another H would integrate one system and report another. S_1 = −H
+    (the t¹ rows and the log part) names ``system``; the rest names ``taylor_order``."""
+    from ..realizations.log_canonical import taylor_arrays
+
+    system = metadata["system"]
+    order = metadata["taylor_order"]
+    powers, coeffs, linear = (
+        read_tensor(data, k) for k in ("poly.powers", "poly.coeffs", "poly.linear")
+    )
+    if powers is None or coeffs is None or linear is None:  # the core requires all three
+        raise InputError(where, "tensors", "the file lacks its Taylor terms")
+    with parsing(where, "system"):
+        tp, ex, co = taylor_arrays(system, 1)
+        first = powers[:, 0] == 1
+        b = np.asarray(system.log_hamiltonian.b, dtype=np.float64)
+        if not (
+            terms_agree((powers[first], coeffs[first]), (np.c_[tp, ex], co))
+            and terms_agree(
+                (np.eye(len(b), dtype=np.int64), linear), (np.eye(len(b), dtype=np.int64), b)
+            )
+        ):
+            raise ValueError(
+                f"the file's t¹ terms are not -t·H of the system its metadata records "
+                f"({system!r}): the metadata was edited or belongs to another model"
+            )
+    with parsing(where, "taylor_order"):
+        # The Taylor terms' cost grows fast with the order: a stated order is bounded first.
+        if not 1 <= order <= MAX_LOG_TAYLOR_ORDER:
+            raise ValueError(
+                f"metadata 'taylor_order' must be in 1..={MAX_LOG_TAYLOR_ORDER}, got {order}"
+            )
+        tp, ex, co = taylor_arrays(system, order)
+        if not terms_agree((powers, coeffs), (np.c_[tp, ex], co)):
+            raise ValueError(
+                f"metadata 'taylor_order' says {order} but the file's Taylor terms are not "
+                f"S_1..S_{order} of its system"
+            )
 
 
 class LearnedPolynomialIntegrator(_LearnedRealizationIntegrator):

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, ClassVar, Literal
@@ -551,6 +551,34 @@ class Polynomial:
     def __repr__(self) -> str:
         return f"Polynomial({dict(self._terms) or {(0,) * self._dim: 0.0}!r})"
 
+    def formula(self, names: Sequence[str] | None = None) -> str:
+        """The polynomial as text in the variables ``names`` (μ₁…μₙ by default), e.g.
+        "μ₁² + μ₂² − 0.5 μ₃μ₄": coefficients to 4 significant digits, ±1 left out."""
+        sup = str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹")
+        if names is None:
+            sub = str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉")
+            names = [f"μ{str(i).translate(sub)}" for i in range(1, self._dim + 1)]
+        parts: list[tuple[str, str]] = []
+        # By degree, then μ₁ before μ₂ (μ₁² + μ₂² + μ₃², not the stored order).
+        ordered = sorted(self._terms.items(), key=lambda t: (sum(t[0]), [-e for e in t[0]]))
+        for exps, coeff in ordered:
+            mono = "".join(
+                name + (str(e).translate(sup) if e > 1 else "")
+                for name, e in zip(names, exps, strict=True)
+                if e
+            )
+            size = f"{abs(coeff):.4g}"
+            if mono and size == "1":
+                text = mono
+            else:
+                text = f"{size} {mono}" if mono else size
+            parts.append(("−" if coeff < 0 else "+", text))
+        if not parts:
+            return "0"
+        sign, first = parts[0]
+        out = ("−" if sign == "−" else "") + first
+        return out + "".join(f" {sign} {text}" for sign, text in parts[1:])
+
 
 # --- Lie–Poisson systems -------------------------------------------------------------------------
 
@@ -704,15 +732,17 @@ class LiePoissonSystem(PoissonSystemBase):
 
     @property
     def casimir_label(self) -> str:
-        """ "C = |μ|²" (so(3)), "C = |Γ|², M·Γ" (se(3)), "C = μ_h² + 4μ_eμ_f" (sl(2)), or how
-        many polynomial Casimirs the search found."""
+        """ "C = |μ|²" (so(3)), "C = |Γ|², M·Γ" (se(3)), "C = μ_h² + 4μ_eμ_f" (sl(2)), or the
+        formulas of the polynomial Casimirs the search found ("C = μ₄, μ₁² + μ₂² + μ₃²")."""
         if self.casimirs(np.ones((1, self.dim))) is not None:
             known = {"so3": "C = |μ|²", "se3": "C = |Γ|², M·Γ", "sl2": "C = μ_h² + 4μ_eμ_f"}
             return known.get(_known_algebra(self.algebra) or "", "the system's Casimirs")
-        n = len(self.found_casimirs())
-        if not n:
+        found = self.found_casimirs()
+        if not found:
             return "no Casimir known (drift n/a)"
-        return f"{n} polynomial Casimir{'s' if n != 1 else ''} found"
+        # By formula: a count alone does not say which invariants the drift measures.
+        names = self.component_names
+        return "C = " + ", ".join(p.formula(names) for p in found)
 
     @property
     def title(self) -> str:

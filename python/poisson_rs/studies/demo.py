@@ -9,6 +9,7 @@ tight DOP853 reference, from the system's ``demo_states``. Errors are Euclidean 
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -51,6 +52,19 @@ class SceneResult:
     def errors(self, run: Run) -> np.ndarray:
         """|μ − μ_exact| per state and step: (n_states, n_steps + 1)."""
         return np.linalg.norm(run.traj - self.exact, axis=-1)
+
+    def worst_error(self, run: Run) -> float:
+        """The largest |μ − μ_exact| over every state and record; inf where a record is not
+        finite (a failed trajectory is never the most accurate)."""
+        err = self.errors(run)
+        return float(err.max()) if err.size and np.isfinite(err).all() else math.inf
+
+    def most_accurate(self) -> Run:
+        """The run with the smallest :meth:`worst_error` (the first of equals): the one an
+        orbit figure shows, whatever order the methods were given in."""
+        if not self.runs:
+            raise ValueError("the scene has no runs")
+        return min(self.runs, key=self.worst_error)
 
     def energy_drift(self, run: Run) -> np.ndarray:
         """|H − H₀| / |H₀| per state and step."""

@@ -6,7 +6,7 @@ import csv
 import io
 import json
 import math
-import textwrap
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,10 +31,40 @@ def _save_with_legend(
     """One legend right of the panels, an optional title, and the PNG at ``path``."""
     fig.legend(handles, labels, loc="outside right center", fontsize=8, frameon=False)
     if title:
-        # Wrapped to the figure's width: a system's description can be longer than one line.
-        chars = max(40, int(fig.get_figwidth() * 72 / (0.6 * 10)))
-        fig.suptitle(textwrap.fill(title, chars), fontsize=10)
+        fig.suptitle(wrap_title(title, fig.get_figwidth(), 10), fontsize=10)
     return _savefig(fig, path, dpi=110)
+
+
+def wrap_title(title: str, width_inches: float, fontsize: float) -> str:
+    """``title`` in lines that fit a figure ``width_inches`` wide, broken only at spaces
+    outside brackets: a matrix, a tuple or a state stays on one line (a bracketed group longer
+    than a line breaks at its own spaces)."""
+    chars = max(40, int(width_inches * 72 / (0.6 * fontsize)))
+    words: list[str] = []
+    word, depth = "", 0
+    for ch in title:
+        if ch == " " and depth == 0:
+            words.append(word)
+            word = ""
+            continue
+        if ch in "([{":
+            depth += 1
+        elif ch in ")]}":
+            depth = max(depth - 1, 0)
+        word += ch
+    words.append(word)
+    # A group longer than a line (a long description in parentheses) breaks at its own spaces.
+    words = [part for w in words for part in (w.split(" ") if len(w) > chars else [w])]
+    lines: list[str] = []
+    line = ""
+    for w in words:
+        if line and len(line) + 1 + len(w) > chars:
+            lines.append(line)
+            line = w
+        else:
+            line = f"{line} {w}" if line else w
+    lines.append(line)
+    return "\n".join(lines)
 
 
 def write_rows(rows: Sequence[dict[str, Any]], path: Path) -> None:
@@ -59,6 +89,30 @@ def system_label(system: Any) -> str:
         if isinstance(title, str)
         else f"{getattr(system, 'name', None) or type(system).__name__}"
     )
+
+
+def figure_label(system: Any) -> str:
+    """The system in a figure's title: :func:`system_label` without its matrices (a bracketed
+    list of lists, such as a log-canonical system's c, with the ``name =`` before it), so that
+    a title stays short and never breaks inside a matrix. Messages keep the full label."""
+    text = system_label(system)
+    out = ""
+    i = 0
+    while i < len(text):
+        if text[i] == "[" and text[i + 1 :].lstrip().startswith("["):
+            depth, j = 0, i
+            while j < len(text):
+                depth += {"[": 1, "]": -1}.get(text[j], 0)
+                if depth == 0:
+                    break
+                j += 1
+            # Drop ", c = " (or "c = ") before the matrix with it.
+            out = re.sub(r",?\s*[^\s,=]*\s*=\s*$", "", out)
+            i = j + 1
+            continue
+        out += text[i]
+        i += 1
+    return out.strip() or system_label(system)
 
 
 def component_names(system: Any) -> tuple[str, ...]:
@@ -120,7 +174,7 @@ def orbit_figure(
         ax.set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=9)
     handles, labels = fig.axes[0].get_legend_handles_labels()
     kind = f"reference: {getattr(system, 'reference_name', 'DOP853')}"
-    title = f"{system_label(system)}: {len(scene.times) - 1} steps of h = {scene.h:g} ({kind})"
+    title = f"{figure_label(system)}: {len(scene.times) - 1} steps of h = {scene.h:g} ({kind})"
     return _save_with_legend(fig, path, handles, labels, title)
 
 
@@ -148,6 +202,38 @@ def _drift_panels(scene: SceneResult) -> list[tuple[Any, str]]:
     ]
 
 
+def _drift_column(
+    axes: Sequence[Any],
+    scene: SceneResult,
+    runs: Sequence[Run],
+    steps: np.ndarray,
+    i: int,
+    *,
+    title_size: int | None,
+) -> None:
+    """Fills the three drift panels ``axes`` of state ``i`` with every run's drift against the
+    step, log scales (exact zeros at 1e-17), "n/a" where the system knows no Casimir; the
+    state names the first panel's title unless ``title_size`` is None."""
+    for ax, (f, ylabel) in zip(axes, _drift_panels(scene), strict=True):
+        for run in runs:
+            values = f(run)[i, 1:]
+            if np.isfinite(values).any():
+                ax.loglog(
+                    steps[1:], values + 1e-17, lw=0.8, label=run.name, **_line_style(run.name)
+                )
+        if not ax.lines:
+            ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
+                    va="center", transform=ax.transAxes, fontsize=9, color="0.3")  # fmt: skip
+            ax.set_yticks([])
+        ax.set_ylabel(ylabel, fontsize=8)
+        ax.grid(True, which="major", alpha=0.3)
+    if title_size is not None:
+        axes[0].set_title(
+            _state_label(scene.states[i], state_symbol(scene.body)), fontsize=title_size
+        )
+    axes[-1].set_xlabel(f"step (h = {scene.h:g})")
+
+
 def _drift_grid(
     axes: Any,
     scene: SceneResult,
@@ -159,29 +245,11 @@ def _drift_grid(
     title_size: int,
 ) -> None:
     """Fills a grid of three drift panels per state (rows of 3, ``ncols`` states a row) with
-    every run's drift against the step, log scales (exact zeros at 1e-17), "n/a" where the
-    system knows no Casimir, and hides the cells past the ``n`` states."""
-    panels = _drift_panels(scene)
+    :func:`_drift_column`, and hides the cells past the ``n`` states."""
     for i in range(n):
         r0, c = 3 * (i // ncols), i % ncols
-        for p, (f, ylabel) in enumerate(panels):
-            ax = axes[r0 + p, c]
-            for run in runs:
-                values = f(run)[i, 1:]
-                if np.isfinite(values).any():
-                    ax.loglog(
-                        steps[1:], values + 1e-17, lw=0.8, label=run.name, **_line_style(run.name)
-                    )
-            if not ax.lines:
-                ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
-                        va="center", transform=ax.transAxes, fontsize=9, color="0.3")  # fmt: skip
-                ax.set_yticks([])
-            ax.set_ylabel(ylabel, fontsize=8)
-            ax.grid(True, which="major", alpha=0.3)
-        axes[r0, c].set_title(
-            _state_label(scene.states[i], state_symbol(scene.body)), fontsize=title_size
-        )
-        axes[r0 + 2, c].set_xlabel(f"step (h = {scene.h:g})")
+        column = [axes[r0 + p, c] for p in range(3)]
+        _drift_column(column, scene, runs, steps, i, title_size=title_size)
     for i in range(n, (len(axes) // 3) * ncols):
         for p in range(3):
             axes[3 * (i // ncols) + p, i % ncols].set_visible(False)
@@ -200,7 +268,7 @@ def error_figure(scene: SceneResult, runs: Sequence[Run], path: Path) -> Path:
     _drift_grid(axes, scene, runs, steps, n, ncols, title_size=9)
     handles, labels = axes[0, 0].get_legend_handles_labels()
     return _save_with_legend(
-        fig, path, handles, labels, f"{system_label(scene.body)}, h = {scene.h:g}"
+        fig, path, handles, labels, f"{figure_label(scene.body)}, h = {scene.h:g}"
     )
 
 
@@ -232,42 +300,47 @@ def write_trajectories(scene: SceneResult, runs: Sequence[Run], path: Path) -> P
 
 
 def state_figure(scene: SceneResult, runs: Sequence[Run], path: Path, t_max: float = 50.0) -> Path:
-    """Each component against time up to ``t_max``: the reference (solid) and each run (dashed,
-    in the run's colour), one panel per initial state and block of three components (M and Γ on
-    se(3)*), wrapping after GRID_COLUMNS panels; then :func:`error_figure`'s drifts beneath, in
-    the same file."""
+    """One column per initial state (wrapping after GRID_COLUMNS states): each component
+    against time up to ``t_max``, the reference solid and each run dashed, one panel per block
+    of three components (M and Γ on se(3)*), then :func:`error_figure`'s three drift panels
+    beneath, so that every column is full whatever the dimension; one legend of the runs, in
+    the figure, right of the panels."""
     system = scene.body
     names = component_names(system)
     blocks = _blocks(scene.states.shape[1])
     n = len(scene.states)
-    panels = [(i, b) for i in range(n) for b in blocks]
-    nrows, ncols = _grid(len(panels))
-    drows, dcols = _grid(n)
-    ncols = max(ncols, dcols)
-    fig = Figure(figsize=(5.2 * ncols + 2.6, 2.8 * nrows + 7.5 * drows), layout="constrained")
-    # Two rows: an array of SubFigures (the stubs type it as one SubFigure or an array).
-    top, bottom = fig.subfigures(2, 1, height_ratios=[2.8 * nrows, 7.5 * drows])  # type: ignore[misc]
-    axes = top.subplots(nrows, ncols, squeeze=False)
+    per = len(blocks) + 3  # panels in one state's column
+    grid_rows, ncols = _grid(n)
+    ratios = ([2.8] * len(blocks) + [2.5] * 3) * grid_rows
+    fig = Figure(figsize=(5.2 * ncols + 2.6, sum(ratios)), layout="constrained")
+    axes = fig.subplots(
+        per * grid_rows, ncols, squeeze=False, gridspec_kw={"height_ratios": ratios}
+    )
     k = min(len(scene.times), int(t_max / scene.h) + 1)
     t = scene.times[:k]
-    shades = ("tab:blue", "tab:orange", "tab:green")
-    for p, (i, block) in enumerate(panels):
-        ax = axes[p // ncols, p % ncols]
-        for j, colour in zip(block, shades, strict=False):
-            ax.plot(t, scene.exact[i, :k, j], color=colour, lw=1.4, label=names[j])
-            for run in runs:
-                ax.plot(t, run.traj[i, :k, j], color=colour, lw=0.7, ls="--", alpha=0.7)
-        ax.set_title(_state_label(scene.states[i], state_symbol(scene.body)), fontsize=8)
-        ax.set_xlabel("t")
-        ax.legend(loc="upper right", fontsize=7, title="reference solid, methods dashed",
-                  title_fontsize=6)  # fmt: skip
-    for p in range(len(panels), nrows * ncols):
-        axes[p // ncols, p % ncols].set_visible(False)
-    axes2 = bottom.subplots(3 * drows, ncols, squeeze=False, sharex=True)
     steps = np.arange(len(scene.times))
-    _drift_grid(axes2, scene, runs, steps, n, ncols, title_size=8)
-    handles, labels = axes2[0, 0].get_legend_handles_labels()
-    return _save_with_legend(fig, path, handles, labels, f"{system_label(system)}, h = {scene.h:g}")
+    shades = ("tab:blue", "tab:orange", "tab:green")
+    for i in range(n):
+        r0, c = per * (i // ncols), i % ncols
+        for b, block in enumerate(blocks):
+            ax = axes[r0 + b, c]
+            for j, colour in zip(block, shades, strict=False):
+                ax.plot(t, scene.exact[i, :k, j], color=colour, lw=1.4, label=names[j])
+                for run in runs:
+                    ax.plot(t, run.traj[i, :k, j], color=colour, lw=0.7, ls="--", alpha=0.7)
+            ax.set_xlabel("t")
+            ax.legend(loc="upper right", fontsize=7, title="reference solid, methods dashed",
+                      title_fontsize=6)  # fmt: skip
+        axes[r0, c].set_title(_state_label(scene.states[i], state_symbol(system)), fontsize=8)
+        drifts = [axes[r0 + len(blocks) + p, c] for p in range(3)]
+        for ax in drifts[1:]:
+            ax.sharex(drifts[0])
+        _drift_column(drifts, scene, runs, steps, i, title_size=None)
+    for i in range(n, grid_rows * ncols):  # the last row's empty cells
+        for p in range(per):
+            axes[per * (i // ncols) + p, i % ncols].set_visible(False)
+    handles, labels = axes[len(blocks), 0].get_legend_handles_labels()
+    return _save_with_legend(fig, path, handles, labels, f"{figure_label(system)}, h = {scene.h:g}")
 
 
 # --- Work–precision charts (``poisson-rs chart``; numbers from studies.workprecision) ---
@@ -554,58 +627,70 @@ def stability_figure(rows: Sequence[dict[str, Any]], path: Path, *, system: Any 
             label=f"log₁₀ |{m}(T) − {m}_ref(T)| / |{m}₀|  (× = failed step)",
         )
     if system is not None:
-        fig.suptitle(f"Stability map: {system_label(system)}", fontsize=11)
+        title = f"Stability map: {figure_label(system)}"
+        fig.suptitle(wrap_title(title, fig.get_figwidth(), 11), fontsize=11)
     return _savefig(fig, path, dpi=110, bbox_inches="tight")
+
+
+#: The ``gid`` of the stability summary's panel of failed steps (one row per method).
+FAILURES_GID = "failed-steps"
 
 
 def stability_summary_figure(
     rows: Sequence[dict[str, Any]], path: Path, *, system: Any = None
 ) -> Path:
     """Worst relative error at T, worst |ΔH|/H and worst |ΔC|/C over the states against h, per
-    method; a step size where Newton failed for some state is marked × at the top."""
-    fig = Figure(figsize=(15, 4.5), layout="constrained")
-    axes = fig.subplots(1, 3)
+    method; beneath, one row per method with a × at each step size where a step failed for
+    some state, so that every failing method shows however many fail at the same h."""
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    strip = 0.35 * len(methods) + 0.9
+    fig = Figure(figsize=(15, 4.5 + strip), layout="constrained")
+    grid = fig.add_gridspec(2, 3, height_ratios=[4.5, strip])
+    axes = [fig.add_subplot(grid[0, c]) for c in range(3)]
+    fails = fig.add_subplot(grid[1, :], sharex=axes[0])
+    fails.set_gid(FAILURES_GID)
     m = state_symbol(system)
     keys = [
         ("rel_error", f"worst |{m}(T) − {m}_ref(T)| / |{m}₀|"),
         ("max_rel_dH", "worst max |H − H₀| / |H₀|"),
         ("max_rel_dC", f"worst max |C − C₀| / |{m}₀|^deg C"),
     ]
-    marks: list[tuple[float, str]] = []  # (h, colour) of failures, drawn once limits are final
-    for method in dict.fromkeys(r["method"] for r in rows):
+    any_failed = False
+    for row, method in enumerate(methods):
         mine = [r for r in rows if r["method"] == method]
         hs = sorted({float(r["h"]) for r in mine})
-        failed = [any(not r["converged"] for r in mine if float(r["h"]) == h) for h in hs]
+        colour = method_style(method)["color"]
         for ax, (key, _) in zip(axes, keys, strict=True):
             worst = []
             for h in hs:
                 vals = [float(r[key]) for r in mine if float(r["h"]) == h and r["converged"]]
                 vals = [v for v in vals if math.isfinite(v)]  # NaN: not known, not zero
                 worst.append(max(vals) + 1e-17 if vals else np.nan)
-            (line,) = ax.loglog(
-                hs, worst, marker="o", ms=3, lw=1, label=method, color=method_style(method)["color"]
-            )
-        marks += [(h, line.get_color()) for h, f in zip(hs, failed, strict=True) if f]
-    empty = set()
-    for ax, (key, _) in zip(axes, keys, strict=True):
+            ax.loglog(hs, worst, marker="o", ms=3, lw=1, label=method, color=colour)
+        failed = [h for h in hs if any(not r["converged"] for r in mine if float(r["h"]) == h)]
+        if failed:
+            any_failed = True
+            # Its own row: a × of one method never hides another's at the same h.
+            fails.plot(failed, [row] * len(failed), ls="none", marker="x", ms=8, mew=2,
+                       color=colour, label=method)  # fmt: skip
+    for ax, (key, label) in zip(axes, keys, strict=True):
         if not any(math.isfinite(float(r[key])) for r in rows if r["converged"]):
-            empty.add(ax)
             ax.text(0.5, 0.5, "n/a: no Casimir known for this system", ha="center",
                     va="center", transform=ax.transAxes, color="0.3")  # fmt: skip
-    for ax in axes:
-        if ax in empty:
-            continue  # nothing plotted: no axis to mark failures on
-        top = ax.get_ylim()[1]
-        for h, colour in marks:
-            ax.plot(h, top, marker="x", color=colour, ms=8, mew=2, clip_on=False)
-    for ax, (_, label) in zip(axes, keys, strict=True):
         ax.set_xlabel("step size h")
         ax.set_ylabel(label)
         ax.grid(True, which="major", alpha=0.3)
+    fails.set_xscale("log")
+    fails.set_ylim(len(methods) - 0.5, -0.5)
+    fails.set_yticks(range(len(methods)), methods, fontsize=8)
+    fails.set_xlabel("step size h")
+    fails.grid(True, which="major", alpha=0.3)
+    fails.set_title(
+        "× : a step failed for some state" if any_failed else "no step failed", fontsize=9
+    )
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right center", fontsize=8)
-    what = f"{system_label(system)}: " if system is not None else ""
-    failures = " (× at the top: a step failed for some state)" if marks else ""
-    fig.suptitle(f"{what}where methods break{failures}")
+    what = f"{figure_label(system)}: " if system is not None else ""
+    fig.suptitle(wrap_title(f"{what}where methods break", fig.get_figwidth(), 12))
     return _savefig(fig, path, dpi=110)
 
 
