@@ -1768,6 +1768,14 @@ fn rollout_jets_lie<'py>(
     }, Err(dim_error(dim)))
 }
 
+/// Bytes this process can still take (the least of MemAvailable, what RLIMIT_AS leaves and
+/// what the cgroup's limit leaves), or None where none can be read: the estimate every call of
+/// the core checks its plan against, for the work Python does itself.
+#[pyfunction]
+fn usable_memory() -> Option<usize> {
+    crate::memory::usable_bytes()
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyModel>()?;
@@ -1785,6 +1793,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(rollout_log_classical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_polynomial_realization, m)?)?;
     m.add_function(wrap_pyfunction!(expression_jets, m)?)?;
+    m.add_function(wrap_pyfunction!(usable_memory, m)?)?;
     m.add_function(wrap_pyfunction!(hamiltonian_field, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_hamiltonian_field, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_jets_polynomial, m)?)?;
