@@ -186,6 +186,199 @@ impl Expression {
     }
 }
 
+/// Value and gradient registers of [`Expression::gradient_lanes`] for tapes of up to `CAP`
+/// instructions: sized by the tape, so a short H does not clear a long register file.
+macro_rules! by_capacity {
+    ($len:expr, $cap:ident => $body:expr) => {
+        match $len {
+            0..=16 => {
+                const $cap: usize = 16;
+                $body
+            }
+            17..=48 => {
+                const $cap: usize = 48;
+                $body
+            }
+            49..=128 => {
+                const $cap: usize = 128;
+                $body
+            }
+            _ => {
+                const $cap: usize = MAX_TAPE;
+                $body
+            }
+        }
+    };
+}
+
+impl Expression {
+    /// H and ∇H at L states at once (`x[i][l]`: coordinate i of lane l), forward mode in
+    /// structure-of-arrays form: the arithmetic vectorises across lanes, sin/cos and exp go
+    /// through the crate's branch-free lane kernels ([`crate::trig`], [`crate::exp`]), the
+    /// rest lane by lane. Every lane gets the bits a one-lane call gives it.
+    pub fn gradient_lanes<const N: usize, const L: usize>(
+        &self,
+        x: &[[f64; L]; N],
+        value: &mut [f64; L],
+        grad: &mut [[f64; L]; N],
+    ) {
+        by_capacity!(self.ops.len(), CAP => self.gradient_lanes_in::<N, L, CAP>(x, value, grad))
+    }
+
+    fn gradient_lanes_in<const N: usize, const L: usize, const CAP: usize>(
+        &self,
+        x: &[[f64; L]; N],
+        value: &mut [f64; L],
+        grad: &mut [[f64; L]; N],
+    ) {
+        let mut v = [[0.0f64; L]; CAP];
+        let mut d = [[[0.0f64; L]; N]; CAP];
+        for (k, op) in self.ops.iter().enumerate() {
+            let (vd, vr) = v.split_at_mut(k);
+            let (dd, dr) = d.split_at_mut(k);
+            let (out, dout) = (&mut vr[0], &mut dr[0]);
+            // out = f(a), dout = f'(a) · da for a smooth f given lane by lane as (f, f').
+            let chain = |a: usize, fd: &[[f64; L]; 2], out: &mut [f64; L], dout: &mut [[f64; L]; N]| {
+                *out = fd[0];
+                for i in 0..N {
+                    for l in 0..L {
+                        dout[i][l] = fd[1][l] * dd[a][i][l];
+                    }
+                }
+            };
+            match *op {
+                Op::Var(i) => {
+                    *out = x[i];
+                    dout[i] = [1.0; L];
+                }
+                Op::Const(c) => *out = [c; L],
+                Op::Add(a, b) => {
+                    for l in 0..L {
+                        out[l] = vd[a][l] + vd[b][l];
+                    }
+                    for i in 0..N {
+                        for l in 0..L {
+                            dout[i][l] = dd[a][i][l] + dd[b][i][l];
+                        }
+                    }
+                }
+                Op::Sub(a, b) => {
+                    for l in 0..L {
+                        out[l] = vd[a][l] - vd[b][l];
+                    }
+                    for i in 0..N {
+                        for l in 0..L {
+                            dout[i][l] = dd[a][i][l] - dd[b][i][l];
+                        }
+                    }
+                }
+                Op::Neg(a) => {
+                    for l in 0..L {
+                        out[l] = -vd[a][l];
+                    }
+                    for i in 0..N {
+                        for l in 0..L {
+                            dout[i][l] = -dd[a][i][l];
+                        }
+                    }
+                }
+                Op::Mul(a, b) => {
+                    for l in 0..L {
+                        out[l] = vd[a][l] * vd[b][l];
+                    }
+                    for i in 0..N {
+                        for l in 0..L {
+                            dout[i][l] = dd[a][i][l] * vd[b][l] + vd[a][l] * dd[b][i][l];
+                        }
+                    }
+                }
+                Op::Div(a, b) => {
+                    let mut r = [0.0; L];
+                    for l in 0..L {
+                        r[l] = 1.0 / vd[b][l];
+                        out[l] = vd[a][l] * r[l];
+                    }
+                    for i in 0..N {
+                        for l in 0..L {
+                            dout[i][l] = (dd[a][i][l] - out[l] * dd[b][i][l]) * r[l];
+                        }
+                    }
+                }
+                Op::Powi(a, n) => {
+                    // a^(m−1) by repeated multiplication, then a^m and m·a^(m−1); a negative
+                    // power as the reciprocal of the positive one.
+                    let m = n.unsigned_abs();
+                    let mut below = [1.0; L];
+                    for _ in 1..m {
+                        for l in 0..L {
+                            below[l] *= vd[a][l];
+                        }
+                    }
+                    let mut fd = [[0.0; L]; 2];
+                    for l in 0..L {
+                        let (p, dp) = if m == 0 {
+                            (1.0, 0.0)
+                        } else {
+                            (below[l] * vd[a][l], f64::from(m) * below[l])
+                        };
+                        fd[0][l] = if n < 0 { 1.0 / p } else { p };
+                        fd[1][l] = if n < 0 { -dp / (p * p) } else { dp };
+                    }
+                    chain(a, &fd, out, dout);
+                }
+                Op::Exp(a) => {
+                    let mut fd = [[0.0; L]; 2];
+                    crate::exp::exp_lanes(&vd[a], &mut fd[0]);
+                    fd[1] = fd[0];
+                    chain(a, &fd, out, dout);
+                }
+                Op::Sin(a) | Op::Cos(a) | Op::Tan(a) => {
+                    let (mut sn, mut cs) = ([0.0; L], [0.0; L]);
+                    crate::trig::sin_cos_lanes(&vd[a], &mut sn, &mut cs);
+                    let mut fd = [[0.0; L]; 2];
+                    for l in 0..L {
+                        (fd[0][l], fd[1][l]) = match op {
+                            Op::Sin(_) => (sn[l], cs[l]),
+                            Op::Cos(_) => (cs[l], -sn[l]),
+                            _ => {
+                                let t = sn[l] / cs[l];
+                                (t, 1.0 + t * t)
+                            }
+                        };
+                    }
+                    chain(a, &fd, out, dout);
+                }
+                Op::Sqrt(a) => chain(a, &lanewise(&vd[a], |y| {
+                    let r = y.sqrt();
+                    (r, 0.5 / r)
+                }), out, dout),
+                Op::Log(a) => chain(a, &lanewise(&vd[a], |y| (y.ln(), 1.0 / y)), out, dout),
+                Op::Tanh(a) => chain(a, &lanewise(&vd[a], |y| {
+                    let t = y.tanh();
+                    (t, 1.0 - t * t)
+                }), out, dout),
+                Op::Powf(a, p) => chain(a, &lanewise(&vd[a], |y| {
+                    let yp = y.powf(p);
+                    (yp, p * yp / y)
+                }), out, dout),
+            }
+        }
+        let last = self.ops.len() - 1;
+        *value = v[last];
+        *grad = d[last];
+    }
+}
+
+/// (f(y), f'(y)) lane by lane.
+#[inline(always)]
+fn lanewise<const L: usize>(y: &[f64; L], f: impl Fn(f64) -> (f64, f64)) -> [[f64; L]; 2] {
+    let mut fd = [[0.0; L]; 2];
+    for l in 0..L {
+        (fd[0][l], fd[1][l]) = f(y[l]);
+    }
+    fd
+}
+
 /// xⁿ by repeated squaring: exact derivatives at x = 0 for n ≥ 0 (the chain rule through
 /// n·xⁿ⁻¹ would give 0 · ∞ there).
 fn powi<T: Scalar>(x: T, n: i32) -> T {

@@ -44,10 +44,31 @@ impl<const N: usize> HamiltonianField<N> {
         self.hamiltonian.eval(x)
     }
 
-    /// ∇H at x.
+    /// ∇H at x (the one-lane case of [`Expression::gradient_lanes`]).
     pub fn gradient(&self, x: &[f64; N]) -> [f64; N] {
-        let d: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(x[i], i));
-        self.hamiltonian.eval(&d).g
+        let xl: [[f64; 1]; N] = std::array::from_fn(|i| [x[i]]);
+        let (mut v, mut g) = ([0.0; 1], [[0.0; 1]; N]);
+        self.hamiltonian.gradient_lanes(&xl, &mut v, &mut g);
+        std::array::from_fn(|i| g[i][0])
+    }
+
+    /// π(x)∇H(x) at L states: H's gradient in lanes, then π's entries.
+    #[inline(always)]
+    fn field_in_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        let (mut v, mut g) = ([0.0; L], [[0.0; L]; N]);
+        self.hamiltonian.gradient_lanes(x, &mut v, &mut g);
+        *out = [[0.0; L]; N];
+        let mut k = 0;
+        for i in 0..N {
+            for j in i + 1..N {
+                let p = self.upper[k].eval_lanes(x);
+                for l in 0..L {
+                    out[i][l] += p[l] * g[j][l];
+                    out[j][l] -= p[l] * g[i][l];
+                }
+                k += 1;
+            }
+        }
     }
 
     /// H, ∇H and ∇²H at x.
@@ -59,18 +80,10 @@ impl<const N: usize> HamiltonianField<N> {
 
 impl<const N: usize> VectorField<N> for HamiltonianField<N> {
     fn field(&self, x: &[f64; N]) -> [f64; N] {
-        let g = self.gradient(x);
-        let mut f = [0.0; N];
-        let mut k = 0;
-        for i in 0..N {
-            for j in i + 1..N {
-                let p = self.upper[k].eval(x);
-                f[i] += p * g[j];
-                f[j] -= p * g[i];
-                k += 1;
-            }
-        }
-        f
+        let xl: [[f64; 1]; N] = std::array::from_fn(|i| [x[i]]);
+        let mut out = [[0.0; 1]; N];
+        self.field_in_lanes(&xl, &mut out);
+        std::array::from_fn(|i| out[i][0])
     }
 
     fn jacobian(&self, x: &[f64; N]) -> SMatrix<f64, N, N> {
@@ -94,16 +107,12 @@ impl<const N: usize> VectorField<N> for HamiltonianField<N> {
     }
 }
 
-/// Lane by lane through the scalar evaluation (the same bits as [`VectorField::field`]).
+/// The field in lanes (the scalar field is its one-lane case, so both give the same bits); the
+/// Jacobian lane by lane from the scalar jets.
 impl<const N: usize> LaneField<N> for HamiltonianField<N> {
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
-        for l in 0..L {
-            let f = self.field(&std::array::from_fn(|i| x[i][l]));
-            for i in 0..N {
-                out[i][l] = f[i];
-            }
-        }
+        self.field_in_lanes(x, out);
     }
 
     #[inline(always)]

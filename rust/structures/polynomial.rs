@@ -87,6 +87,31 @@ impl SparsePolynomial {
             .zip(self.exponents.chunks_exact(self.vars))
     }
 
+    /// The polynomial at L points at once (`v[i][l]`: variable i of lane l), with the same
+    /// operations in the same order as [`Self::eval`] on f64, so every lane gets its bits.
+    #[inline]
+    pub fn eval_lanes<const L: usize>(&self, v: &[[f64; L]]) -> [f64; L] {
+        let mut sum = [0.0; L];
+        for (c, row) in self
+            .coeffs
+            .iter()
+            .zip(self.exponents.chunks_exact(self.vars))
+        {
+            let mut term = [*c; L];
+            for (x, &e) in v.iter().zip(row) {
+                for _ in 0..e {
+                    for l in 0..L {
+                        term[l] *= x[l];
+                    }
+                }
+            }
+            for l in 0..L {
+                sum[l] += term[l];
+            }
+        }
+        sum
+    }
+
     /// The polynomial at `v` (at least `vars` values), any scalar: powers by repeated
     /// multiplication, so f64, duals and jets all get exact results and derivatives.
     #[inline]
