@@ -16,7 +16,7 @@ import poisson_rs as pr
 from poisson_rs.cli import main
 from poisson_rs.scenes import load_scene
 from poisson_rs.structures.polynomial import VectorFieldIntegrator
-from poisson_rs.studies.methods import classical_names, taylor, taylor_charts, taylor_orders
+from poisson_rs.studies.methods import taylor_charts, taylor_orders
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "nambu_cubic.toml"
 
@@ -29,7 +29,7 @@ def test_scene_parses_the_nambu_system() -> None:
     np.testing.assert_allclose(c, (x**2).sum(1) / 2 + x[:, 0] ** 3 / 3, rtol=1e-13)
     assert taylor_charts(system) == ("realization",)
     assert taylor_orders(system) == (1, 3, 5)
-    assert classical_names(system) == ["rk4", "midpoint", "dop853"]
+    assert pr.classical_methods(system) == ["rk4", "midpoint", "dop853"]
 
 
 @pytest.mark.parametrize(
@@ -79,11 +79,11 @@ def test_demo_on_the_nambu_scene(tmp_path: Path) -> None:
 def test_realization_charts() -> None:
     """The chart "realization" matches the Taylor order, "realization{n}" names n; others fail."""
     system = load_scene(SCENE).lie_system
-    assert taylor(system, 5).realization_order == 5  # type: ignore[attr-defined]
-    assert taylor(system, 1, "realization2").name == "taylor1-realization2"
+    assert pr.taylor_integrator(system, 5).realization_order == 5  # type: ignore[attr-defined]
+    assert pr.taylor_integrator(system, 1, "realization2").name == "taylor1-realization2"
     for bad in ("realization0", "realization7", "realizationx", "exp", "log"):
         with pytest.raises(ValueError, match="realization1"):
-            taylor(system, 3, bad)
+            pr.taylor_integrator(system, 3, bad)
 
 
 def _rows(path: Path) -> list[dict[str, str]]:

@@ -19,7 +19,7 @@ from poisson_rs.casimirs import casimir_degrees, casimir_label, max_casimir_drif
 from poisson_rs.cli import main
 from poisson_rs.scenes import load_scene
 from poisson_rs.studies import stability
-from poisson_rs.studies.methods import classical_names, taylor_charts
+from poisson_rs.studies.methods import taylor_charts
 from poisson_rs.studies.workprecision import default_methods
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
@@ -103,7 +103,13 @@ def test_bad_lotka_volterra_scenes_give_one_line(
 def test_methods_per_system() -> None:
     lv = load_scene(PNN).lie_system
     assert taylor_charts(lv) == ("log",)
-    assert classical_names(lv) == ["rk4", "midpoint", "log_splitting", "log_splitting4", "dop853"]
+    assert pr.classical_methods(lv) == [
+        "rk4",
+        "midpoint",
+        "log_splitting",
+        "log_splitting4",
+        "dop853",
+    ]
     names = [m.name for m in default_methods(lv)]
     # The shipped learned model of this system comes first (docs/learned_log_canonical.md).
     assert names[0] == "learned:lotka_volterra_h01"

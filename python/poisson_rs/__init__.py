@@ -41,7 +41,7 @@ from .integrators import (
 from .learn import learn
 from .protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystem, Stepper
 from .reference import dop853_solution, exact_solution, reference_solution
-from .steppers.affine import AffineIntegrator
+from .steppers.affine import AffineIntegrator, affine_classical, affine_learned
 from .steppers.polynomial import RealizationTaylorIntegrator
 from .structures import (
     AffinePoissonSystem,
@@ -55,8 +55,6 @@ from .structures import (
     PolynomialBivector,
     PolynomialPoissonSystem,
     RigidBody,
-    affine_classical,
-    affine_learned,
     affine_poisson_system,
     affine_taylor,
     lotka_volterra,

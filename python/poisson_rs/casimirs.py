@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .structures.lie_poisson import LieAlgebra, Polynomial
+from .structures.algebra import LieAlgebra, Polynomial
 
 __all__ = ["casimir_degrees", "casimir_values", "polynomial_casimirs", "system_casimirs"]
 

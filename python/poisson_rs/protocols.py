@@ -12,9 +12,9 @@ Every structure of the package implements :class:`PoissonSystem` once, in its ow
 from __future__ import annotations
 
 import itertools
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,6 +37,47 @@ ROLLOUT_KEYS = (
     "max_residual",
     "step_angle",
 )
+
+
+# A structure module sits below its steppers and its reference solution, yet its methods
+# (``taylor_integrator``, ``classical``, ``reference_solution``) build them: the modules that
+# define those register them here by name, so that imports point one way (structures up to
+# steppers) and a structure finds its builders at call time. The package's ``__init__`` imports
+# every registering module before any method can be called.
+_PROVIDED: dict[str, Callable[..., Any]] = {}
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def provides(name: str) -> Callable[[_F], _F]:
+    """Registers the decorated function or class as the builder ``name`` (e.g.
+    "lie_poisson.taylor"); RuntimeError for a name registered twice."""
+
+    def register(f: _F) -> _F:
+        if name in _PROVIDED:
+            raise RuntimeError(f"builder {name!r} is registered twice")
+        _PROVIDED[name] = f
+        return f
+
+    return register
+
+
+def provided(name: str) -> Callable[..., Any]:
+    """The builder registered as ``name``."""
+    try:
+        return _PROVIDED[name]
+    except KeyError:
+        raise RuntimeError(f"no builder {name!r} is registered (import poisson_rs)") from None
+
+
+def system_label(system: Any) -> str:
+    """The system for titles and messages: its ``title`` (kind and parameters, or its name)."""
+    title = getattr(system, "title", None)
+    return (
+        title
+        if isinstance(title, str)
+        else f"{getattr(system, 'name', None) or type(system).__name__}"
+    )
 
 
 @runtime_checkable

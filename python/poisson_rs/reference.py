@@ -50,6 +50,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .protocols import provides
 from .structures.lie_poisson import LiePoissonSystem, RigidBody
 
 __all__ = ["RigidBody", "dop853_solution", "exact_solution", "reference_solution"]
@@ -248,6 +249,7 @@ def _flow_symmetric(inertia: FloatArray, mu0: FloatArray, times: FloatArray) -> 
     return out
 
 
+@provides("exact_solution")
 def exact_solution(body: RigidBody, mu0: ArrayLike, times: ArrayLike) -> FloatArray:
     """Exact free rigid body flow μ(t) from μ(0) = mu0, in Jacobi elliptic functions.
 
@@ -477,6 +479,7 @@ def _check_tolerances(rtol: float, atol: float) -> tuple[float, float]:
     return out[0], out[1]
 
 
+@provides("dop853_solution")
 def dop853_solution(
     body: RigidBody,
     mu0: ArrayLike,
@@ -610,6 +613,7 @@ def reference_solution(
     return as_system(system).reference_solution(mu0, times, rtol=rtol, atol=atol, failures=failures)
 
 
+@provides("field_reference")
 def field_reference(
     field: Callable[[FloatArray], FloatArray],
     dim: int,
@@ -628,6 +632,7 @@ def field_reference(
     return out[0] if single else out
 
 
+@provides("lie_poisson_reference")
 def lie_poisson_reference(
     system: LiePoissonSystem,
     mu0: ArrayLike,

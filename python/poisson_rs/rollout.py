@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import pickle
 import sys
 import warnings
 from collections.abc import Mapping
@@ -21,7 +22,7 @@ from .protocols import (
 )
 
 if TYPE_CHECKING:
-    pass
+    import dask.array as da
 
 
 #: Smallest step accepted: the least normal float64 (2.2e-308). Below it 1/h and T/h overflow.
@@ -314,8 +315,6 @@ def integrate(
         as_stepper(stepper)
     # A dask array exists only once dask.array is imported (and is no list or ndarray).
     if type(mu0) is not list and type(mu0) is not np.ndarray and "dask.array" in sys.modules:
-        from .ensembles import integrate_dask, is_dask_array
-
         if is_dask_array(mu0):
             return integrate_dask(  # type: ignore[return-value]
                 stepper,
@@ -592,3 +591,144 @@ def _stepper_name(stepper: Any) -> str:
     """How warnings name an integrator: its name ("learned" model, Taylor, classical method)."""
     name = getattr(stepper, "name", None)
     return f"{type(stepper).__name__} {name!r}" if name else type(stepper).__name__
+
+
+# --- Dask arrays ---------------------------------------------------------------------------------
+# Here rather than in :mod:`poisson_rs.ensembles` (which builds on ``integrate``), so that
+# ``integrate`` reaches them without importing a module above it.
+
+#: Fields of :class:`~poisson_rs.integrators.RolloutInfo`, in order.
+INFO_FIELDS = (*ROLLOUT_KEYS[:6], "out_of_domain", "step_angle")
+_EXTRA = "pip install 'poisson_rs[distributed]'"
+
+
+def is_dask_array(x: Any) -> bool:
+    """Whether ``x`` is a ``dask.array.Array``, without importing dask (an array of one cannot
+    exist unless dask.array was imported)."""
+    module = sys.modules.get("dask.array")
+    return module is not None and isinstance(x, module.Array)
+
+
+def _rollout_block(
+    stepper: Stepper,
+    block: np.ndarray,
+    h: float,
+    n_steps: int,
+    every: int,
+    strict: bool,
+    raise_on_failure: bool,
+    offset: int,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """One chunk's rollout, in a worker: (rows, records, dim) and the info fields (rows,).
+
+    Warnings would land in a worker's log, unseen: failures, out-of-domain states and steps too
+    large to resolve the motion (``step_angle``) are in the info instead. ``offset``: the
+    chunk's first row in the whole array, for the error message.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        traj, info = integrate(
+            stepper,
+            np.asarray(block),
+            h,
+            n_steps,
+            every=every,
+            return_info=True,
+            on_failure="ignore",
+            strict=strict,
+        )
+    if raise_on_failure and not info.converged.all():
+        first = int(np.flatnonzero(~info.converged)[0])
+        raise RuntimeError(
+            f"{stepper!r}: {int((~info.converged).sum())} of {len(info.converged)} trajectories "
+            f"of the chunk at row {offset} failed (first: trajectory {offset + first} at step "
+            f"{int(info.failed_step[first])}); their later states are NaN"
+        )
+    return traj, {k: getattr(info, k) for k in INFO_FIELDS}
+
+
+def integrate_dask(
+    stepper: Stepper,
+    mu0: da.Array,
+    h: float,
+    n_steps: int,
+    *,
+    every: int = 1,
+    return_info: bool = False,
+    on_failure: Literal["warn", "raise", "ignore"] = "warn",
+    strict: bool = True,
+) -> da.Array | tuple[da.Array, RolloutInfo]:
+    """:func:`~poisson_rs.integrate` on a dask array of initial states: a lazy rollout.
+
+    mu0: dask array (n, dim) (or (dim,)) of real numbers, chunked along axis 0 (chunks along
+    axis 1 are merged). Returns a float64 dask array (n, n_steps // every + 1, dim) with mu0's
+    chunks along axis 0, and with ``return_info`` a :class:`~poisson_rs.integrators.RolloutInfo`
+    whose fields are dask arrays (n,) with the same chunks. Computing the trajectories and the
+    info together (``dask.compute(traj, info.converged, ...)``) runs each chunk's rollout once.
+
+    Everything but the states is checked now (h, n_steps, every, h_max); non-finite states raise
+    ValueError when their chunk is computed. Failures are reported in the info:
+    ``on_failure="raise"`` makes a chunk with a failed trajectory raise RuntimeError when
+    computed, "warn" and "ignore" warn nothing (a worker's warnings would go unseen), and
+    out-of-domain states are counted in ``info.out_of_domain`` and every state's step angle is
+    in ``info.step_angle`` (above ``integrators.MAX_STEP_ANGLE`` the step does not resolve the
+    motion), without a warning.
+
+    Each chunk's task receives the stepper once (a pickle of its model bytes and options, kept
+    once in the graph and shared by every chunk).
+    """
+    import dask
+    import dask.array as da
+
+    dim = int(getattr(stepper, "dim", 3))
+    # The empty call checks every argument but the states, and gives the info's dtypes.
+    _, empty = integrate(
+        stepper,
+        np.empty((0, dim)),
+        h,
+        n_steps,
+        every=every,
+        return_info=True,
+        on_failure=on_failure,
+        strict=strict,
+    )
+    if mu0.dtype == object or mu0.dtype.kind not in "fiu":
+        raise TypeError(f"mu0 must be an array of real numbers, got dtype {mu0.dtype}")
+    single = mu0.shape == (dim,)
+    if single:
+        mu0 = mu0.reshape(1, dim)
+    if mu0.ndim != 2 or mu0.shape[1] != dim:
+        raise ValueError(f"mu0 must have shape ({dim},) or (n, {dim}), got {mu0.shape}")
+    if any(np.isnan(c) for c in mu0.chunks[0]):
+        raise ValueError("mu0 has unknown chunk sizes; call mu0.compute_chunk_sizes() first")
+    if len(mu0.chunks[1]) > 1:
+        mu0 = mu0.rechunk({1: -1})
+    records = int(n_steps) // int(every) + 1
+    token = dask.base.tokenize(pickle.dumps(stepper, protocol=pickle.HIGHEST_PROTOCOL))
+    # One graph node holds the stepper; every chunk's task refers to it by key.
+    shared = dask.delayed(stepper, name=f"poisson-rs-stepper-{token}")
+    run = dask.delayed(_rollout_block, pure=True, nout=2)
+    trajs, infos = [], []
+    offset = 0
+    for block, rows in zip(mu0.to_delayed().ravel(), mu0.chunks[0], strict=True):
+        rows = int(rows)
+        traj_d, info_d = run(
+            shared, block, float(h), int(n_steps), int(every), strict, on_failure == "raise", offset
+        )
+        trajs.append(da.from_delayed(traj_d, shape=(rows, records, dim), dtype=np.float64))
+        infos.append(
+            {
+                k: da.from_delayed(info_d[k], shape=(rows,), dtype=getattr(empty, k).dtype)
+                for k in INFO_FIELDS
+            }
+        )
+        offset += rows
+    if trajs:
+        traj = da.concatenate(trajs, axis=0)
+        fields = {k: da.concatenate([i[k] for i in infos]) for k in INFO_FIELDS}
+    else:  # n = 0: nothing to run
+        traj = da.zeros((0, records, dim), dtype=np.float64)
+        fields = {k: da.from_array(getattr(empty, k)) for k in INFO_FIELDS}
+    info = RolloutInfo(**fields)
+    out = traj[0] if single else traj
+    return (out, info) if return_info else out

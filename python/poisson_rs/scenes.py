@@ -506,7 +506,7 @@ def parse_scene(data: Mapping[str, Any], *, name: str, path: Path | None = None)
 
 
 def _system_label(system: Any) -> str:
-    from .studies.figures import system_label
+    from .protocols import system_label
 
     return system_label(system)
 

@@ -30,6 +30,19 @@ from torch import Tensor
 
 from .export import model_bytes, save_model
 from .files import atomic_write_bytes, check_input_file, probe_writable
+from .fit import (
+    POLISH_SEED,
+    SCALE_POINTS,
+    SCALE_SEED,
+    VALIDATION_POINTS,
+    VALIDATION_SEED,
+    AdamRun,
+    FitConfig,
+    adam_loop,
+    check_run_options,
+    lbfgs_polish,
+)
+from .fit import is_int as _is_int
 from .generating import (
     MLP_INPUTS,
     GeneratingFunction,
@@ -44,10 +57,6 @@ from .structures.lie_poisson import LieAlgebra, LiePoissonSystem, RigidBody
 from .taylor import evaluate_terms, system_taylor_terms
 from .threads import MAX_THREADS_PER_CORE, cpu_cores, max_threads
 from .untrusted import parsing
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def check_threads(threads: Any, what: str = "threads") -> int:
@@ -92,7 +101,7 @@ def _decode_system(spec: str) -> LiePoissonSystem:
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(FitConfig):
     """Everything that determines a training run (and is recorded in the model file)."""
 
     inertia: tuple[float, float, float] = (1.5, 2.0, 2.5)
@@ -760,17 +769,12 @@ def _load_checkpoint(path: Path) -> dict[str, Any]:
     return state
 
 
-def _check_train_options(checkpoint_every: Any, max_seconds: Any) -> None:
-    """ValueError unless checkpoint_every is an integer >= 1 and max_seconds None or > 0."""
+def _check_train_options(checkpoint_every: Any, log_every: Any, max_seconds: Any) -> None:
+    """ValueError unless checkpoint_every is an integer >= 1 (and see
+    :func:`~poisson_rs.fit.check_run_options`)."""
     if not _is_int(checkpoint_every) or checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be an integer >= 1, got {checkpoint_every!r}")
-    if max_seconds is not None and (
-        isinstance(max_seconds, bool)
-        or not isinstance(max_seconds, (int, float))
-        or not max_seconds > 0
-        or math.isnan(max_seconds)
-    ):
-        raise ValueError(f"max_seconds must be a number > 0, got {max_seconds!r}")
+    check_run_options(log_every, max_seconds)
 
 
 def _zero_output(s_fn: GeneratingFunction) -> None:
@@ -793,8 +797,8 @@ def baseline_rms(cfg: TrainConfig) -> float:
     configuration's exact Taylor terms without the network (0 terms: S = 0)."""
     cfg.validate()
     dtype = getattr(torch, cfg.dtype)
-    vgen = torch.Generator().manual_seed(cfg.seed + 7919)
-    tv, pv = _sample_domain(cfg, 8192, vgen, dtype, cfg.device)
+    vgen = torch.Generator().manual_seed(cfg.seed + VALIDATION_SEED)
+    tv, pv = _sample_domain(cfg, VALIDATION_POINTS, vgen, dtype, cfg.device)
     return _baseline_rms(build_model(cfg), cfg, tv, pv)
 
 
@@ -858,7 +862,7 @@ def train(
             threads=threads,
         )
     cfg.validate()
-    _check_train_options(checkpoint_every, max_seconds)
+    _check_train_options(checkpoint_every, log_every, max_seconds)
     n_threads = resolve_threads(threads)
     if checkpoint is not None:
         # Before any work: a checkpoint that cannot be written (a name too long for the file
@@ -967,8 +971,8 @@ def _train(
     # 1e-5, raw gradients sit below eps and training stalls. Optimise the loss relative to its
     # value at initialisation, a function of the configuration alone (so resuming reproduces
     # it); reported losses stay in absolute units.
-    pgen = torch.Generator().manual_seed(cfg.seed + 104729)
-    tp, pp = sample_points(cfg, min(cfg.batch, 4096), pgen, dtype, cfg.device)
+    pgen = torch.Generator().manual_seed(cfg.seed + SCALE_SEED)
+    tp, pp = sample_points(cfg, min(cfg.batch, SCALE_POINTS), pgen, dtype, cfg.device)
     loss_scale = float(_loss(s_fn, cfg, tp, pp, create_graph=False).detach())
     if not math.isfinite(loss_scale):
         raise ValueError(
@@ -993,18 +997,6 @@ def _train(
         if pairs is not None:
             total = total + cfg.data_weight * data_loss(s_fn, *pairs, h_data) / data_scale
         return total, loss
-
-    lr_at: Callable[[int], float]
-    if cfg.schedule == "cosine":
-        # Cosine decay to 1% of lr: most of the final accuracy comes from the small-lr tail.
-        def lr_at(i: int) -> float:
-            return cfg.lr * (
-                0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * i / max(cfg.iterations, 1)))
-            )
-    else:
-
-        def lr_at(i: int) -> float:
-            return cfg.lr
 
     gen = torch.Generator().manual_seed(cfg.seed)
     pool = sample_points(cfg, cfg.n_points, gen, dtype, cfg.device) if cfg.n_points else None
@@ -1038,24 +1030,8 @@ def _train(
                     f"{state['iteration']} is past the configuration's {cfg.iterations}"
                 )
         start, losses, elapsed = state["iteration"], state["losses"], state["seconds"]
-    if s_fn.n_parameters() == 0 or cfg.iterations == 0:
-        start = cfg.iterations
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
 
-        bar = tqdm(total=cfg.iterations, initial=start, desc="train", unit="it", leave=True)
-    t0 = time.perf_counter() - elapsed
-    wall0, timed_out = time.perf_counter(), False
-    # A model without parameters skips training (start = iterations above) and took no step.
-    done, stopped_early = (start if s_fn.n_parameters() else 0), False
-    for i in range(start, cfg.iterations):
-        if max_seconds is not None and time.perf_counter() - wall0 >= max_seconds:
-            # Between iterations: the model is a consistent Adam state, saved as it is.
-            timed_out = stopped_early = True
-            break
-        for g in opt.param_groups:
-            g["lr"] = lr_at(i)
+    def step_objective(i: int) -> tuple[Tensor, Tensor]:
         if pool is None:
             t, p = sample_points(cfg, cfg.batch, gen, dtype, cfg.device)
         elif cfg.batch >= len(pool[0]):
@@ -1063,19 +1039,9 @@ def _train(
         else:
             idx = torch.randint(len(pool[0]), (cfg.batch,), generator=gen).to(cfg.device)
             t, p = pool[0][idx], pool[1][idx]
-        opt.zero_grad(set_to_none=True)
-        total, loss = objective(t, p)
-        total.backward()
-        opt.step()
-        if i % log_every == 0 or i == cfg.iterations - 1:
-            value = float(loss.detach())
-            losses.append(value)
-            if bar is not None:
-                bar.set_postfix(loss=f"{value:.3e}", refresh=False)
-            if callback is not None:
-                callback(i, value)
-        if bar is not None:
-            bar.update(1)
+        return objective(t, p)
+
+    def save(i: int, run: AdamRun) -> None:
         if ckpt is not None and (i + 1) % checkpoint_every == 0:
             _save_checkpoint(
                 ckpt,
@@ -1085,28 +1051,42 @@ def _train(
                     "optimizer": opt.state_dict(),
                     "generator": gen.get_state(),
                     "iteration": i + 1,
-                    "losses": losses,
-                    "seconds": time.perf_counter() - t0,
+                    "losses": run.losses,
+                    "seconds": time.perf_counter() - run.t0,
                 },
             )
-        done = i + 1
-        if stop is not None and (done % evaluate_every == 0 or done == cfg.iterations):
-            # No gradients and no random draws: a run whose stop never fires takes exactly the
-            # same steps as one without it.
-            with torch.no_grad():
-                if stop(done, s_fn):
-                    stopped_early = done < cfg.iterations
-                    break
-    if bar is not None:
-        bar.close()
+
+    def should_stop(done: int) -> bool:
+        # No gradients and no random draws: a run whose stop never fires takes exactly the
+        # same steps as one without it.
+        if stop is None or not (done % evaluate_every == 0 or done == cfg.iterations):
+            return False
+        with torch.no_grad():
+            return stop(done, s_fn)
+
+    run = adam_loop(
+        cfg,
+        opt,
+        step_objective,
+        start=start,
+        losses=losses,
+        elapsed=elapsed,
+        progress=progress,
+        log_every=log_every,
+        callback=callback,
+        max_seconds=max_seconds,
+        after_step=save if ckpt is not None else None,
+        stop=should_stop if stop is not None else None,
+    )
+    losses, done, stopped_early, timed_out = run.losses, run.done, run.stopped_early, run.timed_out
     lbfgs_losses: list[float] = []
     lbfgs_done = 0
     if cfg.lbfgs_iterations and s_fn.n_parameters() and not stopped_early:
         lbfgs_done = _polish(s_fn, cfg, objective, dtype, lbfgs_losses)
-    seconds = time.perf_counter() - t0
-    vgen = torch.Generator().manual_seed(cfg.seed + 7919)
+    seconds = time.perf_counter() - run.t0
+    vgen = torch.Generator().manual_seed(cfg.seed + VALIDATION_SEED)
     # Uniform over the domain whatever the sampling, so the residual compares across runs.
-    tv, pv = _sample_domain(cfg, 8192, vgen, dtype, cfg.device)
+    tv, pv = _sample_domain(cfg, VALIDATION_POINTS, vgen, dtype, cfg.device)
     rms = float(_loss(s_fn, cfg, tv, pv, create_graph=False).detach().sqrt())
     baseline = _baseline_rms(s_fn, cfg, tv, pv)
     drms = (
@@ -1166,37 +1146,17 @@ def _polish(
     dtype: torch.dtype,
     record: list[float],
 ) -> int:
-    """L-BFGS (strong Wolfe) on one fixed seeded batch; appends the HJ loss at each evaluation to
-    ``record`` and returns the iterations taken."""
-    gen = torch.Generator().manual_seed(cfg.seed + 31337)
-    t, p = sample_points(cfg, cfg.batch, gen, dtype, cfg.device)
-    # torch's L-BFGS thresholds are absolute (a curvature pair counts only if yᵀs > 1e-10, it stops
-    # at |g|∞ ≤ tolerance_grad): rescale the objective to 1 at the start of polishing, which does
-    # not move its minimiser, so that those thresholds mean the same after any Adam phase.
-    start = float(objective(t, p)[0].detach())
-    scale = start if math.isfinite(start) and start > 0 else 1.0
-    params = list(s_fn.mlp.parameters())
-    opt = torch.optim.LBFGS(
-        params,
-        lr=1.0,
-        max_iter=cfg.lbfgs_iterations,
-        max_eval=25 * cfg.lbfgs_iterations,
-        tolerance_grad=1e-12,
-        tolerance_change=1e-15,
-        history_size=50,
-        line_search_fn="strong_wolfe",
+    """:func:`~poisson_rs.fit.lbfgs_polish` on one fixed seeded batch of ``batch`` points;
+    appends the HJ loss at each evaluation to ``record`` and returns the iterations taken."""
+    gen = torch.Generator().manual_seed(cfg.seed + POLISH_SEED)
+    t, p = sample_points(cfg, cfg.polish_batch(), gen, dtype, cfg.device)
+    return lbfgs_polish(
+        list(s_fn.mlp.parameters()),
+        lambda: objective(t, p),
+        cfg.lbfgs_iterations,
+        start=float(objective(t, p)[0].detach()),
+        record=record,
     )
-
-    def closure() -> Tensor:
-        opt.zero_grad(set_to_none=True)
-        total, loss = objective(t, p)
-        record.append(float(loss.detach()))
-        total = total / scale
-        total.backward()
-        return total.detach()
-
-    opt.step(closure)
-    return int(opt.state[params[0]].get("n_iter", 0))
 
 
 def export_bytes(

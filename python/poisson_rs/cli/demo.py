@@ -213,15 +213,10 @@ def _demo_system(
     if given) from ``states`` (default: the system's demo states) against a DOP853 reference;
     the orbits, the states with their error, energy and Casimir drifts, and the metrics."""
     from ..files import check_outputs
+    from ..integrators import classical, classical_methods, taylor_integrator
     from ..studies import figures
     from ..studies.demo import demo_states, run_scene
-    from ..studies.methods import (
-        classical_names,
-        classical_stepper,
-        default_chart,
-        taylor,
-        taylor_orders,
-    )
+    from ..studies.methods import default_chart, taylor_orders
 
     if states is None:
         states = demo_states(system)
@@ -232,10 +227,10 @@ def _demo_system(
     chart = default_chart(system)
     # m = 1 shows order 2 too.
     for k in taylor_orders(system, (1, 3, 5, 7)):
-        methods[f"taylor{k}-{chart}"] = taylor(system, k, chart)
-    for name in classical_names(system):
+        methods[f"taylor{k}-{chart}"] = taylor_integrator(system, k, chart)
+    for name in classical_methods(system):
         if name != "dop853":
-            methods[name] = classical_stepper(system, name)
+            methods[name] = classical(system, name)
     check_memory(len(states), system.dim, args.steps, len(methods))
     print(f"system: {_label(system)}, states {states.tolist()}")
     print(f"        {args.steps} steps of h = {args.h}; reference: DOP853, rtol = atol = 1e-13")

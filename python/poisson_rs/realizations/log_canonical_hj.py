@@ -40,9 +40,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..fit import FitConfig, is_int
 from ..structures.log_canonical import LogCanonicalSystem
 from .log_canonical import beta_log, taylor_arrays
-from .pinn import NetworkTerm, PinnResult, box_points, fit, is_int, model_file, provenance
+from .pinn import NetworkTerm, PinnResult, box_points, fit, model_file, provenance
 
 #: The ``structure`` metadata of a log-canonical model file.
 STRUCTURE = "log_canonical"
@@ -192,7 +193,7 @@ def step_map(
 
 
 @dataclass
-class LogCanonicalTrainConfig:
+class LogCanonicalTrainConfig(FitConfig):
     """Everything that determines a training run of a log-canonical generating function (and is
     recorded in the model file). The defaults are sized for PNN's Lotka–Volterra scene
     (states (1, 0.8), (1, 1), (1, 1.2), h = 0.1), whose orbits span u ∈ [0.25, 2.57],
@@ -221,6 +222,9 @@ class LogCanonicalTrainConfig:
     ``lbfgs_batch`` points; 0: none. On the PNN scene it takes the residual from ~15x to ~900x
     below the Taylor terms' (docs/learned_log_canonical.md)."""
     lbfgs_batch: int = 4096
+
+    def polish_batch(self) -> int:
+        return self.lbfgs_batch
 
     def __post_init__(self) -> None:
         if isinstance(self.system, LogCanonicalSystem):

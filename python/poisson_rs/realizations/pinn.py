@@ -1,10 +1,12 @@
 """What every realization's learned S shares: the network term t^M · s_out · N((t, x) scaled) with
-its export, and the PINN fit (Adam on the mean squared Hamilton–Jacobi residual, then optional
-L-BFGS, then the held-out residual against the Taylor terms alone).
+its export, and the PINN fit on the mean squared Hamilton–Jacobi residual through the package's
+one training stack (:mod:`poisson_rs.fit`: Adam, then optional L-BFGS), then the held-out
+residual against the Taylor terms alone.
 
 A realization module (:mod:`.log_canonical_hj`, :mod:`.polynomial_hj`) supplies its exact Taylor
-terms, its HJ residual r(t, x) and its sampler; the loop, the schedule, the progress bar and the
-result are here, once.
+terms, its HJ residual r(t, x), its sampler and its configuration (a
+:class:`~poisson_rs.fit.FitConfig`); the loop, the schedule and the polish are in
+:mod:`poisson_rs.fit`.
 """
 
 from __future__ import annotations
@@ -14,11 +16,23 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from ..fit import (
+    POLISH_SEED,
+    SCALE_POINTS,
+    SCALE_SEED,
+    VALIDATION_POINTS,
+    VALIDATION_SEED,
+    FitConfig,
+    adam_loop,
+    check_run_options,
+    lbfgs_polish,
+)
 
 #: r(s_fn, t, x, create_graph) → (B,) HJ residual.
 Residual = Callable[[torch.nn.Module, Tensor, Tensor, bool], Tensor]
@@ -101,17 +115,8 @@ class NetworkTerm(torch.nn.Module):
         return out
 
 
-class PinnConfig(Protocol):
-    """The fields of a realization's train config the fit reads."""
-
-    seed: int
-    iterations: int
-    batch: int
-    lr: float
-    schedule: str
-    dtype: str
-    lbfgs_iterations: int
-    lbfgs_batch: int
+#: The configuration a realization trains from: the package's one training configuration type.
+PinnConfig = FitConfig
 
 
 @dataclass
@@ -137,23 +142,6 @@ class PinnResult:
         return self.losses[-1] if self.losses else float("nan")
 
 
-def is_int(v: Any) -> bool:
-    """An integer that is not a bool (NumPy integers included)."""
-    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-
-def check_run_options(log_every: Any, max_seconds: Any) -> None:
-    """ValueError naming ``log_every`` (an integer ≥ 1) or ``max_seconds`` (None or > 0)."""
-    if not is_int(log_every) or log_every < 1:
-        raise ValueError(f"log_every must be an integer >= 1, got {log_every!r}")
-    if max_seconds is not None and not (
-        isinstance(max_seconds, (int, float))
-        and not isinstance(max_seconds, bool)
-        and max_seconds > 0
-    ):
-        raise ValueError(f"max_seconds must be a number > 0, got {max_seconds!r}")
-
-
 def box_points(
     box: tuple[np.ndarray, np.ndarray],
     h_max: float,
@@ -170,7 +158,7 @@ def box_points(
 
 
 def fit(
-    cfg: PinnConfig,
+    cfg: FitConfig,
     s_fn: torch.nn.Module,
     bare: Callable[[], torch.nn.Module],
     residual: Residual,
@@ -181,109 +169,75 @@ def fit(
     callback: Callable[[int, float], None] | None = None,
     max_seconds: float | None = None,
 ) -> PinnResult:
-    """Trains ``s_fn`` (its parameters: the network) on the mean squared HJ residual with Adam
-    (cosine decay to 1 % of lr), the loss taken relative to its value at the start (the Taylor
-    terms' residual is small, so raw gradients would sit below Adam's eps), then
-    ``cfg.lbfgs_iterations`` of L-BFGS. ``bare()`` builds the same S in float64 without the
+    """Trains ``s_fn`` (its parameters: the network) on the mean squared HJ residual with the
+    package's loop (:func:`~poisson_rs.fit.adam_loop`: Adam, cosine decay to 1 % of lr), the loss
+    taken relative to its value at the start (the Taylor terms' residual is small, so raw
+    gradients would sit below Adam's eps), then ``cfg.lbfgs_iterations`` of L-BFGS
+    (:func:`~poisson_rs.fit.lbfgs_polish`). ``bare()`` builds the same S in float64 without the
     network, for ``baseline_rms``. ``progress`` shows a tqdm bar; ``max_seconds`` ends the run
     cleanly once that much time has passed. Threads are the caller's."""
     check_run_options(log_every, max_seconds)
-    dtype = getattr(torch, cfg.dtype)
-    n_params = sum(p.numel() for p in s_fn.parameters())
-    pgen = torch.Generator().manual_seed(cfg.seed + 104729)
-    tp, xp = sample(min(cfg.batch, 4096), pgen, dtype)
+    dtype = cfg.torch_dtype()
+    pgen = torch.Generator().manual_seed(cfg.seed + SCALE_SEED)
+    tp, xp = sample(min(cfg.batch, SCALE_POINTS), pgen, dtype)
     scale = float(residual(s_fn, tp, xp, False).pow(2).mean())
     if not math.isfinite(scale):
         raise ValueError(f"the HJ loss is {scale} before training: the box is too large")
     scale = scale if scale > 0 else 1.0
     opt = torch.optim.Adam(s_fn.parameters(), lr=cfg.lr)
-
-    def lr_at(i: int) -> float:
-        if cfg.schedule == "constant":
-            return cfg.lr
-        return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * i / max(cfg.iterations, 1))))
-
     gen = torch.Generator().manual_seed(cfg.seed)
-    losses: list[float] = []
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
 
-        bar = tqdm(total=cfg.iterations, desc="train", unit="it", leave=True)
-    t0 = time.perf_counter()
-    done, timed_out = 0, False
-    for i in range(cfg.iterations if n_params else 0):
-        if max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
-            timed_out = True
-            break
-        for g in opt.param_groups:
-            g["lr"] = lr_at(i)
+    def objective(i: int) -> tuple[Tensor, Tensor]:
         t, x = sample(cfg.batch, gen, dtype)
-        opt.zero_grad(set_to_none=True)
         loss = residual(s_fn, t, x, True).pow(2).mean()
-        (loss / scale).backward()
-        opt.step()
-        if i % log_every == 0 or i == cfg.iterations - 1:
-            value = float(loss.detach())
-            losses.append(value)
-            if bar is not None:
-                bar.set_postfix(loss=f"{value:.3e}", refresh=False)
-            if callback is not None:
-                callback(i, value)
-        if bar is not None:
-            bar.update(1)
-        done = i + 1
-    if bar is not None:
-        bar.close()
+        return loss / scale, loss
+
+    run = adam_loop(
+        cfg,
+        opt,
+        objective,
+        progress=progress,
+        log_every=log_every,
+        callback=callback,
+        max_seconds=max_seconds,
+    )
+    losses = run.losses
     lbfgs_done = 0
-    if cfg.lbfgs_iterations and n_params and not timed_out:
+    n_params = sum(p.numel() for p in s_fn.parameters())
+    if cfg.lbfgs_iterations and n_params and not run.timed_out:
         lbfgs_done = _polish(cfg, s_fn, residual, sample, dtype, losses)
-    seconds = time.perf_counter() - t0
+    seconds = time.perf_counter() - run.t0
     s_fn = s_fn.double()
-    vgen = torch.Generator().manual_seed(cfg.seed + 7919)
-    tv, xv = sample(8192, vgen, torch.float64)
+    vgen = torch.Generator().manual_seed(cfg.seed + VALIDATION_SEED)
+    tv, xv = sample(VALIDATION_POINTS, vgen, torch.float64)
     rms = float(residual(s_fn, tv, xv, False).pow(2).mean().sqrt())
     baseline = float(residual(bare(), tv, xv, False).pow(2).mean().sqrt())
-    return PinnResult(s_fn, cfg, losses, seconds, rms, baseline, done, timed_out, lbfgs_done)
+    return PinnResult(
+        s_fn, cfg, losses, seconds, rms, baseline, run.done, run.timed_out, lbfgs_done
+    )
 
 
 def _polish(
-    cfg: PinnConfig,
+    cfg: FitConfig,
     s_fn: torch.nn.Module,
     residual: Residual,
     sample: Sampler,
     dtype: torch.dtype,
     record: list[float],
 ) -> int:
-    """L-BFGS (strong Wolfe) on one fixed seeded batch, the loss relative to its value at the
-    start (torch's thresholds are absolute); appends the final HJ loss to ``record`` and returns
-    the iterations taken."""
-    gen = torch.Generator().manual_seed(cfg.seed + 31337)
-    t, x = sample(cfg.lbfgs_batch, gen, dtype)
+    """:func:`~poisson_rs.fit.lbfgs_polish` on one fixed seeded batch of ``cfg.polish_batch()``
+    points; appends the final HJ loss to ``record`` and returns the iterations taken."""
+    gen = torch.Generator().manual_seed(cfg.seed + POLISH_SEED)
+    t, x = sample(cfg.polish_batch(), gen, dtype)
+
+    def objective() -> tuple[Tensor, Tensor]:
+        loss = residual(s_fn, t, x, True).pow(2).mean()
+        return loss, loss
+
     start = float(residual(s_fn, t, x, False).pow(2).mean())
-    scale = start if math.isfinite(start) and start > 0 else 1.0
-    params = list(s_fn.parameters())
-    n = cfg.lbfgs_iterations
-    opt = torch.optim.LBFGS(
-        params,
-        lr=1.0,
-        max_iter=n,
-        max_eval=25 * n,
-        tolerance_grad=1e-12,
-        tolerance_change=1e-15,
-        history_size=50,
-        line_search_fn="strong_wolfe",
-    )
-
-    def closure() -> Tensor:
-        opt.zero_grad(set_to_none=True)
-        loss = residual(s_fn, t, x, True).pow(2).mean() / scale
-        loss.backward()
-        return loss.detach()
-
-    opt.step(closure)
+    done = lbfgs_polish(list(s_fn.parameters()), objective, cfg.lbfgs_iterations, start=start)
     record.append(float(residual(s_fn, t, x, False).pow(2).mean()))
-    return int(opt.state[params[0]].get("n_iter", 0))
+    return done
 
 
 def model_file(

@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..fit import FitConfig, is_int
 from ..structures.polynomial import (
     MAX_REALIZATION_ORDER,
     PolynomialPoissonSystem,
@@ -52,7 +53,7 @@ from ..structures.polynomial import (
     hj_series,
     matched_realization_order,
 )
-from .pinn import NetworkTerm, PinnResult, box_points, fit, is_int, model_file, provenance
+from .pinn import NetworkTerm, PinnResult, box_points, fit, model_file, provenance
 
 #: The ``structure`` metadata of a learned polynomial-realization model file.
 STRUCTURE = "polynomial"
@@ -263,7 +264,7 @@ def _is_number(v: Any) -> bool:
 
 
 @dataclass
-class PolynomialTrainConfig:
+class PolynomialTrainConfig(FitConfig):
     """Everything that determines a training run of a generating function on the order-n
     realization of a polynomial bivector (and is recorded in the model file). The defaults are
     sized for the cubic Nambu scene (scenes/nambu_cubic.toml: states (0.3, 0.5, −0.4),
@@ -292,6 +293,9 @@ class PolynomialTrainConfig:
     """L-BFGS iterations (strong-Wolfe line search) after Adam on one fixed seeded batch of
     ``lbfgs_batch`` points; 0: none."""
     lbfgs_batch: int = 4096
+
+    def polish_batch(self) -> int:
+        return self.lbfgs_batch
 
     def __post_init__(self) -> None:
         if isinstance(self.system, PolynomialPoissonSystem):

@@ -6,9 +6,12 @@ from typing import Any
 
 import numpy as np
 
+from ..model_files import BisectionIntegrator
+from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, provides
 from ..structures.affine import AffinePoissonSystem
 
 
+@provides("affine.AffineIntegrator")
 class AffineIntegrator:
     """An integrator of an :class:`AffinePoissonSystem`: ``inner`` (any integrator of its
     :attr:`~AffinePoissonSystem.extension`) run from (x, 1), returning the first n components.
@@ -53,3 +56,39 @@ class AffineIntegrator:
 
     def __repr__(self) -> str:
         return f"AffineIntegrator({self.name!r}, system={self.system!r})"
+
+
+@provides("affine.affine_learned")
+def affine_learned(
+    system: AffinePoissonSystem, model: Any, name: str = "learned"
+) -> AffineIntegrator:
+    """A learned generating function of the extension (a model trained with
+    ``TrainConfig(system=system.extension, chart="exp", inputs="t,p", ...)`` and loaded by
+    :func:`~poisson_rs.load_model`, or any :class:`~poisson_rs.integrators.BisectionIntegrator`
+    of it), run at level 1: a Poisson map on the extension's exact groupoid whatever the network
+    learned, so μ_z = 1 and the Casimirs stay at round-off. ValueError for a model of another
+    system."""
+    if not isinstance(model, BisectionIntegrator):
+        raise TypeError(
+            f"model must be a BisectionIntegrator (pr.load_model), got {type(model).__name__}"
+        )
+    if model.system.to_dict() != system.extension.to_dict():
+        raise ValueError(
+            f"model integrates {model.system!r}, not this system's central extension "
+            f"{system.extension!r}: train it with TrainConfig(system=system.extension, ...)"
+        )
+    return AffineIntegrator(system, model, name)
+
+
+@provides("affine.affine_classical")
+def affine_classical(
+    system: AffinePoissonSystem,
+    name: str,
+    *,
+    tol: float = NEWTON_TOL,
+    max_iter: int = NEWTON_MAX_ITER,
+) -> AffineIntegrator:
+    """Deprecated alias of ``pr.classical(system, name)`` (kept one release)."""
+    from ..integrators import classical
+
+    return classical(system, name, tol=tol, max_iter=max_iter)  # type: ignore[return-value]

@@ -16,8 +16,15 @@ from ..export import (
 from ..protocols import (
     NEWTON_MAX_ITER,
     NEWTON_TOL,
+    provides,
 )
-from ..structures.lie_poisson import HeavyTop, LiePoissonSystem, RigidBody
+from ..structures.lie_poisson import (
+    CLASSICAL_METHODS,
+    LIE_POISSON_METHODS,
+    HeavyTop,
+    LiePoissonSystem,
+    RigidBody,
+)
 
 if TYPE_CHECKING:
     pass
@@ -29,6 +36,7 @@ from ..rollout import (
 )
 
 
+@provides("lie_poisson.taylor")
 def lie_poisson_taylor(
     body: LiePoissonSystem,
     order: int,
@@ -59,29 +67,7 @@ def lie_poisson_taylor(
     return TaylorIntegrator(data, tol=tol, max_iter=max_iter)
 
 
-#: Order of accuracy and whether the step is a Poisson map, for each classical integrator of the
-#: rigid body.
-CLASSICAL_METHODS: dict[str, tuple[int, bool]] = {
-    "rk4": (4, False),
-    "midpoint": (2, True),
-    "splitting": (2, True),
-    "splitting4": (4, True),
-    "dmv": (2, True),
-    "splitting_casimir": (2, True),
-    "dop853": (8, False),
-}
-
-
-#: The same for any other Lie–Poisson system ("splitting": the heavy top only). The implicit
-#: midpoint rule keeps quadratic Casimirs and is a Poisson map for quadratic Hamiltonians only.
-LIE_POISSON_METHODS: dict[str, tuple[int, bool]] = {
-    "rk4": (4, False),
-    "midpoint": (2, False),
-    "splitting": (2, True),
-    "dop853": (8, False),
-}
-
-
+@provides("lie_poisson.classical")
 class ClassicalIntegrator:
     """A classical baseline for a Lie–Poisson system, driven by :func:`integrate`.
 

@@ -12,6 +12,7 @@ from .. import _core
 from ..protocols import (
     NEWTON_MAX_ITER,
     NEWTON_TOL,
+    provides,
 )
 
 if TYPE_CHECKING:
@@ -19,6 +20,7 @@ if TYPE_CHECKING:
 from ..rollout import (
     dop853_rollout,
 )
+from ..structures.log_canonical import LOG_CANONICAL_METHODS
 
 
 def _log_system(system: Any) -> Any:
@@ -46,6 +48,7 @@ def _exp_states(traj: np.ndarray) -> np.ndarray:
         return np.exp(traj)
 
 
+@provides("log_canonical.taylor")
 class LogCanonicalTaylorIntegrator:
     """Taylor-HJ bisection integrator of a log-canonical system on its exact groupoid.
 
@@ -137,17 +140,7 @@ def _restore_log_taylor(
     return cls(LogCanonicalSystem.from_dict(data), order, tol=tol, max_iter=max_iter)
 
 
-#: Order of accuracy and whether a step is a Poisson map, for the classical integrators of a
-#: log-canonical system.
-LOG_CANONICAL_METHODS: dict[str, tuple[int, bool]] = {
-    "rk4": (4, False),
-    "midpoint": (2, False),
-    "log_splitting": (2, True),
-    "log_splitting4": (4, True),
-    "dop853": (8, False),
-}
-
-
+@provides("log_canonical.classical")
 class LogCanonicalClassicalIntegrator:
     """A classical baseline for a log-canonical system, driven by :func:`integrate`.
 

@@ -9,8 +9,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL
+from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, provides
 from ..structures.polynomial import (
+    VECTOR_FIELD_METHODS,
     PolynomialBivector,
     PolynomialPoissonSystem,
     _lambdify,
@@ -22,6 +23,7 @@ from ..structures.polynomial import (
 FloatArray = NDArray[np.float64]
 
 
+@provides("polynomial.RealizationTaylorIntegrator")
 class RealizationTaylorIntegrator:
     """Taylor-HJ of order ``order`` on the order-``realization_order`` realization of a
     polynomial bivector, rolled out by the Rust core from polynomial coefficients
@@ -130,14 +132,7 @@ class RealizationTaylorIntegrator:
         )
 
 
-#: The classical integrators of a polynomial-bivector system: (order, Poisson map).
-VECTOR_FIELD_METHODS: dict[str, tuple[int, bool]] = {
-    "rk4": (4, False),
-    "midpoint": (2, False),
-    "dop853": (8, False),
-}
-
-
+@provides("polynomial.VectorFieldIntegrator")
 class VectorFieldIntegrator:
     """A classical baseline for a :class:`PolynomialPoissonSystem` on its vector field,
     driven by :func:`poisson_rs.integrate`:
@@ -264,6 +259,7 @@ def realization_tables(
     return _TABLES[key]
 
 
+@provides("polynomial.SeriesRealizationIntegrator")
 class SeriesRealizationIntegrator:
     """Taylor-HJ of ``order`` on the order-``realization_order`` realization of ``structure``
     for the Hamiltonian ``hamiltonian`` (a sparse polynomial: exponents (T, n), coefficients

@@ -18,8 +18,6 @@ from typing import Any
 
 from .affine import (
     AffinePoissonSystem,
-    affine_classical,
-    affine_learned,
     affine_poisson_system,
     affine_taylor,
     central_extension,
@@ -95,8 +93,6 @@ __all__ = [
     "PolynomialBivector",
     "PolynomialPoissonSystem",
     "RigidBody",
-    "affine_classical",
-    "affine_learned",
     "affine_poisson_system",
     "affine_taylor",
     "central_extension",

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -35,11 +35,10 @@ from ..protocols import (
     BracketTerms,
     JetRealization,
     PoissonSystemBase,
+    Stepper,
+    provided,
 )
 from .lie_poisson import LieAlgebra, LiePoissonSystem, Polynomial, linear_bracket_terms
-
-if TYPE_CHECKING:
-    from ..steppers.affine import AffineIntegrator
 
 FloatArray = NDArray[np.float64]
 
@@ -249,14 +248,12 @@ class AffinePoissonSystem(PoissonSystemBase):
 
     def taylor_integrator(
         self, order: int, chart: str | None = None, *, tol: float, max_iter: int
-    ) -> AffineIntegrator:
+    ) -> Stepper:
         """Taylor-HJ of ``order`` on the extension's exact groupoid, run at level 1: a Poisson
         map that keeps μ_z = 1 and every Casimir of the extension to round-off."""
-        from ..steppers.affine import AffineIntegrator
-
         chart = self.chart_or_default(chart)
         inner = self.extension.taylor_integrator(order, chart, tol=tol, max_iter=max_iter)
-        return AffineIntegrator(self, inner, f"taylor{order}-{chart}")
+        return provided("affine.AffineIntegrator")(self, inner, f"taylor{order}-{chart}")
 
     def learn_modes(self) -> tuple[str, ...]:
         """H through Taylor-HJ on the extension's groupoid ("map" and "hj+data" learn on T*G
@@ -292,12 +289,10 @@ class AffinePoissonSystem(PoissonSystemBase):
     def classical_methods(self) -> list[str]:
         return self.extension.classical_methods()
 
-    def classical(self, name: str, *, tol: float, max_iter: int) -> AffineIntegrator:
+    def classical(self, name: str, *, tol: float, max_iter: int) -> Stepper:
         """The extension's classical integrator ``name``, run at level 1."""
-        from ..steppers.affine import AffineIntegrator
-
         inner = self.extension.classical(name, tol=tol, max_iter=max_iter)
-        return AffineIntegrator(self, inner, name)
+        return provided("affine.AffineIntegrator")(self, inner, name)
 
     def reference_solution(
         self,
@@ -397,47 +392,9 @@ def affine_taylor(
     *,
     tol: float = NEWTON_TOL,
     max_iter: int = NEWTON_MAX_ITER,
-) -> AffineIntegrator:
+) -> Stepper:
     """Deprecated alias of ``pr.taylor_integrator(system, order)`` (kept one release)."""
     return system.taylor_integrator(order, tol=tol, max_iter=max_iter)
-
-
-def affine_learned(
-    system: AffinePoissonSystem, model: Any, name: str = "learned"
-) -> AffineIntegrator:
-    """A learned generating function of the extension (a model trained with
-    ``TrainConfig(system=system.extension, chart="exp", inputs="t,p", ...)`` and loaded by
-    :func:`~poisson_rs.load_model`, or any :class:`~poisson_rs.integrators.BisectionIntegrator`
-    of it), run at level 1: a Poisson map on the extension's exact groupoid whatever the network
-    learned, so μ_z = 1 and the Casimirs stay at round-off. ValueError for a model of another
-    system."""
-    from ..model_files import BisectionIntegrator
-
-    if not isinstance(model, BisectionIntegrator):
-        raise TypeError(
-            f"model must be a BisectionIntegrator (pr.load_model), got {type(model).__name__}"
-        )
-    if model.system.to_dict() != system.extension.to_dict():
-        raise ValueError(
-            f"model integrates {model.system!r}, not this system's central extension "
-            f"{system.extension!r}: train it with TrainConfig(system=system.extension, ...)"
-        )
-    from ..steppers.affine import AffineIntegrator
-
-    return AffineIntegrator(system, model, name)
-
-
-def affine_classical(
-    system: AffinePoissonSystem,
-    name: str,
-    *,
-    tol: float = NEWTON_TOL,
-    max_iter: int = NEWTON_MAX_ITER,
-) -> AffineIntegrator:
-    """Deprecated alias of ``pr.classical(system, name)`` (kept one release)."""
-    from ..integrators import classical
-
-    return classical(system, name, tol=tol, max_iter=max_iter)  # type: ignore[return-value]
 
 
 def _scene_table(raw: Mapping[str, Any]) -> AffinePoissonSystem:
@@ -480,9 +437,8 @@ SCENE_KINDS = {"affine": _scene_table}
 
 
 def __getattr__(name: str) -> Any:
-    # AffineIntegrator lives with the steppers now; importable from here for one release.
-    if name == "AffineIntegrator":
-        from ..steppers.affine import AffineIntegrator
-
-        return AffineIntegrator
+    # AffineIntegrator (and affine_learned, affine_classical) live with the steppers now;
+    # importable from here for one release.
+    if name in ("AffineIntegrator", "affine_learned", "affine_classical"):
+        return provided(f"affine.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..hamiltonian_family import MonomialFamily
-from ..protocols import BracketTerms, PoissonSystemBase
+from ..protocols import BracketTerms, PoissonSystemBase, provided
 
 FloatArray = NDArray[np.float64]
 
@@ -93,6 +93,17 @@ def integer_null_space(c: FloatArray) -> NDArray[np.int64]:
         sign = 1 if first > 0 else -1
         rows.append([sign * k // g for k in ints])
     return np.array(rows, dtype=np.int64).reshape(len(rows), n)
+
+
+#: Order of accuracy and whether a step is a Poisson map, for the classical integrators of a
+#: log-canonical system.
+LOG_CANONICAL_METHODS: dict[str, tuple[int, bool]] = {
+    "rk4": (4, False),
+    "midpoint": (2, False),
+    "log_splitting": (2, True),
+    "log_splitting4": (4, True),
+    "dop853": (8, False),
+}
 
 
 class LogCanonical:
@@ -465,10 +476,8 @@ class LogCanonicalSystem(PoissonSystemBase):
     def taylor_integrator(
         self, order: int, chart: str | None = None, *, tol: float, max_iter: int
     ) -> Any:
-        from ..steppers.log_canonical import LogCanonicalTaylorIntegrator
-
         self.chart_or_default(chart)
-        return LogCanonicalTaylorIntegrator(self, order, tol=tol, max_iter=max_iter)
+        return provided("log_canonical.taylor")(self, order, tol=tol, max_iter=max_iter)
 
     def learn_modes(self) -> tuple[str, ...]:
         """H through Taylor-HJ on the exact log-canonical groupoid (no Lie algebra for the
@@ -513,14 +522,10 @@ class LogCanonicalSystem(PoissonSystemBase):
         )
 
     def classical_methods(self) -> list[str]:
-        from ..steppers.log_canonical import LOG_CANONICAL_METHODS
-
         return list(LOG_CANONICAL_METHODS)
 
     def classical(self, name: str, *, tol: float, max_iter: int) -> Any:
-        from ..steppers.log_canonical import LogCanonicalClassicalIntegrator
-
-        return LogCanonicalClassicalIntegrator(self, name, tol=tol, max_iter=max_iter)
+        return provided("log_canonical.classical")(self, name, tol=tol, max_iter=max_iter)
 
     def reference_solution(
         self,
@@ -532,8 +537,7 @@ class LogCanonicalSystem(PoissonSystemBase):
         failures: Literal["raise", "nan"] = "raise",
     ) -> FloatArray:
         """DOP853 in q = ln x (the positive orthant is kept; the tolerances are relative in x)."""
-        from ..reference import field_reference
-
+        field_reference = provided("field_reference")
         x0 = self.check_states(x0)
         q = field_reference(
             self.vector_field_log,

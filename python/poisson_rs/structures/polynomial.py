@@ -40,7 +40,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from ..protocols import BracketTerms, JetRealization, PoissonSystemBase
+from ..protocols import BracketTerms, JetRealization, PoissonSystemBase, provided
 from ..taylor import MAX_WORK
 from .lie_poisson import MAX_DEGREE
 
@@ -96,6 +96,14 @@ MAX_COEFFICIENT = 1e150
 MAX_TEXT = 100_000
 #: Largest |exponent| of a constant base (the value itself is bounded by float64 below).
 _MAX_CONSTANT_EXPONENT = 1024
+
+
+#: The classical integrators of a polynomial-bivector system: (order, Poisson map).
+VECTOR_FIELD_METHODS: dict[str, tuple[int, bool]] = {
+    "rk4": (4, False),
+    "midpoint": (2, False),
+    "dop853": (8, False),
+}
 
 
 class _Size:
@@ -820,10 +828,8 @@ class PolynomialPoissonSystem(PoissonSystemBase):
         if not chart.startswith("realization"):
             # The exact groupoid of the recognised structure, on the same states x.
             return self._exact().taylor_integrator(order, chart, tol=tol, max_iter=max_iter)
-        from ..steppers.polynomial import RealizationTaylorIntegrator
-
         tail = chart.removeprefix("realization")
-        return RealizationTaylorIntegrator(
+        return provided("polynomial.RealizationTaylorIntegrator")(
             self, order, int(tail) if tail else None, tol=tol, max_iter=max_iter
         )
 
@@ -841,7 +847,6 @@ class PolynomialPoissonSystem(PoissonSystemBase):
         linear or affine, else the realization of matched order, its S_k computed in floating
         point (:class:`~poisson_rs.steppers.polynomial.SeriesRealizationIntegrator`)."""
         from ..hamiltonian_family import MonomialFamily, monomial_exponents, polynomial_text
-        from ..steppers.polynomial import SeriesRealizationIntegrator
 
         structure, names, n = self.structure, self.component_names, self.dim
         k = order or 3
@@ -861,7 +866,9 @@ class PolynomialPoissonSystem(PoissonSystemBase):
                 return inner.stepper([terms.get(e, 0.0) for e in inner.exponents])
             e = np.array(list(terms), dtype=np.int64).reshape(len(terms), n)
             c = np.array(list(terms.values()), dtype=np.float64)
-            return SeriesRealizationIntegrator(structure, (e, c), k, system=system)
+            return provided("polynomial.SeriesRealizationIntegrator")(
+                structure, (e, c), k, system=system
+            )
 
         casimir = self.structure.casimir
         return MonomialFamily(
@@ -879,14 +886,10 @@ class PolynomialPoissonSystem(PoissonSystemBase):
         )
 
     def classical_methods(self) -> list[str]:
-        from ..steppers.polynomial import VECTOR_FIELD_METHODS
-
         return list(VECTOR_FIELD_METHODS)
 
     def classical(self, name: str, *, tol: float, max_iter: int) -> Any:
-        from ..steppers.polynomial import VectorFieldIntegrator
-
-        return VectorFieldIntegrator(self, name, tol=tol, max_iter=max_iter)
+        return provided("polynomial.VectorFieldIntegrator")(self, name, tol=tol, max_iter=max_iter)
 
     def reference_solution(
         self,
@@ -898,8 +901,7 @@ class PolynomialPoissonSystem(PoissonSystemBase):
         failures: Literal["raise", "nan"] = "raise",
     ) -> FloatArray:
         """DOP853 on the vector field."""
-        from ..reference import field_reference
-
+        field_reference = provided("field_reference")
         field = self.vector_field
         return field_reference(
             lambda y: field(y[None])[0],
@@ -1105,13 +1107,11 @@ SYSTEM_KINDS = {PolynomialPoissonSystem.kind: PolynomialPoissonSystem.from_dict}
 SCENE_KINDS = {"nambu": _scene_table, "bivector": _bivector_scene_table}
 
 
-_MOVED = ("RealizationTaylorIntegrator", "VectorFieldIntegrator", "VECTOR_FIELD_METHODS")
+_MOVED = ("RealizationTaylorIntegrator", "VectorFieldIntegrator")
 
 
 def __getattr__(name: str) -> Any:
     # The steppers live in poisson_rs.steppers.polynomial now; importable from here one release.
     if name in _MOVED:
-        from ..steppers import polynomial
-
-        return getattr(polynomial, name)
+        return provided(f"polynomial.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

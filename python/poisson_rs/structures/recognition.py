@@ -21,13 +21,10 @@ the closest form was.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-
-if TYPE_CHECKING:
-    from .polynomial import PolynomialBivector
 
 __all__ = ["KINDS", "Recognition", "recognize"]
 
@@ -62,7 +59,7 @@ class Recognition:
 
 
 def _coefficients(
-    bivector: PolynomialBivector,
+    bivector: Any,
 ) -> dict[tuple[int, int], dict[tuple[int, ...], float]]:
     """{(i, j): {exponents: coefficient}} for the entries above the diagonal."""
     import sympy
@@ -87,13 +84,12 @@ def _evaluate(terms: Terms, pts: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.stack(cols, axis=1) if cols else np.zeros((len(pts), 0))
 
 
-def recognize(bivector: PolynomialBivector, tol: float = 1e-10) -> Recognition:
+def recognize(bivector: Any, tol: float = 1e-10) -> Recognition:
     """The exact structure of ``bivector`` (Lie–Poisson, affine or log-canonical) when π is of
     that form to a relative residual ``tol``, else ``kind=None``; see the module docstring.
     Cached per bracket and tol."""
-    from .polynomial import PolynomialBivector
-
-    if not isinstance(bivector, PolynomialBivector):
+    # What a PolynomialBivector offers, checked by name: .polynomial imports this module.
+    if not all(hasattr(bivector, a) for a in ("_key", "dim", "pi", "x")):
         raise TypeError(f"bivector must be a PolynomialBivector, got {type(bivector).__name__}")
     if isinstance(tol, bool) or not isinstance(tol, int | float) or not 0 <= tol < 1:
         raise ValueError(f"tol must be a number in [0, 1), got {tol!r}")
@@ -103,7 +99,7 @@ def recognize(bivector: PolynomialBivector, tol: float = 1e-10) -> Recognition:
     return _CACHE[key]
 
 
-def _recognize(bivector: PolynomialBivector, tol: float) -> Recognition:
+def _recognize(bivector: Any, tol: float) -> Recognition:
     n = bivector.dim
     terms = _coefficients(bivector)
     pts = np.random.default_rng(0).uniform(-2.0, 2.0, size=(_N_POINTS, n))

@@ -15,6 +15,7 @@ import numpy as np
 from matplotlib.figure import Figure  # the OO API: no pyplot state, no display backend
 
 from ..files import atomic_write_bytes
+from ..protocols import system_label
 from .demo import Run, SceneResult
 
 
@@ -79,16 +80,6 @@ def write_rows(rows: Sequence[dict[str, Any]], path: Path) -> None:
 
 #: Columns of a grid of per-state panels before it wraps to a new row.
 GRID_COLUMNS = 4
-
-
-def system_label(system: Any) -> str:
-    """The system for titles and messages: its ``title`` (kind and parameters, or its name)."""
-    title = getattr(system, "title", None)
-    return (
-        title
-        if isinstance(title, str)
-        else f"{getattr(system, 'name', None) or type(system).__name__}"
-    )
 
 
 def figure_label(system: Any) -> str:

@@ -48,19 +48,16 @@ from ..integrators import (
     FAILURE_CODES,
     Stepper,
     _describe_domain,
+    classical,
+    classical_methods,
     count_out_of_domain,
     integrate,
     list_models,
     load_model,
+    taylor_integrator,
 )
 from ..protocols import PoissonSystem, as_stepper, as_system
-from .methods import (
-    classical_names,
-    classical_stepper,
-    taylor_charts,
-    taylor_orders,
-)
-from .methods import taylor as taylor_stepper
+from .methods import taylor_charts, taylor_orders
 
 __all__ = ["CandidateResult", "NoCandidateError", "SelectionReport", "Trial", "select"]
 
@@ -308,18 +305,18 @@ def _candidates(
     h: float | None,
 ) -> list[_Candidate]:
     """Cheap-per-step families first, so the pruning bound is set early."""
-    names = classical_names(system)
+    names = classical_methods(system)
     out = [
-        _Candidate(name, "classical", classical_stepper(system, name))
-        for name in names
-        if name != "dop853"
+        _Candidate(name, "classical", classical(system, name)) for name in names if name != "dop853"
     ]
     for chart in taylor_charts(system):
         for k in taylor_orders(system, ORDERS):
-            out.append(_Candidate(f"taylor{k}-{chart}", "taylor", taylor_stepper(system, k, chart)))
+            out.append(
+                _Candidate(f"taylor{k}-{chart}", "taylor", taylor_integrator(system, k, chart))
+            )
     out += _model_candidates(system, mu0, models, h)
     if "dop853" in names:
-        tols = {tol: classical_stepper(system, "dop853", tol=tol) for tol in DOP853_TOLERANCES}
+        tols = {tol: classical(system, "dop853", tol=tol) for tol in DOP853_TOLERANCES}
         out.append(_Candidate("dop853", "adaptive", tolerances=tols))
     return out
 

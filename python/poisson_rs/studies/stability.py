@@ -25,14 +25,16 @@ from ..integrators import (
     FAILURE_CODES,
     RolloutInfo,
     Stepper,
+    classical,
+    classical_methods,
     integrate,
     load_model,
     shipped_models,
+    taylor_integrator,
 )
 from ..protocols import PoissonSystem
 from ..structures.lie_poisson import RigidBody
-from .methods import classical_names, classical_stepper, taylor_charts
-from .methods import taylor as taylor_stepper
+from .methods import taylor_charts
 
 Row = dict[str, Any]
 
@@ -73,10 +75,10 @@ def default_methods(body: PoissonSystem) -> dict[str, Callable[[], Stepper]]:
     }
     charts = taylor_charts(body)
     for k, chart in [(3, charts[0]), (5, charts[0]), *((3, c) for c in charts[1:2])]:
-        methods[f"taylor{k}-{chart}"] = partial(taylor_stepper, body, k, chart)
-    for name in classical_names(body):
+        methods[f"taylor{k}-{chart}"] = partial(taylor_integrator, body, k, chart)
+    for name in classical_methods(body):
         if name != "dop853":  # adaptive: it has no step size to break at
-            methods[name] = partial(classical_stepper, body, name)
+            methods[name] = partial(classical, body, name)
     return methods
 
 

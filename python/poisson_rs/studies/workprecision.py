@@ -32,18 +32,15 @@ from ..integrators import (
     FAILURE_CODES,
     RolloutInfo,
     Stepper,
+    classical,
+    classical_methods,
     integrate,
     shipped_models,
+    taylor_integrator,
 )
 from ..protocols import PoissonSystem
 from ..structures.lie_poisson import RigidBody
-from .methods import (
-    classical_names,
-    classical_stepper,
-    taylor_charts,
-    taylor_orders,
-)
-from .methods import taylor as taylor_stepper
+from .methods import taylor_charts, taylor_orders
 
 Row = dict[str, Any]
 Progress = Callable[[str], None]
@@ -221,13 +218,16 @@ def default_methods(
     charts = taylor_charts(body)
     for chart in charts[:1] if quick else charts:
         for k in taylor_orders(body, orders):
-            methods.append(Method(f"taylor{k}-{chart}", "taylor", taylor_stepper(body, k, chart)))
+            methods.append(
+                Method(f"taylor{k}-{chart}", "taylor", taylor_integrator(body, k, chart))
+            )
     if quick and len(charts) > 1:
-        methods.append(Method(f"taylor3-{charts[1]}", "taylor", taylor_stepper(body, 3, charts[1])))
+        methods.append(
+            Method(f"taylor3-{charts[1]}", "taylor", taylor_integrator(body, 3, charts[1]))
+        )
 
-    classical = classical_stepper
     # Quick runs (tests) keep the fixed-step methods, in the core, and leave out DOP853.
-    for name in classical_names(body):
+    for name in classical_methods(body):
         if quick and name == "dop853":
             continue
         try:
