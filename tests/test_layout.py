@@ -50,12 +50,7 @@ def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
 
 
 #: Cycles the layout still has, each with why it stays: {the modules in it: why}.
-ALLOWED_CYCLES: dict[frozenset[str], str] = {
-    frozenset({"poisson_rs.structures.expression_system", "poisson_rs.steppers.expression"}): (
-        "the expression system's methods import its steppers; both modules are being reworked "
-        "elsewhere and move to the provides/provided registration (poisson_rs.protocols) then"
-    ),
-}
+ALLOWED_CYCLES: dict[frozenset[str], str] = {}
 
 
 def _cycles(edges: dict[str, set[str]]) -> list[frozenset[str]]:

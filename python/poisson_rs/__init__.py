@@ -42,6 +42,7 @@ from .learn import learn
 from .protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystem, Stepper
 from .reference import dop853_solution, exact_solution, reference_solution
 from .steppers.affine import AffineIntegrator, affine_classical, affine_learned
+from .steppers.expression import FieldIntegrator, JetTaylorIntegrator
 from .steppers.polynomial import RealizationTaylorIntegrator
 from .structures import (
     AffinePoissonSystem,
@@ -81,7 +82,9 @@ __all__ = [
     "Expression",
     "ExpressionError",
     "ExpressionSystem",
+    "FieldIntegrator",
     "HeavyTop",
+    "JetTaylorIntegrator",
     "LearnedIntegrator",
     "LieAlgebra",
     "LiePoissonSystem",

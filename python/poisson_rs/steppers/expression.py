@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL
+from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, provides
 
 if TYPE_CHECKING:
     from ..structures.expression_system import ExpressionSystem
@@ -17,6 +17,7 @@ if TYPE_CHECKING:
 FloatArray = NDArray[np.float64]
 
 
+@provides("expression.JetTaylorIntegrator")
 class JetTaylorIntegrator:
     """Taylor-HJ of order ``order`` for any smooth H: S(t, p) = Σ_{k≤order} t^k S_k(p) from the
     HJ recursion in truncated power series at each Newton iterate (``rust/jet_hj.rs``), on the
@@ -90,6 +91,7 @@ def _jet_integrator(
     return JetTaylorIntegrator(system, order, tol=tol, max_iter=max_iter)
 
 
+@provides("expression.FieldIntegrator")
 class FieldIntegrator:
     """A classical method on ẋ = π(x)∇H(x): "rk4" and "midpoint" in the Rust core (SIMD lanes;
     the midpoint's Newton with the exact Jacobian, |δ|∞ ≤ tol · max(|m|∞, 1e-300)), "dop853" by

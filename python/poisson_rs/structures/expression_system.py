@@ -12,7 +12,7 @@ and on constant ones).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -24,11 +24,10 @@ from ..protocols import (
     BracketTerms,
     JetRealization,
     PoissonSystemBase,
+    Stepper,
     as_system,
+    provided,
 )
-
-if TYPE_CHECKING:
-    from ..steppers.expression import FieldIntegrator, JetTaylorIntegrator
 
 FloatArray = NDArray[np.float64]
 
@@ -168,13 +167,14 @@ class ExpressionSystem(PoissonSystemBase):
         *,
         tol: float = NEWTON_TOL,
         max_iter: int = NEWTON_MAX_ITER,
-    ) -> JetTaylorIntegrator:
-        from ..steppers.expression import JetTaylorIntegrator
-
+    ) -> Stepper:
         if chart not in (None, "jets"):
             raise ValueError(f"chart {chart!r} is not available for {self.title}; its charts: jets")
         try:
-            return JetTaylorIntegrator(self, order, tol=tol, max_iter=max_iter)
+            stepper: Stepper = provided("expression.JetTaylorIntegrator")(
+                self, order, tol=tol, max_iter=max_iter
+            )
+            return stepper
         except NotImplementedError as err:
             raise ValueError(str(err)) from None
 
@@ -183,10 +183,11 @@ class ExpressionSystem(PoissonSystemBase):
 
     def classical(
         self, name: str, *, tol: float = NEWTON_TOL, max_iter: int = NEWTON_MAX_ITER
-    ) -> FieldIntegrator:
-        from ..steppers.expression import FieldIntegrator
-
-        return FieldIntegrator(self, name, tol=tol, max_iter=max_iter)
+    ) -> Stepper:
+        stepper: Stepper = provided("expression.FieldIntegrator")(
+            self, name, tol=tol, max_iter=max_iter
+        )
+        return stepper
 
     def reference_solution(
         self,
@@ -198,10 +199,8 @@ class ExpressionSystem(PoissonSystemBase):
         failures: Literal["raise", "nan"] = "raise",
     ) -> FloatArray:
         """DOP853 on the vector field."""
-        from ..reference import field_reference
-
         field = self.vector_field
-        return field_reference(
+        return provided("field_reference")(
             lambda y: field(y[None])[0],
             self.dim,
             x0,
