@@ -1558,6 +1558,7 @@ fn expression_jets<'py>(
 /// ẋ = π(x) ∇H(x) at each row of `x` (n, N): H an expression, π's upper triangle (π_ij,
 /// i < j, row by row) a term table (index, coeffs, exponents (M, N)).
 #[pyfunction]
+#[pyo3(signature = (code, a, b, c, upper_index, upper_coeffs, upper_exponents, x, program=None))]
 #[allow(clippy::too_many_arguments)]
 fn hamiltonian_field<'py>(
     py: Python<'py>,
@@ -1569,12 +1570,13 @@ fn hamiltonian_field<'py>(
     upper_coeffs: PyReadonlyArray1<'py, f64>,
     upper_exponents: PyReadonlyArray2<'py, i64>,
     x: PyReadonlyArray2<'py, f64>,
+    program: Option<FieldProgram<'py>>,
 ) -> PyResult<Array<'py, Ix2>> {
     let dim = x.shape()[1];
     let n = x.shape()[0];
     check_output_bytes(n.saturating_mul(dim), 0)?;
     with_dim!(dim, N => {
-        let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents)?;
+        let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents, program.as_ref())?;
         let rows = states::<N>(&x, "x")?;
         let out = detached(py, || {
             let mut out = Vec::new();
@@ -1587,6 +1589,16 @@ fn hamiltonian_field<'py>(
     }, Err(dim_error(dim)))
 }
 
+/// A vector field's program: (code, a, b, c, outputs), as an expression's table plus the
+/// registers of the N outputs.
+type FieldProgram<'py> = (
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, i64>,
+);
+
 #[allow(clippy::too_many_arguments)]
 fn field_of<const N: usize>(
     code: &PyReadonlyArray1<'_, i64>,
@@ -1596,8 +1608,21 @@ fn field_of<const N: usize>(
     upper_index: &PyReadonlyArray1<'_, i64>,
     upper_coeffs: &PyReadonlyArray1<'_, f64>,
     upper_exponents: &PyReadonlyArray2<'_, i64>,
+    program: Option<&FieldProgram<'_>>,
 ) -> PyResult<HamiltonianField<N>> {
     let e = expression(N, code, a, b, c)?;
+    let program = match program {
+        None => None,
+        Some((pc, pa, pb, pcc, po)) => {
+            let v =
+                |x: &PyReadonlyArray1<'_, i64>| x.as_array().iter().copied().collect::<Vec<i64>>();
+            let consts: Vec<f64> = pcc.as_array().iter().copied().collect();
+            Some(
+                Expression::program(N, &v(pc), &v(pa), &v(pb), &consts, &v(po))
+                    .map_err(|e| PyValueError::new_err(format!("field program: {e}")))?,
+            )
+        }
+    };
     let upper = indexed_polynomials(
         "bivector",
         upper_index,
@@ -1606,14 +1631,14 @@ fn field_of<const N: usize>(
         N * (N - 1) / 2,
         N,
     )?;
-    Ok(HamiltonianField::<N>::new(upper, e)?)
+    Ok(HamiltonianField::<N>::new(upper, e, program)?)
 }
 
 /// Rolls out "rk4" or "midpoint" on ẋ = π(x) ∇H(x) (arguments as [`hamiltonian_field`]) from
 /// each row of `x0` (n, N), in SIMD lanes; the midpoint's Newton stops at |δ|∞ ≤ tol ·
 /// max(|m|∞, 1e-300).
 #[pyfunction]
-#[pyo3(signature = (name, code, a, b, c, upper_index, upper_coeffs, upper_exponents, x0, h, n_steps, every=1, tol=1e-13, max_iter=50))]
+#[pyo3(signature = (name, code, a, b, c, upper_index, upper_coeffs, upper_exponents, x0, h, n_steps, every=1, tol=1e-13, max_iter=50, program=None))]
 #[allow(clippy::too_many_arguments)]
 fn rollout_hamiltonian_field<'py>(
     py: Python<'py>,
@@ -1631,11 +1656,12 @@ fn rollout_hamiltonian_field<'py>(
     every: usize,
     tol: f64,
     max_iter: u32,
+    program: Option<FieldProgram<'py>>,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let dim = x0.shape()[1];
     with_dim!(dim, N => {
-        let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents)?;
+        let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents, program.as_ref())?;
         let x0 = states::<N>(&x0, "x0")?;
         match name {
             "rk4" => {

@@ -7,8 +7,12 @@
 use crate::dual::Scalar;
 use crate::error::CoreError;
 
-/// Most instructions of a tape: the registers of one evaluation live on the stack.
+/// Most instructions of a tape evaluated with derivatives: the registers of one evaluation
+/// live on the stack.
 pub const MAX_TAPE: usize = 256;
+/// Most instructions of a program evaluated for values only (a vector field: H's gradient
+/// written out, and π).
+pub const MAX_PROGRAM: usize = 1024;
 /// Largest |n| of an integer power.
 pub const MAX_POWI: i64 = 64;
 
@@ -44,6 +48,8 @@ pub const OPCODES: [&str; 16] = [
 pub struct Expression {
     vars: usize,
     ops: Vec<Op>,
+    /// The registers whose values are the outputs (the last instruction for a Hamiltonian).
+    outputs: Vec<usize>,
 }
 
 impl Expression {
@@ -57,10 +63,34 @@ impl Expression {
         b: &[i64],
         c: &[f64],
     ) -> Result<Self, CoreError> {
-        let n = code.len();
-        if n == 0 || n > MAX_TAPE {
+        if code.is_empty() || code.len() > MAX_TAPE {
             return Err(CoreError::Invalid(format!(
-                "an expression needs 1..={MAX_TAPE} instructions, got {n}"
+                "an expression needs 1..={MAX_TAPE} instructions, got {}",
+                code.len()
+            )));
+        }
+        Self::program(vars, code, a, b, c, &[code.len() as i64 - 1])
+    }
+
+    /// A program with several outputs (`outputs[m]`: the register of output m), evaluated for
+    /// values only ([`Self::values_lanes`]); up to [`MAX_PROGRAM`] instructions.
+    pub fn program(
+        vars: usize,
+        code: &[i64],
+        a: &[i64],
+        b: &[i64],
+        c: &[f64],
+        outputs: &[i64],
+    ) -> Result<Self, CoreError> {
+        let n = code.len();
+        if n == 0 || n > MAX_PROGRAM {
+            return Err(CoreError::Invalid(format!(
+                "a program needs 1..={MAX_PROGRAM} instructions, got {n}"
+            )));
+        }
+        if let Some(bad) = outputs.iter().find(|&&o| o < 0 || o as usize >= n) {
+            return Err(CoreError::Invalid(format!(
+                "program output {bad} does not name an instruction"
             )));
         }
         if a.len() != n || b.len() != n || c.len() != n {
@@ -127,7 +157,20 @@ impl Expression {
             };
             ops.push(op);
         }
-        Ok(Expression { vars, ops })
+        let mut outs = Vec::new();
+        outs.try_reserve_exact(outputs.len())
+            .map_err(|_| CoreError::Invalid("too many outputs".into()))?;
+        outs.extend(outputs.iter().map(|&o| o as usize));
+        Ok(Expression {
+            vars,
+            ops,
+            outputs: outs,
+        })
+    }
+
+    /// The number of outputs.
+    pub fn n_outputs(&self) -> usize {
+        self.outputs.len()
     }
 
     pub fn vars(&self) -> usize {
@@ -142,6 +185,10 @@ impl Expression {
     /// function (log of a negative number, a pole) the result is not finite, never a panic.
     pub fn eval<T: Scalar>(&self, x: &[T]) -> T {
         let mut r = [T::cst(0.0); MAX_TAPE];
+        if self.ops.len() > MAX_TAPE {
+            // Only a multi-output program is this long, and it is evaluated by values_lanes.
+            return T::cst(f64::NAN);
+        }
         for (k, op) in self.ops.iter().enumerate() {
             r[k] = match *op {
                 Op::Var(i) => x[i],
@@ -186,6 +233,15 @@ impl Expression {
     }
 }
 
+/// Lanes of one block of [`Expression::values_lanes`] (the rollouts' SIMD width).
+pub const BLOCK: usize = crate::lanes::LANES;
+
+thread_local! {
+    /// The value registers of [`Expression::values_lanes`] on this thread.
+    static REGISTERS: std::cell::RefCell<Vec<[f64; BLOCK]>> =
+        const { std::cell::RefCell::new(Vec::new()) };
+}
+
 /// Value and gradient registers of [`Expression::gradient_lanes`] for tapes of up to `CAP`
 /// instructions: sized by the tape, so a short H does not clear a long register file.
 macro_rules! by_capacity {
@@ -203,8 +259,12 @@ macro_rules! by_capacity {
                 const $cap: usize = 128;
                 $body
             }
-            _ => {
+            129..=MAX_TAPE => {
                 const $cap: usize = MAX_TAPE;
+                $body
+            }
+            _ => {
+                const $cap: usize = MAX_PROGRAM;
                 $body
             }
         }
@@ -225,6 +285,142 @@ impl Expression {
         by_capacity!(self.ops.len(), CAP => self.gradient_lanes_in::<N, L, CAP>(x, value, grad))
     }
 
+    /// The outputs at L states at once, values only (`out[m][l]`: output m of lane l): the
+    /// same lane kernels as [`Self::gradient_lanes`]. Lanes run in blocks of [`BLOCK`] (the
+    /// last one padded), each lane independent of the others, so every lane gets a one-lane
+    /// call's bits. The registers live in a per-thread buffer that is grown once and never
+    /// cleared (every register is written before it is read): clearing a register file per
+    /// call cost more than the arithmetic.
+    #[inline(always)]
+    pub fn values_lanes<const L: usize>(&self, x: &[[f64; L]], out: &mut [[f64; L]]) {
+        REGISTERS.with(|cell| {
+            let mut own = Vec::new();
+            let mut borrowed = cell.try_borrow_mut();
+            let buf: &mut Vec<[f64; BLOCK]> = match borrowed.as_mut() {
+                Ok(b) => b,
+                Err(_) => &mut own,
+            };
+            let need = self.ops.len();
+            if buf.len() < need {
+                if buf.try_reserve_exact(need - buf.len()).is_err() {
+                    crate::memory::panic_out_of_memory(&CoreError::Memory(
+                        "the registers of an expression".into(),
+                    ));
+                }
+                buf.resize(need, [0.0; BLOCK]);
+            }
+            let mut xb = [[0.0; BLOCK]; crate::MAX_DIM];
+            let mut ob = [[0.0; BLOCK]; crate::MAX_DIM];
+            for start in (0..L).step_by(BLOCK) {
+                let width = BLOCK.min(L - start);
+                for (xi, row) in xb.iter_mut().zip(x) {
+                    xi[..width].copy_from_slice(&row[start..start + width]);
+                }
+                self.values_block(&xb, &mut ob, &mut buf[..need]);
+                for (o, row) in out.iter_mut().zip(&ob) {
+                    o[start..start + width].copy_from_slice(&row[..width]);
+                }
+            }
+        });
+    }
+
+    // Inlined into the caller's SIMD kernel (compiled for AVX2 where the CPU has it): on its own
+    // it would be compiled for the baseline's two-wide vectors.
+    #[inline(always)]
+    fn values_block(&self, x: &[[f64; BLOCK]], out: &mut [[f64; BLOCK]], v: &mut [[f64; BLOCK]]) {
+        for (k, op) in self.ops.iter().enumerate() {
+            let (vd, vr) = v.split_at_mut(k);
+            let r = &mut vr[0];
+            match *op {
+                Op::Var(i) => *r = x[i],
+                Op::Const(c) => *r = [c; BLOCK],
+                Op::Add(a, b) => {
+                    let (p, q) = (&vd[a], &vd[b]);
+                    for l in 0..BLOCK {
+                        r[l] = p[l] + q[l];
+                    }
+                }
+                Op::Sub(a, b) => {
+                    let (p, q) = (&vd[a], &vd[b]);
+                    for l in 0..BLOCK {
+                        r[l] = p[l] - q[l];
+                    }
+                }
+                Op::Mul(a, b) => {
+                    let (p, q) = (&vd[a], &vd[b]);
+                    for l in 0..BLOCK {
+                        r[l] = p[l] * q[l];
+                    }
+                }
+                Op::Div(a, b) => {
+                    let (p, q) = (&vd[a], &vd[b]);
+                    for l in 0..BLOCK {
+                        r[l] = p[l] / q[l];
+                    }
+                }
+                Op::Neg(a) => {
+                    let p = &vd[a];
+                    for l in 0..BLOCK {
+                        r[l] = -p[l];
+                    }
+                }
+                Op::Powi(a, n) => {
+                    let y = &vd[a];
+                    let mut p = [1.0; BLOCK];
+                    for _ in 0..n.unsigned_abs() {
+                        for l in 0..BLOCK {
+                            p[l] *= y[l];
+                        }
+                    }
+                    for l in 0..BLOCK {
+                        r[l] = if n < 0 { 1.0 / p[l] } else { p[l] };
+                    }
+                }
+                Op::Exp(a) => crate::exp::exp_lanes(&vd[a], r),
+                Op::Sin(a) | Op::Cos(a) | Op::Tan(a) => {
+                    let (mut f, mut g) = ([0.0; BLOCK], [0.0; BLOCK]);
+                    crate::trig::sin_cos_lanes(&vd[a], &mut f, &mut g);
+                    match op {
+                        Op::Sin(_) => *r = f,
+                        Op::Cos(_) => *r = g,
+                        _ => {
+                            for l in 0..BLOCK {
+                                r[l] = f[l] / g[l];
+                            }
+                        }
+                    }
+                }
+                Op::Sqrt(a) => {
+                    let p = &vd[a];
+                    for l in 0..BLOCK {
+                        r[l] = p[l].sqrt();
+                    }
+                }
+                Op::Log(a) => {
+                    let p = &vd[a];
+                    for l in 0..BLOCK {
+                        r[l] = p[l].ln();
+                    }
+                }
+                Op::Tanh(a) => {
+                    let p = &vd[a];
+                    for l in 0..BLOCK {
+                        r[l] = p[l].tanh();
+                    }
+                }
+                Op::Powf(a, e) => {
+                    let p = &vd[a];
+                    for l in 0..BLOCK {
+                        r[l] = p[l].powf(e);
+                    }
+                }
+            }
+        }
+        for (o, &k) in out.iter_mut().zip(&self.outputs) {
+            *o = v[k];
+        }
+    }
+
     fn gradient_lanes_in<const N: usize, const L: usize, const CAP: usize>(
         &self,
         x: &[[f64; L]; N],
@@ -238,14 +434,15 @@ impl Expression {
             let (dd, dr) = d.split_at_mut(k);
             let (out, dout) = (&mut vr[0], &mut dr[0]);
             // out = f(a), dout = f'(a) · da for a smooth f given lane by lane as (f, f').
-            let chain = |a: usize, fd: &[[f64; L]; 2], out: &mut [f64; L], dout: &mut [[f64; L]; N]| {
-                *out = fd[0];
-                for i in 0..N {
-                    for l in 0..L {
-                        dout[i][l] = fd[1][l] * dd[a][i][l];
+            let chain =
+                |a: usize, fd: &[[f64; L]; 2], out: &mut [f64; L], dout: &mut [[f64; L]; N]| {
+                    *out = fd[0];
+                    for i in 0..N {
+                        for l in 0..L {
+                            dout[i][l] = fd[1][l] * dd[a][i][l];
+                        }
                     }
-                }
-            };
+                };
             match *op {
                 Op::Var(i) => {
                     *out = x[i];
@@ -348,19 +545,34 @@ impl Expression {
                     }
                     chain(a, &fd, out, dout);
                 }
-                Op::Sqrt(a) => chain(a, &lanewise(&vd[a], |y| {
-                    let r = y.sqrt();
-                    (r, 0.5 / r)
-                }), out, dout),
+                Op::Sqrt(a) => chain(
+                    a,
+                    &lanewise(&vd[a], |y| {
+                        let r = y.sqrt();
+                        (r, 0.5 / r)
+                    }),
+                    out,
+                    dout,
+                ),
                 Op::Log(a) => chain(a, &lanewise(&vd[a], |y| (y.ln(), 1.0 / y)), out, dout),
-                Op::Tanh(a) => chain(a, &lanewise(&vd[a], |y| {
-                    let t = y.tanh();
-                    (t, 1.0 - t * t)
-                }), out, dout),
-                Op::Powf(a, p) => chain(a, &lanewise(&vd[a], |y| {
-                    let yp = y.powf(p);
-                    (yp, p * yp / y)
-                }), out, dout),
+                Op::Tanh(a) => chain(
+                    a,
+                    &lanewise(&vd[a], |y| {
+                        let t = y.tanh();
+                        (t, 1.0 - t * t)
+                    }),
+                    out,
+                    dout,
+                ),
+                Op::Powf(a, p) => chain(
+                    a,
+                    &lanewise(&vd[a], |y| {
+                        let yp = y.powf(p);
+                        (yp, p * yp / y)
+                    }),
+                    out,
+                    dout,
+                ),
             }
         }
         let last = self.ops.len() - 1;

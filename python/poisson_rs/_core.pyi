@@ -334,6 +334,14 @@ def hamiltonian_field(
     upper_coeffs: npt.NDArray[np.float64],
     upper_exponents: npt.NDArray[np.int64],
     x: npt.NDArray[np.float64],
+    program: tuple[
+        npt.NDArray[np.int64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.int64],
+    ]
+    | None = None,
 ) -> npt.NDArray[np.float64]: ...
 def rollout_hamiltonian_field(
     name: str,
@@ -350,6 +358,14 @@ def rollout_hamiltonian_field(
     every: int = 1,
     tol: float = 1e-13,
     max_iter: int = 50,
+    program: tuple[
+        npt.NDArray[np.int64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.int64],
+    ]
+    | None = None,
 ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...
 def rollout_jets_polynomial(
     code: npt.NDArray[np.int64],

@@ -31,6 +31,8 @@ MAX_CHARS = 4096
 MAX_DEPTH = 64
 #: Longest program (the core's ``MAX_TAPE``).
 MAX_INSTRUCTIONS = 256
+#: Longest program of a vector field (H's gradient and π; the core's ``MAX_PROGRAM``).
+MAX_FIELD_INSTRUCTIONS = 1024
 #: Largest |exponent|.
 MAX_POWER = 64
 
@@ -74,22 +76,75 @@ def _tokens(text: str, field_name: str) -> list[tuple[str, str]]:
 class _Builder:
     """Hash-consed program: equal subexpressions get one register; constants fold."""
 
-    def __init__(self, field_name: str) -> None:
+    def __init__(self, field_name: str, limit: int = MAX_INSTRUCTIONS) -> None:
         self.nodes: list[Node] = []
         self.index: dict[Node, int] = {}
         self.field = field_name
+        self.limit = limit
 
     def add(self, node: Node) -> int:
+        simpler = self._simplify(node)
+        if simpler is not None:
+            return simpler
         node = self._fold(node)
         if node in self.index:
             return self.index[node]
-        if len(self.nodes) >= MAX_INSTRUCTIONS:
+        if len(self.nodes) >= self.limit:
             raise ExpressionError(
-                f"{self.field}: the expression needs more than {MAX_INSTRUCTIONS} instructions"
+                f"{self.field}: the expression needs more than {self.limit} instructions"
             )
         self.nodes.append(node)
         self.index[node] = len(self.nodes) - 1
         return len(self.nodes) - 1
+
+    def _simplify(self, node: Node) -> int | None:
+        """An equivalent register by a cheap rewrite, or None: the identities exact in floating
+        point (x + 0, x · 1, x / 1, −(−x), x · 0 for finite x), and the rewrites that let a
+        constant factor meet another (c · x with the constant first, c₁ · (c₂ · x), x / c by a
+        power of two, −(c · x), x + (−y)), which the differentiated field is full of."""
+        op = node[0]
+        if op in ("add", "sub", "mul", "div"):
+            a, b = node[1], node[2]
+            ca, cb = self.const_value(a), self.const_value(b)
+            if ca is not None and cb is not None:
+                return None  # folded
+            if op == "add" and ca == 0.0:
+                return int(b)
+            if op in ("add", "sub") and cb == 0.0:
+                return int(a)
+            if op == "sub" and ca == 0.0:
+                return self.add(("neg", b))
+            if op == "mul" and (ca == 0.0 or cb == 0.0):
+                return self.add(("const", 0.0))
+            if op == "mul" and cb is not None:
+                return self.add(("mul", b, a))
+            if op == "mul" and ca is not None:
+                if ca == 1.0:
+                    return int(b)
+                if ca == -1.0:
+                    return self.add(("neg", b))
+                inner = self.nodes[b]
+                if inner[0] == "mul" and self.const_value(inner[1]) is not None:
+                    c = ca * float(self.nodes[inner[1]][1])
+                    return self.add(("mul", self.add(("const", c)), inner[2]))
+                if inner[0] == "neg":
+                    return self.add(("mul", self.add(("const", -ca)), inner[1]))
+            if op == "div" and cb == 1.0:
+                return int(a)
+            if op == "div" and cb is not None and cb != 0.0 and math.frexp(cb)[0] == 0.5:
+                return self.add(("mul", self.add(("const", 1.0 / cb)), a))
+            if op in ("add", "sub") and self.nodes[b][0] == "neg":
+                return self.add(("sub" if op == "add" else "add", a, self.nodes[b][1]))
+            if op == "add" and self.nodes[a][0] == "neg":
+                return self.add(("sub", b, self.nodes[a][1]))
+        if op == "neg":
+            inner = self.nodes[node[1]]
+            if inner[0] == "neg":
+                return int(inner[1])
+            if inner[0] == "mul" and self.const_value(inner[1]) is not None:
+                c = -float(self.nodes[inner[1]][1])
+                return self.add(("mul", self.add(("const", c)), inner[2]))
+        return None
 
     def const_value(self, r: int) -> float | None:
         node = self.nodes[r]
@@ -318,25 +373,7 @@ class Expression:
     def tape(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], FloatArray]:
         """The core's table: opcode, first and second operand (a variable's index for "var", an
         integer exponent for "powi"), constant ("const", the exponent of "powf")."""
-        n = len(self.program)
-        code, a, b = (np.zeros(n, dtype=np.int64) for _ in range(3))
-        c = np.zeros(n, dtype=np.float64)
-        for k, node in enumerate(self.program):
-            op = node[0]
-            code[k] = OPCODES.index(op)
-            if op in ("var",):
-                a[k] = node[1]
-            elif op == "const":
-                c[k] = node[1]
-            elif op == "powi":
-                a[k], b[k] = node[1], node[2]
-            elif op == "powf":
-                a[k], c[k] = node[1], node[2]
-            else:
-                a[k] = node[1]
-                if len(node) > 2:
-                    b[k] = node[2]
-        return code, a, b, c
+        return _table(self.program)
 
     def evaluate(self, x: Any, lib: Any = np) -> Any:
         """H at ``x`` (..., n) with ``lib`` NumPy or torch (differentiable with torch)."""
@@ -408,8 +445,16 @@ def parse_program(
 def _compact(nodes: list[Node], root: int) -> tuple[Node, ...]:
     """The nodes ``root`` reaches, renumbered in order, ``root`` last (folding leaves dead
     constants behind)."""
+    return _compact_roots(nodes, [root])[0]
+
+
+def _compact_roots(nodes: list[Node], roots: Sequence[int]) -> tuple[tuple[Node, ...], list[int]]:
+    """The nodes the ``roots`` reach, renumbered in order, and the roots' new registers."""
+    top = max(roots)
     live = [False] * len(nodes)
-    live[root] = True
+    for r in roots:
+        live[r] = True
+    root = top
     for k in range(root, -1, -1):
         if live[k] and nodes[k][0] not in ("var", "const", "powi", "powf"):
             for r in nodes[k][1:]:
@@ -431,9 +476,180 @@ def _compact(nodes: list[Node], root: int) -> tuple[Node, ...]:
             renamed = (op, *(new[r] for r in node[1:]))
         new[k] = len(out)
         out.append(renamed)
-    return tuple(out)
+    return tuple(out), [new[r] for r in roots]
 
 
 def default_names(dim: int) -> tuple[str, ...]:
     """x1 … xn."""
     return tuple(f"x{i + 1}" for i in range(dim))
+
+
+def _derivatives(
+    b: _Builder, program: Sequence[Node], dim: int
+) -> tuple[list[int], list[list[int | None]]]:
+    """``program`` copied into ``b`` and, per variable, the register of ∂H/∂x_i (None: zero),
+    by forward differentiation node by node."""
+    reg: list[int] = []
+    der: list[list[int | None]] = []
+
+    def mul(x: int | None, y: int | None) -> int | None:
+        return None if x is None or y is None else b.add(("mul", x, y))
+
+    def const(v: float) -> int:
+        return b.add(("const", float(v)))
+
+    for node in program:
+        op = node[0]
+        if op == "var":
+            r = b.add(node)
+            d: list[int | None] = [const(1.0) if i == node[1] else None for i in range(dim)]
+        elif op == "const":
+            r = b.add(node)
+            d = [None] * dim
+        elif op in ("add", "sub"):
+            x, y = reg[node[1]], reg[node[2]]
+            r = b.add((op, x, y))
+            d = []
+            for dx, dy in zip(der[node[1]], der[node[2]], strict=True):
+                if dy is None:
+                    d.append(dx)
+                elif dx is None:
+                    d.append(dy if op == "add" else b.add(("neg", dy)))
+                else:
+                    d.append(b.add((op, dx, dy)))
+        elif op == "neg":
+            r = b.add(("neg", reg[node[1]]))
+            d = [None if v is None else b.add(("neg", v)) for v in der[node[1]]]
+        elif op == "mul":
+            x, y = reg[node[1]], reg[node[2]]
+            r = b.add(("mul", x, y))
+            d = []
+            for dx, dy in zip(der[node[1]], der[node[2]], strict=True):
+                terms = [t for t in (mul(dx, y), mul(x, dy)) if t is not None]
+                d.append(
+                    None if not terms else terms[0] if len(terms) == 1 else b.add(("add", *terms))
+                )
+        elif op == "div":
+            x, y = reg[node[1]], reg[node[2]]
+            r = b.add(("div", x, y))
+            d = []
+            for dx, dy in zip(der[node[1]], der[node[2]], strict=True):
+                # (dx − (x/y) dy) / y
+                if dx is None and dy is None:
+                    d.append(None)
+                    continue
+                top = (
+                    dx
+                    if dy is None
+                    else b.add(("sub", dx if dx is not None else const(0.0), b.add(("mul", r, dy))))
+                )
+                d.append(b.add(("div", top, y)))
+        else:
+            x = reg[node[1]]
+            if op == "powi":
+                n = int(node[2])
+                r = b.add(("powi", x, n))
+                lower = x if n - 1 == 1 else const(1.0) if n - 1 == 0 else b.add(("powi", x, n - 1))
+                factor = b.add(("mul", const(n), lower))
+            elif op == "powf":
+                p = float(node[2])
+                r = b.add(("powf", x, p))
+                factor = b.add(("mul", const(p), b.add(("powf", x, p - 1.0))))
+            elif op == "exp":
+                r = b.add(("exp", x))
+                factor = r
+            elif op == "log":
+                r = b.add(("log", x))
+                factor = b.add(("div", const(1.0), x))
+            elif op == "sin":
+                r = b.add(("sin", x))
+                factor = b.add(("cos", x))
+            elif op == "cos":
+                r = b.add(("cos", x))
+                factor = b.add(("neg", b.add(("sin", x))))
+            elif op == "tan":
+                r = b.add(("tan", x))
+                factor = b.add(("add", const(1.0), b.add(("mul", r, r))))
+            elif op == "sqrt":
+                r = b.add(("sqrt", x))
+                factor = b.add(("div", const(0.5), r))
+            else:  # tanh
+                r = b.add(("tanh", x))
+                factor = b.add(("sub", const(1.0), b.add(("mul", r, r))))
+            d = [mul(factor, v) for v in der[node[1]]]
+        reg.append(r)
+        der.append(d)
+    return reg, der
+
+
+def field_program(
+    expression: Expression,
+    index: NDArray[np.int64],
+    coeffs: FloatArray,
+    exponents: NDArray[np.int64],
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], FloatArray, NDArray[np.int64]]:
+    """The program of ẋ = π(x)∇H(x), one output per coordinate: ∇H by forward differentiation
+    of H's program (shared subexpressions, exact identities folded), π from its upper-triangle
+    term table (index, coeffs, exponents (M, n)). Returns the core's table and the outputs'
+    registers. ExpressionError when it exceeds the core's program size."""
+    n = expression.dim
+    # Dead intermediate nodes are dropped at the end: build with room for them.
+    b = _Builder("hamiltonian", limit=4 * MAX_FIELD_INSTRUCTIONS)
+    _, der = _derivatives(b, expression.program, n)
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    entry: dict[tuple[int, int], int] = {}
+    for m, c, e in zip(index.tolist(), coeffs.tolist(), exponents.tolist(), strict=True):
+        term = b.add(("const", float(c)))
+        for v, ev in enumerate(e):
+            if ev:
+                x = b.add(("var", v))
+                term = b.add(("mul", term, x if ev == 1 else b.add(("powi", x, int(ev)))))
+        i, j = pairs[int(m)]
+        entry[(i, j)] = term if (i, j) not in entry else b.add(("add", entry[(i, j)], term))
+    out: list[int] = []
+    for i in range(n):
+        acc: int | None = None
+        for j in range(n):
+            if i == j or der[-1][j] is None:
+                continue
+            p = entry.get((min(i, j), max(i, j)))
+            if p is None:
+                continue
+            t = b.add(("mul", p, der[-1][j]))
+            if acc is None:
+                acc = t if i < j else b.add(("neg", t))
+            else:
+                acc = b.add(("add" if i < j else "sub", acc, t))
+        out.append(acc if acc is not None else b.add(("const", 0.0)))
+    nodes, outputs = _compact_roots(b.nodes, out)
+    if len(nodes) > MAX_FIELD_INSTRUCTIONS:
+        raise ExpressionError(
+            f"hamiltonian: its vector field needs {len(nodes)} instructions, more than "
+            f"{MAX_FIELD_INSTRUCTIONS}"
+        )
+    code, a, bb, c = _table(nodes)
+    return code, a, bb, c, np.array(outputs, dtype=np.int64)
+
+
+def _table(
+    program: Sequence[Node],
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], FloatArray]:
+    n = len(program)
+    code, a, b = (np.zeros(n, dtype=np.int64) for _ in range(3))
+    c = np.zeros(n, dtype=np.float64)
+    for k, node in enumerate(program):
+        op = node[0]
+        code[k] = OPCODES.index(op)
+        if op == "var":
+            a[k] = node[1]
+        elif op == "const":
+            c[k] = node[1]
+        elif op == "powi":
+            a[k], b[k] = node[1], node[2]
+        elif op == "powf":
+            a[k], c[k] = node[1], node[2]
+        else:
+            a[k] = node[1]
+            if len(node) > 2:
+                b[k] = node[2]
+    return code, a, b, c

@@ -19,10 +19,33 @@ use crate::structures::polynomial::SparsePolynomial;
 pub struct HamiltonianField<const N: usize> {
     upper: Vec<SparsePolynomial>,
     hamiltonian: Expression,
+    /// π∇H written out as one program with N outputs (H's gradient differentiated symbolically,
+    /// π's entries multiplied in): values only, the fast path of the field. None: H's gradient
+    /// by forward mode, then π.
+    program: Option<Expression>,
 }
 
 impl<const N: usize> HamiltonianField<N> {
-    pub fn new(upper: Vec<SparsePolynomial>, hamiltonian: Expression) -> Result<Self, CoreError> {
+    pub fn new(
+        upper: Vec<SparsePolynomial>,
+        hamiltonian: Expression,
+        program: Option<Expression>,
+    ) -> Result<Self, CoreError> {
+        if hamiltonian.ops().len() > crate::expression::MAX_TAPE {
+            return Err(CoreError::Invalid(format!(
+                "H has more than {} instructions",
+                crate::expression::MAX_TAPE
+            )));
+        }
+        if let Some(p) = &program {
+            if p.n_outputs() != N || p.vars() != N {
+                return Err(CoreError::Invalid(format!(
+                    "the field program must have {N} outputs in {N} variables, got {} in {}",
+                    p.n_outputs(),
+                    p.vars()
+                )));
+            }
+        }
         if upper.len() != N * (N - 1) / 2 || upper.iter().any(|p| p.vars() != N) {
             return Err(CoreError::Invalid(format!(
                 "a bivector in dimension {N} needs {} polynomials in {N} variables (its upper \
@@ -36,7 +59,11 @@ impl<const N: usize> HamiltonianField<N> {
                 hamiltonian.vars()
             )));
         }
-        Ok(HamiltonianField { upper, hamiltonian })
+        Ok(HamiltonianField {
+            upper,
+            hamiltonian,
+            program,
+        })
     }
 
     /// H at x.
@@ -55,6 +82,10 @@ impl<const N: usize> HamiltonianField<N> {
     /// π(x)∇H(x) at L states: H's gradient in lanes, then π's entries.
     #[inline(always)]
     fn field_in_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        if let Some(p) = &self.program {
+            p.values_lanes(x, out);
+            return;
+        }
         let (mut v, mut g) = ([0.0; L], [[0.0; L]; N]);
         self.hamiltonian.gradient_lanes(x, &mut v, &mut g);
         *out = [[0.0; L]; N];
@@ -151,7 +182,7 @@ mod tests {
             &[0.0, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0],
         )
         .unwrap();
-        let f = HamiltonianField::<3>::new(upper, h).unwrap();
+        let f = HamiltonianField::<3>::new(upper, h, None).unwrap();
         let x: [f64; 3] = [0.4, -0.7, 1.1];
         let g = [x[0], 0.0, -x[2].sin()];
         let cross = [

@@ -144,6 +144,7 @@ class FieldIntegrator:
             int(every),
             self.tol,
             self.max_iter,
+            program=self.system.field_program,
         )
 
     def __repr__(self) -> str:

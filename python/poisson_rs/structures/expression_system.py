@@ -17,7 +17,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..expressions import Expression, default_names
+from ..expressions import Expression, default_names, field_program
 from ..protocols import (
     NEWTON_MAX_ITER,
     NEWTON_TOL,
@@ -63,6 +63,8 @@ class ExpressionSystem(PoissonSystemBase):
             raise ValueError(f"structure: {err}") from None
         self.name = name
         self._tape = self.h.tape()
+        # π∇H as one program (∇H written out): the core's fast path for the field.
+        self.field_program = field_program(self.h, *self.terms.tables())
 
     # --- the PoissonSystem protocol ---------------------------------------------------------
 
@@ -106,7 +108,9 @@ class ExpressionSystem(PoissonSystemBase):
 
         arr = np.asarray(x, dtype=np.float64)
         flat = np.ascontiguousarray(arr.reshape(-1, self.dim))
-        out = _core.hamiltonian_field(*self._tape, *self.terms.tables(), flat)
+        out = _core.hamiltonian_field(
+            *self._tape, *self.terms.tables(), flat, program=self.field_program
+        )
         return out.reshape(arr.shape)
 
     def bivector(self, x: Any) -> Any:
