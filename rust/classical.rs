@@ -21,12 +21,12 @@
 //!
 //! [`BisectionStepper`]: crate::stepper::BisectionStepper
 
-use nalgebra::{Const, DimMin, Matrix3, SMatrix, SVector};
+use nalgebra::{Const, DimMin, Matrix3};
 
 use crate::error::{CoreError, StepFailure};
-use crate::lanes::MidpointSolve;
+use crate::lane_field::MidpointSolve;
 use crate::rollout::{rollout, TrajectoryInfo};
-use crate::stepper::{NewtonOptions, StepMap, StepStats};
+use crate::step::{NewtonOptions, StepMap, StepStats};
 use crate::straight_line::LieField;
 use crate::structures::lie_poisson::{LiePoisson, VectorField};
 use crate::trig;
@@ -165,25 +165,6 @@ fn explicit_result<const N: usize>(mu: &[f64; N]) -> Result<StepStats, StepFailu
     } else {
         Err(StepFailure::NonFinite)
     }
-}
-
-/// Solves J δ = −f for a Newton update; a singular or overflowing solve is a step failure.
-#[inline]
-pub(crate) fn newton_update<const N: usize>(
-    j: SMatrix<f64, N, N>,
-    f: &[f64; N],
-) -> Result<[f64; N], StepFailure>
-where
-    Const<N>: DimMin<Const<N>, Output = Const<N>>,
-{
-    let d = j
-        .lu()
-        .solve(&SVector::<f64, N>::from_fn(|i, _| -f[i]))
-        .ok_or(StepFailure::SingularJacobian)?;
-    if !d.iter().all(|v| v.is_finite()) {
-        return Err(StepFailure::SingularJacobian);
-    }
-    Ok(std::array::from_fn(|i| d[i]))
 }
 
 /// Classical explicit Runge–Kutta of order 4. Not Poisson: C and H drift.
@@ -439,7 +420,7 @@ impl MoserVeselov {
         let th = 2.0 * h;
         let j: [[f64; 3]; 3] =
             std::array::from_fn(|r| std::array::from_fn(|k| 2.0 * a[r][k] - th * m[r] * y[k]));
-        let (adj, det) = crate::stepper::adjugate3(&j);
+        let (adj, det) = crate::step::adjugate3(&j);
         let scale = -1.0 / det;
         std::array::from_fn(|r| (adj[r][0] * g[0] + adj[r][1] * g[1] + adj[r][2] * g[2]) * scale)
     }

@@ -17,8 +17,8 @@ use nalgebra::{Const, DimMin};
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, Workspace};
-use crate::stepper::{Inverse, NewtonOptions, StepMap, StepResult, StepStats};
-use crate::structures::lie_groupoid::{Chart, Groupoid};
+use crate::step::{Inverse, NewtonOptions, StepMap, StepResult, StepStats};
+use crate::structures::lie_groupoid::Groupoid;
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
 /// p base): sou is the Poisson map (β), tar the anti-Poisson one (α), and sou(0, p) = tar(0, p)
@@ -26,12 +26,6 @@ use crate::structures::lie_groupoid::{Chart, Groupoid};
 pub trait Realization<const N: usize>: Sync {
     fn sou<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure>;
     fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure>;
-    /// The so(3) chart this realization is, if it is one: the stepper then solves a
-    /// polynomial S's Newton systems with the chart's closed-form Jacobian in SIMD lanes
-    /// ([`crate::lanes_bisection`]).
-    fn so3_chart(&self) -> Option<Chart> {
-        None
-    }
     /// The step's new state from the converged (x, p) and the state it solved for
     /// (tar(x, p) = target up to Newton's residual): sou(x, p) by default. A realization where
     /// sou is a map of x alone applied to tar (sou = tar − c x on the log-canonical groupoid,
@@ -56,9 +50,6 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
     #[inline]
     fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
         Groupoid::tar(self, x, p)
-    }
-    fn so3_chart(&self) -> Option<Chart> {
-        (N == 3 && self.algebra.is_so3()).then_some(self.chart)
     }
     /// sou(x, p) = g(x) · tar(x, p) for the coadjoint action of the chart's group element g(x),
     /// so the new state is g(x) · μ ([`Groupoid::coadjoint`]): on μ's own coadjoint orbit,

@@ -20,7 +20,8 @@ use crate::exp::{exp_lanes, EXP_MAX, EXP_MIN};
 use crate::generating::{GeneratingFunction, Workspace};
 use crate::lanes::LaneStepper;
 use crate::realization::{Generating, Realization, RealizationStepper};
-use crate::stepper::{NewtonOptions, StepMap, StepResult, StepStats};
+use crate::step::{NewtonOptions, StepMap, StepResult, StepStats};
+use crate::stepper::So3Lanes;
 
 /// The structure matrix c of π_ij = c_ij x_i x_j: finite and antisymmetric.
 #[derive(Clone, Debug, PartialEq)]
@@ -61,6 +62,9 @@ impl<const N: usize> LogCanonical<N> {
         })
     }
 }
+
+/// Not an so(3) chart: the bisection stepper takes its generic Newton path here.
+impl<const N: usize> So3Lanes<N> for LogCanonical<N> {}
 
 /// In log coordinates: fibre x = P, base p = q.
 impl<const N: usize> Realization<N> for LogCanonical<N> {
@@ -825,7 +829,7 @@ fn solve_small_lanes<const N: usize, const L: usize>(
             )
         } else {
             let m3: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]));
-            let (adj, det) = crate::stepper::adjugate3(&m3);
+            let (adj, det) = crate::step::adjugate3(&m3);
             (
                 std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
                 det,
