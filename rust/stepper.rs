@@ -9,12 +9,12 @@
 
 use nalgebra::{Const, DimMin};
 
-use crate::dual::{Dual1, Jet2, Scalar};
+use crate::dual::{Dual1, Jet2};
 use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, Mlp, Workspace, MAX_BATCH};
 use crate::isa::Isa;
 use crate::lanes_bisection::{so3_newton_steps, So3Newton};
-use crate::realization::Realization;
+use crate::realization::{Newton, Realization};
 use crate::step::step_each;
 pub use crate::step::{
     adjugate3, inverse3, Inverse, NewtonOptions, StepMap, StepResult, StepStats, SIMPLIFIED_RATE,
@@ -61,10 +61,6 @@ const BISECTION_BATCH: usize = 16;
 /// docs/performance_bisection.md), the 253,501-parameter paper-sized one 2.5×.
 const BATCH_MIN_PARAMETERS: usize = 100;
 
-fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
-    a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
-}
-
 /// Trajectories per lockstep solve of a polynomial S (no MLP): its jets are evaluated in SIMD
 /// lanes across them ([`crate::lanes_bisection`]), each lane bit-identical to the scalar
 /// evaluation, so the batched step equals [`StepMap::step`] bit for bit.
@@ -101,133 +97,23 @@ where
         })
     }
 
+    /// The Newton solve with this stepper's settings (the floor of the relative tolerance at
+    /// 1e-300, as good as none).
+    #[inline]
+    fn solver(&self) -> Newton<'_, N, R> {
+        Newton {
+            realization: &self.groupoid,
+            tol: self.newton.tol,
+            max_iter: self.newton.max_iter,
+            simplified: self.newton.simplified,
+            scale_floor: 1e-300,
+        }
+    }
+
     /// [`StepMap::step`] by the generic path (dual-number Jacobian, explicit inverse), whatever
     /// the realization and S: the reference the lane solver is tested against.
     pub fn step_generic(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
-        let target = *mu;
-        let mut p = target;
-        let mut iterations = 0;
-        let mut factors = None;
-        let (mut refresh, mut last) = (true, f64::INFINITY);
-        loop {
-            let (converged, size) = if refresh {
-                let jet = self.generating.jet(h, &p, ws);
-                self.newton_update(&jet, &target, &mut p, &mut iterations, &mut factors)?
-            } else {
-                let g = self.generating.gradient(h, &p, ws);
-                self.simplified_update(&g, &target, &mut p, &mut iterations, &factors)?
-            };
-            if converged {
-                // x at the final p needs the gradient of S only, not its Hessian.
-                let g = self.generating.gradient(h, &p, ws);
-                return self.finish(&g, &target, &p, iterations, mu);
-            }
-            refresh = !self.newton.simplified || size > SIMPLIFIED_RATE * last;
-            last = size;
-        }
-    }
-
-    /// One Newton update of p for tar(∂S/∂p(h,p), p) = μ from the jet of S at p, keeping its
-    /// Jacobian's factors. Returns whether the update met the tolerance and |δ|∞.
-    #[inline]
-    fn newton_update(
-        &self,
-        jet: &Jet2<N>,
-        target: &[f64; N],
-        p: &mut [f64; N],
-        iterations: &mut u32,
-        factors: &mut Option<Inverse<N>>,
-    ) -> Result<(bool, f64), StepFailure> {
-        if !jet.is_finite() {
-            return Err(StepFailure::NonFinite);
-        }
-        let (g, hs) = (jet.grad(), jet.hess());
-        // x(p) = ∇S(p) carries the Hessian as its derivative; p carries the identity.
-        let x: [Dual1<N>; N] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
-        let pd: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(p[i], i));
-        let t = self.groupoid.tar(&x, &pd)?;
-        // The cap is checked before the inverse, as before the LU factors.
-        if *iterations >= self.newton.max_iter {
-            return Err(StepFailure::NotConverged);
-        }
-        let inv = factors.insert(Inverse::new(&t.map(|ti| ti.g))?);
-        self.update(&t.map(|ti| ti.v), inv, target, p, iterations)
-    }
-
-    /// One simplified-Newton update of p from ∂S/∂p at p and a kept Jacobian.
-    /// Returns whether it met the tolerance and |δ|∞.
-    #[inline]
-    fn simplified_update(
-        &self,
-        grad: &Dual1<N>,
-        target: &[f64; N],
-        p: &mut [f64; N],
-        iterations: &mut u32,
-        factors: &Option<Inverse<N>>,
-    ) -> Result<(bool, f64), StepFailure> {
-        if !grad.is_finite() {
-            return Err(StepFailure::NonFinite);
-        }
-        // A simplified update always follows a full one, which kept the inverse.
-        let inv = factors.as_ref().ok_or(StepFailure::SingularJacobian)?;
-        let t = self.groupoid.tar(&grad.g, p)?;
-        self.update(&t, inv, target, p, iterations)
-    }
-
-    /// p += δ with J δ = μ − tar(x, p), given tar(x, p) at the current p, unless the iteration
-    /// cap is reached. Returns whether |δ|∞ ≤ tol · |p|∞, and |δ|∞.
-    #[inline]
-    fn update(
-        &self,
-        tar: &[f64; N],
-        inv: &Inverse<N>,
-        target: &[f64; N],
-        p: &mut [f64; N],
-        iterations: &mut u32,
-    ) -> Result<(bool, f64), StepFailure> {
-        if *iterations >= self.newton.max_iter {
-            return Err(StepFailure::NotConverged);
-        }
-        let f: [f64; N] = std::array::from_fn(|i| target[i] - tar[i]);
-        let delta = inv.apply(&f);
-        if !delta.iter().all(|d| d.is_finite()) {
-            return Err(StepFailure::SingularJacobian);
-        }
-        for (pi, d) in p.iter_mut().zip(delta.iter()) {
-            *pi += d;
-        }
-        *iterations += 1;
-        let size = max_abs(&delta);
-        Ok((size <= self.newton.tol * max_abs(p).max(1e-300), size))
-    }
-
-    /// μ' = sou(∂S/∂p, p) at the converged p, from the gradient of S there, as the realization
-    /// forms it from μ ([`Realization::sou_after_solve`]); the residual of the solved equation
-    /// goes into the stats.
-    #[inline]
-    fn finish(
-        &self,
-        grad: &Dual1<N>,
-        target: &[f64; N],
-        p: &[f64; N],
-        iterations: u32,
-        mu: &mut [f64; N],
-    ) -> StepResult {
-        if !grad.is_finite() {
-            return Err(StepFailure::NonFinite);
-        }
-        let x = grad.g;
-        let t = self.groupoid.tar(&x, p)?;
-        let f: [f64; N] = std::array::from_fn(|i| t[i] - target[i]);
-        let out = self.groupoid.sou_after_solve(&x, p, target)?;
-        if !out.iter().all(|v| v.is_finite()) {
-            return Err(StepFailure::NonFinite);
-        }
-        *mu = out;
-        Ok(StepStats {
-            iterations,
-            residual: max_abs(&f),
-        })
+        self.solver().step(&self.generating, h, mu, ws)
     }
 }
 
@@ -320,6 +206,7 @@ where
     ) {
         let n = mu.len();
         assert!(n <= CAP && CAP <= MAX_BATCH, "batch of {n} trajectories");
+        let solver = self.solver();
         let mut p = [[0.0; N]; CAP];
         let mut iterations = [0u32; CAP];
         let mut factors: [Option<Inverse<N>>; CAP] = [None; CAP];
@@ -373,7 +260,7 @@ where
             };
             for (jet, &i) in jets.iter().zip(&jet_of[..nj]) {
                 let target = mu[i];
-                let update = self.newton_update(
+                let update = solver.newton_update(
                     jet,
                     &target,
                     &mut p[i],
@@ -384,8 +271,13 @@ where
             }
             for (g, &i) in grads.iter().zip(&grad_of[..ng]) {
                 let target = mu[i];
-                let update =
-                    self.simplified_update(g, &target, &mut p[i], &mut iterations[i], &factors[i]);
+                let update = solver.simplified_update(
+                    g,
+                    &target,
+                    &mut p[i],
+                    &mut iterations[i],
+                    &factors[i],
+                );
                 settle(i, update);
             }
             n_active = still;
@@ -400,7 +292,7 @@ where
             .gradients_reverse(h, &pg[..n_done], &mut grads[..n_done], ws);
         for (g, &i) in grads.iter().zip(&done[..n_done]) {
             let target = mu[i];
-            results[i] = self.finish(g, &target, &p[i], iterations[i], &mut mu[i]);
+            results[i] = solver.finish(g, &target, &p[i], iterations[i], &mut mu[i]);
         }
     }
 }
