@@ -10,8 +10,9 @@ pub const LANES: usize = 8;
 /// ([`Isa::PORTABLE`], which every CPU runs) or AVX2 with FMA, which only [`Isa::detect`] and
 /// [`Isa::avx2`] can return, and only where the CPU runs both. The field is private, so safe
 /// code cannot claim AVX2 on a CPU without it: the safe functions that take an `Isa`
-/// ([`crate::lanes::Lanes`], [`crate::lanes_bisection::polynomial_jets`], …) call code compiled for the
-/// features it names, which on a CPU without them would be undefined behaviour.
+/// ([`crate::lanes::Lanes`], [`crate::generating::polynomial_lanes::polynomial_jets`], …) call
+/// code compiled for the features it names, which on a CPU without them would be undefined
+/// behaviour.
 ///
 /// ```
 /// use poisson_rs::isa::Isa;

@@ -81,7 +81,8 @@ pub trait StepMap<const N: usize>: Sync {
     fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut Self::Workspace) -> StepResult;
 
     /// Trajectories a rollout hands to [`StepMap::step_batch`] together (at most
-    /// [`MAX_BATCH`](crate::generating::MAX_BATCH)); the chunks are fixed by position, never by the thread count.
+    /// [`MAX_BATCH`](crate::generating::MAX_BATCH)); the chunks are fixed by position, never by
+    /// the thread count.
     fn batch(&self) -> usize {
         1
     }

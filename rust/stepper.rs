@@ -62,8 +62,8 @@ const BISECTION_BATCH: usize = 16;
 const BATCH_MIN_PARAMETERS: usize = 100;
 
 /// Trajectories per lockstep solve of a polynomial S (no MLP): its jets are evaluated in SIMD
-/// lanes across them ([`crate::lanes_bisection`]), each lane bit-identical to the scalar
-/// evaluation, so the batched step equals [`StepMap::step`] bit for bit.
+/// lanes across them ([`crate::generating::polynomial_lanes`]), each lane bit-identical to the
+/// scalar evaluation, so the batched step equals [`StepMap::step`] bit for bit.
 const POLYNOMIAL_BATCH: usize = MAX_BATCH;
 
 /// Trajectories per batched solve for a generating function whose MLP is `mlp`:

@@ -20,6 +20,8 @@
 //! for the heavy top `splitting` ([`HeavyTopSplitting`], order 2, Poisson).
 //!
 //! [`BisectionStepper`]: crate::stepper::BisectionStepper
+//! [`StepMap`]: crate::step::StepMap
+//! [`rollout`]: crate::rollout::rollout
 
 mod heavy_top;
 mod methods;

@@ -402,7 +402,8 @@ pub struct Mlp {
 
 impl Mlp {
     /// Checks that consecutive layers fit and that the network has one output; the number of
-    /// inputs is checked against the system by [`GeneratingFunction::new`].
+    /// inputs is checked against the system by
+    /// [`GeneratingFunction::new`](super::GeneratingFunction::new).
     pub fn new(layers: Vec<Layer>) -> Result<Self, CoreError> {
         if layers.is_empty() {
             return Err(CoreError::Format("an MLP needs at least one layer".into()));

@@ -11,7 +11,7 @@
 //! never contracted into FMAs; the same tables of powers; the same `powi` fallback above the
 //! table), so a lane equals the scalar evaluation bit for bit whatever the batch, the padding
 //! and the instruction set; the tests check it. This is what lets
-//! [`crate::stepper::BisectionStepper::step_batch`] solve a block of Newton systems in lockstep
+//! [`crate::stepper::BisectionStepper`]'s `step_batch` solve a block of Newton systems in lockstep
 //! and still give every trajectory the scalar step's bits.
 //!
 //! **Dispatch** as in [`crate::lanes`]: the block loop compiled for the baseline and, behind

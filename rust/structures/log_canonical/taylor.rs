@@ -244,11 +244,12 @@ fn solve_small_lanes<const N: usize, const L: usize>(
 }
 
 /// Taylor-HJ on the log-canonical groupoid ([`LogBisection`] of an [`ExpPolynomial`], with the
-/// orthant check of [`OrthantChecked`]) in SIMD lanes, for N = 2 and 3: the Newton solve of
-/// q + ½c∇S(q) = q_k runs lane by lane (exact gradient and Hessian of S from y = e^q, the
-/// cofactor inverse of J = I + ½c∇²S, masked convergence), then q_{k+1} = q_k − c∇S(q) (the
-/// same as q − ½c∇S(q) at the solution, and exactly Casimir-preserving at any iterate). The
-/// scalar step is this with one lane, so every lane has the scalar bits.
+/// orthant check of [`OrthantChecked`](super::OrthantChecked)) in SIMD lanes, for N = 2 and 3:
+/// the Newton solve of q + ½c∇S(q) = q_k runs lane by lane (exact gradient and Hessian of S
+/// from y = e^q, the cofactor inverse of J = I + ½c∇²S, masked convergence), then
+/// q_{k+1} = q_k − c∇S(q) (the same as q − ½c∇S(q) at the solution, and exactly
+/// Casimir-preserving at any iterate). The scalar step is this with one lane, so every lane has
+/// the scalar bits.
 pub struct LogTaylorLanes<'a, const N: usize>(&'a LogBisection<N>);
 
 impl<const N: usize> LogBisection<N> {
