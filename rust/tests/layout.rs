@@ -22,7 +22,8 @@ fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
     }
 }
 
-/// The node a file belongs to, or None for the crate root and the test modules.
+/// The node a file belongs to, or None for the crate root and the test modules (`rust/tests/`,
+/// and a module's own `tests.rs`).
 fn node_of(relative: &Path) -> Option<String> {
     let mut parts: Vec<String> = relative
         .with_extension("")
@@ -35,7 +36,7 @@ fn node_of(relative: &Path) -> Option<String> {
     match parts.as_slice() {
         [] => None,
         [root] if root == "lib" => None,
-        [first, ..] if first == "tests" => None,
+        _ if parts.iter().any(|p| p == "tests") => None,
         [first, second, ..] if first == "structures" => Some(format!("structures::{second}")),
         [first, ..] => Some(first.clone()),
     }
