@@ -234,7 +234,7 @@ impl Expression {
 }
 
 /// Lanes of one block of [`Expression::values_lanes`] (the rollouts' SIMD width).
-pub const BLOCK: usize = crate::lanes::LANES;
+pub const BLOCK: usize = crate::isa::LANES;
 
 thread_local! {
     /// The value registers of [`Expression::values_lanes`] on this thread.

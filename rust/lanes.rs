@@ -20,173 +20,19 @@
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use nalgebra::{Const, DimMin, SMatrix};
+use nalgebra::{Const, DimMin};
 
-use crate::classical::{max_abs, newton_update, ImplicitMidpoint, RigidBody, Rk4};
+use crate::classical::{max_abs, ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
+pub use crate::isa::{Isa, LANES};
+pub use crate::lane_field::{midpoint_update_lanes, LaneField, MidpointSolve};
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
-use crate::stepper::{NewtonOptions, StepResult, StepStats};
+use crate::step::{NewtonOptions, StepResult, StepStats};
 use crate::straight_line::{sized_mut, LieField};
 use crate::structures::lie_poisson::{CompiledLiePoisson, VectorField};
 
-/// Lanes per block: 8 f64, two AVX2 registers (or four SSE2 ones) per coordinate, which gives the
-/// core independent chains to overlap; 4 was slower (see docs/performance.md).
-pub const LANES: usize = 8;
-
 /// Trajectories per rollout chunk (a multiple of [`LANES`]).
 pub const LANE_CHUNK: usize = 8 * LANES;
-
-/// A vector field evaluated on a block of L states at once.
-///
-/// `mu[i][l]` is coordinate i of lane l. An implementation must give each lane the same number,
-/// bit for bit, as the system's scalar field (the same operations in the same order), and no
-/// lane may depend on another: that is what keeps results independent of the chunking.
-pub trait LaneField<const N: usize>: Sync {
-    fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
-
-    /// ∂f/∂μ at L states (`out[r][c][l]`), where the field provides it (in straight-line form,
-    /// or lane by lane from its scalar formula); then the implicit midpoint solves its Newton
-    /// systems for all lanes at once ([`midpoint_update_lanes`]). The default has none and
-    /// returns false.
-    #[inline(always)]
-    fn jacobian_lanes<const L: usize>(
-        &self,
-        _mu: &[[f64; L]; N],
-        _out: &mut [[[f64; L]; N]; N],
-    ) -> bool {
-        false
-    }
-}
-
-/// The implicit midpoint's Newton updates (I − half J(m)) δ = −r at L states at once, for a field
-/// with a lane-wide Jacobian ([`LaneField::jacobian_lanes`]; returns false for one without):
-/// Gaussian elimination without pivoting in every lane, kept (`solved[l]`) where the lane's
-/// matrix is strictly diagonally dominant by rows (then no pivot vanishes and none is needed:
-/// the Schur complements stay dominant) and δ is finite. The other lanes take the LU with
-/// pivoting one by one. The scalar step of such a field runs this with L = 1
-/// ([`MidpointSolve`]), so a lane's choice and bits are its scalar step's.
-#[inline(always)]
-pub fn midpoint_update_lanes<const N: usize, const L: usize, F: LaneField<N>>(
-    f: &F,
-    half: f64,
-    m: &[[f64; L]; N],
-    r: &[[f64; L]; N],
-    delta: &mut [[f64; L]; N],
-    solved: &mut [bool; L],
-) -> bool {
-    let mut a = [[[0.0; L]; N]; N];
-    if !f.jacobian_lanes(m, &mut a) {
-        return false;
-    }
-    for i in 0..N {
-        for j in 0..N {
-            let d = if i == j { 1.0 } else { 0.0 };
-            for l in 0..L {
-                a[i][j][l] = d - half * a[i][j][l];
-            }
-        }
-    }
-    let mut ok = [true; L];
-    for i in 0..N {
-        let mut off = [0.0; L];
-        for j in 0..N {
-            if j != i {
-                for l in 0..L {
-                    off[l] += a[i][j][l].abs();
-                }
-            }
-        }
-        for l in 0..L {
-            // False for a NaN anywhere in the row.
-            ok[l] &= a[i][i][l].abs() > off[l];
-        }
-    }
-    let mut b = [[0.0; L]; N];
-    for i in 0..N {
-        for l in 0..L {
-            b[i][l] = -r[i][l];
-        }
-    }
-    let mut inv = [[0.0; L]; N];
-    for k in 0..N {
-        for l in 0..L {
-            inv[k][l] = 1.0 / a[k][k][l];
-        }
-        for i in k + 1..N {
-            let mut p = [0.0; L];
-            for l in 0..L {
-                p[l] = a[i][k][l] * inv[k][l];
-            }
-            for j in k + 1..N {
-                for l in 0..L {
-                    a[i][j][l] -= p[l] * a[k][j][l];
-                }
-            }
-            for l in 0..L {
-                b[i][l] -= p[l] * b[k][l];
-            }
-        }
-    }
-    for k in (0..N).rev() {
-        let mut s = b[k];
-        for j in k + 1..N {
-            for l in 0..L {
-                s[l] -= a[k][j][l] * delta[j][l];
-            }
-        }
-        for l in 0..L {
-            delta[k][l] = s[l] * inv[k][l];
-        }
-    }
-    for l in 0..L {
-        solved[l] = ok[l] && (0..N).all(|i| delta[i][l].is_finite());
-    }
-    true
-}
-
-/// The implicit midpoint's Newton update at the midpoint `m` with residual `r`: δ solving
-/// (I − half ∂f/∂μ(m)) δ = −r. Every lane field has it: [`midpoint_update_lanes`] on one lane,
-/// or where that lane needs pivoting (or the field has no lane-wide Jacobian) the LU of the
-/// exact Jacobian, so the scalar step takes each lane's choice and bits.
-pub trait MidpointSolve<const N: usize> {
-    fn midpoint_update(
-        &self,
-        half: f64,
-        m: &[f64; N],
-        r: &[f64; N],
-    ) -> Result<[f64; N], StepFailure>
-    where
-        Const<N>: DimMin<Const<N>, Output = Const<N>>;
-}
-
-impl<const N: usize, F: LaneField<N> + VectorField<N>> MidpointSolve<N> for F {
-    #[inline(always)]
-    fn midpoint_update(
-        &self,
-        half: f64,
-        m: &[f64; N],
-        r: &[f64; N],
-    ) -> Result<[f64; N], StepFailure>
-    where
-        Const<N>: DimMin<Const<N>, Output = Const<N>>,
-    {
-        let mut delta = [[0.0; 1]; N];
-        let mut solved = [false];
-        midpoint_update_lanes(
-            self,
-            half,
-            &m.map(|v| [v]),
-            &r.map(|v| [v]),
-            &mut delta,
-            &mut solved,
-        );
-        if solved[0] {
-            Ok(delta.map(|v| v[0]))
-        } else {
-            newton_update(SMatrix::identity() - half * self.jacobian(m), r)
-        }
-    }
-}
 
 impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
     #[inline(always)]
@@ -509,68 +355,6 @@ fn axpy_lanes<const L: usize, const N: usize>(
     for i in 0..N {
         for l in 0..L {
             out[i][l] = y[i][l] + a * x[i][l];
-        }
-    }
-}
-
-/// The instruction set a block loop runs with, as a proof about this CPU: the portable baseline
-/// ([`Isa::PORTABLE`], which every CPU runs) or AVX2 with FMA, which only [`Isa::detect`] and
-/// [`Isa::avx2`] can return, and only where the CPU runs both. The field is private, so safe
-/// code cannot claim AVX2 on a CPU without it: the safe functions that take an `Isa`
-/// ([`Lanes`], [`crate::lanes_bisection::polynomial_jets`], …) call code compiled for the
-/// features it names, which on a CPU without them would be undefined behaviour.
-///
-/// ```
-/// use poisson_rs::lanes::Isa;
-/// let isa = Isa::detect();
-/// assert!(isa == Isa::PORTABLE || Isa::avx2() == Some(isa));
-/// ```
-///
-/// The AVX2 proof cannot be written by hand:
-///
-/// ```compile_fail
-/// use poisson_rs::lanes::Isa;
-/// let forged = Isa { avx2: true };
-/// ```
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Isa {
-    /// AVX2 and FMA (x86-64 only; FMA is enabled but never contracted into, see the module
-    /// doc). True only where run-time detection found both.
-    avx2: bool,
-}
-
-impl Isa {
-    /// The target's baseline (SSE2 on x86-64): runs everywhere.
-    pub const PORTABLE: Isa = Isa { avx2: false };
-
-    /// AVX2 with FMA, where this CPU runs both; None elsewhere. With [`Isa::detect`], the only
-    /// way to obtain an `Isa` that claims them.
-    pub fn avx2() -> Option<Isa> {
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                return Some(Isa { avx2: true });
-            }
-        }
-        None
-    }
-
-    /// The widest instruction set this CPU runs.
-    pub fn detect() -> Isa {
-        Isa::avx2().unwrap_or(Isa::PORTABLE)
-    }
-
-    /// Whether this is the AVX2 proof: code compiled with `#[target_feature(enable =
-    /// "avx2,fma")]` may then run.
-    pub fn is_avx2(self) -> bool {
-        self.avx2
-    }
-
-    pub fn name(self) -> &'static str {
-        if self.avx2 {
-            "avx2+fma"
-        } else {
-            "portable"
         }
     }
 }

@@ -19,7 +19,7 @@ use crate::classical::{
 };
 use crate::error::StepFailure;
 use crate::lanes::LaneStepper;
-use crate::stepper::{StepResult, StepStats};
+use crate::step::{StepResult, StepStats};
 use crate::trig;
 
 /// Turns rows `v[o + a]`, `v[o + b]` ((i, a, b) cyclic) of every lane by the angle −angle[l],

@@ -13,10 +13,15 @@
 //!   Newton stepper generic over it.
 //! - **generating functions** ([`generating`], with [`dual`] numbers and the [`kernel`] of
 //!   batched layers).
-//! - **steppers** ([`stepper`] for bisection, [`classical`] for the baselines, stepped in SIMD
-//!   [`lanes`], with [`straight_line`] kernels for the Lie–Poisson patterns a system's data
-//!   matches).
+//! - **steppers** ([`step`]: the step map and Newton's settings they share; [`stepper`] for
+//!   bisection, [`classical`] for the baselines, stepped in SIMD [`lanes`] on a system's
+//!   [`lane_field`], with [`straight_line`] kernels for the Lie–Poisson patterns a system's data
+//!   matches; [`isa`]: the instruction set the lanes run with).
 //! - the **rollout** ([`rollout`]).
+//!
+//! Dependencies point one way (tested): the lower modules (`error`, `dual`, `memory`, `isa`,
+//! `step`, the structures' algebra and groupoid, `generating`, `lane_field`) never name the
+//! steppers, the rollout or the bindings built on them.
 //!
 //! Every piece is generic over the dimension N, monomorphised for N = 1 … [`MAX_DIM`]; the rigid
 //! body is N = 3. The core is pure Rust; the Python bindings live in one module behind the
@@ -28,8 +33,10 @@ pub mod error;
 pub mod exp;
 pub mod expression;
 pub mod generating;
+pub mod isa;
 pub mod jet_hj;
 pub mod kernel;
+pub mod lane_field;
 pub mod lanes;
 pub mod lanes_bisection;
 pub mod lanes_splitting;
@@ -38,6 +45,7 @@ pub mod model;
 pub mod realization;
 pub mod rollout;
 pub mod series;
+pub mod step;
 pub mod stepper;
 pub mod straight_line;
 pub mod structures;
@@ -56,7 +64,7 @@ pub use generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polyno
 pub use model::Model;
 pub use realization::{Generating, Realization, RealizationStepper};
 pub use rollout::{rollout, TrajectoryInfo};
-pub use stepper::{BisectionStepper, NewtonOptions, StepMap, StepStats};
+pub use stepper::{BisectionStepper, NewtonOptions, So3Lanes, StepMap, StepStats};
 pub use structures::lie_groupoid::{Chart, Groupoid, LieAlgebra};
 pub use structures::lie_poisson::{Hamiltonian, LiePoisson, VectorField};
 

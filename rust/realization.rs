@@ -7,18 +7,19 @@
 //! One step of size h from μ: solve tar(∂S/∂p(h, p), p) = μ for p, then μ' = sou(∂S/∂p, p),
 //! formed from μ where the realization can ([`Realization::sou_after_solve`]), so that Newton's
 //! residual does not reach the Casimirs.
-//! On the Lie-algebra groupoid with a [`GeneratingFunction`], a step of [`RealizationStepper`] is
-//! the same sequence of floating-point operations as one of
-//! [`crate::stepper::BisectionStepper`] with full Newton on one trajectory, so the two are
-//! bit-identical there (tested).
+//! Both bisection steppers run the one Newton solve here ([`Newton`]): [`RealizationStepper`]
+//! (any generating function, full Newton, one trajectory at a time) and
+//! [`crate::stepper::BisectionStepper`] (a [`GeneratingFunction`], simplified Newton, batches in
+//! lockstep and the so(3) lanes). On the Lie-algebra groupoid with full Newton on one
+//! trajectory, the two are therefore bit-identical (tested).
 
 use nalgebra::{Const, DimMin};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, Workspace};
-use crate::stepper::{Inverse, NewtonOptions, StepMap, StepResult, StepStats};
-use crate::structures::lie_groupoid::{Chart, Groupoid};
+use crate::step::{Inverse, NewtonOptions, StepMap, StepResult, StepStats, SIMPLIFIED_RATE};
+use crate::structures::lie_groupoid::Groupoid;
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
 /// p base): sou is the Poisson map (β), tar the anti-Poisson one (α), and sou(0, p) = tar(0, p)
@@ -26,12 +27,6 @@ use crate::structures::lie_groupoid::{Chart, Groupoid};
 pub trait Realization<const N: usize>: Sync {
     fn sou<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure>;
     fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure>;
-    /// The so(3) chart this realization is, if it is one: the stepper then solves a
-    /// polynomial S's Newton systems with the chart's closed-form Jacobian in SIMD lanes
-    /// ([`crate::lanes_bisection`]).
-    fn so3_chart(&self) -> Option<Chart> {
-        None
-    }
     /// The step's new state from the converged (x, p) and the state it solved for
     /// (tar(x, p) = target up to Newton's residual): sou(x, p) by default. A realization where
     /// sou is a map of x alone applied to tar (sou = tar − c x on the log-canonical groupoid,
@@ -56,9 +51,6 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
     #[inline]
     fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
         Groupoid::tar(self, x, p)
-    }
-    fn so3_chart(&self) -> Option<Chart> {
-        (N == 3 && self.algebra.is_so3()).then_some(self.chart)
     }
     /// sou(x, p) = g(x) · tar(x, p) for the coadjoint action of the chart's group element g(x),
     /// so the new state is g(x) · μ ([`Groupoid::coadjoint`]): on μ's own coadjoint orbit,
@@ -117,20 +109,67 @@ fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
     a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
 }
 
-impl<const N: usize, R: Realization<N>, G: Generating<N>> RealizationStepper<N, R, G>
+/// The Newton solve of a bisection step, the one both steppers run
+/// ([`RealizationStepper`], and [`crate::stepper::BisectionStepper`] one trajectory at a time or
+/// in lockstep): tar(∂S/∂p(h, p), p) = μ for p, then μ' from the realization. The Jacobian is
+/// inverted once per refresh ([`Inverse`]); simplified Newton keeps it while the updates contract
+/// by [`SIMPLIFIED_RATE`] or better, full Newton refreshes it every update.
+pub(crate) struct Newton<'a, const N: usize, R> {
+    pub realization: &'a R,
+    pub tol: f64,
+    pub max_iter: u32,
+    pub simplified: bool,
+    /// Newton stops once |δ|∞ ≤ tol · max(|p|∞, scale_floor).
+    pub scale_floor: f64,
+}
+
+impl<const N: usize, R: Realization<N>> Newton<'_, N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
-    /// One Newton update of p for tar(∂S/∂p(h,p), p) = target from the jet of S at p.
-    /// Returns whether |δ|∞ ≤ tol · max(|p|∞, scale_floor).
+    /// One trajectory's step: Newton from p = μ, then μ' at the converged p.
     #[inline]
-    fn newton_update(
+    pub(crate) fn step<G: Generating<N>>(
+        &self,
+        generating: &G,
+        h: f64,
+        mu: &mut [f64; N],
+        ws: &mut G::Workspace,
+    ) -> StepResult {
+        let target = *mu;
+        let mut p = target;
+        let mut iterations = 0;
+        let mut factors = None;
+        let (mut refresh, mut last) = (true, f64::INFINITY);
+        loop {
+            let (converged, size) = if refresh {
+                let jet = generating.jet(h, &p, ws);
+                self.newton_update(&jet, &target, &mut p, &mut iterations, &mut factors)?
+            } else {
+                let g = generating.gradient(h, &p, ws);
+                self.simplified_update(&g, &target, &mut p, &mut iterations, &factors)?
+            };
+            if converged {
+                // x at the final p needs the gradient of S only, not its Hessian.
+                let g = generating.gradient(h, &p, ws);
+                return self.finish(&g, &target, &p, iterations, mu);
+            }
+            refresh = !self.simplified || size > SIMPLIFIED_RATE * last;
+            last = size;
+        }
+    }
+
+    /// One Newton update of p for tar(∂S/∂p(h,p), p) = μ from the jet of S at p, keeping its
+    /// Jacobian's factors. Returns whether the update met the tolerance and |δ|∞.
+    #[inline]
+    pub(crate) fn newton_update(
         &self,
         jet: &Jet2<N>,
         target: &[f64; N],
         p: &mut [f64; N],
         iterations: &mut u32,
-    ) -> Result<bool, StepFailure> {
+        factors: &mut Option<Inverse<N>>,
+    ) -> Result<(bool, f64), StepFailure> {
         if !jet.is_finite() {
             return Err(StepFailure::NonFinite);
         }
@@ -139,12 +178,49 @@ where
         let x: [Dual1<N>; N] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
         let pd: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(p[i], i));
         let t = self.realization.tar(&x, &pd)?;
-        if *iterations >= self.newton.max_iter {
+        // The cap is checked before the inverse, as before the LU factors.
+        if *iterations >= self.max_iter {
             return Err(StepFailure::NotConverged);
         }
-        // The stepper's explicit inverse (the same numbers as BisectionStepper's updates).
-        let inv = Inverse::new(&t.map(|ti| ti.g))?;
-        let f: [f64; N] = std::array::from_fn(|i| target[i] - t[i].v);
+        let inv = factors.insert(Inverse::new(&t.map(|ti| ti.g))?);
+        self.update(&t.map(|ti| ti.v), inv, target, p, iterations)
+    }
+
+    /// One simplified-Newton update of p from ∂S/∂p at p and a kept Jacobian.
+    /// Returns whether it met the tolerance and |δ|∞.
+    #[inline]
+    pub(crate) fn simplified_update(
+        &self,
+        grad: &Dual1<N>,
+        target: &[f64; N],
+        p: &mut [f64; N],
+        iterations: &mut u32,
+        factors: &Option<Inverse<N>>,
+    ) -> Result<(bool, f64), StepFailure> {
+        if !grad.is_finite() {
+            return Err(StepFailure::NonFinite);
+        }
+        // A simplified update always follows a full one, which kept the inverse.
+        let inv = factors.as_ref().ok_or(StepFailure::SingularJacobian)?;
+        let t = self.realization.tar(&grad.g, p)?;
+        self.update(&t, inv, target, p, iterations)
+    }
+
+    /// p += δ with J δ = μ − tar(x, p), given tar(x, p) at the current p, unless the iteration
+    /// cap is reached. Returns whether |δ|∞ ≤ tol · max(|p|∞, scale_floor), and |δ|∞.
+    #[inline]
+    fn update(
+        &self,
+        tar: &[f64; N],
+        inv: &Inverse<N>,
+        target: &[f64; N],
+        p: &mut [f64; N],
+        iterations: &mut u32,
+    ) -> Result<(bool, f64), StepFailure> {
+        if *iterations >= self.max_iter {
+            return Err(StepFailure::NotConverged);
+        }
+        let f: [f64; N] = std::array::from_fn(|i| target[i] - tar[i]);
         let delta = inv.apply(&f);
         if !delta.iter().all(|d| d.is_finite()) {
             return Err(StepFailure::SingularJacobian);
@@ -153,7 +229,37 @@ where
             *pi += d;
         }
         *iterations += 1;
-        Ok(max_abs(&delta) <= self.newton.tol * max_abs(p).max(self.scale_floor))
+        let size = max_abs(&delta);
+        Ok((size <= self.tol * max_abs(p).max(self.scale_floor), size))
+    }
+
+    /// μ' = sou(∂S/∂p, p) at the converged p, from the gradient of S there, as the realization
+    /// forms it from μ ([`Realization::sou_after_solve`]); the residual of the solved equation
+    /// goes into the stats.
+    #[inline]
+    pub(crate) fn finish(
+        &self,
+        grad: &Dual1<N>,
+        target: &[f64; N],
+        p: &[f64; N],
+        iterations: u32,
+        mu: &mut [f64; N],
+    ) -> StepResult {
+        if !grad.is_finite() {
+            return Err(StepFailure::NonFinite);
+        }
+        let x = grad.g;
+        let t = self.realization.tar(&x, p)?;
+        let f: [f64; N] = std::array::from_fn(|i| t[i] - target[i]);
+        let out = self.realization.sou_after_solve(&x, p, target)?;
+        if !out.iter().all(|v| v.is_finite()) {
+            return Err(StepFailure::NonFinite);
+        }
+        *mu = out;
+        Ok(StepStats {
+            iterations,
+            residual: max_abs(&f),
+        })
     }
 }
 
@@ -167,31 +273,15 @@ where
         self.generating.workspace()
     }
 
+    /// Full Newton whatever `newton.simplified` says.
     fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut G::Workspace) -> StepResult {
-        let target = *mu;
-        let mut p = target;
-        let mut iterations = 0;
-        loop {
-            let jet = self.generating.jet(h, &p, ws);
-            if self.newton_update(&jet, &target, &mut p, &mut iterations)? {
-                break;
-            }
-        }
-        let grad = self.generating.gradient(h, &p, ws);
-        if !grad.is_finite() {
-            return Err(StepFailure::NonFinite);
-        }
-        let x = grad.g;
-        let t = self.realization.tar(&x, &p)?;
-        let f: [f64; N] = std::array::from_fn(|i| t[i] - target[i]);
-        let out = self.realization.sou_after_solve(&x, &p, &target)?;
-        if !out.iter().all(|v| v.is_finite()) {
-            return Err(StepFailure::NonFinite);
-        }
-        *mu = out;
-        Ok(StepStats {
-            iterations,
-            residual: max_abs(&f),
-        })
+        let newton = Newton {
+            realization: &self.realization,
+            tol: self.newton.tol,
+            max_iter: self.newton.max_iter,
+            simplified: false,
+            scale_floor: self.scale_floor,
+        };
+        newton.step(&self.generating, h, mu, ws)
     }
 }

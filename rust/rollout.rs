@@ -10,7 +10,7 @@ use rayon::prelude::*;
 
 use crate::error::{CoreError, StepFailure};
 use crate::generating::MAX_BATCH;
-use crate::stepper::{StepMap, StepResult, StepStats};
+use crate::step::{StepMap, StepResult, StepStats};
 
 /// Per-trajectory diagnostics of a rollout.
 #[derive(Clone, Copy, Debug, PartialEq)]

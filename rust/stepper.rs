@@ -7,128 +7,40 @@
 //! the Newton Jacobian is inverted once per refresh (closed form for N = 3, nalgebra's LU
 //! otherwise), so every update, simplified or not, is one matrix–vector product.
 
-use nalgebra::{Const, DimMin, SMatrix};
+use nalgebra::{Const, DimMin};
 
-use crate::dual::{Dual1, Jet2, Scalar};
-use crate::error::{CoreError, StepFailure};
+use crate::dual::{Dual1, Jet2};
+use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, Mlp, Workspace, MAX_BATCH};
-use crate::lanes::Isa;
+use crate::isa::Isa;
 use crate::lanes_bisection::{so3_newton_steps, So3Newton};
-use crate::realization::Realization;
-use crate::structures::lie_groupoid::Groupoid;
+use crate::realization::{Newton, Realization};
+use crate::step::step_each;
+pub use crate::step::{
+    adjugate3, inverse3, Inverse, NewtonOptions, StepMap, StepResult, StepStats, SIMPLIFIED_RATE,
+};
+use crate::structures::lie_groupoid::{Chart, Groupoid};
 
-/// Newton settings. The defaults converge to round-off, so the Casimir is kept to round-off.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct NewtonOptions {
-    /// Stop once the Newton update satisfies |δ|∞ ≤ tol · max(|p|∞, 1e-300). Quadratic
-    /// convergence leaves the error after that update near |δ|², far below round-off.
-    pub tol: f64,
-    /// Iteration cap; exceeding it is a step failure.
-    pub max_iter: u32,
-    /// Batched steps (large MLPs, see [`StepMap::batch`]) reuse the Jacobian of the first
-    /// update (simplified Newton), refreshing it when an update shrinks by less than
-    /// [`SIMPLIFIED_RATE`]: later updates need ∂S/∂p only, 4 flops per weight in reverse mode
-    /// against 20 for the value, gradient and Hessian. About 1.4× faster per step on a
-    /// paper-sized MLP, for one more (cheap) update per step; the result agrees with full
-    /// Newton to the tolerance.
-    pub simplified: bool,
+/// Whether a realization is an so(3) chart, where the bisection stepper solves a polynomial S's
+/// Newton systems with the chart's closed-form Jacobian in SIMD lanes
+/// ([`crate::lanes_bisection`]). Kept out of [`Realization`], which every structure implements:
+/// only the Lie groupoid answers, any other realization takes the default with an empty impl.
+pub trait So3Lanes<const N: usize> {
+    /// The so(3) chart this realization is, if it is one.
+    fn so3_chart(&self) -> Option<Chart> {
+        None
+    }
+}
+
+impl<const N: usize> So3Lanes<N> for Groupoid<N> {
+    fn so3_chart(&self) -> Option<Chart> {
+        (N == 3 && self.algebra.is_so3()).then_some(self.chart)
+    }
 }
 
 /// Whether the so(3) lane solver starts from the explicit predictor (see
 /// [`crate::lanes_bisection::So3Newton::predict`]).
 const PREDICT: bool = true;
-
-/// Slowest contraction |δₖ| / |δₖ₋₁| simplified Newton accepts before it refreshes the Jacobian.
-pub const SIMPLIFIED_RATE: f64 = 0.25;
-
-impl Default for NewtonOptions {
-    fn default() -> Self {
-        NewtonOptions {
-            tol: 1e-12,
-            max_iter: 50,
-            simplified: true,
-        }
-    }
-}
-
-impl NewtonOptions {
-    /// Checked options, with simplified Newton on.
-    pub fn validated(tol: f64, max_iter: u32) -> Result<Self, CoreError> {
-        if !(tol.is_finite() && tol > 0.0 && tol < 1.0) {
-            return Err(CoreError::Invalid(format!(
-                "tol must lie in (0, 1), got {tol}"
-            )));
-        }
-        if max_iter == 0 {
-            return Err(CoreError::Invalid("max_iter must be at least 1".into()));
-        }
-        Ok(NewtonOptions {
-            tol,
-            max_iter,
-            ..Default::default()
-        })
-    }
-}
-
-/// What one successful step cost and how well it solved its equation.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct StepStats {
-    /// Newton updates taken.
-    pub iterations: u32,
-    /// |tar(∂S/∂p(h,p), p) − μ|∞ at the accepted p.
-    pub residual: f64,
-}
-
-/// The outcome of one step of one trajectory.
-pub type StepResult = Result<StepStats, StepFailure>;
-
-/// A map μ ↦ μ' that advances one step of size h. Implemented by every integrator so a rollout
-/// is written once.
-pub trait StepMap<const N: usize>: Sync {
-    type Workspace: Send;
-    fn workspace(&self) -> Self::Workspace;
-    /// Bytes one workspace takes (the rollout makes one per thread).
-    fn workspace_bytes(&self) -> usize {
-        0
-    }
-    /// Advances `mu` in place.
-    fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut Self::Workspace) -> StepResult;
-
-    /// Trajectories a rollout hands to [`StepMap::step_batch`] together (at most
-    /// [`MAX_BATCH`]); the chunks are fixed by position, never by the thread count.
-    fn batch(&self) -> usize {
-        1
-    }
-
-    /// Advances every `mu[i]` with `live[i]` by one step, writing `results[i]`; the others are
-    /// left alone. The default takes them one at a time.
-    fn step_batch(
-        &self,
-        h: f64,
-        mu: &mut [[f64; N]],
-        live: &[bool],
-        results: &mut [StepResult],
-        ws: &mut Self::Workspace,
-    ) {
-        step_each(self, h, mu, live, results, ws);
-    }
-}
-
-/// [`StepMap::step_batch`] one trajectory at a time.
-fn step_each<const N: usize, S: StepMap<N> + ?Sized>(
-    stepper: &S,
-    h: f64,
-    mu: &mut [[f64; N]],
-    live: &[bool],
-    results: &mut [StepResult],
-    ws: &mut S::Workspace,
-) {
-    for ((m, &l), r) in mu.iter_mut().zip(live).zip(results.iter_mut()) {
-        if l {
-            *r = stepper.step(h, m, ws);
-        }
-    }
-}
 
 /// The bisection integrator of a generating function on a realization: a chart of the
 /// Lie-algebra groupoid by default.
@@ -149,13 +61,9 @@ const BISECTION_BATCH: usize = 16;
 /// docs/performance_bisection.md), the 253,501-parameter paper-sized one 2.5×.
 const BATCH_MIN_PARAMETERS: usize = 100;
 
-fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
-    a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
-}
-
 /// Trajectories per lockstep solve of a polynomial S (no MLP): its jets are evaluated in SIMD
-/// lanes across them ([`crate::lanes_bisection`]), each lane bit-identical to the scalar
-/// evaluation, so the batched step equals [`StepMap::step`] bit for bit.
+/// lanes across them ([`crate::generating::polynomial_lanes`]), each lane bit-identical to the
+/// scalar evaluation, so the batched step equals [`StepMap::step`] bit for bit.
 const POLYNOMIAL_BATCH: usize = MAX_BATCH;
 
 /// Trajectories per batched solve for a generating function whose MLP is `mlp`:
@@ -169,111 +77,7 @@ pub fn batch_size(mlp: Option<&Mlp>) -> usize {
     }
 }
 
-/// The explicit inverse of a Newton Jacobian, kept between updates: simplified Newton reuses
-/// it, and every update is a matrix–vector product instead of a triangular solve.
-///
-/// The Jacobians here are near the identity (I + O(h)), where δ = J⁻¹ f is as accurate as an LU
-/// solve (tested against nalgebra's on random well- and ill-conditioned matrices), and a 3×3
-/// cofactor inverse costs about what one LU factorisation did.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Inverse<const N: usize>(pub [[f64; N]; N]);
-
-/// The adjugate of a 3×3 matrix (its transposed cofactors) and its determinant, expanded along
-/// the first row: straight-line code for one number (`f64`) or a SIMD block of lanes, the same
-/// operations either way, so every 3×3 solve of the package (the bisection Newton, DMV, their
-/// lanes) has one definition.
-#[inline(always)]
-pub fn adjugate3<T>(m: &[[T; 3]; 3]) -> ([[T; 3]; 3], T)
-where
-    T: Copy + std::ops::Add<Output = T> + std::ops::Sub<Output = T> + std::ops::Mul<Output = T>,
-{
-    let c00 = m[1][1] * m[2][2] - m[1][2] * m[2][1];
-    let c01 = m[1][2] * m[2][0] - m[1][0] * m[2][2];
-    let c02 = m[1][0] * m[2][1] - m[1][1] * m[2][0];
-    let det = m[0][0] * c00 + m[0][1] * c01 + m[0][2] * c02;
-    let adj = [
-        [
-            c00,
-            m[0][2] * m[2][1] - m[0][1] * m[2][2],
-            m[0][1] * m[1][2] - m[0][2] * m[1][1],
-        ],
-        [
-            c01,
-            m[0][0] * m[2][2] - m[0][2] * m[2][0],
-            m[0][2] * m[1][0] - m[0][0] * m[1][2],
-        ],
-        [
-            c02,
-            m[0][1] * m[2][0] - m[0][0] * m[2][1],
-            m[0][0] * m[1][1] - m[0][1] * m[1][0],
-        ],
-    ];
-    (adj, det)
-}
-
-/// The inverse of a 3×3 matrix by cofactors (adjugate over the determinant); None where the
-/// determinant is 0 or not finite, or an entry of the inverse is not finite.
-#[inline(always)]
-pub fn inverse3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
-    let (adj, det) = adjugate3(m);
-    if det == 0.0 || !det.is_finite() {
-        return None;
-    }
-    let r = 1.0 / det;
-    let inv = adj.map(|row| row.map(|v| v * r));
-    inv.iter().flatten().all(|v| v.is_finite()).then_some(inv)
-}
-
-impl<const N: usize> Inverse<N>
-where
-    Const<N>: DimMin<Const<N>, Output = Const<N>>,
-{
-    /// The inverse of `j` (row-major), or [`StepFailure::SingularJacobian`] where `j` is
-    /// singular or the inverse is not finite. N = 3 takes the cofactor formula, other N
-    /// nalgebra's LU with partial pivoting.
-    #[inline]
-    pub fn new(j: &[[f64; N]; N]) -> Result<Self, StepFailure> {
-        let mut out = [[0.0; N]; N];
-        if N == 3 {
-            let m: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| j[r][c]));
-            let inv = inverse3(&m).ok_or(StepFailure::SingularJacobian)?;
-            for (o, i) in out.iter_mut().zip(&inv) {
-                o.copy_from_slice(i);
-            }
-            return Ok(Inverse(out));
-        }
-        let inv = SMatrix::<f64, N, N>::from_fn(|r, c| j[r][c])
-            .lu()
-            .try_inverse()
-            .ok_or(StepFailure::SingularJacobian)?;
-        for (r, o) in out.iter_mut().enumerate() {
-            for (c, v) in o.iter_mut().enumerate() {
-                *v = inv[(r, c)];
-            }
-        }
-        if !out.iter().flatten().all(|v| v.is_finite()) {
-            return Err(StepFailure::SingularJacobian);
-        }
-        Ok(Inverse(out))
-    }
-}
-
-impl<const N: usize> Inverse<N> {
-    /// J⁻¹ f, each component summed in column order.
-    #[inline(always)]
-    pub fn apply(&self, f: &[f64; N]) -> [f64; N] {
-        std::array::from_fn(|r| {
-            let row = &self.0[r];
-            let mut s = row[0] * f[0];
-            for c in 1..N {
-                s += row[c] * f[c];
-            }
-            s
-        })
-    }
-}
-
-impl<const N: usize, R: Realization<N>> BisectionStepper<N, R>
+impl<const N: usize, R: Realization<N> + So3Lanes<N>> BisectionStepper<N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
@@ -293,137 +97,27 @@ where
         })
     }
 
+    /// The Newton solve with this stepper's settings (the floor of the relative tolerance at
+    /// 1e-300, as good as none).
+    #[inline]
+    fn solver(&self) -> Newton<'_, N, R> {
+        Newton {
+            realization: &self.groupoid,
+            tol: self.newton.tol,
+            max_iter: self.newton.max_iter,
+            simplified: self.newton.simplified,
+            scale_floor: 1e-300,
+        }
+    }
+
     /// [`StepMap::step`] by the generic path (dual-number Jacobian, explicit inverse), whatever
     /// the realization and S: the reference the lane solver is tested against.
     pub fn step_generic(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
-        let target = *mu;
-        let mut p = target;
-        let mut iterations = 0;
-        let mut factors = None;
-        let (mut refresh, mut last) = (true, f64::INFINITY);
-        loop {
-            let (converged, size) = if refresh {
-                let jet = self.generating.jet(h, &p, ws);
-                self.newton_update(&jet, &target, &mut p, &mut iterations, &mut factors)?
-            } else {
-                let g = self.generating.gradient(h, &p, ws);
-                self.simplified_update(&g, &target, &mut p, &mut iterations, &factors)?
-            };
-            if converged {
-                // x at the final p needs the gradient of S only, not its Hessian.
-                let g = self.generating.gradient(h, &p, ws);
-                return self.finish(&g, &target, &p, iterations, mu);
-            }
-            refresh = !self.newton.simplified || size > SIMPLIFIED_RATE * last;
-            last = size;
-        }
-    }
-
-    /// One Newton update of p for tar(∂S/∂p(h,p), p) = μ from the jet of S at p, keeping its
-    /// Jacobian's factors. Returns whether the update met the tolerance and |δ|∞.
-    #[inline]
-    fn newton_update(
-        &self,
-        jet: &Jet2<N>,
-        target: &[f64; N],
-        p: &mut [f64; N],
-        iterations: &mut u32,
-        factors: &mut Option<Inverse<N>>,
-    ) -> Result<(bool, f64), StepFailure> {
-        if !jet.is_finite() {
-            return Err(StepFailure::NonFinite);
-        }
-        let (g, hs) = (jet.grad(), jet.hess());
-        // x(p) = ∇S(p) carries the Hessian as its derivative; p carries the identity.
-        let x: [Dual1<N>; N] = std::array::from_fn(|i| Dual1 { v: g[i], g: hs[i] });
-        let pd: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(p[i], i));
-        let t = self.groupoid.tar(&x, &pd)?;
-        // The cap is checked before the inverse, as before the LU factors.
-        if *iterations >= self.newton.max_iter {
-            return Err(StepFailure::NotConverged);
-        }
-        let inv = factors.insert(Inverse::new(&t.map(|ti| ti.g))?);
-        self.update(&t.map(|ti| ti.v), inv, target, p, iterations)
-    }
-
-    /// One simplified-Newton update of p from ∂S/∂p at p and a kept Jacobian.
-    /// Returns whether it met the tolerance and |δ|∞.
-    #[inline]
-    fn simplified_update(
-        &self,
-        grad: &Dual1<N>,
-        target: &[f64; N],
-        p: &mut [f64; N],
-        iterations: &mut u32,
-        factors: &Option<Inverse<N>>,
-    ) -> Result<(bool, f64), StepFailure> {
-        if !grad.is_finite() {
-            return Err(StepFailure::NonFinite);
-        }
-        // A simplified update always follows a full one, which kept the inverse.
-        let inv = factors.as_ref().ok_or(StepFailure::SingularJacobian)?;
-        let t = self.groupoid.tar(&grad.g, p)?;
-        self.update(&t, inv, target, p, iterations)
-    }
-
-    /// p += δ with J δ = μ − tar(x, p), given tar(x, p) at the current p, unless the iteration
-    /// cap is reached. Returns whether |δ|∞ ≤ tol · |p|∞, and |δ|∞.
-    #[inline]
-    fn update(
-        &self,
-        tar: &[f64; N],
-        inv: &Inverse<N>,
-        target: &[f64; N],
-        p: &mut [f64; N],
-        iterations: &mut u32,
-    ) -> Result<(bool, f64), StepFailure> {
-        if *iterations >= self.newton.max_iter {
-            return Err(StepFailure::NotConverged);
-        }
-        let f: [f64; N] = std::array::from_fn(|i| target[i] - tar[i]);
-        let delta = inv.apply(&f);
-        if !delta.iter().all(|d| d.is_finite()) {
-            return Err(StepFailure::SingularJacobian);
-        }
-        for (pi, d) in p.iter_mut().zip(delta.iter()) {
-            *pi += d;
-        }
-        *iterations += 1;
-        let size = max_abs(&delta);
-        Ok((size <= self.newton.tol * max_abs(p).max(1e-300), size))
-    }
-
-    /// μ' = sou(∂S/∂p, p) at the converged p, from the gradient of S there, as the realization
-    /// forms it from μ ([`Realization::sou_after_solve`]); the residual of the solved equation
-    /// goes into the stats.
-    #[inline]
-    fn finish(
-        &self,
-        grad: &Dual1<N>,
-        target: &[f64; N],
-        p: &[f64; N],
-        iterations: u32,
-        mu: &mut [f64; N],
-    ) -> StepResult {
-        if !grad.is_finite() {
-            return Err(StepFailure::NonFinite);
-        }
-        let x = grad.g;
-        let t = self.groupoid.tar(&x, p)?;
-        let f: [f64; N] = std::array::from_fn(|i| t[i] - target[i]);
-        let out = self.groupoid.sou_after_solve(&x, p, target)?;
-        if !out.iter().all(|v| v.is_finite()) {
-            return Err(StepFailure::NonFinite);
-        }
-        *mu = out;
-        Ok(StepStats {
-            iterations,
-            residual: max_abs(&f),
-        })
+        self.solver().step(&self.generating, h, mu, ws)
     }
 }
 
-impl<const N: usize, R: Realization<N>> StepMap<N> for BisectionStepper<N, R>
+impl<const N: usize, R: Realization<N> + So3Lanes<N>> StepMap<N> for BisectionStepper<N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
@@ -496,7 +190,7 @@ where
 /// Chunks of at most this many trajectories take the small lockstep scratch.
 const FEW: usize = 4;
 
-impl<const N: usize, R: Realization<N>> BisectionStepper<N, R>
+impl<const N: usize, R: Realization<N> + So3Lanes<N>> BisectionStepper<N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
@@ -512,6 +206,7 @@ where
     ) {
         let n = mu.len();
         assert!(n <= CAP && CAP <= MAX_BATCH, "batch of {n} trajectories");
+        let solver = self.solver();
         let mut p = [[0.0; N]; CAP];
         let mut iterations = [0u32; CAP];
         let mut factors: [Option<Inverse<N>>; CAP] = [None; CAP];
@@ -565,7 +260,7 @@ where
             };
             for (jet, &i) in jets.iter().zip(&jet_of[..nj]) {
                 let target = mu[i];
-                let update = self.newton_update(
+                let update = solver.newton_update(
                     jet,
                     &target,
                     &mut p[i],
@@ -576,8 +271,13 @@ where
             }
             for (g, &i) in grads.iter().zip(&grad_of[..ng]) {
                 let target = mu[i];
-                let update =
-                    self.simplified_update(g, &target, &mut p[i], &mut iterations[i], &factors[i]);
+                let update = solver.simplified_update(
+                    g,
+                    &target,
+                    &mut p[i],
+                    &mut iterations[i],
+                    &factors[i],
+                );
                 settle(i, update);
             }
             n_active = still;
@@ -592,7 +292,7 @@ where
             .gradients_reverse(h, &pg[..n_done], &mut grads[..n_done], ws);
         for (g, &i) in grads.iter().zip(&done[..n_done]) {
             let target = mu[i];
-            results[i] = self.finish(g, &target, &p[i], iterations[i], &mut mu[i]);
+            results[i] = solver.finish(g, &target, &p[i], iterations[i], &mut mu[i]);
         }
     }
 }

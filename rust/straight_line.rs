@@ -30,7 +30,7 @@
 use nalgebra::{Const, DimMin, SMatrix};
 
 use crate::error::StepFailure;
-use crate::lanes::{LaneField, MidpointSolve};
+use crate::lane_field::{LaneField, MidpointSolve};
 use crate::structures::lie_groupoid::LieAlgebra;
 use crate::structures::lie_poisson::{
     lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField,

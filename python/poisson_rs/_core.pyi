@@ -15,7 +15,12 @@ __all__ = [
     "RolloutDiagnostics",
     "__version__",
     "_after_fork_in_child",
+    "expression_jets",
+    "hamiltonian_field",
     "rollout_classical",
+    "rollout_hamiltonian_field",
+    "rollout_jets_lie",
+    "rollout_jets_polynomial",
     "rollout_lie_poisson",
     "rollout_log_canonical",
     "rollout_log_classical",
@@ -24,6 +29,7 @@ __all__ = [
     "rollout_polynomial_realization",
     "serial_rollouts",
     "step_angles",
+    "usable_memory",
 ]
 
 MODEL_FORMAT: str

@@ -10,7 +10,7 @@
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Mlp, MlpInputs, Polynomial, Workspace};
-use crate::lanes::LaneField;
+use crate::lane_field::LaneField;
 use crate::realization::{Generating, Realization, RealizationStepper};
 use crate::stepper::NewtonOptions;
 use crate::structures::lie_poisson::VectorField;

@@ -695,7 +695,7 @@ fn systems_off_the_pattern_keep_the_compiled_field() {
 /// not depend on its neighbours (the scalar update is the solve with one lane).
 #[test]
 fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
-    use crate::classical::newton_update;
+    use crate::lane_field::newton_update;
     use crate::lanes::{midpoint_update_lanes, MidpointSolve};
     let mut rng = Rng::new(41);
     let (mut wide, mut pivoted) = (0, 0);

@@ -243,6 +243,7 @@ mod bisection_lanes;
 mod charts;
 mod derivatives;
 mod lanes;
+mod layout;
 mod lie_poisson;
 mod log_canonical;
 mod model_files;

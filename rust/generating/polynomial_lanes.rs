@@ -1,0 +1,353 @@
+//! The polynomial part of a generating function in SIMD lanes: the jets (value, p-gradient,
+//! p-Hessian) of P(t, ·) at a batch of momenta, in structure-of-arrays blocks of [`LANES`].
+//!
+//! A bisection step of a Taylor-HJ integrator spends most of its time evaluating the jet of
+//! S = Σ t^k S_k at each Newton iterate: a dozen monomials, each a chain of multiplies and
+//! adds whose latency bounds one trajectory. Across trajectories the same chain runs in every
+//! lane: the exponents, coefficients and t-powers are shared, only p differs.
+//!
+//! **Bit identity.** Every lane performs exactly the operations of the scalar
+//! [`Polynomial::jet`] / [`Polynomial::gradient`] in the same order (plain multiplies and adds,
+//! never contracted into FMAs; the same tables of powers; the same `powi` fallback above the
+//! table), so a lane equals the scalar evaluation bit for bit whatever the batch, the padding
+//! and the instruction set; the tests check it. This is what lets
+//! [`crate::stepper::BisectionStepper`]'s `step_batch` solve a block of Newton systems in lockstep
+//! and still give every trajectory the scalar step's bits.
+//!
+//! **Dispatch** as in [`crate::lanes`]: the block loop compiled for the baseline and, behind
+//! `#[target_feature(enable = "avx2,fma")]`, for AVX2, chosen once per call by [`Isa::detect`]. An
+//! [`Isa`] claims AVX2 only where detection found it, so the safe functions here cannot run AVX2
+//! code on a CPU without it.
+
+// Index loops over lanes, coordinates and monomials read as the formulas they evaluate.
+#![allow(clippy::needless_range_loop)]
+
+use super::{Polynomial, TABLE_POWER};
+use crate::dual::{Dual1, Jet2};
+use crate::isa::{Isa, LANES};
+
+/// Blocks with at most this many momenta take the scalar path: a block of 8 lanes costs about
+/// five scalar evaluations.
+pub(crate) const SCALAR_AT_MOST: usize = LANES / 2;
+
+/// The jet of P at L momenta, structure of arrays: `h[a][b]` for a ≤ b holds ∂²P/∂p_a∂p_b.
+#[derive(Clone, Copy)]
+pub(crate) struct JetLanes<const N: usize, const L: usize> {
+    pub(crate) v: [f64; L],
+    pub(crate) g: [[f64; L]; N],
+    pub(crate) h: [[[f64; L]; N]; N],
+}
+
+/// The powers x⁰ … x^[`TABLE_POWER`] of each coordinate, lane by lane: `pw[i][k][l]`.
+type PowerLanes<const N: usize, const L: usize> = [[[f64; L]; TABLE_POWER + 1]; N];
+
+/// Scratch of [`jet_lanes_into`] kept across the evaluations of a block: the tables of powers
+/// (only the rows up to each coordinate's largest exponent are written and read) and the factor
+/// jets of one term (only those of its variables are written and read). Nothing in it needs
+/// clearing between evaluations.
+pub(crate) struct Scratch<const N: usize, const L: usize> {
+    pw: PowerLanes<N, L>,
+    j: [[[f64; L]; 3]; N],
+}
+
+impl<const N: usize, const L: usize> Scratch<N, L> {
+    #[inline(always)]
+    pub(crate) fn new() -> Self {
+        Scratch {
+            pw: [[[0.0; L]; TABLE_POWER + 1]; N],
+            j: [[[0.0; L]; 3]; N],
+        }
+    }
+}
+
+/// `acc[l] += c · Π_i j[i][d_i][l]` over the variables i of the term (`powers[i]` > 0), in
+/// increasing i, where d_i counts how many of `a` and `b` equal i (N for neither): the value
+/// (a = b = N), ∂/∂p_a (b = N) or ∂²/∂p_a∂p_b. The orders are computed, not read from an array
+/// of indices: such an array is stored and reloaded per product, a store-forwarding stall.
+#[inline(always)]
+fn add_product<const N: usize, const L: usize>(
+    c: f64,
+    powers: &[u32; N],
+    j: &[[[f64; L]; 3]; N],
+    a: usize,
+    b: usize,
+    acc: &mut [f64; L],
+) {
+    let mut prod = [c; L];
+    for i in 0..N {
+        if powers[i] == 0 {
+            continue;
+        }
+        let d = usize::from(i == a) + usize::from(i == b);
+        for l in 0..L {
+            prod[l] *= j[i][d][l];
+        }
+    }
+    for l in 0..L {
+        acc[l] += prod[l];
+    }
+}
+
+/// The jets of P(t, ·) at the L momenta `p[i][l]` (the Hessian only when `HESS`) into `out`:
+/// lane l gets the numbers of the scalar [`Polynomial::jet`] at p[·][l], bit for bit.
+///
+/// The scalar evaluation multiplies every term by all N factor jets; a variable absent from a
+/// term contributes the factor 1 to the value and 0 to its derivatives. Here such factors are
+/// skipped: a product by 1 is exact, and a zero product added to a non-zero sum (or to +0)
+/// leaves it unchanged, so for finite inputs the sums are the same bits (the tests check it).
+#[inline(always)]
+pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, const T1: bool>(
+    poly: &Polynomial<N>,
+    t: f64,
+    p: &[[f64; L]; N],
+    scratch: &mut Scratch<N, L>,
+    out: &mut JetLanes<N, L>,
+) {
+    out.v = [0.0; L];
+    for i in 0..N {
+        out.g[i] = [0.0; L];
+        if HESS {
+            for b in i..N {
+                out.h[i][b] = [0.0; L];
+            }
+        }
+    }
+    // The tables of powers, as Polynomial::powers builds them.
+    let (mut tmax, mut pmax) = (0u32, [0u32; N]);
+    for m in &poly.terms {
+        tmax = tmax.max(m.t_power);
+        for i in 0..N {
+            pmax[i] = pmax[i].max(m.p_powers[i]);
+        }
+    }
+    let mut tp = [0.0; TABLE_POWER + 1];
+    tp[0] = 1.0;
+    for k in 1..=(tmax as usize).min(TABLE_POWER) {
+        tp[k] = tp[k - 1] * t;
+    }
+    let pw = &mut scratch.pw;
+    for i in 0..N {
+        pw[i][0] = [1.0; L];
+        for k in 1..=(pmax[i] as usize).min(TABLE_POWER) {
+            for l in 0..L {
+                pw[i][k][l] = pw[i][k - 1][l] * p[i][l];
+            }
+        }
+    }
+    let j = &mut scratch.j;
+    for m in &poly.terms {
+        // With T1, only the terms linear in t (t ∂S/∂t(0, p)): the Newton predictor's.
+        if T1 && m.t_power != 1 {
+            continue;
+        }
+        let tk = if m.t_power as usize <= TABLE_POWER {
+            tp[m.t_power as usize]
+        } else {
+            t.powi(m.t_power as i32)
+        };
+        let c = m.coeff * tk;
+        // The (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of this term's variables lane by lane
+        // (generating::power_jet); the second derivative only where n ≥ 2.
+        for i in 0..N {
+            let n = m.p_powers[i];
+            if n == 0 {
+                continue;
+            }
+            let ji = &mut j[i];
+            if n == 1 {
+                for l in 0..L {
+                    ji[0][l] = p[i][l];
+                    ji[1][l] = 1.0;
+                }
+            } else if n as usize <= TABLE_POWER {
+                let (k, nf) = (n as usize, n as f64);
+                let nn = nf * (nf - 1.0);
+                for l in 0..L {
+                    ji[0][l] = pw[i][k][l];
+                    ji[1][l] = nf * pw[i][k - 1][l];
+                    ji[2][l] = nn * pw[i][k - 2][l];
+                }
+            } else {
+                let nf = n as f64;
+                let nn = nf * (nf - 1.0);
+                for l in 0..L {
+                    let x = p[i][l];
+                    let xn2 = x.powi(n as i32 - 2);
+                    ji[0][l] = xn2 * x * x;
+                    ji[1][l] = nf * xn2 * x;
+                    ji[2][l] = nn * xn2;
+                }
+            }
+        }
+        let pp = &m.p_powers;
+        add_product(c, pp, j, N, N, &mut out.v);
+        for a in 0..N {
+            if pp[a] == 0 {
+                continue;
+            }
+            add_product(c, pp, j, a, N, &mut out.g[a]);
+            if HESS {
+                if pp[a] >= 2 {
+                    add_product(c, pp, j, a, a, &mut out.h[a][a]);
+                }
+                for b in a + 1..N {
+                    if pp[b] > 0 {
+                        add_product(c, pp, j, a, b, &mut out.h[a][b]);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// [`jet_lanes_into`] with fresh scratch.
+#[inline(always)]
+fn jet_lanes<const N: usize, const L: usize, const HESS: bool>(
+    poly: &Polynomial<N>,
+    t: f64,
+    p: &[[f64; L]; N],
+) -> JetLanes<N, L> {
+    let mut out = JetLanes {
+        v: [0.0; L],
+        g: [[0.0; L]; N],
+        h: [[[0.0; L]; N]; N],
+    };
+    jet_lanes_into::<N, L, HESS, false>(poly, t, p, &mut Scratch::new(), &mut out);
+    out
+}
+
+/// What a block writes back: a [`Jet2`] or a [`Dual1`] per momentum.
+trait FromLanes<const N: usize>: Copy {
+    const HESS: bool;
+    fn from_lanes<const L: usize>(jet: &JetLanes<N, L>, l: usize) -> Self;
+    /// The scalar evaluation the lanes reproduce.
+    fn scalar(poly: &Polynomial<N>, t: f64, p: &[f64; N]) -> Self;
+}
+
+impl<const N: usize> FromLanes<N> for Jet2<N> {
+    const HESS: bool = true;
+    #[inline(always)]
+    fn scalar(poly: &Polynomial<N>, t: f64, p: &[f64; N]) -> Self {
+        poly.jet(t, p)
+    }
+    #[inline(always)]
+    fn from_lanes<const L: usize>(jet: &JetLanes<N, L>, l: usize) -> Self {
+        let mut out = Jet2::<N>::default();
+        out.v = jet.v[l];
+        for i in 0..N {
+            out.g[i] = jet.g[i][l];
+        }
+        let packed = out.packed_mut();
+        let mut k = 0;
+        for a in 0..N {
+            for b in a..N {
+                packed[k] = jet.h[a][b][l];
+                k += 1;
+            }
+        }
+        out
+    }
+}
+
+impl<const N: usize> FromLanes<N> for Dual1<N> {
+    const HESS: bool = false;
+    #[inline(always)]
+    fn scalar(poly: &Polynomial<N>, t: f64, p: &[f64; N]) -> Self {
+        poly.gradient(t, p)
+    }
+    #[inline(always)]
+    fn from_lanes<const L: usize>(jet: &JetLanes<N, L>, l: usize) -> Self {
+        Dual1 {
+            v: jet.v[l],
+            g: std::array::from_fn(|i| jet.g[i][l]),
+        }
+    }
+}
+
+/// Blocks of [`LANES`] momenta (the last one padded with zeros, whose lanes are dropped). A
+/// block of at most [`SCALAR_AT_MOST`] momenta is evaluated one momentum at a time by the scalar
+/// functions instead: the same bits, without paying for eight lanes (a rollout of one state
+/// would otherwise be 3× slower than before the lanes).
+#[inline(always)]
+fn blocks<const N: usize, T: FromLanes<N>>(
+    poly: &Polynomial<N>,
+    t: f64,
+    p: &[[f64; N]],
+    out: &mut [T],
+) {
+    for (pb, ob) in p.chunks(LANES).zip(out.chunks_mut(LANES)) {
+        if pb.len() <= SCALAR_AT_MOST {
+            for (o, q) in ob.iter_mut().zip(pb) {
+                *o = T::scalar(poly, t, q);
+            }
+            continue;
+        }
+        let mut lanes = [[0.0; LANES]; N];
+        for (l, q) in pb.iter().enumerate() {
+            for i in 0..N {
+                lanes[i][l] = q[i];
+            }
+        }
+        let jet = if T::HESS {
+            jet_lanes::<N, LANES, true>(poly, t, &lanes)
+        } else {
+            jet_lanes::<N, LANES, false>(poly, t, &lanes)
+        };
+        for (l, o) in ob.iter_mut().enumerate() {
+            *o = T::from_lanes(&jet, l);
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn blocks_avx2<const N: usize, T: FromLanes<N>>(
+    poly: &Polynomial<N>,
+    t: f64,
+    p: &[[f64; N]],
+    out: &mut [T],
+) {
+    blocks(poly, t, p, out);
+}
+
+#[inline]
+fn dispatch<const N: usize, T: FromLanes<N>>(
+    poly: &Polynomial<N>,
+    isa: Isa,
+    t: f64,
+    p: &[[f64; N]],
+    out: &mut [T],
+) {
+    assert_eq!(p.len(), out.len(), "one output per momentum");
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
+        // field is private: safe code cannot forge it).
+        unsafe { blocks_avx2(poly, t, p, out) };
+        return;
+    }
+    blocks(poly, t, p, out);
+}
+
+/// `out[j]` = [`Polynomial::jet`] at `p[j]`, bit for bit, evaluated in lanes compiled for `isa`.
+pub fn polynomial_jets<const N: usize>(
+    poly: &Polynomial<N>,
+    isa: Isa,
+    t: f64,
+    p: &[[f64; N]],
+    out: &mut [Jet2<N>],
+) {
+    dispatch(poly, isa, t, p, out);
+}
+
+/// `out[j]` = [`Polynomial::gradient`] at `p[j]`, bit for bit, evaluated in lanes compiled for
+/// `isa`.
+pub fn polynomial_gradients<const N: usize>(
+    poly: &Polynomial<N>,
+    isa: Isa,
+    t: f64,
+    p: &[[f64; N]],
+    out: &mut [Dual1<N>],
+) {
+    dispatch(poly, isa, t, p, out);
+}

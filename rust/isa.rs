@@ -1,0 +1,70 @@
+//! What SIMD code runs with: the lane width of a block ([`LANES`]) and the instruction set
+//! ([`Isa`]), detected once at run time. Every module with lane kernels (the classical lanes, the
+//! polynomial jets of a generating function, the so(3) Newton lanes) takes both from here.
+
+/// Lanes per block: 8 f64, two AVX2 registers (or four SSE2 ones) per coordinate, which gives the
+/// core independent chains to overlap; 4 was slower (see docs/performance.md).
+pub const LANES: usize = 8;
+
+/// The instruction set a block loop runs with, as a proof about this CPU: the portable baseline
+/// ([`Isa::PORTABLE`], which every CPU runs) or AVX2 with FMA, which only [`Isa::detect`] and
+/// [`Isa::avx2`] can return, and only where the CPU runs both. The field is private, so safe
+/// code cannot claim AVX2 on a CPU without it: the safe functions that take an `Isa`
+/// ([`crate::lanes::Lanes`], [`crate::generating::polynomial_lanes::polynomial_jets`], …) call
+/// code compiled for the features it names, which on a CPU without them would be undefined
+/// behaviour.
+///
+/// ```
+/// use poisson_rs::isa::Isa;
+/// let isa = Isa::detect();
+/// assert!(isa == Isa::PORTABLE || Isa::avx2() == Some(isa));
+/// ```
+///
+/// The AVX2 proof cannot be written by hand:
+///
+/// ```compile_fail
+/// use poisson_rs::isa::Isa;
+/// let forged = Isa { avx2: true };
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Isa {
+    /// AVX2 and FMA (x86-64 only; FMA is enabled but never contracted into, see
+    /// [`crate::lanes`]). True only where run-time detection found both.
+    avx2: bool,
+}
+
+impl Isa {
+    /// The target's baseline (SSE2 on x86-64): runs everywhere.
+    pub const PORTABLE: Isa = Isa { avx2: false };
+
+    /// AVX2 with FMA, where this CPU runs both; None elsewhere. With [`Isa::detect`], the only
+    /// way to obtain an `Isa` that claims them.
+    pub fn avx2() -> Option<Isa> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                return Some(Isa { avx2: true });
+            }
+        }
+        None
+    }
+
+    /// The widest instruction set this CPU runs.
+    pub fn detect() -> Isa {
+        Isa::avx2().unwrap_or(Isa::PORTABLE)
+    }
+
+    /// Whether this is the AVX2 proof: code compiled with `#[target_feature(enable =
+    /// "avx2,fma")]` may then run.
+    pub fn is_avx2(self) -> bool {
+        self.avx2
+    }
+
+    pub fn name(self) -> &'static str {
+        if self.avx2 {
+            "avx2+fma"
+        } else {
+            "portable"
+        }
+    }
+}

@@ -1,0 +1,182 @@
+//! A vector field in SIMD lanes ([`LaneField`]) and the implicit midpoint's Newton update on it
+//! ([`MidpointSolve`]), for one state or a block: the interface between a system's field and the
+//! classical steppers, scalar ([`crate::classical`]) or in lanes ([`crate::lanes`]).
+
+// Index loops over lanes and coordinates read as the formulas they evaluate.
+#![allow(clippy::needless_range_loop)]
+
+use nalgebra::{Const, DimMin, SMatrix, SVector};
+
+use crate::error::StepFailure;
+use crate::structures::lie_poisson::VectorField;
+
+/// A vector field evaluated on a block of L states at once.
+///
+/// `mu[i][l]` is coordinate i of lane l. An implementation must give each lane the same number,
+/// bit for bit, as the system's scalar field (the same operations in the same order), and no
+/// lane may depend on another: that is what keeps results independent of the chunking.
+pub trait LaneField<const N: usize>: Sync {
+    fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
+
+    /// ∂f/∂μ at L states (`out[r][c][l]`), where the field provides it (in straight-line form,
+    /// or lane by lane from its scalar formula); then the implicit midpoint solves its Newton
+    /// systems for all lanes at once ([`midpoint_update_lanes`]). The default has none and
+    /// returns false.
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        _mu: &[[f64; L]; N],
+        _out: &mut [[[f64; L]; N]; N],
+    ) -> bool {
+        false
+    }
+}
+
+/// The implicit midpoint's Newton updates (I − half J(m)) δ = −r at L states at once, for a field
+/// with a lane-wide Jacobian ([`LaneField::jacobian_lanes`]; returns false for one without):
+/// Gaussian elimination without pivoting in every lane, kept (`solved[l]`) where the lane's
+/// matrix is strictly diagonally dominant by rows (then no pivot vanishes and none is needed:
+/// the Schur complements stay dominant) and δ is finite. The other lanes take the LU with
+/// pivoting one by one. The scalar step of such a field runs this with L = 1
+/// ([`MidpointSolve`]), so a lane's choice and bits are its scalar step's.
+#[inline(always)]
+pub fn midpoint_update_lanes<const N: usize, const L: usize, F: LaneField<N>>(
+    f: &F,
+    half: f64,
+    m: &[[f64; L]; N],
+    r: &[[f64; L]; N],
+    delta: &mut [[f64; L]; N],
+    solved: &mut [bool; L],
+) -> bool {
+    let mut a = [[[0.0; L]; N]; N];
+    if !f.jacobian_lanes(m, &mut a) {
+        return false;
+    }
+    for i in 0..N {
+        for j in 0..N {
+            let d = if i == j { 1.0 } else { 0.0 };
+            for l in 0..L {
+                a[i][j][l] = d - half * a[i][j][l];
+            }
+        }
+    }
+    let mut ok = [true; L];
+    for i in 0..N {
+        let mut off = [0.0; L];
+        for j in 0..N {
+            if j != i {
+                for l in 0..L {
+                    off[l] += a[i][j][l].abs();
+                }
+            }
+        }
+        for l in 0..L {
+            // False for a NaN anywhere in the row.
+            ok[l] &= a[i][i][l].abs() > off[l];
+        }
+    }
+    let mut b = [[0.0; L]; N];
+    for i in 0..N {
+        for l in 0..L {
+            b[i][l] = -r[i][l];
+        }
+    }
+    let mut inv = [[0.0; L]; N];
+    for k in 0..N {
+        for l in 0..L {
+            inv[k][l] = 1.0 / a[k][k][l];
+        }
+        for i in k + 1..N {
+            let mut p = [0.0; L];
+            for l in 0..L {
+                p[l] = a[i][k][l] * inv[k][l];
+            }
+            for j in k + 1..N {
+                for l in 0..L {
+                    a[i][j][l] -= p[l] * a[k][j][l];
+                }
+            }
+            for l in 0..L {
+                b[i][l] -= p[l] * b[k][l];
+            }
+        }
+    }
+    for k in (0..N).rev() {
+        let mut s = b[k];
+        for j in k + 1..N {
+            for l in 0..L {
+                s[l] -= a[k][j][l] * delta[j][l];
+            }
+        }
+        for l in 0..L {
+            delta[k][l] = s[l] * inv[k][l];
+        }
+    }
+    for l in 0..L {
+        solved[l] = ok[l] && (0..N).all(|i| delta[i][l].is_finite());
+    }
+    true
+}
+
+/// The implicit midpoint's Newton update at the midpoint `m` with residual `r`: δ solving
+/// (I − half ∂f/∂μ(m)) δ = −r. Every lane field has it: [`midpoint_update_lanes`] on one lane,
+/// or where that lane needs pivoting (or the field has no lane-wide Jacobian) the LU of the
+/// exact Jacobian, so the scalar step takes each lane's choice and bits.
+pub trait MidpointSolve<const N: usize> {
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; N],
+        r: &[f64; N],
+    ) -> Result<[f64; N], StepFailure>
+    where
+        Const<N>: DimMin<Const<N>, Output = Const<N>>;
+}
+
+impl<const N: usize, F: LaneField<N> + VectorField<N>> MidpointSolve<N> for F {
+    #[inline(always)]
+    fn midpoint_update(
+        &self,
+        half: f64,
+        m: &[f64; N],
+        r: &[f64; N],
+    ) -> Result<[f64; N], StepFailure>
+    where
+        Const<N>: DimMin<Const<N>, Output = Const<N>>,
+    {
+        let mut delta = [[0.0; 1]; N];
+        let mut solved = [false];
+        midpoint_update_lanes(
+            self,
+            half,
+            &m.map(|v| [v]),
+            &r.map(|v| [v]),
+            &mut delta,
+            &mut solved,
+        );
+        if solved[0] {
+            Ok(delta.map(|v| v[0]))
+        } else {
+            newton_update(SMatrix::identity() - half * self.jacobian(m), r)
+        }
+    }
+}
+
+/// Solves J δ = −f for a Newton update; a singular or overflowing solve is a step failure.
+#[inline]
+pub(crate) fn newton_update<const N: usize>(
+    j: SMatrix<f64, N, N>,
+    f: &[f64; N],
+) -> Result<[f64; N], StepFailure>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    let d = j
+        .lu()
+        .solve(&SVector::<f64, N>::from_fn(|i, _| -f[i]))
+        .ok_or(StepFailure::SingularJacobian)?;
+    if !d.iter().all(|v| v.is_finite()) {
+        return Err(StepFailure::SingularJacobian);
+    }
+    Ok(std::array::from_fn(|i| d[i]))
+}

@@ -1,0 +1,312 @@
+//! The classical integrators of a log-canonical system: RK4 and the implicit midpoint rule in
+//! x, the exact splittings in q, and the orthant check of a stepper in q.
+
+// Index loops over small fixed-size vectors and matrices read as the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
+use nalgebra::{Const, DimMin, SMatrix, SVector};
+
+use super::{in_orthant, log_state_in_orthant, LogSystem};
+use crate::dual::{Dual1, Scalar};
+use crate::error::{CoreError, StepFailure};
+use crate::exp::{exp_lanes, EXP_MAX, EXP_MIN};
+use crate::lanes::LaneStepper;
+use crate::step::{NewtonOptions, StepMap, StepResult, StepStats};
+
+/// Classical integrators of a log-canonical system.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LogMethod {
+    /// Explicit RK4 in x; order 4, not Poisson.
+    Rk4,
+    /// Implicit midpoint in x, Newton with the exact Jacobian; order 2, not Poisson.
+    Midpoint,
+    /// Strang composition of the exact one-variable flows in q: H₁(h/2)…H_{n−1}(h/2) H_n(h)
+    /// H_{n−1}(h/2)…H₁(h/2); explicit, order 2, Poisson.
+    Splitting,
+    /// Suzuki's 5-stage composition (p, p, 1 − 4p, p, p) of that Strang step,
+    /// p = 1/(4 − 4^{1/3}); explicit, order 4, Poisson.
+    Splitting4,
+}
+
+impl LogMethod {
+    pub fn from_name(name: &str) -> Result<Self, CoreError> {
+        match name {
+            "rk4" => Ok(LogMethod::Rk4),
+            "midpoint" => Ok(LogMethod::Midpoint),
+            "log_splitting" => Ok(LogMethod::Splitting),
+            "log_splitting4" => Ok(LogMethod::Splitting4),
+            _ => Err(CoreError::Invalid(format!(
+                "unknown log-canonical integrator {name:?}; valid: rk4, midpoint, log_splitting, \
+                 log_splitting4"
+            ))),
+        }
+    }
+
+    /// Whether the state is q = ln x (the splittings) rather than x.
+    pub fn in_log(self) -> bool {
+        matches!(self, LogMethod::Splitting | LogMethod::Splitting4)
+    }
+}
+
+/// A classical stepper of a log-canonical system.
+#[derive(Clone, Debug)]
+pub struct LogClassical<const N: usize> {
+    pub method: LogMethod,
+    pub system: LogSystem<N>,
+    pub newton: NewtonOptions,
+    /// (variable, exponent, coefficient) of each monomial, for the splittings.
+    parts: Vec<(usize, u32, f64)>,
+}
+
+/// Suzuki's weight p = 1/(4 − 4^{1/3}).
+fn suzuki_p() -> f64 {
+    1.0 / (4.0 - 4f64.powf(1.0 / 3.0))
+}
+
+/// A stepper in q whose every step is checked to keep x = e^q in the open orthant (finite,
+/// > 0 in float64): a step that leaves it is a failure, never a silent 0 or ∞.
+#[derive(Clone, Debug)]
+pub struct OrthantChecked<S>(pub S);
+
+impl<const N: usize, S: StepMap<N>> StepMap<N> for OrthantChecked<S> {
+    type Workspace = S::Workspace;
+    fn workspace(&self) -> S::Workspace {
+        self.0.workspace()
+    }
+    fn step(&self, h: f64, q: &mut [f64; N], ws: &mut S::Workspace) -> StepResult {
+        let stats = self.0.step(h, q, ws)?;
+        log_state_in_orthant(q)?;
+        Ok(stats)
+    }
+}
+
+impl<const N: usize> LogClassical<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    pub fn new(
+        method: LogMethod,
+        system: LogSystem<N>,
+        newton: NewtonOptions,
+    ) -> Result<Self, CoreError> {
+        let parts = if method.in_log() {
+            system.separable().ok_or_else(|| {
+                CoreError::Invalid(
+                    "the log splittings need a separable Hamiltonian (every monomial in one \
+                     variable)"
+                        .into(),
+                )
+            })?
+        } else {
+            Vec::new()
+        };
+        Ok(LogClassical {
+            method,
+            system,
+            newton,
+            parts,
+        })
+    }
+
+    /// The exact flow of H_i for time t at L states: q_j += t c_ji H_i'(q_i).
+    #[inline(always)]
+    fn flow_lanes<const L: usize>(&self, i: usize, t: f64, q: &mut [[f64; L]; N]) {
+        let mut d = [-self.system.b[i]; L];
+        for &(v, e, a) in &self.parts {
+            if v == i {
+                let ef = f64::from(e);
+                let arg: [f64; L] = std::array::from_fn(|l| ef * q[i][l]);
+                let mut y = [0.0; L];
+                exp_lanes(&arg, &mut y);
+                for l in 0..L {
+                    d[l] += a * ef * y[l];
+                }
+            }
+        }
+        let c = self.system.structure.c();
+        for j in 0..N {
+            let w = t * c[j][i];
+            for l in 0..L {
+                q[j][l] += w * d[l];
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn strang_lanes<const L: usize>(&self, h: f64, q: &mut [[f64; L]; N]) {
+        for i in 0..N - 1 {
+            self.flow_lanes(i, 0.5 * h, q);
+        }
+        self.flow_lanes(N - 1, h, q);
+        for i in (0..N - 1).rev() {
+            self.flow_lanes(i, 0.5 * h, q);
+        }
+    }
+
+    #[inline(always)]
+    fn rk4_lanes<const L: usize>(&self, h: f64, x: &mut [[f64; L]; N]) {
+        let f = |y: &[[f64; L]; N]| {
+            let mut out = [[0.0; L]; N];
+            self.system.field_lanes(y, &mut out);
+            out
+        };
+        let at = |k: &[[f64; L]; N], w: f64| -> [[f64; L]; N] {
+            std::array::from_fn(|i| std::array::from_fn(|l| x[i][l] + w * k[i][l]))
+        };
+        let k1 = f(x);
+        let k2 = f(&at(&k1, 0.5 * h));
+        let k3 = f(&at(&k2, 0.5 * h));
+        let k4 = f(&at(&k3, h));
+        for i in 0..N {
+            for l in 0..L {
+                x[i][l] += h / 6.0 * (k1[i][l] + 2.0 * k2[i][l] + 2.0 * k3[i][l] + k4[i][l]);
+            }
+        }
+    }
+
+    /// One step of an explicit method (RK4 or a log splitting) at L states, lane by lane; the
+    /// scalar step is this with L = 1. The midpoint rule is not explicit: nothing is done.
+    #[inline(always)]
+    fn step_explicit_lanes<const L: usize>(&self, h: f64, s: &mut [[f64; L]; N]) {
+        match self.method {
+            LogMethod::Rk4 => self.rk4_lanes(h, s),
+            LogMethod::Splitting => self.strang_lanes(h, s),
+            LogMethod::Splitting4 => {
+                let p = suzuki_p();
+                for w in [p, p, 1.0 - 4.0 * p, p, p] {
+                    self.strang_lanes(w * h, s);
+                }
+            }
+            LogMethod::Midpoint => {}
+        }
+    }
+
+    /// This stepper in SIMD lanes, for the explicit methods (None for the midpoint rule).
+    pub fn explicit(&self) -> Option<LogExplicit<'_, N>> {
+        (self.method != LogMethod::Midpoint).then_some(LogExplicit(self))
+    }
+
+    /// The scalar step's check: x in the open orthant, or q with e^q in it.
+    fn domain(&self, s: &[f64; N]) -> Result<(), StepFailure> {
+        if self.method.in_log() {
+            log_state_in_orthant(s)
+        } else {
+            in_orthant(s)
+        }
+    }
+
+    /// z = x + h f((x + z)/2) by Newton from z = x + h f(x).
+    fn midpoint(&self, h: f64, x: &mut [f64; N]) -> StepResult {
+        let x0 = *x;
+        let f0 = self.system.vector_field(&x0);
+        let mut z: [f64; N] = std::array::from_fn(|i| x0[i] + h * f0[i]);
+        let mut iterations = 0;
+        loop {
+            if iterations >= self.newton.max_iter {
+                return Err(StepFailure::NotConverged);
+            }
+            let m: [Dual1<N>; N] = std::array::from_fn(|i| {
+                let mut d = Dual1::var(0.5 * (x0[i] + z[i]), i);
+                d.g[i] = 0.5;
+                d
+            });
+            let fm = self.system.vector_field(&m);
+            let jac =
+                SMatrix::<f64, N, N>::from_fn(|r, c| f64::from(u8::from(r == c)) - h * fm[r].g[c]);
+            let res = SVector::<f64, N>::from_fn(|i, _| x0[i] + h * fm[i].v - z[i]);
+            let delta = jac.lu().solve(&res).ok_or(StepFailure::SingularJacobian)?;
+            if !delta.iter().all(|d| d.is_finite()) {
+                return Err(StepFailure::NonFinite);
+            }
+            for i in 0..N {
+                z[i] += delta[i];
+            }
+            iterations += 1;
+            let scale = z.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-300);
+            if delta.amax() <= self.newton.tol * scale {
+                let fm = self
+                    .system
+                    .vector_field(&std::array::from_fn(|i| 0.5 * (x0[i] + z[i])));
+                let residual = (0..N)
+                    .map(|i| (x0[i] + h * fm[i] - z[i]).abs())
+                    .fold(0.0, f64::max);
+                *x = z;
+                return Ok(StepStats {
+                    iterations,
+                    residual,
+                });
+            }
+        }
+    }
+}
+
+impl<const N: usize> StepMap<N> for LogClassical<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    type Workspace = ();
+
+    fn workspace(&self) {}
+
+    fn step(&self, h: f64, s: &mut [f64; N], _: &mut ()) -> StepResult {
+        let mut stats = StepStats::default();
+        if self.method == LogMethod::Midpoint {
+            stats = self.midpoint(h, s)?;
+        } else {
+            let mut lane: [[f64; 1]; N] = s.map(|v| [v]);
+            self.step_explicit_lanes(h, &mut lane);
+            *s = lane.map(|v| v[0]);
+        }
+        self.domain(s)?;
+        Ok(stats)
+    }
+}
+
+/// An explicit [`LogClassical`] (RK4 in x, or a log splitting in q) as a [`LaneStepper`]:
+/// blocks of trajectories step in SIMD lanes, each lane with the scalar step's bits and its
+/// orthant check.
+pub struct LogExplicit<'a, const N: usize>(&'a LogClassical<N>);
+
+impl<const N: usize> StepMap<N> for LogExplicit<'_, N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    type Workspace = ();
+    fn workspace(&self) {}
+    fn step(&self, h: f64, s: &mut [f64; N], ws: &mut ()) -> StepResult {
+        self.0.step(h, s, ws)
+    }
+}
+
+impl<const N: usize> LaneStepper<N> for LogExplicit<'_, N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    const CHECKS_DOMAIN: bool = true;
+
+    #[inline(always)]
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
+        self.0.step_explicit_lanes(h, mu);
+    }
+
+    #[inline(always)]
+    fn maybe_outside_lanes<const L: usize>(&self, mu: &[[f64; L]; N], flag: &mut [bool; L]) {
+        // In q: e^q can reach 0 or ∞ only outside exp's vectorised range. In x: x ≤ 0 (NaN
+        // flags too; the block loop has already sent non-finite lanes to NonFinite).
+        let in_log = self.0.method.in_log();
+        for coordinate in mu {
+            for l in 0..L {
+                let v = coordinate[l];
+                flag[l] |= if in_log {
+                    !(EXP_MIN..=EXP_MAX).contains(&v)
+                } else {
+                    v <= 0.0 || v.is_nan()
+                };
+            }
+        }
+    }
+
+    fn domain(&self, state: &[f64; N]) -> Result<(), StepFailure> {
+        self.0.domain(state)
+    }
+}

@@ -1,0 +1,64 @@
+//! Log-canonical structures π_ij(x) = c_ij x_i x_j on the positive orthant.
+//!
+//! In q = ln x the bracket is the constant antisymmetric matrix c and the exact symplectic
+//! groupoid is linear: with P_j = x_j p_j, sou = β(q, P) = q − ½ c P and tar = α(q, P) = q + ½ c P.
+//! Hamiltonians are log-polynomials H = Σ_m a_m e^{e_m·q} − b·q, so every Hamilton–Jacobi Taylor
+//! term S_k (k ≥ 2) is a polynomial in y = e^q ([`ExpPolynomial`]).
+//!
+//! Coordinates: the bisection stepper and the splittings work in q (a step never leaves the
+//! orthant, only overflows); RK4 and the implicit midpoint rule work in x, where a step can leave
+//! the orthant, which is a [`StepFailure::OutOfDomain`].
+
+// Index loops over small fixed-size vectors and matrices read as the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
+mod classical;
+mod learned;
+mod structure;
+mod taylor;
+
+pub use classical::{LogClassical, LogExplicit, LogMethod, OrthantChecked};
+pub use learned::{LearnedExp, LearnedLogBisection};
+pub use structure::{LogCanonical, LogSystem, MAX_HAMILTONIAN_EXPONENT};
+pub use taylor::{ExpMonomial, ExpPolynomial, LogBisection, LogTaylorLanes, MAX_EXPONENT};
+
+use crate::error::StepFailure;
+
+/// x^e at L lanes by binary powering: the same multiplications for every lane (e is the
+/// term's, not the lane's), the loop over e's bits outside the lanes so that they vectorise.
+#[inline(always)]
+pub(super) fn pow_lanes<const L: usize>(x: &[f64; L], mut e: u32) -> [f64; L] {
+    let (mut base, mut acc) = (*x, [1.0; L]);
+    loop {
+        if e & 1 == 1 {
+            for l in 0..L {
+                acc[l] *= base[l];
+            }
+        }
+        e >>= 1;
+        if e == 0 {
+            return acc;
+        }
+        for l in 0..L {
+            base[l] *= base[l];
+        }
+    }
+}
+
+pub(super) fn in_orthant<const N: usize>(x: &[f64; N]) -> Result<(), StepFailure> {
+    if x.iter().any(|v| !v.is_finite()) {
+        Err(StepFailure::NonFinite)
+    } else if x.iter().any(|&v| v <= 0.0) {
+        Err(StepFailure::OutOfDomain)
+    } else {
+        Ok(())
+    }
+}
+
+/// q must stay finite and x = e^q representable (neither 0 nor ∞).
+pub(super) fn log_state_in_orthant<const N: usize>(q: &[f64; N]) -> Result<(), StepFailure> {
+    if q.iter().any(|v| !v.is_finite()) {
+        return Err(StepFailure::NonFinite);
+    }
+    in_orthant(&q.map(f64::exp))
+}

@@ -1,0 +1,213 @@
+//! The log-canonical structure c as a realization (the linear groupoid in q = ln x), and a
+//! system on it: c with a log-polynomial Hamiltonian.
+
+// Index loops over small fixed-size vectors and matrices read as the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
+use super::pow_lanes;
+use crate::dual::Scalar;
+use crate::error::{CoreError, StepFailure};
+use crate::realization::Realization;
+use crate::stepper::So3Lanes;
+
+/// The structure matrix c of π_ij = c_ij x_i x_j: finite and antisymmetric.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LogCanonical<const N: usize> {
+    c: [[f64; N]; N],
+}
+
+impl<const N: usize> LogCanonical<N> {
+    pub fn new(c: [[f64; N]; N]) -> Result<Self, CoreError> {
+        for i in 0..N {
+            for j in 0..N {
+                if !c[i][j].is_finite() || c[i][j] != -c[j][i] {
+                    return Err(CoreError::Invalid(format!(
+                        "c must be finite and antisymmetric: c[{i}][{j}] = {}, c[{j}][{i}] = {}",
+                        c[i][j], c[j][i]
+                    )));
+                }
+            }
+        }
+        Ok(LogCanonical { c })
+    }
+
+    pub fn c(&self) -> &[[f64; N]; N] {
+        &self.c
+    }
+
+    /// q ± ½ c P.
+    #[inline(always)]
+    fn shift<T: Scalar>(&self, x: &[T; N], p: &[T; N], sign: f64) -> [T; N] {
+        std::array::from_fn(|i| {
+            let mut acc = p[i];
+            for j in 0..N {
+                if self.c[i][j] != 0.0 {
+                    acc.add_scaled(&x[j], 0.5 * sign * self.c[i][j]);
+                }
+            }
+            acc
+        })
+    }
+}
+
+/// Not an so(3) chart: the bisection stepper takes its generic Newton path here.
+impl<const N: usize> So3Lanes<N> for LogCanonical<N> {}
+
+/// In log coordinates: fibre x = P, base p = q.
+impl<const N: usize> Realization<N> for LogCanonical<N> {
+    #[inline]
+    fn sou<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
+        Ok(self.shift(x, p, -1.0))
+    }
+    #[inline]
+    fn tar<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
+        Ok(self.shift(x, p, 1.0))
+    }
+    /// sou = tar − c P, so q_{k+1} = q_k − c P: k·q is kept for every k with kᵀc = 0 whatever
+    /// Newton's residual (which sou(P, q) would carry into the Casimirs, one-sided from step to
+    /// step).
+    #[inline]
+    fn sou_after_solve(
+        &self,
+        x: &[f64; N],
+        _p: &[f64; N],
+        target: &[f64; N],
+    ) -> Result<[f64; N], StepFailure> {
+        Ok(std::array::from_fn(|i| {
+            let mut acc = target[i];
+            for j in 0..N {
+                acc -= self.c[i][j] * x[j];
+            }
+            acc
+        }))
+    }
+}
+
+/// A log-canonical system: the structure c and H = Σ_m a_m x^{e_m} − Σ_i b_i ln x_i
+/// (exponents ≥ 0), ẋ_i = x_i Σ_j c_ij (x_j ∂H/∂x_j) = x_i Σ_j c_ij (Σ_m a_m e_mj x^{e_m} − b_j).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LogSystem<const N: usize> {
+    pub structure: LogCanonical<N>,
+    terms: Vec<([u32; N], f64)>,
+    pub(super) b: [f64; N],
+}
+
+/// Largest exponent of a Hamiltonian monomial.
+pub const MAX_HAMILTONIAN_EXPONENT: u32 = 16;
+
+impl<const N: usize> LogSystem<N> {
+    pub fn new(
+        structure: LogCanonical<N>,
+        terms: Vec<([u32; N], f64)>,
+        b: [f64; N],
+    ) -> Result<Self, CoreError> {
+        if let Some((e, a)) = terms.iter().find(|(e, a)| {
+            !a.is_finite()
+                || e.iter().any(|&k| k > MAX_HAMILTONIAN_EXPONENT)
+                || e.iter().all(|&k| k == 0)
+        }) {
+            return Err(CoreError::Invalid(format!(
+                "Hamiltonian term {a} x^{e:?} needs a finite coefficient and exponents in \
+                 0..={MAX_HAMILTONIAN_EXPONENT}, not all zero"
+            )));
+        }
+        if b.iter().any(|v| !v.is_finite()) {
+            return Err(CoreError::Invalid("b must be finite".into()));
+        }
+        Ok(LogSystem {
+            structure,
+            terms,
+            b,
+        })
+    }
+
+    /// x_j ∂H/∂x_j = ∂H/∂q_j, a polynomial in x.
+    #[inline]
+    fn log_gradient<T: Scalar>(&self, x: &[T; N]) -> [T; N] {
+        let mut g: [T; N] = std::array::from_fn(|j| T::cst(-self.b[j]));
+        for (e, a) in &self.terms {
+            let mut m = T::cst(*a);
+            for i in 0..N {
+                if e[i] > 0 {
+                    m = m * x[i].powi(e[i] as i32);
+                }
+            }
+            for j in 0..N {
+                if e[j] > 0 {
+                    g[j].add_scaled(&m, f64::from(e[j]));
+                }
+            }
+        }
+        g
+    }
+
+    /// ẋ = π(x)∇H(x), for any scalar.
+    pub fn vector_field<T: Scalar>(&self, x: &[T; N]) -> [T; N] {
+        let g = self.log_gradient(x);
+        let c = self.structure.c();
+        std::array::from_fn(|i| {
+            let mut acc = T::cst(0.0);
+            for j in 0..N {
+                if c[i][j] != 0.0 {
+                    acc.add_scaled(&g[j], c[i][j]);
+                }
+            }
+            x[i] * acc
+        })
+    }
+
+    /// [`LogSystem::vector_field`] at L states, lane by lane: the explicit steppers' field
+    /// (RK4 takes it for one trajectory too, with L = 1, so every lane has the scalar bits).
+    #[inline(always)]
+    pub(super) fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        let mut g: [[f64; L]; N] = std::array::from_fn(|j| [-self.b[j]; L]);
+        for (e, a) in &self.terms {
+            let mut m = [*a; L];
+            for i in 0..N {
+                if e[i] > 0 {
+                    let power = pow_lanes(&x[i], e[i]);
+                    for l in 0..L {
+                        m[l] *= power[l];
+                    }
+                }
+            }
+            for j in 0..N {
+                if e[j] > 0 {
+                    let ej = f64::from(e[j]);
+                    for l in 0..L {
+                        g[j][l] += m[l] * ej;
+                    }
+                }
+            }
+        }
+        let c = self.structure.c();
+        for i in 0..N {
+            let mut acc = [0.0; L];
+            for j in 0..N {
+                if c[i][j] != 0.0 {
+                    for l in 0..L {
+                        acc[l] += g[j][l] * c[i][j];
+                    }
+                }
+            }
+            for l in 0..L {
+                out[i][l] = x[i][l] * acc[l];
+            }
+        }
+    }
+
+    /// H' of the one-variable parts: the flow of H_i(q_i) = Σ_{m ∈ i} a_m e^{e_mi q_i} − b_i q_i
+    /// is q_j += t c_ji H_i'(q_i) (q_i fixed since c_ii = 0). None unless H is separable (every
+    /// monomial in one variable).
+    pub(super) fn separable(&self) -> Option<Vec<(usize, u32, f64)>> {
+        let mut parts = Vec::with_capacity(self.terms.len());
+        for (e, a) in &self.terms {
+            let vars: Vec<usize> = (0..N).filter(|&i| e[i] > 0).collect();
+            if vars.len() != 1 {
+                return None;
+            }
+            parts.push((vars[0], e[vars[0]], *a));
+        }
+        Some(parts)
+    }
+}

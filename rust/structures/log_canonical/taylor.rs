@@ -1,0 +1,396 @@
+//! Taylor-HJ on the log-canonical groupoid: generating functions that are polynomials in
+//! y = e^q ([`ExpPolynomial`]), their bisection integrator, and its Newton solves in SIMD lanes.
+
+// Index loops over small fixed-size vectors and matrices read as the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
+use super::{log_state_in_orthant, pow_lanes, LogCanonical};
+use crate::dual::{Dual1, Jet2, Scalar};
+use crate::error::{CoreError, StepFailure};
+use crate::exp::exp_lanes;
+use crate::lanes::LaneStepper;
+use crate::realization::{Generating, Realization, RealizationStepper};
+use crate::step::{StepMap, StepResult, StepStats};
+
+/// One term c · t^k · e^{e·q} = c t^k y^e.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExpMonomial<const N: usize> {
+    pub t_power: u32,
+    pub exponents: [i32; N],
+    pub coeff: f64,
+}
+
+/// S(t, q) = Σ c t^k y^e + t · (linear · q): the Taylor-HJ generating function of a log-canonical
+/// system (the linear part is S₁'s −(−b·q)).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExpPolynomial<const N: usize> {
+    terms: Vec<ExpMonomial<N>>,
+    linear: [f64; N],
+}
+
+/// Largest |exponent| of a term.
+pub const MAX_EXPONENT: i32 = 256;
+
+impl<const N: usize> ExpPolynomial<N> {
+    pub fn new(terms: Vec<ExpMonomial<N>>, linear: [f64; N]) -> Result<Self, CoreError> {
+        if let Some(m) = terms
+            .iter()
+            .find(|m| !m.coeff.is_finite() || m.exponents.iter().any(|e| e.abs() > MAX_EXPONENT))
+        {
+            return Err(CoreError::Invalid(format!(
+                "generating term {m:?} has a non-finite coefficient or an exponent over \
+                 {MAX_EXPONENT}"
+            )));
+        }
+        if linear.iter().any(|v| !v.is_finite()) {
+            return Err(CoreError::Invalid("linear part must be finite".into()));
+        }
+        Ok(ExpPolynomial { terms, linear })
+    }
+
+    /// S(t, ·) at q with its q-gradient and q-Hessian, in closed form: ∂/∂q_i y^e = e_i y^e.
+    pub fn jet_at(&self, t: f64, q: &[f64; N]) -> Jet2<N> {
+        let y: [f64; N] = std::array::from_fn(|i| q[i].exp());
+        let mut out = Jet2::<N>::default();
+        for m in &self.terms {
+            let mut w = m.coeff * t.powi(m.t_power as i32);
+            for i in 0..N {
+                if m.exponents[i] != 0 {
+                    w *= y[i].powi(m.exponents[i]);
+                }
+            }
+            out.v += w;
+            let e = m.exponents.map(f64::from);
+            for i in 0..N {
+                out.g[i] += w * e[i];
+            }
+            let packed = out.packed_mut();
+            let mut k = 0;
+            for a in 0..N {
+                for b in a..N {
+                    packed[k] += w * e[a] * e[b];
+                    k += 1;
+                }
+            }
+        }
+        for i in 0..N {
+            out.v += t * self.linear[i] * q[i];
+            out.g[i] += t * self.linear[i];
+        }
+        out
+    }
+}
+
+impl<const N: usize> Generating<N> for ExpPolynomial<N> {
+    type Workspace = ();
+    fn workspace(&self) {}
+    fn jet(&self, t: f64, p: &[f64; N], _: &mut ()) -> Jet2<N> {
+        self.jet_at(t, p)
+    }
+    fn gradient(&self, t: f64, p: &[f64; N], _: &mut ()) -> Dual1<N> {
+        let j = self.jet_at(t, p);
+        Dual1 { v: j.v, g: j.g }
+    }
+}
+
+/// The Taylor-HJ (or any [`ExpPolynomial`]) bisection integrator of a log-canonical structure,
+/// state q = ln x.
+pub type LogBisection<const N: usize> = RealizationStepper<N, LogCanonical<N>, ExpPolynomial<N>>;
+
+/// Powers y⁰ … y^POWER_TABLE of each coordinate of a generating function's evaluation, lane by
+/// lane; larger exponents take [`pow_lanes`].
+const POWER_TABLE: usize = 8;
+
+impl<const N: usize> ExpPolynomial<N> {
+    /// ∇S(t, ·) at L points q, and with `HESS` its Hessian (`hs[a][b][l]`, both triangles),
+    /// lane by lane: y = e^q once per coordinate, each term's y^e by binary powering.
+    #[inline(always)]
+    fn derivatives_lanes<const L: usize, const HESS: bool>(
+        &self,
+        t: f64,
+        t_powers: &[f64; T_POWERS],
+        q: &[[f64; L]; N],
+        g: &mut [[f64; L]; N],
+        hs: &mut [[[f64; L]; N]; N],
+    ) {
+        // pw[i][k] = y_i^k for k ≤ POWER_TABLE, y = e^q, by successive products.
+        let mut pw = [[[1.0; L]; POWER_TABLE + 1]; N];
+        for i in 0..N {
+            exp_lanes(&q[i], &mut pw[i][1]);
+            for k in 2..=POWER_TABLE {
+                for l in 0..L {
+                    pw[i][k][l] = pw[i][k - 1][l] * pw[i][1][l];
+                }
+            }
+        }
+        *g = [[0.0; L]; N];
+        if HESS {
+            *hs = [[[0.0; L]; N]; N];
+        }
+        for m in &self.terms {
+            let tk = t_powers
+                .get(m.t_power as usize)
+                .copied()
+                .unwrap_or_else(|| t.powi(m.t_power as i32));
+            let mut w = [m.coeff * tk; L];
+            for i in 0..N {
+                // The exponent is the term's, not the lane's: one loop per case, so no lane
+                // divides for a positive exponent.
+                let e = m.exponents[i];
+                let k = e.unsigned_abs() as usize;
+                if e == 0 {
+                    continue;
+                }
+                let power = if k <= POWER_TABLE {
+                    pw[i][k]
+                } else {
+                    pow_lanes(&pw[i][1], e.unsigned_abs())
+                };
+                if e > 0 {
+                    for l in 0..L {
+                        w[l] *= power[l];
+                    }
+                } else {
+                    for l in 0..L {
+                        w[l] *= 1.0 / power[l];
+                    }
+                }
+            }
+            let e = m.exponents.map(f64::from);
+            for a in 0..N {
+                if e[a] == 0.0 {
+                    continue;
+                }
+                for l in 0..L {
+                    g[a][l] += w[l] * e[a];
+                }
+                if HESS {
+                    for b in a..N {
+                        let eab = e[a] * e[b];
+                        if eab != 0.0 {
+                            for l in 0..L {
+                                hs[a][b][l] += w[l] * eab;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        for i in 0..N {
+            let lt = t * self.linear[i];
+            for l in 0..L {
+                g[i][l] += lt;
+            }
+        }
+        if HESS {
+            for a in 0..N {
+                for b in 0..a {
+                    hs[a][b] = hs[b][a];
+                }
+            }
+        }
+    }
+}
+
+/// t⁰ … t^(T_POWERS − 1), computed once a step (larger powers of t take `powi`).
+const T_POWERS: usize = 16;
+
+/// The table of powers of t that [`ExpPolynomial::derivatives_lanes`] reads.
+#[inline(always)]
+fn t_power_table(t: f64) -> [f64; T_POWERS] {
+    let mut table = [1.0; T_POWERS];
+    for k in 1..T_POWERS {
+        table[k] = table[k - 1] * t;
+    }
+    table
+}
+
+/// δ = J⁻¹ f at L lanes by cofactors (N = 2 or 3); `ok[l]` is false where det J is 0 or not
+/// finite.
+#[inline(always)]
+fn solve_small_lanes<const N: usize, const L: usize>(
+    j: &[[[f64; L]; N]; N],
+    f: &[[f64; L]; N],
+    delta: &mut [[f64; L]; N],
+    ok: &mut [bool; L],
+) {
+    debug_assert!(N == 2 || N == 3, "cofactor solves are for N = 2 and 3");
+    for l in 0..L {
+        let m: [[f64; N]; N] = std::array::from_fn(|r| std::array::from_fn(|c| j[r][c][l]));
+        let (adj, det): ([[f64; N]; N], f64) = if N == 2 {
+            let adj = [[m[1][1], -m[0][1]], [-m[1][0], m[0][0]]];
+            (
+                std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
+                m[0][0] * m[1][1] - m[0][1] * m[1][0],
+            )
+        } else {
+            let m3: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]));
+            let (adj, det) = crate::step::adjugate3(&m3);
+            (
+                std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
+                det,
+            )
+        };
+        ok[l] = det != 0.0 && det.is_finite();
+        let r = 1.0 / det;
+        for a in 0..N {
+            let mut acc = 0.0;
+            for b in 0..N {
+                acc += adj[a][b] * f[b][l];
+            }
+            delta[a][l] = acc * r;
+        }
+    }
+}
+
+/// Taylor-HJ on the log-canonical groupoid ([`LogBisection`] of an [`ExpPolynomial`], with the
+/// orthant check of [`OrthantChecked`](super::OrthantChecked)) in SIMD lanes, for N = 2 and 3:
+/// the Newton solve of q + ½c∇S(q) = q_k runs lane by lane (exact gradient and Hessian of S
+/// from y = e^q, the cofactor inverse of J = I + ½c∇²S, masked convergence), then
+/// q_{k+1} = q_k − c∇S(q) (the same as q − ½c∇S(q) at the solution, and exactly
+/// Casimir-preserving at any iterate). The scalar step is this with one lane, so every lane has
+/// the scalar bits.
+pub struct LogTaylorLanes<'a, const N: usize>(&'a LogBisection<N>);
+
+impl<const N: usize> LogBisection<N> {
+    /// This stepper in SIMD lanes, for N = 2 and 3 (None otherwise).
+    pub fn lanes(&self) -> Option<LogTaylorLanes<'_, N>> {
+        (N == 2 || N == 3).then_some(LogTaylorLanes(self))
+    }
+}
+
+impl<const N: usize> LaneStepper<N> for LogTaylorLanes<'_, N> {
+    const REPORTS: bool = true;
+
+    #[inline(always)]
+    fn step_lanes_reporting<const L: usize>(
+        &self,
+        h: f64,
+        mu: &mut [[f64; L]; N],
+        live: &[bool; L],
+        result: &mut [StepResult; L],
+    ) {
+        let s = self.0;
+        let c = s.realization.c();
+        let half_c: [[f64; N]; N] = std::array::from_fn(|i| c[i].map(|v| 0.5 * v));
+        let (tol, max_iter) = (s.newton.tol, s.newton.max_iter);
+        let t_powers = t_power_table(h);
+        let target = *mu;
+        let mut p = target;
+        let mut active = *live;
+        let mut converged = [false; L];
+        let mut iterations = [0u32; L];
+        let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
+        while active.contains(&true) {
+            s.generating
+                .derivatives_lanes::<L, true>(h, &t_powers, &p, &mut g, &mut hs);
+            // f = q_k − (q + ½c∇S), J = I + ½c∇²S.
+            let mut f = [[0.0; L]; N];
+            let mut j = [[[0.0; L]; N]; N];
+            for i in 0..N {
+                for l in 0..L {
+                    let mut tar = p[i][l];
+                    for k in 0..N {
+                        tar += half_c[i][k] * g[k][l];
+                    }
+                    f[i][l] = target[i][l] - tar;
+                }
+                for r in 0..N {
+                    for l in 0..L {
+                        let mut acc = if i == r { 1.0 } else { 0.0 };
+                        for k in 0..N {
+                            acc += half_c[i][k] * hs[k][r][l];
+                        }
+                        j[i][r][l] = acc;
+                    }
+                }
+            }
+            let mut delta = [[0.0; L]; N];
+            let mut solvable = [true; L];
+            solve_small_lanes(&j, &f, &mut delta, &mut solvable);
+            for l in 0..L {
+                if !active[l] {
+                    continue;
+                }
+                let finite =
+                    (0..N).all(|a| g[a][l].is_finite() && (0..N).all(|b| hs[a][b][l].is_finite()));
+                let failure = if !finite {
+                    Some(StepFailure::NonFinite)
+                } else if iterations[l] >= max_iter {
+                    Some(StepFailure::NotConverged)
+                } else if !solvable[l] || !(0..N).all(|a| delta[a][l].is_finite()) {
+                    Some(StepFailure::SingularJacobian)
+                } else {
+                    None
+                };
+                if let Some(failure) = failure {
+                    result[l] = Err(failure);
+                    active[l] = false;
+                    continue;
+                }
+                let (mut dmax, mut pmax) = (0.0f64, 0.0f64);
+                for a in 0..N {
+                    p[a][l] += delta[a][l];
+                    dmax = dmax.max(delta[a][l].abs());
+                    pmax = pmax.max(p[a][l].abs());
+                }
+                iterations[l] += 1;
+                if dmax <= tol * pmax.max(s.scale_floor) {
+                    active[l] = false;
+                    converged[l] = true;
+                }
+            }
+        }
+        s.generating
+            .derivatives_lanes::<L, false>(h, &t_powers, &p, &mut g, &mut hs);
+        for l in 0..L {
+            if !converged[l] {
+                continue;
+            }
+            if !(0..N).all(|a| g[a][l].is_finite()) {
+                result[l] = Err(StepFailure::NonFinite);
+                continue;
+            }
+            let (gl, pl, tl): ([f64; N], [f64; N], [f64; N]) = (
+                std::array::from_fn(|i| g[i][l]),
+                std::array::from_fn(|i| p[i][l]),
+                std::array::from_fn(|i| target[i][l]),
+            );
+            let mut residual = 0.0f64;
+            for i in 0..N {
+                let mut tar = pl[i];
+                for k in 0..N {
+                    tar += half_c[i][k] * gl[k];
+                }
+                residual = residual.max((tar - tl[i]).abs());
+            }
+            // q_k − c∇S rather than q − ½c∇S: Newton's residual stays out of the Casimirs.
+            let out = match s.realization.sou_after_solve(&gl, &pl, &tl) {
+                Ok(out) => out,
+                Err(e) => {
+                    result[l] = Err(e);
+                    continue;
+                }
+            };
+            for i in 0..N {
+                mu[i][l] = out[i];
+            }
+            result[l] = log_state_in_orthant(&out).map(|()| StepStats {
+                iterations: iterations[l],
+                residual,
+            });
+        }
+    }
+}
+
+impl<const N: usize> StepMap<N> for LogTaylorLanes<'_, N> {
+    type Workspace = ();
+    fn workspace(&self) {}
+    fn step(&self, h: f64, q: &mut [f64; N], _: &mut ()) -> StepResult {
+        let mut lane: [[f64; 1]; N] = q.map(|v| [v]);
+        let mut result = [Ok(StepStats::default())];
+        self.step_lanes_reporting(h, &mut lane, &[true], &mut result);
+        *q = lane.map(|v| v[0]);
+        result[0]
+    }
+}
