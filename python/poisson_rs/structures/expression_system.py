@@ -33,6 +33,9 @@ FloatArray = NDArray[np.float64]
 
 #: Highest Taylor order by jets (the core's ``MAX_JET_ORDER``).
 MAX_JET_ORDER = 8
+#: Highest order the studies (demo, chart, select) run by default: a jet step costs about 10×
+#: more per two orders (docs/hamiltonians.md).
+STUDY_JET_ORDER = 3
 #: The classical methods on the field: (order, Poisson map).
 FIELD_METHODS: dict[str, tuple[int, bool]] = {
     "rk4": (4, False),
@@ -162,7 +165,10 @@ class ExpressionSystem(PoissonSystemBase):
         return ("jets",)
 
     def taylor_orders(self, wanted: Sequence[int]) -> tuple[int, ...]:
-        return tuple(m for m in wanted if 1 <= m <= MAX_JET_ORDER)
+        """The orders of ``wanted`` up to :data:`STUDY_JET_ORDER`: a study's default set stops
+        there, since a jet step's cost grows steeply with the order (``taylor_integrator``
+        builds any order to :data:`MAX_JET_ORDER`)."""
+        return tuple(m for m in wanted if 1 <= m <= STUDY_JET_ORDER)
 
     def taylor_integrator(
         self,

@@ -771,8 +771,10 @@ class PolynomialPoissonSystem(PoissonSystemBase):
         return BracketTerms(*_term_table(upper, s.x))
 
     def jet_realization(self, order: int) -> JetRealization:
-        """The realization of order n matched to ``order`` (exact where π is constant)."""
-        n = matched_realization_order(order)
+        """The realization of order n matched to ``order``, at most
+        :data:`MAX_REALIZATION_ORDER` (exact where π is constant: its terms past the first
+        vanish)."""
+        n = min(matched_realization_order(order), MAX_REALIZATION_ORDER)
         beta, alpha, p = self.structure.realization(n)
         gens = (*p, *self.structure.x)
         exact = all(e.is_number for e in self.structure.pi)
