@@ -5,13 +5,13 @@ use numpy::ndarray::{Array1, Array2, Array3, Ix1, Ix2, Ix3};
 use numpy::{
     IntoPyArray, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
 };
-use pyo3::exceptions::{PyMemoryError, PyValueError};
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::polynomial::{component_polynomials, polynomial, term_table};
+use super::polynomial::{component_polynomials, indexed_polynomials};
 use super::rollout::run_rollout;
-use super::{check_output_bytes, detached, dim_error, rows_match, states, Array};
+use super::{check_output_bytes, detached, dim_error, states, Array};
 
 use crate::dual::Jet2;
 use crate::error::CoreError;
@@ -23,7 +23,7 @@ use crate::stepper::NewtonOptions;
 use crate::structures::bivector::HamiltonianField;
 use crate::structures::lie_groupoid::LieAlgebra;
 use crate::structures::lie_poisson::VectorField;
-use crate::structures::{PolynomialRealization, SparsePolynomial};
+use crate::structures::PolynomialRealization;
 use crate::with_dim;
 
 /// An expression tape from its table (see [`crate::expression::Expression::from_table`]).
@@ -39,41 +39,6 @@ pub(super) fn expression(
     let cs: Vec<f64> = c.iter().copied().collect();
     Expression::from_table(vars, &slice(&code), &slice(&a), &slice(&b), &cs)
         .map_err(|e| PyValueError::new_err(format!("hamiltonian: {e}")))
-}
-
-/// `count` polynomials in `vars` variables from one term table: term m adds
-/// coeffs[m] · v^exponents[m] to polynomial index[m].
-pub(super) fn indexed_polynomials(
-    what: &str,
-    index: &PyReadonlyArray1<'_, i64>,
-    coeffs: &PyReadonlyArray1<'_, f64>,
-    exponents: &PyReadonlyArray2<'_, i64>,
-    count: usize,
-    vars: usize,
-) -> PyResult<Vec<SparsePolynomial>> {
-    let (co, ex) = term_table(what, coeffs, exponents, vars)?;
-    let ix = index.as_array();
-    rows_match(&format!("{what} index"), ix.len(), co.len())?;
-    if let Some(k) = (0..ix.len()).find(|&k| !(0..count as i64).contains(&ix[k])) {
-        return Err(PyValueError::new_err(format!(
-            "{what} index[{k}] = {} is outside 0..{count}",
-            ix[k]
-        )));
-    }
-    let mut out = Vec::new();
-    out.try_reserve_exact(count)
-        .map_err(|_| PyMemoryError::new_err("too many polynomials"))?;
-    for target in 0..count {
-        let rows: Vec<usize> = (0..ix.len()).filter(|&k| ix[k] == target as i64).collect();
-        out.push(polynomial(
-            &format!("{what}[{target}]"),
-            &co,
-            &ex,
-            &rows,
-            vars,
-        )?);
-    }
-    Ok(out)
 }
 
 /// H, ∇H and ∇²H of an expression at each row of `x` (n, vars), exactly (forward mode).

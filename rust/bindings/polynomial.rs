@@ -76,19 +76,32 @@ pub(super) fn component_polynomials<const N: usize>(
     exponents: &PyReadonlyArray2<'_, i64>,
     vars: usize,
 ) -> PyResult<Vec<SparsePolynomial>> {
+    indexed_polynomials(what, index, coeffs, exponents, N, vars)
+}
+
+/// `count` polynomials in `vars` variables from one term table: term m adds
+/// coeffs[m] · v^exponents[m] to polynomial index[m].
+pub(super) fn indexed_polynomials(
+    what: &str,
+    index: &PyReadonlyArray1<'_, i64>,
+    coeffs: &PyReadonlyArray1<'_, f64>,
+    exponents: &PyReadonlyArray2<'_, i64>,
+    count: usize,
+    vars: usize,
+) -> PyResult<Vec<SparsePolynomial>> {
     let (co, ex) = term_table(what, coeffs, exponents, vars)?;
     let ix = index.as_array();
     rows_match(&format!("{what} index"), ix.len(), co.len())?;
-    if let Some(k) = (0..ix.len()).find(|&k| !(0..N as i64).contains(&ix[k])) {
+    if let Some(k) = (0..ix.len()).find(|&k| !(0..count as i64).contains(&ix[k])) {
         return Err(PyValueError::new_err(format!(
-            "{what} index[{k}] = {} is outside 0..{N}",
+            "{what} index[{k}] = {} is outside 0..{count}",
             ix[k]
         )));
     }
     let mut out = Vec::new();
-    out.try_reserve_exact(N)
+    out.try_reserve_exact(count)
         .map_err(|_| PyMemoryError::new_err("too many polynomials"))?;
-    for target in 0..N {
+    for target in 0..count {
         let rows: Vec<usize> = (0..ix.len()).filter(|&k| ix[k] == target as i64).collect();
         out.push(polynomial(
             &format!("{what}[{target}]"),
