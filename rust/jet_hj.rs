@@ -230,18 +230,23 @@ impl<const N: usize, R: SeriesSource<N>> JetGenerating<N, R> {
         }
         let space = SeriesSpace::new(N + 1, order as u8, order as u8 + 2)?;
         let mut e = [0u8; 33];
-        let find = |e: &[u8]| space.index_of(e).expect("in the truncation");
+        // Every t^a δ^α with a ≤ order and |α| ≤ 2 is in the truncation (total ≤ order + 2).
+        let find = |e: &[u8]| {
+            space
+                .index_of(e)
+                .ok_or_else(|| CoreError::Invalid("a jet coefficient outside the series".into()))
+        };
         let mut value = Vec::new();
         let mut grad = Vec::new();
         let mut hess = Vec::new();
         for a in 1..=order {
             e.fill(0);
             e[0] = a as u8;
-            value.push(find(&e[..=N]));
+            value.push(find(&e[..=N])?);
             let mut g = [0usize; 32];
             for (i, gi) in g.iter_mut().enumerate().take(N) {
                 e[i + 1] += 1;
-                *gi = find(&e[..=N]);
+                *gi = find(&e[..=N])?;
                 e[i + 1] -= 1;
             }
             grad.push(g);
@@ -250,7 +255,7 @@ impl<const N: usize, R: SeriesSource<N>> JetGenerating<N, R> {
                 for j in i..N {
                     e[i + 1] += 1;
                     e[j + 1] += 1;
-                    hs.push(find(&e[..=N]));
+                    hs.push(find(&e[..=N])?);
                     e[i + 1] -= 1;
                     e[j + 1] -= 1;
                 }
@@ -302,12 +307,8 @@ impl<const N: usize, R: SeriesSource<N>> JetGenerating<N, R> {
         ws.base.fill(0.0);
         for (i, pi) in p.iter().enumerate() {
             ws.base[i * m] = *pi;
-            let mut e = [0u8; 33];
-            e[i + 1] = 1;
-            // δ_i is the monomial right after the constant in degree order: index 1 + i + 1
-            // (t comes first).
+            // δ_i is the monomial right after t in degree order (index 0 the constant, 1 t).
             let k = 2 + i;
-            debug_assert_eq!(space.exponent(k), &e[..=N]);
             ws.base[i * m + k] = 1.0;
         }
         ws.s.fill(0.0);

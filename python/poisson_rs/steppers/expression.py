@@ -64,7 +64,7 @@ class JetTaylorIntegrator:
         lifted = np.ones((len(x0), r.dim))
         lifted[:, :n] = x0
         lifted = np.ascontiguousarray(lifted)
-        code, a, b, c = self.system.h.tape()
+        code, a, b, c = self.system.tape
         if r.lie_constants is not None:
             traj, info = _core.rollout_jets_lie(
                 code, a, b, c, n, self.order, np.ascontiguousarray(r.lie_constants), lifted,
@@ -136,7 +136,7 @@ class FieldIntegrator:
 
         return _core.rollout_hamiltonian_field(
             self.name,
-            *self.system.h.tape(),
+            *self.system.tape,
             *self.system.terms.tables(),
             np.ascontiguousarray(x0, dtype=np.float64),
             float(h),

@@ -65,7 +65,9 @@ class ExpressionSystem(PoissonSystemBase):
         except (AttributeError, NotImplementedError) as err:
             raise ValueError(f"structure: {err}") from None
         self.name = name
-        self._tape = self.h.tape()
+        #: H's program as the core's table (code, a, b, c).
+        self.tape = self.h.tape()
+        self._jets: dict[int, JetRealization] = {}
         # π∇H as one program (∇H written out): the core's fast path for the field.
         self.field_program = field_program(self.h, *self.terms.tables())
 
@@ -97,7 +99,7 @@ class ExpressionSystem(PoissonSystemBase):
         from .. import _core
 
         x = np.ascontiguousarray(np.atleast_2d(np.asarray(x, dtype=np.float64)))
-        return _core.expression_jets(*self._tape, x)
+        return _core.expression_jets(*self.tape, x)
 
     def vector_field(self, x: Any) -> Any:
         """π(x)∇H(x) at x (..., dim), from the Rust core (NumPy) or autograd (torch)."""
@@ -112,7 +114,7 @@ class ExpressionSystem(PoissonSystemBase):
         arr = np.asarray(x, dtype=np.float64)
         flat = np.ascontiguousarray(arr.reshape(-1, self.dim))
         out = _core.hamiltonian_field(
-            *self._tape, *self.terms.tables(), flat, program=self.field_program
+            *self.tape, *self.terms.tables(), flat, program=self.field_program
         )
         return out.reshape(arr.shape)
 
@@ -153,7 +155,10 @@ class ExpressionSystem(PoissonSystemBase):
     def jet_realization(self, order: int) -> JetRealization:
         """The structure's realization for Taylor-HJ by jets (NotImplementedError where it has
         none)."""
-        return self.base.jet_realization(order)  # type: ignore[attr-defined]
+        # Built once per order: a polynomial bracket's realization is a sympy expansion.
+        if order not in self._jets:
+            self._jets[order] = self.base.jet_realization(order)  # type: ignore[attr-defined]
+        return self._jets[order]
 
     def taylor_charts(self) -> tuple[str, ...]:
         """("jets",): Taylor-HJ by jets on the structure's realization; () where the
