@@ -2,22 +2,24 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-import warnings
 from typing import Any
 
 import numpy as np
 
 from ..export import model_bytes
-from ..integrators import LearnedIntegrator, TaylorIntegrator, integrate
+from ..integrators import LearnedIntegrator, TaylorIntegrator
 from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..taylor import system_taylor_terms
-from .data import DRIFT_REFUSE, DRIFT_REFUSE_RATIO, TrajectoryData, check_seed, drift_limit, prepare
+from .data import TrajectoryData, check_seed, prepare
+from .data import refuse_drift as _refuse_drift
 from .fixed_step import FixedStepIntegrator
-from .options import MAX_DEGREE, ORDER_RANGE, check_bool, check_int, check_map_options
+from .options import EXACT_LEVEL, MAX_DEGREE, ORDER_RANGE, check_bool, check_int, check_map_options
 from .report import Candidate, LearnReport
+from .scoring import all_records as _all_records
+from .scoring import errors as _errors
+from .scoring import progress_bar as _progress_bar
 
 __all__ = ["MODES", "learn", "resolve_algebra"]
 
@@ -28,9 +30,6 @@ MAP_DEGREES = (4, 6)
 CORRECTIONS = ("polynomial", "network")
 #: Polynomial degrees tried, smallest first.
 AUTO_DEGREES = (2, 3, 4)
-#: Held-out one-step error that counts as exact data when the noise cannot be estimated
-#: (trajectories too short for finite differences): nothing smaller is worth a larger model.
-EXACT_LEVEL = 1e-10
 _ALGEBRAS = {"so3": LieAlgebra.so3, "se3": LieAlgebra.se3, "sl2": LieAlgebra.sl2}
 
 
@@ -82,36 +81,6 @@ def _record(
         "seed": seed,
         "train_seconds": round(seconds, 3),
     }
-
-
-def _errors(stepper: Any, data: TrajectoryData) -> tuple[float, float]:
-    """Held-out one-step RMS relative error and rollout max relative error (train data when
-    nothing is held out)."""
-    trajs = data.test or data.train
-    starts = np.concatenate([t[:-1] for t in trajs])
-    targets = np.concatenate([t[1:] for t in trajs])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        out = integrate(stepper, starts, data.h, 1, on_failure="ignore")[:, -1]
-        rel = np.linalg.norm(out - targets, axis=1) / np.linalg.norm(starts, axis=1)
-        one = float(np.sqrt(np.mean(rel**2)))
-        worst = 0.0
-        for t in trajs:
-            roll = integrate(stepper, t[0], data.h, len(t) - 1, on_failure="ignore")
-            e = np.linalg.norm(roll - t, axis=1) / np.linalg.norm(t, axis=1)
-            worst = max(worst, float(np.max(e)))
-    return (one if math.isfinite(one) else math.inf), (worst if math.isfinite(worst) else math.inf)
-
-
-def _all_records(data: TrajectoryData) -> TrajectoryData:
-    """The same data with nothing held out (a single trajectory whole again)."""
-    if not data.test:
-        return data
-    if data.shape[0] == 1:
-        whole = [np.concatenate([data.train[0], data.test[0][1:]])]
-    else:
-        whole = data.train + data.test
-    return dataclasses.replace(data, train=whole, test=[])
 
 
 def _polynomial_candidate(
@@ -385,6 +354,14 @@ def learn(
     if structure is not None:
         if algebra is not None or system is not None:
             raise ValueError("structure: give the structure alone, not with algebra= or system=")
+        if isinstance(structure, str) and structure == "discover":
+            from .discover import learn_discover
+
+            return learn_discover(
+                trajectories, h, mode=mode, degree=degree, max_degree=max_degree, order=order,
+                test_fraction=test_fraction, seed=seed, max_iter=max_iter, verbose=verbose,
+                refit=refit, progress=progress,
+            )  # fmt: skip
         if getattr(structure, "trainable", False):
             system = structure  # a Lie–Poisson system: learning runs on T*G
         elif hasattr(structure, "learn_modes"):
@@ -570,56 +547,6 @@ def learn(
         span=data.h * (max(len(t) for t in data.test or data.train) - 1),
     )
     return kept.stepper, report
-
-
-def _refuse_drift(data: TrajectoryData) -> None:
-    """ValueError when the data's Casimirs drift far beyond what their noise explains: they do
-    not come from a Lie–Poisson system of the algebra (damping, forcing, another structure),
-    and no Poisson integrator, which keeps every Casimir, can fit them."""
-    drift, limit = data.casimir_drift, drift_limit(data.noise)
-    if not (math.isfinite(drift) and math.isfinite(data.noise)):
-        return
-    if drift > max(DRIFT_REFUSE, DRIFT_REFUSE_RATIO * limit):
-        raise ValueError(
-            f"trajectories: the Casimirs drift by up to {drift:.3g} (relative) along a "
-            f"trajectory, {drift / limit:.3g}× what the data's noise level {data.noise:.2g} "
-            f"explains: these data do not come from {data.source} (damping, forcing or "
-            "another structure), and a Poisson integrator keeps every Casimir, so none can "
-            "fit them"
-        )
-
-
-class _NoBar:
-    """What the fits call on a progress bar, doing nothing."""
-
-    n = 0
-    total = 0
-
-    def set_postfix_str(self, s: str) -> None:
-        pass
-
-    def update(self, k: int) -> None:
-        self.n += k
-
-    def refresh(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress_bar(total: int, progress: bool | None) -> Any:
-    """A tqdm bar over the planned fits (ETA from the fits done so far), on stderr; none when
-    ``progress`` is False, or None and stderr is not a terminal."""
-    import sys
-
-    if progress is None:
-        progress = bool(getattr(sys.stderr, "isatty", lambda: False)())
-    if not progress:
-        return _NoBar()
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc="learn", unit="fit", file=sys.stderr, leave=True)
 
 
 def _learn_on_structure(

@@ -591,3 +591,20 @@ def _zero_polynomial(n: int) -> Any:
     from ..structures.lie_poisson import Polynomial
 
     return Polynomial({(0,) * n: 0.0})
+
+
+def refuse_drift(data: TrajectoryData) -> None:
+    """ValueError when the data's Casimirs drift far beyond what their noise explains: they do
+    not come from a Lie–Poisson system of the algebra (damping, forcing, another structure),
+    and no Poisson integrator, which keeps every Casimir, can fit them."""
+    drift, limit = data.casimir_drift, drift_limit(data.noise)
+    if not (math.isfinite(drift) and math.isfinite(data.noise)):
+        return
+    if drift > max(DRIFT_REFUSE, DRIFT_REFUSE_RATIO * limit):
+        raise ValueError(
+            f"trajectories: the Casimirs drift by up to {drift:.3g} (relative) along a "
+            f"trajectory, {drift / limit:.3g}× what the data's noise level {data.noise:.2g} "
+            f"explains: these data do not come from {data.source} (damping, forcing or "
+            "another structure), and a Poisson integrator keeps every Casimir, so none can "
+            "fit them"
+        )

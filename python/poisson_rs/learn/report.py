@@ -23,7 +23,10 @@ class Candidate:
     ``kept``/``reason``: whether it was chosen, and why (or why not); ``hamiltonian_family``,
     ``hamiltonian_text``, ``gauge``: on a structure learned through its own family (any but
     T*G), what H ranged over, the learned H as text, and what H is identifiable up to besides
-    a constant.
+    a constant; ``bracket_family``, ``bracket_text``, ``jacobi_residual``,
+    ``velocity_residual``, ``casimirs_text``: with the structure discovered, what the bracket
+    ranged over, the learned bracket as formulas, its Jacobi residual after the projection
+    (relative), the velocity-level fit's relative residual, and the learned structure's Casimirs.
     """
 
     family: str
@@ -41,6 +44,11 @@ class Candidate:
     hamiltonian_text: str = ""
     gauge: str = ""
     fit: Any = field(default=None, repr=False)
+    bracket_family: str = ""
+    bracket_text: str = ""
+    jacobi_residual: float = math.nan
+    velocity_residual: float = math.nan
+    casimirs_text: str = ""
 
 
 @dataclass
@@ -57,7 +65,8 @@ class LearnReport:
     ``held_out``: whether any records were held out (False: two trajectories, or one of a few
     records; the errors are then training errors, and the report says so); ``span``: the
     longest scored trajectory's duration, the horizon the rollout errors cover (nothing beyond
-    it was checked).
+    it was checked); ``explained``: False where no candidate reached the noise level (the kept
+    one is then only the best tried, and the data may not come from any family tried).
     """
 
     mode: str
@@ -72,6 +81,7 @@ class LearnReport:
     seed: int
     held_out: bool = True
     span: float = math.nan
+    explained: bool = True
 
     @property
     def hamiltonian(self) -> Polynomial | None:
@@ -102,6 +112,17 @@ class LearnReport:
         """The learned system (the structure with the learned H), or None for a map."""
         return self.kept.system
 
+    @property
+    def structure(self) -> Any:
+        """The learned Poisson system (:class:`poisson_rs.PoissonSystem`, every tool takes
+        it): the same as :attr:`system`."""
+        return self.kept.system
+
+    @property
+    def bracket(self) -> str:
+        """The discovered bracket as formulas ("" where the structure was given)."""
+        return self.kept.bracket_text
+
     def rows(self) -> list[dict[str, Any]]:
         """The candidate table as JSON-safe rows."""
         return [
@@ -114,6 +135,15 @@ class LearnReport:
                 "rollout": c.rollout,
                 "kept": c.kept,
                 "reason": c.reason,
+                **(
+                    {
+                        "bracket": c.bracket_text,
+                        "velocity_residual": c.velocity_residual,
+                        "jacobi_residual": c.jacobi_residual,
+                    }
+                    if self.mode.startswith("discover")
+                    else {}
+                ),
             }
             for c in self.candidates
         ]
@@ -123,6 +153,7 @@ class LearnReport:
             return "n/a" if not math.isfinite(x) else f"{x:.2e}"
 
         scored = "held-out" if self.held_out else "training"
+        width = max([7, *(len(c.family) for c in self.candidates)])
         lines = [
             f"learn (mode {self.mode}): data {self.data_shape[0]} trajectories × up to "
             f"{self.data_shape[1]} records, dim {self.data_shape[2]}, h = {self.h:g}, seed "
@@ -139,14 +170,26 @@ class LearnReport:
         lines += [
             f"  errors ({scored}): one step, and rollouts of the scored trajectories up to "
             f"{span}; nothing beyond {span} was checked",
-            f"  {'family':<7} {'params':>6} {'K':>2} {'train s':>8} {'1-step':>9} "
+            f"  {'family':<{width}} {'params':>6} {'K':>2} {'train s':>8} {'1-step':>9} "
             f"{'rollout':>9}  verdict",
         ]
         for c in self.candidates:
             verdict = ("KEPT: " if c.kept else "passed over: ") + c.reason
             lines.append(
-                f"  {c.family:<7} {c.parameters:>6} {c.order:>2} {c.seconds:>8.2f} "
+                f"  {c.family:<{width}} {c.parameters:>6} {c.order:>2} {c.seconds:>8.2f} "
                 f"{num(c.one_step):>9} {num(c.rollout):>9}  {verdict}"
+            )
+        if not self.explained:
+            lines.append(
+                "  NOT EXPLAINED: no candidate reached the data's noise level; the kept one is "
+                "only the best tried (the data may not come from any family tried)"
+            )
+        if self.kept.bracket_text:
+            lines.append(f"  bracket family: {self.kept.bracket_family}")
+            lines.append(f"  bracket: {self.kept.bracket_text}")
+            lines.append(
+                f"  Jacobi residual (relative, after projection): "
+                f"{num(self.kept.jacobi_residual)}; Casimirs: {self.kept.casimirs_text}"
             )
         if self.kept.hamiltonian_text:
             lines.append(f"  H family: {self.kept.hamiltonian_family}")

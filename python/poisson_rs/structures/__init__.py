@@ -103,3 +103,11 @@ __all__ = [
     "system_from_scene_table",
     "system_kinds",
 ]
+
+
+def bracket_families(dim: int) -> list[Any]:
+    """The bivector families (:class:`poisson_rs.bracket_family.BracketFamily`) every structure
+    module offers in dimension ``dim`` (its ``BRACKET_FAMILIES`` table), smallest first: what
+    structure discovery searches. A new structure joins by having that table."""
+    found = [f for f in (make(dim) for make in _kinds("BRACKET_FAMILIES").values()) if f]
+    return sorted(found, key=len)

@@ -442,3 +442,36 @@ def __getattr__(name: str) -> Any:
     if name in ("AffineIntegrator", "affine_learned", "affine_classical"):
         return provided(f"affine.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _affine_brackets(dim: int) -> Any:
+    """π_ij = −Σ_k c_ijk x_k + ω_ij: θ the linear part's −c_ijk, then the constants ω_ij."""
+    from ..bracket_family import BracketFamily
+
+    if not 2 <= dim <= 9:
+        return None
+    pairs = [(i, j) for i in range(dim) for j in range(i + 1, dim)]
+    linear = [(i, j, tuple(int(m == k) for m in range(dim))) for i, j in pairs for k in range(dim)]
+    constant = [(i, j, (0,) * dim) for i, j in pairs]
+
+    def build(theta: NDArray[np.float64]) -> AffinePoissonSystem:
+        c = np.zeros((dim,) * 3)
+        for (i, j, e), t in zip(linear, theta, strict=False):
+            k = e.index(1)
+            c[i, j, k], c[j, i, k] = -t, t
+        w = np.zeros((dim, dim))
+        for (i, j), t in zip(pairs, theta[len(linear) :], strict=True):
+            w[i, j], w[j, i] = t, -t
+        zero = Polynomial({(0,) * dim: 0.0})
+        return AffinePoissonSystem(LieAlgebra(c), w, zero, name="learned")
+
+    return BracketFamily(
+        "affine",
+        dim,
+        linear + constant,
+        build=build,
+        description="π_ij = −Σ_k c_ijk x_k + ω_ij, a Lie algebra and a constant 2-cocycle",
+    )
+
+
+BRACKET_FAMILIES = {"affine": _affine_brackets}

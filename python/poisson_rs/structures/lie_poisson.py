@@ -615,3 +615,35 @@ SYSTEM_KINDS = {
     kind: LiePoissonSystem.from_dict for kind in ("lie_poisson", "rigid_body", "heavy_top")
 }
 SCENE_KINDS = {kind: _scene_table for kind in _SCENE_KEYS}
+
+
+def _lie_brackets(dim: int) -> Any:
+    """π_ij = −Σ_k c_ijk x_k (θ = −c_ijk, i < j, every k): Jacobi is the algebra's."""
+    from ..bracket_family import BracketFamily
+
+    if not 2 <= dim <= 10:
+        return None
+    terms = [
+        (i, j, tuple(int(m == k) for m in range(dim)))
+        for i in range(dim)
+        for j in range(i + 1, dim)
+        for k in range(dim)
+    ]
+
+    def build(theta: NDArray[np.float64]) -> LiePoissonSystem:
+        c = np.zeros((dim,) * 3)
+        for (i, j, e), t in zip(terms, theta, strict=True):
+            k = e.index(1)
+            c[i, j, k], c[j, i, k] = -t, t
+        return LiePoissonSystem(LieAlgebra(c), Polynomial({(0,) * dim: 0.0}), name="learned")
+
+    return BracketFamily(
+        "lie-poisson",
+        dim,
+        terms,
+        build=build,
+        description="π_ij = −Σ_k c_ijk x_k, c the structure constants of a Lie algebra",
+    )
+
+
+BRACKET_FAMILIES = {"lie-poisson": _lie_brackets}

@@ -681,3 +681,36 @@ class LogFamily(MonomialFamily):
                 factors = [f"{v}**{k}" if k > 1 else v for v, k in pairs if k]
                 parts.append("*".join([repr(float(c)), *factors]))
         return " + ".join(parts) or "0"
+
+
+def _log_canonical_brackets(dim: int) -> Any:
+    """π_ij = c_ij x_i x_j with c constant and antisymmetric (θ = c_ij, i < j): every θ obeys
+    Jacobi; only states in the positive orthant."""
+    from ..bracket_family import BracketFamily
+
+    if dim < 2:
+        return None
+    pairs = [(i, j) for i in range(dim) for j in range(i + 1, dim)]
+
+    def build(theta: NDArray[np.float64]) -> LogCanonicalSystem:
+        c = np.zeros((dim, dim))
+        for (i, j), t in zip(pairs, theta, strict=True):
+            c[i, j], c[j, i] = t, -t
+        return LogCanonicalSystem(LogCanonical(c), LogPolynomial({}, np.zeros(dim)), name="learned")
+
+    def domain(states: NDArray[np.float64]) -> str | None:
+        return None if bool(np.all(states > 0)) else "a state is not in the positive orthant"
+
+    return BracketFamily(
+        "log-canonical",
+        dim,
+        [(i, j, tuple(int(k in (i, j)) for k in range(dim))) for i, j in pairs],
+        build=build,
+        description="π_ij = c_ij x_i x_j, c constant (Jacobi holds for every c)",
+        jacobi_free=True,
+        domain=domain,
+        template=np.ones(len(pairs)),
+    )
+
+
+BRACKET_FAMILIES = {"log-canonical": _log_canonical_brackets}

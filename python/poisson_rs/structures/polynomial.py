@@ -1117,3 +1117,39 @@ def __getattr__(name: str) -> Any:
     if name in _MOVED:
         return provided(f"polynomial.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _polynomial_brackets(degree: int) -> Callable[[int], Any]:
+    """Every bivector with entries polynomials of ``degree`` (constants included): Jacobi
+    projected, the order-n realization (or the exact one where the result is recognised)."""
+
+    def family(dim: int) -> Any:
+        from ..bracket_family import BracketFamily
+        from ..hamiltonian_family import monomial_exponents, polynomial_text
+
+        if not 2 <= dim <= 10:
+            return None
+        monomials = [(0,) * dim, *monomial_exponents(dim, degree)]
+        terms = [(i, j, e) for i in range(dim) for j in range(i + 1, dim) for e in monomials]
+        names = [str(s) for s in _symbols(dim)]
+
+        def build(theta: NDArray[np.float64]) -> PolynomialPoissonSystem:
+            entries: dict[tuple[int, int], dict[tuple[int, ...], float]] = {}
+            for (i, j, e), t in zip(terms, theta, strict=True):
+                if t != 0.0:
+                    entries.setdefault((i, j), {})[e] = float(t)
+            texts = {key: polynomial_text(v, names) for key, v in entries.items()}
+            return PolynomialPoissonSystem(PolynomialBivector(dim, texts), "0", name="learned")
+
+        return BracketFamily(
+            f"poly{degree}-bivector",
+            dim,
+            terms,
+            build=build,
+            description=f"π_ij polynomials of degree ≤ {degree} (Jacobi projected)",
+        )
+
+    return family
+
+
+BRACKET_FAMILIES = {f"poly{d}-bivector": _polynomial_brackets(d) for d in (2, 3)}

@@ -1,0 +1,499 @@
+"""Structure discovery: the bracket and H both learned from trajectories
+(``pr.learn(trajectories, h, structure="discover")``).
+
+Every structure module offers bivector families linear in their parameters θ
+(:func:`poisson_rs.structures.bracket_families`, smallest first); each offers Hamiltonian
+families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, φ), so for each pair
+(bracket family, H degree):
+
+1. Velocity-level fit: the finite-difference velocities of the training records are fitted by
+   alternating least squares from a lifted start (the rank-1 part of the least-squares fit of
+   the products θ_aφ_m) and seeded random starts, then joint Gauss–Newton. Its relative
+   residual screens the pairs: a pair far above the best cannot explain the data.
+2. Gauge: the field is unchanged by π → λπ with H → H/λ, by H → H + a Casimir, and by
+   π → π + N where N∇H ≡ 0 (on so(3)* with a quadratic H, the brackets ε·∇(C + αH)). Fixed
+   here: θ is the least-norm one among those the data cannot tell apart, scaled so that its
+   largest coefficient is +1; the structure's H fit drops the Casimir directions.
+3. Jacobi: a family whose θ does not obey Jacobi identically (Lie–Poisson, affine,
+   polynomial) is projected onto it (least-norm Gauss–Newton on the quadratic residual at the
+   data's states); the residual before and after is reported.
+4. Through the integrator: the projected bracket becomes the structure's own system, and H is
+   fitted through its Taylor-HJ integrator (:mod:`poisson_rs.learn.structure_fit`), scored by
+   the held-out one-step error. Pairs are tried smallest first; the first that reaches the
+   data's noise level is kept. Where none does, the data are reported as explained by no family
+   tried (a warning, and ``report.explained`` False): a Poisson integrator of the best is still
+   returned, marked so.
+
+Nothing here names a structure: the families come from the structure modules' tables.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .data import TrajectoryData
+
+__all__ = [
+    "MAX_BRACKET_PARAMETERS",
+    "BracketFit",
+    "NotExplainedWarning",
+    "bilinear_fit",
+    "fit_bracket",
+]
+
+#: Bracket families larger than this are not searched (their θ outnumber what the data tell).
+MAX_BRACKET_PARAMETERS = 120
+#: A pair's velocity-level residual must be within this factor of the best to be fitted
+#: through the integrator.
+SCREEN_FACTOR = 30.0
+#: Random starts of the bilinear fit besides the lifted one.
+RESTARTS = 3
+#: Alternating least-squares sweeps, then joint Gauss–Newton iterates.
+ALS_ITER = 40
+GN_ITER = 40
+#: Singular values below this fraction of the largest are gauge directions.
+GAUGE_RTOL = 1e-9
+#: Bracket coefficients below this (relative to the largest, +1) are tried at zero.
+SPARSE_RTOL = 1e-7
+#: States the Jacobi identity is imposed at (a subsample of the data; it is a polynomial
+#: identity, so a few generic points more than its coefficients decide it).
+JACOBI_POINTS = 48
+
+
+class NotExplainedWarning(UserWarning):
+    """No bracket family tried explains the data to their noise level."""
+
+
+@dataclass
+class BracketFit:
+    """A velocity-level fit of one (bracket family, H family) pair, gauge-fixed.
+
+    ``theta``: the bracket's coefficients (largest +1); ``phi``: H's (in the H family's
+    exponents); ``velocity_residual``: relative RMS residual of the weighted velocities;
+    ``jacobi_fit``/``jacobi``: the Jacobi residual before and after the projection;
+    ``gauge_null``: bracket directions the data cannot see (dropped), ``null_directions``
+    those directions (largest entry +1); ``seconds``.
+    """
+
+    family: Any
+    hamiltonians: Any
+    theta: np.ndarray
+    phi: np.ndarray
+    velocity_residual: float
+    jacobi_fit: float
+    jacobi: float
+    gauge_null: int
+    seconds: float
+    null_directions: list[np.ndarray] = field(default_factory=list)
+
+
+def _lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.linalg.lstsq(a, b, rcond=GAUGE_RTOL)[0]
+
+
+def bilinear_fit(
+    t: np.ndarray, rhs: np.ndarray, rng: np.random.Generator, restarts: int = RESTARTS
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """min ‖Σ_{a,m} θ_a φ_m t[:, a, m] − rhs‖ over (θ, φ): the best of a lifted start and
+    ``restarts`` random ones, each by alternating least squares then joint Gauss–Newton.
+    t: (K, P, M), rhs: (K,) → θ (P,) of unit norm, φ (M,), relative residual."""
+    k, p, m = t.shape
+    norm_rhs = max(float(np.linalg.norm(rhs)), 1e-300)
+    starts = []
+    if p * m <= 4000 and k >= p * m:
+        w = _lstsq(t.reshape(k, p * m), rhs).reshape(p, m)
+        u, _, _ = np.linalg.svd(w)
+        starts.append(u[:, 0])
+    starts += [rng.normal(size=p) for _ in range(restarts)]
+
+    def residual(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
+        return np.einsum("kam,a,m->k", t, theta, phi) - rhs
+
+    best: tuple[np.ndarray, np.ndarray, float] | None = None
+    for theta in starts:
+        theta = theta / max(float(np.linalg.norm(theta)), 1e-300)
+        phi = np.zeros(m)
+        for _ in range(ALS_ITER):
+            phi = _lstsq(np.einsum("kam,a->km", t, theta), rhs)
+            theta = _lstsq(np.einsum("kam,m->ka", t, phi), rhs)
+            s = float(np.linalg.norm(theta))
+            if s == 0.0:
+                break
+            theta, phi = theta / s, phi * s
+        r = residual(theta, phi)
+        cost = float(r @ r)
+        for _ in range(GN_ITER):
+            jac = np.concatenate(
+                [np.einsum("kam,m->ka", t, phi), np.einsum("kam,a->km", t, theta)], axis=1
+            )
+            step = _lstsq(jac, -r)
+            lam, improved = 1.0, False
+            while lam >= 1.0 / 64:
+                th, ph = theta + lam * step[:p], phi + lam * step[p:]
+                r_new = residual(th, ph)
+                c_new = float(r_new @ r_new)
+                if c_new < cost:
+                    improved = True
+                    break
+                lam /= 2
+            if not improved:
+                break
+            gain = (cost - c_new) / max(cost, 1e-300)
+            s = max(float(np.linalg.norm(th)), 1e-300)
+            theta, phi, r, cost = th / s, ph * s, r_new, c_new
+            if gain < 1e-6:
+                break
+        rel = math.sqrt(cost) / norm_rhs
+        if best is None or rel < best[2]:
+            best = (theta, phi, rel)
+    assert best is not None
+    return best
+
+
+def fit_bracket(
+    data: TrajectoryData,
+    family: Any,
+    hamiltonians: Any,
+    x: np.ndarray,
+    v: np.ndarray,
+    seed: int,
+) -> BracketFit:
+    """The velocity-level fit of ``family`` × ``hamiltonians`` (a Hamiltonian family of the
+    family's template system) to velocities ``v`` at states ``x`` (B, n), gauge-fixed and
+    Jacobi-projected; see the module docstring."""
+    t0 = time.perf_counter()
+    w = 1.0 / np.linalg.norm(x, axis=1).clip(1e-300)
+    basis = family.basis(x)  # (B, n, n, P)
+    grads = hamiltonians.gradients(x)  # (B, n, M)
+    t = np.einsum("bija,bjm->biam", basis, grads) * w[:, None, None, None]
+    t = t.reshape(-1, len(family), len(hamiltonians))
+    rhs = (v * w[:, None]).reshape(-1)
+    # Column scales: monomials of different degrees differ by orders of magnitude.
+    sp = np.linalg.norm(t, axis=(0, 2))
+    sm = np.linalg.norm(t, axis=(0, 1))
+    sp[sp == 0] = 1.0
+    sm[sm == 0] = 1.0
+    rng = np.random.default_rng(seed)
+    ts, ps, rel = bilinear_fit(t / sp[None, :, None] / sm[None, None, :], rhs, rng)
+    theta, phi = ts / sp, ps / sm
+    # Gauge: the least-norm θ among those giving the same field with this H.
+    a = np.einsum("kam,m->ka", t, phi)
+    _, sv, vt = np.linalg.svd(a, full_matrices=False)
+    keep = sv > GAUGE_RTOL * sv[0] if sv.size and sv[0] > 0 else np.zeros(len(sv), bool)
+    theta = vt[keep].T @ (vt[keep] @ theta)
+    pts = x[np.linspace(0, len(x) - 1, min(len(x), JACOBI_POINTS)).astype(int)]
+    jacobi_fit = family.jacobi_residual(theta, pts)
+    theta, jacobi = family.project(theta, pts)
+    big = int(np.argmax(np.abs(theta)))
+    scale = theta[big] if theta[big] != 0 else 1.0
+    theta = theta / scale
+    null = [n / n[np.argmax(np.abs(n))] for n in vt[~keep]]
+
+    def refit(th: np.ndarray) -> tuple[np.ndarray, float]:
+        ph = _lstsq(np.einsum("kam,a->km", t, th), rhs)
+        r = np.einsum("kam,a,m->k", t, th, ph) - rhs
+        return ph, float(np.linalg.norm(r)) / max(float(np.linalg.norm(rhs)), 1e-300)
+
+    phi, rel = refit(theta)
+    # Sparsity: coefficients the fit cannot tell from zero are dropped (and Jacobi imposed
+    # again) where the fit stays as good.
+    small = np.abs(theta) < SPARSE_RTOL
+    if small.any() and not small.all():
+        sparse, jac_sparse = family.project(np.where(small, 0.0, theta), pts)
+        sparse[np.abs(sparse) < 1e-15] = 0.0
+        ph_s, rel_s = refit(sparse)
+        if rel_s <= 1.5 * rel + 1e-14:
+            theta, jacobi, phi, rel = sparse, jac_sparse, ph_s, rel_s
+    return BracketFit(
+        family=family,
+        hamiltonians=hamiltonians,
+        theta=theta,
+        phi=phi,
+        velocity_residual=rel,
+        jacobi_fit=jacobi_fit,
+        jacobi=jacobi,
+        gauge_null=int((~keep).sum()),
+        null_directions=null,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+class UnknownStructure:
+    """What the data are checked against before a structure is found: a dimension, no
+    Casimirs known, no domain."""
+
+    title = "unknown (to be discovered)"
+
+    def __init__(self, dim: int) -> None:
+        self.dim = dim
+
+    def casimirs(self, x: Any) -> None:
+        return None
+
+
+def warn_not_explained(best: str, error: float, threshold: float) -> None:
+    warnings.warn(
+        f"structure discovery: no bracket family tried explains the data (the best, {best}, "
+        f"has one-step error {error:.2e} above the noise level {threshold:.2e}); the data may "
+        "not come from a Poisson system of these families (damping, forcing, or a larger "
+        "bracket); report.explained is False",
+        NotExplainedWarning,
+        stacklevel=3,
+    )
+
+
+def learn_discover(
+    trajectories: Any,
+    h: float,
+    *,
+    mode: str = "auto",
+    degree: int | None = None,
+    max_degree: int | None = None,
+    order: int | None = None,
+    test_fraction: float = 0.2,
+    seed: int = 0,
+    max_iter: int = 30,
+    verbose: bool = False,
+    refit: bool = True,
+    progress: bool | None = None,
+    families: Any = None,
+) -> tuple[Any, Any]:
+    """:func:`poisson_rs.learn` with ``structure="discover"``: see the module docstring.
+    ``families``: names of the bracket families to search (default every one the structures
+    offer in the data's dimension)."""
+    from ..structures import bracket_families
+    from .data import _as_list, check_seed, prepare, refuse_drift
+    from .options import EXACT_LEVEL, MAX_DEGREE, check_bool, check_int
+    from .report import Candidate, LearnReport
+    from .scoring import errors, progress_bar
+    from .structure_fit import fit_structure_hamiltonian, velocities
+
+    if mode not in ("auto", "hamiltonian"):
+        raise ValueError(
+            f"mode {mode!r} does not apply to structure discovery; the modes that apply to it: "
+            "'auto', 'hamiltonian'"
+        )
+    if degree is not None:
+        degree = check_int(degree, "degree", 1, MAX_DEGREE)
+    if max_degree is not None:
+        max_degree = check_int(max_degree, "max_degree", 1, MAX_DEGREE)
+    max_iter = check_int(max_iter, "max_iter", 1, 10_000)
+    seed = check_seed(seed)
+    verbose = check_bool(verbose, "verbose")
+    refit = check_bool(refit, "refit")
+    if progress is not None:
+        progress = check_bool(progress, "progress")
+    trajs = _as_list(trajectories)
+    data = prepare(
+        trajs, h, None, test_fraction=test_fraction, seed=seed,
+        system=UnknownStructure(_dimension(trajs)),
+    )  # fmt: skip
+    refuse_drift(data)
+    offered = bracket_families(data.dim)
+    if families is not None:
+        names = [families] if isinstance(families, str) else list(families)
+        known = [f.name for f in offered]
+        bad = [n for n in names if n not in known]
+        if bad or not names:
+            raise ValueError(
+                f"families: {bad or names!r} not among the bracket families offered in "
+                f"dimension {data.dim}: {', '.join(known)}"
+            )
+        offered = [f for f in offered if f.name in names]
+    threshold = 1.5 * math.sqrt(2 * data.dim) * data.noise + 1e-12
+    held = bool(data.test)
+    err = "held-out one-step error" if held else "training one-step error (nothing held out)"
+    x, v = velocities(data.train, data.h)
+    states = np.concatenate(data.train + data.test)
+
+    # The (bracket family, H degree) pairs, smallest first.
+    candidates: list[Candidate] = []
+    pairs: list[tuple[Any, Any, int]] = []
+    for family in offered:
+        why = family.applies(states)
+        if why is None and len(family) > MAX_BRACKET_PARAMETERS:
+            why = f"{len(family)} bracket coefficients, above {MAX_BRACKET_PARAMETERS}"
+        if why is not None:
+            candidates.append(_row(Candidate, family.name, len(family), f"not searched: {why}"))
+            continue
+        template = family.template_system()
+        tried = template.learn_degrees()
+        top = max_degree or MAX_DEGREE
+        degrees = [degree] if degree is not None else [d for d in tried if d <= top] or [top]
+        pairs += [(family, template.hamiltonian_family(d, order), d) for d in degrees]
+    if not pairs:
+        raise ValueError(
+            "trajectories: no bracket family applies to these states ("
+            + "; ".join(f"{c.family}: {c.reason}" for c in candidates)
+            + ")"
+        )
+    pairs.sort(key=lambda item: len(item[0]) + len(item[1]))
+
+    def integrator_candidate(fit: BracketFit, d: int) -> Candidate:
+        name = f"{fit.family.name}/{fit.hamiltonians.name}"
+        t0 = time.perf_counter()
+        try:
+            structure = fit.family.system(fit.theta)
+            sfit = fit_structure_hamiltonian(
+                data, structure, d, order=order, max_iter=max_iter, verbose=verbose
+            )
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            cand = _row(Candidate, name, len(fit.family) + len(fit.hamiltonians), "")
+            cand.reason = f"the projected bracket was refused: {exc}"
+            return cand
+        one, roll = errors(sfit.stepper, data)
+        return Candidate(
+            family=name,
+            parameters=int(np.count_nonzero(fit.theta)) + sfit.n_parameters,
+            order=sfit.family.order,
+            seconds=fit.seconds + time.perf_counter() - t0,
+            one_step=one,
+            rollout=roll,
+            stepper=sfit.stepper,
+            system=sfit.system,
+            hamiltonian_family=sfit.family.description,
+            hamiltonian_text=sfit.family.text(sfit.theta),
+            gauge=_GAUGE.format(casimir=sfit.family.gauge),
+            fit=sfit,
+            bracket_family=fit.family.description,
+            bracket_text=_bracket_text(fit, list(sfit.system.component_names)),
+            jacobi_residual=fit.jacobi,
+            velocity_residual=fit.velocity_residual,
+            casimirs_text=str(getattr(sfit.system, "casimir_label", "n/a")),
+        )
+
+    kept: Candidate | None = None
+    best_v = math.inf
+    bar = progress_bar(len(pairs), progress)
+    try:
+        for family, hams, d in pairs:
+            name = f"{family.name}/{hams.name}"
+            if kept is not None:
+                candidates.append(
+                    _row(
+                        Candidate,
+                        name,
+                        len(family) + len(hams),
+                        "not tried: a smaller pair was kept",
+                    )
+                )
+                continue
+            bar.set_postfix_str(name)
+            fit = fit_bracket(data, family, hams, x, v, seed)
+            best_v = min(best_v, fit.velocity_residual)
+            if verbose:
+                print(
+                    f"{name}: velocity residual {fit.velocity_residual:.2e}, Jacobi "
+                    f"{fit.jacobi_fit:.1e} → {fit.jacobi:.1e}"
+                )
+            if fit.velocity_residual > max(SCREEN_FACTOR * best_v, 1e-10):
+                cand = _row(
+                    Candidate,
+                    name,
+                    len(family) + len(hams),
+                    f"velocity fit {fit.velocity_residual:.2e}, above {SCREEN_FACTOR:g}× a "
+                    f"smaller pair's ({best_v:.2e}): not fitted through the integrator",
+                )
+                cand.velocity_residual, cand.jacobi_residual = fit.velocity_residual, fit.jacobi
+                cand.seconds = fit.seconds
+                candidates.append(cand)
+                bar.update(1)
+                continue
+            cand = integrator_candidate(fit, d)
+            bar.update(1)
+            candidates.append(cand)
+            if verbose:
+                print(f"{cand.family}: one-step {cand.one_step:.3e}")
+            if cand.stepper is None:
+                continue
+            if math.isfinite(threshold) and cand.one_step <= threshold:
+                kept = cand
+                cand.reason = f"the smallest pair whose {err} reaches the data's noise level"
+            elif not math.isfinite(threshold) and cand.one_step <= EXACT_LEVEL:
+                kept = cand
+                cand.reason = f"noise level unknown; {err} below {EXACT_LEVEL:g} (exact data)"
+            else:
+                cand.reason = f"{err} {cand.one_step:.2e} above the noise level {threshold:.2e}"
+        bar.total = bar.n
+        bar.refresh()
+    finally:
+        bar.close()
+    for c in candidates:
+        if c.stepper is not None and c is not kept and not c.reason:
+            c.reason = "a smaller pair was kept"
+    explained = kept is not None
+    if kept is None:
+        scored = [c for c in candidates if c.stepper is not None]
+        if not scored:
+            raise ValueError(
+                "structure discovery: no bracket family could be fitted to these data ("
+                + "; ".join(f"{c.family}: {c.reason}" for c in candidates)
+                + ")"
+            )
+        kept = min(scored, key=lambda c: c.one_step)
+        kept.reason = f"NOT EXPLAINED: no pair reached the noise level; the best {err}"
+        warn_not_explained(kept.family, kept.one_step, threshold)
+    kept.kept = True
+    report = LearnReport(
+        mode=f"discover/{mode}",
+        candidates=candidates,
+        kept=kept,
+        noise=data.noise,
+        casimir_drift=data.casimir_drift,
+        data_sha256=data.digest,
+        data_shape=data.shape,
+        threshold=threshold,
+        h=data.h,
+        seed=seed,
+        held_out=held,
+        span=data.h * (max(len(t) for t in data.test or data.train) - 1),
+        explained=explained,
+    )
+    return kept.stepper, report
+
+
+_GAUGE = (
+    "{casimir}; the bracket up to π → λπ with H → H/λ (fixed: its largest coefficient is +1) "
+    "and π → π + N with N∇H ≡ 0 (fixed: the least-norm bracket the data allow)"
+)
+
+
+def _bracket_text(fit: BracketFit, names: list[str]) -> str:
+    """The bracket, and the directions N (N∇H ≡ 0 on the data) it may be moved along."""
+    text = fit.family.text(fit.theta, names, digits=10)
+    for n in fit.null_directions:
+        n = np.where(np.abs(n) < SPARSE_RTOL, 0.0, n)
+        text += f"  [+ α·({fit.family.text(n, names, digits=6)}) for any α: N∇H ≡ 0]"
+    return text
+
+
+def _row(candidate: Any, family: str, parameters: int, reason: str) -> Any:
+    """A candidate that was not fitted through an integrator (no errors: n/a)."""
+    return candidate(
+        family=family,
+        parameters=parameters,
+        order=0,
+        seconds=0.0,
+        one_step=math.nan,
+        rollout=math.nan,
+        reason=reason,
+    )
+
+
+def _dimension(trajs: list[np.ndarray]) -> int:
+    """The records' dimension, read before the full checks (which need it)."""
+    if not trajs:
+        raise ValueError("trajectories: got no trajectories")
+    first = np.asarray(trajs[0])
+    if first.ndim != 2 or not 2 <= first.shape[1] <= 10:
+        raise ValueError(
+            f"trajectories[0]: a trajectory must be (n_records, dim) with dim in 2..=10, got "
+            f"shape {first.shape}"
+        )
+    return int(first.shape[1])
