@@ -27,7 +27,7 @@ Term = tuple[int, int, tuple[int, ...]]
 #: check points (both scale as π²): what the structures' own checks accept.
 JACOBI_RTOL = 1e-13
 #: Gauss–Newton iterates of the projection onto the Jacobi variety.
-PROJECTION_ITER = 30
+PROJECTION_ITER = 60
 
 
 class BracketFamily:
@@ -159,25 +159,52 @@ class BracketFamily:
         top = float(np.max(scale)) if scale.size else 0.0
         return float(np.max(np.abs(j))) / top if top > 0 else 0.0
 
-    def project(self, theta: Any, points: Any) -> tuple[FloatArray, float]:
+    def project(self, theta: Any, points: Any, free: Any = None) -> tuple[FloatArray, float]:
         """The nearest θ (least-norm Gauss–Newton steps) whose bracket obeys Jacobi at
-        ``points``, and its relative residual (:meth:`jacobi_residual`)."""
+        ``points``, and its relative residual (:meth:`jacobi_residual`). ``free`` (P, k):
+        directions θ may move along at (almost) no cost, e.g. those the data cannot see."""
         theta = np.array(theta, dtype=np.float64)
+        f = np.zeros((len(self), 0)) if free is None else np.asarray(free, np.float64)
         if self.jacobi_free:
             return theta, 0.0
         pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
         pb, db = self.basis(pts), self.basis_derivative(pts)
-        best, best_res = theta.copy(), self.jacobi_residual(theta, pts)
-        for _ in range(PROJECTION_ITER):
-            j, jac, scale = self._jacobi_parts(theta, pb, db)
+
+        def measure(th: FloatArray) -> tuple[FloatArray, FloatArray, float, float]:
+            j, jac, scale = self._jacobi_parts(th, pb, db)
             top = float(np.max(scale)) if scale.size else 0.0
-            res = float(np.max(np.abs(j))) / top if top > 0 else 0.0
-            if res < best_res:
-                best, best_res = theta.copy(), res
+            if top <= 0:
+                return j, jac, 0.0, 0.0
+            return j, jac, float(np.max(np.abs(j))) / top, float(np.linalg.norm(j)) / top
+
+        j, jac, res, cost = measure(theta)
+        best, best_res = theta.copy(), res
+        for _ in range(PROJECTION_ITER):
             if res <= JACOBI_RTOL * 1e-2:
                 break
-            step, *_ = np.linalg.lstsq(jac, -j, rcond=1e-12)
-            theta = theta + step
+            # Moving along ``free`` costs 1e-6 of moving elsewhere (columns scaled by 1e3).
+            aug = np.concatenate([jac, 1e3 * (jac @ f)], axis=1)
+            # J is homogeneous (θ = 0 solves it): the step keeps θ's component along itself,
+            # so the residual falls relative to θ² and not by shrinking θ.
+            along = np.concatenate([theta, 1e3 * (theta @ f)]) / max(
+                float(np.linalg.norm(theta)), 1e-300
+            )
+            weight = float(np.linalg.norm(jac)) + 1.0
+            aug = np.vstack([aug, weight * along])
+            step, *_ = np.linalg.lstsq(aug, np.concatenate([-j, [0.0]]), rcond=1e-12)
+            move = step[: len(self)] + 1e3 * (f @ step[len(self) :])
+            lam = 1.0
+            while lam >= 1.0 / 256:
+                trial = measure(theta + lam * move)
+                if trial[3] < cost:
+                    break
+                lam /= 2
+            else:
+                break
+            theta = theta + lam * move
+            j, jac, res, cost = trial
+            if res < best_res:
+                best, best_res = theta.copy(), res
         return best, best_res
 
     def text(self, theta: Any, names: Sequence[str], digits: int = 10) -> str:

@@ -31,7 +31,9 @@ def errors(stepper: Any, data: TrajectoryData) -> tuple[float, float]:
         for t in trajs:
             roll = integrate(stepper, t[0], data.h, len(t) - 1, on_failure="ignore")
             e = np.linalg.norm(roll - t, axis=1) / np.linalg.norm(t, axis=1)
-            worst = max(worst, float(np.max(e)))
+            top = float(np.max(e))
+            # A failed rollout (NaN) is an infinite error, never hidden by max().
+            worst = max(worst, top if math.isfinite(top) else math.inf)
     return (one if math.isfinite(one) else math.inf), (worst if math.isfinite(worst) else math.inf)
 
 
