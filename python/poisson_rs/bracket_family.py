@@ -79,6 +79,27 @@ class BracketFamily:
         )
         self._exps = np.array([e for _, _, e in self.terms], dtype=np.int64)  # (P, n)
 
+    @property
+    def degree(self) -> int:
+        """The largest total degree of an entry."""
+        return max(sum(e) for _, _, e in self.terms)
+
+    def jacobi_points(self, lo: Any, hi: Any, seed: int = 0) -> FloatArray:
+        """Seeded generic points in the box [lo, hi] that decide the Jacobi identity: J is a
+        polynomial of degree 2·degree − 1, so twice as many points as it has coefficients
+        (at least 48). Trajectory states would not do: they lie on curves."""
+        import math
+
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        deg = max(2 * self.degree - 1, 0)
+        count = max(48, 2 * math.comb(self.dim + deg, self.dim))
+        mid, half = (
+            (lo + hi) / 2,
+            np.maximum((hi - lo) / 2, 1e-3 * (np.abs(lo) + np.abs(hi)) + 1e-12),
+        )
+        rng = np.random.default_rng(seed)
+        return mid + half * rng.uniform(-1.0, 1.0, size=(count, self.dim))
+
     def __len__(self) -> int:
         return len(self.terms)
 

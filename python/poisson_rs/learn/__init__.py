@@ -2,6 +2,7 @@
 
 from .api import MODES, learn
 from .data import CasimirDriftWarning, HullWarning, TrajectoryData, load_trajectories, prepare
+from .discover import NotExplainedWarning
 from .fixed_step import FixedStepIntegrator
 from .report import Candidate, LearnReport
 
@@ -12,6 +13,7 @@ __all__ = [
     "FixedStepIntegrator",
     "HullWarning",
     "LearnReport",
+    "NotExplainedWarning",
     "TrajectoryData",
     "learn",
     "load_trajectories",

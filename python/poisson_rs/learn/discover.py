@@ -62,9 +62,6 @@ GN_ITER = 40
 GAUGE_RTOL = 1e-9
 #: Bracket coefficients below this (relative to the largest, +1) are tried at zero.
 SPARSE_RTOL = 1e-7
-#: States the Jacobi identity is imposed at (a subsample of the data; it is a polynomial
-#: identity, so a few generic points more than its coefficients decide it).
-JACOBI_POINTS = 48
 
 
 class NotExplainedWarning(UserWarning):
@@ -195,7 +192,7 @@ def fit_bracket(
     _, sv, vt = np.linalg.svd(a, full_matrices=False)
     keep = sv > GAUGE_RTOL * sv[0] if sv.size and sv[0] > 0 else np.zeros(len(sv), bool)
     theta = vt[keep].T @ (vt[keep] @ theta)
-    pts = x[np.linspace(0, len(x) - 1, min(len(x), JACOBI_POINTS)).astype(int)]
+    pts = family.jacobi_points(data.lo, data.hi, seed)
     jacobi_fit = family.jacobi_residual(theta, pts)
     theta, jacobi = family.project(theta, pts, free=vt[~keep].T)
     big = int(np.argmax(np.abs(theta)))

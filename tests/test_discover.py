@@ -1,0 +1,269 @@
+"""Structure discovery: the bracket families the structures offer
+(:mod:`poisson_rs.bracket_family`) and ``pr.learn(..., structure="discover")``."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import poisson_rs as pr
+from poisson_rs.learn import NotExplainedWarning
+from poisson_rs.learn.discover import bilinear_fit
+from poisson_rs.structures import bracket_families
+from poisson_rs.structures.algebra import LieAlgebra
+
+
+def _family(dim: int, name: str):
+    return next(f for f in bracket_families(dim) if f.name == name)
+
+
+def _theta_of_algebra(family, c: np.ndarray) -> np.ndarray:
+    """θ of the Lie–Poisson family for structure constants c (π_ij = −Σ_k c_ijk x_k)."""
+    return np.array([-c[i, j, e.index(1)] for i, j, e in family.terms])
+
+
+# --- bracket families ----------------------------------------------------------------------
+
+
+def test_every_structure_module_offers_its_families_smallest_first():
+    names = [f.name for f in bracket_families(3)]
+    assert names == [
+        "log-canonical",
+        "lie-poisson",
+        "affine",
+        "poly2-bivector",
+        "poly3-bivector",
+    ]
+    sizes = [len(f) for f in bracket_families(3)]
+    assert sizes == sorted(sizes) == [3, 9, 12, 30, 60]
+
+
+@pytest.mark.parametrize("name", ["log-canonical", "lie-poisson", "affine", "poly2-bivector"])
+def test_family_bivector_is_the_built_systems_own(name):
+    """The oracle: the structure's own bivector of the system θ builds."""
+    rng = np.random.default_rng(3)
+    family = _family(3, name)
+    if name == "log-canonical":
+        theta = rng.normal(size=len(family))
+        x = rng.uniform(0.5, 2.0, size=(7, 3))
+    else:
+        # A Poisson θ: so(3) for the linear part, a constant cocycle / quadratic Nambu terms
+        # where the family has room (projected onto Jacobi to be safe).
+        theta = np.zeros(len(family))
+        lie = _theta_of_algebra(_family(3, "lie-poisson"), LieAlgebra.so3().c)
+        for a, (i, j, e) in enumerate(family.terms):
+            for b, (i2, j2, e2) in enumerate(_family(3, "lie-poisson").terms):
+                if (i, j, e) == (i2, j2, e2):
+                    theta[a] = lie[b]
+        x = rng.normal(size=(7, 3))
+        pts = family.jacobi_points(-np.ones(3), np.ones(3), seed=1)
+        theta, res = family.project(theta + 1e-3 * rng.normal(size=len(family)), pts)
+        assert res < 1e-13
+    system = family.system(theta)
+    np.testing.assert_allclose(
+        family.bivector(x, theta), np.asarray(system.bivector(x)), rtol=1e-12, atol=1e-12
+    )
+
+
+def test_basis_derivative_matches_finite_differences():
+    rng = np.random.default_rng(4)
+    family = _family(3, "poly2-bivector")
+    x = rng.normal(size=(5, 3))
+    d = family.basis_derivative(x)
+    eps = 1e-6
+    for ell in range(3):
+        step = np.zeros(3)
+        step[ell] = eps
+        fd = (family.basis(x + step) - family.basis(x - step)) / (2 * eps)
+        np.testing.assert_allclose(d[:, :, :, ell, :], fd, atol=1e-8)
+
+
+def test_jacobi_residual_zero_on_lie_algebras_and_not_on_a_random_bracket():
+    lie3, lie6 = _family(3, "lie-poisson"), _family(6, "lie-poisson")
+    rng = np.random.default_rng(5)
+    x3, x6 = rng.normal(size=(20, 3)), rng.normal(size=(20, 6))
+    for fam, alg, x in (
+        (lie3, LieAlgebra.so3(), x3),
+        (lie3, LieAlgebra.sl2(), x3),
+        (lie6, LieAlgebra.se3(), x6),
+    ):
+        assert fam.jacobi_residual(_theta_of_algebra(fam, alg.c), x) < 1e-15
+    assert lie6.jacobi_residual(rng.normal(size=len(lie6)), x6) > 1e-3
+
+
+def test_projection_lands_on_an_algebra_the_structure_accepts():
+    """A perturbed se(3) bracket projected: LieAlgebra's own Jacobi check (1e-12) passes."""
+    fam = _family(6, "lie-poisson")
+    rng = np.random.default_rng(6)
+    theta = _theta_of_algebra(fam, LieAlgebra.se3().c) + 1e-4 * rng.normal(size=len(fam))
+    x = fam.jacobi_points(-np.ones(6), np.ones(6))
+    assert fam.jacobi_residual(theta, x) > 1e-6
+    projected, res = fam.project(theta, x)
+    assert res < 1e-13
+    assert np.linalg.norm(projected - theta) < 1e-2 * np.linalg.norm(theta)
+    fam.system(projected)  # LieAlgebra refuses a bracket off Jacobi
+
+
+def test_log_canonical_family_refuses_states_off_the_orthant():
+    fam = _family(2, "log-canonical")
+    assert fam.applies(np.array([[1.0, 2.0]])) is None
+    assert "positive orthant" in fam.applies(np.array([[1.0, -2.0]]))
+
+
+def test_bilinear_fit_recovers_a_rank_one_product():
+    rng = np.random.default_rng(7)
+    t = rng.normal(size=(200, 5, 4))
+    theta, phi = rng.normal(size=5), rng.normal(size=4)
+    rhs = np.einsum("kam,a,m->k", t, theta, phi)
+    th, ph, rel = bilinear_fit(t, rhs, np.random.default_rng(0))
+    assert rel < 1e-12
+    np.testing.assert_allclose(np.outer(th, ph), np.outer(theta, phi), atol=1e-10)
+
+
+# --- pr.learn(structure="discover") ----------------------------------------------------------
+
+
+def _lotka_volterra_pnn() -> list[np.ndarray]:
+    """PNN's protocol: u̇ = u(v − 2), v̇ = v(1 − u), h = 0.1, 100 steps from 3 states."""
+    out = []
+    for z0 in ((1.0, 0.8), (1.0, 1.0), (1.0, 1.2)):
+        sol = solve_ivp(
+            lambda t, z: [z[0] * (z[1] - 2), z[1] * (1 - z[0])],
+            (0, 10),
+            z0,
+            t_eval=np.arange(101) * 0.1,
+            method="DOP853",
+            rtol=1e-13,
+            atol=1e-13,
+        )
+        out.append(sol.y.T)
+    return out
+
+
+@pytest.fixture(scope="module")
+def lotka_volterra():
+    return pr.learn(_lotka_volterra_pnn(), 0.1, structure="discover", seed=0, progress=False)
+
+
+def test_discovers_lotka_volterra_log_canonical_bracket_and_h(lotka_volterra):
+    stepper, report = lotka_volterra
+    assert report.explained
+    assert report.kept.family.startswith("log-canonical/")
+    # The gauge fixes c_uv = +1, which is the true c: H = u − ln u + v − 2 ln v exactly.
+    assert report.bracket == "{u, v} = 1*u*v"
+    h = report.structure.log_hamiltonian
+    np.testing.assert_allclose(h.b, [1.0, 2.0], rtol=1e-5)
+    lin = {e: c for e, c in h.terms.items() if abs(c) > 1e-6}
+    assert set(lin) == {(1, 0), (0, 1)}
+    np.testing.assert_allclose([lin[(1, 0)], lin[(0, 1)]], [1.0, 1.0], rtol=1e-5)
+    # The same exact data rolled past the training span (T = 10 → 20).
+    sol = solve_ivp(
+        lambda t, z: [z[0] * (z[1] - 2), z[1] * (1 - z[0])],
+        (0, 20),
+        (1.0, 1.1),
+        t_eval=np.arange(201) * 0.1,
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+    )
+    roll = pr.integrate(stepper, sol.y[:, 0], 0.1, 200)
+    assert np.max(np.abs(roll - sol.y.T)) < 1e-4
+    text = str(report)
+    assert "bracket: {u, v} = 1*u*v" in text and "KEPT" in text
+
+
+@pytest.fixture(scope="module")
+def rigid_body():
+    rb = pr.RigidBody((2.0, 1.0, 2.0 / 3.0))
+    rng = np.random.default_rng(0)
+    x0 = rng.normal(size=(8, 3))
+    x0 /= np.linalg.norm(x0, axis=1)[:, None]
+    trajs = np.asarray(pr.reference_solution(rb, x0, np.arange(41) * 0.1))
+    return rb, pr.learn(list(trajs), 0.1, structure="discover", seed=0, progress=False)
+
+
+def test_discovers_a_lie_algebra_whose_gauge_orbit_holds_so3(rigid_body):
+    rb, (_, report) = rigid_body
+    assert report.explained and report.kept.family == "lie-poisson/poly2"
+    fit = report.kept
+    # θ and the direction N (N∇H ≡ 0) the data cannot see span the so(3) bracket.
+    fam = _family(3, "lie-poisson")
+    learned = report.structure
+    theta = _theta_of_algebra(fam, learned.algebra.c)
+    true = _theta_of_algebra(fam, LieAlgebra.so3().c)
+    x = np.random.default_rng(1).normal(size=(30, 3))
+    grad_h = np.stack([x[:, 0] / 2.0, x[:, 1] / 1.0, x[:, 2] * 1.5], axis=1)
+    a = np.einsum("bija,bj->bia", fam.basis(x), grad_h).reshape(-1, len(fam))
+    _, sv, vt = np.linalg.svd(a)
+    null = vt[sv.size - int(np.sum(sv < 1e-10 * sv[0])) :] if np.any(sv < 1e-10 * sv[0]) else []
+    span = np.vstack([theta, *null]).T
+    coef, *_ = np.linalg.lstsq(span, true, rcond=None)
+    assert np.linalg.norm(span @ coef - true) < 1e-6 * np.linalg.norm(true)
+    assert fit.jacobi_residual < 1e-13
+    # Dynamics (gauge-free): the learned field is the true one at fresh states.
+    np.testing.assert_allclose(
+        learned.vector_field(x), rb.vector_field(x), rtol=0, atol=1e-7 * np.abs(x).max()
+    )
+
+
+def test_discovered_stepper_keeps_the_learned_casimir_to_round_off(rigid_body):
+    _, (stepper, report) = rigid_body
+    learned = report.structure
+    x0 = np.array([0.3, -0.8, 0.5])
+    roll = pr.integrate(stepper, x0, 0.1, 1000)
+    polys = learned.found_casimirs()
+    assert len(polys) == 1  # a 3-D algebra of rank 2: one Casimir, found by the null space
+    c = np.stack([np.asarray(p(roll)) for p in polys], axis=1)
+    assert np.max(np.abs(c - c[0])) < 1e-12 * max(1.0, float(np.max(np.abs(c))))
+    # The true Casimir |μ|² is kept as well as the bracket was learned.
+    true = np.sum(roll**2, axis=1)
+    assert np.max(np.abs(true - true[0])) < 1e-6
+
+
+def test_damped_oscillator_is_reported_not_poisson():
+    rng = np.random.default_rng(2)
+    trajs = []
+    for z0 in rng.normal(size=(6, 2)):
+        sol = solve_ivp(
+            lambda t, z: [z[1], -z[0] - 0.1 * z[1]],
+            (0, 3),
+            z0,
+            t_eval=np.arange(31) * 0.1,
+            rtol=1e-12,
+            atol=1e-12,
+        )
+        trajs.append(sol.y.T)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _, report = pr.learn(trajs, 0.1, structure="discover", degree=2, progress=False)
+    assert any(issubclass(w.category, NotExplainedWarning) for w in caught)
+    assert not report.explained
+    assert "NOT EXPLAINED" in str(report)
+    assert report.kept.one_step > 100 * report.threshold
+
+
+def test_discover_refuses_bad_input_before_any_fit(monkeypatch):
+    import importlib
+
+    discover = importlib.import_module("poisson_rs.learn.discover")
+
+    def never(*args, **kwargs):
+        raise AssertionError("a fit ran")
+
+    monkeypatch.setattr(discover, "fit_bracket", never)
+    data = _lotka_volterra_pnn()
+    with pytest.raises(ValueError, match="mode 'map' does not apply to structure discovery"):
+        pr.learn(data, 0.1, structure="discover", mode="map")
+    with pytest.raises(ValueError, match=r"trajectories\[0\].*dim in 2..=10"):
+        pr.learn([np.zeros((5, 1))], 0.1, structure="discover")
+    bad = [t.copy() for t in data]
+    bad[1][3, 0] = np.nan
+    with pytest.raises(ValueError, match=r"trajectories\[1\]: record 3, component 0"):
+        pr.learn(bad, 0.1, structure="discover")
+    with pytest.raises(ValueError, match="degree"):
+        pr.learn(data, 0.1, structure="discover", degree=0)
+    with pytest.raises(ValueError, match="h"):
+        pr.learn(data, -0.1, structure="discover")
