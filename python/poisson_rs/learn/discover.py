@@ -153,7 +153,7 @@ def bilinear_fit(
         u, _, _ = np.linalg.svd(w)
         results.append(run(u[:, 0]))
     while len(results) < MAX_RESTARTS:
-        results.append(run(rng.normal(size=p)))
+        results.append(run(np.asarray(rng.normal(size=p), dtype=np.float64)))
         best = min(r[2] for r in results)
         hits = sum(r[2] <= 2.0 * best for r in results)
         if len(results) > restarts and hits >= 2:

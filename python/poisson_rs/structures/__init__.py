@@ -34,10 +34,11 @@ from .polynomial import PolynomialBivector, PolynomialPoissonSystem
 
 
 @cache
-def _kinds(table: str) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
-    """``table`` ("SYSTEM_KINDS" or "SCENE_KINDS") of every structure module of this package,
-    merged: a structure module is found by being here, so a new structure is one new module."""
-    found: dict[str, Callable[[Mapping[str, Any]], Any]] = {}
+def _kinds(table: str) -> dict[str, Callable[..., Any]]:
+    """``table`` ("SYSTEM_KINDS", "SCENE_KINDS" or "BRACKET_FAMILIES") of every structure
+    module of this package, merged: a structure module is found by being here, so a new
+    structure is one new module."""
+    found: dict[str, Callable[..., Any]] = {}
     for info in pkgutil.iter_modules(__path__):
         module = importlib.import_module(f"{__name__}.{info.name}")
         for kind, reader in getattr(module, table, {}).items():
