@@ -12,6 +12,7 @@ module's ``BRACKET_FAMILIES`` table): this module names none.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -88,8 +89,6 @@ class BracketFamily:
         """Seeded generic points in the box [lo, hi] that decide the Jacobi identity: J is a
         polynomial of degree 2·degree − 1, so twice as many points as it has coefficients
         (at least 48). Trajectory states would not do: they lie on curves."""
-        import math
-
         lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
         deg = max(2 * self.degree - 1, 0)
         count = max(48, 2 * math.comb(self.dim + deg, self.dim))
@@ -226,6 +225,50 @@ class BracketFamily:
             j, jac, res, cost = trial
             if res < best_res:
                 best, best_res = theta.copy(), res
+        return best, best_res
+
+    def jacobi_in_subspace(
+        self, theta: Any, directions: Any, points: Any, seed: int = 0, starts: int = 8
+    ) -> tuple[FloatArray, float]:
+        """The θ + D z (D = ``directions``, (P, k)) closest to obeying Jacobi at ``points``:
+        Gauss–Newton on z alone from the least-norm point and ``starts`` seeded random ones
+        (J is quadratic in z, with local minima), the best kept; and its relative residual.
+        Moving along the directions the data cannot see changes no fitted field."""
+        theta = np.asarray(theta, dtype=np.float64)
+        d = np.asarray(directions, dtype=np.float64)
+        pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        if self.jacobi_free or d.shape[1] == 0:
+            return theta.copy(), self.jacobi_residual(theta, pts)
+        pb, db = self.basis(pts), self.basis_derivative(pts)
+
+        def parts(z: Any) -> tuple[FloatArray, FloatArray, float]:
+            j, jac, scale = self._jacobi_parts(theta + d @ z, pb, db)
+            top = float(np.max(scale)) if scale.size else 0.0
+            return j, jac @ d, top
+
+        rng = np.random.default_rng(seed)
+        size = float(np.linalg.norm(theta))
+        zs: list[Any] = [np.zeros(d.shape[1])]
+        zs += [size * rng.normal(size=d.shape[1]) for _ in range(starts)]
+        best, best_res = theta.copy(), self.jacobi_residual(theta, pts)
+        for z in zs:
+            j, jz, top = parts(z)
+            for _ in range(PROJECTION_ITER):
+                cost = float(np.linalg.norm(j))
+                step, *_ = np.linalg.lstsq(jz, -j, rcond=1e-12)
+                lam = 1.0
+                while lam >= 1.0 / 1024:
+                    trial = parts(z + lam * step)
+                    if float(np.linalg.norm(trial[0])) < cost:
+                        break
+                    lam /= 2
+                else:
+                    break
+                z = z + lam * step
+                j, jz, top = trial
+            res = float(np.max(np.abs(j))) / top if top > 0 else math.inf
+            if res < best_res:
+                best, best_res = theta + d @ z, res
         return best, best_res
 
     def text(self, theta: Any, names: Sequence[str], digits: int = 10) -> str:

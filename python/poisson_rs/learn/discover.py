@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ..bracket_family import JACOBI_RTOL
 from .data import TrajectoryData
 
 __all__ = [
@@ -60,8 +61,12 @@ ALS_ITER = 40
 GN_ITER = 40
 #: Singular values below this fraction of the largest are gauge directions.
 GAUGE_RTOL = 1e-9
-#: Bracket coefficients below this (relative to the largest, +1) are tried at zero.
-SPARSE_RTOL = 1e-7
+#: Gauss–Newton iterates of the joint refinement through the integrator.
+REFINE_ITER = 12
+#: Bracket coefficients below these (relative to the largest, +1) are tried at zero, the
+#: largest level that keeps the fit first.
+SPARSE_LEVELS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7)
+SPARSE_RTOL = SPARSE_LEVELS[-1]
 
 
 class NotExplainedWarning(UserWarning):
@@ -89,6 +94,7 @@ class BracketFit:
     gauge_null: int
     seconds: float
     null_directions: list[np.ndarray] = field(default_factory=list)
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 def _lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -194,6 +200,10 @@ def fit_bracket(
     theta = vt[keep].T @ (vt[keep] @ theta)
     pts = family.jacobi_points(data.lo, data.hi, seed)
     jacobi_fit = family.jacobi_residual(theta, pts)
+    if jacobi_fit > 1e-12 and not keep.all():
+        # The least-norm θ may sit far from every Poisson bracket of its orbit: the nearest
+        # one along the directions the data cannot see first, then the (small) projection.
+        theta, _ = family.jacobi_in_subspace(theta, vt[~keep].T, pts, seed)
     theta, jacobi = family.project(theta, pts, free=vt[~keep].T)
     big = int(np.argmax(np.abs(theta)))
     scale = theta[big] if theta[big] != 0 else 1.0
@@ -207,14 +217,17 @@ def fit_bracket(
 
     phi, rel = refit(theta)
     # Sparsity: coefficients the fit cannot tell from zero are dropped (and Jacobi imposed
-    # again) where the fit stays as good.
-    small = np.abs(theta) < SPARSE_RTOL
-    if small.any() and not small.all():
+    # again), at the largest threshold where the fit stays as good.
+    for level in SPARSE_LEVELS:
+        small = np.abs(theta) < level
+        if not small.any() or small.all():
+            continue
         sparse, jac_sparse = family.project(np.where(small, 0.0, theta), pts)
         sparse[np.abs(sparse) < 1e-15] = 0.0
         ph_s, rel_s = refit(sparse)
-        if rel_s <= 1.5 * rel + 1e-14:
+        if rel_s <= 1.5 * rel + 1e-14 and jac_sparse <= max(jacobi, JACOBI_RTOL):
             theta, jacobi, phi, rel = sparse, jac_sparse, ph_s, rel_s
+            break
     return BracketFit(
         family=family,
         hamiltonians=hamiltonians,
@@ -225,7 +238,115 @@ def fit_bracket(
         jacobi=jacobi,
         gauge_null=int((~keep).sum()),
         null_directions=null,
+        points=pts,
         seconds=time.perf_counter() - t0,
+    )
+
+
+@dataclass
+class Refined:
+    """A bracket and H refined jointly through the found structure's integrator."""
+
+    theta: np.ndarray
+    phi: np.ndarray
+    family: Any
+    system: Any
+    stepper: Any
+    jacobi: float
+    history: list[float]
+
+
+def refine_through_integrator(
+    data: TrajectoryData,
+    family: Any,
+    theta: np.ndarray,
+    hamiltonians: Any,
+    phi: np.ndarray,
+    degree: int,
+    order: int | None,
+    points: np.ndarray,
+    max_iter: int = REFINE_ITER,
+) -> Refined | None:
+    """Gauss–Newton on the one-step residuals of the structure's own integrator over the
+    bracket's non-zero coefficients (the largest held at +1: the scale gauge) and H's, with
+    the chord Jacobian at the midpoints x̄ (h·Π_a(x̄)∇H(x̄) for θ_a, h·π(x̄)∇φ_m(x̄) for φ_m)
+    and Jacobi imposed again after each step. The velocity-level bracket carries the
+    finite-difference error of the records' velocities; this removes it. None where no
+    iterate improved on the start."""
+    from ..rollout import integrate
+
+    starts, targets = data.pairs("train")
+    scale = np.linalg.norm(starts, axis=1).clip(1e-300)[:, None]
+    mid = 0.5 * (starts + targets)
+    exps = hamiltonians.exponents
+    support = np.flatnonzero(theta)
+    pinned = int(np.argmax(np.abs(theta)))
+    free = support[support != pinned]
+
+    def build(th: np.ndarray, ph: np.ndarray) -> tuple[Any, Any, Any] | None:
+        try:
+            system = family.system(th)
+            hf = system.hamiltonian_family(degree, order).restrict(exps)
+            return hf, hf.stepper(ph), system
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+            return None
+
+    def residual(th: np.ndarray, ph: np.ndarray) -> tuple[np.ndarray, float, Any]:
+        built = build(th, ph)
+        if built is None:
+            return np.zeros(0), math.inf, None
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore")
+            out = np.asarray(integrate(built[1], starts, data.h, 1, on_failure="ignore"))[:, -1]
+        r = ((out - targets) / scale).reshape(-1)
+        cost = float(np.mean(r * r))
+        return r, (cost if math.isfinite(cost) else math.inf), built
+
+    r, cost, built = residual(theta, phi)
+    if built is None:
+        return None
+    start_cost, history = cost, [cost]
+    jacobi = family.jacobi_residual(theta, points)
+    for _ in range(max_iter):
+        hf = built[0]
+        grads = hf.gradients(mid)  # (B, n, M)
+        j_phi = data.h * (family.bivector(mid, theta) @ grads) / scale[..., None]
+        grad_h = grads @ phi
+        j_th = np.einsum("bija,bj->bia", family.basis(mid)[..., free], grad_h)
+        j_th = data.h * j_th / scale[..., None]
+        jac = np.concatenate([j_th, j_phi], axis=2).reshape(-1, len(free) + len(phi))
+        step = _lstsq(jac, -r)
+        lam, improved = 1.0, False
+        while lam >= 1.0 / 16:
+            th = theta.copy()
+            th[free] += lam * step[: len(free)]
+            th, jac_res = family.project(th, points)
+            th = th / th[pinned]
+            ph = phi + lam * step[len(free) :]
+            r_new, c_new, b_new = residual(th, ph)
+            if c_new < cost:
+                improved = True
+                break
+            lam /= 2
+        if not improved:
+            break
+        gain = (cost - c_new) / max(cost, 1e-300)
+        theta, phi, r, cost, built, jacobi = th, ph, r_new, c_new, b_new, jac_res
+        history.append(cost)
+        if gain < 1e-3:
+            break
+    if cost >= start_cost:
+        return None
+    hf = built[0]
+    final_system = hf.system(phi)
+    return Refined(
+        theta=theta,
+        phi=phi,
+        family=hf,
+        system=final_system,
+        stepper=hf.stepper(phi, final_system),
+        jacobi=jacobi,
+        history=history,
     )
 
 
@@ -268,10 +389,12 @@ def learn_discover(
     refit: bool = True,
     progress: bool | None = None,
     families: Any = None,
+    refine: bool = True,
 ) -> tuple[Any, Any]:
     """:func:`poisson_rs.learn` with ``structure="discover"``: see the module docstring.
     ``families``: names of the bracket families to search (default every one the structures
-    offer in the data's dimension)."""
+    offer in the data's dimension); ``refine``: refine the bracket and H jointly through the
+    found structure's integrator (:func:`refine_through_integrator`)."""
     from ..structures import bracket_families
     from .data import _as_list, check_seed, prepare, refuse_drift
     from .options import EXACT_LEVEL, MAX_DEGREE, check_bool, check_int
@@ -352,25 +475,40 @@ def learn_discover(
             cand = _row(Candidate, name, len(fit.family) + len(fit.hamiltonians), "")
             cand.reason = f"the projected bracket was refused: {exc}"
             return cand
-        one, roll = errors(sfit.stepper, data)
+        hfam, phi, system, stepper = sfit.family, sfit.theta, sfit.system, sfit.stepper
+        if refine:
+            better = refine_through_integrator(
+                data, fit.family, fit.theta, hfam, phi, d, order, fit.points
+            )
+            if better is not None:
+                fit.theta, fit.jacobi = better.theta, better.jacobi
+                hfam, phi, system, stepper = (
+                    better.family,
+                    better.phi,
+                    better.system,
+                    better.stepper,
+                )
+                if verbose:
+                    print(f"{name}: refined through the integrator, cost {better.history}")
+        one, roll = errors(stepper, data)
         return Candidate(
             family=name,
-            parameters=int(np.count_nonzero(fit.theta)) + sfit.n_parameters,
-            order=sfit.family.order,
+            parameters=int(np.count_nonzero(fit.theta)) + int(np.count_nonzero(phi)),
+            order=hfam.order,
             seconds=fit.seconds + time.perf_counter() - t0,
             one_step=one,
             rollout=roll,
-            stepper=sfit.stepper,
-            system=sfit.system,
-            hamiltonian_family=sfit.family.description,
-            hamiltonian_text=sfit.family.text(sfit.theta),
-            gauge=_GAUGE.format(casimir=sfit.family.gauge),
+            stepper=stepper,
+            system=system,
+            hamiltonian_family=hfam.description,
+            hamiltonian_text=hfam.text(phi),
+            gauge=_GAUGE.format(casimir=hfam.gauge),
             fit=sfit,
             bracket_family=fit.family.description,
-            bracket_text=_bracket_text(fit, list(sfit.system.component_names)),
+            bracket_text=_bracket_text(fit, list(system.component_names)),
             jacobi_residual=fit.jacobi,
             velocity_residual=fit.velocity_residual,
-            casimirs_text=str(getattr(sfit.system, "casimir_label", "n/a")),
+            casimirs_text=str(getattr(system, "casimir_label", "n/a")),
         )
 
     kept: Candidate | None = None
