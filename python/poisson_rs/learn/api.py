@@ -296,7 +296,10 @@ def learn(
     algebra, system : the Lie algebra (a LieAlgebra or "so3", "se3", "sl2"), or a system whose
         algebra it is (its Hamiltonian is used by mode "hj+data" only, as the known part). One
         of them (or ``structure``) is required: nothing is assumed.
-    structure : the Poisson structure, as any system on it (:class:`poisson_rs.PoissonSystem`;
+    structure : ``"discover"`` to learn the bracket as well (:mod:`poisson_rs.learn.discover`:
+        the bivector families every structure offers, smallest first, the smallest that
+        reaches the data's noise level kept; modes "auto" and "hamiltonian"), or the Poisson
+        structure, as any system on it (:class:`poisson_rs.PoissonSystem`;
         its own H is ignored) or a Lie algebra: a Lie–Poisson system or algebra learns as
         ``system=``/``algebra=`` do; any other structure (affine, polynomial bivector, charged
         particle, ...) learns H from the family it offers

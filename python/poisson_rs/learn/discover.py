@@ -610,6 +610,11 @@ _GAUGE = (
 def _bracket_text(fit: BracketFit, names: list[str]) -> str:
     """The bracket, and the directions N (N∇H ≡ 0 on the data) it may be moved along."""
     text = fit.family.text(fit.theta, names, digits=10)
+    if len(fit.null_directions) > 2:
+        return text + (
+            f"  [+ any combination of {len(fit.null_directions)} directions N with N∇H ≡ 0 "
+            "on the data: BracketFit.null_directions]"
+        )
     for n in fit.null_directions:
         n = np.where(np.abs(n) < SPARSE_RTOL, 0.0, n)
         text += f"  [+ α·({fit.family.text(n, names, digits=6)}) for any α: N∇H ≡ 0]"
