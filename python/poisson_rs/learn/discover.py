@@ -509,6 +509,7 @@ def learn_discover(
             jacobi_residual=fit.jacobi,
             velocity_residual=fit.velocity_residual,
             casimirs_text=str(getattr(system, "casimir_label", "n/a")),
+            null_directions=list(fit.null_directions),
         )
 
     kept: Candidate | None = None
@@ -613,7 +614,7 @@ def _bracket_text(fit: BracketFit, names: list[str]) -> str:
     if len(fit.null_directions) > 2:
         return text + (
             f"  [+ any combination of {len(fit.null_directions)} directions N with N∇H ≡ 0 "
-            "on the data: BracketFit.null_directions]"
+            "on the data: report.kept.null_directions]"
         )
     for n in fit.null_directions:
         n = np.where(np.abs(n) < SPARSE_RTOL, 0.0, n)

@@ -26,7 +26,8 @@ class Candidate:
     a constant; ``bracket_family``, ``bracket_text``, ``jacobi_residual``,
     ``velocity_residual``, ``casimirs_text``: with the structure discovered, what the bracket
     ranged over, the learned bracket as formulas, its Jacobi residual after the projection
-    (relative), the velocity-level fit's relative residual, and the learned structure's Casimirs.
+    (relative), the velocity-level fit's relative residual, the learned structure's Casimirs,
+    and the bracket coefficients' directions N (N∇H ≡ 0 on the data) the bracket may move along.
     """
 
     family: str
@@ -49,6 +50,7 @@ class Candidate:
     jacobi_residual: float = math.nan
     velocity_residual: float = math.nan
     casimirs_text: str = ""
+    null_directions: list[Any] = field(default_factory=list, repr=False)
 
 
 @dataclass
