@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from ..export import model_bytes
+from ..hamiltonian_library import LIBRARY_DEGREES, LibraryFamily, supports_library
 from ..integrators import LearnedIntegrator, TaylorIntegrator
 from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..taylor import system_taylor_terms
@@ -629,20 +630,27 @@ def _learn_on_structure(
             fit=fit,
         )
 
+    # Beyond polynomials: where no polynomial degree explains the data, the term library
+    # (polynomials plus sin/cos of each coordinate, stepped by jets) on structures with a jet
+    # realization.
+    plans: list[tuple[int, Any]] = [(d, None) for d in degrees]
+    if degree is None and supports_library(structure):
+        plans += [(d, LibraryFamily(structure, d, order)) for d in LIBRARY_DEGREES if d <= top]
     candidates: list[Candidate] = []
     kept: Candidate | None = None
-    bar = _progress_bar(len(degrees) + int(refit and held), progress)
+    bar = _progress_bar(len(plans) + int(refit and held), progress)
     try:
-        for d in degrees:
-            bar.set_postfix_str(f"poly{d}")
+        for d, library in plans:
+            bar.set_postfix_str(library.name if library is not None else f"poly{d}")
             fit = fit_structure_hamiltonian(
-                data, structure, d, order=order, max_iter=max_iter, verbose=verbose
-            )
+                data, structure, d, order=order, max_iter=max_iter, verbose=verbose,
+                family=library,
+            )  # fmt: skip
             cand = candidate(fit)
             candidates.append(cand)
             bar.update(1)
             if verbose:
-                print(f"poly{d}: one-step {cand.one_step:.3e}, {cand.seconds:.1f} s")
+                print(f"{cand.family}: one-step {cand.one_step:.3e}, {cand.seconds:.1f} s")
             if math.isfinite(threshold) and cand.one_step <= threshold:
                 kept = cand
                 cand.reason = f"the smallest family whose {err} reaches the data's noise level"
