@@ -10,7 +10,9 @@ Cases (seeded; exact records from DOP853 at rtol = atol = 1e-13):
 - PNN's extended pendulum with the degree-4 H (affine bracket), 8 states × 30 steps;
   3 test states to T = 10;
 - a damped oscillator (not Poisson): must be reported as not explained;
-- the heavy top (se(3)*), 8 states × 30 steps: where discovery loses today.
+- the heavy top (se(3)*), 8 states × 30 steps, H of degree 2; 3 test states to T = 100;
+- PNN's extended pendulum with its own H = ½u² − cos v + u(r − u² − v²) (the term library),
+  PNN's 3 states × 100 steps; tested from the ends of the training data to T = 100.
 
     PYTHONPATH=python taskset -c 0 .venv/bin/python benches/discover_structures.py
 
@@ -123,14 +125,24 @@ def main() -> None:
         _solve(lambda t, z: [z[1], -z[0] - 0.1 * z[1]], z0, h, 30) for z0 in rng.normal(size=(6, 2))
     ]
     rows.append(case("damped_oscillator", damped, h, damped[:1], None, degree=2))
-    # Heavy top: se(3)*.
+    # Heavy top: se(3)*; 3 fresh states to T = 100.
     ht = pr.HeavyTop()
     rng = np.random.default_rng(1)
     trajs = list(
         np.asarray(pr.reference_solution(ht, rng.normal(size=(8, 6)) * 0.5, np.arange(31) * h))
     )
-    tests = trajs[:2]
-    rows.append(case("heavy_top", trajs, h, tests, None, degree=2))
+    tests = list(
+        np.asarray(pr.reference_solution(ht, rng.normal(size=(3, 6)) * 0.5, np.arange(1001) * h))
+    )
+    rows.append(case("heavy_top", trajs, h, tests, pr.taylor_integrator(ht, 5), degree=2))
+    # PNN's extended pendulum with its own H (−cos v: the term library), PNN's three states;
+    # tested from the end of each training trajectory on to 10× PNN's test horizon.
+    epp = load_scene(ROOT / "scenes" / "extended_pendulum_pnn.toml").system
+    states = np.array([[0.0, 1.0, 1.0], [0.0, 1.5, 2.35], [0.0, 2.0, 4.2]])
+    trajs = list(np.asarray(pr.reference_solution(epp, states, np.arange(101) * h)))
+    ends = np.array([t[-1] for t in trajs])
+    tests = list(np.asarray(pr.reference_solution(epp, ends, np.arange(1001) * h)))
+    rows.append(case("extended_pendulum_pnn", trajs, h, tests, pr.taylor_integrator(epp, 5)))
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(rows, indent=1, default=str) + "\n")
     for r in rows:

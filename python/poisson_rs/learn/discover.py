@@ -7,8 +7,9 @@ families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, �
 (bracket family, H degree):
 
 1. Velocity-level fit: the finite-difference velocities of the training records are fitted by
-   alternating least squares from a lifted start (the rank-1 part of the least-squares fit of
-   the products θ_aφ_m) and seeded random starts, then joint Gauss–Newton. Its relative
+   variable projection (φ eliminated by least squares, θ by Levenberg–Marquardt) from a lifted
+   start (the rank-1 part of the least-squares fit of the products θ_aφ_m) and seeded random
+   starts. Its relative
    residual screens the pairs: a pair far above the best cannot explain the data.
 2. Gauge: the field is unchanged by π → λπ with H → H/λ, by H → H + a Casimir, and by
    π → π + N where N∇H ≡ 0 (on so(3)* with a quadratic H, the brackets ε·∇(C + αH)). Fixed
@@ -38,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..bracket_family import JACOBI_RTOL
+from ..hamiltonian_library import LIBRARY_DEGREES, LibraryFamily, supports_library
 from .data import TrajectoryData
 
 __all__ = [
@@ -54,11 +56,10 @@ MAX_BRACKET_PARAMETERS = 120
 #: through the integrator.
 SCREEN_FACTOR = 30.0
 #: Starts of the bilinear fit: at least, and at most (see :func:`bilinear_fit`).
-RESTARTS = 3
-MAX_RESTARTS = 16
-#: Alternating least-squares sweeps, then joint Gauss–Newton iterates.
-ALS_ITER = 40
-GN_ITER = 40
+RESTARTS = 8
+MAX_RESTARTS = 24
+#: Levenberg–Marquardt iterates of the variable-projection fit, per start.
+VARPRO_ITER = 200
 #: Singular values below this fraction of the largest are gauge directions.
 GAUGE_RTOL = 1e-9
 #: Gauss–Newton iterates of the joint refinement through the integrator.
@@ -105,51 +106,47 @@ def bilinear_fit(
     t: np.ndarray, rhs: np.ndarray, rng: np.random.Generator, restarts: int = RESTARTS
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """min ‖Σ_{a,m} θ_a φ_m t[:, a, m] − rhs‖ over (θ, φ), t: (K, P, M), rhs: (K,) → θ (P,)
-    of unit norm, φ (M,), relative residual. Each start runs alternating least squares, then
-    joint Gauss–Newton. The problem has local minima: after a lifted start (the rank-1 part of
-    the least-squares products, where there are enough equations) random starts follow until
-    the best residual has been reached twice (within 2×), ``restarts`` at least and
-    :data:`MAX_RESTARTS` at most."""
+    of unit norm, φ (M,), relative residual.
+
+    Variable projection: φ(θ) is the least-squares solution for each θ, and θ alone is fitted
+    by Levenberg–Marquardt on the projected residual (Jacobian (I − AA⁺)·t·φ, Kaufman's form),
+    whose basins are much wider than alternating least squares'. The problem still has local
+    minima: after a lifted start (the rank-1 part of the least-squares products, where there
+    are enough equations) seeded random starts follow, at least ``restarts`` of them, until the
+    best residual has been reached twice (within 2×), :data:`MAX_RESTARTS` at most."""
     k, p, m = t.shape
     norm_rhs = max(float(np.linalg.norm(rhs)), 1e-300)
-    by_theta = np.ascontiguousarray(t.transpose(0, 2, 1))  # (K, M, P): (by_theta @ θ) = A_φ
+    by_theta = np.ascontiguousarray(t.transpose(0, 2, 1))  # (K, M, P): by_theta @ θ = A(θ)
 
-    def a_phi(theta: np.ndarray) -> np.ndarray:
-        return by_theta @ theta  # (K, M)
-
-    def a_theta(phi: np.ndarray) -> np.ndarray:
-        return t @ phi  # (K, P)
+    def project(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a = by_theta @ theta
+        phi = _lstsq(a, rhs)
+        return a, phi, a @ phi - rhs
 
     def run(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         theta = theta / max(float(np.linalg.norm(theta)), 1e-300)
-        phi = np.zeros(m)
-        for _ in range(ALS_ITER):
-            phi = _lstsq(a_phi(theta), rhs)
-            theta = _lstsq(a_theta(phi), rhs)
-            s = float(np.linalg.norm(theta))
-            if s == 0.0:
-                break
-            theta, phi = theta / s, phi * s
-        r = a_theta(phi) @ theta - rhs
-        cost = float(r @ r)
-        for _ in range(GN_ITER):
-            jac = np.concatenate([a_theta(phi), a_phi(theta)], axis=1)
-            step = _lstsq(jac, -r)
-            lam, improved = 1.0, False
-            while lam >= 1.0 / 64:
-                th, ph = theta + lam * step[:p], phi + lam * step[p:]
-                r_new = a_theta(ph) @ th - rhs
-                c_new = float(r_new @ r_new)
-                if c_new < cost:
-                    improved = True
+        a, phi, r = project(theta)
+        cost, mu = float(r @ r), 1e-3
+        for _ in range(VARPRO_ITER):
+            q, _ = np.linalg.qr(a)
+            d = t @ phi  # (K, P)
+            jac = d - q @ (q.T @ d)
+            g, hess = jac.T @ r, jac.T @ jac
+            damp = np.diag(np.diag(hess)) + 1e-300
+            while mu <= 1e10:
+                step = np.linalg.solve(hess + mu * damp, -g)
+                trial = theta + step
+                trial = trial / max(float(np.linalg.norm(trial)), 1e-300)
+                a2, phi2, r2 = project(trial)
+                c2 = float(r2 @ r2)
+                if c2 < cost:
                     break
-                lam /= 2
-            if not improved:
+                mu *= 4.0
+            else:
                 break
-            gain = (cost - c_new) / max(cost, 1e-300)
-            s = max(float(np.linalg.norm(th)), 1e-300)
-            theta, phi, r, cost = th / s, ph * s, r_new, c_new
-            if gain < 1e-6:
+            gain = (cost - c2) / max(cost, 1e-300)
+            theta, a, phi, r, cost, mu = trial, a2, phi2, r2, c2, max(mu / 3.0, 1e-12)
+            if gain < 1e-10:
                 break
         return theta, phi, math.sqrt(cost) / norm_rhs
 
@@ -162,7 +159,7 @@ def bilinear_fit(
         results.append(run(np.asarray(rng.normal(size=p), dtype=np.float64)))
         best = min(r[2] for r in results)
         hits = sum(r[2] <= 2.0 * best for r in results)
-        if len(results) > restarts and hits >= 2:
+        if len(results) >= restarts and hits >= 2:
             break
     return min(results, key=lambda r: r[2])
 
@@ -262,8 +259,7 @@ def refine_through_integrator(
     theta: np.ndarray,
     hamiltonians: Any,
     phi: np.ndarray,
-    degree: int,
-    order: int | None,
+    make: Any,
     points: np.ndarray,
     max_iter: int = REFINE_ITER,
 ) -> Refined | None:
@@ -272,7 +268,8 @@ def refine_through_integrator(
     the chord Jacobian at the midpoints x̄ (h·Π_a(x̄)∇H(x̄) for θ_a, h·π(x̄)∇φ_m(x̄) for φ_m)
     and Jacobi imposed again after each step. The velocity-level bracket carries the
     finite-difference error of the records' velocities; this removes it. None where no
-    iterate improved on the start."""
+    iterate improved on the start. ``make``: a system → its Hamiltonian family (of which
+    ``hamiltonians`` is a restriction)."""
     from ..rollout import integrate
 
     starts, targets = data.pairs("train")
@@ -286,7 +283,7 @@ def refine_through_integrator(
     def build(th: np.ndarray, ph: np.ndarray) -> tuple[Any, Any, Any] | None:
         try:
             system = family.system(th)
-            hf = system.hamiltonian_family(degree, order).restrict(exps)
+            hf = make(system).restrict(exps)
             return hf, hf.stepper(ph), system
         except (ValueError, FloatingPointError, np.linalg.LinAlgError):
             return None
@@ -442,7 +439,7 @@ def learn_discover(
 
     # The (bracket family, H degree) pairs, smallest first.
     candidates: list[Candidate] = []
-    pairs: list[tuple[Any, Any, int]] = []
+    pairs: list[tuple[Any, Any, int, Any]] = []
     for family in offered:
         why = family.applies(states)
         if why is None and len(family) > MAX_BRACKET_PARAMETERS:
@@ -454,7 +451,10 @@ def learn_discover(
         tried = template.learn_degrees()
         top = max_degree or MAX_DEGREE
         degrees = [degree] if degree is not None else [d for d in tried if d <= top] or [top]
-        pairs += [(family, template.hamiltonian_family(d, order), d) for d in degrees]
+        makes = [(d, _polynomials(d, order)) for d in degrees]
+        if degree is None and supports_library(template):
+            makes += [(d, _library(d, order)) for d in LIBRARY_DEGREES if d <= top]
+        pairs += [(family, make(template), d, make) for d, make in makes]
     if not pairs:
         raise ValueError(
             "trajectories: no bracket family applies to these states ("
@@ -463,13 +463,13 @@ def learn_discover(
         )
     pairs.sort(key=lambda item: len(item[0]) + len(item[1]))
 
-    def integrator_candidate(fit: BracketFit, d: int) -> Candidate:
+    def integrator_candidate(fit: BracketFit, d: int, make: Any) -> Candidate:
         name = f"{fit.family.name}/{fit.hamiltonians.name}"
         t0 = time.perf_counter()
         try:
             structure = fit.family.system(fit.theta)
             sfit = fit_structure_hamiltonian(
-                data, structure, d, order=order, max_iter=max_iter, verbose=verbose
+                data, structure, d, max_iter=max_iter, verbose=verbose, family=make(structure)
             )
         except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
             cand = _row(Candidate, name, len(fit.family) + len(fit.hamiltonians), "")
@@ -478,7 +478,7 @@ def learn_discover(
         hfam, phi, system, stepper = sfit.family, sfit.theta, sfit.system, sfit.stepper
         if refine:
             better = refine_through_integrator(
-                data, fit.family, fit.theta, hfam, phi, d, order, fit.points
+                data, fit.family, fit.theta, hfam, phi, make, fit.points
             )
             if better is not None:
                 fit.theta, fit.jacobi = better.theta, better.jacobi
@@ -516,7 +516,7 @@ def learn_discover(
     best_v = math.inf
     bar = progress_bar(len(pairs), progress)
     try:
-        for family, hams, d in pairs:
+        for family, hams, d, make in pairs:
             name = f"{family.name}/{hams.name}"
             if kept is not None:
                 candidates.append(
@@ -549,7 +549,7 @@ def learn_discover(
                 candidates.append(cand)
                 bar.update(1)
                 continue
-            cand = integrator_candidate(fit, d)
+            cand = integrator_candidate(fit, d, make)
             bar.update(1)
             candidates.append(cand)
             if verbose:
@@ -620,6 +620,16 @@ def _bracket_text(fit: BracketFit, names: list[str]) -> str:
         n = np.where(np.abs(n) < SPARSE_RTOL, 0.0, n)
         text += f"  [+ α·({fit.family.text(n, names, digits=6)}) for any α: N∇H ≡ 0]"
     return text
+
+
+def _polynomials(degree: int, order: int | None) -> Any:
+    """system → its polynomial Hamiltonians of ``degree``."""
+    return lambda system: system.hamiltonian_family(degree, order)
+
+
+def _library(degree: int, order: int | None) -> Any:
+    """system → the term library of ``degree`` on its bracket (Taylor-HJ by jets)."""
+    return lambda system: LibraryFamily(system, degree, order)
 
 
 def _row(candidate: Any, family: str, parameters: int, reason: str) -> Any:
