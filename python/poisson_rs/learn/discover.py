@@ -9,8 +9,9 @@ families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, �
 1. Velocity-level fit: the finite-difference velocities of the training records are fitted by
    variable projection (φ eliminated by least squares, θ by Levenberg–Marquardt) from a lifted
    start (the rank-1 part of the least-squares fit of the products θ_aφ_m) and seeded random
-   starts. Its relative
-   residual screens the pairs: a pair far above the best cannot explain the data.
+   starts. Its relative residual screens the pairs: one far above the records' own velocity
+   error (:func:`velocity_floor`: order-8 against order-6 differences) cannot explain the
+   data and is not fitted further.
 2. Gauge: the field is unchanged by π → λπ with H → H/λ, by H → H + a Casimir, and by
    π → π + N where N∇H ≡ 0 (on so(3)* with a quadratic H, the brackets ε·∇(C + αH)). Fixed
    here: θ is the least-norm one among those the data cannot tell apart, scaled so that its
@@ -347,6 +348,27 @@ def refine_through_integrator(
     )
 
 
+def velocity_floor(trajs: list[np.ndarray], h: float) -> float:
+    """The records' own velocity error, relative: |v₈ − v₆| / |v₈| over the interior records
+    of trajectories of at least 9 (central differences of orders 8 and 6, weighted by 1/|x|
+    as the fits are); NaN where no trajectory is long enough. It bounds the order-8
+    velocities' error (truncation and noise alike)."""
+    from .hamiltonian import _fd_weights
+
+    w8, w6 = _fd_weights(np.arange(-4, 5)), _fd_weights(np.arange(-3, 4))
+    num = den = 0.0
+    for t in trajs:
+        if len(t) < 9:
+            continue
+        m = len(t) - 8
+        v8 = sum(w8[j] * t[j : j + m] for j in range(9)) / h
+        v6 = sum(w6[j] * t[j + 1 : j + 1 + m] for j in range(7)) / h
+        w = 1.0 / np.linalg.norm(t[4 : 4 + m], axis=1).clip(1e-300)
+        num += float(np.sum(((v8 - v6) * w[:, None]) ** 2))
+        den += float(np.sum((v8 * w[:, None]) ** 2))
+    return math.sqrt(num / den) if den > 0 else math.nan
+
+
 class UnknownStructure:
     """What the data are checked against before a structure is found: a dimension, no
     Casimirs known, no domain."""
@@ -514,6 +536,9 @@ def learn_discover(
 
     kept: Candidate | None = None
     best_v = math.inf
+    skipped: list[tuple[BracketFit, int, Any, int]] = []
+    floor = velocity_floor(data.train, data.h)
+    screen_level = SCREEN_FACTOR * max(floor, 1e-10) if math.isfinite(floor) else math.nan
     bar = progress_bar(len(pairs), progress)
     try:
         for family, hams, d, make in pairs:
@@ -536,14 +561,23 @@ def learn_discover(
                     f"{name}: velocity residual {fit.velocity_residual:.2e}, Jacobi "
                     f"{fit.jacobi_fit:.1e} → {fit.jacobi:.1e}"
                 )
-            if fit.velocity_residual > max(SCREEN_FACTOR * best_v, 1e-10):
+            # Screened out: far above the records' own velocity error (order-8 against
+            # order-6 differences), or, where that cannot be told, above a smaller pair.
+            limit = screen_level if math.isfinite(screen_level) else SCREEN_FACTOR * best_v
+            if fit.velocity_residual > max(limit, 1e-10):
+                what = (
+                    f"the records' velocity error ({floor:.2e})"
+                    if math.isfinite(screen_level)
+                    else f"a smaller pair's ({best_v:.2e})"
+                )
                 cand = _row(
                     Candidate,
                     name,
                     len(family) + len(hams),
-                    f"velocity fit {fit.velocity_residual:.2e}, above {SCREEN_FACTOR:g}× a "
-                    f"smaller pair's ({best_v:.2e}): not fitted through the integrator",
+                    f"velocity fit {fit.velocity_residual:.2e}, above {SCREEN_FACTOR:g}× "
+                    f"{what}: not fitted through the integrator",
                 )
+                skipped.append((fit, d, make, len(candidates)))
                 cand.velocity_residual, cand.jacobi_residual = fit.velocity_residual, fit.jacobi
                 cand.seconds = fit.seconds
                 candidates.append(cand)
@@ -564,6 +598,18 @@ def learn_discover(
                 cand.reason = f"noise level unknown; {err} below {EXACT_LEVEL:g} (exact data)"
             else:
                 cand.reason = f"{err} {cand.one_step:.2e} above the noise level {threshold:.2e}"
+        # Nothing came near the velocity floor: the best pairs whose integrator can be built
+        # are still fitted through it, so that the report shows how far they are.
+        skipped.sort(key=lambda item: item[0].velocity_residual)
+        for fit, d, make, index in skipped:
+            if kept is not None or any(c.stepper is not None for c in candidates):
+                break
+            cand = integrator_candidate(fit, d, make)
+            if cand.stepper is not None:
+                cand.reason = candidates[index].reason.replace(
+                    "not fitted through the integrator", "the best velocity fit"
+                )
+                candidates[index] = cand
         bar.total = bar.n
         bar.refresh()
     finally:
