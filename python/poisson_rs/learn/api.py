@@ -536,19 +536,8 @@ def learn(
     for c in candidates:
         if c is not kept and c.reason.startswith("the smallest"):
             c.reason = "a smaller family was kept"
-    report = LearnReport(
-        mode=mode,
-        candidates=candidates,
-        kept=kept,
-        noise=data.noise,
-        casimir_drift=data.casimir_drift,
-        data_sha256=data.digest,
-        data_shape=data.shape,
-        threshold=threshold,
-        h=data.h,
-        seed=seed,
-        held_out=held,
-        span=data.h * (max(len(t) for t in data.test or data.train) - 1),
+    report = LearnReport.of(
+        data, mode=mode, candidates=candidates, kept=kept, threshold=threshold, seed=seed
     )
     return kept.stepper, report
 
@@ -703,18 +692,7 @@ def _learn_on_structure(
     for c in candidates:
         if c is not kept and c.reason.startswith("the smallest"):
             c.reason = "a smaller family was kept"
-    report = LearnReport(
-        mode=mode,
-        candidates=candidates,
-        kept=kept,
-        noise=data.noise,
-        casimir_drift=data.casimir_drift,
-        data_sha256=data.digest,
-        data_shape=data.shape,
-        threshold=threshold,
-        h=data.h,
-        seed=seed,
-        held_out=held,
-        span=data.h * (max(len(t) for t in data.test or data.train) - 1),
+    report = LearnReport.of(
+        data, mode=mode, candidates=candidates, kept=kept, threshold=threshold, seed=seed
     )
     return kept.stepper, report

@@ -630,19 +630,13 @@ def learn_discover(
         kept.reason = f"NOT EXPLAINED: no pair reached the noise level; the best {err}"
         warn_not_explained(kept.family, kept.one_step, threshold)
     kept.kept = True
-    report = LearnReport(
+    report = LearnReport.of(
+        data,
         mode=f"discover/{mode}",
         candidates=candidates,
         kept=kept,
-        noise=data.noise,
-        casimir_drift=data.casimir_drift,
-        data_sha256=data.digest,
-        data_shape=data.shape,
         threshold=threshold,
-        h=data.h,
         seed=seed,
-        held_out=held,
-        span=data.h * (max(len(t) for t in data.test or data.train) - 1),
         explained=explained,
     )
     return kept.stepper, report

@@ -85,6 +85,36 @@ class LearnReport:
     span: float = math.nan
     explained: bool = True
 
+    @classmethod
+    def of(
+        cls,
+        data: Any,
+        *,
+        mode: str,
+        candidates: list[Candidate],
+        kept: Candidate,
+        threshold: float,
+        seed: int,
+        explained: bool = True,
+    ) -> LearnReport:
+        """The report of a fit to ``data`` (a :class:`~poisson_rs.learn.data.TrajectoryData`):
+        its diagnostics, digest and split read off it."""
+        return cls(
+            mode=mode,
+            candidates=candidates,
+            kept=kept,
+            noise=data.noise,
+            casimir_drift=data.casimir_drift,
+            data_sha256=data.digest,
+            data_shape=data.shape,
+            threshold=threshold,
+            h=data.h,
+            seed=seed,
+            held_out=bool(data.test),
+            span=data.h * (max(len(t) for t in data.test or data.train) - 1),
+            explained=explained,
+        )
+
     @property
     def hamiltonian(self) -> Polynomial | None:
         """The learned H as a :class:`Polynomial` where the system holds one (Lie–Poisson,
