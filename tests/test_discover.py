@@ -267,3 +267,35 @@ def test_discover_refuses_bad_input_before_any_fit(monkeypatch):
         pr.learn(data, 0.1, structure="discover", degree=0)
     with pytest.raises(ValueError, match="h"):
         pr.learn(data, -0.1, structure="discover")
+
+
+def test_discovers_the_extended_pendulums_affine_bracket():
+    """Affine: {u, v} = −1, {u, r} = −2v, {v, r} = 2u, found up to the scale gauge (−½)."""
+    from poisson_rs.scenes import load_scene
+
+    system = load_scene("scenes/extended_pendulum.toml").system
+    rng = np.random.default_rng(1)
+    trajs = np.asarray(
+        pr.reference_solution(system, rng.normal(size=(8, 3)) * 0.5, np.arange(31) * 0.1)
+    )
+    _, report = pr.learn(list(trajs), 0.1, structure="discover", progress=False)
+    assert report.explained and report.kept.family.startswith("affine/")
+    learned = report.structure
+    # θ = −c (linear part) and ω: the true bracket times −½.
+    np.testing.assert_allclose(learned.cocycle, -0.5 * np.asarray(system.cocycle), atol=1e-6)
+    np.testing.assert_allclose(learned.algebra.c, -0.5 * system.algebra.c, atol=1e-6)
+    x = rng.normal(size=(10, 3)) * 0.5
+    np.testing.assert_allclose(learned.vector_field(x), system.vector_field(x), rtol=0, atol=1e-6)
+
+
+def test_discovered_system_and_stepper_pickle_and_step_identically(rigid_body):
+    import pickle
+
+    _, (stepper, report) = rigid_body
+    x0 = np.array([0.3, -0.8, 0.5])
+    again = pickle.loads(pickle.dumps(stepper))
+    np.testing.assert_array_equal(
+        pr.integrate(again, x0, 0.1, 50), pr.integrate(stepper, x0, 0.1, 50)
+    )
+    system = pickle.loads(pickle.dumps(report.structure))
+    np.testing.assert_array_equal(system.vector_field(x0), report.structure.vector_field(x0))
