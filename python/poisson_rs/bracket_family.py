@@ -179,12 +179,16 @@ class BracketFamily:
         top = float(np.max(scale)) if scale.size else 0.0
         return float(np.max(np.abs(j))) / top if top > 0 else 0.0
 
-    def project(self, theta: Any, points: Any, free: Any = None) -> tuple[FloatArray, float]:
+    def project(
+        self, theta: Any, points: Any, free: Any = None, support: Any = None
+    ) -> tuple[FloatArray, float]:
         """The nearest θ (least-norm Gauss–Newton steps) whose bracket obeys Jacobi at
         ``points``, and its relative residual (:meth:`jacobi_residual`). ``free`` (P, k):
-        directions θ may move along at (almost) no cost, e.g. those the data cannot see."""
+        directions θ may move along at (almost) no cost, e.g. those the data cannot see;
+        ``support`` (indices): the only coefficients that may move (default all)."""
         theta = np.array(theta, dtype=np.float64)
         f = np.zeros((len(self), 0)) if free is None else np.asarray(free, np.float64)
+        keep = np.ones(len(self)) if support is None else np.isin(np.arange(len(self)), support)
         if self.jacobi_free:
             return theta, 0.0
         pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
@@ -203,7 +207,7 @@ class BracketFamily:
             if res <= JACOBI_RTOL * 1e-2:
                 break
             # Moving along ``free`` costs 1e-6 of moving elsewhere (columns scaled by 1e3).
-            aug = np.concatenate([jac, 1e3 * (jac @ f)], axis=1)
+            aug = np.concatenate([jac * keep, 1e3 * (jac @ f)], axis=1)
             # J is homogeneous (θ = 0 solves it): the step keeps θ's component along itself,
             # so the residual falls relative to θ² and not by shrinking θ.
             along = np.concatenate([theta, 1e3 * (theta @ f)]) / max(
@@ -212,7 +216,7 @@ class BracketFamily:
             weight = float(np.linalg.norm(jac)) + 1.0
             aug = np.vstack([aug, weight * along])
             step, *_ = np.linalg.lstsq(aug, np.concatenate([-j, [0.0]]), rcond=1e-12)
-            move = step[: len(self)] + 1e3 * (f @ step[len(self) :])
+            move = keep * step[: len(self)] + 1e3 * (f @ step[len(self) :])
             lam = 1.0
             while lam >= 1.0 / 256:
                 trial = measure(theta + lam * move)

@@ -220,7 +220,8 @@ def fit_bracket(
         small = np.abs(theta) < level
         if not small.any() or small.all():
             continue
-        sparse, jac_sparse = family.project(np.where(small, 0.0, theta), pts)
+        start = np.where(small, 0.0, theta)
+        sparse, jac_sparse = family.project(start, pts, support=np.flatnonzero(start))
         sparse[np.abs(sparse) < 1e-15] = 0.0
         ph_s, rel_s = refit(sparse)
         if rel_s <= 1.5 * rel + 1e-14 and jac_sparse <= max(jacobi, JACOBI_RTOL):
@@ -318,7 +319,7 @@ def refine_through_integrator(
         while lam >= 1.0 / 16:
             th = theta.copy()
             th[free] += lam * step[: len(free)]
-            th, jac_res = family.project(th, points)
+            th, jac_res = family.project(th, points, support=support)
             th = th / th[pinned]
             ph = phi + lam * step[len(free) :]
             r_new, c_new, b_new = residual(th, ph)
