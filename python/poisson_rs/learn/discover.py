@@ -63,6 +63,9 @@ MAX_RESTARTS = 24
 VARPRO_ITER = 200
 #: Singular values below this fraction of the largest are gauge directions.
 GAUGE_RTOL = 1e-9
+#: A learned bracket coefficient this close (relative to the largest) to a multiple of 1/12 is
+#: tried at it.
+SNAP_RTOL = 1e-5
 #: Gauss–Newton iterates of the joint refinement through the integrator.
 REFINE_ITER = 12
 #: Bracket coefficients below these (relative to the largest, +1) are tried at zero, the
@@ -513,6 +516,24 @@ def learn_discover(
                 )
                 if verbose:
                     print(f"{name}: refined through the integrator, cost {better.history}")
+        # Brackets of physical systems have simple coefficients: the learned θ snapped to
+        # twelfths where it lies within SNAP_RTOL of one, kept if Jacobi holds exactly and H
+        # refitted on it fits the training records at least as well.
+        snapped = _snap(fit.theta)
+        if snapped is not None and fit.family.jacobi_residual(snapped, fit.points) <= JACOBI_RTOL:
+            try:
+                structure = fit.family.system(snapped)
+                sfit2 = fit_structure_hamiltonian(
+                    data, structure, d, max_iter=max_iter, family=make(structure)
+                )
+            except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                sfit2 = None
+            if sfit2 is not None and train_cost(sfit2.stepper, data) <= train_cost(stepper, data):
+                fit.theta, fit.jacobi = snapped, fit.family.jacobi_residual(snapped, fit.points)
+                hfam, phi = sfit2.family, sfit2.theta
+                system, stepper = sfit2.system, sfit2.stepper
+                if verbose:
+                    print(f"{name}: bracket snapped to twelfths")
         one, roll = errors(stepper, data)
         return Candidate(
             family=name,
@@ -661,6 +682,29 @@ def _bracket_text(fit: BracketFit, names: list[str]) -> str:
         n = np.where(np.abs(n) < SPARSE_RTOL, 0.0, n)
         text += f"  [+ α·({fit.family.text(n, names, digits=6)}) for any α: N∇H ≡ 0]"
     return text
+
+
+def _snap(theta: np.ndarray) -> np.ndarray | None:
+    """θ with every coefficient within :data:`SNAP_RTOL` (of the largest, +1) of a multiple of
+    1/12 set to it; None where nothing moves."""
+    near = np.round(theta * 12.0) / 12.0
+    close = np.abs(theta - near) <= SNAP_RTOL * max(float(np.max(np.abs(theta))), 1e-300)
+    out = np.where(close, near, theta)
+    return None if np.array_equal(out, theta) else out
+
+
+def train_cost(stepper: Any, data: TrajectoryData) -> float:
+    """Mean squared relative one-step residual of ``stepper`` on the training pairs (inf where a
+    step fails)."""
+    from ..rollout import integrate
+
+    starts, targets = data.pairs("train")
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore")
+        out = np.asarray(integrate(stepper, starts, data.h, 1, on_failure="ignore"))[:, -1]
+    r = (out - targets) / np.linalg.norm(starts, axis=1).clip(1e-300)[:, None]
+    cost = float(np.mean(r * r))
+    return cost if math.isfinite(cost) else math.inf
 
 
 def _polynomials(degree: int, order: int | None) -> Any:
