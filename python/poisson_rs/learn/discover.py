@@ -275,7 +275,7 @@ def refine_through_integrator(
     finite-difference error of the records' velocities; this removes it. None where no
     iterate improved on the start. ``make``: a system → its Hamiltonian family (of which
     ``hamiltonians`` is a restriction)."""
-    from ..rollout import integrate
+    from .scoring import one_step
 
     starts, targets = data.pairs("train")
     scale = np.linalg.norm(starts, axis=1).clip(1e-300)[:, None]
@@ -297,10 +297,7 @@ def refine_through_integrator(
         built = build(th, ph)
         if built is None:
             return np.zeros(0), math.inf, None
-        with warnings.catch_warnings(), np.errstate(all="ignore"):
-            warnings.simplefilter("ignore")
-            out = np.asarray(integrate(built[1], starts, data.h, 1, on_failure="ignore"))[:, -1]
-        r = ((out - targets) / scale).reshape(-1)
+        r = ((one_step(built[1], starts, data.h) - targets) / scale).reshape(-1)
         cost = float(np.mean(r * r))
         return r, (cost if math.isfinite(cost) else math.inf), built
 
@@ -409,15 +406,12 @@ def learn_discover(
     seed: int = 0,
     max_iter: int = 30,
     verbose: bool = False,
-    refit: bool = True,
     progress: bool | None = None,
-    families: Any = None,
     refine: bool = True,
 ) -> tuple[Any, Any]:
     """:func:`poisson_rs.learn` with ``structure="discover"``: see the module docstring.
-    ``families``: names of the bracket families to search (default every one the structures
-    offer in the data's dimension); ``refine``: refine the bracket and H jointly through the
-    found structure's integrator (:func:`refine_through_integrator`)."""
+    ``refine``: refine the bracket and H jointly through the found structure's integrator
+    (:func:`refine_through_integrator`)."""
     from ..structures import bracket_families
     from .data import _as_list, check_seed, prepare, refuse_drift
     from .options import EXACT_LEVEL, MAX_DEGREE, check_bool, check_int
@@ -437,7 +431,6 @@ def learn_discover(
     max_iter = check_int(max_iter, "max_iter", 1, 10_000)
     seed = check_seed(seed)
     verbose = check_bool(verbose, "verbose")
-    refit = check_bool(refit, "refit")
     if progress is not None:
         progress = check_bool(progress, "progress")
     trajs = _as_list(trajectories)
@@ -447,16 +440,6 @@ def learn_discover(
     )  # fmt: skip
     refuse_drift(data)
     offered = bracket_families(data.dim)
-    if families is not None:
-        names = [families] if isinstance(families, str) else list(families)
-        known = [f.name for f in offered]
-        bad = [n for n in names if n not in known]
-        if bad or not names:
-            raise ValueError(
-                f"families: {bad or names!r} not among the bracket families offered in "
-                f"dimension {data.dim}: {', '.join(known)}"
-            )
-        offered = [f for f in offered if f.name in names]
     threshold = 1.5 * math.sqrt(2 * data.dim) * data.noise + 1e-12
     held = bool(data.test)
     err = "held-out one-step error" if held else "training one-step error (nothing held out)"
@@ -696,12 +679,10 @@ def _snap(theta: np.ndarray) -> np.ndarray | None:
 def train_cost(stepper: Any, data: TrajectoryData) -> float:
     """Mean squared relative one-step residual of ``stepper`` on the training pairs (inf where a
     step fails)."""
-    from ..rollout import integrate
+    from .scoring import one_step
 
     starts, targets = data.pairs("train")
-    with warnings.catch_warnings(), np.errstate(all="ignore"):
-        warnings.simplefilter("ignore")
-        out = np.asarray(integrate(stepper, starts, data.h, 1, on_failure="ignore"))[:, -1]
+    out = one_step(stepper, starts, data.h)
     r = (out - targets) / np.linalg.norm(starts, axis=1).clip(1e-300)[:, None]
     cost = float(np.mean(r * r))
     return cost if math.isfinite(cost) else math.inf

@@ -13,7 +13,16 @@ import numpy as np
 from ..rollout import integrate
 from .data import TrajectoryData
 
-__all__ = ["NoBar", "all_records", "errors", "progress_bar"]
+__all__ = ["NoBar", "all_records", "errors", "one_step", "progress_bar"]
+
+
+def one_step(stepper: Any, starts: np.ndarray, h: float) -> np.ndarray:
+    """One step of ``stepper`` from each of ``starts`` (B, n) → (B, n); NaN rows where a step
+    failed (warnings silenced: the caller scores the failure)."""
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore")
+        out = integrate(stepper, starts, h, 1, on_failure="ignore")
+    return np.asarray(out)[:, -1]
 
 
 def errors(stepper: Any, data: TrajectoryData) -> tuple[float, float]:

@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ..rollout import integrate
 from .data import TrajectoryData
+from .scoring import one_step
 
 __all__ = ["StructureFit", "fit_structure_hamiltonian", "velocities"]
 
@@ -80,10 +79,7 @@ def _one_step(family: Any, theta: np.ndarray, starts: np.ndarray, h: float) -> n
         stepper = family.stepper(theta)
     except (ValueError, FloatingPointError, OverflowError):
         return np.full_like(starts, np.nan)
-    with warnings.catch_warnings(), np.errstate(all="ignore"):
-        warnings.simplefilter("ignore")
-        out = integrate(stepper, starts, h, 1, on_failure="ignore")
-    return np.asarray(out)[:, -1]
+    return one_step(stepper, starts, h)
 
 
 def fit_structure_hamiltonian(
