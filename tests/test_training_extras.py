@@ -13,7 +13,8 @@ from conftest import random_states
 
 import poisson_rs as pr
 from poisson_rs.integrators import BisectionIntegrator, integrate
-from poisson_rs.reference import RigidBody, exact_solution
+from poisson_rs.structures.lie_poisson import RigidBody
+from poisson_rs.structures.lie_poisson_reference import exact_solution
 from poisson_rs.train import (
     TrainConfig,
     data_from_exact,

@@ -40,7 +40,7 @@ from .integrators import (
 )
 from .learn import learn
 from .protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystem, Stepper
-from .reference import dop853_solution, exact_solution, reference_solution
+from .reference import reference_solution
 from .steppers.affine import AffineIntegrator, affine_classical, affine_learned
 from .steppers.expression import FieldIntegrator, JetTaylorIntegrator
 from .steppers.polynomial import RealizationTaylorIntegrator
@@ -62,6 +62,7 @@ from .structures import (
     system_from_dict,
 )
 from .structures.expression_system import ExpressionSystem, with_hamiltonian
+from .structures.lie_poisson_reference import dop853_solution, exact_solution
 from .studies.select import NoCandidateError, SelectionReport, select
 
 # rayon's thread pool does not survive fork(): a forked child runs its rollouts serially (same

@@ -29,7 +29,7 @@ from .protocols import (
     NEWTON_TOL,
 )
 from .realizations.lie_groupoid import sou
-from .structures.lie_poisson import LiePoissonSystem, RigidBody
+from .structures.lie_poisson import LiePoissonSystem
 from .untrusted import parsing
 
 if TYPE_CHECKING:
@@ -158,15 +158,10 @@ class BisectionIntegrator:
         return int(self._core.dim)
 
     @property
-    def body(self) -> RigidBody:
-        """The rigid body the model integrates (the rigid-body name of :attr:`system`, which
-        every model has); TypeError for another system."""
-        system = self.system
-        if not isinstance(system, RigidBody):
-            raise TypeError(
-                f"{self.name!r} integrates {system!r}, not a rigid body: use model.system"
-            )
-        return system
+    def body(self) -> LiePoissonSystem:
+        """An alias of :attr:`system`, kept one release for the rigid-body models that used it
+        (every model answers it now)."""
+        return self.system
 
     def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
         """Writes the model file (the bytes it was built from) to ``path``, atomically; an

@@ -49,7 +49,7 @@ largest |C − C₀|/|μ₀|² over the system's Casimirs (|Γ|² and M·Γ for 
 
 The shell states are drawn with their own seed (|μ| uniform in [r_min, r_max], directions
 uniform on the sphere), so they are held out from the training points. Errors are Euclidean
-norms, against :func:`~poisson_rs.reference.exact_solution`.
+norms, against :func:`~poisson_rs.exact_solution`.
 """
 
 from __future__ import annotations
@@ -68,8 +68,8 @@ import numpy as np
 
 from .integrators import BisectionIntegrator, Stepper, integrate
 from .protocols import PoissonSystem
-from .reference import RigidBody, reference_solution
-from .structures.lie_poisson import LieAlgebra
+from .reference import reference_solution
+from .structures.lie_poisson import LieAlgebra, RigidBody
 from .tables import number as _number
 
 _SE3 = LieAlgebra.se3()
@@ -203,18 +203,15 @@ class Scene:
 
     @property
     def lie_system(self) -> Any:
-        """The scene's system (never None after construction): a LiePoissonSystem, or a
-        log-canonical system for ``kind = "lotka_volterra"``."""
+        """The scene's system (never None after construction), of any structure."""
         assert self.system is not None
         return self.system
 
     @property
-    def body(self) -> RigidBody:
-        """The scene's rigid body; ValueError for a scene on another system."""
-        if not isinstance(self.system, RigidBody):
-            raise ValueError(
-                f"scene {self.name!r} integrates {self.system!r}; this needs a rigid-body scene"
-            )
+    def body(self) -> Any:
+        """The scene's system: an alias of :attr:`system`, kept one release for the rigid-body
+        scenes that used it (any scene answers it now)."""
+        assert self.system is not None
         return self.system
 
     def states(self) -> np.ndarray:

@@ -52,7 +52,6 @@ from .generating import (
     solve_momentum,
 )
 from .realizations.lie_groupoid import check_chart, sou
-from .reference import exact_solution, reference_solution
 from .structures.lie_poisson import LieAlgebra, LiePoissonSystem, RigidBody
 from .taylor import evaluate_terms, system_taylor_terms
 from .threads import MAX_THREADS_PER_CORE, cpu_cores, max_threads
@@ -176,7 +175,7 @@ class TrainConfig(FitConfig):
 
     def __post_init__(self) -> None:
         # A system object is kept as its dictionary: the configuration is recorded as JSON.
-        if isinstance(self.system, LiePoissonSystem):
+        if self.system is not None and not isinstance(self.system, Mapping):
             self.system = self.system.to_dict()
 
     def resolved_mlp_power(self) -> int:
@@ -190,7 +189,7 @@ class TrainConfig(FitConfig):
         it) happens once per distinct system."""
         if self.system is None:
             return RigidBody(tuple(self.inertia))  # type: ignore[arg-type]
-        if isinstance(self.system, LiePoissonSystem):  # assigned after construction
+        if not isinstance(self.system, Mapping):  # a system object assigned after construction
             return self.system
         _refuse_log_canonical(self.system)
         with parsing("TrainConfig", "system"):
@@ -398,21 +397,18 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 
 def hamiltonian(system: Sequence[float] | LiePoissonSystem, mu: Tensor) -> Tensor:
-    """H(μ) for μ (..., n) → (...,): ½ Σ μᵢ²/Iᵢ for a rigid body (or its inertia), the system's
-    polynomial otherwise."""
-    if isinstance(system, LiePoissonSystem) and not isinstance(system, RigidBody):
-        return system.hamiltonian(mu)
-    inertia = system.inertia if isinstance(system, RigidBody) else system
-    inv = torch.tensor([1.0 / i for i in inertia], dtype=mu.dtype, device=mu.device)
-    return 0.5 * (mu * mu * inv).sum(-1)
+    """H(μ) for μ (..., n) → (...,): the system's own H, or ½ Σ μᵢ²/Iᵢ for a rigid body given by
+    its inertia (the loop's hot path: no system built per batch)."""
+    if isinstance(system, Sequence):
+        inv = torch.tensor([1.0 / i for i in system], dtype=mu.dtype, device=mu.device)
+        return 0.5 * (mu * mu * inv).sum(-1)
+    return system.hamiltonian(mu)
 
 
 def solution(system: LiePoissonSystem, states: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """The flow of ``system`` from states (m, n) at times: the closed form for a rigid body, a
-    tight DOP853 reference otherwise. → (m, len(times), n)."""
-    if isinstance(system, RigidBody):
-        return exact_solution(system, states, times)
-    return reference_solution(system, states, times)
+    """The flow of ``system`` from states (m, n) at times: the system's own reference (the
+    closed form for a rigid body, a tight DOP853 reference otherwise). → (m, len(times), n)."""
+    return system.reference(states, times)
 
 
 def sample_points(
@@ -845,10 +841,8 @@ def train(
     as the command line (:func:`default_threads`: 1 on a machine with at most 2 cores). The
     previous setting is restored afterwards.
     """
-    from .realizations.log_canonical_hj import LogCanonicalTrainConfig
-    from .realizations.polynomial_hj import PolynomialTrainConfig
-
-    if isinstance(cfg, (LogCanonicalTrainConfig, PolynomialTrainConfig)):
+    if not isinstance(cfg, TrainConfig):
+        # A realization's configuration (log-canonical, polynomial bivector): its own loop.
         return _train_log_canonical(
             cfg,
             checkpoint=checkpoint,
@@ -907,10 +901,7 @@ def _train_log_canonical(
     the same for a polynomial-realization one
     (:func:`~poisson_rs.realizations.polynomial_hj.train_polynomial`). Checkpoints, data terms
     and early stops are Lie–Poisson features: asking for one is a ValueError naming it."""
-    from .realizations.log_canonical_hj import train_log_canonical
-    from .realizations.polynomial_hj import PolynomialTrainConfig, train_polynomial
-
-    trainer = train_polynomial if isinstance(cfg, PolynomialTrainConfig) else train_log_canonical
+    trainer = cfg.run_training
     kind = type(cfg).__name__
 
     unsupported = {
@@ -930,7 +921,6 @@ def _train_log_canonical(
     torch.set_num_threads(n_threads)
     try:
         return trainer(
-            cfg,
             progress=progress,
             log_every=log_every,
             callback=callback,

@@ -143,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
     if not isinstance(model, BisectionIntegrator) or "cayley" not in model.system.taylor_charts():
         # The paper's figures compare the Cayley and exp charts: elsewhere, the generic demo.
         return _demo_system(args, model, model.system, states if system is not None else None)
-    body = model.body
+    body = model.system
     check_outputs(args.out, DEMO_OUTPUTS)
     methods: dict[str, Stepper] = {
         f"learned:{model.name}": model,
@@ -163,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"not adding learned:paper: it was trained for {_label(paper.system)}")
     check_memory(len(states), 3, args.steps, len(methods))
     print(f"model: {model!r}")
-    print(f"scene: I = {body.inertia}, states {states.tolist()}")
+    print(f"scene: {_label(body)}, states {states.tolist()}")
     print(f"       {args.steps} steps of h = {args.h}")
     scene = run_scene(methods, body, states, args.h, args.steps, strict=args.strict)
     out = Path(args.out)

@@ -226,6 +226,11 @@ class LogCanonicalTrainConfig(FitConfig):
     def polish_batch(self) -> int:
         return self.lbfgs_batch
 
+    def run_training(self, **options: Any) -> Any:
+        """Trains this configuration: :func:`train_log_canonical` (what
+        :func:`poisson_rs.train.train` calls for it)."""
+        return train_log_canonical(self, **options)
+
     def __post_init__(self) -> None:
         if isinstance(self.system, LogCanonicalSystem):
             self.system = self.system.to_dict()

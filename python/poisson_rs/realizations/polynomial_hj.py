@@ -297,6 +297,11 @@ class PolynomialTrainConfig(FitConfig):
     def polish_batch(self) -> int:
         return self.lbfgs_batch
 
+    def run_training(self, **options: Any) -> Any:
+        """Trains this configuration: :func:`train_polynomial` (what
+        :func:`poisson_rs.train.train` calls for it)."""
+        return train_polynomial(self, **options)
+
     def __post_init__(self) -> None:
         if isinstance(self.system, PolynomialPoissonSystem):
             self.system = self.system.to_dict()

@@ -40,8 +40,8 @@ from ..integrators import (
     load_model,
     taylor_integrator,
 )
-from ..reference import RigidBody, exact_solution
 from ..scenes import ShellStates
+from ..structures.lie_poisson import RigidBody
 from .demo import PAPER_STATES
 
 if TYPE_CHECKING:
@@ -184,7 +184,7 @@ def measure(stepper: Stepper, *, speed_seconds: float = 0.2) -> Row:
         traj, info = integrate(
             stepper, states, H, round(HORIZON / H), return_info=True, on_failure="ignore"
         )
-    exact = exact_solution(body, states, [HORIZON])[:, 0]
+    exact = body.reference(states, np.array([HORIZON]))[:, 0]
     err = np.linalg.norm(traj[:, -1] - exact, axis=-1)
     h0 = body.hamiltonian(states[:2])
     with np.errstate(invalid="ignore"):
