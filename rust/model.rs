@@ -655,7 +655,7 @@ impl LogModel {
     }
 
     /// Terms of the exponential-polynomial (Taylor) part.
-    pub fn n_polynomial_terms(&self) -> usize {
+    pub fn n_taylor_terms(&self) -> usize {
         self.terms.len()
     }
 }

@@ -217,7 +217,7 @@ def test_lie_poisson_loader_refuses_a_log_canonical_file(tmp_path):
     with pytest.raises(ValueError, match="structure is 'log_canonical'"):
         pr.LearnedIntegrator(__import__("pathlib").Path(path))
     with pytest.raises(ValueError, match="'structure' is missing"):
-        pr._core.LogCanonicalModel.from_bytes(pr.taylor_integrator(order=1)._bytes)
+        pr._core.LearnedModel.from_log_canonical_bytes(pr.taylor_integrator(order=1)._bytes)
 
 
 def _edited_file(tmp_path, *, meta=None, drop=()) -> str:

@@ -297,3 +297,20 @@ def test_casimir_defect_per_step_has_the_realization_order(n, slope):
     drift = [np.abs(NAMBU.casimirs(core.rollout(x, h, 1)[0][:, 1])[:, 0] - c0).max() for h in steps]
     fitted = np.polyfit(np.log(steps), np.log(drift), 1)[0]
     assert abs(fitted - slope) < 0.3, (fitted, drift)
+
+
+def test_every_learned_realization_is_one_core_class_with_the_package_defaults():
+    poly = hj.core_model(hj.build_model(_config()))
+    log = pr.load_model("lotka_volterra_h01")._core
+    assert type(poly) is type(log) is pr._core.LearnedModel
+    assert (poly.realization, log.realization) == ("polynomial", "log_canonical")
+    assert poly.metadata == {} and log.metadata["structure"] == "log_canonical"
+    # One signature, whose Newton defaults are the package's (they had drifted apart).
+    signature = pr._core.LearnedModel.rollout.__text_signature__
+    assert f"tol={pr.NEWTON_TOL!r}, max_iter={pr.NEWTON_MAX_ITER}" in signature
+    # Non-finite states are refused by name on every realization, before any step.
+    for core in (poly, log):
+        bad = np.full((2, core.dim), 0.5)
+        bad[1, 0] = np.nan
+        with pytest.raises(ValueError, match=r"x0 holds NaN or infinite values \(state 1\)"):
+            core.rollout(bad, 0.1, 1)

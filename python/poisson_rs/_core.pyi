@@ -9,8 +9,7 @@ import numpy.typing as npt
 __all__ = [
     "MAX_DIM",
     "MODEL_FORMAT",
-    "LearnedPolynomialModel",
-    "LogCanonicalModel",
+    "LearnedModel",
     "Model",
     "RolloutDiagnostics",
     "__version__",
@@ -99,57 +98,19 @@ class Model:
         """S (n,) and ∂S/∂t (n,) at time t; MemoryError as for :meth:`derivatives`."""
 
 @final
-class LogCanonicalModel:
-    """A learned generating function of a log-canonical structure π_ij = c_ij x_i x_j, from a
-    model file whose metadata says ``structure = log_canonical``: S(t, q) = Taylor terms
-    (exponential monomials t^k e^{e·q} and t·linear·q) + t^m · MLP(t, q), q = ln x."""
+class LearnedModel:
+    """A learned generating function S(t, x) = exact Taylor-HJ terms + t^m · MLP(t, x) on a
+    realization, stepped by full Newton on tar(∇S(h, x), x) = x_k, then sou
+    (|δ|∞ ≤ tol · max(|x|∞, 1)). One class for every realization: the log-canonical groupoid
+    (x is q = ln x there; every monomial Casimir kept to round-off) and the order-n realization
+    of a polynomial bivector."""
 
     @staticmethod
-    def load(path: str | PathLike[str]) -> LogCanonicalModel:
-        """FileNotFoundError, ValueError for a malformed file or one of another structure."""
+    def from_log_canonical_bytes(data: bytes) -> LearnedModel:
+        """The bytes of a log-canonical model file (metadata ``structure = log_canonical``).
+        ValueError for a malformed file or one of another structure."""
     @staticmethod
-    def from_bytes(data: bytes) -> LogCanonicalModel: ...
-    @property
-    def dim(self) -> int: ...
-    @property
-    def c(self) -> npt.NDArray[np.float64]:
-        """The structure matrix, shape (N, N)."""
-    @property
-    def metadata(self) -> dict[str, str]: ...
-    @property
-    def mlp_power(self) -> int: ...
-    @property
-    def n_parameters(self) -> int: ...
-    @property
-    def n_polynomial_terms(self) -> int: ...
-    def derivatives(
-        self, t: float, q: npt.NDArray[np.float64]
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """S (n,), ∂S/∂q (n, N), ∂²S/∂q² (n, N, N) at time t, exact (forward-mode duals)."""
-    def rollout(
-        self,
-        q0: npt.NDArray[np.float64],
-        h: float,
-        n_steps: int,
-        every: int = 1,
-        tol: float = 1e-12,
-        max_iter: int = 50,
-    ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
-        """Trajectories in q (n, n_steps // every + 1, N) and per-trajectory diagnostics (n,);
-        full Newton on q + ½ c ∇S(h, q) = q_k, then q − ½ c ∇S(h, q). A step whose e^q leaves
-        the float64 orthant fails (code 5 or 3)."""
-
-@final
-class LearnedPolynomialModel:
-    """A learned generating function on the order-n realization of a polynomial bivector:
-    S(t, x) = Taylor-HJ terms (a polynomial in (t, x)) + t^m · MLP(t, x), stepped by Newton on
-    α(∇S(h, x), x) = x_k, then β(∇S(h, x), x). β (sou) and α (tar) are term tables over (p, x)
-    as for :func:`rollout_polynomial_realization`; ``weights[i]`` (out, in), ``biases[i]``
-    (out,), inputs (t, x), tanh between layers (empty lists: no network). ValueError for a
-    malformed table or network."""
-
-    def __new__(
-        cls,
+    def from_polynomial_tables(
         sou_index: npt.NDArray[np.int64],
         sou_coeffs: npt.NDArray[np.float64],
         sou_exponents: npt.NDArray[np.int64],
@@ -161,9 +122,19 @@ class LearnedPolynomialModel:
         weights: list[npt.NDArray[np.float64]],
         biases: list[npt.NDArray[np.float64]],
         mlp_power: int,
-    ) -> LearnedPolynomialModel: ...
+    ) -> LearnedModel:
+        """β (sou) and α (tar) as term tables over (p, x) as for
+        :func:`rollout_polynomial_realization`, S's Taylor part over (t, x); ``weights[i]``
+        (out, in), ``biases[i]`` (out,), inputs (t, x), tanh between layers (empty lists: no
+        network). ValueError for a malformed table or network."""
+    @property
+    def realization(self) -> str:
+        """ "log_canonical" or "polynomial"."""
     @property
     def dim(self) -> int: ...
+    @property
+    def metadata(self) -> dict[str, str]:
+        """The model file's metadata (empty for a model built from tables)."""
     @property
     def mlp_power(self) -> int: ...
     @property
@@ -173,17 +144,19 @@ class LearnedPolynomialModel:
     def derivatives(
         self, t: float, x: npt.NDArray[np.float64]
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """S (n,), ∂S/∂x (n, N), ∂²S/∂x² (n, N, N) at time t, exact (forward-mode duals)."""
+        """S (n,), ∂S/∂x (n, N), ∂²S/∂x² (n, N, N) at time t in the realization's base
+        coordinates, exact (forward-mode duals)."""
     def rollout(
         self,
         x0: npt.NDArray[np.float64],
         h: float,
         n_steps: int,
         every: int = 1,
-        tol: float = 1e-13,
+        tol: float = 1e-12,
         max_iter: int = 50,
     ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]:
-        """Trajectories (n, n_steps // every + 1, N) and per-trajectory diagnostics (n,)."""
+        """Trajectories (n, n_steps // every + 1, N) in the realization's base coordinates and
+        per-trajectory diagnostics (n,); ``x0`` finite (ValueError naming the state)."""
 
 def rollout_model(
     model: Model,

@@ -27,7 +27,7 @@ use expression::{
 };
 use lie_poisson::{rollout_classical, rollout_lie_poisson, step_angles};
 use log_canonical::{rollout_log_canonical, rollout_log_classical};
-use models::{rollout_model, PyLearnedPolynomialModel, PyLogModel, PyModel};
+use models::{rollout_model, PyLearnedModel, PyModel};
 use polynomial::{rollout_polynomial_field, rollout_polynomial_realization};
 use rollout::PyDiagnostics;
 
@@ -226,8 +226,7 @@ fn usable_memory() -> Option<usize> {
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyModel>()?;
     m.add_class::<PyDiagnostics>()?;
-    m.add_class::<PyLogModel>()?;
-    m.add_class::<PyLearnedPolynomialModel>()?;
+    m.add_class::<PyLearnedModel>()?;
     m.add_function(wrap_pyfunction!(rollout_model, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_classical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_lie_poisson, m)?)?;

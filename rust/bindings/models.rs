@@ -1,5 +1,5 @@
-//! The learned-model classes: a Lie–Poisson model file ([`PyModel`]), a log-canonical one
-//! ([`PyLogModel`]) and a learned polynomial-bivector one ([`PyLearnedPolynomialModel`]).
+//! The learned-model classes: a Lie–Poisson model file ([`PyModel`]), and a learned S on any
+//! other realization ([`PyLearnedModel`]: log-canonical, polynomial bivector).
 
 use std::path::PathBuf;
 
@@ -239,137 +239,66 @@ pub(super) fn jets_at<'py, const N: usize, G: Generating<N, Workspace = Workspac
     ))
 }
 
-/// A learned generating function of a log-canonical structure π_ij = c_ij x_i x_j, loaded from
-/// a model file whose metadata says `structure = log_canonical`: S(t, q) = exact Taylor terms
-/// + t^m · MLP(t, q) in q = ln x, stepped on the exact groupoid (every monomial Casimir kept to
-/// round-off, whatever the network learned).
-#[pyclass(name = "LogCanonicalModel", module = "poisson_rs._core", frozen)]
-pub(super) struct PyLogModel {
-    inner: LogModel,
+/// The learned models one [`PyLearnedModel`] holds: a learned S on a realization, one variant
+/// per realization. Each model type has the same surface (`dim`, `mlp`, `mlp_power`,
+/// `generating::<N>()`, `stepper::<N>(newton)`), which [`each_model`] dispatches on.
+enum Learned {
+    /// On the exact log-canonical groupoid, in q = ln x, read from a model file.
+    LogCanonical(LogModel),
+    /// On the order-n realization of a polynomial bivector, built from its term tables.
+    Polynomial(LearnedPolynomialModel),
 }
 
-#[pymethods]
-impl PyLogModel {
-    /// Loads a log-canonical model file. Raises FileNotFoundError or ValueError.
-    #[staticmethod]
-    fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
-        let inner = detached(py, || LogModel::from_file(&path))?;
-        Ok(PyLogModel { inner })
-    }
-
-    /// Parses the bytes of a log-canonical model file. Raises ValueError.
-    #[staticmethod]
-    fn from_bytes(py: Python<'_>, data: &[u8]) -> PyResult<Self> {
-        let inner = detached(py, || LogModel::from_bytes(data))?;
-        Ok(PyLogModel { inner })
-    }
-
-    /// The dimension N (number of species).
-    #[getter]
-    fn dim(&self) -> usize {
-        self.inner.dim
-    }
-
-    /// The structure matrix c, shape (N, N).
-    #[getter]
-    fn c<'py>(&self, py: Python<'py>) -> PyResult<Array<'py, Ix2>> {
-        let n = self.inner.dim;
-        Array2::from_shape_vec((n, n), self.inner.c.clone())
-            .map(|a| a.into_pyarray(py))
-            .map_err(|e| PyRuntimeError::new_err(e.to_string()))
-    }
-
-    /// The file's metadata, as strings.
-    #[getter]
-    fn metadata<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let d = PyDict::new(py);
-        for (k, v) in &self.inner.metadata {
-            d.set_item(k, v)?;
+/// Runs `$body` with `$m` bound to the model inside a [`Learned`], whatever its variant.
+macro_rules! each_model {
+    ($learned:expr, $m:ident => $body:expr) => {
+        match $learned {
+            Learned::LogCanonical($m) => $body,
+            Learned::Polynomial($m) => $body,
         }
-        Ok(d)
-    }
-
-    #[getter]
-    fn mlp_power(&self) -> u32 {
-        self.inner.mlp_power
-    }
-
-    #[getter]
-    fn n_parameters(&self) -> usize {
-        self.inner.mlp.as_ref().map_or(0, |m| m.n_parameters())
-    }
-
-    #[getter]
-    fn n_polynomial_terms(&self) -> usize {
-        self.inner.n_polynomial_terms()
-    }
-
-    /// S, ∂S/∂q and ∂²S/∂q² at time t for q of shape (n, N): arrays (n,), (n, N), (n, N, N).
-    fn derivatives<'py>(
-        &self,
-        py: Python<'py>,
-        t: f64,
-        q: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
-        with_dim!(self.inner.dim, N => {
-            let q = states::<N>(&q, "q")?;
-            let g = self.inner.generating::<N>()?;
-            jets_at(py, &g, &g.network, t, &q)
-        }, Err(dim_error(self.inner.dim)))
-    }
-
-    /// Rolls out the model's bisection integrator from each row of `q0` (n, N), in q = ln x:
-    /// solve q + ½ c ∇S(h, q) = q_k by Newton (|δ|∞ ≤ tol · max(|q|∞, 1)), then
-    /// q_{k+1} = q − ½ c ∇S(h, q). A step whose e^q leaves the float64 orthant fails (code 5
-    /// or 3). Returns the trajectories in q (n, n_steps // every + 1, N) and a dict of
-    /// per-trajectory arrays. Ctrl-C interrupts it (KeyboardInterrupt).
-    #[pyo3(signature = (q0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
-    #[allow(clippy::too_many_arguments)]
-    fn rollout<'py>(
-        &self,
-        py: Python<'py>,
-        q0: PyReadonlyArray2<'py, f64>,
-        h: f64,
-        n_steps: usize,
-        every: usize,
-        tol: f64,
-        max_iter: u32,
-    ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
-        let newton = NewtonOptions::validated(tol, max_iter)?;
-        with_dim!(self.inner.dim, N => {
-            let stepper = self.inner.stepper::<N>(newton)?;
-            let q0 = finite_states::<N>(&q0, "q0")?;
-            run_rollout(py, &PerStep(&stepper), &q0, h, n_steps, every, None)
-        }, Err(dim_error(self.inner.dim)))
-    }
-
-    fn __repr__(&self) -> String {
-        format!(
-            "LogCanonicalModel(dim={}, polynomial_terms={}, mlp_parameters={}, mlp_power={})",
-            self.inner.dim,
-            self.n_polynomial_terms(),
-            self.n_parameters(),
-            self.inner.mlp_power
-        )
-    }
+    };
 }
 
-/// A learned generating function on an approximate realization of a polynomial bivector:
-/// S(t, x) = exact Taylor-HJ terms + t^m · MLP(t, x), stepped by the same Newton bisection as
-/// `rollout_polynomial_realization`. Built from the term tables (as there) and the MLP's layers
-/// (`weights[i]` (out, in), `biases[i]` (out,), inputs (t, x), tanh after every layer but the
-/// last, one output; empty lists: no network).
-#[pyclass(name = "LearnedPolynomialModel", module = "poisson_rs._core", frozen)]
-pub(super) struct PyLearnedPolynomialModel {
-    inner: LearnedPolynomialModel,
+/// A learned generating function S(t, x) = exact Taylor-HJ terms + t^m · MLP(t, x) on a
+/// realization, stepped by full Newton on tar(∇S(h, x), x) = x_k, then x_{k+1} from sou
+/// (|δ|∞ ≤ tol · max(|x|∞, 1)). One class for every realization: the log-canonical groupoid
+/// (x is q = ln x there, every monomial Casimir kept to round-off whatever the network learned)
+/// and the order-n realization of a polynomial bivector.
+#[pyclass(name = "LearnedModel", module = "poisson_rs._core", frozen)]
+pub(super) struct PyLearnedModel {
+    inner: Learned,
+    /// The model file's metadata (empty for a model built from tables).
+    metadata: Vec<(String, String)>,
 }
 
 #[pymethods]
-impl PyLearnedPolynomialModel {
-    #[new]
+impl PyLearnedModel {
+    /// Parses the bytes of a log-canonical model file (metadata `structure = log_canonical`).
+    /// Raises ValueError.
+    #[staticmethod]
+    fn from_log_canonical_bytes(py: Python<'_>, data: &[u8]) -> PyResult<Self> {
+        let inner = detached(py, || LogModel::from_bytes(data))?;
+        let mut metadata: Vec<(String, String)> = inner
+            .metadata
+            .iter()
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        metadata.sort();
+        Ok(PyLearnedModel {
+            inner: Learned::LogCanonical(inner),
+            metadata,
+        })
+    }
+
+    /// A learned S on the order-n realization of a polynomial bivector: β (sou) and α (tar) as
+    /// term tables over (p, x) as for `rollout_polynomial_realization`, the Taylor part as a
+    /// term table over (t, x), the MLP's layers (`weights[i]` (out, in), `biases[i]` (out,),
+    /// inputs (t, x), tanh after every layer but the last, one output; empty lists: no
+    /// network). Raises ValueError for a malformed table or network.
+    #[staticmethod]
     #[pyo3(signature = (sou_index, sou_coeffs, sou_exponents, tar_index, tar_coeffs, tar_exponents, s_coeffs, s_exponents, weights, biases, mlp_power))]
     #[allow(clippy::too_many_arguments)]
-    fn new(
+    fn from_polynomial_tables(
         sou_index: PyReadonlyArray1<'_, i64>,
         sou_coeffs: PyReadonlyArray1<'_, f64>,
         sou_exponents: PyReadonlyArray2<'_, i64>,
@@ -383,28 +312,7 @@ impl PyLearnedPolynomialModel {
         mlp_power: u32,
     ) -> PyResult<Self> {
         let dim = s_exponents.shape()[1].saturating_sub(1);
-        rows_match("biases", biases.len(), weights.len())?;
-        let mut layers = Vec::new();
-        layers
-            .try_reserve_exact(weights.len())
-            .map_err(|_| PyMemoryError::new_err("too many layers"))?;
-        for (i, (w, b)) in weights.iter().zip(&biases).enumerate() {
-            let (ws, bs) = (w.shape(), b.shape());
-            if bs[0] != ws[0] {
-                return Err(PyValueError::new_err(format!(
-                    "layer {i}: weight shape {ws:?} and bias shape {bs:?} do not match (out, in) \
-                     and (out,)"
-                )));
-            }
-            let wv: Vec<f64> = w.as_array().iter().copied().collect();
-            let bv: Vec<f64> = b.as_array().iter().copied().collect();
-            layers.push(Layer::new(ws[1], ws[0], wv, bv)?);
-        }
-        let mlp = if layers.is_empty() {
-            None
-        } else {
-            Some(Mlp::new(layers)?)
-        };
+        let mlp = mlp_of(&weights, &biases)?;
         let inner = with_dim!(dim, N => {
             let sou = component_polynomials::<N>("sou", &sou_index, &sou_coeffs, &sou_exponents, 2 * N)?;
             let tar = component_polynomials::<N>("tar", &tar_index, &tar_coeffs, &tar_exponents, 2 * N)?;
@@ -413,49 +321,74 @@ impl PyLearnedPolynomialModel {
             let s = polynomial("S", &co, &ex, &all, N + 1)?;
             LearnedPolynomialModel::new(N, sou, tar, s, mlp, mlp_power)?
         }, return Err(dim_error(dim)));
-        Ok(PyLearnedPolynomialModel { inner })
+        Ok(PyLearnedModel {
+            inner: Learned::Polynomial(inner),
+            metadata: Vec::new(),
+        })
+    }
+
+    /// The realization: "log_canonical" or "polynomial".
+    #[getter]
+    fn realization(&self) -> &'static str {
+        match self.inner {
+            Learned::LogCanonical(_) => "log_canonical",
+            Learned::Polynomial(_) => "polynomial",
+        }
     }
 
     /// The dimension N.
     #[getter]
     fn dim(&self) -> usize {
-        self.inner.dim
+        each_model!(&self.inner, m => m.dim)
+    }
+
+    /// The model file's metadata, as strings (empty for a model built from tables).
+    #[getter]
+    fn metadata<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        for (k, v) in &self.metadata {
+            d.set_item(k, v)?;
+        }
+        Ok(d)
     }
 
     #[getter]
     fn mlp_power(&self) -> u32 {
-        self.inner.mlp_power
+        each_model!(&self.inner, m => m.mlp_power)
     }
 
     #[getter]
     fn n_parameters(&self) -> usize {
-        self.inner.mlp.as_ref().map_or(0, |m| m.n_parameters())
+        each_model!(&self.inner, m => m.mlp.as_ref().map_or(0, |n| n.n_parameters()))
     }
 
+    /// Terms of the exact Taylor part.
     #[getter]
     fn n_taylor_terms(&self) -> usize {
-        self.inner.n_taylor_terms()
+        each_model!(&self.inner, m => m.n_taylor_terms())
     }
 
-    /// S, ∂S/∂x and ∂²S/∂x² at time t for x of shape (n, N): arrays (n,), (n, N), (n, N, N).
+    /// S, ∂S/∂x and ∂²S/∂x² at time t for x of shape (n, N), in the realization's base
+    /// coordinates: arrays (n,), (n, N), (n, N, N).
     fn derivatives<'py>(
         &self,
         py: Python<'py>,
         t: f64,
         x: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Array<'py, Ix1>, Array<'py, Ix2>, Array<'py, Ix3>)> {
-        with_dim!(self.inner.dim, N => {
+        let dim = self.dim();
+        each_model!(&self.inner, m => with_dim!(dim, N => {
             let x = states::<N>(&x, "x")?;
-            let g = self.inner.generating::<N>()?;
+            let g = m.generating::<N>()?;
             jets_at(py, &g, &g.network, t, &x)
-        }, Err(dim_error(self.inner.dim)))
+        }, Err(dim_error(dim))))
     }
 
-    /// Rolls out the learned bisection integrator from each row of `x0` (n, N): solve
-    /// α(∇S(h, x), x) = x_k by Newton (|δ|∞ ≤ tol · max(|x|∞, 1)), then x_{k+1} = β(∇S(h, x), x).
-    /// Returns the trajectories (n, n_steps // every + 1, N) and a dict of per-trajectory
-    /// arrays. Ctrl-C interrupts it (KeyboardInterrupt).
-    #[pyo3(signature = (x0, h, n_steps, every=1, tol=1e-13, max_iter=50))]
+    /// Rolls out the model's bisection integrator from each row of `x0` (n, N), finite, in the
+    /// realization's base coordinates. Returns the trajectories (n, n_steps // every + 1, N)
+    /// and a dict of per-trajectory arrays. A step that leaves the float64 range fails (its
+    /// code in the dict). Ctrl-C interrupts it (KeyboardInterrupt).
+    #[pyo3(signature = (x0, h, n_steps, every=1, tol=1e-12, max_iter=50))]
     #[allow(clippy::too_many_arguments)]
     fn rollout<'py>(
         &self,
@@ -468,20 +401,52 @@ impl PyLearnedPolynomialModel {
         max_iter: u32,
     ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
         let newton = NewtonOptions::validated(tol, max_iter)?;
-        with_dim!(self.inner.dim, N => {
-            let stepper = self.inner.stepper::<N>(newton)?;
-            let x0 = states::<N>(&x0, "x0")?;
+        let dim = self.dim();
+        each_model!(&self.inner, m => with_dim!(dim, N => {
+            let stepper = m.stepper::<N>(newton)?;
+            let x0 = finite_states::<N>(&x0, "x0")?;
             run_rollout(py, &PerStep(&stepper), &x0, h, n_steps, every, None)
-        }, Err(dim_error(self.inner.dim)))
+        }, Err(dim_error(dim))))
     }
 
     fn __repr__(&self) -> String {
         format!(
-            "LearnedPolynomialModel(dim={}, taylor_terms={}, mlp_parameters={}, mlp_power={})",
-            self.inner.dim,
+            "LearnedModel(realization={:?}, dim={}, taylor_terms={}, mlp_parameters={}, \
+             mlp_power={})",
+            self.realization(),
+            self.dim(),
             self.n_taylor_terms(),
             self.n_parameters(),
-            self.inner.mlp_power
+            self.mlp_power()
         )
     }
+}
+
+/// The MLP of `weights[i]` (out, in) and `biases[i]` (out,); None for empty lists.
+fn mlp_of(
+    weights: &[PyReadonlyArray2<'_, f64>],
+    biases: &[PyReadonlyArray1<'_, f64>],
+) -> PyResult<Option<Mlp>> {
+    rows_match("biases", biases.len(), weights.len())?;
+    let mut layers = Vec::new();
+    layers
+        .try_reserve_exact(weights.len())
+        .map_err(|_| PyMemoryError::new_err("too many layers"))?;
+    for (i, (w, b)) in weights.iter().zip(biases).enumerate() {
+        let (ws, bs) = (w.shape(), b.shape());
+        if bs[0] != ws[0] {
+            return Err(PyValueError::new_err(format!(
+                "layer {i}: weight shape {ws:?} and bias shape {bs:?} do not match (out, in) \
+                 and (out,)"
+            )));
+        }
+        let wv: Vec<f64> = w.as_array().iter().copied().collect();
+        let bv: Vec<f64> = b.as_array().iter().copied().collect();
+        layers.push(Layer::new(ws[1], ws[0], wv, bv)?);
+    }
+    Ok(if layers.is_empty() {
+        None
+    } else {
+        Some(Mlp::new(layers)?)
+    })
 }

@@ -24,7 +24,7 @@ N a small tanh MLP whose last layer starts at zero (so training starts at the Ta
 m = K + 2 where S_{K+1} vanishes (K + 1 otherwise), trained by Adam (then optionally L-BFGS) on
 the mean squared residual r over t ∈ [0, h_max] and q uniform in a box of log coordinates. The
 exported file carries the scales folded into the first and last layers, so the Rust core sees
-S = Taylor + t^m N(t, q) (``_core.LogCanonicalModel``).
+S = Taylor + t^m N(t, q) (``_core.LearnedModel``).
 """
 
 from __future__ import annotations

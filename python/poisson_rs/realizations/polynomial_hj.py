@@ -27,7 +27,7 @@ otherwise), trained by Adam (then optionally L-BFGS) on the mean squared residua
 t ∈ [0, h_max] and x uniform in a box. Every polynomial (β, α, S's Taylor terms, H) is carried
 as the same term table the Rust core reads, and evaluated in torch by repeated multiplication
 (exact derivatives at 0, unlike a float power). The model file holds those tables and the
-network with its scales folded in; the core steps it (``_core.LearnedPolynomialModel``).
+network with its scales folded in; the core steps it (``_core.LearnedModel``).
 """
 
 from __future__ import annotations
@@ -497,7 +497,7 @@ def model_tensors(s_fn: PolynomialRealizationGenerating) -> dict[str, np.ndarray
 
 
 def core_model(s_fn: PolynomialRealizationGenerating) -> Any:
-    """The Rust model of ``s_fn`` (``_core.LearnedPolynomialModel``)."""
+    """The Rust model of ``s_fn`` (``_core.LearnedModel`` on the polynomial realization)."""
     return core_from_tensors(model_tensors(s_fn), s_fn.mlp_power)
 
 
@@ -507,7 +507,7 @@ def core_from_tensors(tensors: Mapping[str, np.ndarray], mlp_power: int) -> Any:
     n_layers = sum(1 for k in tensors if k.startswith("mlp.") and k.endswith(".weight"))
     # By name rather than ``*(tensors[k] for k in TABLE_TENSORS)``: a starred generator hides
     # from the type checker which argument each array is.
-    return _core.LearnedPolynomialModel(
+    return _core.LearnedModel.from_polynomial_tables(
         tensors["sou.index"],
         tensors["sou.coeffs"],
         tensors["sou.exponents"],

@@ -129,11 +129,12 @@ class LearnedLogCanonicalIntegrator(_LearnedRealizationIntegrator):
 
     def _load(self, data: bytes, where: str) -> tuple[dict[str, Any], Any]:
         with parsing(where):
-            core = _core.LogCanonicalModel.from_bytes(data)
+            core = _core.LearnedModel.from_log_canonical_bytes(data)
         metadata = parse_log_canonical_metadata(core.metadata, where)
         system = metadata["system"]
+        c = read_tensor(data, "structure.c")  # checked by the core: (N, N), finite
         with parsing(where, "system"):
-            if system.dim != core.dim or not np.array_equal(system.c, core.c):
+            if system.dim != core.dim or c is None or not np.array_equal(system.c, c):
                 raise ValueError(
                     f"metadata 'system' ({system!r}) does not match the file's structure.c"
                 )

@@ -182,7 +182,7 @@ mod tests {
     fn model_files_name_their_structure() {
         let good = file(&[("format", FORMAT), ("structure", "log_canonical")]);
         let model = LogModel::from_bytes(&good).unwrap();
-        assert_eq!((model.dim, model.n_polynomial_terms()), (2, 2));
+        assert_eq!((model.dim, model.n_taylor_terms()), (2, 2));
         let err = Model::from_bytes(&good).unwrap_err().to_string();
         assert!(err.contains("structure is 'log_canonical'"), "{err}");
         let odd = file(&[("format", FORMAT), ("structure", "nambu")]);
