@@ -147,9 +147,12 @@ def _algebra(spec: str) -> LieAlgebra | str:
 
 def _degree(text: str, flag: str) -> int:
     with parsing(flag, None):
-        value = int(text)
+        try:
+            value = int(text)
+        except ValueError:
+            value = 0
         if not 1 <= value <= MAX_DEGREE:
-            raise ValueError(f"must be an integer in 1..{MAX_DEGREE}, got {text}")
+            raise ValueError(f"must be an integer in 1..{MAX_DEGREE}, got {text!r}")
         return value
 
 
