@@ -229,6 +229,7 @@ def _bad_cases(tmp: Path, f: dict[str, str]) -> list[tuple[list[str], str]]:
     (tmp / "folder.json").mkdir()
     lv, d = f["lv_json"], f["data"]
     out = ["--out", str(tmp / "o.json")]
+    model = ["--out", str(tmp / "m.safetensors")]
     return [
         (["--structure", str(tmp / "missing.json"), *out], "--structure"),
         (["--structure", str(tmp / "bad.json"), *out], "--structure"),
@@ -241,8 +242,7 @@ def _bad_cases(tmp: Path, f: dict[str, str]) -> list[tuple[list[str], str]]:
         (["--structure", "discover", "--system", f["rb_json"], *out], "--structure"),
         (["--structure", "discover", "--mode", "map", *out], "--structure"),
         (["--structure", lv, "--mode", "hj+data", *out], "--structure"),
-        (["--structure", f["rb_json"], "--mode", "hj+data", "--out", str(tmp / "m.safetensors")],
-         "--structure"),  # fmt: skip
+        (["--structure", f["rb_json"], "--mode", "hj+data", *model], "--structure"),
         (["--structure", lv, "--degree", "5", *out], "--degree"),
         (["--structure", "discover", "--degree", "0", *out], "--degree"),
         (["--structure", lv, "--degree", "two", *out], "--degree"),

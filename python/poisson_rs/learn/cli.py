@@ -320,9 +320,7 @@ def run(args: argparse.Namespace) -> int:
     with parsing(f"--out {out}"):
         check_output_path(out)
     if os.path.lexists(out) and not args.force:
-        print(
-            f"poisson-rs learn: --out {out} exists; pass --force to replace it", file=sys.stderr
-        )
+        print(f"poisson-rs learn: --out {out} exists; pass --force to replace it", file=sys.stderr)
         return 2
     # The write path itself, tried before the fit (a path can pass every check and still fail).
     with parsing(f"--out {out}"):
