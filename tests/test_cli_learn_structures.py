@@ -90,10 +90,16 @@ def test_structure_file_round_trip(
     a = pr.integrate(rebuilt, LV_STARTS, H, 50)
     b = pr.integrate(stepper, LV_STARTS, H, 50)
     assert np.max(np.abs(a - b)) <= 1e-12
-    # The file is a structure file too: --structure takes it back (its H ignored).
-    again = tmp_path / "again.json"
-    argv = ["learn", files["data"], "--structure", str(out), "--h", "0.1", "--no-progress"]
-    assert main([*argv, "--out", str(again)]) == 0
+    # The file is a structure file too: --structure takes it back (its H ignored), and so is
+    # an expression system on the same bracket (what the term library learns).
+    (tmp_path / "expr.json").write_text(json.dumps(with_hamiltonian(LV, "u*v").to_dict()))
+    for spec in (out, tmp_path / "expr.json"):
+        again = tmp_path / f"{spec.stem}-again.json"
+        argv = ["learn", files["data"], "--structure", str(spec), "--h", "0.1", "--no-progress"]
+        assert main([*argv, "--out", str(again)]) == 0
+        doc = json.loads(again.read_text())
+        assert doc["kind"] == "log_canonical"
+        np.testing.assert_allclose(pr.system_from_dict(doc).hamiltonian(x), back.hamiltonian(x))
 
 
 def test_a_learned_system_file_runs_the_demo(
@@ -222,7 +228,7 @@ def _bad_cases(tmp: Path, f: dict[str, str]) -> list[tuple[list[str], str]]:
     (tmp / "list.json").write_text("[1, 2]")
     (tmp / "algebra.json").write_text(json.dumps(pr.LieAlgebra.so3().to_dict()))
     (tmp / "nokind.json").write_text(json.dumps({"kind": "nothing"}))
-    # An expression system offers no Hamiltonian family: no mode applies to it.
+    # An expression system's bracket is its base's: a rigid body's gives a model file.
     expr = with_hamiltonian(pr.RigidBody(), "x1**2/2 - cos(x3)")
     (tmp / "expr.json").write_text(json.dumps(expr.to_dict()))
     (tmp / "exists.json").write_text("keep me")
@@ -237,7 +243,7 @@ def _bad_cases(tmp: Path, f: dict[str, str]) -> list[tuple[list[str], str]]:
         (["--structure", str(tmp / "list.json"), *out], "--structure"),
         (["--structure", str(tmp / "algebra.json"), *out], "--structure"),
         (["--structure", str(tmp / "nokind.json"), *out], "--structure"),
-        (["--structure", str(tmp / "expr.json"), *out], "--structure"),
+        (["--structure", str(tmp / "expr.json"), *out], "--out"),
         (["--structure", lv, "--algebra", "so3", *out], "--structure"),
         (["--structure", "discover", "--system", f["rb_json"], *out], "--structure"),
         (["--structure", "discover", "--mode", "map", *out], "--structure"),

@@ -88,9 +88,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         default=None,
         metavar="SYSTEM.json|discover",
         help="the Poisson structure as any system's to_dict() in a JSON file (its own H is "
-        "ignored; modes auto and hamiltonian, and map on a Lie-Poisson system), or the word "
-        "discover: the bracket is learned too (modes auto and hamiltonian). Not with --algebra "
-        "or --system",
+        "ignored, an expression system's bracket is its 'structure' entry's; modes auto and "
+        "hamiltonian, and map on a Lie-Poisson system), or the word discover: the bracket is "
+        "learned too (modes auto and hamiltonian). Not with --algebra or --system",
     )
     p.add_argument("--h", required=True, help="time between records (> 0)")
     p.add_argument("--mode", default="auto", choices=("auto", "hamiltonian", "map", "hj+data"))
@@ -171,6 +171,10 @@ def _structure(spec: str, mode: str) -> Any:
         if not isinstance(data, dict):
             raise ValueError("must hold a JSON object (a system's to_dict())")
         system = system_from_dict(data)
+    if getattr(system, "kind", None) == "expression":
+        # Its bracket is its 'structure' entry's (the term library's results are such files):
+        # that system offers the Hamiltonian families, and the H is ignored either way.
+        system = system.base
     title = getattr(system, "title", type(system).__name__)
     if getattr(system, "trainable", False):  # Lie–Poisson: learned on T*G, as --algebra
         if mode == "hj+data":
