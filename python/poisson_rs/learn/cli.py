@@ -43,11 +43,11 @@ output (--out):
   --model, or pr.load_model). Any other learned system (--structure naming
   another structure, and --structure discover, whatever bracket it finds) is a
   JSON file: --out must end in {SYSTEM_SUFFIX}. It holds the learned system's
-  to_dict() (every verb's --system reads it: poisson-rs demo --system OUT.json),
-  plus a "learned" entry: the integrator to rebuild the same stepper
-  (pr.taylor_integrator(system, order, chart)) and the report's summary. The
-  suffix is checked before the fit, and an existing --out is replaced only with
-  --force.
+  to_dict() (poisson-rs demo --system OUT.json, learn --structure OUT.json and
+  pr.system_from_dict read it), plus a "learned" entry: the integrator that
+  rebuilds the same stepper (pr.taylor_integrator(system, order, chart)) and
+  the report's summary. The suffix is checked before the fit, and an existing
+  --out is replaced only with --force.
 
 exit status:
   0  learned and written
