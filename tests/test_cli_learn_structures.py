@@ -260,6 +260,7 @@ def _bad_cases(tmp: Path, f: dict[str, str]) -> list[tuple[list[str], str]]:
         (["--structure", lv, "--out", str(tmp / "exists.json")], "--out"),
         (["--structure", lv, "--out", str(tmp / "folder.json")], "--out"),  # a directory
         (["--structure", lv, "--h", "-1", *out], "--h"),
+        (["--structure", "discover", "--seed", "-1", *out], "--seed"),
     ]
 
 

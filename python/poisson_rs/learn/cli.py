@@ -21,10 +21,16 @@ from typing import Any
 from ..files import atomic_write_bytes, check_output_path, probe_writable, read_input_bytes
 from ..structures.lie_poisson import LieAlgebra
 from ..untrusted import parsing
-from .data import MAX_SYSTEM_FILE_BYTES, read_system_file
+from .data import MAX_SYSTEM_FILE_BYTES, check_seed, read_system_file
 from .options import MAX_DEGREE
 
-__all__ = ["NOT_EXPLAINED_STATUS", "SYSTEM_FILE_FORMAT", "add_parser", "run"]
+__all__ = [
+    "NOT_EXPLAINED_STATUS",
+    "SYSTEM_FILE_FORMAT",
+    "add_parser",
+    "run",
+    "system_document",
+]
 
 
 #: The subcommand this module adds (``poisson-rs learn``).
@@ -276,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
         if not (math.isfinite(h) and h > 0):
             raise ValueError(f"must be finite and > 0, got {args.h}")
     with parsing("--seed", None):
-        seed = int(args.seed)
+        seed = check_seed(int(args.seed))
     degree = None if args.degree is None else _degree(args.degree, "--degree")
     max_degree = None
     if getattr(args, "max_degree", None) is not None:
