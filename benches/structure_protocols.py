@@ -33,13 +33,14 @@ on core 1 and the DPNN runs on core 0, at the same time), merged::
 
 About 40 min for the first (PNN's 60k Lotka–Volterra iterations 12.5 min, its 100k pendulum ones
 21 min, on a contended core) and 12 min for each DPNN run; the two DPNN rows (dropout 0.0 and
-0.3) come from two such runs (``--merge`` replaces a protocol's rows, so the second was joined
-by hand).
+0.3) come from two such runs. Our rows alone (no peer checkout) are refreshed with
+``--protocols pd --merge``: the discovery rows, once per snap rule, about 10 min.
 
 (``POISSON_RS_PNN``, ``POISSON_RS_LEARNER``, ``POISSON_RS_DPNN`` may stand for the paths; a
-missing path skips that peer with a message and leaves our rows; ``--merge`` keeps the other
-protocols' rows of an existing JSON.) The peers' commits are read with git where the directory
-is a checkout, else from ``--pnn-commit`` etc., else "unknown".
+missing path skips that peer with a message and leaves our rows; ``--merge`` keeps every row of
+an existing JSON that this run does not replace: a row replaces those of its protocol and
+method, the method read up to its first comma.) The peers' commits are read with git where the
+directory is a checkout, else from ``--pnn-commit`` etc., else "unknown".
 
 Protocols (the peers' settings, network sizes and learning rates, read from their code):
 
@@ -65,8 +66,8 @@ span's one-step pairs).
 Ours: the true system through the package's exact integrators ("true structure, true H": no
 training), ``pr.learn(trajectories, h, structure=<true structure>)`` (H learned, the structure
 given) on the same initial states, h and record counts (records by ``pr.reference_solution``;
-the max deviation of the peer's own data from it is recorded), and the hook
-:func:`ours_discover` (structure discovered from the data) where that mode exists.
+the max deviation of the peer's own data from it is recorded), and the structure discovered
+from the data (:func:`ours_discover`), once under each snap rule of :data:`SNAP_RULES`.
 
 Writes ``docs/learning/structure_protocols.json`` and prints a markdown table.
 """
@@ -204,7 +205,7 @@ def rollout(stepper: Any, p: Protocol) -> np.ndarray:
 def ours_rows(
     p: Protocol, true_stepper: Any, structure: Any, label: str, subset: int | None = None
 ) -> list[dict[str, Any]]:
-    """The true system through ``true_stepper``; pr.learn (and the discover hook) on
+    """The true system through ``true_stepper``; pr.learn (given and discovered structure) on
     ``p.train``, or on its first ``subset`` trajectories."""
     rows = []
     t0 = time.perf_counter()
@@ -242,40 +243,53 @@ def ours_rows(
             "records (20 % held out for the choice, then refitted on all)",
         }
     )
-    rows.append(ours_discover_row(p, train))
+    rows += [ours_discover_row(p, train, snap) for snap in SNAP_RULES]
     return rows
 
 
-def ours_discover(trajectories: np.ndarray, h: float) -> Any:
-    """HOOK: the structure discovered from the data (``structure="discover"``, being written
-    beside this bench). Returns the stepper, the report (with ``.system``) and the seconds, or
-    raises whatever the package raises where the mode does not exist yet."""
+def ours_discover(trajectories: np.ndarray, h: float, snap: str) -> Any:
+    """The structure discovered from the data (``structure="discover"``) with the snap rule
+    ``snap`` (:data:`poisson_rs.learn.discover.SNAPS`). Returns the stepper, the report (with
+    ``.system``) and the seconds."""
+    from poisson_rs.learn.discover import learn_discover
+
     t0 = time.perf_counter()
-    stepper, report = pr.learn(trajectories, h, structure="discover", progress=False)
+    stepper, report = learn_discover(trajectories, h, progress=False, snap=snap)
     return stepper, report, time.perf_counter() - t0
 
 
-def ours_discover_row(p: Protocol, train: np.ndarray) -> dict[str, Any]:
+#: The snap rules the bench compares: the default (the snapped bracket kept where it explains
+#: the records at the noise level) and the stricter one it replaced (kept only where it fits
+#: the training records at least as well as the refined bracket).
+SNAP_RULES = {
+    "noise": "snapped bracket kept where H refitted on it reaches the noise level (default)",
+    "fit": "snapped bracket kept only where it fits the training records as well as the "
+    "refined one",
+}
+
+
+def ours_discover_row(p: Protocol, train: np.ndarray, snap: str) -> dict[str, Any]:
     row: dict[str, Any] = {
         "protocol": p.name,
-        "method": 'ours: pr.learn(structure="discover")',
+        "method": f'ours: pr.learn(structure="discover"), snap="{snap}"',
     }
     try:
-        stepper, report, seconds = ours_discover(train, p.h)
-    except Exception as err:  # the mode may not exist yet
-        print(f"[{p.name}] structure='discover' not available: {type(err).__name__}: {err}")
-        row["notes"] = f"not run: {type(err).__name__}: {err}"
+        stepper, report, seconds = ours_discover(train, p.h, snap)
+    except ValueError as err:  # nothing applied: shown, not hidden
+        print(f"[{p.name}] structure='discover' refused: {err}")
+        row["notes"] = f"refused: {err}"
         return row
     traj = rollout(stepper, p)
-    kept = getattr(report, "kept", None)
+    kept = report.kept
     row.update(
         {
-            "parameters": int(getattr(kept, "parameters", -1)),
+            "parameters": int(kept.parameters),
             "train_seconds": round(seconds, 2),
             "iterations": "n/a",
             "fraction_of_theirs": "n/a",
             **p.score(traj),
-            "notes": f"discovered system: {getattr(report, 'system', None)!s:.200}",
+            "notes": f"{SNAP_RULES[snap]}; kept {kept.family}, bracket "
+            f"{kept.bracket_text}; H = {kept.hamiltonian_text:.160}",
         }
     )
     return row
@@ -500,7 +514,7 @@ def main() -> None:
         default="lv,pd,rb",
         help="comma-separated: lv (PNN Lotka–Volterra), pd (PNN extended pendulum), rb (DPNN)",
     )
-    ap.add_argument("--merge", action="store_true", help="keep other protocols' rows of --json")
+    ap.add_argument("--merge", action="store_true", help="keep the rows of --json not rerun")
     ap.add_argument("--json", type=Path, default=OUT)
     args = ap.parse_args()
 
@@ -552,8 +566,12 @@ def main() -> None:
     doc: dict[str, Any] = {}
     if args.merge and args.json.exists():
         doc = json.loads(args.json.read_text())
-        done = {r["protocol"] for r in rows}
-        rows = [r for r in doc.get("rows", []) if r["protocol"] not in done] + rows
+        # A row of this run replaces the old rows of its protocol and method (the method up to
+        # its first comma, so that a variant replaces the row it refines); the peers' rows stay
+        # unless their checkouts were given.
+        done = {(r["protocol"], r["method"].split(",")[0]) for r in rows}
+        old = doc.get("rows", [])
+        rows = [r for r in old if (r["protocol"], r["method"].split(",")[0]) not in done] + rows
         peers = {**doc.get("peers", {}), **peers}
     doc.update(
         {

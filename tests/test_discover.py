@@ -267,6 +267,8 @@ def test_discover_refuses_bad_input_before_any_fit(monkeypatch):
         pr.learn(data, 0.1, structure="discover", degree=0)
     with pytest.raises(ValueError, match="h"):
         pr.learn(data, -0.1, structure="discover")
+    with pytest.raises(ValueError, match="snap must be one of"):
+        discover.learn_discover(data, 0.1, snap="always")
 
 
 def test_discovers_the_extended_pendulums_affine_bracket():
@@ -286,6 +288,9 @@ def test_discovers_the_extended_pendulums_affine_bracket():
     np.testing.assert_allclose(learned.algebra.c, -0.5 * system.algebra.c, atol=1e-6)
     x = rng.normal(size=(10, 3)) * 0.5
     np.testing.assert_allclose(learned.vector_field(x), system.vector_field(x), rtol=0, atol=1e-6)
+    # The kept bracket is the snapped one, exactly: −½ of the true one, bit for bit.
+    np.testing.assert_array_equal(learned.cocycle, -0.5 * np.asarray(system.cocycle))
+    np.testing.assert_array_equal(learned.algebra.c, -0.5 * system.algebra.c)
 
 
 def test_discovered_system_and_stepper_pickle_and_step_identically(rigid_body):

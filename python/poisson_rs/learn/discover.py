@@ -66,6 +66,9 @@ GAUGE_RTOL = 1e-9
 #: A learned bracket coefficient this close (relative to the largest) to a multiple of 1/12 is
 #: tried at it.
 SNAP_RTOL = 1e-5
+#: When the snapped bracket replaces the learned one: where H refitted on it explains the
+#: records at the noise level or fits them as well ("noise"), fits them as well ("fit"), never.
+SNAPS = ("noise", "fit", "off")
 #: Gauss–Newton iterates of the joint refinement through the integrator.
 REFINE_ITER = 12
 #: Bracket coefficients below these (relative to the largest, +1) are tried at zero, the
@@ -408,10 +411,14 @@ def learn_discover(
     verbose: bool = False,
     progress: bool | None = None,
     refine: bool = True,
+    snap: str = "noise",
 ) -> tuple[Any, Any]:
     """:func:`poisson_rs.learn` with ``structure="discover"``: see the module docstring.
     ``refine``: refine the bracket and H jointly through the found structure's integrator
-    (:func:`refine_through_integrator`)."""
+    (:func:`refine_through_integrator`). ``snap``: when the bracket snapped to twelfths
+    replaces the learned one (:data:`SNAPS`): "noise" (default) where H refitted on it fits the
+    training records at least as well or explains them at the noise level, "fit" where it fits
+    at least as well only, "off" never."""
     from ..structures import bracket_families
     from .data import _as_list, check_seed, prepare, refuse_drift
     from .options import EXACT_LEVEL, MAX_DEGREE, check_bool, check_int
@@ -428,6 +435,8 @@ def learn_discover(
         degree = check_int(degree, "degree", 1, MAX_DEGREE)
     if max_degree is not None:
         max_degree = check_int(max_degree, "max_degree", 1, MAX_DEGREE)
+    if snap not in SNAPS:
+        raise ValueError(f"snap must be one of {SNAPS}, got {snap!r}")
     max_iter = check_int(max_iter, "max_iter", 1, 10_000)
     seed = check_seed(seed)
     verbose = check_bool(verbose, "verbose")
@@ -441,6 +450,12 @@ def learn_discover(
     refuse_drift(data)
     offered = bracket_families(data.dim)
     threshold = 1.5 * math.sqrt(2 * data.dim) * data.noise + 1e-12
+
+    def reaches_noise(one_step: float) -> bool:
+        """Whether a one-step error explains the records: at their noise level, or below
+        EXACT_LEVEL where the noise level is unknown."""
+        return one_step <= (threshold if math.isfinite(threshold) else EXACT_LEVEL)
+
     held = bool(data.test)
     err = "held-out one-step error" if held else "training one-step error (nothing held out)"
     x, v = velocities(data.train, data.h)
@@ -501,8 +516,10 @@ def learn_discover(
                     print(f"{name}: refined through the integrator, cost {better.history}")
         # Brackets of physical systems have simple coefficients: the learned θ snapped to
         # twelfths where it lies within SNAP_RTOL of one, kept if Jacobi holds exactly and H
-        # refitted on it fits the training records at least as well.
-        snapped = _snap(fit.theta)
+        # refitted on it fits the training records at least as well, or explains them at the
+        # noise level: the refinement's bracket may absorb the integrator's own error (a better
+        # one-step fit, a worse structure), and the simpler bracket that explains the data wins.
+        snapped = _snap(fit.theta) if snap != "off" else None
         if snapped is not None and fit.family.jacobi_residual(snapped, fit.points) <= JACOBI_RTOL:
             try:
                 structure = fit.family.system(snapped)
@@ -511,7 +528,10 @@ def learn_discover(
                 )
             except (ValueError, FloatingPointError, np.linalg.LinAlgError):
                 sfit2 = None
-            if sfit2 is not None and train_cost(sfit2.stepper, data) <= train_cost(stepper, data):
+            if sfit2 is not None and (
+                train_cost(sfit2.stepper, data) <= train_cost(stepper, data)
+                or (snap == "noise" and reaches_noise(errors(sfit2.stepper, data)[0]))
+            ):
                 fit.theta, fit.jacobi = snapped, fit.family.jacobi_residual(snapped, fit.points)
                 hfam, phi = sfit2.family, sfit2.theta
                 system, stepper = sfit2.system, sfit2.stepper
@@ -595,10 +615,10 @@ def learn_discover(
                 print(f"{cand.family}: one-step {cand.one_step:.3e}")
             if cand.stepper is None:
                 continue
-            if math.isfinite(threshold) and cand.one_step <= threshold:
+            if math.isfinite(threshold) and reaches_noise(cand.one_step):
                 kept = cand
                 cand.reason = f"the smallest pair whose {err} reaches the data's noise level"
-            elif not math.isfinite(threshold) and cand.one_step <= EXACT_LEVEL:
+            elif reaches_noise(cand.one_step):
                 kept = cand
                 cand.reason = f"noise level unknown; {err} below {EXACT_LEVEL:g} (exact data)"
             else:
