@@ -53,8 +53,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "--system",
         default=None,
         help="run the demo on a system instead of the paper's model: rigid-body, heavy-top or a "
-        "JSON file of LiePoissonSystem.to_dict() (Taylor-exp and classical methods against the "
-        "exact flow or a DOP853 reference, from the system's demo states)",
+        "JSON file of any system's to_dict(), such as the system 'poisson-rs learn --structure' "
+        "writes (its Taylor-HJ and classical methods against the exact flow or a DOP853 "
+        "reference, from the system's demo states)",
     )
     d.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     d.add_argument(
