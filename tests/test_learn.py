@@ -131,6 +131,11 @@ def test_auto_prefers_the_smaller_family_when_it_fits() -> None:
     assert report3.kept.family == "poly3"
     assert report3.candidates[1].one_step < 1e-3 * report3.candidates[0].one_step
     assert "poly2" in str(report3) and "KEPT" in str(report3)
+    assert report3.explained and "NOT EXPLAINED" not in str(report3)
+    # The quadratic family alone does not explain the cubic H's data, and the report says so.
+    _, short = learn(traj3, 0.1, algebra="so3", mode="hamiltonian", degree=2, max_iter=10)
+    assert short.kept.one_step > short.threshold
+    assert not short.explained and "NOT EXPLAINED" in str(short)
 
 
 # --- map mode ------------------------------------------------------------------------------------

@@ -139,7 +139,18 @@ def test_auto_mode_chooses_among_the_hamiltonian_degrees() -> None:
     trajs = system.reference_solution(_starts(system, 5, 2), np.arange(21) * H)
     stepper, report = pr.learn(trajs, H, structure=system, max_degree=2)
     assert report.mode == "auto" and [c.family for c in report.candidates] == ["poly2"]
+    assert report.explained and "NOT EXPLAINED" not in str(report)
     assert pr.integrate(stepper, trajs[0, 0], H, 3).shape == (4, 3)
+
+
+def test_a_family_short_of_the_noise_level_is_reported_not_explained() -> None:
+    """A linear H cannot make the cubic Nambu flow: the best fit is kept and the report says
+    the data are not explained."""
+    system = _system("nambu_cubic")
+    trajs = system.reference_solution(_starts(system, 5, 2), np.arange(21) * H)
+    _, report = pr.learn(trajs, H, structure=system, degree=1)
+    assert report.kept.one_step > report.threshold
+    assert not report.explained and "NOT EXPLAINED" in str(report)
 
 
 # --- bad input: one clear error naming the input and the field --------------------------------

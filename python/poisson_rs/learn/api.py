@@ -436,6 +436,7 @@ def learn(
     err = "held-out one-step error" if held else "training one-step error (nothing held out)"
     candidates: list[Candidate] = []
     kept: Candidate | None = None
+    explained = True  # False where no candidate reaches the noise level
     top = max_degree or MAX_DEGREE
     degrees = [degree] if degree is not None else [d for d in AUTO_DEGREES if d <= top] or [top]
     planned = {
@@ -506,6 +507,7 @@ def learn(
             else:
                 kept = next(c for c in candidates if c.one_step == best)
                 kept.reason = f"no family reached the noise level; the best {err}"
+                explained = False
         if refit and mode != "hj+data" and kept.system is not None and held:
             # The family is chosen on held-out data; its coefficients are then fitted on every
             # record (with one trajectory, the held-out end is the longest lever on the phase).
@@ -540,8 +542,9 @@ def learn(
         if c is not kept and c.reason.startswith("the smallest"):
             c.reason = "a smaller family was kept"
     report = LearnReport.of(
-        data, mode=mode, candidates=candidates, kept=kept, threshold=threshold, seed=seed
-    )
+        data, mode=mode, candidates=candidates, kept=kept, threshold=threshold, seed=seed,
+        explained=explained,
+    )  # fmt: skip
     return kept.stepper, report
 
 
@@ -630,6 +633,7 @@ def _learn_on_structure(
         plans += [(d, LibraryFamily(structure, d, order)) for d in LIBRARY_DEGREES if d <= top]
     candidates: list[Candidate] = []
     kept: Candidate | None = None
+    explained = True  # False where no candidate reaches the noise level
     bar = _progress_bar(len(plans) + int(refit and held), progress)
     try:
         for d, library in plans:
@@ -664,6 +668,7 @@ def _learn_on_structure(
             else:
                 kept = next(c for c in candidates if c.one_step == best)
                 kept.reason = f"no family reached the noise level; the best {err}"
+                explained = False
         if refit and held:
             # The family is chosen on held-out data; its coefficients are then fitted on every
             # record.
@@ -696,6 +701,7 @@ def _learn_on_structure(
         if c is not kept and c.reason.startswith("the smallest"):
             c.reason = "a smaller family was kept"
     report = LearnReport.of(
-        data, mode=mode, candidates=candidates, kept=kept, threshold=threshold, seed=seed
-    )
+        data, mode=mode, candidates=candidates, kept=kept, threshold=threshold, seed=seed,
+        explained=explained,
+    )  # fmt: skip
     return kept.stepper, report
