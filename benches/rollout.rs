@@ -100,11 +100,11 @@ fn random_model() -> BisectionStepper<3> {
         .collect();
     let mlp = Mlp::new(layers).unwrap();
     let generating = GeneratingFunction::new(taylor3(), Some(mlp), 5, MlpInputs::Plain).unwrap();
-    BisectionStepper {
+    BisectionStepper::new(
         generating,
-        groupoid: Groupoid::so3(Chart::Cayley).unwrap(),
-        newton: NewtonOptions::default(),
-    }
+        Groupoid::so3(Chart::Cayley).unwrap(),
+        NewtonOptions::default(),
+    )
 }
 
 /// The shipped 500-250-250-250 `paper` model, or a seeded random stand-in of that size.
@@ -133,11 +133,7 @@ fn paper_stepper(newton: NewtonOptions) -> BisectionStepper<3> {
     terms.terms.truncate(3); // −tH
     let mlp = Mlp::new(layers).unwrap();
     let generating = GeneratingFunction::new(terms, Some(mlp), 1, MlpInputs::Plain).unwrap();
-    BisectionStepper {
-        generating,
-        groupoid: Groupoid::so3(Chart::Cayley).unwrap(),
-        newton,
-    }
+    BisectionStepper::new(generating, Groupoid::so3(Chart::Cayley).unwrap(), newton)
 }
 
 /// Paper-sized MLP (253,501 parameters): steps/s with the default simplified Newton, and the
@@ -521,11 +517,11 @@ impl StepMap<3> for OneAtATime<'_> {
 /// polynomial jets in SIMD lanes (the stepper's own batch) against one trajectory at a time (the
 /// same bits). `cargo bench --bench rollout -- bisection_lanes`.
 fn bench_bisection_lanes(c: &mut Criterion) {
-    let stepper = BisectionStepper {
-        generating: GeneratingFunction::new(taylor3(), None, 0, MlpInputs::Plain).unwrap(),
-        groupoid: Groupoid::so3(Chart::Cayley).unwrap(),
-        newton: NewtonOptions::default(),
-    };
+    let stepper = BisectionStepper::new(
+        GeneratingFunction::new(taylor3(), None, 0, MlpInputs::Plain).unwrap(),
+        Groupoid::so3(Chart::Cayley).unwrap(),
+        NewtonOptions::default(),
+    );
     let (batch, n_steps) = (4096usize, 5usize);
     let mu0 = initial_states(batch);
     let mut out = vec![0.0; batch * (n_steps + 1) * 3];

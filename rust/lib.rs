@@ -62,9 +62,9 @@ pub use classical::{
 pub use error::{CoreError, StepFailure};
 pub use generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Polynomial};
 pub use model::Model;
-pub use realization::{Generating, Realization, RealizationStepper};
+pub use realization::{Generating, Realization};
 pub use rollout::{rollout, TrajectoryInfo};
-pub use stepper::{BisectionStepper, NewtonOptions, So3Lanes, StepMap, StepStats};
+pub use stepper::{BisectionStepper, NewtonOptions, StepMap, StepStats};
 pub use structures::lie_groupoid::{Chart, Groupoid, LieAlgebra};
 pub use structures::lie_poisson::{Hamiltonian, LiePoisson, VectorField};
 

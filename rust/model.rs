@@ -384,11 +384,11 @@ impl Model {
         &self,
         newton: NewtonOptions,
     ) -> Result<BisectionStepper<N>, CoreError> {
-        Ok(BisectionStepper {
-            generating: self.generating::<N>()?,
-            groupoid: self.groupoid::<N>()?,
+        Ok(BisectionStepper::new(
+            self.generating::<N>()?,
+            self.groupoid::<N>()?,
             newton,
-        })
+        ))
     }
 
     /// Terms of the polynomial part.
@@ -646,12 +646,11 @@ impl LogModel {
         &self,
         newton: NewtonOptions,
     ) -> Result<OrthantChecked<LearnedLogBisection<N>>, CoreError> {
-        Ok(OrthantChecked(LearnedLogBisection {
-            generating: self.generating::<N>()?,
-            realization: self.structure::<N>()?,
+        Ok(OrthantChecked(LearnedLogBisection::unit_scale(
+            self.generating::<N>()?,
+            self.structure::<N>()?,
             newton,
-            scale_floor: 1.0,
-        }))
+        )))
     }
 
     /// Terms of the exponential-polynomial (Taylor) part.

@@ -1,24 +1,22 @@
 //! A realization gives the bisection equation; a generating function gives the Lagrangian
-//! bisection. The Newton stepper of [`RealizationStepper`] needs nothing else, so it steps every
-//! Poisson structure the same way: the Lie-algebra groupoids ([`Groupoid`], base coordinate p ∈
-//! g*, fibre x ∈ g) and the log-canonical one ([`crate::structures::LogCanonical`], base q = ln x,
-//! fibre P).
+//! bisection. The Newton solve here ([`Newton`]) needs nothing else, so the one bisection
+//! stepper ([`crate::stepper::BisectionStepper`]) steps every Poisson structure the same way:
+//! the Lie-algebra groupoids ([`Groupoid`], base coordinate p ∈ g*, fibre x ∈ g), the
+//! log-canonical one ([`crate::structures::LogCanonical`], base q = ln x, fibre P) and the
+//! order-n realizations of polynomial bivectors.
 //!
 //! One step of size h from μ: solve tar(∂S/∂p(h, p), p) = μ for p, then μ' = sou(∂S/∂p, p),
 //! formed from μ where the realization can ([`Realization::sou_after_solve`]), so that Newton's
-//! residual does not reach the Casimirs.
-//! Both bisection steppers run the one Newton solve here ([`Newton`]): [`RealizationStepper`]
-//! (any generating function, full Newton, one trajectory at a time) and
-//! [`crate::stepper::BisectionStepper`] (a [`GeneratingFunction`], simplified Newton, batches in
-//! lockstep and the so(3) lanes). On the Lie-algebra groupoid with full Newton on one
-//! trajectory, the two are therefore bit-identical (tested).
+//! residual does not reach the Casimirs. A generating function ([`Generating`]) may evaluate
+//! several momenta at once ([`Generating::jets`]); the stepper then solves that many Newton
+//! systems in lockstep, each with the updates of the one-trajectory solve.
 
 use nalgebra::{Const, DimMin};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::StepFailure;
-use crate::generating::{GeneratingFunction, Workspace};
-use crate::step::{Inverse, NewtonOptions, StepMap, StepResult, StepStats, SIMPLIFIED_RATE};
+use crate::generating::{GeneratingFunction, Mlp, Polynomial, Workspace, MAX_BATCH};
+use crate::step::{Inverse, StepResult, StepStats, SIMPLIFIED_RATE};
 use crate::structures::lie_groupoid::Groupoid;
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
@@ -70,13 +68,40 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
 }
 
 /// A generating function S(t, p) as the Newton stepper sees it: its p-jet (value, gradient,
-/// Hessian) and its p-gradient at fixed t.
+/// Hessian) and its p-gradient at fixed t, one momentum at a time or [`Self::batch`] at once.
 pub trait Generating<const N: usize>: Sync {
     type Workspace: Send;
     fn workspace(&self) -> Self::Workspace;
+    /// Bytes one workspace takes (the rollout makes one per thread).
+    fn workspace_bytes(&self) -> usize {
+        0
+    }
     fn jet(&self, t: f64, p: &[f64; N], ws: &mut Self::Workspace) -> Jet2<N>;
     /// ∂S/∂p in `.g` (the value is not used).
     fn gradient(&self, t: f64, p: &[f64; N], ws: &mut Self::Workspace) -> Dual1<N>;
+    /// Momenta per batched evaluation ([`Self::jets`], [`Self::gradients`]); 1: the stepper
+    /// solves one trajectory at a time.
+    fn batch(&self) -> usize {
+        1
+    }
+    /// `out[j]` = the jet at `p[j]`, for at most [`crate::generating::MAX_BATCH`] momenta.
+    fn jets(&self, t: f64, p: &[[f64; N]], out: &mut [Jet2<N>], ws: &mut Self::Workspace) {
+        for (o, q) in out.iter_mut().zip(p) {
+            *o = self.jet(t, q, ws);
+        }
+    }
+    /// `out[j]` = the gradient at `p[j]`, for at most [`crate::generating::MAX_BATCH`] momenta.
+    fn gradients(&self, t: f64, p: &[[f64; N]], out: &mut [Dual1<N>], ws: &mut Self::Workspace) {
+        for (o, q) in out.iter_mut().zip(p) {
+            *o = self.gradient(t, q, ws);
+        }
+    }
+    /// S as a polynomial in (t, p) alone, where it is one: the so(3) lane solver's input
+    /// ([`crate::lanes_bisection`]), and the sign that a batched step has the bits of the
+    /// one-trajectory step (the lanes evaluate a polynomial bit for bit as the scalar code).
+    fn polynomial(&self) -> Option<&Polynomial<N>> {
+        None
+    }
 }
 
 impl<const N: usize> Generating<N> for GeneratingFunction<N> {
@@ -84,34 +109,63 @@ impl<const N: usize> Generating<N> for GeneratingFunction<N> {
     fn workspace(&self) -> Workspace<N> {
         GeneratingFunction::workspace(self)
     }
+    fn workspace_bytes(&self) -> usize {
+        Workspace::bytes(self)
+    }
     fn jet(&self, t: f64, p: &[f64; N], ws: &mut Workspace<N>) -> Jet2<N> {
         GeneratingFunction::jet(self, t, p, ws)
     }
     fn gradient(&self, t: f64, p: &[f64; N], ws: &mut Workspace<N>) -> Dual1<N> {
         GeneratingFunction::gradient(self, t, p, ws)
     }
+    fn batch(&self) -> usize {
+        batch_size(self.mlp.as_ref())
+    }
+    /// The MLP's layers as matrix–matrix products over the batch, the polynomial in lanes.
+    fn jets(&self, t: f64, p: &[[f64; N]], out: &mut [Jet2<N>], ws: &mut Workspace<N>) {
+        GeneratingFunction::jets(self, t, p, out, ws);
+    }
+    /// The MLP in reverse mode: fewer flops, the same numbers to round-off.
+    fn gradients(&self, t: f64, p: &[[f64; N]], out: &mut [Dual1<N>], ws: &mut Workspace<N>) {
+        self.gradients_reverse(t, p, out, ws);
+    }
+    fn polynomial(&self) -> Option<&Polynomial<N>> {
+        self.mlp.is_none().then_some(&self.polynomial)
+    }
 }
 
-/// The bisection integrator of a generating function `G` on a realization `R`, full Newton,
-/// one trajectory at a time.
-#[derive(Clone, Debug)]
-pub struct RealizationStepper<const N: usize, R, G> {
-    pub generating: G,
-    pub realization: R,
-    pub newton: NewtonOptions,
-    /// Newton stops once |δ|∞ ≤ tol · max(|p|∞, scale_floor): 1e-300 (relative) reproduces
-    /// [`crate::stepper::BisectionStepper`]; 1 suits a base coordinate that is a logarithm,
-    /// where a relative tolerance on q near 0 would ask for more than round-off.
-    pub scale_floor: f64,
+/// Trajectories per batched Newton solve: enough columns (10 per trajectory) for the kernel's
+/// register blocks, few enough that a k-block of activations stays in L2.
+const BISECTION_BATCH: usize = 16;
+
+/// Below this many MLP parameters a step is dominated by the per-trajectory work (polynomial,
+/// chart, 3×3 solve), and batching only adds gathering. The 121-parameter default model is
+/// about 2× faster batched (its tanh rows in SIMD lanes, its polynomial in lanes: see
+/// docs/performance_bisection.md), the 253,501-parameter paper-sized one 2.5×.
+const BATCH_MIN_PARAMETERS: usize = 100;
+
+/// Trajectories per lockstep solve of a polynomial S (no MLP): its jets are evaluated in SIMD
+/// lanes across them ([`crate::generating::polynomial_lanes`]), each lane bit-identical to the
+/// scalar evaluation, so the batched step equals the one-trajectory step bit for bit.
+const POLYNOMIAL_BATCH: usize = MAX_BATCH;
+
+/// Trajectories per batched solve for a generating function whose MLP is `mlp`:
+/// [`POLYNOMIAL_BATCH`] without an MLP, [`BISECTION_BATCH`] for MLPs of
+/// [`BATCH_MIN_PARAMETERS`] or more, else 1 (one at a time).
+pub fn batch_size(mlp: Option<&Mlp>) -> usize {
+    match mlp {
+        None => POLYNOMIAL_BATCH,
+        Some(m) if m.n_parameters() >= BATCH_MIN_PARAMETERS => BISECTION_BATCH,
+        Some(_) => 1,
+    }
 }
 
 fn max_abs<const N: usize>(a: &[f64; N]) -> f64 {
     a.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
 }
 
-/// The Newton solve of a bisection step, the one both steppers run
-/// ([`RealizationStepper`], and [`crate::stepper::BisectionStepper`] one trajectory at a time or
-/// in lockstep): tar(∂S/∂p(h, p), p) = μ for p, then μ' from the realization. The Jacobian is
+/// The Newton solve of a bisection step, as [`crate::stepper::BisectionStepper`] runs it one
+/// trajectory at a time or in lockstep: tar(∂S/∂p(h, p), p) = μ for p, then μ' from the realization. The Jacobian is
 /// inverted once per refresh ([`Inverse`]); simplified Newton keeps it while the updates contract
 /// by [`SIMPLIFIED_RATE`] or better, full Newton refreshes it every update.
 pub(crate) struct Newton<'a, const N: usize, R> {
@@ -260,28 +314,5 @@ where
             iterations,
             residual: max_abs(&f),
         })
-    }
-}
-
-impl<const N: usize, R: Realization<N>, G: Generating<N>> StepMap<N> for RealizationStepper<N, R, G>
-where
-    Const<N>: DimMin<Const<N>, Output = Const<N>>,
-{
-    type Workspace = G::Workspace;
-
-    fn workspace(&self) -> G::Workspace {
-        self.generating.workspace()
-    }
-
-    /// Full Newton whatever `newton.simplified` says.
-    fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut G::Workspace) -> StepResult {
-        let newton = Newton {
-            realization: &self.realization,
-            tol: self.newton.tol,
-            max_iter: self.newton.max_iter,
-            simplified: false,
-            scale_floor: self.scale_floor,
-        };
-        newton.step(&self.generating, h, mu, ws)
     }
 }

@@ -1,134 +1,135 @@
-//! One step of a bisection integrator: solve tar(∂S/∂p(h,p), p) = μ for p by Newton, then
-//! μ' = sou(∂S/∂p(h,p), p), formed from μ by the realization
+//! The bisection integrator, one for every Poisson structure: solve tar(∂S/∂p(h,p), p) = μ for
+//! p by Newton, then μ' = sou(∂S/∂p(h,p), p), formed from μ by the realization
 //! ([`Realization::sou_after_solve`]: on a Lie groupoid, the coadjoint action of the chart's
 //! group element on μ, which keeps the Casimirs whatever Newton's residual). Generic over the
-//! dimension N and over the realization that gives sou and tar ([`Realization`]: the
-//! Lie-algebra groupoid by default, or the log-canonical one);
-//! the Newton Jacobian is inverted once per refresh (closed form for N = 3, nalgebra's LU
-//! otherwise), so every update, simplified or not, is one matrix–vector product.
+//! dimension N, the realization that gives sou and tar ([`Realization`]: a Lie-algebra
+//! groupoid by default, the log-canonical one, an order-n realization of a polynomial bivector)
+//! and the generating function ([`Generating`]: Taylor terms plus an MLP by default, an
+//! exponential polynomial, jets of an expression H). The Newton Jacobian is inverted once per
+//! refresh (closed form for N = 3, nalgebra's LU otherwise), so every update, simplified or not,
+//! is one matrix–vector product. A generating function that evaluates several momenta at once
+//! has its Newton systems solved in lockstep; a polynomial S on an so(3) chart in SIMD lanes.
+
+use std::any::Any;
 
 use nalgebra::{Const, DimMin};
 
 use crate::dual::{Dual1, Jet2};
 use crate::error::StepFailure;
-use crate::generating::{GeneratingFunction, Mlp, Workspace, MAX_BATCH};
+use crate::generating::{GeneratingFunction, MAX_BATCH};
 use crate::isa::Isa;
 use crate::lanes_bisection::{so3_newton_steps, So3Newton};
-use crate::realization::{Newton, Realization};
+use crate::realization::{Generating, Newton, Realization};
 use crate::step::step_each;
 pub use crate::step::{
     adjugate3, inverse3, Inverse, NewtonOptions, StepMap, StepResult, StepStats, SIMPLIFIED_RATE,
 };
-use crate::structures::lie_groupoid::{Chart, Groupoid};
-
-/// Whether a realization is an so(3) chart, where the bisection stepper solves a polynomial S's
-/// Newton systems with the chart's closed-form Jacobian in SIMD lanes
-/// ([`crate::lanes_bisection`]). Kept out of [`Realization`], which every structure implements:
-/// only the Lie groupoid answers, any other realization takes the default with an empty impl.
-pub trait So3Lanes<const N: usize> {
-    /// The so(3) chart this realization is, if it is one.
-    fn so3_chart(&self) -> Option<Chart> {
-        None
-    }
-}
-
-impl<const N: usize> So3Lanes<N> for Groupoid<N> {
-    fn so3_chart(&self) -> Option<Chart> {
-        (N == 3 && self.algebra.is_so3()).then_some(self.chart)
-    }
-}
+use crate::structures::lie_groupoid::Groupoid;
 
 /// Whether the so(3) lane solver starts from the explicit predictor (see
 /// [`crate::lanes_bisection::So3Newton::predict`]).
 const PREDICT: bool = true;
 
-/// The bisection integrator of a generating function on a realization: a chart of the
-/// Lie-algebra groupoid by default.
+/// Newton's stopping floor of [`BisectionStepper::new`]: |δ|∞ ≤ tol · max(|p|∞, 1e-300), a
+/// relative tolerance (the floor as good as none).
+pub const RELATIVE_FLOOR: f64 = 1e-300;
+
+/// The bisection integrator of a generating function `G` on a realization `R`: by default a
+/// [`GeneratingFunction`] on a chart of the Lie-algebra groupoid.
 #[derive(Clone, Debug)]
-pub struct BisectionStepper<const N: usize, R = Groupoid<N>> {
-    pub generating: GeneratingFunction<N>,
-    pub groupoid: R,
+pub struct BisectionStepper<const N: usize, R = Groupoid<N>, G = GeneratingFunction<N>> {
+    pub generating: G,
+    pub realization: R,
     pub newton: NewtonOptions,
+    /// Newton stops once |δ|∞ ≤ tol · max(|p|∞, scale_floor): [`RELATIVE_FLOOR`] on g*; 1 where
+    /// the base coordinate is a logarithm or near 0 (log-canonical, order-n realizations), where
+    /// a relative tolerance would ask for more than round-off.
+    pub scale_floor: f64,
 }
 
-/// Trajectories per batched Newton solve: enough columns (10 per trajectory) for the kernel's
-/// register blocks, few enough that a k-block of activations stays in L2.
-const BISECTION_BATCH: usize = 16;
+impl<const N: usize, R, G> BisectionStepper<N, R, G> {
+    /// Newton as `newton` says, stopping on a relative tolerance ([`RELATIVE_FLOOR`]).
+    pub fn new(generating: G, realization: R, newton: NewtonOptions) -> Self {
+        BisectionStepper {
+            generating,
+            realization,
+            newton,
+            scale_floor: RELATIVE_FLOOR,
+        }
+    }
 
-/// Below this many MLP parameters a step is dominated by the per-trajectory work (polynomial,
-/// chart, 3×3 solve), and batching only adds gathering. The 121-parameter default model is
-/// about 2× faster batched (its tanh rows in SIMD lanes, its polynomial in lanes: see
-/// docs/performance_bisection.md), the 253,501-parameter paper-sized one 2.5×.
-const BATCH_MIN_PARAMETERS: usize = 100;
-
-/// Trajectories per lockstep solve of a polynomial S (no MLP): its jets are evaluated in SIMD
-/// lanes across them ([`crate::generating::polynomial_lanes`]), each lane bit-identical to the
-/// scalar evaluation, so the batched step equals [`StepMap::step`] bit for bit.
-const POLYNOMIAL_BATCH: usize = MAX_BATCH;
-
-/// Trajectories per batched solve for a generating function whose MLP is `mlp`:
-/// [`POLYNOMIAL_BATCH`] without an MLP, [`BISECTION_BATCH`] for MLPs of
-/// [`BATCH_MIN_PARAMETERS`] or more, else 1 (one at a time).
-pub fn batch_size(mlp: Option<&Mlp>) -> usize {
-    match mlp {
-        None => POLYNOMIAL_BATCH,
-        Some(m) if m.n_parameters() >= BATCH_MIN_PARAMETERS => BISECTION_BATCH,
-        Some(_) => 1,
+    /// Full Newton whatever `newton.simplified` says, stopping once
+    /// |δ|∞ ≤ tol · max(|p|∞, 1): the settings of the log-canonical groupoid (base q = ln x) and
+    /// of the order-n realizations, whose steps are validated with them.
+    pub fn unit_scale(generating: G, realization: R, newton: NewtonOptions) -> Self {
+        BisectionStepper {
+            generating,
+            realization,
+            newton: NewtonOptions {
+                simplified: false,
+                ..newton
+            },
+            scale_floor: 1.0,
+        }
     }
 }
 
-impl<const N: usize, R: Realization<N> + So3Lanes<N>> BisectionStepper<N, R>
+impl<const N: usize, R: Realization<N> + Any, G: Generating<N>> BisectionStepper<N, R, G>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
     /// The lane solver, where it applies: a polynomial S (no MLP) on an so(3) chart with
-    /// simplified Newton. Full Newton keeps the generic dual-number path, bit-identical to
-    /// [`crate::realization::RealizationStepper`].
+    /// simplified Newton and the relative tolerance. Full Newton keeps the generic dual-number
+    /// path. The chart is found by type ([`Any`]): no other realization needs to know of it.
     fn so3_lanes(&self) -> Option<So3Newton<'_, N>> {
-        if N != 3 || !self.newton.simplified || self.generating.mlp.is_some() {
+        if N != 3 || !self.newton.simplified || self.scale_floor != RELATIVE_FLOOR {
+            return None;
+        }
+        let groupoid = (&self.realization as &dyn Any).downcast_ref::<Groupoid<N>>()?;
+        if !groupoid.algebra.is_so3() {
             return None;
         }
         Some(So3Newton {
-            poly: &self.generating.polynomial,
-            chart: self.groupoid.so3_chart()?,
+            poly: self.generating.polynomial()?,
+            chart: groupoid.chart,
             tol: self.newton.tol,
             max_iter: self.newton.max_iter,
             predict: PREDICT,
         })
     }
 
-    /// The Newton solve with this stepper's settings (the floor of the relative tolerance at
-    /// 1e-300, as good as none).
+    /// The Newton solve with this stepper's settings.
     #[inline]
     fn solver(&self) -> Newton<'_, N, R> {
         Newton {
-            realization: &self.groupoid,
+            realization: &self.realization,
             tol: self.newton.tol,
             max_iter: self.newton.max_iter,
             simplified: self.newton.simplified,
-            scale_floor: 1e-300,
+            scale_floor: self.scale_floor,
         }
     }
 
     /// [`StepMap::step`] by the generic path (dual-number Jacobian, explicit inverse), whatever
     /// the realization and S: the reference the lane solver is tested against.
-    pub fn step_generic(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
+    pub fn step_generic(&self, h: f64, mu: &mut [f64; N], ws: &mut G::Workspace) -> StepResult {
         self.solver().step(&self.generating, h, mu, ws)
     }
 }
 
-impl<const N: usize, R: Realization<N> + So3Lanes<N>> StepMap<N> for BisectionStepper<N, R>
+impl<const N: usize, R: Realization<N> + Any, G: Generating<N>> StepMap<N>
+    for BisectionStepper<N, R, G>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
-    type Workspace = Workspace<N>;
+    type Workspace = G::Workspace;
 
-    fn workspace(&self) -> Workspace<N> {
+    fn workspace(&self) -> G::Workspace {
         self.generating.workspace()
     }
 
     fn workspace_bytes(&self) -> usize {
-        Workspace::bytes(&self.generating)
+        self.generating.workspace_bytes()
     }
 
     /// One trajectory's Newton solve: the same updates as [`StepMap::step_batch`] (full Newton
@@ -137,7 +138,7 @@ where
     ///
     /// A polynomial S on an so(3) chart with simplified Newton takes the lane solver with one
     /// lane: the bits of its lane in any block of [`StepMap::step_batch`].
-    fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
+    fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut G::Workspace) -> StepResult {
         if let Some(sys) = self.so3_lanes() {
             let mut result = [Err(StepFailure::NotConverged)];
             so3_newton_steps(
@@ -154,7 +155,7 @@ where
     }
 
     fn batch(&self) -> usize {
-        batch_size(self.generating.mlp.as_ref())
+        self.generating.batch()
     }
 
     /// The Newton solves of the batch in lockstep: each round evaluates S at the momenta still
@@ -166,14 +167,15 @@ where
         mu: &mut [[f64; N]],
         live: &[bool],
         results: &mut [StepResult],
-        ws: &mut Workspace<N>,
+        ws: &mut G::Workspace,
     ) {
         if let Some(sys) = self.so3_lanes() {
             return so3_newton_steps(&sys, Isa::detect(), h, mu, live, results);
         }
         // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
         // small to fill the lanes takes the cheaper path (a rollout of one state, say).
-        let few = self.generating.mlp.is_none() && live.iter().filter(|&&l| l).count() <= 2;
+        let few =
+            self.generating.polynomial().is_some() && live.iter().filter(|&&l| l).count() <= 2;
         if self.batch() == 1 || few {
             return step_each(self, h, mu, live, results, ws);
         }
@@ -190,7 +192,7 @@ where
 /// Chunks of at most this many trajectories take the small lockstep scratch.
 const FEW: usize = 4;
 
-impl<const N: usize, R: Realization<N> + So3Lanes<N>> BisectionStepper<N, R>
+impl<const N: usize, R: Realization<N> + Any, G: Generating<N>> BisectionStepper<N, R, G>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
@@ -202,7 +204,7 @@ where
         mu: &mut [[f64; N]],
         live: &[bool],
         results: &mut [StepResult],
-        ws: &mut Workspace<N>,
+        ws: &mut G::Workspace,
     ) {
         let n = mu.len();
         assert!(n <= CAP && CAP <= MAX_BATCH, "batch of {n} trajectories");
@@ -240,7 +242,7 @@ where
             }
             if ng > 0 {
                 self.generating
-                    .gradients_reverse(h, &pg[..ng], &mut grads[..ng], ws);
+                    .gradients(h, &pg[..ng], &mut grads[..ng], ws);
             }
             let mut still = 0;
             let mut settle = |i: usize, update: Result<(bool, f64), StepFailure>| match update {
@@ -289,7 +291,7 @@ where
             *q = p[i];
         }
         self.generating
-            .gradients_reverse(h, &pg[..n_done], &mut grads[..n_done], ws);
+            .gradients(h, &pg[..n_done], &mut grads[..n_done], ws);
         for (g, &i) in grads.iter().zip(&done[..n_done]) {
             let target = mu[i];
             results[i] = solver.finish(g, &target, &p[i], iterations[i], &mut mu[i]);

@@ -212,18 +212,13 @@ pub(super) fn run_jets<'py, const N: usize, R, S>(
     every: usize,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)>
 where
-    R: crate::realization::Realization<N>,
+    R: crate::realization::Realization<N> + 'static,
     S: SeriesSource<N>,
     nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
 {
     let threads = rayon::current_num_threads().max(1);
     check_output_bytes(0, generating.workspace_bytes().saturating_mul(threads))?;
-    let stepper = crate::realization::RealizationStepper {
-        generating,
-        realization,
-        newton,
-        scale_floor: 1.0,
-    };
+    let stepper = crate::stepper::BisectionStepper::unit_scale(generating, realization, newton);
     run_rollout(py, &PerStep(&stepper), x0, h, n_steps, every, None)
 }
 

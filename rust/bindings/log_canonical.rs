@@ -96,12 +96,7 @@ pub(super) fn rollout_log_canonical<'py>(
             terms.push(ExpMonomial { t_power, exponents: exps, coeff: co[k] });
         }
         let generating = ExpPolynomial::new(terms, std::array::from_fn(|i| lin[i]))?;
-        let stepper: OrthantChecked<LogBisection<N>> = OrthantChecked(LogBisection {
-            generating,
-            realization,
-            newton,
-            scale_floor: 1.0,
-        });
+        let stepper = OrthantChecked(LogBisection::<N>::unit_scale(generating, realization, newton));
         let q0 = states::<N>(&q0, "q0")?;
         // N = 2 and 3 solve their Newton systems in SIMD lanes (every lane the scalar bits).
         match stepper.0.lanes() {

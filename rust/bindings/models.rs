@@ -16,9 +16,10 @@ use super::{check_output_bytes, detached, dim_error, finite_states, rows_match, 
 use crate::generating::{Layer, Mlp, Workspace};
 use crate::memory::try_with_capacity;
 use crate::model::{LogModel, Model};
+use crate::realization::batch_size;
 use crate::realization::Generating;
 use crate::rollout::PerStep;
-use crate::stepper::{batch_size, NewtonOptions};
+use crate::stepper::NewtonOptions;
 use crate::structures::LearnedPolynomialModel;
 use crate::with_dim;
 

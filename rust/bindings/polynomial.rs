@@ -148,12 +148,11 @@ pub(super) fn rollout_polynomial_realization<'py>(
         let (co, ex) = term_table("S", &s_coeffs, &s_exponents, N + 1)?;
         let all: Vec<usize> = (0..co.len()).collect();
         let s = polynomial("S", &co, &ex, &all, N + 1)?;
-        let stepper: PolynomialBisection<N> = PolynomialBisection {
-            generating: PolynomialGenerating::new(s)?,
-            realization: PolynomialRealization::new(sou, tar)?,
+        let stepper = PolynomialBisection::<N>::unit_scale(
+            PolynomialGenerating::new(s)?,
+            PolynomialRealization::new(sou, tar)?,
             newton,
-            scale_floor: 1.0,
-        };
+        );
         let x0 = states::<N>(&x0, "x0")?;
         run_rollout(py, &PerStep(&stepper), &x0, h, n_steps, every, None)
     }, Err(dim_error(dim)))

@@ -3,7 +3,7 @@
 //! The realization and the Taylor-HJ series are derived symbolically at construction time (in
 //! Python, with sympy); the core receives their coefficients: the maps α and β as polynomials in
 //! (fibre p, base x), and S(t, x) as a polynomial in (t, x). A step is then the same Newton
-//! bisection as on every other realization ([`RealizationStepper`]): solve α(∇S(h, x), x) = x_k
+//! bisection as on every other realization ([`BisectionStepper`]): solve α(∇S(h, x), x) = x_k
 //! for x and return β(∇S(h, x), x). Derivatives come from evaluating the same polynomials on
 //! dual numbers, so they are exact.
 
@@ -11,7 +11,8 @@ use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::generating::{GeneratingFunction, Mlp, MlpInputs, Polynomial, Workspace};
 use crate::lane_field::LaneField;
-use crate::realization::{Generating, Realization, RealizationStepper};
+use crate::realization::{Generating, Realization};
+use crate::stepper::BisectionStepper;
 use crate::stepper::NewtonOptions;
 use crate::structures::lie_poisson::VectorField;
 use nalgebra::SMatrix;
@@ -290,7 +291,7 @@ impl<const N: usize> Generating<N> for PolynomialGenerating<N> {
 
 /// Taylor-HJ on an approximate realization of a polynomial bivector.
 pub type PolynomialBisection<const N: usize> =
-    RealizationStepper<N, PolynomialRealization<N>, PolynomialGenerating<N>>;
+    BisectionStepper<N, PolynomialRealization<N>, PolynomialGenerating<N>>;
 
 /// A learned generating function on an approximate realization: the exact Taylor-HJ terms as a
 /// polynomial in (t, x) ([`PolynomialGenerating`]) plus t^m · N(t, x), the network term of a
@@ -340,7 +341,7 @@ impl<const N: usize> Generating<N> for LearnedPolynomial<N> {
 
 /// The learned bisection integrator on an approximate realization of a polynomial bivector.
 pub type LearnedPolynomialBisection<const N: usize> =
-    RealizationStepper<N, PolynomialRealization<N>, LearnedPolynomial<N>>;
+    BisectionStepper<N, PolynomialRealization<N>, LearnedPolynomial<N>>;
 
 /// A learned model on an approximate realization, of any dimension `dim` ≤ [`MAX_DIM`]: the maps
 /// β (sou) and α (tar) as `dim` polynomials each in (fibre, base), the Taylor terms S(t, x) as
@@ -416,12 +417,11 @@ impl LearnedPolynomialModel {
         &self,
         newton: NewtonOptions,
     ) -> Result<LearnedPolynomialBisection<N>, CoreError> {
-        Ok(LearnedPolynomialBisection {
-            generating: self.generating::<N>()?,
-            realization: PolynomialRealization::new(self.sou.clone(), self.tar.clone())?,
+        Ok(LearnedPolynomialBisection::unit_scale(
+            self.generating::<N>()?,
+            PolynomialRealization::new(self.sou.clone(), self.tar.clone())?,
             newton,
-            scale_floor: 1.0,
-        })
+        ))
     }
 
     /// Terms of the Taylor part.
@@ -512,12 +512,11 @@ mod learned_tests {
     #[test]
     fn zero_network_steps_as_the_taylor_integrator() {
         let learned = model(0.0).stepper::<3>(NewtonOptions::default()).unwrap();
-        let taylor = PolynomialBisection::<3> {
-            generating: learned.generating.taylor.clone(),
-            realization: learned.realization.clone(),
-            newton: NewtonOptions::default(),
-            scale_floor: 1.0,
-        };
+        let taylor = PolynomialBisection::<3>::unit_scale(
+            learned.generating.taylor.clone(),
+            learned.realization.clone(),
+            NewtonOptions::default(),
+        );
         let (mut a, mut b) = ([0.3, 0.5, -0.4], [0.3, 0.5, -0.4]);
         let mut ws = learned.workspace();
         for _ in 0..20 {

@@ -73,12 +73,11 @@ fn minus_t_h_stepper<const N: usize>(system: &LiePoisson<N>) -> BisectionStepper
             coeff: -c,
         })
         .collect();
-    BisectionStepper {
-        generating: GeneratingFunction::new(Polynomial { terms }, None, 0, MlpInputs::Plain)
-            .unwrap(),
-        groupoid: Groupoid::new(system.algebra.clone(), Chart::Exp).unwrap(),
-        newton: NewtonOptions::default(),
-    }
+    BisectionStepper::new(
+        GeneratingFunction::new(Polynomial { terms }, None, 0, MlpInputs::Plain).unwrap(),
+        Groupoid::new(system.algebra.clone(), Chart::Exp).unwrap(),
+        NewtonOptions::default(),
+    )
 }
 
 fn run<const N: usize, S: StepMap<N>>(s: &S, mu0: [f64; N], h: f64, n: usize) -> [f64; N] {
@@ -207,7 +206,7 @@ fn casimirs_do_not_depend_on_the_newton_residual() {
         nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
     {
         let mut st = minus_t_h_stepper(system);
-        st.groupoid = Groupoid::new(system.algebra.clone(), chart).unwrap();
+        st.realization = Groupoid::new(system.algebra.clone(), chart).unwrap();
         st.newton.tol = 0.5;
         let n = 200;
         let mut out = vec![0.0; mu0.len() * N * n_records(n, n)];

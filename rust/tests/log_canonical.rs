@@ -1,5 +1,5 @@
-//! Realizations beyond g*: the generic [`RealizationStepper`] against [`BisectionStepper`] on
-//! the Lie-algebra groupoid (bit-identical), and the log-canonical structure of Lotka–Volterra
+//! The one bisection stepper: batched steps against the generic step on the Lie-algebra
+//! groupoid (bit-identical), and the log-canonical structure of Lotka–Volterra
 //! (units, fitted orders of Taylor-HJ and the log splittings, Casimirs, the positive orthant).
 
 #![allow(clippy::needless_range_loop)]
@@ -8,16 +8,16 @@ use super::splitting_lanes::{check_lanes_equal_scalar, ulps};
 use super::*;
 use crate::exp::{exp, exp_lanes, EXP_MAX, EXP_MIN};
 use crate::lanes::{Isa, LANES};
-use crate::realization::{Realization, RealizationStepper};
+use crate::realization::Realization;
 use crate::structures::{
     ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
     OrthantChecked,
 };
 
-/// The generic stepper on the Lie-algebra groupoid is the same map, bit for bit, as the
-/// project's bisection stepper (full Newton, one trajectory at a time).
+/// The batched step (lockstep Newton over a chunk of trajectories, or SIMD lanes) is the
+/// one-trajectory generic step, bit for bit, on the Lie-algebra groupoid with full Newton.
 #[test]
-fn generic_stepper_is_bit_identical_on_the_lie_groupoid() {
+fn batched_steps_are_the_generic_step_bit_for_bit() {
     let mut rng = Rng::new(20);
     for chart in [Chart::Cayley, Chart::Exp] {
         for gf in [
@@ -29,28 +29,23 @@ fn generic_stepper_is_bit_identical_on_the_lie_groupoid() {
                 simplified: false,
                 ..NewtonOptions::default()
             };
-            let old = BisectionStepper {
-                generating: gf.clone(),
-                groupoid: Groupoid::so3(chart).unwrap(),
-                newton,
-            };
+            let stepper = BisectionStepper::new(gf.clone(), Groupoid::so3(chart).unwrap(), newton);
             // A polynomial S steps in lockstep SIMD lanes (batch > 1), an MLP this small one
-            // trajectory at a time: both must give the generic stepper's bits.
-            assert_eq!(old.batch() > 1, gf.mlp.is_none());
-            let new = RealizationStepper {
-                generating: gf,
-                realization: Groupoid::so3(chart).unwrap(),
-                newton,
-                scale_floor: 1e-300,
-            };
+            // trajectory at a time: both must give the generic step's bits.
+            assert_eq!(stepper.batch() > 1, gf.mlp.is_none());
             let mu0: Vec<[f64; 3]> = (0..5).map(|_| rng.sphere(2.0)).collect();
-            let (n, steps) = (mu0.len(), 50);
-            let mut a = vec![0.0; n * n_records(steps, 1) * 3];
-            let mut b = a.clone();
-            let ia = rollout(&old, &mu0, 0.1, steps, 1, &mut a).unwrap();
-            let ib = rollout(&new, &mu0, 0.1, steps, 1, &mut b).unwrap();
-            assert_eq!(ia, ib);
-            assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+            let steps = 50;
+            let mut a = vec![0.0; mu0.len() * n_records(steps, 1) * 3];
+            rollout(&stepper, &mu0, 0.1, steps, 1, &mut a).unwrap();
+            let mut ws = stepper.workspace();
+            for (k, m0) in mu0.iter().enumerate() {
+                let mut mu = *m0;
+                for s in 1..=steps {
+                    stepper.step_generic(0.1, &mut mu, &mut ws).unwrap();
+                    let at = (k * n_records(steps, 1) + s) * 3;
+                    assert!((0..3).all(|i| a[at + i].to_bits() == mu[i].to_bits()));
+                }
+            }
         }
     }
 }
@@ -91,12 +86,11 @@ fn pnn_taylor(order: u32) -> LogBisection<2> {
             });
         }
     }
-    RealizationStepper {
-        generating: ExpPolynomial::new(terms, [1.0, 2.0]).unwrap(),
-        realization: LogCanonical::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap(),
-        newton: NewtonOptions::default(),
-        scale_floor: 1.0,
-    }
+    LogBisection::unit_scale(
+        ExpPolynomial::new(terms, [1.0, 2.0]).unwrap(),
+        LogCanonical::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap(),
+        NewtonOptions::default(),
+    )
 }
 
 /// Final states in q of `n_steps` steps of size T/n_steps from `q0`.
@@ -183,12 +177,11 @@ fn log_canonical_casimir_is_kept() {
             }
         })
         .collect();
-    let taylor = OrthantChecked(LogBisection {
-        generating: ExpPolynomial::new(terms, b).unwrap(),
-        realization: LogCanonical::new(c).unwrap(),
-        newton: NewtonOptions::default(),
-        scale_floor: 1.0,
-    });
+    let taylor = OrthantChecked(LogBisection::unit_scale(
+        ExpPolynomial::new(terms, b).unwrap(),
+        LogCanonical::new(c).unwrap(),
+        NewtonOptions::default(),
+    ));
     let system = LogSystem::new(
         LogCanonical::new(c).unwrap(),
         vec![([1, 0, 0], 1.0), ([0, 1, 0], 1.0), ([0, 0, 1], 1.0)],
@@ -259,11 +252,11 @@ fn bisection_stepper_on_the_log_canonical_realization_keeps_the_casimir() {
         random_generating(&mut rng, MlpInputs::Plain),
         wide_generating(&mut rng, MlpInputs::Plain),
     ] {
-        let stepper = BisectionStepper {
+        let stepper = BisectionStepper::new(
             generating,
-            groupoid: LogCanonical::new(c).unwrap(),
-            newton: NewtonOptions::default(),
-        };
+            LogCanonical::new(c).unwrap(),
+            NewtonOptions::default(),
+        );
         let q0: Vec<[f64; 3]> = (0..20).map(|_| rng.vec3(-0.5, 0.5)).collect();
         let steps = 500;
         let mut out = vec![0.0; q0.len() * n_records(steps, 50) * 3];
@@ -460,12 +453,11 @@ fn taylor_in_lanes_equals_the_scalar_path_and_the_generic_stepper() {
             coeff: -1.0,
         })
         .collect();
-    let lv3 = LogBisection {
-        generating: ExpPolynomial::new(terms, [1.0, 2.0, 1.0]).unwrap(),
-        realization: LogCanonical::new(c).unwrap(),
-        newton: NewtonOptions::default(),
-        scale_floor: 1.0,
-    };
+    let lv3 = LogBisection::unit_scale(
+        ExpPolynomial::new(terms, [1.0, 2.0, 1.0]).unwrap(),
+        LogCanonical::new(c).unwrap(),
+        NewtonOptions::default(),
+    );
     let state3 = |rng: &mut Rng| {
         [
             rng.range(-0.5, 0.5),
@@ -496,12 +488,11 @@ fn taylor_in_lanes_equals_the_scalar_path_and_the_generic_stepper() {
             "{a:?} vs {b:?}"
         );
     }
-    assert!(LogBisection::<4> {
-        generating: ExpPolynomial::new(Vec::new(), [0.0; 4]).unwrap(),
-        realization: LogCanonical::new([[0.0; 4]; 4]).unwrap(),
-        newton: NewtonOptions::default(),
-        scale_floor: 1.0,
-    }
+    assert!(LogBisection::<4>::unit_scale(
+        ExpPolynomial::new(Vec::new(), [0.0; 4]).unwrap(),
+        LogCanonical::new([[0.0; 4]; 4]).unwrap(),
+        NewtonOptions::default(),
+    )
     .lanes()
     .is_none());
 }

@@ -216,11 +216,11 @@ fn wide_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction<3> {
 }
 
 fn stepper(generating: GeneratingFunction<3>, chart: Chart) -> BisectionStepper<3> {
-    BisectionStepper {
+    BisectionStepper::new(
         generating,
-        groupoid: Groupoid::so3(chart).unwrap(),
-        newton: NewtonOptions::default(),
-    }
+        Groupoid::so3(chart).unwrap(),
+        NewtonOptions::default(),
+    )
 }
 
 fn hamiltonian_stepper(chart: Chart) -> BisectionStepper<3> {

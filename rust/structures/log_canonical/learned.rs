@@ -5,7 +5,8 @@ use super::{ExpPolynomial, LogCanonical};
 use crate::dual::{Dual1, Jet2};
 use crate::error::CoreError;
 use crate::generating::{GeneratingFunction, Workspace};
-use crate::realization::{Generating, RealizationStepper};
+use crate::realization::Generating;
+use crate::stepper::BisectionStepper;
 
 /// A learned generating function on the log-canonical groupoid: exact Taylor terms
 /// ([`ExpPolynomial`]) plus t^m · N(t, q), the network term of a [`GeneratingFunction`] with
@@ -54,8 +55,7 @@ impl<const N: usize> Generating<N> for LearnedExp<N> {
 }
 
 /// The learned bisection integrator of a log-canonical structure, state q = ln x.
-pub type LearnedLogBisection<const N: usize> =
-    RealizationStepper<N, LogCanonical<N>, LearnedExp<N>>;
+pub type LearnedLogBisection<const N: usize> = BisectionStepper<N, LogCanonical<N>, LearnedExp<N>>;
 
 #[cfg(test)]
 mod tests {
@@ -127,12 +127,11 @@ mod tests {
     #[test]
     fn random_network_keeps_the_casimir_to_round_off() {
         let (realization, generating) = learned();
-        let stepper = OrthantChecked(LearnedLogBisection {
+        let stepper = OrthantChecked(LearnedLogBisection::unit_scale(
             generating,
             realization,
-            newton: NewtonOptions::default(),
-            scale_floor: 1.0,
-        });
+            NewtonOptions::default(),
+        ));
         let mut ws = stepper.workspace();
         let mut q = [0.1, -0.2, 0.3];
         let c0: f64 = q.iter().sum();

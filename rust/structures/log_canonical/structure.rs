@@ -8,7 +8,6 @@ use super::pow_lanes;
 use crate::dual::Scalar;
 use crate::error::{CoreError, StepFailure};
 use crate::realization::Realization;
-use crate::stepper::So3Lanes;
 
 /// The structure matrix c of π_ij = c_ij x_i x_j: finite and antisymmetric.
 #[derive(Clone, Debug, PartialEq)]
@@ -49,9 +48,6 @@ impl<const N: usize> LogCanonical<N> {
         })
     }
 }
-
-/// Not an so(3) chart: the bisection stepper takes its generic Newton path here.
-impl<const N: usize> So3Lanes<N> for LogCanonical<N> {}
 
 /// In log coordinates: fibre x = P, base p = q.
 impl<const N: usize> Realization<N> for LogCanonical<N> {

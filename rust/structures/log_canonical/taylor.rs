@@ -9,8 +9,9 @@ use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::exp::exp_lanes;
 use crate::lanes::LaneStepper;
-use crate::realization::{Generating, Realization, RealizationStepper};
+use crate::realization::{Generating, Realization};
 use crate::step::{StepMap, StepResult, StepStats};
+use crate::stepper::BisectionStepper;
 
 /// One term c · t^k · e^{e·q} = c t^k y^e.
 #[derive(Clone, Debug, PartialEq)]
@@ -95,7 +96,7 @@ impl<const N: usize> Generating<N> for ExpPolynomial<N> {
 
 /// The Taylor-HJ (or any [`ExpPolynomial`]) bisection integrator of a log-canonical structure,
 /// state q = ln x.
-pub type LogBisection<const N: usize> = RealizationStepper<N, LogCanonical<N>, ExpPolynomial<N>>;
+pub type LogBisection<const N: usize> = BisectionStepper<N, LogCanonical<N>, ExpPolynomial<N>>;
 
 /// Powers y⁰ … y^POWER_TABLE of each coordinate of a generating function's evaluation, lane by
 /// lane; larger exponents take [`pow_lanes`].
