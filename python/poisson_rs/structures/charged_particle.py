@@ -491,7 +491,8 @@ class ChargedParticle(PoissonSystemBase):
 
         d, n, k = self.d, self.dim, order or 5
         if self.direct is None:
-            return self._expression_family(degree, k)
+            # By jets, order 3 by default: a jet step of order 5 costs ~10× more, at every iterate.
+            return self._expression_family(degree, order or 3)
         z = _symbols(n)
         local = {str(s): s for s in z}
         shift = {z[d + i]: z[d + i] - sympy.sympify(a, locals=local) for i, a in
