@@ -477,6 +477,27 @@ class ChargedParticle(PoissonSystemBase):
     def learn_orders(self) -> tuple[int, ...]:
         return tuple(range(1, MAX_TAYLOR_ORDER + 1))
 
+    def learn_degrees(self) -> tuple[int, ...]:
+        """(2, 3, 4); by jets only the degrees whose full polynomial, written in (x, p − A(x)),
+        fits the core's expression tape (MAX_INSTRUCTIONS)."""
+        if self.direct is None:
+            return tuple(d for d in (2, 3, 4) if self._family_fits(d))
+        return (2, 3, 4)
+
+    def _family_fits(self, degree: int) -> bool:
+        from ..hamiltonian_family import monomial_exponents, polynomial_text
+
+        exps = monomial_exponents(self.dim, degree)
+        # Distinct coefficients, so that no two constants share a register of the program.
+        terms = {e: 1.0 + k / 997 for k, e in enumerate(exps)}
+        names = [f"x{i + 1}" for i in range(self.dim)]
+        field = self.field[0] if self.d == 2 else list(self.field)
+        try:
+            ChargedParticle(field, polynomial_text(terms, names), potential=list(self.potential))
+        except ValueError:
+            return False
+        return True
+
     def hamiltonian_family(self, degree: int, order: int | None = None) -> Any:
         """Polynomials in (x, v) of ``degree`` (no constant) in this field B, stepped by
         Taylor-HJ of ``order`` (default 5) in the canonical chart: each monomial φ(x, v) is
