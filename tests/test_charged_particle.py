@@ -140,3 +140,12 @@ def test_the_pnn_scene_runs_through_demo_and_select(tmp_path: Path) -> None:
     out = tmp_path / "select.json"
     assert main(["select", str(SCENE), "--T", "1", "--budget", "1", "--json", str(out)]) == 0
     assert "taylor3-canonical" in out.read_text()
+
+
+def test_learning_offers_the_degrees_whose_polynomial_fits_the_tape(
+    particle: ChargedParticle,
+) -> None:
+    """Degree 4 in (x, p − A(x)) exceeds the core's expression tape: not offered, not failed."""
+    assert particle.learn_degrees() == (2, 3)
+    family = particle.hamiltonian_family(2)
+    assert family.order == 3 and len(family) == 14
