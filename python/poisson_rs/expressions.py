@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -479,6 +479,33 @@ def _compact_roots(nodes: list[Node], roots: Sequence[int]) -> tuple[tuple[Node,
     return tuple(out), [new[r] for r in roots]
 
 
+def substitute(
+    text: str,
+    names: Sequence[str],
+    replacements: Sequence[str | None],
+    *,
+    aliases: Sequence[str] = (),
+    field_name: str = "hamiltonian",
+) -> str:
+    """``text`` (an expression in ``names`` or ``aliases``) with coordinate k replaced by the
+    expression ``replacements[k]``, parenthesised (None: by its own name ``names[k]``), e.g.
+    H(x, v) ↦ H(x, p − A(x)). The text is parsed first: ExpressionError naming
+    ``field_name`` for one outside the grammar."""
+    parse_program(text, names, field_name, aliases=aliases)
+    table = {n: i for i, n in enumerate(names)}
+    for i, n in enumerate(aliases):
+        table.setdefault(n, i)
+    out = []
+    for kind, value in _tokens(text, field_name):
+        k = table.get(value) if kind == "name" and value not in FUNCTIONS else None
+        if k is None:
+            out.append(value)
+        else:
+            r = replacements[k]
+            out.append(names[k] if r is None else f"({r})")
+    return " ".join(out)
+
+
 def default_names(dim: int) -> tuple[str, ...]:
     """x1 … xn."""
     return tuple(f"x{i + 1}" for i in range(dim))
@@ -587,17 +614,31 @@ def field_program(
     index: NDArray[np.int64],
     coeffs: FloatArray,
     exponents: NDArray[np.int64],
+    entries: Mapping[tuple[int, int], Sequence[Node]] | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], FloatArray, NDArray[np.int64]]:
     """The program of ẋ = π(x)∇H(x), one output per coordinate: ∇H by forward differentiation
     of H's program (shared subexpressions, exact identities folded), π from its upper-triangle
-    term table (index, coeffs, exponents (M, n)). Returns the core's table and the outputs'
-    registers. ExpressionError when it exceeds the core's program size."""
+    term table (index, coeffs, exponents (M, n)) plus ``entries``, programs in the same
+    coordinates added to π_ij (i < j) for a bracket that is not polynomial. Returns the core's
+    table and the outputs' registers. ExpressionError when it exceeds the core's program
+    size."""
     n = expression.dim
     # Dead intermediate nodes are dropped at the end: build with room for them.
     b = _Builder("hamiltonian", limit=4 * MAX_FIELD_INSTRUCTIONS)
     _, der = _derivatives(b, expression.program, n)
     pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
     entry: dict[tuple[int, int], int] = {}
+    for (i, j), program in (entries or {}).items():
+        reg: list[int] = []
+        for node in program:
+            op = node[0]
+            if op in ("var", "const"):
+                reg.append(b.add(node))
+            elif op in ("powi", "powf"):
+                reg.append(b.add((op, reg[node[1]], node[2])))
+            else:
+                reg.append(b.add((op, *(reg[k] for k in node[1:]))))
+        entry[(i, j)] = reg[-1] if (i, j) not in entry else b.add(("add", entry[(i, j)], reg[-1]))
     for m, c, e in zip(index.tolist(), coeffs.tolist(), exponents.tolist(), strict=True):
         term = b.add(("const", float(c)))
         for v, ev in enumerate(e):

@@ -1,0 +1,159 @@
+"""PNN's charged particle (their LFData) on the package's charged-particle structure.
+
+B = |x|, A = |x|/3 (−x₂, x₁), H = |v|²/2 + 1/(100|x|) (``scenes/charged_particle_pnn.toml``),
+their one state (x, v) = (0.5, 1, 1, 0.5) and h = 0.1: 1500 training records by
+``pr.reference_solution`` (DOP853, rtol = atol = 1e-13), tested from the exact state at the end
+of the training span on the next 300 steps and on 10× that (3000); errors relative, max over
+the test times of |z(t) − z_exact(t)| / |z_exact(t)|; the energy drift the largest relative
+|H(z_t) − H(z_0)| / |H(z_0)| along 10⁴ steps from the test start. Rows: the true system through
+Taylor-HJ by jets (m = 3, 5) and RK4; ``pr.learn(records, 0.1, structure=<the system>)`` (H
+learned from the structure's polynomial family, B and A given); ``pr.learn(records, 0.1,
+structure="discover")``, given ``--discover-seconds`` (default 600) in a child process and
+recorded as cut off past that. One pinned core, one torch thread::
+
+    PYTHONPATH=python taskset -c 0 .venv/bin/python benches/charged_particle_pnn.py \\
+        --out docs/learning/charged_particle_pnn.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import poisson_rs as pr
+from poisson_rs.scenes import load_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+H, TRAIN_STEPS, TEST_STEPS, DRIFT_STEPS = 0.1, 1500, 300, 10_000
+
+
+def score(system: Any, traj: np.ndarray, exact: np.ndarray) -> dict[str, Any]:
+    """Errors at the test horizon and 10× it, energy drift along all of ``traj`` (m, 4)."""
+    n = min(len(traj), len(exact))
+    rel = np.linalg.norm(traj[:n] - exact[:n], axis=-1) / np.linalg.norm(exact[:n], axis=-1)
+    rel = np.where(np.isfinite(rel), rel, np.inf)
+    e = np.asarray(system.hamiltonian(traj))
+    de = np.nan_to_num(np.abs(e - e[0]) / abs(e[0]), nan=np.inf)
+    return {
+        "error_test_horizon": float(rel[: TEST_STEPS + 1].max()),
+        "error_10x": float(rel[: 10 * TEST_STEPS + 1].max()) if n > 10 * TEST_STEPS else "n/a",
+        "energy_drift": float(de.max()),
+        "drift_steps": len(traj) - 1,
+    }
+
+
+def roll(stepper: Any, start: np.ndarray) -> tuple[np.ndarray, float]:
+    t0 = time.perf_counter()
+    traj = np.asarray(pr.integrate(stepper, start, H, DRIFT_STEPS, on_failure="ignore"))
+    return traj, time.perf_counter() - t0
+
+
+def learn_row(system: Any, train: np.ndarray, start: np.ndarray, exact: np.ndarray,
+              structure: Any, label: str) -> dict[str, Any]:  # fmt: skip
+    t0 = time.perf_counter()
+    stepper, report = pr.learn(train, H, structure=structure, seed=0, progress=False)
+    seconds = time.perf_counter() - t0
+    traj, _ = roll(stepper, start)
+    kept = report.kept
+    return {
+        "method": label,
+        "parameters": int(kept.parameters),
+        "train_seconds": round(seconds, 2),
+        **score(system, traj, exact),
+        "explained": bool(report.explained),
+        "noise": float(report.noise),
+        "kept_family": kept.family,
+        "kept_order": int(kept.order),
+        "kept_one_step": float(kept.one_step),
+        "kept_rollout": float(kept.rollout),
+        "bracket": kept.bracket_text,
+        "hamiltonian": kept.hamiltonian_text[:400],
+        "candidates": [
+            {
+                "family": c.family,
+                "parameters": c.parameters,
+                "one_step": c.one_step,
+                "rollout": c.rollout,
+                "reason": c.reason[:200],
+            }
+            for c in report.candidates
+        ],
+    }
+
+
+def _discover_child(queue: Any, system: Any, train: np.ndarray, start: np.ndarray,
+                    exact: np.ndarray) -> None:  # fmt: skip
+    torch.set_num_threads(1)
+    try:
+        row = learn_row(system, train, start, exact, "discover",
+                        'pr.learn(structure="discover")')  # fmt: skip
+    except ValueError as err:
+        row = {"method": 'pr.learn(structure="discover")', "notes": f"refused: {err}"}
+    queue.put(row)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "--out", type=Path, default=ROOT / "docs/learning/charged_particle_pnn.json"
+    )
+    parser.add_argument("--discover-seconds", type=float, default=600.0)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    system = load_scene(ROOT / "scenes" / "charged_particle_pnn.toml").system
+    x0 = np.asarray(load_scene(ROOT / "scenes" / "charged_particle_pnn.toml").points[0])
+    times = H * np.arange(TRAIN_STEPS + 1)
+    train = np.asarray(pr.reference_solution(system, x0, times))[None]  # (1, 1501, 4)
+    start = train[0, -1]
+    exact = np.asarray(pr.reference_solution(system, start, H * np.arange(DRIFT_STEPS + 1)))
+    rows: list[dict[str, Any]] = []
+    for label, stepper in (
+        ("true system, Taylor-HJ by jets m = 3", pr.taylor_integrator(system, 3)),
+        ("true system, Taylor-HJ by jets m = 5", pr.taylor_integrator(system, 5)),
+        ("true system, RK4", pr.classical(system, "rk4")),
+    ):
+        traj, seconds = roll(stepper, start)
+        rows.append({"method": label, "parameters": 0, "rollout_seconds": round(seconds, 2),
+                     **score(system, traj, exact)})  # fmt: skip
+        print(rows[-1], flush=True)
+    rows.append(learn_row(system, train, start, exact, system,
+                          "pr.learn(structure=the system: B and A given, H learned)"))  # fmt: skip
+    print({k: v for k, v in rows[-1].items() if k != "candidates"}, flush=True)
+    queue: Any = mp.get_context("fork").Queue()
+    child = mp.get_context("fork").Process(
+        target=_discover_child, args=(queue, system, train, start, exact)
+    )
+    t0 = time.perf_counter()
+    child.start()
+    child.join(args.discover_seconds)
+    if child.is_alive():
+        child.kill()
+        child.join()
+        rows.append({"method": 'pr.learn(structure="discover")',
+                     "notes": f"cut off after {args.discover_seconds:.0f} s on one core: no "
+                     "result (partial)"})  # fmt: skip
+    else:
+        rows.append(queue.get())
+        rows[-1]["wall_seconds"] = round(time.perf_counter() - t0, 2)
+    print({k: v for k, v in rows[-1].items() if k != "candidates"}, flush=True)
+    meta = {
+        "protocol": "PNN charged particle (LFData): 1 state (x, v) = (0.5, 1, 1, 0.5), h = 0.1, "
+        "1500 training records by DOP853 at 1e-13, test 300 steps after and 3000 (10×), "
+        "energy drift over 10⁴ steps from the test start",
+        "scene": "scenes/charged_particle_pnn.toml",
+        "command": "PYTHONPATH=python taskset -c 0 .venv/bin/python "
+        "benches/charged_particle_pnn.py",
+    }
+    args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
