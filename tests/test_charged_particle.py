@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import poisson_rs as pr
-from poisson_rs.structures.charged_particle import ChargedParticle
+from poisson_rs.structures.charged_particle import ChargedParticle, charged_particle
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "charged_particle_pnn.toml"
 B = "sqrt(x1**2 + x2**2)"
@@ -149,3 +149,17 @@ def test_learning_offers_the_degrees_whose_polynomial_fits_the_tape(
     assert particle.learn_degrees() == (2, 3)
     family = particle.hamiltonian_family(2)
     assert family.order == 3 and len(family) == 14
+
+
+@pytest.mark.parametrize("field", ["2**2**2**2**2**2", "(x1**64)**64", "x1**" + "9" * 40])
+def test_hostile_field_texts_are_refused_before_sympy(monkeypatch, field: str) -> None:
+    """Texts outside the expression grammar's bounds are refused by it, naming the field: sympy
+    (unbounded on such texts) never sees them."""
+    import sympy
+
+    def never(*args: object, **kwargs: object) -> None:
+        raise AssertionError("sympy saw the text")
+
+    monkeypatch.setattr(sympy, "sympify", never)
+    with pytest.raises(ValueError, match="field"):
+        charged_particle(field)

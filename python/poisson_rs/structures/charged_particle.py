@@ -58,26 +58,42 @@ _SYMPY_TEXT = re.compile(r"(?:x[1-9]|[0-9.eE+\-*/() ])+")
 #: curl A = B is checked at these many seeded points per scale |x| ∈ CURL_SCALES, to this
 #: relative tolerance (derivatives of A exact, by the core's jets).
 CURL_POINTS, CURL_SCALES, CURL_RTOL = 16, (0.3, 1.0, 3.0), 1e-12
+#: Highest degree of a polynomial B, H or potential (sympy expands them).
+MAX_DEGREE = 16
 
 
 def _is_polynomial_text(text: str, names: Sequence[str], field: str) -> bool:
     """Whether ``text`` is for the polynomial (sympy) route: it reads as a polynomial by the
-    expression grammar (no division by a variable, no negative power), or only the polynomial
-    parser's own bounds and messages apply to it (a text the grammar refuses)."""
-    from ..expressions import ExpressionError, parse_program
+    expression grammar (no division by a variable, no negative power). A text the grammar
+    refuses is refused here with its error: sympy never sees a text outside the grammar's
+    bounds (``2**2**2**2**2**2`` would keep it busy for ever)."""
+    from ..expressions import parse_program
 
     if not _SYMPY_TEXT.fullmatch(text):
         return False
-    try:
-        program = parse_program(text, names, field)
-    except ExpressionError:
-        return True
-    return all(
+    program = parse_program(text, names, field)
+    polynomial = all(
         n[0] in ("var", "const", "add", "sub", "mul", "neg")
         or (n[0] == "powi" and n[2] >= 0)
         or (n[0] == "div" and program[n[2]][0] == "const")
         for n in program
     )
+    if polynomial:
+        # The degree, node by node: sympy expands the text, and (x1 + x2)**64**… would not end.
+        deg: list[int] = []
+        for n in program:
+            op = n[0]
+            deg.append(
+                1 if op == "var"
+                else 0 if op == "const"
+                else deg[n[1]] + deg[n[2]] if op == "mul"
+                else deg[n[1]] * n[2] if op == "powi"
+                else max(deg[n[1]], deg[n[2]]) if op in ("add", "sub")
+                else deg[n[1]]  # neg, and div by a constant
+            )  # fmt: skip
+        if deg and deg[-1] > MAX_DEGREE:
+            raise ValueError(f"{field}: degree {deg[-1]} is above {MAX_DEGREE}")
+    return polynomial
 
 
 def _field_texts(field: Any, d: int) -> list[str]:
