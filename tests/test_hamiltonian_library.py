@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 
 import poisson_rs as pr
-from poisson_rs.hamiltonian_library import LibraryFamily, supports_library
+from poisson_rs.hamiltonian_library import (
+    LibraryFamily,
+    distance_pairs,
+    library_families,
+    supports_library,
+)
+from poisson_rs.learn.data import prepare
+from poisson_rs.learn.structure_fit import fit_structure_hamiltonian
+from poisson_rs.protocols import NEWTON_MAX_ITER, NEWTON_TOL
 from poisson_rs.scenes import load_scene
 
 
@@ -80,3 +88,103 @@ def test_learn_finds_the_pendulums_cosine_and_beats_every_polynomial(pendulum):
     roll = pr.integrate(stepper, states[0], h, 200)
     c = roll[:, 2] - roll[:, 0] ** 2 - roll[:, 1] ** 2
     assert np.max(np.abs(c - c[0])) < 1e-12
+
+
+# Log-distance terms ln|z_a − z_b|² of the planar points (x1, x2), (x3, x4), (x5, x6).
+
+GAMMA = (1.0, 1.0, 0.5)
+
+
+@pytest.fixture(scope="module")
+def vortices():
+    """The three point vortices' scene: the expression system (true H) on its bracket."""
+    return load_scene("scenes/point_vortices.toml")
+
+
+H = 0.05
+
+
+def _vortex_records(scene, n_records: int) -> list[np.ndarray]:
+    """Exact records from the scene's two states, h = 0.05."""
+    starts = scene.states()
+    return list(np.asarray(pr.reference_solution(scene.system, starts, np.arange(n_records) * H)))
+
+
+def test_log_distance_terms_value_and_gradient_match_autograd(vortices):
+    torch = pytest.importorskip("torch")
+    fam = LibraryFamily(vortices.system.base, 1, trig=False, log_distances=True)
+    logs = [m for m, k in enumerate(fam.exponents) if k[0] == "logdist"]
+    assert [fam.exponents[m] for m in logs] == [
+        ("logdist", 0, 1),
+        ("logdist", 0, 2),
+        ("logdist", 1, 2),
+    ]
+    x = np.random.default_rng(3).normal(size=(7, 6))
+    xt = torch.tensor(x, requires_grad=True)
+    for m in logs:
+        _, a, b = fam.exponents[m]
+        d = xt[:, 2 * a : 2 * a + 2] - xt[:, 2 * b : 2 * b + 2]
+        phi = torch.log((d * d).sum(dim=1))
+        (grad,) = torch.autograd.grad(phi.sum(), xt)
+        np.testing.assert_allclose(fam.gradients(x)[:, :, m], grad.numpy(), rtol=1e-13, atol=1e-13)
+        # The text the learned system steps is the same function.
+        value = fam.system(np.eye(len(fam))[m]).hamiltonian(x)
+        np.testing.assert_allclose(value, phi.detach().numpy(), rtol=1e-13, atol=1e-13)
+
+
+def test_log_distances_need_an_even_dimension_of_at_least_4(pendulum, vortices):
+    """The pairing (x1, x2), (x3, x4), … is refused on odd dimensions, and pr.learn's libraries
+    leave the log-distance terms out there."""
+    with pytest.raises(ValueError, match="dimension must be even and at least 4, got 3"):
+        LibraryFamily(pendulum.base, 2, log_distances=True)
+    with pytest.raises(ValueError, match="got 2"):
+        distance_pairs(2)
+    assert [f.name for f in library_families(pendulum.base, None, 12)] == [
+        "poly2+trig",
+        "poly3+trig",
+    ]
+    # In 6-D poly3+trig exceeds the expression limits (never fittable) and is left out.
+    assert [f.name for f in library_families(vortices.system.base, None, 12)] == [
+        "poly2+trig",
+        "poly2+logdist",
+    ]
+    assert distance_pairs(8) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+
+
+def test_fit_recovers_the_vortex_hamiltonian(vortices):
+    """Exact records (2 × 41, h = 0.05): the poly2+logdist fit keeps exactly the three
+    log-distances, with −Γ_aΓ_b/(4π) to 1e-6 relative (H up to a constant: the library has none),
+    and its stepper's error at T = 5 is within 2× of the true H through the same integrator
+    (T = 100: benches/library_vortices.py)."""
+    base = vortices.system.base
+    trajs = _vortex_records(vortices, 41)
+    data = prepare(trajs, H, None, seed=0, system=base)
+    fam = LibraryFamily(base, 2, trig=False, log_distances=True)
+    fit = fit_structure_hamiltonian(data, base, 2, family=fam)
+    assert fit.family.exponents == [("logdist", 0, 1), ("logdist", 0, 2), ("logdist", 1, 2)]
+    truth = np.array([-GAMMA[a] * GAMMA[b] / (4 * np.pi) for a, b in distance_pairs(6)])
+    assert np.max(np.abs(fit.theta - truth)) <= 1e-6 * np.max(np.abs(truth))
+    x0 = np.array([0.7, 0.4, -0.7, 0.3, 0.2, -1.0])
+    ref = np.asarray(pr.reference_solution(vortices.system, x0[None], [0.0, 5.0]))[0, -1]
+    true = vortices.system.taylor_integrator(fam.order, tol=NEWTON_TOL, max_iter=NEWTON_MAX_ITER)
+    err_true = np.max(np.abs(pr.integrate(true, x0, H, 100)[-1] - ref))
+    err_learned = np.max(np.abs(pr.integrate(fit.stepper, x0, H, 100)[-1] - ref))
+    assert err_learned <= 2.0 * err_true
+
+
+def test_coinciding_points_are_refused_with_one_clear_error(vortices):
+    """A record with z_1 = z_2 (a rotation of point 1 about the origin under the bracket's own
+    H = x1² + x2², starting on point 2) cannot be fitted by ln|z_1 − z_2|²."""
+    base = vortices.system.base
+    start = np.array([[0.5, -0.25, 0.5, -0.25, 1.0, 1.0]])
+    bad = list(np.asarray(pr.reference_solution(base, start, np.arange(6) * H)))
+    trajs = _vortex_records(vortices, 6) + bad
+    data = prepare(trajs, H, None, seed=0, system=base)
+    fam = LibraryFamily(base, 2, trig=False, log_distances=True)
+    message = r"trajectories: 1 record\(s\) put points 1 and 2 at the same place"
+    with pytest.raises(ValueError, match=message):
+        fit_structure_hamiltonian(data, base, 2, family=fam)
+    # pr.learn reaches the log-distance library (nothing smaller explains these mixed records)
+    # and stops there with the same error.
+    with pytest.raises(ValueError, match=message):
+        pr.learn(trajs, H, structure=base, max_degree=2, seed=0, progress=False)

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from ..export import model_bytes
-from ..hamiltonian_library import LIBRARY_DEGREES, LibraryFamily, supports_library
+from ..hamiltonian_library import library_families
 from ..integrators import LearnedIntegrator, TaylorIntegrator
 from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..taylor import system_taylor_terms
@@ -625,12 +625,13 @@ def _learn_on_structure(
             fit=fit,
         )
 
-    # Beyond polynomials: where no polynomial degree explains the data, the term library
-    # (polynomials plus sin/cos of each coordinate, stepped by jets) on structures with a jet
-    # realization.
+    # Beyond polynomials: where no polynomial degree explains the data, the term libraries
+    # (polynomials plus sin/cos of each coordinate, then, in even dimensions, plus the
+    # log-distances of planar points; stepped by jets) on structures with a jet realization.
+    # They come last, so that data a smaller family explains never pay for them.
     plans: list[tuple[int, Any]] = [(d, None) for d in degrees]
-    if degree is None and supports_library(structure):
-        plans += [(d, LibraryFamily(structure, d, order)) for d in LIBRARY_DEGREES if d <= top]
+    if degree is None:
+        plans += [(lib.degree, lib) for lib in library_families(structure, order, top)]
     candidates: list[Candidate] = []
     kept: Candidate | None = None
     explained = True  # False where no candidate reaches the noise level

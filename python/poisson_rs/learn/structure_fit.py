@@ -99,6 +99,11 @@ def fit_structure_hamiltonian(
     Gauss–Newton iterates."""
     t0 = time.perf_counter()
     fam = family if family is not None else structure.hamiltonian_family(degree, order)
+    # A family whose terms are singular somewhere (log-distances) refuses records there with
+    # one ValueError naming the input, rather than fitting NaNs.
+    check = getattr(fam, "check_states", None)
+    if check is not None:
+        check(np.concatenate(data.train + data.test), "trajectories")
     p = len(fam)
     x, v = velocities(data.train, data.h)
     w = 1.0 / np.linalg.norm(x, axis=1).clip(1e-300)
