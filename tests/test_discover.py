@@ -269,6 +269,8 @@ def test_discover_refuses_bad_input_before_any_fit(monkeypatch):
         pr.learn(data, -0.1, structure="discover")
     with pytest.raises(ValueError, match="snap must be one of"):
         discover.learn_discover(data, 0.1, snap="always")
+    with pytest.raises(ValueError, match="refit"):
+        pr.learn(data, 0.1, structure="discover", refit="yes")
 
 
 def test_discovers_the_extended_pendulums_affine_bracket():
@@ -282,6 +284,7 @@ def test_discovers_the_extended_pendulums_affine_bracket():
     )
     _, report = pr.learn(list(trajs), 0.1, structure="discover", progress=False)
     assert report.explained and report.kept.family.startswith("affine/")
+    assert report.kept.reason.endswith("H's coefficients refitted on all records")
     learned = report.structure
     # θ = −c (linear part) and ω: the true bracket times −½.
     np.testing.assert_allclose(learned.cocycle, -0.5 * np.asarray(system.cocycle), atol=1e-6)

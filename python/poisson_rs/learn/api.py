@@ -335,8 +335,9 @@ def learn(
         ``map_options`` for :func:`poisson_rs.learn.blend.fit_blended_map`), and λ of
         loss_HJ + λ·loss_data.
     refit : after the choice on held-out data, refit the kept polynomial's coefficients on every
-        record (its one-step and rollout errors in the report stay the held-out ones); not used by
-        structure discovery, which keeps its held-out fit.
+        record (its one-step and rollout errors in the report stay the held-out ones); in
+        structure discovery, H's coefficients on the kept bracket, once a pair explains the
+        data.
     progress : a progress bar with an ETA over the fits on stderr (tqdm); default: when stderr
         is a terminal.
 
@@ -362,12 +363,10 @@ def learn(
         if isinstance(structure, str) and structure == "discover":
             from .discover import learn_discover
 
-            check_bool(refit, "refit")  # discovery scores on held-out data and keeps that fit
-
             return learn_discover(
                 trajectories, h, mode=mode, degree=degree, max_degree=max_degree, order=order,
                 test_fraction=test_fraction, seed=seed, max_iter=max_iter, verbose=verbose,
-                progress=progress,
+                progress=progress, refit=refit,
             )  # fmt: skip
         if getattr(structure, "trainable", False):
             system = structure  # a Lie–Poisson system: learning runs on T*G

@@ -412,18 +412,21 @@ def learn_discover(
     progress: bool | None = None,
     refine: bool = True,
     snap: str = "noise",
+    refit: bool = True,
 ) -> tuple[Any, Any]:
     """:func:`poisson_rs.learn` with ``structure="discover"``: see the module docstring.
     ``refine``: refine the bracket and H jointly through the found structure's integrator
     (:func:`refine_through_integrator`). ``snap``: when the bracket snapped to twelfths
     replaces the learned one (:data:`SNAPS`): "noise" (default) where H refitted on it fits the
     training records at least as well or explains them at the noise level, "fit" where it fits
-    at least as well only, "off" never."""
+    at least as well only, "off" never. ``refit``: once a pair explains the data, H's
+    coefficients on the kept bracket are fitted again on every record, held-out ones included
+    (the choice and the errors in the report stay the held-out ones)."""
     from ..structures import bracket_families
     from .data import _as_list, check_seed, prepare, refuse_drift
     from .options import EXACT_LEVEL, MAX_DEGREE, check_bool, check_int
     from .report import Candidate, LearnReport
-    from .scoring import errors, progress_bar
+    from .scoring import all_records, errors, progress_bar
     from .structure_fit import fit_structure_hamiltonian, velocities
 
     if mode not in ("auto", "hamiltonian"):
@@ -438,6 +441,7 @@ def learn_discover(
     if snap not in SNAPS:
         raise ValueError(f"snap must be one of {SNAPS}, got {snap!r}")
     max_iter = check_int(max_iter, "max_iter", 1, 10_000)
+    refit = check_bool(refit, "refit")
     seed = check_seed(seed)
     verbose = check_bool(verbose, "verbose")
     if progress is not None:
@@ -486,6 +490,8 @@ def learn_discover(
             + ")"
         )
     pairs.sort(key=lambda item: len(item[0]) + len(item[1]))
+
+    finals: dict[int, tuple[Any, Any, Any]] = {}
 
     def integrator_candidate(fit: BracketFit, d: int, make: Any) -> Candidate:
         name = f"{fit.family.name}/{fit.hamiltonians.name}"
@@ -538,7 +544,9 @@ def learn_discover(
                 if verbose:
                     print(f"{name}: bracket snapped to twelfths")
         one, roll = errors(stepper, data)
-        return Candidate(
+        # What the refit on every record needs: the kept bracket's structure and H's family.
+        final = (fit.family.system(fit.theta), hfam, phi)
+        cand = Candidate(
             family=name,
             parameters=int(np.count_nonzero(fit.theta)) + int(np.count_nonzero(phi)),
             order=hfam.order,
@@ -558,6 +566,8 @@ def learn_discover(
             casimirs_text=str(getattr(system, "casimir_label", "n/a")),
             null_directions=list(fit.null_directions),
         )
+        finals[id(cand)] = final
+        return cand
 
     kept: Candidate | None = None
     best_v = math.inf
@@ -654,6 +664,8 @@ def learn_discover(
         kept = min(scored, key=lambda c: c.one_step)
         kept.reason = f"NOT EXPLAINED: no pair reached the noise level; the best {err}"
         warn_not_explained(kept.family, kept.one_step, threshold)
+    if explained and held and refit and id(kept) in finals:
+        _refit_on_all_records(kept, finals[id(kept)], all_records(data), max_iter)
     kept.kept = True
     report = LearnReport.of(
         data,
@@ -685,6 +697,30 @@ def _bracket_text(fit: BracketFit, names: list[str]) -> str:
         n = np.where(np.abs(n) < SPARSE_RTOL, 0.0, n)
         text += f"  [+ α·({fit.family.text(n, names, digits=6)}) for any α: N∇H ≡ 0]"
     return text
+
+
+def _refit_on_all_records(
+    kept: Any, final: tuple[Any, Any, Any], whole: TrajectoryData, max_iter: int
+) -> None:
+    """H's nonzero terms on the kept bracket fitted again on every record: the held-out share
+    (a whole trajectory of three) adds what it saw of the flow. Kept as it was where the fit
+    fails."""
+    from .structure_fit import fit_structure_hamiltonian
+
+    structure, hfam, phi = final
+    terms = [e for e, t in zip(hfam.exponents, phi, strict=True) if t != 0]
+    if not terms:
+        return
+    try:
+        fit = fit_structure_hamiltonian(
+            whole, structure, hfam.degree, family=hfam.restrict(terms), max_iter=max_iter,
+            sparse=False,
+        )  # fmt: skip
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+        return
+    kept.stepper, kept.system, kept.fit = fit.stepper, fit.system, fit
+    kept.hamiltonian_text = fit.family.text(fit.theta)
+    kept.reason += "; H's coefficients refitted on all records"
 
 
 def _snap(theta: np.ndarray) -> np.ndarray | None:
