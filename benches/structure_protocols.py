@@ -39,7 +39,8 @@ About 40 min for the first (PNN's 60k Lotka–Volterra iterations 12.5 min, its 
 (``POISSON_RS_PNN``, ``POISSON_RS_LEARNER``, ``POISSON_RS_DPNN`` may stand for the paths; a
 missing path skips that peer with a message and leaves our rows; ``--merge`` keeps every row of
 an existing JSON that this run does not replace: a row replaces those of its protocol and
-method, the method read up to its first comma.) The peers' commits are read with git where the
+method, the method read up to its first comma; ``--discover-only`` reruns our discovery rows
+alone.) The peers' commits are read with git where the
 directory is a checkout, else from ``--pnn-commit`` etc., else "unknown".
 
 Protocols (the peers' settings, network sizes and learning rates, read from their code):
@@ -202,11 +203,19 @@ def rollout(stepper: Any, p: Protocol) -> np.ndarray:
     return np.asarray(pr.integrate(stepper, p.starts, p.h, DRIFT_STEPS, on_failure="ignore"))
 
 
+#: ``--discover-only``: our rows are the discovered structure's alone.
+DISCOVER_ONLY = False
+
+
 def ours_rows(
     p: Protocol, true_stepper: Any, structure: Any, label: str, subset: int | None = None
 ) -> list[dict[str, Any]]:
     """The true system through ``true_stepper``; pr.learn (given and discovered structure) on
-    ``p.train``, or on its first ``subset`` trajectories."""
+    ``p.train``, or on its first ``subset`` trajectories; the discovered one alone with
+    ``--discover-only``."""
+    train = p.train if subset is None else p.train[:subset]
+    if DISCOVER_ONLY:
+        return [ours_discover_row(p, train, snap) for snap in SNAP_RULES]
     rows = []
     t0 = time.perf_counter()
     traj = rollout(true_stepper, p)
@@ -224,7 +233,6 @@ def ours_rows(
         }
     )
     t0 = time.perf_counter()
-    train = p.train if subset is None else p.train[:subset]
     stepper, report = pr.learn(train, p.h, structure=structure, seed=0, progress=False)
     seconds = time.perf_counter() - t0
     traj = rollout(stepper, p)
@@ -515,8 +523,13 @@ def main() -> None:
         help="comma-separated: lv (PNN Lotka–Volterra), pd (PNN extended pendulum), rb (DPNN)",
     )
     ap.add_argument("--merge", action="store_true", help="keep the rows of --json not rerun")
+    ap.add_argument(
+        "--discover-only", action="store_true", help="our discovery rows alone (with --merge)"
+    )
     ap.add_argument("--json", type=Path, default=OUT)
     args = ap.parse_args()
+    global DISCOVER_ONLY
+    DISCOVER_ONLY = args.discover_only
 
     import torch
 
