@@ -78,22 +78,29 @@ def _is_polynomial_text(text: str, names: Sequence[str], field: str) -> bool:
         or (n[0] == "div" and program[n[2]][0] == "const")
         for n in program
     )
-    if polynomial:
-        # The degree, node by node: sympy expands the text, and (x1 + x2)**64**… would not end.
-        deg: list[int] = []
-        for n in program:
-            op = n[0]
-            deg.append(
-                1 if op == "var"
-                else 0 if op == "const"
-                else deg[n[1]] + deg[n[2]] if op == "mul"
-                else deg[n[1]] * n[2] if op == "powi"
-                else max(deg[n[1]], deg[n[2]]) if op in ("add", "sub")
-                else deg[n[1]]  # neg, and div by a constant
-            )  # fmt: skip
-        if deg and deg[-1] > MAX_DEGREE:
-            raise ValueError(f"{field}: degree {deg[-1]} is above {MAX_DEGREE}")
+    # sympy expands a polynomial text, and (x1 + x2)**64**… would not end: its degree first.
+    if polynomial and (degree := _program_degree(program)) > MAX_DEGREE:
+        raise ValueError(f"{field}: degree {degree} is above {MAX_DEGREE}")
     return polynomial
+
+
+def _program_degree(program: Sequence[tuple[Any, ...]]) -> int:
+    """The total degree of a polynomial program (its last node), node by node."""
+    deg: list[int] = []
+    for op, *args in program:
+        if op == "var":
+            deg.append(1)
+        elif op == "const":
+            deg.append(0)
+        elif op == "mul":
+            deg.append(deg[args[0]] + deg[args[1]])
+        elif op == "powi":
+            deg.append(deg[args[0]] * args[1])
+        elif op in ("add", "sub"):
+            deg.append(max(deg[args[0]], deg[args[1]]))
+        else:  # neg, and division by a constant
+            deg.append(deg[args[0]])
+    return deg[-1] if deg else 0
 
 
 def _field_texts(field: Any, d: int) -> list[str]:
