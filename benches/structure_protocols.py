@@ -51,7 +51,7 @@ Protocols (the peers' settings, network sizes and learning rates, read from thei
 2. ``pnn_extended_pendulum``: H = ½u² − cos v + u(r − u² − v²), {u, v} = −1, {u, r} = −2v,
    {v, r} = 2u, Casimir C = r − u² − v²; 3 states (0, 1, 1), (0, 1.5, 2.35), (0, 2, 4.2);
    PNN = INN (3 × 2, width 30) + E-SympNet (3 layers, width 30), Adam lr 1e-3, 100k iterations.
-3. ``dpnn_rigid_body`` (see :func:`dpnn_rigid_body`).
+3. ``dpnn_rigid_body`` and 4. ``dpnn_heavy_top`` (see :func:`dpnn_rows`).
 
 Each is tested on the 100 steps after the training data (T = 10 past it, from the exact state at
 the end of the training span) and on 10× that (1000 steps); the errors are relative, max over
@@ -203,8 +203,8 @@ def rollout(stepper: Any, p: Protocol) -> np.ndarray:
     return np.asarray(pr.integrate(stepper, p.starts, p.h, DRIFT_STEPS, on_failure="ignore"))
 
 
-#: ``--discover-only``: our rows are the discovered structure's alone.
-DISCOVER_ONLY = False
+#: ``--discover-only``: our rows are the discovered structure's alone; ``--peers-only``: none.
+DISCOVER_ONLY = PEERS_ONLY = False
 
 
 def ours_rows(
@@ -214,6 +214,8 @@ def ours_rows(
     ``p.train``, or on its first ``subset`` trajectories; the discovered one alone with
     ``--discover-only``."""
     train = p.train if subset is None else p.train[:subset]
+    if PEERS_ONLY:
+        return []
     if DISCOVER_ONLY:
         return [ours_discover_row(p, train, snap) for snap in SNAP_RULES]
     rows = []
@@ -276,6 +278,26 @@ SNAP_RULES = {
 }
 
 
+def bracket_error(learned: Any, true: Any) -> float | str:
+    """min over λ of |c − λ c_true| / |c| for the structure constants (and an affine cocycle),
+    the scale gauge π → λπ divided out; "n/a" where either structure has no algebra (another
+    family was kept, or the true one is not Lie–Poisson or affine)."""
+    mine, theirs = getattr(learned, "algebra", None), getattr(true, "algebra", None)
+    if mine is None or theirs is None or mine.c.shape != theirs.c.shape:
+        return "n/a"
+
+    def flat(system: Any, algebra: Any) -> np.ndarray:
+        cocycle = getattr(system, "cocycle", None)
+        parts = [np.ravel(algebra.c)] + ([np.ravel(cocycle)] if cocycle is not None else [])
+        return np.concatenate(parts)
+
+    a, b = flat(learned, mine), flat(true, theirs)
+    if a.shape != b.shape or not np.any(a):
+        return "n/a"
+    lam = float(a @ b) / float(b @ b)
+    return float(np.linalg.norm(a - lam * b) / np.linalg.norm(a))
+
+
 def ours_discover_row(p: Protocol, train: np.ndarray, snap: str) -> dict[str, Any]:
     row: dict[str, Any] = {
         "protocol": p.name,
@@ -296,6 +318,7 @@ def ours_discover_row(p: Protocol, train: np.ndarray, snap: str) -> dict[str, An
             "iterations": "n/a",
             "fraction_of_theirs": "n/a",
             **p.score(traj),
+            "bracket_error": bracket_error(report.structure, p.system),
             "notes": f"{SNAP_RULES[snap]}; kept {kept.family}, bracket "
             f"{kept.bracket_text}; H = {kept.hamiltonian_text:.160}",
         }
@@ -515,21 +538,30 @@ def main() -> None:
     ap.add_argument("--lv-iterations", type=int, default=PNN_LV_ITERATIONS)
     ap.add_argument("--pd-iterations", type=int, default=PNN_PD_ITERATIONS)
     ap.add_argument("--dpnn-epochs", type=int, default=None, help="default: typical_args'")
-    ap.add_argument("--dpnn-methods", default="implicit", help="implicit,soft,without")
+    ap.add_argument(
+        "--dpnn-methods",
+        default=None,
+        help="implicit,soft,without (default: implicit for rb; soft,without for ht, whose "
+        "implicit solver they did not write)",
+    )
     ap.add_argument("--dpnn-dropout", type=float, default=0.0, help="0.0: typical_args' era")
     ap.add_argument(
         "--protocols",
         default="lv,pd,rb",
-        help="comma-separated: lv (PNN Lotka–Volterra), pd (PNN extended pendulum), rb (DPNN)",
+        help="comma-separated: lv (PNN Lotka–Volterra), pd (PNN extended pendulum), rb and ht "
+        "(DPNN's rigid body and heavy top)",
     )
     ap.add_argument("--merge", action="store_true", help="keep the rows of --json not rerun")
     ap.add_argument(
         "--discover-only", action="store_true", help="our discovery rows alone (with --merge)"
     )
+    ap.add_argument(
+        "--peers-only", action="store_true", help="the peers' rows alone (with --merge)"
+    )
     ap.add_argument("--json", type=Path, default=OUT)
     args = ap.parse_args()
-    global DISCOVER_ONLY
-    DISCOVER_ONLY = args.discover_only
+    global DISCOVER_ONLY, PEERS_ONLY
+    DISCOVER_ONLY, PEERS_ONLY = args.discover_only, args.peers_only
 
     import torch
 
@@ -573,8 +605,10 @@ def main() -> None:
         rows += ours_rows(p, p.system.taylor_integrator(5), p.system.base, "jets, order 5")
         if ln is not None:
             rows.append(pnn_extended_pendulum(p, ln, mod, args.pd_iterations))
-    if "rb" in wanted:
-        rows += dpnn_rows(dpnn, args.dpnn_epochs, args.dpnn_methods.split(","), args.dpnn_dropout)
+    for key in ("rb", "ht"):
+        if key in wanted:
+            methods = (args.dpnn_methods or DPNN_METHODS[key]).split(",")
+            rows += dpnn_rows(dpnn, key, args.dpnn_epochs, methods, args.dpnn_dropout)
 
     doc: dict[str, Any] = {}
     if args.merge and args.json.exists():
@@ -612,7 +646,7 @@ def main() -> None:
 
 
 # ----------------------------------------------------------------------------------------------
-# DPNN's rigid body
+# DPNN's rigid body and heavy top
 
 #: typical_args/args_RB.txt (2023); the parser's defaults for what it does not list (simulation
 #: batch 256, Jacobi loss "exact"), except dropout: the option came in 2025 with default 0.3, so
@@ -663,10 +697,24 @@ DPNN_RB_ARGS: dict[str, Any] = {
     "jacobi_loss_mode": "exact",
     "hutchinson_samples": 1,
 }
+#: typical_args/args_HT.txt: the rigid body's where it lists nothing else; methods soft and
+#: without (their heavy top has no implicit solver).
+DPNN_HT_ARGS: dict[str, Any] = {
+    **DPNN_RB_ARGS,
+    "model": "HT",
+    "sampling": 300,
+    "prefactor": 100.0,
+    "jac_prefactor": 100.0,
+    "epochs": 100,
+    "folder_name": "HTTEST",
+}
 RB_INERTIA = (10.0, 20.0, 40.0)
-RB_TESTS = 20
+#: The methods run by default: their typical arguments' (the top has no implicit solver).
+DPNN_METHODS = {"rb": "implicit", "ht": "soft,without"}
+#: Test states: the first 20 of their generalization draw.
+DPNN_TESTS = 20
 #: pr.learn gets the first 20 of the 400 training states (all 400 × 200 records: > 8 min).
-RB_LEARN = 20
+DPNN_LEARN = 20
 
 
 def rb_energy(m: np.ndarray) -> np.ndarray:
@@ -677,23 +725,64 @@ def rb_casimir(m: np.ndarray) -> np.ndarray:
     return np.sum(m**2, axis=-1)
 
 
+def ht_energy(z: np.ndarray) -> np.ndarray:
+    """Their H = ½ M·I⁻¹M + Mgl r_z (χ = e₃)."""
+    return rb_energy(z[..., :3]) + DPNN_HT_ARGS["Mgl"] * z[..., 5]
+
+
+def ht_casimirs(z: np.ndarray) -> np.ndarray:
+    """|Γ|² and M·Γ, (..., 2): the drift is the larger of the two."""
+    return np.stack([np.sum(z[..., 3:] ** 2, -1), np.sum(z[..., :3] * z[..., 3:], -1)], -1)
+
+
+class DpnnModel:
+    """One of DPNN's models as their comparison.py runs it: its typical arguments, our system,
+    the columns of their data frames and the exact integrator of our reference row."""
+
+    def __init__(self, key: str) -> None:
+        self.key = key
+        if key == "rb":
+            self.args, self.protocol = DPNN_RB_ARGS, "dpnn_rigid_body"
+            self.system: Any = pr.RigidBody(RB_INERTIA)
+            self.columns = ["mx", "my", "mz"]
+            self.energy, self.casimir = rb_energy, rb_casimir
+            self.true_label, self.order = "so(3) Taylor-HJ K = 7", 7
+            self.solver = "RBNeuralIMR"
+        else:
+            self.args, self.protocol = DPNN_HT_ARGS, "dpnn_heavy_top"
+            self.system = pr.HeavyTop(RB_INERTIA, mgl=DPNN_HT_ARGS["Mgl"], com=(0.0, 0.0, 1.0))
+            self.columns = ["mx", "my", "mz", "rx", "ry", "rz"]
+            self.energy, self.casimir = ht_energy, ht_casimirs
+            self.true_label, self.order = "se(3) Taylor-HJ K = 7", 7
+            self.solver = "HeavyTopNeuralIMR"
+
+    def radii(self, cfg: Any) -> list[float]:
+        """Their balls: M within |init_m|, and for the top r within |init_r|."""
+        out = [float(np.linalg.norm([cfg.init_mx, cfg.init_my, cfg.init_mz]))]
+        if self.key == "ht":
+            out.append(float(np.linalg.norm([cfg.init_rx, cfg.init_ry, cfg.init_rz])))
+        return out
+
+
 def dpnn_rows(
-    dpnn: Path | None, epochs: int | None, methods: list[str], dropout: float
+    dpnn: Path | None, key: str, epochs: int | None, methods: list[str], dropout: float
 ) -> list[dict[str, Any]]:
-    """DPNN's rigid body (comparison.py with typical_args/args_RB.txt): I = (10, 20, 40),
-    dt = 2π/100, 400 states drawn uniformly in the ball of radius |(10, 3, 4)|, 200 records each
-    by their implicit midpoint rule (float32), 60/40 train/validation split of the pairs,
-    learned with LearnerIMR (IMR residual loss), batch 20, Adam lr 1e-3 with cosine annealing
-    over the epochs, 50 epochs. Tested on the first 20 of their generalization draw (fresh
-    states, seed 42 + 100·sampling) for 200 steps (their ``steps``), 10× that, and 10⁴ steps for
-    the drifts, rolled out by their RBNeuralIMR (implicit midpoint on the learned field)."""
+    """DPNN's rigid body (key "rb", typical_args/args_RB.txt: I = (10, 20, 40)) or heavy top
+    ("ht", args_HT.txt: the same I, Mgl = 0.981, χ = e₃, r in the ball of radius |(1, −3, 10)|),
+    as their comparison.py runs them: dt = 2π/100, 400 states drawn uniformly in the ball of
+    radius |(10, 3, 4)|, 200 records each by their implicit midpoint rule (float32), 60/40
+    train/validation split of the pairs, learned with LearnerIMR (IMR residual loss), batch 20,
+    Adam lr 1e-3 with cosine annealing over the epochs (50 for the body, 100 for the top).
+    Tested on the first 20 of their generalization draw (fresh states, seed 42 + 100·sampling)
+    for 200 steps (their ``steps``), 10× that, and 10⁴ steps for the drifts, rolled out by their
+    neural IMR solver (implicit midpoint on the learned field)."""
     import argparse
 
     import torch
 
-    rb = pr.RigidBody(RB_INERTIA)
-    cfg = argparse.Namespace(**DPNN_RB_ARGS, device=torch.device("cpu"))
-    dt, rows = cfg.dt, []
+    model = DpnnModel(key)
+    cfg = argparse.Namespace(**model.args, device=torch.device("cpu"))
+    dt, rows, dim = cfg.dt, [], len(model.columns)
     if epochs is not None:
         cfg.epochs = epochs
     cfg.dropout_rate = dropout
@@ -710,33 +799,40 @@ def dpnn_rows(
             import pandas as pd
 
             df = pd.read_csv(f"{cfg.folder_name}/{learn.DEFAULT_dataset}")
-            train_starts = df[["old_mx", "old_my", "old_mz"]].to_numpy(float)
-            train_starts = train_starts.reshape(cfg.points, cfg.steps - 1, 3)[:, 0]
+            old = [f"old_{c}" for c in model.columns]
+            train_starts = df[old].to_numpy(float)
+            train_starts = train_starts.reshape(cfg.points, cfg.steps - 1, dim)[:, 0]
             torch.manual_seed(cfg.seed + 100 * cfg.sampling)
-            tests = comparison.generate_initial_conditions(cfg)[:RB_TESTS]
+            tests = comparison.generate_initial_conditions(cfg)[:DPNN_TESTS]
         else:  # ours only: the same distribution, our draw
             rng = np.random.default_rng(42)
-            radius = float(np.linalg.norm([cfg.init_mx, cfg.init_my, cfg.init_mz]))
 
-            def ball(n: int) -> np.ndarray:
+            def ball(n: int, radius: float) -> np.ndarray:
                 v = rng.normal(size=(n, 3))
                 v /= np.linalg.norm(v, axis=1, keepdims=True)
                 return v * radius * rng.random((n, 1)) ** (1 / 3)
 
-            train_starts, tests = ball(cfg.points), None
-            tests = torch.tensor(ball(RB_TESTS), dtype=torch.float32)
-        starts = tests[:, :3].double().numpy()
-        train = np.asarray(rb.reference_solution(train_starts, dt * np.arange(cfg.steps)))
-        p = Protocol("dpnn_rigid_body", rb, dt, train, starts, cfg.steps, rb_energy, rb_casimir)
-        rows += ours_rows(p, pr.taylor_integrator(rb, 7), rb, "so(3) Taylor-HJ K = 7", RB_LEARN)
+            radii = model.radii(cfg)
+            train_starts = np.concatenate([ball(cfg.points, r) for r in radii], axis=1)
+            tests = torch.tensor(
+                np.concatenate([ball(DPNN_TESTS, r) for r in radii], axis=1), dtype=torch.float32
+            )
+        starts = tests[:, :dim].double().numpy()
+        system = model.system
+        train = np.asarray(system.reference_solution(train_starts, dt * np.arange(cfg.steps)))
+        p = Protocol(
+            model.protocol, system, dt, train, starts, cfg.steps, model.energy, model.casimir
+        )
+        true = pr.taylor_integrator(system, model.order)
+        rows += ours_rows(p, true, system, model.true_label, DPNN_LEARN)
         if dpnn is None:
             return rows
-        their = dpnn_rollout(simulate, cfg, tests, "normal", cfg.steps + 1)
+        their = dpnn_rollout(simulate, cfg, tests, "normal", cfg.steps + 1, model.columns)
         gt_error = p.score(their)["error_test_horizon"]
         for method in methods:
             torch.manual_seed(cfg.seed)
             learner = learn.LearnerIMR(
-                model="RB",
+                model=cfg.model,
                 neurons=cfg.neurons,
                 layers=cfg.layers,
                 batch_size=cfg.batch_size,
@@ -752,7 +848,7 @@ def dpnn_rows(
             )
             nets = [learner.energy, learner.jac_vec if method == "implicit" else learner.L_tensor]
             params = sum(count(n) for n in nets)
-            print(f"[dpnn_rigid_body] DPNN {method}: {params} parameters, {cfg.epochs} epochs")
+            print(f"[{p.name}] DPNN {method}: {params} parameters, {cfg.epochs} epochs")
             t0, c0 = time.perf_counter(), time.process_time()
             learner.learn(
                 method=method,
@@ -763,7 +859,7 @@ def dpnn_rows(
             )
             seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
             t0 = time.perf_counter()
-            traj = dpnn_rollout(simulate, cfg, tests, method, DRIFT_STEPS + 1)
+            traj = dpnn_rollout(simulate, cfg, tests, method, DRIFT_STEPS + 1, model.columns)
             curve = [
                 [i + 1, *map(float, t), *map(float, v)]
                 for i, (t, v) in enumerate(
@@ -778,8 +874,8 @@ def dpnn_rows(
                     "train_seconds": round(seconds, 1),
                     "train_cpu_seconds": round(cpu, 1),
                     "iterations": f"{cfg.epochs} epochs × {len(learner.train_loader)} batches",
-                    "their_iterations": f"{DPNN_RB_ARGS['epochs']} epochs",
-                    "fraction_of_theirs": round(cfg.epochs / DPNN_RB_ARGS["epochs"], 4),
+                    "their_iterations": f"{model.args['epochs']} epochs",
+                    "fraction_of_theirs": round(cfg.epochs / model.args["epochs"], 4),
                     **p.score(traj),
                     "rollout_seconds": round(time.perf_counter() - t0, 2),
                     "their_ground_truth_error_test_horizon": gt_error,
@@ -787,26 +883,30 @@ def dpnn_rows(
                         "columns": ["epoch", "train_mov", "train_reg", "val_mov", "val_reg"],
                         "rows": curve,
                     },
-                    "notes": "typical_args/args_RB.txt; trained on their IMR (float32) records, "
-                    "so the target is the implicit midpoint map, not the flow (their ground "
-                    "truth's own error is their_ground_truth_error_test_horizon); train "
-                    "seconds include their per-epoch validation pass; cosine schedule over the "
-                    "epochs run; rolled out in float32 by their RBNeuralIMR",
+                    "notes": f"typical_args/args_{cfg.model}.txt; trained on their IMR "
+                    "(float32) records, so the target is the implicit midpoint map, not the "
+                    "flow (their ground truth's own error is "
+                    "their_ground_truth_error_test_horizon); train seconds include their "
+                    "per-epoch validation pass; cosine schedule over the epochs run; rolled out "
+                    f"in float32 by their {model.solver}",
                 }
             )
     return rows
 
 
-def dpnn_rollout(simulate: Any, cfg: Any, tests: Any, method: str, steps: int) -> np.ndarray:
-    """Their simulate_batch (``steps`` − 1 steps; it records (old, new) pairs) as (n, steps, 3)."""
+def dpnn_rollout(
+    simulate: Any, cfg: Any, tests: Any, method: str, steps: int, columns: list[str]
+) -> np.ndarray:
+    """Their simulate_batch (``steps`` − 1 steps; it records (old, new) pairs) as
+    (n, steps, dim)."""
     cfg.steps, keep = steps, cfg.steps
     try:
         df = simulate.simulate_batch(cfg, tests, method=method)
     finally:
         cfg.steps = keep
-    n = len(tests)
-    old = df[["old_mx", "old_my", "old_mz"]].to_numpy(float).reshape(n, steps - 1, 3)
-    new = df[["mx", "my", "mz"]].to_numpy(float).reshape(n, steps - 1, 3)
+    n, dim = len(tests), len(columns)
+    old = df[[f"old_{c}" for c in columns]].to_numpy(float).reshape(n, steps - 1, dim)
+    new = df[columns].to_numpy(float).reshape(n, steps - 1, dim)
     return np.concatenate([old[:, :1], new], axis=1)
 
 
