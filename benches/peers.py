@@ -1,12 +1,19 @@
 """RK4 rollouts of poisson_rs against the 20 lines a user would write in JAX and numba, in one
 process, one thread: ``taskset -c 0 python benches/peers.py``.
 
-Workloads (h = 0.1, final state only, so no contender pays for storing a trajectory):
+Workloads (h = 0.1 unless said, final state only, so no contender pays for storing a trajectory):
 
 - the rigid body, I = (1.5, 2, 2.5), batches 1, 64 and 4096;
 - the heavy top, I = (1, 1.5, 2), mgl = 0.981, χ = e₃, batches 64 and 4096;
 - PNN's Lotka–Volterra system (u̇ = u(v − 2), v̇ = v(1 − u), a log-canonical bracket), batches 64
   and 4096;
+- two expression Hamiltonians (not polynomials), the shipped scenes' systems with H as text:
+  PNN's extended pendulum (``scenes/extended_pendulum_pnn.toml``: H = ½u² − cos v + u(r − u² −
+  v²) on the affine bracket {u, v} = −1, {u, r} = −2v, {v, r} = 2u) and three point vortices
+  (``scenes/point_vortices.toml``: Γ = (1, 1, 0.5), H = −(1/4π) Σ_{i<j} Γ_iΓ_j log|z_i − z_j|²,
+  {x_i, y_i} = 1/Γ_i, h = 0.05), batches 64 and 4096. The peers' fields are derived by hand and
+  simplified as a user would (the pendulum's u̇ = −sin v, v̇ = u + r − u² − v², ṙ = 2(uu̇ + vv̇);
+  the vortices' Biot–Savart sums pair by pair), which costs them fewer operations than π∇H;
 - ``integrate()`` of one state for one step: the cost of one call, in µs.
 
 Contenders: poisson_rs (``pr.integrate`` with ``every=n_steps``), JAX ``jit(vmap(lax.scan))``
@@ -16,9 +23,15 @@ main checkout's, to say what a change bought). Rounds alternate the contenders; 
 median of ``--rounds`` (≥ 5) timed runs after a warm-up (JAX compiles there). A missing peer is
 skipped with a message. Every contender's final states are checked against poisson_rs's: numba
 gives the same bits, JAX agrees to 1e-10 or better (the same RK4, summed in a different order),
-except on the heavy top's 10⁴ steps, where chaotic orbits amplify that order to O(1).
+except on the heavy top's 10⁴ steps, where chaotic orbits amplify that order to O(1). On the
+expression systems the peers' fields are other formulas (and the core has its own sin), so no
+bits are shared: the vortices agree to 1e-12 or better, the pendulum to a few 1e-9 at worst, from
+the few states that pass close to its separatrix's saddle (the median trajectory agrees to 1e-14
+over 200 steps, 1e-12 over 10⁴).
 
-Peers install with ``pip install 'poisson_rs[bench]'``. Pin one thread: the script sets
+Peers install with ``pip install 'poisson_rs[bench]'``, which pins jax[cpu] 0.10.2 and numba
+0.68.1: the ratios compare across runs only with those versions (and on the same machine).
+``--systems`` runs only the named systems' workloads. Pin one thread: the script sets
 ``RAYON_NUM_THREADS=1``, XLA's and numba's thread counts to 1 before importing them; run it
 under ``taskset -c 0`` as well. ``--json FILE`` writes the numbers.
 """
@@ -29,6 +42,7 @@ import argparse
 import importlib.machinery
 import importlib.util
 import json
+import math
 import os
 import platform
 import statistics
@@ -59,6 +73,27 @@ COM = (0.0, 0.0, 1.0)
 #: PNN's Lotka–Volterra: ẋ_i = x_i Σ_j c_ij (x_j − b_j).
 LV_C = ((0.0, 1.0), (-1.0, 0.0))
 LV_B = (1.0, 2.0)
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+#: The expression systems: the shipped scenes' systems (H as text), at the scenes' steps.
+EXPRESSION_SCENES = {
+    "extended pendulum": "extended_pendulum_pnn.toml",
+    "point vortices": "point_vortices.toml",
+}
+#: The circulations of scenes/point_vortices.toml: {x_i, y_i} = 1/Γ_i.
+GAMMA = (1.0, 1.0, 0.5)
+STEP = {"extended pendulum": 0.1, "point vortices": 0.05}
+DIM = {
+    "rigid body": 3,
+    "heavy top": 6,
+    "lotka-volterra": 2,
+    "extended pendulum": 3,
+    "point vortices": 2 * len(GAMMA),
+}
+
+
+def step_size(system: str) -> float:
+    return STEP.get(system, H)
+
 
 #: (system, batch, steps): about 1e6 trajectory-steps each (RK4 at 1e7–1e8 steps/s).
 WORKLOADS = [
@@ -69,6 +104,10 @@ WORKLOADS = [
     ("heavy top", 4096, 200),
     ("lotka-volterra", 64, 10_000),
     ("lotka-volterra", 4096, 200),
+    ("extended pendulum", 64, 10_000),
+    ("extended pendulum", 4096, 200),
+    ("point vortices", 64, 10_000),
+    ("point vortices", 4096, 200),
 ]
 
 Runner = Callable[[np.ndarray, int], np.ndarray]
@@ -76,8 +115,14 @@ Runner = Callable[[np.ndarray, int], np.ndarray]
 
 def states(system: str, batch: int) -> np.ndarray:
     """Seeded initial states: |μ| ≤ 3 for the rigid body; M in [−1, 1]³ and |Γ| = 1 for the
-    top; within a log distance of 0.5 of the equilibrium (1, 2) for Lotka–Volterra."""
+    top; within a log distance of 0.5 of the equilibrium (1, 2) for Lotka–Volterra; (u, v) in
+    [−1, 1]², r in [0, 2] for the pendulum; the vortices within 0.2 of the scene's first state."""
     rng = np.random.default_rng(42)
+    if system == "extended pendulum":
+        return rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 2.0], (batch, 3))
+    if system == "point vortices":
+        first = np.array([1.0, 0.0, -0.5, 0.6, -0.3, -0.8])
+        return first + rng.uniform(-0.2, 0.2, (batch, 6))
     if system == "rigid body":
         return rng.uniform(-3.0, 3.0, (batch, 3))
     if system == "lotka-volterra":
@@ -88,9 +133,24 @@ def states(system: str, batch: int) -> np.ndarray:
     return np.concatenate([m, g], axis=1)
 
 
-def poisson_rs_runner(system: str, core: ModuleType | None = None) -> Runner:
+def poisson_rs_runner(system: str, core: ModuleType | None = None) -> Runner | None:
     """RK4 through ``pr.integrate`` (``core``: call that extension's rollout directly, for a
-    baseline build)."""
+    baseline build; None where that build has no such rollout)."""
+    h = step_size(system)
+    if system in EXPRESSION_SCENES:
+        from poisson_rs.protocols import NEWTON_MAX_ITER, NEWTON_TOL
+        from poisson_rs.scenes import load_scene
+
+        expr = load_scene(SCENES / EXPRESSION_SCENES[system]).system
+        field = expr.classical("rk4")
+        if core is None:
+            return lambda x0, n: pr.integrate(field, x0, h, n, every=n)[:, -1]
+        if not hasattr(core, "rollout_hamiltonian_field"):
+            return None
+        tables = (*expr.tape, *expr.terms.tables())
+        return lambda x0, n: core.rollout_hamiltonian_field(
+            "rk4", *tables, x0, h, n, n, NEWTON_TOL, NEWTON_MAX_ITER, program=expr.field_program
+        )[0][:, -1]
     if system == "lotka-volterra":
         lv = pr.lotka_volterra(LV_C, LV_B)
         if core is None:
@@ -114,6 +174,22 @@ def poisson_rs_runner(system: str, core: ModuleType | None = None) -> Runner:
     return lambda mu0, n: core.rollout_lie_poisson("rk4", c, powers, coeffs, mu0, H, n, n)[0][:, -1]
 
 
+def vortex_field(z: Any, pi: float) -> list[Any]:
+    """ẋ_i = −Σ_j Γ_j (y_i − y_j) / (2π d_ij²), ẏ_i = Σ_j Γ_j (x_i − x_j) / (2π d_ij²), pair by
+    pair, for z = (x1, y1, x2, y2, …) (the field of the scene's H on {x_i, y_i} = 1/Γ_i)."""
+    n = len(GAMMA)
+    out: list[Any] = [0.0] * (2 * n)
+    for i in range(n):
+        for j in range(i + 1, n):
+            ex, ey = z[2 * i] - z[2 * j], z[2 * i + 1] - z[2 * j + 1]
+            w = 1.0 / (2.0 * pi * (ex * ex + ey * ey))
+            out[2 * i] = out[2 * i] - GAMMA[j] * ey * w
+            out[2 * i + 1] = out[2 * i + 1] + GAMMA[j] * ex * w
+            out[2 * j] = out[2 * j] + GAMMA[i] * ey * w
+            out[2 * j + 1] = out[2 * j + 1] - GAMMA[i] * ex * w
+    return out
+
+
 def jax_runner(system: str) -> Runner | None:
     try:
         import jax
@@ -126,8 +202,18 @@ def jax_runner(system: str) -> Runner | None:
     arm = MGL * jnp.array(COM)
 
     lv_c, lv_b = jnp.array(LV_C), jnp.array(LV_B)
+    h = step_size(system)
 
     def field(mu: Any) -> Any:
+        if system == "extended pendulum":
+            # π∇H of H = u²/2 − cos v + u(r − u² − v²), simplified by hand: u̇ = −sin v,
+            # v̇ = u + r − u² − v², ṙ = 2(u u̇ + v v̇) (r − u² − v² is a Casimir).
+            u, v, r = mu[0], mu[1], mu[2]
+            du = -jnp.sin(v)
+            dv = u + r - u * u - v * v
+            return jnp.stack([du, dv, 2.0 * (u * du + v * dv)])
+        if system == "point vortices":
+            return jnp.stack(vortex_field(mu, jnp.pi))
         if system == "lotka-volterra":
             return mu * (lv_c @ (mu - lv_b))
         if system == "rigid body":
@@ -138,10 +224,10 @@ def jax_runner(system: str) -> Runner | None:
 
     def step(mu: Any, _: Any) -> tuple[Any, None]:
         k1 = field(mu)
-        k2 = field(mu + 0.5 * H * k1)
-        k3 = field(mu + 0.5 * H * k2)
-        k4 = field(mu + H * k3)
-        return mu + H / 6.0 * (k1 + 2.0 * (k2 + k3) + k4), None
+        k2 = field(mu + 0.5 * h * k1)
+        k3 = field(mu + 0.5 * h * k2)
+        k4 = field(mu + h * k3)
+        return mu + h / 6.0 * (k1 + 2.0 * (k2 + k3) + k4), None
 
     compiled: dict[int, Any] = {}
 
@@ -162,12 +248,32 @@ def numba_runner(system: str) -> Runner | None:
         return None
     inv = np.array([1.0 / v for v in (RIGID_I if system == "rigid body" else TOP_I)])
     arm = MGL * np.array(COM)
-    dim = {"rigid body": 3, "heavy top": 6, "lotka-volterra": 2}[system]
-    lv = dim == 2
+    dim = DIM[system]
+    h = step_size(system)
+    lv = system == "lotka-volterra"
+    pendulum, vortices = system == "extended pendulum", system == "point vortices"
     c01, c10, b0, b1 = LV_C[0][1], LV_C[1][0], LV_B[0], LV_B[1]
+    gamma, n_vortices = np.array(GAMMA), len(GAMMA)
 
     @numba.njit(cache=False, fastmath=False)
     def field(mu: np.ndarray, out: np.ndarray) -> None:
+        if pendulum:  # as in jax_runner: u̇ = −sin v, v̇ = u + r − u² − v², ṙ = 2(u u̇ + v v̇)
+            u, v, r = mu[0], mu[1], mu[2]
+            du = -math.sin(v)
+            dv = u + r - u * u - v * v
+            out[0], out[1], out[2] = du, dv, 2.0 * (u * du + v * dv)
+            return
+        if vortices:  # vortex_field's sums, pair by pair
+            out[:] = 0.0
+            for i in range(n_vortices):
+                for j in range(i + 1, n_vortices):
+                    ex, ey = mu[2 * i] - mu[2 * j], mu[2 * i + 1] - mu[2 * j + 1]
+                    w = 1.0 / (2.0 * math.pi * (ex * ex + ey * ey))
+                    out[2 * i] -= gamma[j] * ey * w
+                    out[2 * i + 1] += gamma[j] * ex * w
+                    out[2 * j] += gamma[i] * ey * w
+                    out[2 * j + 1] -= gamma[i] * ex * w
+            return
         if lv:
             out[0] = mu[0] * (c01 * (mu[1] - b1))
             out[1] = mu[1] * (c10 * (mu[0] - b0))
@@ -200,16 +306,16 @@ def numba_runner(system: str) -> Runner | None:
             for _ in range(n):
                 field(mu, k1)
                 for i in range(dim):
-                    y[i] = mu[i] + 0.5 * H * k1[i]
+                    y[i] = mu[i] + 0.5 * h * k1[i]
                 field(y, k2)
                 for i in range(dim):
-                    y[i] = mu[i] + 0.5 * H * k2[i]
+                    y[i] = mu[i] + 0.5 * h * k2[i]
                 field(y, k3)
                 for i in range(dim):
-                    y[i] = mu[i] + H * k3[i]
+                    y[i] = mu[i] + h * k3[i]
                 field(y, k4)
                 for i in range(dim):
-                    mu[i] += H / 6.0 * (k1[i] + 2.0 * (k2[i] + k3[i]) + k4[i])
+                    mu[i] += h / 6.0 * (k1[i] + 2.0 * (k2[i] + k3[i]) + k4[i])
         return out
 
     return run  # type: ignore[no-any-return]
@@ -252,11 +358,44 @@ def call_cost(fn: Callable[[], Any], rounds: int) -> float:
     return statistics.median(samples)
 
 
+def one_call_costs(rounds: int, baseline: ModuleType | None) -> dict[str, float]:
+    """Seconds of one call of RK4 on one rigid-body state for one step, per contender."""
+    rk4 = pr.classical(pr.RigidBody(RIGID_I), "rk4")
+    one = np.array([1.0, 1.0, 2.0])
+    calls: dict[str, float] = {
+        "poisson_rs": call_cost(lambda: pr.integrate(rk4, [1.0, 1.0, 2.0], H, 1), rounds)
+    }
+    jax_run = jax_runner("rigid body")
+    if jax_run is not None:
+        calls["jax"] = call_cost(lambda: jax_run(one[None], 1), rounds)
+    numba_run = numba_runner("rigid body")
+    if numba_run is not None:
+        calls["numba"] = call_cost(lambda: numba_run(one[None], 1), rounds)
+    core = poisson_rs_runner("rigid body", pr._core)
+    assert core is not None
+    calls["poisson_rs (_core call only)"] = call_cost(lambda: core(one[None], 1), rounds)
+    lazy = pr._core.rollout_classical
+    calls["poisson_rs (_core call, lazy diagnostics)"] = call_cost(
+        lambda: lazy("rk4", RIGID_I, one[None], H, 1, 1, lazy=True), rounds
+    )
+    if baseline is not None:
+        b = poisson_rs_runner("rigid body", baseline)
+        assert b is not None
+        calls["baseline (_core call only)"] = call_cost(lambda: b(one[None], 1), rounds)
+    return calls
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=7, help="timed rounds per cell (>= 5)")
     parser.add_argument("--baseline", type=Path, help="an earlier build's _core extension")
     parser.add_argument("--json", type=Path, help="write the numbers here")
+    parser.add_argument(
+        "--systems",
+        nargs="+",
+        choices=sorted(DIM),
+        help="run only these systems' workloads (and skip the one-call costs)",
+    )
     args = parser.parse_args()
     if args.json:  # before minutes of work, not after
         check_output_path(args.json)
@@ -264,6 +403,8 @@ def main() -> None:
     baseline = load_core(args.baseline) if args.baseline else None
     rows: list[dict[str, Any]] = []
     for system, batch, n in WORKLOADS:
+        if args.systems and system not in args.systems:
+            continue
         mu0 = states(system, batch)
         runners: dict[str, Runner | None] = {
             "poisson_rs": poisson_rs_runner(system),
@@ -282,40 +423,28 @@ def main() -> None:
             for name, run in live.items():
                 samples[name].append(timed(run, mu0, n)[0])
         rate = {k: batch * n / statistics.median(v) for k, v in samples.items()}
-        row = {"system": system, "batch": batch, "steps": n, "rate": rate, "agree": agree}
+        row = {
+            "system": system,
+            "batch": batch,
+            "steps": n,
+            "h": step_size(system),
+            "rate": rate,
+            "agree": agree,
+        }
         rows.append(row)
         print(
-            f"{system:14s} batch {batch:5d}: "
+            f"{system:17s} batch {batch:5d}: "
             + ", ".join(f"{k} {v:.2e}" for k, v in rate.items())
             + " trajectory-steps/s; max |diff| "
             + ", ".join(f"{k} {v:.1e}" for k, v in agree.items() if k != "poisson_rs"),
             flush=True,
         )
-    # One call, one state, one step.
-    rk4 = pr.classical(pr.RigidBody(RIGID_I), "rk4")
-    one = np.array([1.0, 1.0, 2.0])
-    calls: dict[str, float] = {
-        "poisson_rs": call_cost(lambda: pr.integrate(rk4, [1.0, 1.0, 2.0], H, 1), rounds)
-    }
-    jax_run = jax_runner("rigid body")
-    if jax_run is not None:
-        calls["jax"] = call_cost(lambda: jax_run(one[None], 1), rounds)
-    numba_run = numba_runner("rigid body")
-    if numba_run is not None:
-        calls["numba"] = call_cost(lambda: numba_run(one[None], 1), rounds)
-    core = poisson_rs_runner("rigid body", pr._core)
-    calls["poisson_rs (_core call only)"] = call_cost(lambda: core(one[None], 1), rounds)
-    lazy = pr._core.rollout_classical
-    calls["poisson_rs (_core call, lazy diagnostics)"] = call_cost(
-        lambda: lazy("rk4", RIGID_I, one[None], H, 1, 1, lazy=True), rounds
-    )
-    if baseline is not None:
-        b = poisson_rs_runner("rigid body", baseline)
-        calls["baseline (_core call only)"] = call_cost(lambda: b(one[None], 1), rounds)
-    print(
-        "one call, one state, one step: "
-        + ", ".join(f"{k} {v * 1e6:.2f} us" for k, v in calls.items())
-    )
+    calls = {} if args.systems else one_call_costs(rounds, baseline)
+    if calls:
+        print(
+            "one call, one state, one step: "
+            + ", ".join(f"{k} {v * 1e6:.2f} us" for k, v in calls.items())
+        )
     load = os.getloadavg()
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
     print(f"machine: {machine}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
