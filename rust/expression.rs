@@ -235,11 +235,16 @@ impl Expression {
 
 /// Lanes of one block of [`Expression::values_lanes`] (the rollouts' SIMD width).
 pub const BLOCK: usize = crate::isa::LANES;
+/// Lanes of a wide block, for calls of at least that many lanes: each instruction's dispatch
+/// (the match, the operand lookups) is paid once for four times the arithmetic.
+pub const WIDE_BLOCK: usize = 4 * BLOCK;
+
+type Registers<const W: usize> = std::cell::RefCell<Vec<[f64; W]>>;
 
 thread_local! {
-    /// The value registers of [`Expression::values_lanes`] on this thread.
-    static REGISTERS: std::cell::RefCell<Vec<[f64; BLOCK]>> =
-        const { std::cell::RefCell::new(Vec::new()) };
+    /// The value registers of [`Expression::values_lanes`] on this thread, per block width.
+    static REGISTERS: Registers<BLOCK> = const { std::cell::RefCell::new(Vec::new()) };
+    static WIDE_REGISTERS: Registers<WIDE_BLOCK> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 /// Value and gradient registers of [`Expression::gradient_lanes`] for tapes of up to `CAP`
@@ -286,105 +291,125 @@ impl Expression {
     }
 
     /// The outputs at L states at once, values only (`out[m][l]`: output m of lane l): the
-    /// same lane kernels as [`Self::gradient_lanes`]. Lanes run in blocks of [`BLOCK`] (the
+    /// same lane kernels as [`Self::gradient_lanes`]. Lanes run in blocks of [`BLOCK`], or
+    /// [`WIDE_BLOCK`] for calls of that many lanes or more (the
     /// last one padded), each lane independent of the others, so every lane gets a one-lane
     /// call's bits. The registers live in a per-thread buffer that is grown once and never
     /// cleared (every register is written before it is read): clearing a register file per
     /// call cost more than the arithmetic.
     #[inline(always)]
     pub fn values_lanes<const L: usize>(&self, x: &[[f64; L]], out: &mut [[f64; L]]) {
-        REGISTERS.with(|cell| {
-            let mut own = Vec::new();
-            let mut borrowed = cell.try_borrow_mut();
-            let buf: &mut Vec<[f64; BLOCK]> = match borrowed.as_mut() {
-                Ok(b) => b,
-                Err(_) => &mut own,
-            };
-            let need = self.ops.len();
-            if buf.len() < need {
-                if buf.try_reserve_exact(need - buf.len()).is_err() {
-                    crate::memory::panic_out_of_memory(&CoreError::Memory(
-                        "the registers of an expression".into(),
-                    ));
-                }
-                buf.resize(need, [0.0; BLOCK]);
+        if L >= WIDE_BLOCK {
+            WIDE_REGISTERS.with(|cell| self.values_in_blocks(cell, x, out));
+        } else {
+            REGISTERS.with(|cell| self.values_in_blocks(cell, x, out));
+        }
+    }
+
+    /// [`Self::values_lanes`] in blocks of W lanes, the registers in `cell` (or, where this
+    /// thread's are in use, a buffer of the call's own).
+    #[inline(always)]
+    fn values_in_blocks<const L: usize, const W: usize>(
+        &self,
+        cell: &Registers<W>,
+        x: &[[f64; L]],
+        out: &mut [[f64; L]],
+    ) {
+        let mut own = Vec::new();
+        let mut borrowed = cell.try_borrow_mut();
+        let buf: &mut Vec<[f64; W]> = match borrowed.as_mut() {
+            Ok(b) => b,
+            Err(_) => &mut own,
+        };
+        let need = self.ops.len();
+        if buf.len() < need {
+            if buf.try_reserve_exact(need - buf.len()).is_err() {
+                crate::memory::panic_out_of_memory(&CoreError::Memory(
+                    "the registers of an expression".into(),
+                ));
             }
-            let mut xb = [[0.0; BLOCK]; crate::MAX_DIM];
-            let mut ob = [[0.0; BLOCK]; crate::MAX_DIM];
-            for start in (0..L).step_by(BLOCK) {
-                let width = BLOCK.min(L - start);
-                for (xi, row) in xb.iter_mut().zip(x) {
-                    xi[..width].copy_from_slice(&row[start..start + width]);
-                }
-                self.values_block(&xb, &mut ob, &mut buf[..need]);
-                for (o, row) in out.iter_mut().zip(&ob) {
-                    o[start..start + width].copy_from_slice(&row[..width]);
-                }
+            buf.resize(need, [0.0; W]);
+        }
+        let mut xb = [[0.0; W]; crate::MAX_DIM];
+        let mut ob = [[0.0; W]; crate::MAX_DIM];
+        for start in (0..L).step_by(W) {
+            let width = W.min(L - start);
+            for (xi, row) in xb.iter_mut().zip(x) {
+                xi[..width].copy_from_slice(&row[start..start + width]);
             }
-        });
+            self.values_block(&xb, &mut ob, &mut buf[..need]);
+            for (o, row) in out.iter_mut().zip(&ob) {
+                o[start..start + width].copy_from_slice(&row[..width]);
+            }
+        }
     }
 
     // Inlined into the caller's SIMD kernel (compiled for AVX2 where the CPU has it): on its own
     // it would be compiled for the baseline's two-wide vectors.
     #[inline(always)]
-    fn values_block(&self, x: &[[f64; BLOCK]], out: &mut [[f64; BLOCK]], v: &mut [[f64; BLOCK]]) {
+    fn values_block<const W: usize>(
+        &self,
+        x: &[[f64; W]],
+        out: &mut [[f64; W]],
+        v: &mut [[f64; W]],
+    ) {
         for (k, op) in self.ops.iter().enumerate() {
             let (vd, vr) = v.split_at_mut(k);
             let r = &mut vr[0];
             match *op {
                 Op::Var(i) => *r = x[i],
-                Op::Const(c) => *r = [c; BLOCK],
+                Op::Const(c) => *r = [c; W],
                 Op::Add(a, b) => {
                     let (p, q) = (&vd[a], &vd[b]);
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = p[l] + q[l];
                     }
                 }
                 Op::Sub(a, b) => {
                     let (p, q) = (&vd[a], &vd[b]);
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = p[l] - q[l];
                     }
                 }
                 Op::Mul(a, b) => {
                     let (p, q) = (&vd[a], &vd[b]);
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = p[l] * q[l];
                     }
                 }
                 Op::Div(a, b) => {
                     let (p, q) = (&vd[a], &vd[b]);
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = p[l] / q[l];
                     }
                 }
                 Op::Neg(a) => {
                     let p = &vd[a];
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = -p[l];
                     }
                 }
                 Op::Powi(a, n) => {
                     let y = &vd[a];
-                    let mut p = [1.0; BLOCK];
+                    let mut p = [1.0; W];
                     for _ in 0..n.unsigned_abs() {
-                        for l in 0..BLOCK {
+                        for l in 0..W {
                             p[l] *= y[l];
                         }
                     }
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = if n < 0 { 1.0 / p[l] } else { p[l] };
                     }
                 }
                 Op::Exp(a) => crate::exp::exp_lanes(&vd[a], r),
                 Op::Sin(a) | Op::Cos(a) | Op::Tan(a) => {
-                    let (mut f, mut g) = ([0.0; BLOCK], [0.0; BLOCK]);
+                    let (mut f, mut g) = ([0.0; W], [0.0; W]);
                     crate::trig::sin_cos_lanes(&vd[a], &mut f, &mut g);
                     match op {
                         Op::Sin(_) => *r = f,
                         Op::Cos(_) => *r = g,
                         _ => {
-                            for l in 0..BLOCK {
+                            for l in 0..W {
                                 r[l] = f[l] / g[l];
                             }
                         }
@@ -392,25 +417,25 @@ impl Expression {
                 }
                 Op::Sqrt(a) => {
                     let p = &vd[a];
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = p[l].sqrt();
                     }
                 }
                 Op::Log(a) => {
                     let p = &vd[a];
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = p[l].ln();
                     }
                 }
                 Op::Tanh(a) => {
                     let p = &vd[a];
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = p[l].tanh();
                     }
                 }
                 Op::Powf(a, e) => {
                     let p = &vd[a];
-                    for l in 0..BLOCK {
+                    for l in 0..W {
                         r[l] = p[l].powf(e);
                     }
                 }

@@ -16,6 +16,11 @@ use crate::structures::lie_poisson::VectorField;
 /// bit for bit, as the system's scalar field (the same operations in the same order), and no
 /// lane may depend on another: that is what keeps results independent of the chunking.
 pub trait LaneField<const N: usize>: Sync {
+    /// Whether RK4 on this field runs in wide blocks ([`crate::lanes::WIDE_LANES`]
+    /// trajectories): true for a field interpreted instruction by instruction (an expression's
+    /// program), whose dispatch per instruction is then spread over four times the lanes.
+    const WIDE: bool = false;
+
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
 
     /// ∂f/∂μ at L states (`out[r][c][l]`), where the field provides it (in straight-line form,

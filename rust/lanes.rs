@@ -31,8 +31,11 @@ use crate::step::{NewtonOptions, StepResult, StepStats};
 use crate::straight_line::{sized_mut, LieField};
 use crate::structures::lie_poisson::{CompiledLiePoisson, VectorField};
 
-/// Trajectories per rollout chunk (a multiple of [`LANES`]).
+/// Trajectories per rollout chunk (a multiple of [`WIDE_LANES`]).
 pub const LANE_CHUNK: usize = 8 * LANES;
+
+/// Lanes of a wide block ([`LaneStepper::WIDE`]).
+pub const WIDE_LANES: usize = 4 * LANES;
 
 impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
     #[inline(always)]
@@ -82,6 +85,11 @@ pub trait LaneStepper<const N: usize>: Sync {
     /// residuals, failures) that the block loop must record after every step.
     const REPORTS: bool = false;
 
+    /// Whether blocks of [`WIDE_LANES`] trajectories pay (rather than [`LANES`]): for work
+    /// whose cost per instruction does not grow with the lanes (an interpreted program's
+    /// dispatch). A block of at most [`LANES`] live trajectories stays narrow.
+    const WIDE: bool = false;
+
     /// Whether the stepper has a domain beyond finite states (the block loop then asks
     /// [`LaneStepper::maybe_outside_lanes`] after every step).
     const CHECKS_DOMAIN: bool = false;
@@ -123,6 +131,8 @@ pub trait LaneStepper<const N: usize>: Sync {
 }
 
 impl<const N: usize, F: LaneField<N>> LaneStepper<N> for Rk4<F> {
+    const WIDE: bool = F::WIDE;
+
     #[inline(always)]
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
         rk4_lanes(&self.system, h, mu);
@@ -408,10 +418,11 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
             return;
         }
         let row = out.len() / mu.len();
+        let width = if S::WIDE { WIDE_LANES } else { LANES };
         for ((m, i), o) in mu
-            .chunks_mut(LANES)
-            .zip(info.chunks_mut(LANES))
-            .zip(out.chunks_mut(row * LANES))
+            .chunks_mut(width)
+            .zip(info.chunks_mut(width))
+            .zip(out.chunks_mut(row * width))
         {
             let block = Block {
                 mu: m,
@@ -425,28 +436,51 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 advance_block::<N, 1, S>(self.stepper, h, steps.clone(), every, block);
                 continue;
             }
+            let wide = S::WIDE && block.mu.len() > LANES;
             #[cfg(target_arch = "x86_64")]
             if self.isa.is_avx2() {
                 // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA
                 // (its field is private: safe code cannot forge it).
-                unsafe { advance_block_avx2::<N, S>(self.stepper, h, steps.clone(), every, block) };
+                unsafe {
+                    if wide {
+                        advance_block_avx2::<N, WIDE_LANES, S>(
+                            self.stepper,
+                            h,
+                            steps.clone(),
+                            every,
+                            block,
+                        )
+                    } else {
+                        advance_block_avx2::<N, LANES, S>(
+                            self.stepper,
+                            h,
+                            steps.clone(),
+                            every,
+                            block,
+                        )
+                    }
+                };
                 continue;
             }
-            advance_block::<N, LANES, S>(self.stepper, h, steps.clone(), every, block);
+            if wide {
+                advance_block::<N, WIDE_LANES, S>(self.stepper, h, steps.clone(), every, block);
+            } else {
+                advance_block::<N, LANES, S>(self.stepper, h, steps.clone(), every, block);
+            }
         }
     }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn advance_block_avx2<const N: usize, S: LaneStepper<N>>(
+unsafe fn advance_block_avx2<const N: usize, const L: usize, S: LaneStepper<N>>(
     stepper: &S,
     h: f64,
     steps: std::ops::Range<usize>,
     every: usize,
     block: Block<'_, N>,
 ) {
-    advance_block::<N, LANES, S>(stepper, h, steps, every, block);
+    advance_block::<N, L, S>(stepper, h, steps, every, block);
 }
 
 /// Loads up to L trajectories into lanes, takes the steps, records and checks each lane after

@@ -160,6 +160,26 @@ def test_pickled_systems_and_steppers_step_bit_identically() -> None:
     assert system_from_dict(s.to_dict()) == s
 
 
+@pytest.mark.parametrize("scene", ["extended_pendulum_pnn", "point_vortices"])
+def test_rk4_in_wide_blocks_is_each_trajectory_alone_bit_for_bit(scene: str) -> None:
+    """RK4 on an expression field runs 32 trajectories a block (a block of 8 or fewer stays
+    narrow, a lone one takes one lane): 75 states (chunks of 64 and 11: two full wide blocks,
+    one partly filled) and 72 (64 and 8: a narrow block) must give each trajectory's own
+    one-state bits. A trajectory that fails (its field overflows) leaves its block's other
+    lanes alone."""
+    s = _scene(scene).system
+    rng = np.random.default_rng(7)
+    base = np.asarray(s.demo_states, dtype=float)
+    x0 = base[rng.integers(len(base), size=75)] * (1 + 0.05 * rng.normal(size=(75, s.dim)))
+    x0[40] = 1e200  # its field overflows: the trajectory fails on its first step
+    rk4 = s.classical("rk4")
+    alone = np.stack([pr.integrate(rk4, x, 0.05, 30, every=3, on_failure="ignore") for x in x0])
+    for n in (75, 72):
+        together = pr.integrate(rk4, x0[:n], 0.05, 30, every=3, on_failure="ignore")
+        np.testing.assert_array_equal(together, alone[:n])
+    assert np.isnan(alone[40, -1]).all() and np.isfinite(np.delete(alone, 40, 0)).all()
+
+
 def test_a_step_outside_the_domain_of_h_fails_the_trajectory_not_the_process() -> None:
     s = _scene("point_vortices").system
     # Vortices 1 and 2 on top of each other: log(0) in H.

@@ -86,6 +86,24 @@ impl<const N: usize> HamiltonianField<N> {
             p.values_lanes(x, out);
             return;
         }
+        if L > crate::isa::LANES {
+            // A wide block on the tape path, in narrow pieces: the tape's registers live on
+            // the stack, sized by the lanes.
+            const W: usize = crate::isa::LANES;
+            for start in (0..L).step_by(W) {
+                let width = W.min(L - start);
+                let mut xb = [[0.0; W]; N];
+                let mut ob = [[0.0; W]; N];
+                for i in 0..N {
+                    xb[i][..width].copy_from_slice(&x[i][start..start + width]);
+                }
+                self.field_in_lanes(&xb, &mut ob);
+                for i in 0..N {
+                    out[i][start..start + width].copy_from_slice(&ob[i][..width]);
+                }
+            }
+            return;
+        }
         let (mut v, mut g) = ([0.0; L], [[0.0; L]; N]);
         self.hamiltonian.gradient_lanes(x, &mut v, &mut g);
         *out = [[0.0; L]; N];
@@ -141,6 +159,9 @@ impl<const N: usize> VectorField<N> for HamiltonianField<N> {
 /// The field in lanes (the scalar field is its one-lane case, so both give the same bits); the
 /// Jacobian lane by lane from the scalar jets.
 impl<const N: usize> LaneField<N> for HamiltonianField<N> {
+    // An interpreted program: wide blocks spread each instruction's dispatch over more lanes.
+    const WIDE: bool = true;
+
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
         self.field_in_lanes(x, out);
