@@ -147,6 +147,7 @@ def test_log_distances_need_an_even_dimension_of_at_least_4(pendulum, vortices):
     assert [f.name for f in library_families(vortices.system.base, None, 12)] == [
         "poly2+trig",
         "poly2+logdist",
+        "poly2+dist^-1",
     ]
     assert distance_pairs(8) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
 
