@@ -277,6 +277,9 @@ def test_distance_powers_need_planar_points_and_come_last(pendulum, canonical):
         "poly2+dist^-1",
     ]
     assert [len(f) for f in families[2:]] == [15, 17]
+    assert families[-1].description.endswith(
+        "|z_a − z_b|^-1 and |z_a|^-1 of the points (x1, x2), (x3, x4) (17 terms)"
+    )
     assert families[-1].text(np.r_[np.zeros(14), 0.0, -1.0, 0.0]) == (
         "(-1.0)*(x1**2 + x2**2)**(-0.5)"
     )

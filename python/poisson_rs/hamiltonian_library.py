@@ -229,8 +229,9 @@ class LibraryFamily:
         extra = []
         if self.trig:
             extra.append("sin and cos of each coordinate")
+        # Planar points exist only in even dimensions (the distance options refuse the others).
         points = ", ".join(
-            f"({a}, {b})" for a, b in zip(self.variables[::2], self.variables[1::2], strict=True)
+            f"({a}, {b})" for a, b in zip(self.variables[::2], self.variables[1::2], strict=False)
         )
         if self.log_distances:
             extra.append(f"ln|z_a − z_b|² of the points {points}")
