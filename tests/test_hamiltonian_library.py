@@ -8,6 +8,7 @@ import pytest
 
 import poisson_rs as pr
 from poisson_rs.hamiltonian_library import (
+    DISTANCE_POWERS,
     LibraryFamily,
     distance_pairs,
     library_families,
@@ -147,6 +148,7 @@ def test_log_distances_need_an_even_dimension_of_at_least_4(pendulum, vortices):
     assert [f.name for f in library_families(vortices.system.base, None, 12)] == [
         "poly2+trig",
         "poly2+logdist",
+        "poly2+dist^-1",
     ]
     assert distance_pairs(8) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
 
@@ -188,3 +190,133 @@ def test_coinciding_points_are_refused_with_one_clear_error(vortices):
     # and stops there with the same error.
     with pytest.raises(ValueError, match=message):
         pr.learn(trajs, H, structure=base, max_degree=2, seed=0, progress=False)
+
+
+# Powers of distances |z_a − z_b|^p and |z_a|^p, and planar Kepler in (q1, q2, p1, p2).
+
+
+@pytest.fixture(scope="module")
+def canonical():
+    """The constant bracket {q_i, p_i} = 1 on (q1, q2, p1, p2) = (x1 … x4): the planar points
+    of the library are z_0 = q and z_1 = p."""
+    structure = pr.PolynomialBivector(4, {(0, 2): "1", (1, 3): "1"})
+    return pr.PolynomialPoissonSystem(structure, "x1**2 + x2**2", name="canonical")
+
+
+def _periapsis(e: float, angle: float) -> np.ndarray:
+    """(q, p) at periapsis of the Kepler orbit (GM = 1, a = 1) of eccentricity ``e``."""
+    r, v = 1.0 - e, np.sqrt((1.0 + e) / (1.0 - e))
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([r * c, r * s, -v * s, v * c])
+
+
+def test_distance_power_terms_value_and_gradient_match_autograd(vortices):
+    torch = pytest.importorskip("torch")
+    fam = LibraryFamily(vortices.system.base, 1, trig=False, distance_powers=DISTANCE_POWERS)
+    assert fam.name == "poly1+dist^-1+dist^-2+dist^-3" and len(fam) == 6 + 3 * 6
+    powers = [m for m, k in enumerate(fam.exponents) if k[0] in ("dist", "radius")]
+    assert [fam.exponents[m] for m in powers[:6]] == [
+        ("dist", -1, 0, 1),
+        ("dist", -1, 0, 2),
+        ("dist", -1, 1, 2),
+        ("radius", -1, 0),
+        ("radius", -1, 1),
+        ("radius", -1, 2),
+    ]
+    x = np.random.default_rng(4).normal(size=(7, 6))
+    xt = torch.tensor(x, requires_grad=True)
+    grads = fam.gradients(x)
+    for m in powers:
+        kind, p, a = fam.exponents[m][:3]
+        d = xt[:, 2 * a : 2 * a + 2]
+        if kind == "dist":
+            b = fam.exponents[m][3]
+            d = d - xt[:, 2 * b : 2 * b + 2]
+        phi = torch.sqrt((d * d).sum(dim=1)) ** p
+        (grad,) = torch.autograd.grad(phi.sum(), xt)
+        np.testing.assert_allclose(grads[:, :, m], grad.numpy(), rtol=1e-12, atol=1e-13)
+        # The text the learned system steps is the same function.
+        value = fam.system(np.eye(len(fam))[m]).hamiltonian(x)
+        np.testing.assert_allclose(value, phi.detach().numpy(), rtol=1e-13, atol=1e-13)
+
+
+def test_distance_power_gradients_match_finite_differences(canonical):
+    fam = LibraryFamily(canonical, 1, trig=False, distance_powers=(-1,))
+    x = np.random.default_rng(5).normal(size=(6, 4))
+    g = fam.gradients(x)
+    eps = 1e-6
+    for i in range(4):
+        step = np.zeros(4)
+        step[i] = eps
+        fd = np.stack(
+            [
+                (fam.system(e).hamiltonian(x + step) - fam.system(e).hamiltonian(x - step))
+                / (2 * eps)
+                for e in np.eye(len(fam))
+            ],
+            axis=1,
+        )
+        np.testing.assert_allclose(g[:, i, :], fd, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("powers", [(0,), (2,), (-4,), (-1, -1), (1.0,), (True,), "-1", -1])
+def test_bad_distance_powers_are_refused_naming_the_field(canonical, powers):
+    with pytest.raises(ValueError, match=r"distance_powers must be distinct integers among"):
+        LibraryFamily(canonical, 2, distance_powers=powers)
+
+
+def test_distance_powers_need_planar_points_and_come_last(pendulum, canonical):
+    with pytest.raises(ValueError, match="dimension must be even and at least 4, got 3"):
+        LibraryFamily(pendulum.base, 2, distance_powers=(-1,))
+    # After the cheaper libraries: 14 monomials + 1 log-distance, then + 3 inverse distances.
+    families = library_families(canonical, None, 12)
+    assert [f.name for f in families] == [
+        "poly2+trig",
+        "poly3+trig",
+        "poly2+logdist",
+        "poly2+dist^-1",
+    ]
+    assert [len(f) for f in families[2:]] == [15, 17]
+    assert families[-1].description.endswith(
+        "|z_a − z_b|^-1 and |z_a|^-1 of the points (x1, x2), (x3, x4) (17 terms)"
+    )
+    assert families[-1].text(np.r_[np.zeros(14), 0.0, -1.0, 0.0]) == (
+        "(-1.0)*(x1**2 + x2**2)**(-0.5)"
+    )
+
+
+def test_point_at_the_origin_is_refused_with_one_clear_error(canonical):
+    fam = LibraryFamily(canonical, 2, trig=False, distance_powers=(-1,))
+    good = _periapsis(0.1, 0.0)
+    with pytest.raises(ValueError, match=r"trajectories: 1 record\(s\) put point 2 at the origin"):
+        fam.check_states(np.array([good, [1.0, 0.5, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match=r"put points 1 and 2 at the same place"):
+        fam.check_states(np.array([[0.3, 0.4, 0.3, 0.4]]))
+    fam.check_states(good[None])
+
+
+def test_fit_recovers_kepler(canonical):
+    """Planar Kepler H = |p|²/2 − 1/|q| from exact records (3 orbits of e = 0.1, 0.2, 0.3 × 41
+    records, h = 0.1): every coefficient of poly2+dist^-1 within 1e-6 of the true one (½ on p1²,
+    p2², −1 on |q|^−1, 0 elsewhere), and the error at T = 100 from each training start and an
+    unseen orbit within 2× of the true H's through the same integrator (benches/library_kepler.py
+    runs pr.learn's whole search)."""
+    h = 0.1
+    kepler = pr.with_hamiltonian(canonical, "0.5*(x3**2 + x4**2) - (x1**2 + x2**2)**(-0.5)")
+    starts = np.array([_periapsis(e, 1.3 * k) for k, e in enumerate((0.1, 0.2, 0.3))])
+    trajs = list(np.asarray(pr.reference_solution(kepler, starts, np.arange(41) * h)))
+    data = prepare(trajs, h, None, seed=0, system=canonical)
+    fam = LibraryFamily(canonical, 2, trig=False, distance_powers=(-1,))
+    fit = fit_structure_hamiltonian(data, canonical, 2, family=fam)
+    learned = dict(zip(fit.family.exponents, fit.theta, strict=True))
+    truth = {(0, 0, 2, 0): 0.5, (0, 0, 0, 2): 0.5, ("radius", -1, 0): -1.0}
+    for key in fam.exponents:
+        assert abs(learned.get(key, 0.0) - truth.get(key, 0.0)) <= 1e-6, key
+    x0 = np.vstack([starts, [0.9, 0.3, -0.3, 1.0]])
+    ref = np.asarray(pr.reference_solution(kepler, x0, [0.0, 100.0]))[:, -1]
+    true = kepler.taylor_integrator(fam.order, tol=NEWTON_TOL, max_iter=NEWTON_MAX_ITER)
+    end_true = pr.integrate(true, x0, h, 1000, every=1000)[:, -1]
+    end_learned = pr.integrate(fit.stepper, x0, h, 1000, every=1000)[:, -1]
+    err_true = np.max(np.abs(end_true - ref), axis=1)
+    err_learned = np.max(np.abs(end_learned - ref), axis=1)
+    assert np.all(err_learned <= 2.0 * err_true), (err_learned, err_true)

@@ -1,7 +1,8 @@
 """A term library of Hamiltonians beyond polynomials, H_θ = Σ_m θ_m φ_m with φ_m monomials of
 degree ≤ d and sin x_i, cos x_i of each coordinate, or monomials of degree ≤ d and the
-log-distances ln|z_a − z_b|² of planar points, on any structure that steps expression
-Hamiltonians by jets (:meth:`poisson_rs.protocols.PoissonSystemBase.jet_realization`).
+log-distances ln|z_a − z_b|² of planar points, or monomials of degree ≤ d and powers of distances
+|z_a − z_b|^p, |z_a|^p (p < 0: the Coulomb and Kepler potentials), on any structure that steps
+expression Hamiltonians by jets (:meth:`poisson_rs.protocols.PoissonSystemBase.jet_realization`).
 
 Planar points: where the dimension n is even, the coordinates are read as n/2 consecutive pairs,
 z_a = (x_{2a+1}, x_{2a+2}) for a = 0 … n/2 − 1 (0-based a, 1-based coordinates as in x1 … xn), and
@@ -9,13 +10,23 @@ the log-distance terms are ln((x_{2a+1} − x_{2b+1})² + (x_{2a+2} − x_{2b+2}
 That is the only pairing tried (it is a rule on positions, not a guess at the system); where n is
 odd or below 4 there are no such terms and a family asking for them is refused.
 
+Powers of distances use the same points: |z_a − z_b|^p for each pair a < b and |z_a|^p, the
+distance of each point from the origin, for each power p of ``distance_powers`` (among
+:data:`DISTANCE_POWERS`; ``pr.learn`` tries p = −1 only). In canonical coordinates ordered
+(q1, q2, p1, p2) the points are z_0 = q and z_1 = p, so planar Kepler's −1/|q| is ``("radius", −1,
+0)``; the terms that pair a position with a momentum (|q − p|^p, |p|^p) mean nothing there and
+are fitted to near zero (on exact records they absorb a little of the integrator's truncation
+error, as every spare term does). For N planar bodies, order the coordinates (q_1x, q_1y, …,
+q_Nx, q_Ny, then the momenta) so that the first N points are the bodies.
+
 It offers what :func:`poisson_rs.learn.structure_fit.fit_structure_hamiltonian` asks of a
 family (as :class:`poisson_rs.hamiltonian_family.MonomialFamily` does): the gradients of the φ_m
 (so the vector field is linear in θ), the structure's integrator of H_θ (here Taylor-HJ by jets
 of H_θ written as an expression: built in about a millisecond), the learned system, and a text.
 A term is named by its key: an exponent tuple for a monomial, ``("sin", i)`` or ``("cos", i)``
 for the trigonometric ones (i the 0-based coordinate), ``("logdist", a, b)`` for ln|z_a − z_b|²
-(a < b, 0-based points). Nothing here names a structure.
+(a < b, 0-based points), ``("dist", p, a, b)`` for |z_a − z_b|^p and ``("radius", p, a)`` for
+|z_a|^p. Nothing here names a structure.
 """
 
 from __future__ import annotations
@@ -30,17 +41,21 @@ from .hamiltonian_family import monomial_exponents
 from .protocols import NEWTON_MAX_ITER, NEWTON_TOL
 
 __all__ = [
+    "DISTANCE_POWERS",
     "LIBRARY_DEGREES",
     "LIBRARY_DISTANCE_DEGREES",
+    "LIBRARY_DISTANCE_POWERS",
     "LIBRARY_ORDER",
     "LibraryFamily",
+    "check_distance_powers",
     "distance_pairs",
     "library_families",
     "supports_library",
 ]
 
 FloatArray = NDArray[np.float64]
-Key = Any  # tuple[int, ...] | tuple[str, int] | tuple[str, int, int]
+# tuple[int, ...] | tuple[str, int] | tuple[str, int, int] | tuple[str, int, int, int]
+Key = Any
 
 #: Taylor-HJ order (by jets) of the library's integrator: order 3 costs ~0.3 ms a step on a
 #: 3-D affine bracket, order 5 ~3.5 ms (docs/hamiltonians.md).
@@ -51,6 +66,13 @@ LIBRARY_DEGREES = (2, 3)
 #: ones and only where the dimension is even and ≥ 4: degree 2 also covers a uniform or linear
 #: background flow (the linear and angular impulses are of degree ≤ 2).
 LIBRARY_DISTANCE_DEGREES = (2,)
+#: Powers of distances a library may hold: the inverse-distance (Kepler, Coulomb, −1),
+#: inverse-square (−2: a centrifugal barrier) and inverse-cube (−3: a dipole) laws. Positive even
+#: powers are polynomials already.
+DISTANCE_POWERS = (-1, -2, -3)
+#: Powers of distances tried by ``pr.learn`` (with the degrees of :data:`LIBRARY_DISTANCE_DEGREES`,
+#: after the log-distances): −1 alone, since each power adds k(k + 1)/2 terms for k points.
+LIBRARY_DISTANCE_POWERS = (-1,)
 #: Two points closer than this, relative to 1 + |z_a| + |z_b|, count as coinciding: ln|z_a − z_b|²
 #: and its gradient ~1/|z_a − z_b| are then no longer representable to any useful accuracy.
 COINCIDE_RTOL = 1e-12
@@ -71,18 +93,41 @@ def distance_pairs(dim: int) -> list[tuple[int, int]]:
     ≥ 4 (0-based point indices). ValueError for an odd ``dim`` or one below 4."""
     if dim % 2 or dim < 4:
         raise ValueError(
-            "log-distance terms read the coordinates as planar points (x1, x2), (x3, x4), …: "
+            "distance terms read the coordinates as planar points (x1, x2), (x3, x4), …: "
             f"the dimension must be even and at least 4, got {dim}"
         )
     k = dim // 2
     return [(a, b) for a in range(k) for b in range(a + 1, k)]
 
 
+def check_distance_powers(powers: Any) -> tuple[int, ...]:
+    """``powers`` as a tuple of distinct integers among :data:`DISTANCE_POWERS`; ValueError
+    naming ``distance_powers`` otherwise."""
+    try:
+        items = list(powers)
+    except TypeError:
+        items = None
+    if (
+        items is None
+        or isinstance(powers, str)
+        or any(isinstance(p, bool) or not isinstance(p, (int, np.integer)) for p in items)
+        or any(int(p) not in DISTANCE_POWERS for p in items)
+        or len(set(map(int, items))) != len(items)
+    ):
+        raise ValueError(
+            f"distance_powers must be distinct integers among {DISTANCE_POWERS} (the exponent "
+            f"p of |z_a − z_b|^p and |z_a|^p), got {powers!r}"
+        )
+    return tuple(int(p) for p in items)
+
+
 def library_families(structure: Any, order: int | None, top: int) -> list[LibraryFamily]:
     """The term libraries ``pr.learn`` tries on ``structure`` after its polynomials, smallest
     first: poly+trig of :data:`LIBRARY_DEGREES`, then, where the dimension is even and ≥ 4,
-    poly+logdist of :data:`LIBRARY_DISTANCE_DEGREES` (degrees above ``top`` left out; none
-    where the structure does not step expressions by jets)."""
+    poly+logdist of :data:`LIBRARY_DISTANCE_DEGREES`, then poly+dist^p of the same degrees and the
+    powers :data:`LIBRARY_DISTANCE_POWERS` (k(k + 1)/2 terms a power for k points, more than the
+    k(k − 1)/2 log-distances: data those explain never pay for them). Degrees above ``top`` are
+    left out; none where the structure does not step expressions by jets."""
     if not supports_library(structure):
         return []
     out = [LibraryFamily(structure, d, order) for d in LIBRARY_DEGREES if d <= top]
@@ -90,6 +135,11 @@ def library_families(structure: Any, order: int | None, top: int) -> list[Librar
     if dim % 2 == 0 and dim >= 4:
         out += [
             LibraryFamily(structure, d, order, trig=False, log_distances=True)
+            for d in LIBRARY_DISTANCE_DEGREES
+            if d <= top
+        ]
+        out += [
+            LibraryFamily(structure, d, order, trig=False, distance_powers=LIBRARY_DISTANCE_POWERS)
             for d in LIBRARY_DISTANCE_DEGREES
             if d <= top
         ]
@@ -102,11 +152,22 @@ def _number(c: float) -> str:
     return f"({float(c)!r})"
 
 
+def _squared(v: Sequence[str], a: int, b: int | None) -> str:
+    """|z_a − z_b|² (|z_a|² where ``b`` is None) as text in the component names ``v``."""
+    i = 2 * a
+    if b is None:
+        return f"{v[i]}**2 + {v[i + 1]}**2"
+    j = 2 * b
+    return f"({v[i]} - {v[j]})**2 + ({v[i + 1]} - {v[j + 1]})**2"
+
+
 class LibraryFamily:
     """H_θ over monomials of degree ≤ ``degree`` (no constant), sin and cos of each coordinate
-    (``trig``) and the log-distances ln|z_a − z_b|² of planar points (``log_distances``; see the
-    module docstring: ValueError where the dimension is odd or below 4), on the bracket of
-    ``structure``, stepped by Taylor-HJ by jets of ``order``.
+    (``trig``), the log-distances ln|z_a − z_b|² of planar points (``log_distances``) and the
+    powers |z_a − z_b|^p, |z_a|^p for each p of ``distance_powers`` (among
+    :data:`DISTANCE_POWERS`; see the module docstring: both distance options raise ValueError
+    where the dimension is odd or below 4), on the bracket of ``structure``, stepped by Taylor-HJ
+    by jets of ``order``. Distances are in the units of the coordinates.
 
     ``keys`` restricts the family to those terms (see :meth:`restrict`).
     """
@@ -120,6 +181,7 @@ class LibraryFamily:
         keys: Sequence[Key] | None = None,
         trig: bool = True,
         log_distances: bool = False,
+        distance_powers: Sequence[int] = (),
     ) -> None:
         self.structure = structure
         self.dim = int(structure.dim)
@@ -128,11 +190,15 @@ class LibraryFamily:
         self.chart = "jets"
         self._degree = degree
         self.trig, self.log_distances = bool(trig), bool(log_distances)
+        self.distance_powers = check_distance_powers(distance_powers)
         every: list[Key] = list(monomial_exponents(self.dim, degree))
         if self.trig:
             every += [(f, i) for i in range(self.dim) for f in ("sin", "cos")]
         if self.log_distances:
             every += [("logdist", a, b) for a, b in distance_pairs(self.dim)]
+        for p in self.distance_powers:
+            every += [("dist", p, a, b) for a, b in distance_pairs(self.dim)]
+            every += [("radius", p, a) for a in range(self.dim // 2)]
         self.exponents: list[Key] = every if keys is None else [self._key(k) for k in keys]
         if not self.exponents or any(k not in every for k in self.exponents):
             raise ValueError(f"keys must be terms of the library {self.name}")
@@ -155,6 +221,7 @@ class LibraryFamily:
             f"poly{self._degree}"
             + ("+trig" if self.trig else "")
             + ("+logdist" if self.log_distances else "")
+            + "".join(f"+dist^{p}" for p in self.distance_powers)
         )
 
     @property
@@ -162,12 +229,14 @@ class LibraryFamily:
         extra = []
         if self.trig:
             extra.append("sin and cos of each coordinate")
+        # Planar points exist only in even dimensions (the distance options refuse the others).
+        points = ", ".join(
+            f"({a}, {b})" for a, b in zip(self.variables[::2], self.variables[1::2], strict=False)
+        )
         if self.log_distances:
-            points = ", ".join(
-                f"({a}, {b})"
-                for a, b in zip(self.variables[::2], self.variables[1::2], strict=True)
-            )
             extra.append(f"ln|z_a − z_b|² of the points {points}")
+        for p in self.distance_powers:
+            extra.append(f"|z_a − z_b|^{p} and |z_a|^{p} of the points {points}")
         return (
             f"a polynomial in ({', '.join(self.variables)}) of degree ≤ {self._degree} without "
             f"constant term plus {' and '.join(extra)} ({len(self)} terms)"
@@ -182,6 +251,7 @@ class LibraryFamily:
             keys=list(keys),
             trig=self.trig,
             log_distances=self.log_distances,
+            distance_powers=self.distance_powers,
         )
 
     def writable(self) -> bool:
@@ -197,13 +267,32 @@ class LibraryFamily:
         return True
 
     def _pairs(self) -> list[tuple[int, int]]:
-        return [(k[1], k[2]) for k in self.exponents if k[0] == "logdist"]
+        pairs = [(k[1], k[2]) for k in self.exponents if k[0] == "logdist"]
+        pairs += [(k[2], k[3]) for k in self.exponents if k[0] == "dist"]
+        return sorted(set(pairs))
+
+    def _centred(self) -> list[int]:
+        return sorted({k[2] for k in self.exponents if k[0] == "radius"})
 
     def check_states(self, x: Any, name: str = "trajectories") -> None:
         """ValueError naming ``name`` where a state of ``x`` (B, n) has two points of a
-        log-distance term at the same place (within :data:`COINCIDE_RTOL`): ln|z_a − z_b|² is
-        singular there. Nothing to check for the other terms, defined everywhere."""
+        log-distance or distance-power term at the same place, or the point of a |z_a|^p term at
+        the origin (within :data:`COINCIDE_RTOL`): those terms are singular there. Nothing to
+        check for the other terms, defined everywhere."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, self.dim)
+        for a in self._centred():
+            za = x[:, 2 * a : 2 * a + 2]
+            r = np.linalg.norm(za, axis=1)
+            bad = r <= COINCIDE_RTOL * (1.0 + r)
+            if bad.any():
+                k = int(np.argmax(bad))
+                va = self.variables[2 * a : 2 * a + 2]
+                raise ValueError(
+                    f"{name}: {int(bad.sum())} record(s) put point {a + 1} at the origin, e.g. "
+                    f"({', '.join(va)}) = ({za[k, 0]:.6g}, {za[k, 1]:.6g}) in the state "
+                    f"{x[k].tolist()}: the term library {self.name}'s |z_{a + 1}|^p is singular "
+                    "there"
+                )
         for a, b in self._pairs():
             za, zb = x[:, 2 * a : 2 * a + 2], x[:, 2 * b : 2 * b + 2]
             gap = np.linalg.norm(za - zb, axis=1)
@@ -217,7 +306,7 @@ class LibraryFamily:
                     f"{name}: {int(bad.sum())} record(s) put points {a + 1} and {b + 1} at the "
                     f"same place, e.g. ({', '.join(va)}) = ({', '.join(vb)}) = "
                     f"({za[k, 0]:.6g}, {za[k, 1]:.6g}) in the state {x[k].tolist()}: the term "
-                    f"library {self.name}'s ln|z_{a + 1} − z_{b + 1}|² is singular there"
+                    f"library {self.name}'s terms in |z_{a + 1} − z_{b + 1}| are singular there"
                 )
 
     def gradients(self, x: Any) -> FloatArray:
@@ -232,6 +321,18 @@ class LibraryFamily:
                 g = 2.0 * d / np.sum(d * d, axis=1, keepdims=True)
                 out[:, 2 * a : 2 * a + 2, m] = g
                 out[:, 2 * b : 2 * b + 2, m] = -g
+                continue
+            if key[0] in ("dist", "radius"):
+                # ∇ r^p = p r^(p−2) d, d = z_a − z_b (or z_a), on z_a; the opposite on z_b.
+                p, a = key[1], key[2]
+                d = x[:, 2 * a : 2 * a + 2].copy()
+                if key[0] == "dist":
+                    d -= x[:, 2 * key[3] : 2 * key[3] + 2]
+                r2 = np.sum(d * d, axis=1, keepdims=True)
+                g = p * r2 ** ((p - 2) / 2) * d
+                out[:, 2 * a : 2 * a + 2, m] = g
+                if key[0] == "dist":
+                    out[:, 2 * key[3] : 2 * key[3] + 2, m] = -g
                 continue
             if isinstance(key[0], str):
                 f, i = key
@@ -254,6 +355,11 @@ class LibraryFamily:
         if key[0] == "logdist":
             v, a, b = self.variables, 2 * key[1], 2 * key[2]
             return f"log(({v[a]} - {v[b]})**2 + ({v[a + 1]} - {v[b + 1]})**2)"
+        if key[0] in ("dist", "radius"):
+            # r^p = (r²)^(p/2): an integer or half-integer power, one tape instruction (powi or
+            # powf), which the jets differentiate exactly.
+            b = key[3] if key[0] == "dist" else None
+            return f"({_squared(self.variables, key[2], b)})**({key[1] / 2!r})"
         if isinstance(key[0], str):
             return f"{key[0]}({self.variables[key[1]]})"
         return "*".join(

@@ -626,7 +626,8 @@ def _learn_on_structure(
 
     # Beyond polynomials: where no polynomial degree explains the data, the term libraries
     # (polynomials plus sin/cos of each coordinate, then, in even dimensions, plus the
-    # log-distances of planar points; stepped by jets) on structures with a jet realization.
+    # log-distances of planar points, then plus their inverse distances; stepped by jets) on
+    # structures with a jet realization.
     # They come last, so that data a smaller family explains never pay for them.
     plans: list[tuple[int, Any]] = [(d, None) for d in degrees]
     if degree is None:
