@@ -295,6 +295,22 @@ def test_point_at_the_origin_is_refused_with_one_clear_error(canonical):
     fam.check_states(good[None])
 
 
+def test_the_search_passes_over_a_library_singular_on_the_records(canonical):
+    """pr.learn's search skips a library whose terms are singular on some record (a point at
+    the origin under |z|^-1) and goes on; the library asked for by name still refuses them."""
+    from types import SimpleNamespace
+
+    from poisson_rs.learn.api import _library_applies
+
+    dist = LibraryFamily(canonical, 2, trig=False, distance_powers=(-1,))
+    trig = LibraryFamily(canonical, 2)
+    good = _periapsis(0.1, 0.0)
+    at_origin = SimpleNamespace(train=[np.array([good])], test=[np.array([[0.0, 0.0, 1.0, 0.5]])])
+    assert not _library_applies(dist, at_origin, verbose=False)
+    assert _library_applies(trig, at_origin, verbose=False)  # defined everywhere
+    assert _library_applies(dist, SimpleNamespace(train=[good[None]], test=[]), verbose=False)
+
+
 def test_fit_recovers_kepler(canonical):
     """Planar Kepler H = |p|²/2 − 1/|q| from exact records (3 orbits of e = 0.1, 0.2, 0.3 × 41
     records, h = 0.1): every coefficient of poly2+dist^-1 within 1e-6 of the true one (½ on p1²,

@@ -547,6 +547,20 @@ def learn(
     return kept.stepper, report
 
 
+def _library_applies(library: Any, data: Any, verbose: bool) -> bool:
+    """Whether ``library``'s terms are defined on every record: a library singular on some
+    (a point at the origin under |z|^p, two points together under log-distances) is passed
+    over by the search, which goes on to the next family; asked for by name it refuses the
+    records (:func:`~poisson_rs.learn.structure_fit.fit_structure_hamiltonian`)."""
+    try:
+        library.check_states(np.concatenate(data.train + data.test), "trajectories")
+    except ValueError as err:
+        if verbose:
+            print(f"{library.name}: passed over: {err}")
+        return False
+    return True
+
+
 def _learn_on_structure(
     trajectories: Any,
     h: float,
@@ -631,7 +645,11 @@ def _learn_on_structure(
     # They come last, so that data a smaller family explains never pay for them.
     plans: list[tuple[int, Any]] = [(d, None) for d in degrees]
     if degree is None:
-        plans += [(lib.degree, lib) for lib in library_families(structure, order, top)]
+        plans += [
+            (lib.degree, lib)
+            for lib in library_families(structure, order, top)
+            if _library_applies(lib, data, verbose)
+        ]
     candidates: list[Candidate] = []
     kept: Candidate | None = None
     explained = True  # False where no candidate reaches the noise level
