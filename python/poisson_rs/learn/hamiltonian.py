@@ -153,9 +153,12 @@ class _Model:
         dmu = None
         res, jac = [], []
         for ell in range(horizon):
-            step = bisection_step(b, self.c, s, mu, derivatives=jacobian)
+            step = bisection_step(
+                b, self.c, s, mu, derivatives=jacobian, coeff_jacobian=ds if jacobian else None
+            )
             if jacobian:
-                dnew = step.d_coeffs @ ds  # (B, n, P)
+                assert step.d_coeffs is not None and step.d_state is not None
+                dnew = step.d_coeffs  # (B, n, P)
                 if dmu is not None:
                     dnew = dnew + step.d_state @ dmu
                 dmu = dnew
@@ -203,9 +206,9 @@ class _Model:
         traj = self.states(theta, starts, steps)
         bsz, _, n = traj.shape
         flat = torch.as_tensor(traj[:, :-1].reshape(-1, n))
-        step = bisection_step(b, self.c, s, flat, derivatives=True)
+        step = bisection_step(b, self.c, s, flat, derivatives=True, coeff_jacobian=ds)
         assert step.d_coeffs is not None and step.d_state is not None
-        dc = (step.d_coeffs @ ds).reshape(bsz, steps, n, -1)
+        dc = step.d_coeffs.reshape(bsz, steps, n, -1)
         dsx = step.d_state.reshape(bsz, steps, n, n)
         dth = torch.zeros(bsz, n, ds.shape[1], dtype=torch.float64)
         dst = torch.eye(n, dtype=torch.float64).expand(bsz, n, n).clone()

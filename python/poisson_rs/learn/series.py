@@ -60,6 +60,8 @@ class MonomialBasis:
         self._length_degree = {c: d for d, c in enumerate(self.count)}
         self._mul_tables: dict[tuple[int, int], tuple[Tensor, Tensor, Tensor, int]] = {}
         self._diff_tables: dict[tuple[int, int], tuple[Tensor, Tensor, Tensor]] = {}
+        self._exponents_t = torch.as_tensor(exps)
+        self._factors: tuple[Tensor, Tensor] | None = None
 
     def degree_of(self, a: Tensor) -> int:
         return self._length_degree[a.shape[-1]]
@@ -131,47 +133,73 @@ class MonomialBasis:
         phi, dphi, ddphi = self.features(p)
         return phi @ coeffs, dphi @ coeffs, ddphi @ coeffs
 
+    def _power_table(self, p: Tensor, degree: int) -> Tensor:
+        """p_i^k, k = 0..degree: (degree + 1, B, n)."""
+        pw = [torch.ones_like(p)]
+        for _ in range(degree):
+            pw.append(pw[-1] * p)
+        return torch.stack(pw, 0)
+
+    def values(self, p: Tensor, degree: int | None = None) -> Tensor:
+        """The monomials of degree ≤ ``degree`` (default: the basis') at p (B, n): (B, N_d)."""
+        d = self.degree if degree is None else degree
+        table = self._power_table(p, d)
+        e = self._exponents_t[: self.count[d]]
+        vals = table[e[:, 0], :, 0]
+        for i in range(1, self.n):
+            vals = vals * table[e[:, i], :, i]
+        return vals.T
+
+    def _factor_tables(self) -> tuple[Tensor, Tensor]:
+        """For every shift σ (0, the units, the sums of two units): the clamped exponents
+        e − σ (S, N, n) and the factors Π_i e_i!/(e_i − σ_i)! (zero where e < σ) (S, N)."""
+        if self._factors is None:
+            n = self.n
+            eye = np.eye(n, dtype=np.int64)
+            shifts = [np.zeros(n, np.int64), *eye]
+            shifts += [eye[i] + eye[j] for i in range(n) for j in range(n)]
+            e = self.powers
+            ks, coefs = [], []
+            for sh in shifts:
+                k = e - sh
+                coef = np.ones(self.size)
+                for i in range(n):
+                    for m in range(int(sh[i])):
+                        coef = coef * (e[:, i] - m)
+                coefs.append(coef * (k >= 0).all(1))
+                ks.append(k.clip(0))
+            self._factors = (torch.as_tensor(np.stack(ks)), torch.as_tensor(np.stack(coefs)))
+        return self._factors
+
+    def _factor(self, table: Tensor, s: int) -> Tensor:
+        """Π_i coefficient·p_i^(e_i − σ_i) over the monomials for shift number s (see
+        :meth:`_factor_tables`), from the power table of :meth:`_power_table`: (B, N)."""
+        kk, coef = self._factor_tables()
+        k = kk[s]
+        vals = table[k[:, 0], :, 0]
+        for i in range(1, self.n):
+            vals = vals * table[k[:, i], :, i]
+        return vals.T * coef[s].to(table.dtype)[None, :]
+
     def features(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Monomials (B, N), their gradients (B, n, N) and Hessians (B, n, n, N) at p (B, n)."""
-        b, n = p.shape
-        d = self.degree
-        pw = [torch.ones_like(p)]
-        for _ in range(d):
-            pw.append(pw[-1] * p)
-        table = torch.stack(pw, 0)  # (d + 1, B, n): p_i^k
-        e = torch.as_tensor(self.powers)  # (N, n)
-        ef = e.to(p.dtype)
+        n = self.n
+        table = self._power_table(p, self.degree)  # (d + 1, B, n): p_i^k
+        phi = self._factor(table, 0)
+        dphi = torch.stack([self._factor(table, 1 + i) for i in range(n)], 1)
+        hess = torch.stack(
+            [
+                torch.stack([self._factor(table, 1 + n + n * i + j) for j in range(n)], 1)
+                for i in range(n)
+            ],
+            1,
+        )
+        return phi, dphi, hess
 
-        def factor(shift: Tensor) -> Tensor:
-            """Π_i coefficient·p_i^(e_i − shift_i) over the monomials: (B, N)."""
-            k = e - shift
-            ok = (k >= 0).all(1)
-            kk = k.clamp_min(0)
-            vals = torch.ones(b, self.size, dtype=p.dtype)
-            for i in range(n):
-                vals = vals * table[kk[:, i], :, i].T
-            coef = torch.ones(self.size, dtype=p.dtype)
-            for i in range(n):
-                s = int(shift[0, i]) if shift.ndim == 2 else 0
-                if s == 1:
-                    coef = coef * ef[:, i]
-                elif s == 2:
-                    coef = coef * ef[:, i] * (ef[:, i] - 1)
-            return vals * (coef * ok)[None, :]
-
-        zero = torch.zeros(1, n, dtype=torch.int64)
-        phi = factor(zero)
-        dphi = torch.stack([factor(_unit(n, i)) for i in range(n)], 1)
-        rows = []
-        for i in range(n):
-            rows.append(torch.stack([factor(_unit(n, i) + _unit(n, j)) for j in range(n)], 1))
-        return phi, dphi, torch.stack(rows, 1)
-
-
-def _unit(n: int, i: int) -> Tensor:
-    u = torch.zeros(1, n, dtype=torch.int64)
-    u[0, i] = 1
-    return u
+    def gradients(self, p: Tensor) -> Tensor:
+        """The monomials' gradients (B, n, N) at p (B, n)."""
+        table = self._power_table(p, self.degree)
+        return torch.stack([self._factor(table, 1 + i) for i in range(self.n)], 1)
 
 
 @cache

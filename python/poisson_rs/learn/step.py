@@ -62,7 +62,48 @@ def chart_maps(c: Tensor, x: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _chart_jacobians(c: Tensor, x: Tensor, p: Tensor) -> tuple[Tensor, ...]:
-    """sou, tar and their Jacobians in x and p: (B, n) ×2, then U_x, U_p, T_x, T_p (B, n, n)."""
+    """sou, tar and their Jacobians in x and p: (B, n) ×2, then U_x, U_p, T_x, T_p (B, n, n).
+
+    In closed form, alongside the series of :func:`chart_maps`: with t_r = A^r p,
+    ∂t_r/∂x_i = C_i t_{r−1} + A ∂t_{r−1}/∂x_i ((C_i)_{jk} = c[i,j,k]), and ∂t_r/∂p = A^r; tar's
+    terms are the same with the odd ones negated."""
+    b, n = p.shape
+    a = torch.einsum("ijk,bi->bjk", c, x)
+    terms = _series_terms(a)
+    w = bernoulli_weights(terms)
+    at = a.transpose(-1, -2)
+    # term = A^r [p | I] (B, n, 1 + n); dterm[b, i, j] = ∂(A^r p)_j/∂x_i.
+    term = torch.cat([p[..., None], torch.eye(n, dtype=p.dtype).expand(b, n, n)], -1)
+    even = term.clone()
+    odd = torch.zeros_like(term)
+    dterm = torch.zeros(b, n, n, dtype=p.dtype)
+    deven = torch.zeros_like(dterm)
+    dodd = torch.zeros_like(dterm)
+    for r in range(1, terms + 1):
+        dterm = torch.einsum("ijk,bk->bij", c, term[..., 0]) + dterm @ at
+        term = a @ term
+        if w[r] == 0.0:
+            continue
+        if r % 2:
+            odd = odd + w[r] * term
+            dodd = dodd + w[r] * dterm
+        else:
+            even = even + w[r] * term
+            deven = deven + w[r] * dterm
+    sou, tar = even + odd, even - odd
+    return (
+        sou[..., 0],
+        tar[..., 0],
+        (deven + dodd).transpose(-1, -2),
+        sou[..., 1:],
+        (deven - dodd).transpose(-1, -2),
+        tar[..., 1:],
+    )
+
+
+def _chart_jacobians_autograd(c: Tensor, x: Tensor, p: Tensor) -> tuple[Tensor, ...]:
+    """:func:`_chart_jacobians` by reverse-mode autograd of :func:`chart_maps`, one row at a time
+    (the oracle of the closed form in the tests)."""
     n = x.shape[1]
     xv = x.detach().requires_grad_(True)
     pv = p.detach().requires_grad_(True)
@@ -97,18 +138,33 @@ def bisection_step(
     mu: Tensor,
     *,
     derivatives: bool = False,
+    coeff_jacobian: Tensor | None = None,
 ) -> StepResult:
     """One bisection step of S(h, p) = Σ coeffs[m] p^{e_m} (coefficients of S at the step's h,
-    (N,)) from mu (B, n), float64. Non-converged rows come back NaN."""
+    (N,)) from mu (B, n), float64. Non-converged rows come back NaN.
+
+    With ``coeff_jacobian`` = ds/dθ (N, P), ``d_coeffs`` comes back as dμ'/dθ = dμ'/ds · ds/dθ
+    (B, n, P), formed without the (B, n, N) intermediate.
+
+    ∇S and ∇²S are differentiated once as polynomials (coefficient vectors), so each Newton
+    iteration evaluates only the monomials at p."""
     ct = torch.tensor(np.array(c, dtype=np.float64))
     coeffs = coeffs.detach()
     mu = mu.detach()
+    n = mu.shape[1]
+    d = basis.degree_of(coeffs)
+    g_poly = basis.grad(coeffs)  # (n, N_{d−1}): ∂S/∂p_i
+    h_poly = basis.grad(g_poly).reshape(n * n, -1)  # (n², N_{d−2}): ∂²S/∂p_i∂p_j
+    dg, dh = max(d - 1, 0), max(d - 2, 0)
+
+    def derivs(p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        phi = basis.values(p, dg)
+        return phi, phi @ g_poly.T, (phi[:, : basis.count[dh]] @ h_poly.T).reshape(-1, n, n)
+
     p = mu.clone()
     done = torch.zeros(mu.shape[0], dtype=torch.bool)
     for _ in range(NEWTON_MAX_ITER):
-        _, grad, hess = basis.features(p)
-        x = grad @ coeffs
-        hs = hess @ coeffs
+        _, x, hs = derivs(p)
         _, t, _, _, tx, tp = _chart_jacobians(ct, x, p)
         jac = tx @ hs + tp
         delta = torch.linalg.solve(jac, -(t - mu)[..., None])[..., 0]
@@ -118,16 +174,21 @@ def bisection_step(
         if bool(done.all()):
             break
     ok = done & torch.isfinite(p).all(-1)
-    _, grad, hess = basis.features(p)
-    x = grad @ coeffs
-    hs = hess @ coeffs
+    phi, x, hs = derivs(p)
     s, _, ux, up, tx, tp = _chart_jacobians(ct, x, p)
     out = torch.where(ok[:, None], s, torch.full_like(s, math.nan))
     if not derivatives:
         return StepResult(out, ok)
+    if coeff_jacobian is None:
+        grad = basis.gradients(p)  # (B, n, N): the monomials' gradients
+        grad = grad[..., : coeffs.shape[-1]]
+    else:
+        # Σ_m ∂(p^{e_m})/∂p_i ds_m/dθ_q: the gradients of the polynomials ds/dθ_q at p.
+        dpoly = basis.grad(coeff_jacobian.T.contiguous())  # (P, n, N_{d−1})
+        grad = torch.einsum("bm,qim->biq", phi[:, : dpoly.shape[-1]], dpoly)
     jac = tx @ hs + tp
     jinv = torch.linalg.inv(jac)
-    dp = -jinv @ (tx @ grad)  # (B, n, N)
+    dp = -jinv @ (tx @ grad)
     d_coeffs = ux @ (grad + hs @ dp) + up @ dp
     d_state = (ux @ hs + up) @ jinv
     return StepResult(out, ok, d_coeffs, d_state)
