@@ -235,12 +235,32 @@ def taylor_series(
     basis_ = basis(n, max(1, order * (d - 1) + 1))
     dtype = theta.dtype
     batch = theta.shape[:-1]
-    ct = torch.tensor(np.array(c, dtype=np.float64)).to(dtype)
+    c64 = np.array(c, dtype=np.float64)
     weights = bernoulli_weights(order)
     p_vec = torch.stack([basis_.variable(i) for i in range(n)]).to(dtype).expand(*batch, n, -1)
-    # H's monomials as sorted variable lists; prod series by prefix, as in taylor.py.
+    # (A v)_a = Σ_b A_ab v_b over the entries (a, b) of A = Σ_i x_i C_i that the structure
+    # constants do not make zero.
+    ent_a, ent_b = np.nonzero(np.abs(c64).sum(0))
+    c_ent = torch.as_tensor(c64[:, ent_a, ent_b]).to(dtype)  # (n, K)
+    ent_a_t, ent_b_t = torch.as_tensor(ent_a), torch.as_tensor(ent_b)
+    # H's monomials as sorted variable lists; prod series by prefix, as in taylor.py. A monomial
+    # of ≥ 2 factors is its prefix's product times its last factor, so H's terms of a length
+    # sum as Σ_g prod_g · (Σ_b θ_{g+b} σ_b), one product per prefix g.
     factors = [tuple(i for i, a in enumerate(e) for _ in range(a)) for e in family]
-    prefixes = sorted({f[:r] for f in factors for r in range(2, len(f) + 1)}, key=len)
+    prefixes = sorted({f[:r] for f in factors for r in range(2, len(f))}, key=len)
+    groups: dict[int, list[tuple[int, ...]]] = {}
+    for f in factors:
+        if len(f) >= 2 and f[:-1] not in groups.setdefault(len(f) - 1, []):
+            groups[len(f) - 1].append(f[:-1])
+    # Θ_ℓ (..., G_ℓ, n): θ of the monomial g + (b,) for the ℓ-factor prefixes g.
+    lin: dict[int, Tensor] = {}
+    for ell, gs in groups.items():
+        sel = np.zeros((len(family), len(gs) * n))
+        for q, f in enumerate(factors):
+            if len(f) == ell + 1:
+                sel[q, gs.index(f[:-1]) * n + f[-1]] = 1.0
+        lin[ell] = (theta @ torch.as_tensor(sel).to(dtype)).reshape(*batch, len(gs), n)
+    lin_series: dict[int, list[Tensor]] = {ell: [] for ell in groups}
     prods: dict[tuple[int, ...], list[Tensor]] = {}
     one = torch.ones(1, dtype=dtype)  # the constant 1, degree 0
     mats: list[Tensor] = [torch.zeros(0)]
@@ -251,14 +271,16 @@ def taylor_series(
         m = k - 1
         if m >= 1:
             x_m = basis_.grad(coeffs[m - 1])  # (..., n, N)
-            mats.append(torch.einsum("iab,...iN->...abN", ct, x_m))  # (A_m)_{ab}
+            mats.append(torch.einsum("ik,...iN->...kN", c_ent, x_m))  # (A_m)_{ab}, (..., K, N)
             w.append([])
             for r in range(1, m + 1):
                 js = range(m, m + 1) if r == 1 else range(1, m - r + 2)
                 acc = torch.zeros(*batch, n, 1, dtype=dtype)
                 for j in js:
                     v = w[r - 1][m - j - (r - 1)]  # (..., n, N)
-                    acc = basis_.add(acc, basis_.mul(mats[j], v[..., None, :, :]).sum(-2))
+                    prod = basis_.mul(mats[j], v[..., ent_b_t, :])  # (..., K, N_c)
+                    av = torch.zeros((*prod.shape[:-2], n, prod.shape[-1]), dtype=dtype)
+                    acc = basis_.add(acc, av.index_add(-2, ent_a_t, prod))
                 w[r].append(acc)
             sig = torch.zeros(*batch, n, 1, dtype=dtype)
             for r in range(1, m + 1):
@@ -278,8 +300,15 @@ def taylor_series(
                     h_m = basis_.add(h_m, t * one)
             elif len(f) == 1:
                 h_m = basis_.add(h_m, t * sigma[m][..., f[0], :])
-            else:
-                h_m = basis_.add(h_m, t * prods[f][m])
+        for ell, gs in groups.items():
+            lin_series[ell].append(lin[ell] @ sigma[m])  # (..., G, N_m)
+            idx = torch.as_tensor([g[0] for g in gs])
+            for a in range(m + 1):
+                if ell == 1:
+                    head_a = sigma[a][..., idx, :]
+                else:
+                    head_a = torch.stack([prods[g][a] for g in gs], -2)
+                h_m = basis_.add(h_m, basis_.mul(head_a, lin_series[ell][m - a]).sum(-2))
         coeffs.append(-h_m / k)
     return basis_, torch.stack([basis_.pad(c_k, basis_.degree) for c_k in coeffs], -2)
 
