@@ -126,6 +126,24 @@ class _Model:
         self.order = order
         self.h = h
         self._cache: tuple | None = None
+        # Newton's last solutions per call site: (μ, p), the start of the next solve there.
+        self._newton: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def _step(self, key: tuple, b, s, mu, jacobian: bool, ds=None):
+        """:func:`bisection_step` from mu, Newton started from the solution p of the last
+        evaluation with derivatives (the Levenberg–Marquardt iterate) at the same call site,
+        shifted by the change of μ: trials and the next iterate lie near it, so Newton needs
+        fewer iterations; the solution is the same."""
+        key = (*key, tuple(mu.shape))
+        p0 = None
+        if key in self._newton:
+            mu_old, p_old = self._newton[key]
+            p0 = p_old + (mu - mu_old)
+        step = bisection_step(b, self.c, s, mu, derivatives=jacobian, coeff_jacobian=ds, p0=p0)
+        assert step.p is not None
+        if jacobian:
+            self._newton[key] = (mu, step.p)
+        return step
 
     def coeffs(self, theta: np.ndarray, jacobian: bool):
         """(basis, S(h, ·) coefficients (N,), their Jacobian in θ (N, P) or None)."""
@@ -153,9 +171,7 @@ class _Model:
         dmu = None
         res, jac = [], []
         for ell in range(horizon):
-            step = bisection_step(
-                b, self.c, s, mu, derivatives=jacobian, coeff_jacobian=ds if jacobian else None
-            )
+            step = self._step(("residuals", horizon, ell), b, s, mu, jacobian, ds)
             if jacobian:
                 assert step.d_coeffs is not None and step.d_state is not None
                 dnew = step.d_coeffs  # (B, n, P)
@@ -206,7 +222,7 @@ class _Model:
         traj = self.states(theta, starts, steps)
         bsz, _, n = traj.shape
         flat = torch.as_tensor(traj[:, :-1].reshape(-1, n))
-        step = bisection_step(b, self.c, s, flat, derivatives=True, coeff_jacobian=ds)
+        step = self._step(("rollout",), b, s, flat, True, ds)
         assert step.d_coeffs is not None and step.d_state is not None
         dc = step.d_coeffs.reshape(bsz, steps, n, -1)
         dsx = step.d_state.reshape(bsz, steps, n, n)

@@ -129,6 +129,8 @@ class StepResult:
     converged: Tensor
     d_coeffs: Tensor | None = None
     d_state: Tensor | None = None
+    #: The solution p of tar(∇S(p), p) = μ (B, n): a start for the next solve near it.
+    p: Tensor | None = None
 
 
 def bisection_step(
@@ -139,12 +141,15 @@ def bisection_step(
     *,
     derivatives: bool = False,
     coeff_jacobian: Tensor | None = None,
+    p0: Tensor | None = None,
 ) -> StepResult:
     """One bisection step of S(h, p) = Σ coeffs[m] p^{e_m} (coefficients of S at the step's h,
     (N,)) from mu (B, n), float64. Non-converged rows come back NaN.
 
     With ``coeff_jacobian`` = ds/dθ (N, P), ``d_coeffs`` comes back as dμ'/dθ = dμ'/ds · ds/dθ
-    (B, n, P), formed without the (B, n, N) intermediate.
+    (B, n, P), formed without the (B, n, N) intermediate. ``p0`` (B, n): Newton's start in place
+    of μ (e.g. the solution ``p`` of a step from nearby states or for nearby coefficients; rows
+    that are not finite start from μ); the converged p does not depend on it.
 
     ∇S and ∇²S are differentiated once as polynomials (coefficient vectors), so each Newton
     iteration evaluates only the monomials at p."""
@@ -161,24 +166,35 @@ def bisection_step(
         phi = basis.values(p, dg)
         return phi, phi @ g_poly.T, (phi[:, : basis.count[dh]] @ h_poly.T).reshape(-1, n, n)
 
-    p = mu.clone()
-    done = torch.zeros(mu.shape[0], dtype=torch.bool)
-    for _ in range(NEWTON_MAX_ITER):
-        _, x, hs = derivs(p)
-        _, t, _, _, tx, tp = _chart_jacobians(ct, x, p)
-        jac = tx @ hs + tp
-        delta = torch.linalg.solve(jac, -(t - mu)[..., None])[..., 0]
-        delta = torch.where(done[:, None], torch.zeros_like(delta), delta)
-        p = p + delta
-        done = done | (delta.abs().amax(-1) <= NEWTON_TOL * p.abs().amax(-1).clamp_min(1e-300))
-        if bool(done.all()):
-            break
-    ok = done & torch.isfinite(p).all(-1)
+    def newton(p: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
+        done = torch.zeros(mu.shape[0], dtype=torch.bool)
+        for _ in range(NEWTON_MAX_ITER):
+            _, x, hs = derivs(p)
+            _, t, _, _, tx, tp = _chart_jacobians(ct, x, p)
+            jac = tx @ hs + tp
+            delta = torch.linalg.solve(jac, -(t - mu)[..., None])[..., 0]
+            delta = torch.where(done[:, None], torch.zeros_like(delta), delta)
+            p = p + delta
+            done = done | (delta.abs().amax(-1) <= NEWTON_TOL * p.abs().amax(-1).clamp_min(1e-300))
+            if bool(done.all()):
+                break
+        return p, done & torch.isfinite(p).all(-1)
+
+    if p0 is None:
+        p, ok = newton(mu.clone(), mu)
+    else:
+        p, ok = newton(torch.where(torch.isfinite(p0), p0.detach(), mu), mu)
+        retry = ~ok & torch.isfinite(mu).all(-1)
+        if bool(retry.any()):  # rows the start did not serve: from μ, as without one
+            p_r, ok_r = newton(mu[retry].clone(), mu[retry])
+            p, ok = p.clone(), ok.clone()
+            p[retry], ok[retry] = p_r, ok_r
     phi, x, hs = derivs(p)
+    if not derivatives:
+        s, _ = chart_maps(ct, x, p)
+        return StepResult(torch.where(ok[:, None], s, torch.full_like(s, math.nan)), ok, p=p)
     s, _, ux, up, tx, tp = _chart_jacobians(ct, x, p)
     out = torch.where(ok[:, None], s, torch.full_like(s, math.nan))
-    if not derivatives:
-        return StepResult(out, ok)
     if coeff_jacobian is None:
         grad = basis.gradients(p)  # (B, n, N): the monomials' gradients
         grad = grad[..., : coeffs.shape[-1]]
@@ -191,4 +207,4 @@ def bisection_step(
     dp = -jinv @ (tx @ grad)
     d_coeffs = ux @ (grad + hs @ dp) + up @ dp
     d_state = (ux @ hs + up) @ jinv
-    return StepResult(out, ok, d_coeffs, d_state)
+    return StepResult(out, ok, d_coeffs, d_state, p)
