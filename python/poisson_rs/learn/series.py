@@ -58,7 +58,9 @@ class MonomialBasis:
         self._deg = exps.sum(1)
         self.count = [math.comb(n + d, d) for d in range(degree + 1)]
         self._length_degree = {c: d for d, c in enumerate(self.count)}
-        self._mul_tables: dict[tuple[int, int], tuple[Tensor, Tensor, Tensor, int]] = {}
+        self._mul_tables: dict[
+            tuple[int, int], tuple[Tensor, Tensor, Tensor, int, Tensor | None]
+        ] = {}
         self._diff_tables: dict[tuple[int, int], tuple[Tensor, Tensor, Tensor]] = {}
         self._exponents_t = torch.as_tensor(exps)
         self._factors: tuple[Tensor, Tensor] | None = None
@@ -75,28 +77,45 @@ class MonomialBasis:
         d = max(self.degree_of(a), self.degree_of(b))
         return self.pad(a, d) + self.pad(b, d)
 
-    def _mul_table(self, da: int, db: int) -> tuple[Tensor, Tensor, Tensor, int]:
+    def _mul_table(self, da: int, db: int) -> tuple[Tensor, Tensor, Tensor, int, Tensor | None]:
+        """The pairs (ia, ib) of monomials whose product is kept, its index ic and degree dc;
+        and, where the kept pairs are most of the N_a·N_b, ic over all pairs in row-major order
+        (dropped pairs sent to the extra slot N_c)."""
         key = (da, db)
         if key not in self._mul_tables:
             dc = min(da + db, self.degree)
             na, nb = self.count[da], self.count[db]
             deg = self._deg
-            ia, ib = np.nonzero(deg[:na, None] + deg[None, :nb] <= self.degree)
+            keep = deg[:na, None] + deg[None, :nb] <= self.degree
+            ia, ib = np.nonzero(keep)
             summed = self.powers[ia] + self.powers[ib]
             ic = np.array([self.index[tuple(e)] for e in summed.tolist()], dtype=np.int64)
+            dense = None
+            if 2 * len(ia) >= na * nb:
+                dense = np.full(na * nb, self.count[dc], dtype=np.int64)
+                dense[ia * nb + ib] = ic
             self._mul_tables[key] = (
                 torch.as_tensor(ia),
                 torch.as_tensor(ib),
                 torch.as_tensor(ic),
                 dc,
+                None if dense is None else torch.as_tensor(dense),
             )
         return self._mul_tables[key]
 
     def mul(self, a: Tensor, b: Tensor) -> Tensor:
-        """Truncated product of prefixes a (..., N_a), b (..., N_b) (broadcast) → (..., N_c)."""
-        ia, ib, ic, dc = self._mul_table(self.degree_of(a), self.degree_of(b))
+        """Truncated product of prefixes a (..., N_a), b (..., N_b) (broadcast) → (..., N_c).
+
+        Where most pairs are kept, the outer product (contiguous, no gathers) is summed into
+        place and the dropped pairs go to a discarded slot."""
+        ia, ib, ic, dc, dense = self._mul_table(self.degree_of(a), self.degree_of(b))
+        nc = self.count[dc]
+        if dense is not None:
+            vals = (a[..., :, None] * b[..., None, :]).flatten(-2)
+            out = torch.zeros((*vals.shape[:-1], nc + 1), dtype=vals.dtype)
+            return out.index_add(-1, dense, vals)[..., :nc]
         vals = a[..., ia] * b[..., ib]
-        out = torch.zeros((*vals.shape[:-1], self.count[dc]), dtype=vals.dtype)
+        out = torch.zeros((*vals.shape[:-1], nc), dtype=vals.dtype)
         return out.index_add(-1, ic, vals)
 
     def diff(self, a: Tensor, i: int) -> Tensor:
