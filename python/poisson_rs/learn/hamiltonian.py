@@ -147,9 +147,11 @@ class _Model:
 
     def coeffs(self, theta: np.ndarray, jacobian: bool):
         """(basis, S(h, ·) coefficients (N,), their Jacobian in θ (N, P) or None)."""
-        key = (theta.tobytes(), jacobian)
+        key = theta.tobytes()
         if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]
+            # A Jacobian evaluation serves the plain one too (its real part is the series).
+            if not jacobian or self._cache[1][2] is not None:
+                return self._cache[1]
         out: tuple[MonomialBasis, torch.Tensor, torch.Tensor | None]
         if jacobian:
             out = series_jacobian(self.c, self.family, theta, self.order, self.h)
