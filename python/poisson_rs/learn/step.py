@@ -66,38 +66,41 @@ def _chart_jacobians(c: Tensor, x: Tensor, p: Tensor) -> tuple[Tensor, ...]:
 
     In closed form, alongside the series of :func:`chart_maps`: with t_r = A^r p,
     ∂t_r/∂x_i = C_i t_{r−1} + A ∂t_{r−1}/∂x_i ((C_i)_{jk} = c[i,j,k]), and ∂t_r/∂p = A^r; tar's
-    terms are the same with the odd ones negated."""
+    terms are the same with the odd ones negated. The three recursions share one stacked
+    product V ← A V per term, V = [t_r | A^r | ∂t_r/∂x] (B, n, 1 + 2n), in numpy (its stacked
+    matmul is several times faster than torch's for these small matrices)."""
     b, n = p.shape
-    a = torch.einsum("ijk,bi->bjk", c, x)
-    terms = _series_terms(a)
+    cn = c.detach().numpy()
+    xn = x.detach().numpy()
+    a = (xn @ cn.reshape(n, n * n)).reshape(b, n, n)  # A_jk = Σ_i c[i,j,k] x_i
+    terms = _series_terms(torch.from_numpy(a))
     w = bernoulli_weights(terms)
-    at = a.transpose(-1, -2)
-    # term = A^r [p | I] (B, n, 1 + n); dterm[b, i, j] = ∂(A^r p)_j/∂x_i.
-    term = torch.cat([p[..., None], torch.eye(n, dtype=p.dtype).expand(b, n, n)], -1)
-    even = term.clone()
-    odd = torch.zeros_like(term)
-    dterm = torch.zeros(b, n, n, dtype=p.dtype)
-    deven = torch.zeros_like(dterm)
-    dodd = torch.zeros_like(dterm)
+    # (C v)[b, j, i] = Σ_k c[i,j,k] v[b,k]: one product with c as (k, (j, i)).
+    cmat = np.ascontiguousarray(cn.transpose(2, 1, 0).reshape(n, n * n))
+    v = np.zeros((b, n, 1 + 2 * n))
+    v[:, :, 0] = p.detach().numpy()
+    v[:, :, 1 : 1 + n] = np.eye(n)
+    even = v.copy()
+    odd = np.zeros_like(v)
     for r in range(1, terms + 1):
-        dterm = torch.einsum("ijk,bk->bij", c, term[..., 0]) + dterm @ at
-        term = a @ term
+        ct = (v[:, :, 0] @ cmat).reshape(b, n, n)
+        v = a @ v
+        v[:, :, 1 + n :] += ct
         if w[r] == 0.0:
             continue
         if r % 2:
-            odd = odd + w[r] * term
-            dodd = dodd + w[r] * dterm
+            odd += w[r] * v
         else:
-            even = even + w[r] * term
-            deven = deven + w[r] * dterm
-    sou, tar = even + odd, even - odd
+            even += w[r] * v
+    sou = torch.from_numpy(even + odd)
+    tar = torch.from_numpy(even - odd)
     return (
         sou[..., 0],
         tar[..., 0],
-        (deven + dodd).transpose(-1, -2),
-        sou[..., 1:],
-        (deven - dodd).transpose(-1, -2),
-        tar[..., 1:],
+        sou[..., 1 + n :],
+        sou[..., 1 : 1 + n],
+        tar[..., 1 + n :],
+        tar[..., 1 : 1 + n],
     )
 
 
