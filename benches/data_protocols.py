@@ -420,12 +420,11 @@ def noise_seeds(n_seeds: int) -> None:
     noise_chart(noise)
 
 
-def heavy_top_protocol(n_traj: int = 40, records: int = 11, n_test: int = 6, seed: int = 0):
-    """Heavy top (DPNN's I = (1, 1.5, 2), mgl = 0.981, χ = e₃), in the spirit of the whole-dynamics
-    protocol: ``n_traj`` short trajectories (``records`` records h = 0.1 apart, tight DOP853)
-    from random (M, Γ), M ~ N(0, 1)³, |Γ| = 1; ``n_test`` hidden random test states rolled out to
-    T = 10 and 100. Methods: pr.learn auto, and the least-squares quadratic vector field
-    (order-8 finite differences) rolled out with DOP853. Writes docs/learning/heavy_top.json."""
+def heavy_top_data(
+    n_traj: int = 40, records: int = 11, n_test: int = 6, seed: int = 0
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """The heavy-top protocol's training trajectories and hidden test states (see
+    :func:`heavy_top_protocol`)."""
     top = pr.HeavyTop()
     rng = np.random.default_rng(seed)
 
@@ -434,7 +433,17 @@ def heavy_top_protocol(n_traj: int = 40, records: int = 11, n_test: int = 6, see
         return np.concatenate([rng.normal(size=(m, 3)), g], 1)
 
     trajs = list(pr.reference_solution(top, states(n_traj), TAU * np.arange(records)))
-    tests = states(n_test)
+    return trajs, states(n_test)
+
+
+def heavy_top_protocol(n_traj: int = 40, records: int = 11, n_test: int = 6, seed: int = 0):
+    """Heavy top (DPNN's I = (1, 1.5, 2), mgl = 0.981, χ = e₃), in the spirit of the whole-dynamics
+    protocol: ``n_traj`` short trajectories (``records`` records h = 0.1 apart, tight DOP853)
+    from random (M, Γ), M ~ N(0, 1)³, |Γ| = 1; ``n_test`` hidden random test states rolled out to
+    T = 10 and 100. Methods: pr.learn auto, and the least-squares quadratic vector field
+    (order-8 finite differences) rolled out with DOP853. Writes docs/learning/heavy_top.json."""
+    top = pr.HeavyTop()
+    trajs, tests = heavy_top_data(n_traj, records, n_test, seed)
     times = TAU * np.arange(0, 1001, 5)
     exact = pr.reference_solution(top, tests, times)
     at = {10.0: np.argmin(np.abs(times - 10.0)), 100.0: len(times) - 1}

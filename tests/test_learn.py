@@ -19,6 +19,7 @@ from poisson_rs.learn.api import _map_base
 from poisson_rs.learn.hamiltonian import _Model, fit_polynomial, relative_field_error
 from poisson_rs.learn.map import build_map
 from poisson_rs.learn.series import monomials, series_jacobian, taylor_series
+from poisson_rs.learn.step import _chart_jacobians, _chart_jacobians_autograd, bisection_step
 from poisson_rs.taylor import lie_taylor_coefficients
 
 torch.set_num_threads(1)
@@ -86,6 +87,36 @@ def test_ift_gradients_match_finite_differences_of_the_step_map() -> None:
     rm, _ = model.residuals(theta - eps * d, starts, targets, 3, False)
     fd = (rp - rm) / (2 * eps)
     assert np.abs(jac @ d - fd).max() <= 1e-7 * np.abs(fd).max()
+
+
+@pytest.mark.parametrize("algebra", [pr.LieAlgebra.so3(), pr.LieAlgebra.se3()])
+def test_closed_form_chart_jacobians_match_autograd(algebra) -> None:
+    """sou, tar and their Jacobians in x and p (forward recursion beside the series) against
+    row-by-row reverse-mode autograd of chart_maps, at seeded points."""
+    rng = np.random.default_rng(30)
+    n = algebra.dim
+    c = torch.as_tensor(np.array(algebra.c, dtype=np.float64))
+    x = torch.as_tensor(0.4 * rng.normal(size=(16, n)))
+    p = torch.as_tensor(rng.normal(size=(16, n)))
+    for got, ref in zip(_chart_jacobians(c, x, p), _chart_jacobians_autograd(c, x, p), strict=True):
+        assert torch.allclose(got, ref, rtol=0, atol=1e-14 * float(ref.abs().max()))
+
+
+def test_step_with_the_coefficient_jacobian_matches_the_full_one() -> None:
+    """bisection_step's dμ'/dθ formed from ds/dθ (polynomial derivatives at p) equals
+    dμ'/ds · ds/dθ, and the step's states and dμ'/dμ do not depend on which is asked for."""
+    rng = np.random.default_rng(31)
+    algebra = pr.LieAlgebra.se3()
+    family = monomials(6, 2, min_degree=1)
+    theta = 0.3 * rng.normal(size=len(family))
+    b, s, ds = series_jacobian(algebra.c, family, theta, 3, 0.1)
+    mu = torch.as_tensor(rng.normal(size=(12, 6)))
+    full = bisection_step(b, algebra.c, s, mu, derivatives=True)
+    chained = bisection_step(b, algebra.c, s, mu, derivatives=True, coeff_jacobian=ds)
+    assert full.d_coeffs is not None and chained.d_coeffs is not None
+    ref = full.d_coeffs @ ds
+    assert torch.allclose(chained.d_coeffs, ref, rtol=0, atol=1e-13 * float(ref.abs().max()))
+    assert torch.equal(full.out, chained.out) and torch.equal(full.d_state, chained.d_state)
 
 
 # --- recovery of a known H -----------------------------------------------------------------------

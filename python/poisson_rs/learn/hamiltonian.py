@@ -126,12 +126,32 @@ class _Model:
         self.order = order
         self.h = h
         self._cache: tuple | None = None
+        # Newton's last solutions per call site: (μ, p), the start of the next solve there.
+        self._newton: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def _step(self, key: tuple, b, s, mu, jacobian: bool, ds=None):
+        """:func:`bisection_step` from mu, Newton started from the solution p of the last
+        evaluation with derivatives (the Levenberg–Marquardt iterate) at the same call site,
+        shifted by the change of μ: trials and the next iterate lie near it, so Newton needs
+        fewer iterations; the solution is the same."""
+        key = (*key, tuple(mu.shape))
+        p0 = None
+        if key in self._newton:
+            mu_old, p_old = self._newton[key]
+            p0 = p_old + (mu - mu_old)
+        step = bisection_step(b, self.c, s, mu, derivatives=jacobian, coeff_jacobian=ds, p0=p0)
+        assert step.p is not None
+        if jacobian:
+            self._newton[key] = (mu, step.p)
+        return step
 
     def coeffs(self, theta: np.ndarray, jacobian: bool):
         """(basis, S(h, ·) coefficients (N,), their Jacobian in θ (N, P) or None)."""
-        key = (theta.tobytes(), jacobian)
+        key = theta.tobytes()
         if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]
+            # A Jacobian evaluation serves the plain one too (its real part is the series).
+            if not jacobian or self._cache[1][2] is not None:
+                return self._cache[1]
         out: tuple[MonomialBasis, torch.Tensor, torch.Tensor | None]
         if jacobian:
             out = series_jacobian(self.c, self.family, theta, self.order, self.h)
@@ -153,9 +173,10 @@ class _Model:
         dmu = None
         res, jac = [], []
         for ell in range(horizon):
-            step = bisection_step(b, self.c, s, mu, derivatives=jacobian)
+            step = self._step(("residuals", horizon, ell), b, s, mu, jacobian, ds)
             if jacobian:
-                dnew = step.d_coeffs @ ds  # (B, n, P)
+                assert step.d_coeffs is not None and step.d_state is not None
+                dnew = step.d_coeffs  # (B, n, P)
                 if dmu is not None:
                     dnew = dnew + step.d_state @ dmu
                 dmu = dnew
@@ -203,9 +224,9 @@ class _Model:
         traj = self.states(theta, starts, steps)
         bsz, _, n = traj.shape
         flat = torch.as_tensor(traj[:, :-1].reshape(-1, n))
-        step = bisection_step(b, self.c, s, flat, derivatives=True)
+        step = self._step(("rollout",), b, s, flat, True, ds)
         assert step.d_coeffs is not None and step.d_state is not None
-        dc = (step.d_coeffs @ ds).reshape(bsz, steps, n, -1)
+        dc = step.d_coeffs.reshape(bsz, steps, n, -1)
         dsx = step.d_state.reshape(bsz, steps, n, n)
         dth = torch.zeros(bsz, n, ds.shape[1], dtype=torch.float64)
         dst = torch.eye(n, dtype=torch.float64).expand(bsz, n, n).clone()

@@ -58,8 +58,12 @@ class MonomialBasis:
         self._deg = exps.sum(1)
         self.count = [math.comb(n + d, d) for d in range(degree + 1)]
         self._length_degree = {c: d for d, c in enumerate(self.count)}
-        self._mul_tables: dict[tuple[int, int], tuple[Tensor, Tensor, Tensor, int]] = {}
+        self._mul_tables: dict[
+            tuple[int, int], tuple[Tensor, Tensor, Tensor, int, Tensor | None]
+        ] = {}
         self._diff_tables: dict[tuple[int, int], tuple[Tensor, Tensor, Tensor]] = {}
+        self._exponents_t = torch.as_tensor(exps)
+        self._factors: tuple[Tensor, Tensor] | None = None
 
     def degree_of(self, a: Tensor) -> int:
         return self._length_degree[a.shape[-1]]
@@ -73,28 +77,45 @@ class MonomialBasis:
         d = max(self.degree_of(a), self.degree_of(b))
         return self.pad(a, d) + self.pad(b, d)
 
-    def _mul_table(self, da: int, db: int) -> tuple[Tensor, Tensor, Tensor, int]:
+    def _mul_table(self, da: int, db: int) -> tuple[Tensor, Tensor, Tensor, int, Tensor | None]:
+        """The pairs (ia, ib) of monomials whose product is kept, its index ic and degree dc;
+        and, where the kept pairs are most of the N_a·N_b, ic over all pairs in row-major order
+        (dropped pairs sent to the extra slot N_c)."""
         key = (da, db)
         if key not in self._mul_tables:
             dc = min(da + db, self.degree)
             na, nb = self.count[da], self.count[db]
             deg = self._deg
-            ia, ib = np.nonzero(deg[:na, None] + deg[None, :nb] <= self.degree)
+            keep = deg[:na, None] + deg[None, :nb] <= self.degree
+            ia, ib = np.nonzero(keep)
             summed = self.powers[ia] + self.powers[ib]
             ic = np.array([self.index[tuple(e)] for e in summed.tolist()], dtype=np.int64)
+            dense = None
+            if 2 * len(ia) >= na * nb:
+                dense = np.full(na * nb, self.count[dc], dtype=np.int64)
+                dense[ia * nb + ib] = ic
             self._mul_tables[key] = (
                 torch.as_tensor(ia),
                 torch.as_tensor(ib),
                 torch.as_tensor(ic),
                 dc,
+                None if dense is None else torch.as_tensor(dense),
             )
         return self._mul_tables[key]
 
     def mul(self, a: Tensor, b: Tensor) -> Tensor:
-        """Truncated product of prefixes a (..., N_a), b (..., N_b) (broadcast) → (..., N_c)."""
-        ia, ib, ic, dc = self._mul_table(self.degree_of(a), self.degree_of(b))
+        """Truncated product of prefixes a (..., N_a), b (..., N_b) (broadcast) → (..., N_c).
+
+        Where most pairs are kept, the outer product (contiguous, no gathers) is summed into
+        place and the dropped pairs go to a discarded slot."""
+        ia, ib, ic, dc, dense = self._mul_table(self.degree_of(a), self.degree_of(b))
+        nc = self.count[dc]
+        if dense is not None:
+            vals = (a[..., :, None] * b[..., None, :]).flatten(-2)
+            out = torch.zeros((*vals.shape[:-1], nc + 1), dtype=vals.dtype)
+            return out.index_add(-1, dense, vals)[..., :nc]
         vals = a[..., ia] * b[..., ib]
-        out = torch.zeros((*vals.shape[:-1], self.count[dc]), dtype=vals.dtype)
+        out = torch.zeros((*vals.shape[:-1], nc), dtype=vals.dtype)
         return out.index_add(-1, ic, vals)
 
     def diff(self, a: Tensor, i: int) -> Tensor:
@@ -131,47 +152,73 @@ class MonomialBasis:
         phi, dphi, ddphi = self.features(p)
         return phi @ coeffs, dphi @ coeffs, ddphi @ coeffs
 
+    def _power_table(self, p: Tensor, degree: int) -> Tensor:
+        """p_i^k, k = 0..degree: (degree + 1, B, n)."""
+        pw = [torch.ones_like(p)]
+        for _ in range(degree):
+            pw.append(pw[-1] * p)
+        return torch.stack(pw, 0)
+
+    def values(self, p: Tensor, degree: int | None = None) -> Tensor:
+        """The monomials of degree ≤ ``degree`` (default: the basis') at p (B, n): (B, N_d)."""
+        d = self.degree if degree is None else degree
+        table = self._power_table(p, d)
+        e = self._exponents_t[: self.count[d]]
+        vals = table[e[:, 0], :, 0]
+        for i in range(1, self.n):
+            vals = vals * table[e[:, i], :, i]
+        return vals.T
+
+    def _factor_tables(self) -> tuple[Tensor, Tensor]:
+        """For every shift σ (0, the units, the sums of two units): the clamped exponents
+        e − σ (S, N, n) and the factors Π_i e_i!/(e_i − σ_i)! (zero where e < σ) (S, N)."""
+        if self._factors is None:
+            n = self.n
+            eye = np.eye(n, dtype=np.int64)
+            shifts = [np.zeros(n, np.int64), *eye]
+            shifts += [eye[i] + eye[j] for i in range(n) for j in range(n)]
+            e = self.powers
+            ks, coefs = [], []
+            for sh in shifts:
+                k = e - sh
+                coef = np.ones(self.size)
+                for i in range(n):
+                    for m in range(int(sh[i])):
+                        coef = coef * (e[:, i] - m)
+                coefs.append(coef * (k >= 0).all(1))
+                ks.append(k.clip(0))
+            self._factors = (torch.as_tensor(np.stack(ks)), torch.as_tensor(np.stack(coefs)))
+        return self._factors
+
+    def _factor(self, table: Tensor, s: int) -> Tensor:
+        """Π_i coefficient·p_i^(e_i − σ_i) over the monomials for shift number s (see
+        :meth:`_factor_tables`), from the power table of :meth:`_power_table`: (B, N)."""
+        kk, coef = self._factor_tables()
+        k = kk[s]
+        vals = table[k[:, 0], :, 0]
+        for i in range(1, self.n):
+            vals = vals * table[k[:, i], :, i]
+        return vals.T * coef[s].to(table.dtype)[None, :]
+
     def features(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Monomials (B, N), their gradients (B, n, N) and Hessians (B, n, n, N) at p (B, n)."""
-        b, n = p.shape
-        d = self.degree
-        pw = [torch.ones_like(p)]
-        for _ in range(d):
-            pw.append(pw[-1] * p)
-        table = torch.stack(pw, 0)  # (d + 1, B, n): p_i^k
-        e = torch.as_tensor(self.powers)  # (N, n)
-        ef = e.to(p.dtype)
+        n = self.n
+        table = self._power_table(p, self.degree)  # (d + 1, B, n): p_i^k
+        phi = self._factor(table, 0)
+        dphi = torch.stack([self._factor(table, 1 + i) for i in range(n)], 1)
+        hess = torch.stack(
+            [
+                torch.stack([self._factor(table, 1 + n + n * i + j) for j in range(n)], 1)
+                for i in range(n)
+            ],
+            1,
+        )
+        return phi, dphi, hess
 
-        def factor(shift: Tensor) -> Tensor:
-            """Π_i coefficient·p_i^(e_i − shift_i) over the monomials: (B, N)."""
-            k = e - shift
-            ok = (k >= 0).all(1)
-            kk = k.clamp_min(0)
-            vals = torch.ones(b, self.size, dtype=p.dtype)
-            for i in range(n):
-                vals = vals * table[kk[:, i], :, i].T
-            coef = torch.ones(self.size, dtype=p.dtype)
-            for i in range(n):
-                s = int(shift[0, i]) if shift.ndim == 2 else 0
-                if s == 1:
-                    coef = coef * ef[:, i]
-                elif s == 2:
-                    coef = coef * ef[:, i] * (ef[:, i] - 1)
-            return vals * (coef * ok)[None, :]
-
-        zero = torch.zeros(1, n, dtype=torch.int64)
-        phi = factor(zero)
-        dphi = torch.stack([factor(_unit(n, i)) for i in range(n)], 1)
-        rows = []
-        for i in range(n):
-            rows.append(torch.stack([factor(_unit(n, i) + _unit(n, j)) for j in range(n)], 1))
-        return phi, dphi, torch.stack(rows, 1)
-
-
-def _unit(n: int, i: int) -> Tensor:
-    u = torch.zeros(1, n, dtype=torch.int64)
-    u[0, i] = 1
-    return u
+    def gradients(self, p: Tensor) -> Tensor:
+        """The monomials' gradients (B, n, N) at p (B, n)."""
+        table = self._power_table(p, self.degree)
+        return torch.stack([self._factor(table, 1 + i) for i in range(self.n)], 1)
 
 
 @cache
@@ -207,12 +254,32 @@ def taylor_series(
     basis_ = basis(n, max(1, order * (d - 1) + 1))
     dtype = theta.dtype
     batch = theta.shape[:-1]
-    ct = torch.tensor(np.array(c, dtype=np.float64)).to(dtype)
+    c64 = np.array(c, dtype=np.float64)
     weights = bernoulli_weights(order)
     p_vec = torch.stack([basis_.variable(i) for i in range(n)]).to(dtype).expand(*batch, n, -1)
-    # H's monomials as sorted variable lists; prod series by prefix, as in taylor.py.
+    # (A v)_a = Σ_b A_ab v_b over the entries (a, b) of A = Σ_i x_i C_i that the structure
+    # constants do not make zero.
+    ent_a, ent_b = np.nonzero(np.abs(c64).sum(0))
+    c_ent = torch.as_tensor(c64[:, ent_a, ent_b]).to(dtype)  # (n, K)
+    ent_a_t, ent_b_t = torch.as_tensor(ent_a), torch.as_tensor(ent_b)
+    # H's monomials as sorted variable lists; prod series by prefix, as in taylor.py. A monomial
+    # of ≥ 2 factors is its prefix's product times its last factor, so H's terms of a length
+    # sum as Σ_g prod_g · (Σ_b θ_{g+b} σ_b), one product per prefix g.
     factors = [tuple(i for i, a in enumerate(e) for _ in range(a)) for e in family]
-    prefixes = sorted({f[:r] for f in factors for r in range(2, len(f) + 1)}, key=len)
+    prefixes = sorted({f[:r] for f in factors for r in range(2, len(f))}, key=len)
+    groups: dict[int, list[tuple[int, ...]]] = {}
+    for f in factors:
+        if len(f) >= 2 and f[:-1] not in groups.setdefault(len(f) - 1, []):
+            groups[len(f) - 1].append(f[:-1])
+    # Θ_ℓ (..., G_ℓ, n): θ of the monomial g + (b,) for the ℓ-factor prefixes g.
+    lin: dict[int, Tensor] = {}
+    for ell, gs in groups.items():
+        sel = np.zeros((len(family), len(gs) * n))
+        for q, f in enumerate(factors):
+            if len(f) == ell + 1:
+                sel[q, gs.index(f[:-1]) * n + f[-1]] = 1.0
+        lin[ell] = (theta @ torch.as_tensor(sel).to(dtype)).reshape(*batch, len(gs), n)
+    lin_series: dict[int, list[Tensor]] = {ell: [] for ell in groups}
     prods: dict[tuple[int, ...], list[Tensor]] = {}
     one = torch.ones(1, dtype=dtype)  # the constant 1, degree 0
     mats: list[Tensor] = [torch.zeros(0)]
@@ -223,14 +290,16 @@ def taylor_series(
         m = k - 1
         if m >= 1:
             x_m = basis_.grad(coeffs[m - 1])  # (..., n, N)
-            mats.append(torch.einsum("iab,...iN->...abN", ct, x_m))  # (A_m)_{ab}
+            mats.append(torch.einsum("ik,...iN->...kN", c_ent, x_m))  # (A_m)_{ab}, (..., K, N)
             w.append([])
             for r in range(1, m + 1):
                 js = range(m, m + 1) if r == 1 else range(1, m - r + 2)
                 acc = torch.zeros(*batch, n, 1, dtype=dtype)
                 for j in js:
                     v = w[r - 1][m - j - (r - 1)]  # (..., n, N)
-                    acc = basis_.add(acc, basis_.mul(mats[j], v[..., None, :, :]).sum(-2))
+                    prod = basis_.mul(mats[j], v[..., ent_b_t, :])  # (..., K, N_c)
+                    av = torch.zeros((*prod.shape[:-2], n, prod.shape[-1]), dtype=dtype)
+                    acc = basis_.add(acc, av.index_add(-2, ent_a_t, prod))
                 w[r].append(acc)
             sig = torch.zeros(*batch, n, 1, dtype=dtype)
             for r in range(1, m + 1):
@@ -250,8 +319,15 @@ def taylor_series(
                     h_m = basis_.add(h_m, t * one)
             elif len(f) == 1:
                 h_m = basis_.add(h_m, t * sigma[m][..., f[0], :])
-            else:
-                h_m = basis_.add(h_m, t * prods[f][m])
+        for ell, gs in groups.items():
+            lin_series[ell].append(lin[ell] @ sigma[m])  # (..., G, N_m)
+            idx = torch.as_tensor([g[0] for g in gs])
+            for a in range(m + 1):
+                if ell == 1:
+                    head_a = sigma[a][..., idx, :]
+                else:
+                    head_a = torch.stack([prods[g][a] for g in gs], -2)
+                h_m = basis_.add(h_m, basis_.mul(head_a, lin_series[ell][m - a]).sum(-2))
         coeffs.append(-h_m / k)
     return basis_, torch.stack([basis_.pad(c_k, basis_.degree) for c_k in coeffs], -2)
 

@@ -62,7 +62,51 @@ def chart_maps(c: Tensor, x: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _chart_jacobians(c: Tensor, x: Tensor, p: Tensor) -> tuple[Tensor, ...]:
-    """sou, tar and their Jacobians in x and p: (B, n) ×2, then U_x, U_p, T_x, T_p (B, n, n)."""
+    """sou, tar and their Jacobians in x and p: (B, n) ×2, then U_x, U_p, T_x, T_p (B, n, n).
+
+    In closed form, alongside the series of :func:`chart_maps`: with t_r = A^r p,
+    ∂t_r/∂x_i = C_i t_{r−1} + A ∂t_{r−1}/∂x_i ((C_i)_{jk} = c[i,j,k]), and ∂t_r/∂p = A^r; tar's
+    terms are the same with the odd ones negated. The three recursions share one stacked
+    product V ← A V per term, V = [t_r | A^r | ∂t_r/∂x] (B, n, 1 + 2n), in numpy (its stacked
+    matmul is several times faster than torch's for these small matrices)."""
+    b, n = p.shape
+    cn = c.detach().numpy()
+    xn = x.detach().numpy()
+    a = (xn @ cn.reshape(n, n * n)).reshape(b, n, n)  # A_jk = Σ_i c[i,j,k] x_i
+    terms = _series_terms(torch.from_numpy(a))
+    w = bernoulli_weights(terms)
+    # (C v)[b, j, i] = Σ_k c[i,j,k] v[b,k]: one product with c as (k, (j, i)).
+    cmat = np.ascontiguousarray(cn.transpose(2, 1, 0).reshape(n, n * n))
+    v = np.zeros((b, n, 1 + 2 * n))
+    v[:, :, 0] = p.detach().numpy()
+    v[:, :, 1 : 1 + n] = np.eye(n)
+    even = v.copy()
+    odd = np.zeros_like(v)
+    for r in range(1, terms + 1):
+        ct = (v[:, :, 0] @ cmat).reshape(b, n, n)
+        v = a @ v
+        v[:, :, 1 + n :] += ct
+        if w[r] == 0.0:
+            continue
+        if r % 2:
+            odd += w[r] * v
+        else:
+            even += w[r] * v
+    sou = torch.from_numpy(even + odd)
+    tar = torch.from_numpy(even - odd)
+    return (
+        sou[..., 0],
+        tar[..., 0],
+        sou[..., 1 + n :],
+        sou[..., 1 : 1 + n],
+        tar[..., 1 + n :],
+        tar[..., 1 : 1 + n],
+    )
+
+
+def _chart_jacobians_autograd(c: Tensor, x: Tensor, p: Tensor) -> tuple[Tensor, ...]:
+    """:func:`_chart_jacobians` by reverse-mode autograd of :func:`chart_maps`, one row at a time
+    (the oracle of the closed form in the tests)."""
     n = x.shape[1]
     xv = x.detach().requires_grad_(True)
     pv = p.detach().requires_grad_(True)
@@ -88,6 +132,8 @@ class StepResult:
     converged: Tensor
     d_coeffs: Tensor | None = None
     d_state: Tensor | None = None
+    #: The solution p of tar(∇S(p), p) = μ (B, n): a start for the next solve near it.
+    p: Tensor | None = None
 
 
 def bisection_step(
@@ -97,37 +143,71 @@ def bisection_step(
     mu: Tensor,
     *,
     derivatives: bool = False,
+    coeff_jacobian: Tensor | None = None,
+    p0: Tensor | None = None,
 ) -> StepResult:
     """One bisection step of S(h, p) = Σ coeffs[m] p^{e_m} (coefficients of S at the step's h,
-    (N,)) from mu (B, n), float64. Non-converged rows come back NaN."""
+    (N,)) from mu (B, n), float64. Non-converged rows come back NaN.
+
+    With ``coeff_jacobian`` = ds/dθ (N, P), ``d_coeffs`` comes back as dμ'/dθ = dμ'/ds · ds/dθ
+    (B, n, P), formed without the (B, n, N) intermediate. ``p0`` (B, n): Newton's start in place
+    of μ (e.g. the solution ``p`` of a step from nearby states or for nearby coefficients; rows
+    that are not finite start from μ); the converged p does not depend on it.
+
+    ∇S and ∇²S are differentiated once as polynomials (coefficient vectors), so each Newton
+    iteration evaluates only the monomials at p."""
     ct = torch.tensor(np.array(c, dtype=np.float64))
     coeffs = coeffs.detach()
     mu = mu.detach()
-    p = mu.clone()
-    done = torch.zeros(mu.shape[0], dtype=torch.bool)
-    for _ in range(NEWTON_MAX_ITER):
-        _, grad, hess = basis.features(p)
-        x = grad @ coeffs
-        hs = hess @ coeffs
-        _, t, _, _, tx, tp = _chart_jacobians(ct, x, p)
-        jac = tx @ hs + tp
-        delta = torch.linalg.solve(jac, -(t - mu)[..., None])[..., 0]
-        delta = torch.where(done[:, None], torch.zeros_like(delta), delta)
-        p = p + delta
-        done = done | (delta.abs().amax(-1) <= NEWTON_TOL * p.abs().amax(-1).clamp_min(1e-300))
-        if bool(done.all()):
-            break
-    ok = done & torch.isfinite(p).all(-1)
-    _, grad, hess = basis.features(p)
-    x = grad @ coeffs
-    hs = hess @ coeffs
+    n = mu.shape[1]
+    d = basis.degree_of(coeffs)
+    g_poly = basis.grad(coeffs)  # (n, N_{d−1}): ∂S/∂p_i
+    h_poly = basis.grad(g_poly).reshape(n * n, -1)  # (n², N_{d−2}): ∂²S/∂p_i∂p_j
+    dg, dh = max(d - 1, 0), max(d - 2, 0)
+
+    def derivs(p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        phi = basis.values(p, dg)
+        return phi, phi @ g_poly.T, (phi[:, : basis.count[dh]] @ h_poly.T).reshape(-1, n, n)
+
+    def newton(p: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
+        done = torch.zeros(mu.shape[0], dtype=torch.bool)
+        for _ in range(NEWTON_MAX_ITER):
+            _, x, hs = derivs(p)
+            _, t, _, _, tx, tp = _chart_jacobians(ct, x, p)
+            jac = tx @ hs + tp
+            delta = torch.linalg.solve(jac, -(t - mu)[..., None])[..., 0]
+            delta = torch.where(done[:, None], torch.zeros_like(delta), delta)
+            p = p + delta
+            done = done | (delta.abs().amax(-1) <= NEWTON_TOL * p.abs().amax(-1).clamp_min(1e-300))
+            if bool(done.all()):
+                break
+        return p, done & torch.isfinite(p).all(-1)
+
+    if p0 is None:
+        p, ok = newton(mu.clone(), mu)
+    else:
+        p, ok = newton(torch.where(torch.isfinite(p0), p0.detach(), mu), mu)
+        retry = ~ok & torch.isfinite(mu).all(-1)
+        if bool(retry.any()):  # rows the start did not serve: from μ, as without one
+            p_r, ok_r = newton(mu[retry].clone(), mu[retry])
+            p, ok = p.clone(), ok.clone()
+            p[retry], ok[retry] = p_r, ok_r
+    phi, x, hs = derivs(p)
+    if not derivatives:
+        s, _ = chart_maps(ct, x, p)
+        return StepResult(torch.where(ok[:, None], s, torch.full_like(s, math.nan)), ok, p=p)
     s, _, ux, up, tx, tp = _chart_jacobians(ct, x, p)
     out = torch.where(ok[:, None], s, torch.full_like(s, math.nan))
-    if not derivatives:
-        return StepResult(out, ok)
+    if coeff_jacobian is None:
+        grad = basis.gradients(p)  # (B, n, N): the monomials' gradients
+        grad = grad[..., : coeffs.shape[-1]]
+    else:
+        # Σ_m ∂(p^{e_m})/∂p_i ds_m/dθ_q: the gradients of the polynomials ds/dθ_q at p.
+        dpoly = basis.grad(coeff_jacobian.T.contiguous())  # (P, n, N_{d−1})
+        grad = torch.einsum("bm,qim->biq", phi[:, : dpoly.shape[-1]], dpoly)
     jac = tx @ hs + tp
     jinv = torch.linalg.inv(jac)
-    dp = -jinv @ (tx @ grad)  # (B, n, N)
+    dp = -jinv @ (tx @ grad)
     d_coeffs = ux @ (grad + hs @ dp) + up @ dp
     d_state = (ux @ hs + up) @ jinv
-    return StepResult(out, ok, d_coeffs, d_state)
+    return StepResult(out, ok, d_coeffs, d_state, p)
