@@ -13,6 +13,17 @@ recorded as cut off past that. One pinned core, one torch thread::
 
     PYTHONPATH=python taskset -c 0 .venv/bin/python benches/charged_particle_pnn.py \\
         --out docs/learning/charged_particle_pnn.json
+
+``--pnn CHECKOUT --pnn-iterations N``: PNN itself (their ``main.py`` ``LF()``: INN(4, 2, 10, 3,
+50, sigmoid, volume preserving) + GSympNet(4, 10, 50, sigmoid), 30,020 parameters, Adam lr 1e-3,
+full batch, float32, best checkpoint by their test loss) on their own ``LFData`` records, N of
+their 2M iterations (about 70 ms an iteration on one core here: all of them would take ~40 h),
+scored as the rows above; ``--only-pnn`` runs that row alone and keeps the others of ``--out``;
+without ``--pnn`` an existing PNN row of ``--out`` is kept.
+The checkout is taken at bench time, never vendored (see ``benches/structure_protocols.py``)::
+
+    PYTHONPATH=python taskset -c 1 .venv/bin/python benches/charged_particle_pnn.py \\
+        --pnn /tmp/peers/pnn --pnn-iterations 20000 --only-pnn --peer-site /tmp/peer-site
 """
 
 from __future__ import annotations
@@ -20,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -88,6 +100,46 @@ def learn_row(system: Any, train: np.ndarray, start: np.ndarray, exact: np.ndarr
     }
 
 
+def pnn_row(pnn: Path, iterations: int, system: Any, start: np.ndarray,
+            exact: np.ndarray) -> dict[str, Any]:  # fmt: skip
+    """PNN's LF() on its own LFData records; z = (v, x) there, (x, v) here."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import structure_protocols as sp
+
+    ln, mod = sp.import_pnn(pnn, None)
+    torch.manual_seed(0)
+    data = mod.LFData([1, 0.5, 0.5, 1], H, TRAIN_STEPS, TEST_STEPS)
+    inn = ln.nn.INN(4, 2, 10, 3, 50, "sigmoid", volume_preserving=True)
+    net = ln.nn.PNN(inn, ln.nn.GSympNet(4, 10, 50, "sigmoid"))
+    params = sp.count(net)
+    # Their records against ours (DOP853 at 1e-13), in our (x, v) order.
+    theirs = np.concatenate([data.X_train[:1], data.y_train])[:, [2, 3, 0, 1]]
+    ours = np.asarray(pr.reference_solution(system, theirs[0], H * np.arange(TRAIN_STEPS + 1)))
+    print(f"PNN: {params} parameters, {iterations} of 2,000,000 iterations", flush=True)
+    best, seconds, cpu, curve = sp.pnn_train(ln, data, net, iterations)
+    t0 = time.perf_counter()
+    traj = sp.pnn_rollout(best, start[None, [2, 3, 0, 1]], DRIFT_STEPS)[0][:, [2, 3, 0, 1]]
+    rollout_seconds = time.perf_counter() - t0
+    return {
+        "method": "PNN (published code)",
+        "parameters": params,
+        "train_seconds": round(seconds, 1),
+        "train_cpu_seconds": round(cpu, 1),
+        "iterations": iterations,
+        "their_iterations": 2_000_000,
+        "fraction_of_theirs": round(iterations / 2_000_000, 4),
+        **score(system, traj, exact),
+        "rollout_seconds": round(rollout_seconds, 2),
+        "best_checkpoint_iteration": int(min(curve, key=lambda r: r[2])[0]),
+        "their_data_max_deviation_from_reference": float(np.abs(theirs - ours).max()),
+        "loss_curve": {"columns": ["iteration", "train_mse", "test_mse"], "rows": curve},
+        "notes": "their main.py LF() (device cpu): INN(4, 2, 10, 3, 50, sigmoid, volume "
+        "preserving) + GSympNet(4, 10, 50, sigmoid), Adam lr 1e-3, full batch, float32; best "
+        "checkpoint by test loss (their Restore); trained on their LFData records (their "
+        "order-4 splitting), scored against DOP853 from the same test start as every row",
+    }
+
+
 def _discover_child(queue: Any, system: Any, train: np.ndarray, start: np.ndarray,
                     exact: np.ndarray) -> None:  # fmt: skip
     torch.set_num_threads(1)
@@ -105,14 +157,33 @@ def main() -> None:
         "--out", type=Path, default=ROOT / "docs/learning/charged_particle_pnn.json"
     )
     parser.add_argument("--discover-seconds", type=float, default=600.0)
+    parser.add_argument("--pnn", type=Path, help="checkout of jpzxshi/pnn: adds PNN's row")
+    parser.add_argument("--pnn-iterations", type=int, default=20_000)
+    parser.add_argument("--peer-site", type=Path, help="site directory of PNN's imports")
+    parser.add_argument(
+        "--only-pnn", action="store_true", help="run PNN's row alone; keep the other rows of --out"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.peer_site:
+        sys.path.insert(0, str(args.peer_site.resolve()))
+    if args.only_pnn and args.pnn is None:
+        parser.error("--only-pnn needs --pnn")
     system = load_scene(ROOT / "scenes" / "charged_particle_pnn.toml").system
     x0 = np.asarray(load_scene(ROOT / "scenes" / "charged_particle_pnn.toml").points[0])
     times = H * np.arange(TRAIN_STEPS + 1)
     train = np.asarray(pr.reference_solution(system, x0, times))[None]  # (1, 1501, 4)
     start = train[0, -1]
     exact = np.asarray(pr.reference_solution(system, start, H * np.arange(DRIFT_STEPS + 1)))
+    if args.only_pnn:
+        doc = json.loads(args.out.read_text())
+        doc["rows"] = [r for r in doc["rows"] if r["method"] != "PNN (published code)"]
+        doc["rows"].append(pnn_row(args.pnn.resolve(), args.pnn_iterations, system, start, exact))
+        doc["meta"]["pnn_command"] = " ".join(sys.argv)
+        print({k: v for k, v in doc["rows"][-1].items() if k != "loss_curve"}, flush=True)
+        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"wrote {args.out}")
+        return
     rows: list[dict[str, Any]] = []
     for label, stepper in (
         ("true system, Taylor-HJ by jets m = 3", pr.taylor_integrator(system, 3)),
@@ -143,6 +214,15 @@ def main() -> None:
         rows.append(queue.get())
         rows[-1]["wall_seconds"] = round(time.perf_counter() - t0, 2)
     print({k: v for k, v in rows[-1].items() if k != "candidates"}, flush=True)
+    kept_meta: dict[str, Any] = {}
+    if args.pnn is not None:
+        rows.append(pnn_row(args.pnn.resolve(), args.pnn_iterations, system, start, exact))
+    elif args.out.exists():
+        # PNN's row (hours of training) stays unless its checkout is given.
+        old = json.loads(args.out.read_text())
+        rows += [r for r in old["rows"] if r["method"] == "PNN (published code)"]
+        if "pnn_command" in old.get("meta", {}):
+            kept_meta["pnn_command"] = old["meta"]["pnn_command"]
     meta = {
         "protocol": "PNN charged particle (LFData): 1 state (x, v) = (0.5, 1, 1, 0.5), h = 0.1, "
         "1500 training records by DOP853 at 1e-13, test 300 steps after and 3000 (10×), "
@@ -150,6 +230,7 @@ def main() -> None:
         "scene": "scenes/charged_particle_pnn.toml",
         "command": "PYTHONPATH=python taskset -c 0 .venv/bin/python "
         "benches/charged_particle_pnn.py",
+        **kept_meta,
     }
     args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
     print(f"wrote {args.out}")

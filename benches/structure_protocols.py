@@ -466,11 +466,18 @@ def pnn_row(
     }
 
 
-def pnn_lotka_volterra(p: Protocol, ln: Any, mod: Any, iterations: int) -> dict[str, Any]:
+def pnn_lotka_volterra(
+    p: Protocol, ln: Any, mod: Any, iterations: int, records: np.ndarray | None = None
+) -> dict[str, Any]:
+    """``records`` (3, 101, 2): train on their pairs instead of PNN's own LVData records (the
+    noise study); PNN's test pairs (its checkpoint choice) stay its own, exact."""
     import torch
 
     torch.manual_seed(0)
     data = mod.LVData(LV_STATES, H, TRAIN_STEPS, TEST_STEPS)
+    if records is not None:
+        data.X_train = records[:, :-1].reshape(-1, 2).copy()
+        data.y_train = records[:, 1:].reshape(-1, 2).copy()
     inn = ln.nn.INN(2, 1, 3, 2, 30, "sigmoid", volume_preserving=False)
     net = ln.nn.PNN(inn, ln.nn.GSympNet(2, 3, 30, "sigmoid"))
     return pnn_row(
@@ -483,6 +490,58 @@ def pnn_lotka_volterra(p: Protocol, ln: Any, mod: Any, iterations: int) -> dict[
         "their main.py LV(): INN(2, 1, 3, 2, 30, sigmoid) + GSympNet(2, 3, 30, sigmoid), Adam "
         "lr 1e-3, full batch, float32; best checkpoint by test loss (their Restore)",
     )
+
+
+#: The noise study's levels: Gaussian noise of σ·|z| on every coordinate of every training record.
+NOISE_LEVELS = (1e-6, 1e-4, 1e-2)
+
+
+def noisy_records(train: np.ndarray, sigma: float, draw: int = 0) -> np.ndarray:
+    """``train`` (n_traj, m, dim) plus σ·|z_k|·N(0, 1) on each coordinate: one generator seeded
+    by ``draw`` over the trajectories in turn (``benches/discover_structures.py --noise``'s
+    draw ``draw``)."""
+    rng = np.random.default_rng(draw)
+    return np.stack(
+        [t + sigma * np.linalg.norm(t, axis=1)[:, None] * rng.normal(size=t.shape) for t in train]
+    )
+
+
+def noise_rows(
+    p: Protocol, ln: Any, mod: Any, iterations: int, sigmas: tuple[float, ...]
+) -> list[dict[str, Any]]:
+    """PNN's Lotka–Volterra with noisy training records (draw 0), scored from the exact test
+    starts: ours (the structure given and discovered) and PNN at ``iterations``."""
+    rows: list[dict[str, Any]] = []
+    for sigma in sigmas:
+        noisy = noisy_records(p.train, sigma)
+        tag = f" σ={sigma:g}"
+        if not PEERS_ONLY:
+            t0 = time.perf_counter()
+            stepper, report = pr.learn(noisy, p.h, structure=p.system, seed=0, progress=False)
+            seconds = time.perf_counter() - t0
+            rows.append(
+                {
+                    "protocol": "pnn_lotka_volterra_noise",
+                    "sigma": sigma,
+                    "method": "ours: pr.learn(structure=true structure)" + tag,
+                    "parameters": int(report.kept.parameters),
+                    "train_seconds": round(seconds, 2),
+                    **p.score(rollout(stepper, p)),
+                    "notes": f"kept {report.kept.family}, K = {report.kept.order}",
+                }
+            )
+            row = ours_discover_row(p, noisy, "noise")
+            row.update(protocol="pnn_lotka_volterra_noise", sigma=sigma)
+            # σ before the first comma: --merge tells rows apart by the method up to it.
+            row["method"] = row["method"].replace(", snap", tag + ", snap")
+            rows.append(row)
+        if ln is not None:
+            row = pnn_lotka_volterra(p, ln, mod, iterations, records=noisy)
+            row.update(protocol="pnn_lotka_volterra_noise", sigma=sigma)
+            row["method"] += tag
+            rows.append(row)
+        print(table(rows[-3:]), flush=True)
+    return rows
 
 
 def pnn_extended_pendulum(p: Protocol, ln: Any, mod: Any, iterations: int) -> dict[str, Any]:
@@ -552,6 +611,17 @@ def main() -> None:
     ap.add_argument("--dpnn-commit")
     ap.add_argument("--lv-iterations", type=int, default=PNN_LV_ITERATIONS)
     ap.add_argument("--pd-iterations", type=int, default=PNN_PD_ITERATIONS)
+    ap.add_argument(
+        "--noise-iterations",
+        type=int,
+        default=20_000,
+        help="PNN's iterations in protocol lvnoise (its Lotka–Volterra with noisy records)",
+    )
+    ap.add_argument(
+        "--noise-levels",
+        default=",".join(f"{s:g}" for s in NOISE_LEVELS),
+        help="protocol lvnoise's relative σ, comma-separated",
+    )
     ap.add_argument("--dpnn-epochs", type=int, default=None, help="default: typical_args'")
     ap.add_argument(
         "--dpnn-methods",
@@ -563,8 +633,8 @@ def main() -> None:
     ap.add_argument(
         "--protocols",
         default="lv,pd,rb",
-        help="comma-separated: lv (PNN Lotka–Volterra), pd (PNN extended pendulum), rb and ht "
-        "(DPNN's rigid body and heavy top)",
+        help="comma-separated: lv (PNN Lotka–Volterra), lvnoise (the same with noisy records), "
+        "pd (PNN extended pendulum), rb and ht (DPNN's rigid body and heavy top)",
     )
     ap.add_argument("--merge", action="store_true", help="keep the rows of --json not rerun")
     ap.add_argument(
@@ -615,6 +685,9 @@ def main() -> None:
         rows += ours_rows(p, pr.taylor_integrator(lv, 8), lv, "log-canonical Taylor-HJ K = 8")
         if ln is not None:
             rows.append(pnn_lotka_volterra(p, ln, mod, args.lv_iterations))
+    if "lvnoise" in wanted:
+        sigmas = tuple(float(v) for v in args.noise_levels.split(","))
+        rows += noise_rows(lotka_volterra_protocol(), ln, mod, args.noise_iterations, sigmas)
     if "pd" in wanted:
         p = pendulum_protocol()
         rows += ours_rows(p, p.system.taylor_integrator(5), p.system.base, "jets, order 5")

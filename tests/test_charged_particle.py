@@ -163,3 +163,59 @@ def test_hostile_field_texts_are_refused_before_sympy(monkeypatch, field: str) -
     monkeypatch.setattr(sympy, "sympify", never)
     with pytest.raises(ValueError, match="field"):
         charged_particle(field)
+
+
+def test_expression_hamiltonians_keep_the_field_and_potential(particle: ChargedParticle) -> None:
+    """``expression_system`` (and so ``pr.with_hamiltonian``) is the same B and A with a new H: a
+    charged particle again, whose
+    field is the Lorentz force of that H (written out by hand), and the term libraries of
+    ``pr.learn`` apply (their H written in the component names x₁ … v₂)."""
+    from poisson_rs.hamiltonian_library import library_families, supports_library
+
+    other = particle.expression_system("(v₁**2 + v₂**2)/2 + x₁**2 * cos(x₂)", name="other")
+    assert isinstance(other, ChargedParticle)
+    assert (
+        pr.with_hamiltonian(particle, "(v₁**2 + v₂**2)/2 + x₁**2 * cos(x₂)", name="other") == other
+    )
+    assert (other.field, other.potential, other.name) == (particle.field, particle.potential,
+                                                          "other")  # fmt: skip
+    z = np.random.default_rng(4).normal(size=(5, 4))
+    x, v = z[:, :2], z[:, 2:]
+    r = np.hypot(x[:, 0], x[:, 1])
+    grad_phi = np.stack([2 * x[:, 0] * np.cos(x[:, 1]), -(x[:, 0] ** 2) * np.sin(x[:, 1])], axis=1)
+    vdot = r[:, None] * np.stack([v[:, 1], -v[:, 0]], axis=1) - grad_phi
+    np.testing.assert_allclose(other.vector_field(z), np.hstack([v, vdot]), rtol=1e-13)
+    assert supports_library(particle)
+    names = [f.name for f in library_families(particle, None, 4)]
+    assert names == ["poly2+trig", "poly3+trig", "poly2+logdist", "poly2+dist^-1"]
+    dist = library_families(particle, None, 4)[-1]
+    theta = np.zeros(len(dist))
+    theta[dist.exponents.index((0, 0, 2, 0))] = theta[dist.exponents.index((0, 0, 0, 2))] = 0.5
+    theta[dist.exponents.index(("radius", -1, 0))] = 0.01
+    np.testing.assert_allclose(dist.system(theta).hamiltonian(z), energy(z), rtol=1e-14)
+
+
+def test_the_library_recovers_pnns_hamiltonian(particle: ChargedParticle) -> None:
+    """PNN's state, 61 exact records at h = 0.1: poly2+dist^-1 fitted through Taylor-HJ by jets
+    (m = 5) keeps exactly |v|²/2 + 1/(100|x|), every coefficient within 1e-6 of the true one, and
+    the learned system steps as the true one does (T = 30 and 10×:
+    benches/charged_particle_pnn.py runs pr.learn's whole search). Through m = 3 the integrator's
+    own error (~1e-4 over the records) would leak into the coefficients."""
+    from poisson_rs.hamiltonian_library import LibraryFamily
+    from poisson_rs.learn.data import prepare
+    from poisson_rs.learn.structure_fit import fit_structure_hamiltonian
+
+    h = 0.1
+    records = np.asarray(particle.reference_solution(X0, h * np.arange(61)))
+    data = prepare(list(records), h, None, seed=0, system=particle)
+    family = LibraryFamily(particle, 2, 5, trig=False, distance_powers=(-1,))
+    fit = fit_structure_hamiltonian(data, particle, 2, order=5, family=family)
+    truth = dict.fromkeys(family.exponents, 0.0)
+    truth.update({(0, 0, 2, 0): 0.5, (0, 0, 0, 2): 0.5, ("radius", -1, 0): 0.01})
+    learned = dict(zip(fit.family.exponents, fit.theta, strict=True))
+    assert set(learned) == {(0, 0, 2, 0), (0, 0, 0, 2), ("radius", -1, 0)}
+    assert max(abs(learned.get(k, 0.0) - t) for k, t in truth.items()) <= 1e-6, learned
+    true = pr.taylor_integrator(particle, 5)
+    a = pr.integrate(true, records[0, -1], h, 40)
+    b = pr.integrate(fit.stepper, records[0, -1], h, 40)
+    assert np.abs(a - b).max() <= 1e-6

@@ -81,11 +81,7 @@ COINCIDE_RTOL = 1e-12
 def supports_library(structure: Any) -> bool:
     """Whether ``structure`` steps expression Hamiltonians by jets (an exact or order-n jet
     realization)."""
-    try:
-        structure.jet_realization(LIBRARY_ORDER)
-    except (AttributeError, NotImplementedError, ValueError):
-        return False
-    return True
+    return bool(structure.steps_expressions_by_jets())
 
 
 def distance_pairs(dim: int) -> list[tuple[int, int]]:
@@ -372,7 +368,7 @@ class LibraryFamily:
         return " + ".join(parts) or "0"
 
     def system(self, theta: Any) -> Any:
-        """The structure's bracket with H = H_θ (an expression system)."""
+        """The structure's bracket with H = H_θ (its expression system)."""
         from .structures.expression_system import with_hamiltonian
 
         return with_hamiltonian(self.structure, self.text(theta), name="learned")

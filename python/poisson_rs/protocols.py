@@ -443,3 +443,20 @@ class PoissonSystemBase:
             f"{self.title} has no realization for Taylor-HJ by jets; its classical methods "
             "(rk4, midpoint, dop853) take an expression Hamiltonian"
         )
+
+    def steps_expressions_by_jets(self) -> bool:
+        """Whether :meth:`expression_system` steps an expression H by Taylor-HJ by jets (the
+        term libraries of ``pr.learn`` need it): here, where :meth:`jet_realization` exists."""
+        try:
+            self.jet_realization(1)
+        except (NotImplementedError, ValueError):
+            return False
+        return True
+
+    def expression_system(self, hamiltonian: str, *, name: str | None = None) -> Any:
+        """This bracket with the expression ``hamiltonian`` (in the component names or
+        x1 … xn), where the structure builds it as its own kind (a charged particle in a
+        non-polynomial field keeps B and A). NotImplementedError here: the generic wrapper
+        :func:`poisson_rs.with_hamiltonian` builds it from :meth:`bracket_terms` and
+        :meth:`jet_realization` instead."""
+        raise NotImplementedError(f"{self.title} has no expression systems of its own kind")

@@ -598,6 +598,18 @@ class ChargedParticle(PoissonSystemBase):
             chart=CANONICAL_CHART,
         )
 
+    def steps_expressions_by_jets(self) -> bool:
+        """Always: an expression H is stepped by jets on the canonical system (x, p = v + A(x))
+        (:meth:`expression_system`)."""
+        return True
+
+    def expression_system(self, hamiltonian: str, *, name: str | None = None) -> ChargedParticle:
+        """The same field B and potential A with the expression H(x, v) ``hamiltonian``: a
+        charged particle again (by jets on H̃(x, p) = H(x, p − A(x)) where H or B is not a
+        polynomial)."""
+        field = self.field[0] if self.d == 2 else list(self.field)
+        return ChargedParticle(field, hamiltonian, potential=list(self.potential), name=name)
+
     def classical_methods(self) -> list[str]:
         if self.direct is None:
             from .expression_system import FIELD_METHODS

@@ -265,9 +265,16 @@ def _rebuild(base: Any, text: str, name: str | None) -> ExpressionSystem:
 
 def with_hamiltonian(
     structure: Any, hamiltonian: str | Expression, *, name: str | None = None
-) -> ExpressionSystem:
+) -> PoissonSystemBase:
     """The bracket of ``structure`` (any system) with ``hamiltonian``, an expression in its
-    component names or x1 … xn, e.g. ``with_hamiltonian(pendulum, "u**2/2 - cos(v)")``."""
+    component names or x1 … xn, e.g. ``with_hamiltonian(pendulum, "u**2/2 - cos(v)")``: the
+    structure's own kind where it builds one (``structure.expression_system``: a charged particle
+    keeps its B and A), else an :class:`ExpressionSystem` on its polynomial bracket."""
+    if isinstance(hamiltonian, str):
+        try:
+            return structure.expression_system(hamiltonian, name=name)
+        except NotImplementedError:
+            pass
     return ExpressionSystem(structure, hamiltonian, name=name)
 
 
