@@ -42,6 +42,14 @@ it::
     PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
         --protocols ht --merge
 
+The noise study (PNN's two protocols with Gaussian noise of σ·|z| on every coordinate of every
+training record, draw 0 of ``benches/discover_structures.py --noise``; PNN at 20k iterations on
+the same noisy pairs, its checkpoint still chosen on its own exact test pairs; ours with the
+structure given and discovered; about 15 and 30 min on one core)::
+
+    PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
+        --pnn /tmp/peers/pnn --protocols lvnoise,pdnoise --noise-levels 0,1e-6,1e-4,1e-2 --merge
+
 Our rows alone (no peer checkout) are refreshed with
 ``--protocols pd --merge``: the discovery rows, once per snap rule, about 10 min.
 
@@ -507,21 +515,26 @@ def noisy_records(train: np.ndarray, sigma: float, draw: int = 0) -> np.ndarray:
 
 
 def noise_rows(
-    p: Protocol, ln: Any, mod: Any, iterations: int, sigmas: tuple[float, ...]
+    p: Protocol,
+    structure: Any,
+    peer: Callable[[np.ndarray], dict[str, Any]] | None,
+    sigmas: tuple[float, ...],
 ) -> list[dict[str, Any]]:
-    """PNN's Lotka–Volterra with noisy training records (draw 0), scored from the exact test
-    starts: ours (the structure given and discovered) and PNN at ``iterations``."""
+    """Protocol ``p`` with noisy training records (draw 0), scored from the exact test starts:
+    ours (the structure given, ``structure``, and discovered) and the peer's row
+    (``peer(records)``), as protocol ``<p.name>_noise`` with the level in each row."""
     rows: list[dict[str, Any]] = []
+    name = f"{p.name}_noise"
     for sigma in sigmas:
         noisy = noisy_records(p.train, sigma)
         tag = f" σ={sigma:g}"
         if not PEERS_ONLY:
             t0 = time.perf_counter()
-            stepper, report = pr.learn(noisy, p.h, structure=p.system, seed=0, progress=False)
+            stepper, report = pr.learn(noisy, p.h, structure=structure, seed=0, progress=False)
             seconds = time.perf_counter() - t0
             rows.append(
                 {
-                    "protocol": "pnn_lotka_volterra_noise",
+                    "protocol": name,
                     "sigma": sigma,
                     "method": "ours: pr.learn(structure=true structure)" + tag,
                     "parameters": int(report.kept.parameters),
@@ -531,24 +544,30 @@ def noise_rows(
                 }
             )
             row = ours_discover_row(p, noisy, "noise")
-            row.update(protocol="pnn_lotka_volterra_noise", sigma=sigma)
+            row.update(protocol=name, sigma=sigma)
             # σ before the first comma: --merge tells rows apart by the method up to it.
             row["method"] = row["method"].replace(", snap", tag + ", snap")
             rows.append(row)
-        if ln is not None:
-            row = pnn_lotka_volterra(p, ln, mod, iterations, records=noisy)
-            row.update(protocol="pnn_lotka_volterra_noise", sigma=sigma)
+        if peer is not None:
+            row = peer(noisy)
+            row.update(protocol=name, sigma=sigma)
             row["method"] += tag
             rows.append(row)
         print(table(rows[-3:]), flush=True)
     return rows
 
 
-def pnn_extended_pendulum(p: Protocol, ln: Any, mod: Any, iterations: int) -> dict[str, Any]:
+def pnn_extended_pendulum(
+    p: Protocol, ln: Any, mod: Any, iterations: int, records: np.ndarray | None = None
+) -> dict[str, Any]:
+    """``records`` (3, 101, 3): as in :func:`pnn_lotka_volterra`."""
     import torch
 
     torch.manual_seed(0)
     data = mod.PDData(np.array(PD_STATES), H, TRAIN_STEPS, TEST_STEPS)
+    if records is not None:
+        data.X_train = records[:, :-1].reshape(-1, 3).copy()
+        data.y_train = records[:, 1:].reshape(-1, 3).copy()
     inn = ln.nn.INN(3, 2, 3, 2, 30, "sigmoid", volume_preserving=False)
     net = ln.nn.PNN(inn, ln.nn.ESympNet(3, 2, 3, 30, "sigmoid"))
     return pnn_row(
@@ -615,12 +634,12 @@ def main() -> None:
         "--noise-iterations",
         type=int,
         default=20_000,
-        help="PNN's iterations in protocol lvnoise (its Lotka–Volterra with noisy records)",
+        help="PNN's iterations in protocols lvnoise and pdnoise (noisy records)",
     )
     ap.add_argument(
         "--noise-levels",
         default=",".join(f"{s:g}" for s in NOISE_LEVELS),
-        help="protocol lvnoise's relative σ, comma-separated",
+        help="the noise protocols' relative σ, comma-separated",
     )
     ap.add_argument("--dpnn-epochs", type=int, default=None, help="default: typical_args'")
     ap.add_argument(
@@ -633,8 +652,8 @@ def main() -> None:
     ap.add_argument(
         "--protocols",
         default="lv,pd,rb",
-        help="comma-separated: lv (PNN Lotka–Volterra), lvnoise (the same with noisy records), "
-        "pd (PNN extended pendulum), rb and ht (DPNN's rigid body and heavy top)",
+        help="comma-separated: lv (PNN Lotka–Volterra), pd (PNN extended pendulum), lvnoise and "
+        "pdnoise (the same with noisy records), rb and ht (DPNN's rigid body and heavy top)",
     )
     ap.add_argument("--merge", action="store_true", help="keep the rows of --json not rerun")
     ap.add_argument(
@@ -685,9 +704,16 @@ def main() -> None:
         rows += ours_rows(p, pr.taylor_integrator(lv, 8), lv, "log-canonical Taylor-HJ K = 8")
         if ln is not None:
             rows.append(pnn_lotka_volterra(p, ln, mod, args.lv_iterations))
+    sigmas = tuple(float(v) for v in args.noise_levels.split(","))
+    its = args.noise_iterations
     if "lvnoise" in wanted:
-        sigmas = tuple(float(v) for v in args.noise_levels.split(","))
-        rows += noise_rows(lotka_volterra_protocol(), ln, mod, args.noise_iterations, sigmas)
+        p = lotka_volterra_protocol()
+        peer = None if ln is None else lambda r: pnn_lotka_volterra(p, ln, mod, its, records=r)
+        rows += noise_rows(p, p.system, peer, sigmas)
+    if "pdnoise" in wanted:
+        q = pendulum_protocol()
+        peer = None if ln is None else lambda r: pnn_extended_pendulum(q, ln, mod, its, records=r)
+        rows += noise_rows(q, q.system.base, peer, sigmas)
     if "pd" in wanted:
         p = pendulum_protocol()
         rows += ours_rows(p, p.system.taylor_integrator(5), p.system.base, "jets, order 5")
