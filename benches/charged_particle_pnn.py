@@ -164,6 +164,8 @@ def main() -> None:
         "--only-pnn", action="store_true", help="run PNN's row alone; keep the other rows of --out"
     )
     args = parser.parse_args()
+    # A bad output path fails here, not after half an hour of work.
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
     if args.peer_site:
         sys.path.insert(0, str(args.peer_site.resolve()))

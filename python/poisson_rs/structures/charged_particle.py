@@ -461,6 +461,11 @@ class ChargedParticle(PoissonSystemBase):
     casimir_label = "no Casimir (a symplectic bracket): drift n/a"
 
     @property
+    def field_argument(self) -> str | list[str]:
+        """B as the constructor takes it: one text in the plane, three in space."""
+        return self.field[0] if self.d == 2 else list(self.field)
+
+    @property
     def title(self) -> str:
         where = "in the plane" if self.d == 2 else "in space"
         return (
@@ -514,7 +519,7 @@ class ChargedParticle(PoissonSystemBase):
         # Distinct coefficients, so that no two constants share a register of the program.
         terms = {e: 1.0 + k / 997 for k, e in enumerate(exps)}
         names = [f"x{i + 1}" for i in range(self.dim)]
-        field = self.field[0] if self.d == 2 else list(self.field)
+        field = self.field_argument
         try:
             ChargedParticle(field, polynomial_text(terms, names), potential=list(self.potential))
         except ValueError:
@@ -581,7 +586,7 @@ class ChargedParticle(PoissonSystemBase):
         from ..hamiltonian_family import MonomialFamily, monomial_exponents, polynomial_text
 
         names = list(default_names(self.dim))
-        field = self.field[0] if self.d == 2 else list(self.field)
+        field = self.field_argument
         potential = list(self.potential)
 
         def build(terms: Mapping[tuple[int, ...], float]) -> ChargedParticle:
@@ -607,7 +612,7 @@ class ChargedParticle(PoissonSystemBase):
         """The same field B and potential A with the expression H(x, v) ``hamiltonian``: a
         charged particle again (by jets on H̃(x, p) = H(x, p − A(x)) where H or B is not a
         polynomial)."""
-        field = self.field[0] if self.d == 2 else list(self.field)
+        field = self.field_argument
         return ChargedParticle(field, hamiltonian, potential=list(self.potential), name=name)
 
     def classical_methods(self) -> list[str]:
@@ -652,7 +657,7 @@ class ChargedParticle(PoissonSystemBase):
     def to_dict(self) -> dict[str, Any]:
         out = {
             "kind": self.kind,
-            "field": self.field[0] if self.d == 2 else list(self.field),
+            "field": self.field_argument,
             "hamiltonian": str(self.h),
             "name": self.name,
         }
