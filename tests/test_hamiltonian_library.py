@@ -70,6 +70,19 @@ def test_only_structures_with_a_jet_realization_offer_it(pendulum):
     assert not supports_library(pr.lotka_volterra([[0, 1], [-1, 0]], [1, 2]))
 
 
+def test_the_gauge_is_the_structures_own(pendulum):
+    """A library's H is identifiable up to what the structure's own family says: a Casimir on
+    the affine bracket, nothing on the charged particle's symplectic one."""
+    from poisson_rs.structures.charged_particle import charged_particle
+
+    (lib, *_) = library_families(pendulum.base, None, 3)
+    assert lib.gauge == pendulum.base.hamiltonian_family(2, None).gauge
+    assert "Casimir of the central extension" in lib.gauge
+    cp = charged_particle("1 + x1**2/4", "x3**2/2 + x4**2/2")
+    (lib, *_) = library_families(cp, None, 3)
+    assert "symplectic" in lib.gauge and "a Casimir of" not in lib.gauge
+
+
 def test_learn_finds_the_pendulums_cosine_and_beats_every_polynomial(pendulum):
     """PNN's protocol (3 states, h = 0.1, 100 steps): no polynomial degree reaches the noise
     level; the library's poly3+trig does, and its field is the true one up to the Casimir."""

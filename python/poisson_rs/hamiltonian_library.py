@@ -157,6 +157,16 @@ def _squared(v: Sequence[str], a: int, b: int | None) -> str:
     return f"({v[i]} - {v[j]})**2 + ({v[i + 1]} - {v[j + 1]})**2"
 
 
+def _gauge(structure: Any) -> str:
+    """What H is identifiable up to on ``structure``, as its own polynomial family says (the
+    same bracket, so the same Casimirs); the generic phrase where it offers none."""
+    try:
+        family = structure.hamiltonian_family(min(structure.learn_degrees()), None)
+        return str(family.gauge)
+    except (AttributeError, NotImplementedError, TypeError, ValueError):
+        return "a Casimir of the bracket"
+
+
 class LibraryFamily:
     """H_θ over monomials of degree ≤ ``degree`` (no constant), sin and cos of each coordinate
     (``trig``), the log-distances ln|z_a − z_b|² of planar points (``log_distances``) and the
@@ -198,7 +208,7 @@ class LibraryFamily:
         self.exponents: list[Key] = every if keys is None else [self._key(k) for k in keys]
         if not self.exponents or any(k not in every for k in self.exponents):
             raise ValueError(f"keys must be terms of the library {self.name}")
-        self.gauge = "a Casimir of the bracket"
+        self.gauge = _gauge(structure)
 
     @staticmethod
     def _key(k: Any) -> Key:
