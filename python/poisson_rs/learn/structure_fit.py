@@ -19,8 +19,9 @@ and its integrator of H_θ. Nothing here names a structure.
    then, on the linearised residual (the chord Jacobian at the fit), terms are removed one at
    a time (each time the one missed least) and, separately, added one at a time from none
    (each time the one that helps most), and the support of smallest Bayesian information
-   criterion N·log(RSS/N) + k·log N on either path is kept. The rest is refitted
-   through the integrator and kept when the fit is as good. The second stage is what noisy
+   criterion N·log(RSS/N) + k·log N on either path is kept, every support within the gauge of
+   step 2 (a term only a Casimir could stand in for stays). The rest is refitted through the
+   integrator and kept when the fit is as good. The second stage is what noisy
    records need: a library whose terms nearly coincide on the leaves the data visit fits the
    noise with every term (each with a large share of the field); the criterion asks each term
    to pay for itself.
