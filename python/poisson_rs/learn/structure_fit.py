@@ -121,7 +121,7 @@ def bic_support(
         else:
             # θ' = basis·N·w, with N spanning the null space of basis' zeroed rows.
             _, sv, vh = np.linalg.svd(basis[zero], full_matrices=True)
-            rank = int(np.count_nonzero(sv > 1e-12 * max(float(sv[0]), tiny))) if sv.size else 0
+            rank = int(np.count_nonzero(sv > 1e-12 * max(float(sv[0]), tiny)))
             design = a @ basis @ vh[rank:].T
         if design.shape[1] == 0:
             return float(c @ c)
