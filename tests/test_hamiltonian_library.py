@@ -83,6 +83,17 @@ def test_the_gauge_is_the_structures_own(pendulum):
     assert "symplectic" in lib.gauge and "a Casimir of" not in lib.gauge
 
 
+def test_restrict_hands_the_gauge_on_without_asking_the_structure_again(pendulum, monkeypatch):
+    """The structure's polynomial family is built once per library, not once per refit."""
+    base = pendulum.base
+    asked = []
+    offer = base.hamiltonian_family
+    monkeypatch.setattr(base, "hamiltonian_family", lambda *a: asked.append(a) or offer(*a))
+    fam = LibraryFamily(base, 2)
+    sub = fam.restrict([(2, 0, 0), ("cos", 1)])
+    assert len(asked) == 1 and sub.gauge == fam.gauge == offer(2, None).gauge
+
+
 def test_learn_finds_the_pendulums_cosine_and_beats_every_polynomial(pendulum):
     """PNN's protocol (3 states, h = 0.1, 100 steps): no polynomial degree reaches the noise
     level; the library's poly3+trig does, and its field is the true one up to the Casimir."""

@@ -160,10 +160,13 @@ def _squared(v: Sequence[str], a: int, b: int | None) -> str:
 def _gauge(structure: Any) -> str:
     """What H is identifiable up to on ``structure``, as its own polynomial family says (the
     same bracket, so the same Casimirs); the generic phrase where it offers none."""
+    offer = getattr(structure, "hamiltonian_family", None)
+    degrees = getattr(structure, "learn_degrees", None)
+    if offer is None or degrees is None:
+        return "a Casimir of the bracket"
     try:
-        family = structure.hamiltonian_family(min(structure.learn_degrees()), None)
-        return str(family.gauge)
-    except (AttributeError, NotImplementedError, TypeError, ValueError):
+        return str(offer(min(degrees()), None).gauge)
+    except (NotImplementedError, ValueError):  # the structure offers no polynomial family
         return "a Casimir of the bracket"
 
 
@@ -175,7 +178,8 @@ class LibraryFamily:
     where the dimension is odd or below 4), on the bracket of ``structure``, stepped by Taylor-HJ
     by jets of ``order``. Distances are in the units of the coordinates.
 
-    ``keys`` restricts the family to those terms (see :meth:`restrict`).
+    ``keys`` restricts the family to those terms (see :meth:`restrict`); ``gauge`` is what H is
+    identifiable up to, as text (default: what the structure's own polynomial family says).
     """
 
     def __init__(
@@ -188,6 +192,7 @@ class LibraryFamily:
         trig: bool = True,
         log_distances: bool = False,
         distance_powers: Sequence[int] = (),
+        gauge: str | None = None,
     ) -> None:
         self.structure = structure
         self.dim = int(structure.dim)
@@ -208,7 +213,9 @@ class LibraryFamily:
         self.exponents: list[Key] = every if keys is None else [self._key(k) for k in keys]
         if not self.exponents or any(k not in every for k in self.exponents):
             raise ValueError(f"keys must be terms of the library {self.name}")
-        self.gauge = _gauge(structure)
+        # Asking the structure builds its polynomial family: done once, then handed on by
+        # ``restrict`` (called per refit).
+        self.gauge = _gauge(structure) if gauge is None else gauge
 
     @staticmethod
     def _key(k: Any) -> Key:
@@ -258,6 +265,7 @@ class LibraryFamily:
             trig=self.trig,
             log_distances=self.log_distances,
             distance_powers=self.distance_powers,
+            gauge=self.gauge,
         )
 
     def writable(self) -> bool:
