@@ -50,6 +50,7 @@ __all__ = [
     "check_distance_powers",
     "distance_pairs",
     "library_families",
+    "structure_gauge",
     "supports_library",
 ]
 
@@ -157,7 +158,7 @@ def _squared(v: Sequence[str], a: int, b: int | None) -> str:
     return f"({v[i]} - {v[j]})**2 + ({v[i + 1]} - {v[j + 1]})**2"
 
 
-def _gauge(structure: Any) -> str:
+def structure_gauge(structure: Any) -> str:
     """What H is identifiable up to on ``structure``, as its own polynomial family says (the
     same bracket, so the same Casimirs); the generic phrase where it offers none."""
     offer = getattr(structure, "hamiltonian_family", None)
@@ -215,7 +216,7 @@ class LibraryFamily:
             raise ValueError(f"keys must be terms of the library {self.name}")
         # Asking the structure builds its polynomial family: done once, then handed on by
         # ``restrict`` (called per refit).
-        self.gauge = _gauge(structure) if gauge is None else gauge
+        self.gauge = structure_gauge(structure) if gauge is None else gauge
 
     @staticmethod
     def _key(k: Any) -> Key:

@@ -9,13 +9,14 @@ from typing import Any
 import numpy as np
 
 from ..export import model_bytes
-from ..hamiltonian_library import library_families
+from ..hamiltonian_library import library_families, supports_library
 from ..integrators import LearnedIntegrator, TaylorIntegrator
 from ..structures.lie_poisson import LieAlgebra, LiePoissonSystem
 from ..taylor import system_taylor_terms
 from .data import TrajectoryData, check_seed, prepare
 from .data import refuse_drift as _refuse_drift
 from .fixed_step import FixedStepIntegrator
+from .mlp_hamiltonian import MLP_DEGREE, MlpFamily
 from .options import EXACT_LEVEL, MAX_DEGREE, ORDER_RANGE, check_bool, check_int, check_map_options
 from .report import Candidate, LearnReport
 from .scoring import all_records as _all_records
@@ -650,6 +651,12 @@ def _learn_on_structure(
             for lib in library_families(structure, order, top)
             if _library_applies(lib, data, verbose)
         ]
+        # Last, where no term library is enough: an MLP H through the midpoint rule (a family
+        # that fits itself).
+        if supports_library(structure):
+            mlp = MlpFamily(structure, degree=min(MLP_DEGREE, top), seed=seed)
+            if mlp.writable():
+                plans.append((mlp.degree, mlp))
     candidates: list[Candidate] = []
     kept: Candidate | None = None
     explained = True  # False where no candidate reaches the noise level
@@ -657,10 +664,14 @@ def _learn_on_structure(
     try:
         for d, library in plans:
             bar.set_postfix_str(library.name if library is not None else f"poly{d}")
-            fit = fit_structure_hamiltonian(
-                data, structure, d, order=order, max_iter=max_iter, verbose=verbose,
-                family=library,
-            )  # fmt: skip
+            fits_itself = getattr(library, "fit", None)
+            if fits_itself is not None:
+                fit = fits_itself(data, verbose=verbose)
+            else:
+                fit = fit_structure_hamiltonian(
+                    data, structure, d, order=order, max_iter=max_iter, verbose=verbose,
+                    family=library,
+                )  # fmt: skip
             cand = candidate(fit)
             candidates.append(cand)
             bar.update(1)
@@ -688,7 +699,9 @@ def _learn_on_structure(
                 kept = next(c for c in candidates if c.one_step == best)
                 kept.reason = f"no family reached the noise level; the best {err}"
                 explained = False
-        if refit and held:
+        if refit and held and not getattr(kept.fit.family, "linear", True):
+            kept.reason += "; a network is fitted on the training records only (no refit)"
+        elif refit and held:
             # The family is chosen on held-out data; its coefficients are then fitted on every
             # record.
             family = kept.fit.family
