@@ -108,6 +108,6 @@ def test_an_h_beyond_the_expression_limits_is_not_tried_and_bad_sizes_are_refuse
     assert not MlpFamily(bracket, 64, 3).writable()
     for width in (-1, 65, True, 2.0):
         with pytest.raises(ValueError, match="width"):
-            MlpFamily(bracket, width)  # type: ignore[arg-type]
+            MlpFamily(bracket, width)
     with pytest.raises(ValueError, match="degree"):
         MlpFamily(bracket, 8, 5)

@@ -306,8 +306,12 @@ def learn(
         ``system=``/``algebra=`` do; any other structure (affine, polynomial bivector, charged
         particle, ...) learns H from the family it offers
         (:meth:`~poisson_rs.protocols.PoissonSystemBase.hamiltonian_family`) through its own
-        Taylor-HJ integrator (:mod:`poisson_rs.learn.structure_fit`), in the modes it lists in
-        ``learn_modes()``; another mode is refused, naming the mode and the structure. There
+        Taylor-HJ integrator (:mod:`poisson_rs.learn.structure_fit`), then, where no degree
+        explains the data, the term libraries (:mod:`poisson_rs.hamiltonian_library`) and last
+        a cubic polynomial plus a tanh network fitted through the implicit midpoint rule
+        (:mod:`poisson_rs.learn.mlp_hamiltonian`; fitted on the training records only), in the
+        modes it lists in ``learn_modes()``; another mode is refused, naming the mode and the
+        structure. There
         the fit is on one-step residuals (``horizon``, shooting and ``map_options`` are the
         T*G path's).
     mode : "auto" (smallest model that explains the data: polynomial H of degree 2, 3, 4, then
@@ -642,7 +646,7 @@ def _learn_on_structure(
     # Beyond polynomials: where no polynomial degree explains the data, the term libraries
     # (polynomials plus sin/cos of each coordinate, then, in even dimensions, plus the
     # log-distances of planar points, then plus their inverse distances; stepped by jets) on
-    # structures with a jet realization.
+    # structures with a jet realization, then a polynomial plus a network (midpoint rule).
     # They come last, so that data a smaller family explains never pay for them.
     plans: list[tuple[int, Any]] = [(d, None) for d in degrees]
     if degree is None:
