@@ -24,11 +24,10 @@ bracket); a structure whose bracket is not polynomial is refused naming ``system
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import torch
@@ -38,14 +37,14 @@ from ..expressions import Expression, default_names
 from ..fit import is_int
 from ..hamiltonian_family import monomial_exponents
 from ..structures.polynomial import PolynomialBivector, PolynomialPoissonSystem
-from .pinn import PinnResult, fit
+from .pinn import PinnResult
 from .polynomial_hj import (
     PolynomialRealizationGenerating,
     PolynomialTrainConfig,
     build_model,
     hj_derivatives,
     realization_tables,
-    sample_points,
+    train_polynomial,
 )
 
 __all__ = [
@@ -299,21 +298,17 @@ def train_expression(
         # The network's first job is H − H_d (at t¹): its output is scaled by that RMS.
         s_fn.output_scale = cfg.surrogate().rms or s_fn.output_scale
 
-    def residual(s: torch.nn.Module, t: Tensor, x: Tensor, create_graph: bool) -> Tensor:
-        model = cast(PolynomialRealizationGenerating, s)
+    def residual(
+        model: PolynomialRealizationGenerating, t: Tensor, x: Tensor, create_graph: bool
+    ) -> Tensor:
         return expression_residual(model, hamiltonian, t, x, create_graph=create_graph)
 
-    def sample(k: int, gen: torch.Generator, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-        return sample_points(cfg, k, gen, dtype)
-
-    return fit(
+    return train_polynomial(
         cfg,
-        s_fn,
-        lambda: build_model(dataclasses.replace(cfg, dtype="float64"), tables),
-        residual,
-        sample,
         progress=progress,
         log_every=log_every,
         callback=callback,
         max_seconds=max_seconds,
+        model=s_fn,
+        residual=residual,
     )

@@ -437,6 +437,10 @@ def build_model(
 PolynomialTrainResult = PinnResult
 
 
+#: r(S, t, x, create_graph) → (B,): the HJ residual a model is trained on.
+ModelResidual = Callable[[PolynomialRealizationGenerating, Tensor, Tensor, bool], Tensor]
+
+
 def train_polynomial(
     cfg: PolynomialTrainConfig,
     *,
@@ -444,19 +448,23 @@ def train_polynomial(
     log_every: int = 10,
     callback: Callable[[int, float], None] | None = None,
     max_seconds: float | None = None,
+    model: PolynomialRealizationGenerating | None = None,
+    residual: ModelResidual | None = None,
 ) -> PinnResult:
     """Trains S = Taylor terms + t^M·N on the mean squared HJ residual of the order-n
     realization (:func:`~poisson_rs.realizations.pinn.fit`: Adam, then ``lbfgs_iterations`` of
     L-BFGS). ``progress`` shows a tqdm bar; ``max_seconds`` ends the run cleanly once that much
-    time has passed."""
+    time has passed. ``model`` (default :func:`build_model` of ``cfg``) and ``residual``
+    (default :func:`hj_residual`, the system's own H) let another H be trained for on the same
+    realization (:mod:`.expression_hj`)."""
     cfg.validate()
-    s_fn = build_model(cfg)
+    s_fn = model if model is not None else build_model(cfg)
     tables = s_fn.tables
+    of = residual if residual is not None else hj_residual
 
-    def residual(s: torch.nn.Module, t: Tensor, x: Tensor, create_graph: bool) -> Tensor:
+    def objective(s: torch.nn.Module, t: Tensor, x: Tensor, create_graph: bool) -> Tensor:
         # ``fit`` passes back the model it trains or one ``bare`` built: both are this class.
-        model = cast(PolynomialRealizationGenerating, s)
-        return hj_residual(model, t, x, create_graph=create_graph)
+        return of(cast(PolynomialRealizationGenerating, s), t, x, create_graph)
 
     def sample(n: int, gen: torch.Generator, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         return sample_points(cfg, n, gen, dtype)
@@ -465,7 +473,7 @@ def train_polynomial(
         cfg,
         s_fn,
         lambda: build_model(dataclasses.replace(cfg, dtype="float64"), tables),
-        residual,
+        objective,
         sample,
         progress=progress,
         log_every=log_every,
