@@ -19,6 +19,7 @@ from poisson_rs.learn.mlp_hamiltonian import (
     MlpFamily,
     fit_mlp_hamiltonian,
     mlp_expression,
+    mlp_family,
 )
 from poisson_rs.learn.scoring import errors
 from poisson_rs.scenes import load_scene
@@ -105,7 +106,21 @@ def test_an_h_beyond_the_expression_limits_is_not_tried_and_bad_sizes_are_refuse
     bracket: Any,
 ) -> None:
     assert MlpFamily(bracket, 8, 3).writable()
-    assert not MlpFamily(bracket, 64, 3).writable()
+    assert not MlpFamily(bracket, 9, 3).writable()
+    # Every weight negative is the costliest text (a negation each): it must still parse.
+    rng = np.random.default_rng(4)
+    fam = MlpFamily(bracket, 8, 3)
+    m = len(fam.exponents)
+    text = mlp_expression(
+        fam.exponents, -rng.uniform(1, 2, m), -rng.uniform(1, 2, (8, 3)), -rng.uniform(1, 2, 8),
+        -rng.uniform(1, 2, 8), np.zeros(3), np.ones(3),
+    )  # fmt: skip
+    Expression(text, default_names(3))
+    # In 4-D a cubic beside 8 units does not fit: pr.learn's family is made smaller.
+    cp = load_scene("scenes/charged_particle_pnn.toml").system
+    chosen = mlp_family(cp, 4)
+    assert chosen is not None and chosen.writable()
+    assert (chosen.degree, chosen.width) == (2, 8)
     for width in (-1, 65, True, 2.0):
         with pytest.raises(ValueError, match="width"):
             MlpFamily(bracket, width)

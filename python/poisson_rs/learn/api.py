@@ -16,7 +16,7 @@ from ..taylor import system_taylor_terms
 from .data import TrajectoryData, check_seed, prepare
 from .data import refuse_drift as _refuse_drift
 from .fixed_step import FixedStepIntegrator
-from .mlp_hamiltonian import MLP_DEGREE, MlpFamily
+from .mlp_hamiltonian import mlp_family
 from .options import EXACT_LEVEL, MAX_DEGREE, ORDER_RANGE, check_bool, check_int, check_map_options
 from .report import Candidate, LearnReport
 from .scoring import all_records as _all_records
@@ -657,10 +657,9 @@ def _learn_on_structure(
         ]
         # Last, where no term library is enough: an MLP H through the midpoint rule (a family
         # that fits itself).
-        if supports_library(structure):
-            mlp = MlpFamily(structure, degree=min(MLP_DEGREE, top), seed=seed)
-            if mlp.writable():
-                plans.append((mlp.degree, mlp))
+        mlp = mlp_family(structure, top, seed=seed) if supports_library(structure) else None
+        if mlp is not None:
+            plans.append((mlp.degree, mlp))
     candidates: list[Candidate] = []
     kept: Candidate | None = None
     explained = True  # False where no candidate reaches the noise level

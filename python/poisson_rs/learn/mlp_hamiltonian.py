@@ -48,12 +48,26 @@ __all__ = [
     "MlpFamily",
     "fit_mlp_hamiltonian",
     "mlp_expression",
+    "mlp_family",
 ]
 
 #: Hidden units of the network in H that ``pr.learn`` tries.
 MLP_WIDTH = 8
 #: Degree of the polynomial beside it.
 MLP_DEGREE = 3
+
+
+def mlp_family(structure: Any, top: int, *, seed: int = 0) -> MlpFamily | None:
+    """The family ``pr.learn`` tries on ``structure``: the polynomial degree min(MLP_DEGREE,
+    ``top``) and MLP_WIDTH units, made smaller (fewer units, then a lower degree) until H with
+    every term fits the expression limits (at least 4 units: fewer fit little); None where
+    even 4 units of degree 1 do not."""
+    for degree in range(min(MLP_DEGREE, top), 0, -1):
+        for width in range(MLP_WIDTH, 3, -2):
+            family = MlpFamily(structure, width, degree, seed=seed)
+            if family.writable():
+                return family
+    return None
 
 
 @dataclass
@@ -151,9 +165,10 @@ class MlpFamily:
         return len(self.exponents) + self.width * (int(self.structure.dim) + 2)
 
     def writable(self) -> bool:
-        """Whether H with every term fits the expression limits (tried on distinct weights)."""
+        """Whether H with every term fits the expression limits (tried on distinct negative
+        weights, the costliest: a negative constant is a negation more)."""
         n = int(self.structure.dim)
-        k = np.arange(1, len(self) + 1, dtype=np.float64) / 7.0
+        k = -np.arange(1, len(self) + 1, dtype=np.float64) / 7.0
         m = len(self.exponents)
         text = mlp_expression(
             self.exponents, k[:m], k[m : m + self.width * n].reshape(self.width, n),
