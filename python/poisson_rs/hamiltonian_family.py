@@ -51,6 +51,20 @@ def polynomial_text(terms: Terms, names: Sequence[str]) -> str:
     return " + ".join(parts) or "0"
 
 
+def monomial_gradients(x: Any, exponents: Any) -> FloatArray:
+    """∇x^{e_m} at states x (B, n) for the exponents (P, n) → (B, n, P)."""
+    x = np.asarray(x, dtype=np.float64)
+    e = np.asarray(exponents, dtype=np.int64).reshape(-1, x.shape[1])
+    out = np.zeros((len(x), x.shape[1], len(e)))
+    for i in range(x.shape[1]):
+        lowered = e.copy()
+        lowered[:, i] -= 1
+        ok = lowered[:, i] >= 0
+        vals = np.prod(x[:, None, :] ** np.maximum(lowered, 0)[None], axis=2)
+        out[:, i, :] = np.where(ok, e[:, i] * vals, 0.0)
+    return out
+
+
 class MonomialFamily:
     """H_θ = Σ_m θ_m x^{e_m} over the monomials ``exponents`` (no constant: it moves nothing).
 
@@ -116,16 +130,7 @@ class MonomialFamily:
 
     def gradients(self, x: Any) -> FloatArray:
         """∇x^{e_m} at states (B, n) → (B, n, P)."""
-        x = np.asarray(x, dtype=np.float64)
-        e = self._e  # (P, n)
-        out = np.zeros((len(x), self.dim, len(e)))
-        for i in range(self.dim):
-            lowered = e.copy()
-            lowered[:, i] -= 1
-            ok = lowered[:, i] >= 0
-            vals = np.prod(x[:, None, :] ** np.maximum(lowered, 0)[None], axis=2)
-            out[:, i, :] = np.where(ok, e[:, i] * vals, 0.0)
-        return out
+        return monomial_gradients(x, self._e)
 
     def terms(self, theta: Any) -> dict[tuple[int, ...], float]:
         """θ as {exponents: coefficient}, zeros dropped."""

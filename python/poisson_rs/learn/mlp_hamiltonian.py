@@ -35,7 +35,7 @@ import torch
 
 from ..expressions import Expression, ExpressionError, default_names
 from ..fit import FitConfig, adam_loop, lbfgs_polish
-from ..hamiltonian_family import monomial_exponents
+from ..hamiltonian_family import monomial_exponents, monomial_gradients, polynomial_text
 from ..hamiltonian_library import structure_gauge
 from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL
 from .data import TrajectoryData
@@ -97,28 +97,13 @@ def mlp_expression(
     names = default_names(weights.shape[1])
     w = weights / scale[None, :]
     b = biases - w @ center
-    parts = []
-    for c, e in zip(coeffs, exponents, strict=True):
-        factors = [f"{v}**{p}" if p > 1 else v for v, p in zip(names, e, strict=True) if p]
-        parts.append("*".join([f"({float(c)!r})", *factors]))
+    parts = [polynomial_text(dict(zip(exponents, coeffs, strict=True)), names)] if exponents else []
     for j in range(w.shape[0]):
         linear = " + ".join(
             [f"({float(b[j])!r})", *(f"({float(w[j, i])!r})*{v}" for i, v in enumerate(names))]
         )
         parts.append(f"({float(out[j])!r})*tanh({linear})")
     return " + ".join(parts) or "0"
-
-
-def _monomial_gradients(x: np.ndarray, exponents: list[tuple[int, ...]]) -> np.ndarray:
-    """∇x^{e_m} at states (B, n) → (B, n, M)."""
-    e = np.asarray(exponents, dtype=np.int64).reshape(-1, x.shape[1])
-    out = np.zeros((len(x), x.shape[1], len(e)))
-    for i in range(x.shape[1]):
-        lowered = e.copy()
-        lowered[:, i] -= 1
-        vals = np.prod(x[:, None, :] ** np.maximum(lowered, 0)[None], axis=2)
-        out[:, i, :] = np.where(lowered[:, i] >= 0, e[:, i] * vals, 0.0)
-    return out
 
 
 class MlpFamily:
@@ -214,7 +199,7 @@ def fit_mlp_hamiltonian(
     weight = 1.0 / np.maximum(np.linalg.norm(mid, axis=1), 1e-300) ** 2
     n, width = data.dim, fam.width
     # The polynomial part's field columns π(x̄)∇x^{e_m}, and its least-squares start.
-    cols = np.einsum("kij,kjm->kim", pi, _monomial_gradients(mid, fam.exponents))
+    cols = np.einsum("kij,kjm->kim", pi, monomial_gradients(mid, fam.exponents))
     sw = np.sqrt(weight)[:, None]
     c0 = (
         np.linalg.lstsq((cols * sw[:, :, None]).reshape(-1, cols.shape[2]),
@@ -250,8 +235,7 @@ def fit_mlp_hamiltonian(
     opt = torch.optim.Adam(params, lr=cfg.lr)
     run = adam_loop(cfg, opt, objective, progress=False)
     history = list(run.losses)
-    record: list[float] = []
-    lbfgs_polish(params, lambda: objective(0), cfg.lbfgs_iterations, start=start, record=record)
+    lbfgs_polish(params, lambda: objective(0), cfg.lbfgs_iterations, start=start)
     history.append(float(defect().detach()))
     coeffs = c.detach().numpy().copy()
     weights = w.detach().numpy().copy()

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from ..expressions import Expression, default_names
 from ..fit import is_int
-from ..hamiltonian_family import monomial_exponents
+from ..hamiltonian_family import monomial_exponents, polynomial_text
 from ..structures.polynomial import PolynomialBivector, PolynomialPoissonSystem
 from .pinn import PinnResult
 from .polynomial_hj import (
@@ -67,17 +67,14 @@ SURROGATE_SEED = 7
 
 
 def polynomial_bracket(system: Any) -> PolynomialBivector:
-    """The bracket of ``system`` (anything with ``bracket_terms()``, or an expression system's
-    ``terms``) as a :class:`PolynomialBivector`. ValueError naming 'system' where the bracket
-    is not given as polynomials."""
+    """The bracket of ``system`` (its ``bracket_terms()``) as a :class:`PolynomialBivector`.
+    ValueError naming 'system' where the bracket is not given as polynomials."""
     import sympy
 
-    terms = getattr(system, "terms", None)
-    if terms is None:
-        try:
-            terms = system.bracket_terms()
-        except (AttributeError, NotImplementedError) as err:
-            raise ValueError(f"system: {err}") from None
+    try:
+        terms = system.bracket_terms()
+    except (AttributeError, NotImplementedError) as err:
+        raise ValueError(f"system: {err}") from None
     dim = int(system.dim)
     x = sympy.symbols(f"x1:{dim + 1}", real=True)
     pairs = list(itertools.combinations(range(dim), 2))
@@ -108,10 +105,9 @@ def _box_samples(x_min: Any, x_max: Any) -> np.ndarray:
 
 def fit_surrogate(expression: Expression, degree: int, x_min: Any, x_max: Any) -> Surrogate:
     """The least-squares polynomial of total degree ≤ ``degree`` to ``expression`` on
-        :data:`SURROGATE_POINTS` seeded uniform points of the box [x_min, x_max] (columns scaled to
-        unit norm). Terms whose share of H is below the misfit are dropped and the rest refitted
-    (twice). ValueError where H is not
-        finite on the box."""
+    :data:`SURROGATE_POINTS` seeded uniform points of the box [x_min, x_max] (columns scaled to
+    unit norm). Terms whose share of H is below the misfit are dropped and the rest refitted
+    (twice). ValueError where H is not finite on the box."""
     x = _box_samples(x_min, x_max)
     with np.errstate(all="ignore"):  # a non-finite value is refused just below
         values = np.asarray(expression.evaluate(x), dtype=np.float64)
@@ -123,29 +119,25 @@ def fit_surrogate(expression: Expression, degree: int, x_min: Any, x_max: Any) -
     exps = [(0,) * x.shape[1], *monomial_exponents(x.shape[1], degree)]
     cols = np.stack([np.prod(x ** np.asarray(e), 1) for e in exps], 1)
     norms = np.linalg.norm(cols, axis=0)
+
+    def fitted(keep: np.ndarray) -> np.ndarray:
+        coef = np.zeros(len(exps))
+        coef[keep] = np.linalg.lstsq(cols[:, keep] / norms[keep], values, rcond=None)[0]
+        return coef / norms
+
     keep = np.ones(len(exps), dtype=bool)
-    coef = np.zeros(len(exps))
     for _ in range(2):
         # A term whose part of H is below the fit's own misfit is fitting that misfit: it is
-        # dropped and the rest refitted, so that H_d is as sparse as H allows (its Taylor-HJ
-        # terms cost grows with its terms).
-        coef[:] = 0.0
-        coef[keep] = np.linalg.lstsq(cols[:, keep] / norms[keep], values, rcond=None)[0]
-        coef[keep] /= norms[keep]
+        # dropped and the rest refitted, so that H_d is as sparse as H allows (the cost of its
+        # Taylor-HJ terms grows with its terms).
+        coef = fitted(keep)
         misfit = np.sqrt(np.mean((cols @ coef - values) ** 2))
         keep &= np.abs(coef) * norms / np.sqrt(len(values)) > misfit
-    coef[~keep] = 0.0
-    coef[keep] = np.linalg.lstsq(cols[:, keep] / norms[keep], values, rcond=None)[0] / norms[keep]
+    coef = fitted(keep)
     miss = cols @ coef - values
-    names = default_names(x.shape[1])
-    parts = []
-    for c, e in zip(coef, exps, strict=True):
-        if c == 0.0:
-            continue
-        factors = [f"{n}**{p}" if p > 1 else n for n, p in zip(names, e, strict=True) if p]
-        parts.append("*".join([f"({float(c)!r})", *factors]))
+    terms = {e: float(c) for e, c, k in zip(exps, coef, keep, strict=True) if k}
     return Surrogate(
-        text=" + ".join(parts) or "0",
+        text=polynomial_text(terms, default_names(x.shape[1])),
         degree=int(degree),
         rms=float(np.sqrt(np.mean(miss**2))),
         max=float(np.abs(miss).max()),

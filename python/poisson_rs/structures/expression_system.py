@@ -121,6 +121,10 @@ class ExpressionSystem(PoissonSystemBase):
     def bivector(self, x: Any) -> Any:
         return self.base.bivector(x)
 
+    def bracket_terms(self) -> BracketTerms:
+        """The structure's π as polynomials (the bracket is the structure's, whatever H is)."""
+        return self.terms
+
     def casimirs(self, x: Any) -> Any:
         return self.base.casimirs(x)
 
