@@ -524,6 +524,133 @@ enum Instr {
     Square(u32, u32),
     Powi(u32, u32, i32),
     Unary(u32, u32, Op),
+    /// x + a·b, x − a·b, a·b − x, (a·b)·c and (a·c)·b: a product read once, by this
+    /// instruction only, fused into it (the same two roundings, one store fewer).
+    AddMul(u32, u32, u32, u32),
+    AddMulC(u32, u32, u32, f64),
+    SubMul(u32, u32, u32, u32),
+    SubMulC(u32, u32, u32, f64),
+    MulSub(u32, u32, u32, u32),
+    MulMulC(u32, u32, u32, f64),
+    MulCMul(u32, u32, f64, u32),
+}
+
+/// The instructions of `code` with each product that one addition, subtraction or
+/// multiplication alone reads fused into it ([`Instr::AddMul`] …). Sums and products commute
+/// exactly in IEEE arithmetic, so x + a·b is a·b + x to the bit; nothing is reassociated.
+fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr>, ()> {
+    // How often each register is read, and the instruction that writes it.
+    let mut reads = Vec::new();
+    reads.try_reserve_exact(registers).map_err(|_| ())?;
+    reads.resize(registers, 0u32);
+    let mut writer = Vec::new();
+    writer.try_reserve_exact(registers).map_err(|_| ())?;
+    writer.resize(registers, usize::MAX);
+    for (k, ins) in code.iter().enumerate() {
+        let (d, operands) = ins.registers();
+        writer[d as usize] = k;
+        for r in operands.into_iter().flatten() {
+            reads[r as usize] += 1;
+        }
+    }
+    for o in outputs {
+        if let Val::Reg(r) = *o {
+            reads[r as usize] += 1;
+        }
+    }
+    let mut gone = Vec::new();
+    gone.try_reserve_exact(code.len()).map_err(|_| ())?;
+    gone.resize(code.len(), false);
+    let mut fused = code.clone();
+    // The product in register r, where only one instruction reads it and its own operands are
+    // still there (a product that absorbed another is no longer a plain product).
+    let product = |r: u32, fused: &[Instr]| -> Option<(usize, Instr)> {
+        let k = *writer.get(r as usize)?;
+        if k == usize::MAX || reads[r as usize] != 1 {
+            return None;
+        }
+        matches!(fused[k], Instr::Mul(..) | Instr::MulC(..)).then_some((k, fused[k]))
+    };
+    for k in 0..code.len() {
+        let f = &fused;
+        let new = match code[k] {
+            Instr::Add(d, x, y) => match (product(y, f), product(x, f)) {
+                (Some((j, p)), _) => Some((j, add_mul(d, x, p, false))),
+                (None, Some((j, p))) => Some((j, add_mul(d, y, p, false))),
+                _ => None,
+            },
+            Instr::Sub(d, x, y) => match (product(y, f), product(x, f)) {
+                (Some((j, p)), _) => Some((j, add_mul(d, x, p, true))),
+                (None, Some((j, Instr::Mul(_, a, b)))) => Some((j, Instr::MulSub(d, a, b, y))),
+                _ => None,
+            },
+            Instr::MulC(d, x, c) => match product(x, f) {
+                Some((j, Instr::Mul(_, a, b))) => Some((j, Instr::MulMulC(d, a, b, c))),
+                _ => None,
+            },
+            Instr::Mul(d, x, y) => match (product(x, f), product(y, f)) {
+                (Some((j, Instr::MulC(_, a, c))), _) => Some((j, Instr::MulCMul(d, a, c, y))),
+                (_, Some((j, Instr::MulC(_, a, c)))) => Some((j, Instr::MulCMul(d, a, c, x))),
+                _ => None,
+            },
+            _ => None,
+        };
+        if let Some((j, ins)) = new {
+            gone[j] = true;
+            fused[k] = ins;
+        }
+    }
+    let mut out = Vec::new();
+    out.try_reserve_exact(code.len()).map_err(|_| ())?;
+    out.extend(
+        fused
+            .into_iter()
+            .zip(&gone)
+            .filter(|(_, g)| !**g)
+            .map(|(i, _)| i),
+    );
+    Ok(out)
+}
+
+/// x ± (the product p), written to d.
+fn add_mul(d: u32, x: u32, p: Instr, minus: bool) -> Instr {
+    match (p, minus) {
+        (Instr::Mul(_, a, b), false) => Instr::AddMul(d, x, a, b),
+        (Instr::Mul(_, a, b), true) => Instr::SubMul(d, x, a, b),
+        (Instr::MulC(_, a, c), false) => Instr::AddMulC(d, x, a, c),
+        (Instr::MulC(_, a, c), true) => Instr::SubMulC(d, x, a, c),
+        _ => p,
+    }
+}
+
+impl Instr {
+    /// The register written and those read.
+    fn registers(&self) -> (u32, [Option<u32>; 3]) {
+        use Instr::*;
+        match *self {
+            Splat(d, _) => (d, [None; 3]),
+            Add(d, a, b) | Sub(d, a, b) | Mul(d, a, b) | Div(d, a, b) => {
+                (d, [Some(a), Some(b), None])
+            }
+            AddC(d, a, _)
+            | SubC(d, a, _)
+            | CSub(d, _, a)
+            | MulC(d, a, _)
+            | DivC(d, a, _)
+            | CDiv(d, _, a)
+            | Neg(d, a)
+            | Square(d, a)
+            | Powi(d, a, _)
+            | Unary(d, a, _) => (d, [Some(a), None, None]),
+            AddMul(d, x, a, b) | SubMul(d, x, a, b) | MulSub(d, a, b, x) => {
+                (d, [Some(x), Some(a), Some(b)])
+            }
+            AddMulC(d, x, a, _) | SubMulC(d, x, a, _) | MulCMul(d, a, _, x) => {
+                (d, [Some(x), Some(a), None])
+            }
+            MulMulC(d, a, b, _) => (d, [Some(a), Some(b), None]),
+        }
+    }
 }
 
 /// The program as [`Expression::values_lanes`] runs it. The variables are registers
@@ -649,11 +776,13 @@ impl Lowered {
         let mut outs = Vec::new();
         outs.try_reserve_exact(outputs.len()).map_err(|_| oom())?;
         outs.extend(outputs.iter().map(|&k| val[k]));
+        let registers = next as usize;
+        let code = fuse(code, &outs, registers).map_err(|_| oom())?;
         Ok(Lowered {
             vars,
             code,
             outputs: outs,
-            registers: next as usize,
+            registers,
         })
     }
 
@@ -684,6 +813,16 @@ impl Lowered {
                 let (p, q) = (get::<W>(lo, $a), get::<W>(lo, $b));
                 for l in 0..W {
                     let ($p, $q) = (p[l], q[l]);
+                    r[l] = $e;
+                }
+            }};
+        }
+        macro_rules! ternary {
+            ($d:expr, $x:expr, $a:expr, $b:expr, |$xv:ident, $p:ident, $q:ident| $e:expr) => {{
+                let (lo, r) = split::<W>(v, $d);
+                let (xs, p, q) = (get::<W>(lo, $x), get::<W>(lo, $a), get::<W>(lo, $b));
+                for l in 0..W {
+                    let ($xv, $p, $q) = (xs[l], p[l], q[l]);
                     r[l] = $e;
                 }
             }};
@@ -730,6 +869,13 @@ impl Lowered {
                     let (lo, r) = split::<W>(v, d);
                     unary_lanes(op, get::<W>(lo, a), r);
                 }
+                Instr::AddMul(d, x, a, b) => ternary!(d, x, a, b, |x, p, q| x + p * q),
+                Instr::SubMul(d, x, a, b) => ternary!(d, x, a, b, |x, p, q| x - p * q),
+                Instr::MulSub(d, a, b, x) => ternary!(d, x, a, b, |x, p, q| p * q - x),
+                Instr::AddMulC(d, x, a, c) => binary!(d, x, a, |x, p| x + p * c),
+                Instr::SubMulC(d, x, a, c) => binary!(d, x, a, |x, p| x - p * c),
+                Instr::MulCMul(d, a, c, x) => binary!(d, x, a, |x, p| (p * c) * x),
+                Instr::MulMulC(d, a, b, c) => binary!(d, a, b, |p, q| (p * q) * c),
             }
         }
         for (o, val) in out.iter_mut().zip(&self.outputs) {
@@ -933,6 +1079,19 @@ mod tests {
             Div(21, 22),  // 23
             Exp(5),       // 24
             Sqrt(24),     // 25
+            Mul(0, 1),    // 26
+            Sub(26, 25),  // 27 x·y − r: MulSub
+            Mul(0, 0),    // 28
+            Sub(27, 28),  // 29 r − x·x: SubMul
+            Mul(1, 1),    // 30
+            Mul(30, 2),   // 31 (y·y)·c: MulMulC
+            Mul(3, 0),    // 32 c·x
+            Mul(32, 31),  // 33 (x·c)·r: MulCMul
+            Mul(1, 0),    // 34 read twice: stays
+            Add(34, 34),  // 35
+            Add(29, 35),  // 36
+            Add(33, 36),  // 37
+            Add(7, 9),    // 38 7 read twice (14, 38): stays
         ];
         let mut code = Vec::new();
         let (mut a, mut b, mut c) = (Vec::new(), Vec::new(), Vec::new());
@@ -957,7 +1116,7 @@ mod tests {
             b.push(y);
             c.push(z);
         }
-        let e = Expression::program(2, &code, &a, &b, &c, &[23, 10, 1, 25]).unwrap();
+        let e = Expression::program(2, &code, &a, &b, &c, &[23, 10, 1, 37, 38]).unwrap();
         // Two splats (0.3 under sin, −1.7 under the cube), and no register for 2, 3, 10, 13.
         let splats = e
             .lowered
@@ -970,6 +1129,26 @@ mod tests {
         // the two constants and the two folded ones.
         assert_eq!(e.lowered.registers, 2 + splats + ops.len() - 6);
         assert_eq!(e.lowered.outputs[1], Val::Const(0.3 * -1.7));
+        // Fused: 15 (r·r⁻³ is a Mul of a DivC: no), 14 (no: 7 is read twice), 21 (MulC of an
+        // Add: no), 27, 29, 31, 33, 37 (x + a MulCMul: no), 36 (no: 35 is an Add) — four.
+        let fused = e
+            .lowered
+            .code
+            .iter()
+            .filter(|i| {
+                matches!(
+                    i,
+                    Instr::AddMul(..)
+                        | Instr::AddMulC(..)
+                        | Instr::SubMul(..)
+                        | Instr::SubMulC(..)
+                        | Instr::MulSub(..)
+                        | Instr::MulMulC(..)
+                        | Instr::MulCMul(..)
+                )
+            })
+            .count();
+        assert_eq!(fused, 4);
         fn check<const L: usize>(e: &Expression, seed: u64) {
             let mut s = seed;
             let mut rnd = || {
@@ -979,7 +1158,7 @@ mod tests {
                 (s >> 11) as f64 / (1u64 << 53) as f64 * 4.0 - 2.0
             };
             let x: [[f64; L]; 2] = std::array::from_fn(|_| std::array::from_fn(|_| rnd()));
-            let mut out = [[0.0; L]; 4];
+            let mut out = [[0.0; L]; 5];
             e.values_lanes(&x, &mut out);
             for l in 0..L {
                 let want = interpret(e, &[x[0][l], x[1][l]]);
