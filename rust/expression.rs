@@ -535,7 +535,7 @@ enum Instr {
     MulCMul(u32, u32, f64, u32),
 }
 
-/// The instructions of `code` with each product that one addition, subtraction or
+/// The instructions of `code` with each product (or square) that one addition, subtraction or
 /// multiplication alone reads fused into it ([`Instr::AddMul`] …). Sums and products commute
 /// exactly in IEEE arithmetic, so x + a·b is a·b + x to the bit; nothing is reassociated.
 fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr>, ()> {
@@ -569,7 +569,12 @@ fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr
         if k == usize::MAX || reads[r as usize] != 1 {
             return None;
         }
-        matches!(fused[k], Instr::Mul(..) | Instr::MulC(..)).then_some((k, fused[k]))
+        match fused[k] {
+            Instr::Mul(..) | Instr::MulC(..) => Some((k, fused[k])),
+            // y² is y·y to the bit.
+            Instr::Square(d, a) => Some((k, Instr::Mul(d, a, a))),
+            _ => None,
+        }
     };
     for k in 0..code.len() {
         let f = &fused;
@@ -1092,6 +1097,8 @@ mod tests {
             Add(29, 35),  // 36
             Add(33, 36),  // 37
             Add(7, 9),    // 38 7 read twice (14, 38): stays
+            Powi(1, 2),   // 39 y²
+            Add(38, 39),  // 40 r + y·y: AddMul
         ];
         let mut code = Vec::new();
         let (mut a, mut b, mut c) = (Vec::new(), Vec::new(), Vec::new());
@@ -1116,7 +1123,7 @@ mod tests {
             b.push(y);
             c.push(z);
         }
-        let e = Expression::program(2, &code, &a, &b, &c, &[23, 10, 1, 37, 38]).unwrap();
+        let e = Expression::program(2, &code, &a, &b, &c, &[23, 10, 1, 37, 40]).unwrap();
         // Two splats (0.3 under sin, −1.7 under the cube), and no register for 2, 3, 10, 13.
         let splats = e
             .lowered
@@ -1129,8 +1136,9 @@ mod tests {
         // the two constants and the two folded ones.
         assert_eq!(e.lowered.registers, 2 + splats + ops.len() - 6);
         assert_eq!(e.lowered.outputs[1], Val::Const(0.3 * -1.7));
-        // Fused: 15 (r·r⁻³ is a Mul of a DivC: no), 14 (no: 7 is read twice), 21 (MulC of an
-        // Add: no), 27, 29, 31, 33, 37 (x + a MulCMul: no), 36 (no: 35 is an Add) — four.
+        // Fused: 19 (16, a square read only there, + sin c), 27, 29, 31, 33, 40 (a square):
+        // six. Not: 14 (7 is read twice), 15 (r·r⁻³: a DivC is no product), 21 (an Add's
+        // MulC), 36 (35 is an Add), 37 (33 absorbed a product already).
         let fused = e
             .lowered
             .code
@@ -1148,7 +1156,7 @@ mod tests {
                 )
             })
             .count();
-        assert_eq!(fused, 4);
+        assert_eq!(fused, 6);
         fn check<const L: usize>(e: &Expression, seed: u64) {
             let mut s = seed;
             let mut rnd = || {
