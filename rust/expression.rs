@@ -50,8 +50,8 @@ pub struct Expression {
     ops: Vec<Op>,
     /// The registers whose values are the outputs (the last instruction for a Hamiltonian).
     outputs: Vec<usize>,
-    /// The same program for [`Expression::values_lanes`]: constants folded into the
-    /// instructions that use them, variables read where they live ([`Lowered`]).
+    /// The same program for [`Expression::values_lanes`]: constants carried in the
+    /// instructions that use them, single-use products fused ([`Lowered`]).
     lowered: Lowered,
 }
 
@@ -535,16 +535,25 @@ enum Instr {
     MulCMul(u32, u32, f64, u32),
 }
 
+/// A product that [`fuse`] may fold into the one instruction that reads it: a·b (a square as
+/// a·a, the same bits) or a·c.
+#[derive(Clone, Copy)]
+enum Product {
+    Mul(u32, u32),
+    MulC(u32, f64),
+}
+
 /// The instructions of `code` with each product (or square) that one addition, subtraction or
 /// multiplication alone reads fused into it ([`Instr::AddMul`] …). Sums and products commute
 /// exactly in IEEE arithmetic, so x + a·b is a·b + x to the bit; nothing is reassociated.
-fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr>, ()> {
+fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr>, CoreError> {
+    let oom = || CoreError::Memory("the lowered form of an expression".into());
     // How often each register is read, and the instruction that writes it.
     let mut reads = Vec::new();
-    reads.try_reserve_exact(registers).map_err(|_| ())?;
+    reads.try_reserve_exact(registers).map_err(|_| oom())?;
     reads.resize(registers, 0u32);
     let mut writer = Vec::new();
-    writer.try_reserve_exact(registers).map_err(|_| ())?;
+    writer.try_reserve_exact(registers).map_err(|_| oom())?;
     writer.resize(registers, usize::MAX);
     for (k, ins) in code.iter().enumerate() {
         let (d, operands) = ins.registers();
@@ -559,20 +568,20 @@ fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr
         }
     }
     let mut gone = Vec::new();
-    gone.try_reserve_exact(code.len()).map_err(|_| ())?;
+    gone.try_reserve_exact(code.len()).map_err(|_| oom())?;
     gone.resize(code.len(), false);
     let mut fused = code.clone();
     // The product in register r, where only one instruction reads it and its own operands are
     // still there (a product that absorbed another is no longer a plain product).
-    let product = |r: u32, fused: &[Instr]| -> Option<(usize, Instr)> {
+    let product = |r: u32, fused: &[Instr]| -> Option<(usize, Product)> {
         let k = *writer.get(r as usize)?;
         if k == usize::MAX || reads[r as usize] != 1 {
             return None;
         }
         match fused[k] {
-            Instr::Mul(..) | Instr::MulC(..) => Some((k, fused[k])),
-            // y² is y·y to the bit.
-            Instr::Square(d, a) => Some((k, Instr::Mul(d, a, a))),
+            Instr::Mul(_, a, b) => Some((k, Product::Mul(a, b))),
+            Instr::Square(_, a) => Some((k, Product::Mul(a, a))),
+            Instr::MulC(_, a, c) => Some((k, Product::MulC(a, c))),
             _ => None,
         }
     };
@@ -586,16 +595,16 @@ fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr
             },
             Instr::Sub(d, x, y) => match (product(y, f), product(x, f)) {
                 (Some((j, p)), _) => Some((j, add_mul(d, x, p, true))),
-                (None, Some((j, Instr::Mul(_, a, b)))) => Some((j, Instr::MulSub(d, a, b, y))),
+                (None, Some((j, Product::Mul(a, b)))) => Some((j, Instr::MulSub(d, a, b, y))),
                 _ => None,
             },
             Instr::MulC(d, x, c) => match product(x, f) {
-                Some((j, Instr::Mul(_, a, b))) => Some((j, Instr::MulMulC(d, a, b, c))),
+                Some((j, Product::Mul(a, b))) => Some((j, Instr::MulMulC(d, a, b, c))),
                 _ => None,
             },
             Instr::Mul(d, x, y) => match (product(x, f), product(y, f)) {
-                (Some((j, Instr::MulC(_, a, c))), _) => Some((j, Instr::MulCMul(d, a, c, y))),
-                (_, Some((j, Instr::MulC(_, a, c)))) => Some((j, Instr::MulCMul(d, a, c, x))),
+                (Some((j, Product::MulC(a, c))), _) => Some((j, Instr::MulCMul(d, a, c, y))),
+                (_, Some((j, Product::MulC(a, c)))) => Some((j, Instr::MulCMul(d, a, c, x))),
                 _ => None,
             },
             _ => None,
@@ -606,7 +615,7 @@ fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr
         }
     }
     let mut out = Vec::new();
-    out.try_reserve_exact(code.len()).map_err(|_| ())?;
+    out.try_reserve_exact(code.len()).map_err(|_| oom())?;
     out.extend(
         fused
             .into_iter()
@@ -618,13 +627,12 @@ fn fuse(code: Vec<Instr>, outputs: &[Val], registers: usize) -> Result<Vec<Instr
 }
 
 /// x ± (the product p), written to d.
-fn add_mul(d: u32, x: u32, p: Instr, minus: bool) -> Instr {
+fn add_mul(d: u32, x: u32, p: Product, minus: bool) -> Instr {
     match (p, minus) {
-        (Instr::Mul(_, a, b), false) => Instr::AddMul(d, x, a, b),
-        (Instr::Mul(_, a, b), true) => Instr::SubMul(d, x, a, b),
-        (Instr::MulC(_, a, c), false) => Instr::AddMulC(d, x, a, c),
-        (Instr::MulC(_, a, c), true) => Instr::SubMulC(d, x, a, c),
-        _ => p,
+        (Product::Mul(a, b), false) => Instr::AddMul(d, x, a, b),
+        (Product::Mul(a, b), true) => Instr::SubMul(d, x, a, b),
+        (Product::MulC(a, c), false) => Instr::AddMulC(d, x, a, c),
+        (Product::MulC(a, c), true) => Instr::SubMulC(d, x, a, c),
     }
 }
 
@@ -659,7 +667,7 @@ impl Instr {
 }
 
 /// The program as [`Expression::values_lanes`] runs it. The variables are registers
-/// `0..vars`, read where the caller's lanes are copied once; a constant never occupies a
+/// `0..vars`, the caller's lanes copied there once a call; a constant never occupies a
 /// register unless an instruction with no constant form needs it (then one [`Instr::Splat`]
 /// per constant); every other instruction writes a new register above its operands. On the
 /// vortices' field (76 instructions, 8 of them constants and 6 variables) this leaves 62
@@ -782,7 +790,7 @@ impl Lowered {
         outs.try_reserve_exact(outputs.len()).map_err(|_| oom())?;
         outs.extend(outputs.iter().map(|&k| val[k]));
         let registers = next as usize;
-        let code = fuse(code, &outs, registers).map_err(|_| oom())?;
+        let code = fuse(code, &outs, registers)?;
         Ok(Lowered {
             vars,
             code,
