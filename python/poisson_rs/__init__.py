@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 
 from . import _core
+from .device_rollout import DeviceStepper, on_device
 from .expressions import Expression, ExpressionError
 from .integrators import (
     FAILURE_CODES,
@@ -80,6 +81,7 @@ __all__ = [
     "AffinePoissonSystem",
     "BisectionIntegrator",
     "ClassicalIntegrator",
+    "DeviceStepper",
     "Expression",
     "ExpressionError",
     "ExpressionSystem",
@@ -121,6 +123,7 @@ __all__ = [
     "log_canonical_classical",
     "log_canonical_taylor",
     "lotka_volterra",
+    "on_device",
     "reference_solution",
     "select",
     "system_from_dict",

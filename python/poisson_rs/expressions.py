@@ -694,3 +694,43 @@ def _table(
             if len(node) > 2:
                 b[k] = node[2]
     return code, a, b, c
+
+
+def evaluate_table(
+    table: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], FloatArray],
+    outputs: Sequence[int] | NDArray[np.int64],
+    x: Any,
+    lib: Any = np,
+) -> Any:
+    """The core's program table (code, a, b, c; as :func:`field_program` returns it) evaluated
+    at ``x`` (..., n) with ``lib`` NumPy or torch, registers ``outputs`` stacked last:
+    (..., len(outputs)). Straight-line array code (no autograd), the torch form of the core's
+    field for the device rollouts."""
+    code, a, b, c = (np.asarray(v).tolist() for v in table)
+    regs: list[Any] = []
+    for op, ra, rb, rc in zip(code, a, b, c, strict=True):
+        name = OPCODES[op]
+        if name == "var":
+            v = x[..., ra]
+        elif name == "const":
+            v = float(rc)
+        elif name == "add":
+            v = regs[ra] + regs[rb]
+        elif name == "sub":
+            v = regs[ra] - regs[rb]
+        elif name == "mul":
+            v = regs[ra] * regs[rb]
+        elif name == "div":
+            v = regs[ra] / regs[rb]
+        elif name == "neg":
+            v = -regs[ra]
+        elif name == "powi":
+            v = regs[ra] ** int(rb)
+        elif name == "powf":
+            v = regs[ra] ** float(rc)
+        else:
+            v = getattr(lib, name)(regs[ra])
+        regs.append(v)
+    zero = 0.0 * x[..., 0]
+    # A constant output (a coordinate the field leaves fixed) is broadcast to the batch.
+    return lib.stack([regs[k] + zero for k in np.asarray(outputs).tolist()], -1)

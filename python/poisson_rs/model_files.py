@@ -4,6 +4,7 @@ metadata to its tensors."""
 
 from __future__ import annotations
 
+import copy
 import math
 import numbers
 import os
@@ -210,15 +211,23 @@ class BisectionIntegrator:
         return self._generating
 
     def torch_step(self, mu: torch.Tensor, h: float) -> torch.Tensor:
-        """The step map in pure torch (autograd Newton), float64. mu: (B, n) → (B, n)."""
+        """The step map in pure torch (autograd Newton), float64, on mu's device (the device
+        rollouts' :func:`~poisson_rs.on_device`). mu: (B, n) → (B, n)."""
         import torch
 
         from .generating import bisection_step
 
         step = _check_step(h)
         mu = torch.as_tensor(mu, dtype=torch.float64)
+        generating = self.generating
+        if mu.device != torch.device("cpu"):
+            # A copy per device: Module.to() moves in place, and the CPU module stays the oracle.
+            on = self.__dict__.setdefault("_generating_on", {})
+            if mu.device not in on:
+                on[mu.device] = copy.deepcopy(generating).to(mu.device)
+            generating = on[mu.device]
         return bisection_step(
-            self.generating, mu, step, chart=self.chart, tol=self.tol, max_iter=self.max_iter
+            generating, mu, step, chart=self.chart, tol=self.tol, max_iter=self.max_iter
         )
 
     def derivatives(self, t: float, p: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -217,6 +217,7 @@ def integrate(
     return_info: Literal[False] = ...,
     on_failure: Literal["warn", "raise", "ignore"] = ...,
     strict: bool = ...,
+    device: Any = ...,
 ) -> np.ndarray: ...
 
 
@@ -231,6 +232,7 @@ def integrate(
     return_info: Literal[True],
     on_failure: Literal["warn", "raise", "ignore"] = ...,
     strict: bool = ...,
+    device: Any = ...,
 ) -> tuple[np.ndarray, RolloutInfo]: ...
 
 
@@ -244,6 +246,7 @@ def integrate(
     return_info: bool = False,
     on_failure: Literal["warn", "raise", "ignore"] = "warn",
     strict: bool = True,
+    device: Any = None,
 ) -> np.ndarray | tuple[np.ndarray, RolloutInfo]:
     """Advances initial states ``n_steps`` steps of size ``h``, keeping every ``every``-th state.
 
@@ -260,6 +263,10 @@ def integrate(
         "warn" (default) warns once per call, "raise" raises RuntimeError, "ignore" stays silent.
     strict: a learned model refuses steps beyond the h_max it was trained for (ValueError);
         ``strict=False`` lets it extrapolate.
+    device: None (default) steps in the Rust core on the CPU; a torch device ("cuda",
+        "cuda:N") runs the stepper's torch step there, "cpu" its torch reference path: see
+        :func:`poisson_rs.on_device` (which also sets the dtype). Refused before any work for a
+        stepper without a torch step or a device torch does not see.
 
     Returns
     -------
@@ -278,6 +285,10 @@ def integrate(
     ``n_steps - n_steps % every``, NOT the final one (n_steps = 10, every = 3 keeps steps 0, 3,
     6, 9): choose ``every`` dividing ``n_steps`` to keep the final state.
     """
+    if device is not None:
+        from .device_rollout import on_device
+
+        stepper = on_device(stepper, device)
     # A stepper whose core checks the states and keeps its diagnostics until asked for (see
     # ClassicalIntegrator._core_rollout).
     core_rollout = getattr(stepper, "_core_rollout", None)

@@ -125,6 +125,26 @@ class FieldIntegrator:
     def __reduce__(self) -> tuple[Any, ...]:
         return (_field_integrator, (self.system, self.name, self.tol, self.max_iter))
 
+    @property
+    def torch_graph(self) -> bool:
+        """Whether :meth:`torch_step` is one graph (no data-dependent control flow), which
+        ``torch.compile`` fuses on a device: RK4's is."""
+        return self.name == "rk4"
+
+    def torch_step(self, mu: Any, h: float) -> Any:
+        """One RK4 step in torch on mu's device and dtype, the field evaluated from the core's
+        own program (:func:`~poisson_rs.expressions.evaluate_table`: straight-line, no
+        autograd). mu: (B, n) → (B, n)."""
+        import torch
+
+        from ..expressions import evaluate_table
+        from .classical_torch import require_torch_method, rk4_step
+
+        require_torch_method(self.name, "the classical integrator")
+        code, a, b, c, outputs = self.system.field_program
+        table = (code, a, b, c)
+        return rk4_step(lambda x: evaluate_table(table, outputs, x, torch), mu, float(h))
+
     def rollout(
         self, x0: FloatArray, h: float, n_steps: int, every: int
     ) -> tuple[FloatArray, dict[str, np.ndarray]]:

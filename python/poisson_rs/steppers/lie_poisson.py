@@ -140,6 +140,20 @@ class ClassicalIntegrator:
         return (_restore_classical, (type(self), self.body, self.name, self.tol, self.max_iter))
 
     @property
+    def torch_graph(self) -> bool:
+        """Whether :meth:`torch_step` is one graph (no data-dependent control flow), which
+        ``torch.compile`` fuses on a device: RK4's is."""
+        return self.name == "rk4"
+
+    def torch_step(self, mu: Any, h: float) -> Any:
+        """One step in torch on mu's device and dtype (RK4 only: the device rollouts'
+        :func:`~poisson_rs.on_device`). mu: (B, n) tensor → (B, n)."""
+        from .classical_torch import require_torch_method, rk4_step
+
+        require_torch_method(self.name, "the classical integrator")
+        return rk4_step(self.body.vector_field, mu, float(h))
+
+    @property
     def system(self) -> LiePoissonSystem:
         return self.body
 

@@ -98,6 +98,41 @@ class LogCanonicalTaylorIntegrator:
         """Monomials of S (the log part t·b·q not counted)."""
         return int(self._arrays[2].size)
 
+    def torch_step(self, mu: Any, h: float) -> Any:
+        """One step in torch on mu's device (float64): Newton for q + ½ c ∇S(q) = ln x per state,
+        stopping as the core does (|δ|∞ ≤ tol · max(|q|∞, 1e-300)), then x' = exp(q − ½ c ∇S(q));
+        a state that does not converge in ``max_iter`` updates comes back NaN. mu: (B, n) → (B, n).
+        """
+        import torch
+
+        x = torch.as_tensor(mu, dtype=torch.float64)
+        f64, dev = torch.float64, x.device
+        t_powers, exponents, coeffs = self._arrays
+        ex = torch.tensor(exponents, dtype=f64, device=dev)
+        w0 = torch.tensor(coeffs * float(h) ** t_powers.astype(np.float64), dtype=f64, device=dev)
+        b = torch.tensor(self.system.log_hamiltonian.b, dtype=f64, device=dev) * float(h)
+        half_c = 0.5 * torch.tensor(self.system.c, dtype=f64, device=dev)
+
+        def derivatives(z: Any) -> tuple[Any, Any]:
+            w = w0 * torch.exp(z @ ex.T)  # (B, M)
+            return w @ ex + b, torch.einsum("bm,mi,mj->bij", w, ex, ex)
+
+        target = torch.log(x)
+        z = target.clone()
+        done = torch.zeros(len(z), dtype=torch.bool, device=x.device)
+        eye = torch.eye(self.dim, dtype=f64, device=dev)
+        for _ in range(self.max_iter):
+            g, hs = derivatives(z)
+            f = z + g @ half_c.T - target
+            delta = torch.linalg.solve(eye + half_c @ hs, -f[..., None])[..., 0]
+            delta = torch.where(done[:, None], 0.0, delta)
+            z = z + delta
+            done |= delta.abs().amax(-1) <= self.tol * z.abs().amax(-1).clamp_min(1e-300)
+            if bool(done.all()):
+                break
+        g, _ = derivatives(z)
+        return torch.where(done[:, None], torch.exp(z - g @ half_c.T), torch.nan)
+
     def __reduce__(self) -> tuple[Any, ...]:
         return (
             _restore_log_taylor,
@@ -186,6 +221,31 @@ class LogCanonicalClassicalIntegrator:
     @property
     def poisson(self) -> bool:
         return LOG_CANONICAL_METHODS[self.name][1]
+
+    @property
+    def torch_graph(self) -> bool:
+        """Whether :meth:`torch_step` is one graph (no data-dependent control flow), which
+        ``torch.compile`` fuses on a device: RK4's is."""
+        return self.name == "rk4"
+
+    def torch_step(self, mu: Any, h: float) -> Any:
+        """One RK4 step in x in torch on mu's device and dtype (the device rollouts'
+        :func:`~poisson_rs.on_device`; a state leaving the orthant turns NaN). mu: (B, n) → (B, n).
+        """
+        import torch
+
+        from .classical_torch import require_torch_method, rk4_step
+
+        require_torch_method(self.name, "the classical integrator")
+        system = self.system
+
+        def field(x: Any) -> Any:
+            # ẋ = x ∘ (c ∇_q H(ln x)) without the positivity check of ``vector_field`` (a host
+            # sync): a stage outside the orthant gives NaN, and the step fails there.
+            return x * system.vector_field_log(torch.log(x))
+
+        out = rk4_step(field, mu, float(h))
+        return torch.where((out > 0).all(-1, keepdim=True), out, torch.nan)
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (
