@@ -11,7 +11,7 @@ and on constant ones).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -53,11 +53,22 @@ class ExpressionSystem(PoissonSystemBase):
     kind = "expression"
 
     def __init__(
-        self, structure: Any, hamiltonian: str | Expression, *, name: str | None = None
+        self,
+        structure: Any,
+        hamiltonian: str | Expression | Callable[[Any], Any],
+        *,
+        name: str | None = None,
     ) -> None:
         base = as_system(structure, "structure")
         names = tuple(base.component_names)
-        text = hamiltonian.text if isinstance(hamiltonian, Expression) else hamiltonian
+        if isinstance(hamiltonian, Expression):
+            text = hamiltonian.text
+        elif callable(hamiltonian):
+            from ..expression_tracing import trace_hamiltonian, tracing_names
+
+            text = trace_hamiltonian(hamiltonian, tracing_names(names))
+        else:
+            text = hamiltonian
         self.base = base
         self.h = Expression(text, names, aliases=default_names(base.dim))
         try:
@@ -268,12 +279,19 @@ def _rebuild(base: Any, text: str, name: str | None) -> ExpressionSystem:
 
 
 def with_hamiltonian(
-    structure: Any, hamiltonian: str | Expression, *, name: str | None = None
+    structure: Any, hamiltonian: str | Expression | Callable[[Any], Any], *, name: str | None = None
 ) -> PoissonSystemBase:
     """The bracket of ``structure`` (any system) with ``hamiltonian``, an expression in its
-    component names or x1 … xn, e.g. ``with_hamiltonian(pendulum, "u**2/2 - cos(v)")``: the
-    structure's own kind where it builds one (``structure.expression_system``: a charged particle
-    keeps its B and A), else an :class:`ExpressionSystem` on its polynomial bracket."""
+    component names or x1 … xn, e.g. ``with_hamiltonian(pendulum, "u**2/2 - cos(v)")``, or a
+    callable on torch tensors traced into one (``lambda x: x[..., 0]**2/2 - torch.cos(x[...,
+    1])``; :mod:`poisson_rs.expression_tracing`): the structure's own kind where it builds one
+    (``structure.expression_system``: a charged particle keeps its B and A), else an
+    :class:`ExpressionSystem` on its polynomial bracket."""
+    if callable(hamiltonian) and not isinstance(hamiltonian, (str, Expression)):
+        from ..expression_tracing import trace_hamiltonian, tracing_names
+
+        base = as_system(structure, "structure")
+        hamiltonian = trace_hamiltonian(hamiltonian, tracing_names(base.component_names))
     if isinstance(hamiltonian, str):
         try:
             return structure.expression_system(hamiltonian, name=name)
