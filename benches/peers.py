@@ -190,7 +190,9 @@ def vortex_field(z: Any, pi: float) -> list[Any]:
     return out
 
 
-def jax_runner(system: str) -> Runner | None:
+def jax_runner(system: str, dtype: str = "float64") -> Runner | None:
+    """JAX ``jit(vmap(lax.scan))`` RK4 on JAX's default device, its constants in ``dtype``
+    (pass states of that dtype)."""
     try:
         import jax
         import jax.numpy as jnp
@@ -198,10 +200,10 @@ def jax_runner(system: str) -> Runner | None:
         print("jax is not installed: skipped (pip install 'poisson_rs[bench]')", file=sys.stderr)
         return None
     jax.config.update("jax_enable_x64", True)
-    inv = jnp.array([1.0 / v for v in (RIGID_I if system == "rigid body" else TOP_I)])
-    arm = MGL * jnp.array(COM)
+    inv = jnp.array([1.0 / v for v in (RIGID_I if system == "rigid body" else TOP_I)], dtype=dtype)
+    arm = jnp.array([MGL * v for v in COM], dtype=dtype)
 
-    lv_c, lv_b = jnp.array(LV_C), jnp.array(LV_B)
+    lv_c, lv_b = jnp.array(LV_C, dtype=dtype), jnp.array(LV_B, dtype=dtype)
     h = step_size(system)
 
     def field(mu: Any) -> Any:

@@ -111,19 +111,26 @@ class DeviceStepper:
     def __reduce__(self) -> tuple[Any, ...]:
         return (_restore, (self.stepper, str(self.device), self.dtype, self.compile))
 
-    def _step(self, h: float) -> Any:
-        """The one-step function at h (compiled once per h where asked)."""
-        inner = self.stepper.torch_step
+    def _advance(self, h: float) -> Any:
+        """One step at h with its failure bookkeeping, ``(x, failed, k) → (x, failed)``:
+        compiled once per h where asked, so that a step is one fused kernel on the device. A
+        state that turned non-finite is NaN from then on (as the core's rollouts leave it),
+        and ``failed`` (int64, −1: none) keeps the first step k at which it did."""
+        import torch
 
-        def step(x: Any) -> Any:
-            return inner(x, h)
+        inner = self.stepper.torch_step
+        dtype = getattr(torch, self.dtype)
+
+        def advance(x: Any, failed: Any, k: Any) -> tuple[Any, Any]:
+            x = inner(x, h).to(dtype)
+            bad = ~torch.isfinite(x).all(-1)
+            failed = torch.where(bad & (failed < 0), k, failed)
+            return torch.where(bad[:, None], math.nan, x), failed
 
         if not self.compile:
-            return step
+            return advance
         if h not in self._compiled:
-            import torch
-
-            self._compiled[h] = torch.compile(step, dynamic=False)
+            self._compiled[h] = torch.compile(advance, dynamic=False)
         return self._compiled[h]
 
     def rollout(
@@ -133,22 +140,21 @@ class DeviceStepper:
         import torch
 
         dtype = getattr(torch, self.dtype)
-        step = self._step(float(h))
+        advance = self._advance(float(h))
         n = len(x0)
         records = n_steps // every + 1
         x = torch.as_tensor(np.asarray(x0), dtype=dtype).to(self.device)
         out = torch.empty((records, n, self._dim), dtype=dtype, device=self.device)
         out[0] = x
-        # The first step at which a trajectory turned non-finite (−1: none), kept on the device.
         failed = torch.full((n,), -1, dtype=torch.int64, device=self.device)
-        for k in range(1, n_steps + 1):
-            x = step(x).to(dtype)
-            bad = ~torch.isfinite(x).all(-1)
-            failed = torch.where(bad & (failed < 0), k - 1, failed)
-            # NaN from the failure on, as the core's rollouts do (an overflow may give ±inf).
-            x = torch.where(bad[:, None], math.nan, x)
-            if k % every == 0:
-                out[k // every] = x
+        # The step index as a device tensor: a Python int would be a new constant (and a new
+        # compilation) at every step.
+        k = torch.zeros((), dtype=torch.int64, device=self.device)
+        for step in range(1, n_steps + 1):
+            x, failed = advance(x, failed, k)
+            k += 1
+            if step % every == 0:
+                out[step // every] = x
         traj = out.transpose(0, 1).to("cpu", torch.float64).numpy()
         failed_np = failed.cpu().numpy()
         info = {

@@ -72,8 +72,9 @@ def _constant(xp_like: Any, values: FloatArray) -> Any:
     if _is_tensor(xp_like):
         import torch
 
-        # A copy (torch.tensor): the constants are read-only arrays.
-        return torch.tensor(values, dtype=xp_like.dtype, device=xp_like.device)
+        # A copy: the constants are read-only arrays (and torch.compile traces from_numpy
+        # without the warning it gives torch.tensor of an array it has turned into a tensor).
+        return torch.from_numpy(np.array(values)).to(dtype=xp_like.dtype, device=xp_like.device)
     return values
 
 
