@@ -39,7 +39,24 @@ pub trait Realization<const N: usize>: Sync {
     ) -> Result<[f64; N], StepFailure> {
         self.sou(x, p)
     }
+    /// Whether [`Realization::predict`] gives Newton a start (then the solve evaluates
+    /// x₀ = ∂S/∂p at p = μ once more per step).
+    #[inline]
+    fn predicts(&self) -> bool {
+        false
+    }
+    /// A start for Newton closer to the solution than the state `target` itself, from
+    /// x₀ = ∂S/∂p(h, target); None: start at `target`.
+    #[inline]
+    fn predict(&self, _x0: &[f64; N], _target: &[f64; N]) -> Option<[f64; N]> {
+        None
+    }
 }
+
+/// Largest |x₀|² at which [`Realization::predict`] is used on a Lie groupoid: beyond it (a step
+/// far too large for the series, h = 5 say) the first-order start can throw Newton past the exp
+/// chart's singular angle that a start from μ avoids (the rule of the so(3) lanes' predictor).
+const PREDICT_MAX_S: f64 = 1.0;
 
 impl<const N: usize> Realization<N> for Groupoid<N> {
     #[inline]
@@ -64,6 +81,25 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
         target: &[f64; N],
     ) -> Result<[f64; N], StepFailure> {
         self.coadjoint(x, target)
+    }
+    #[inline]
+    fn predicts(&self) -> bool {
+        true
+    }
+    /// tar(x, p) = p + ½ ad_xᵀ p + O(|x|²) in every chart, so p₀ = μ − ½ ad_{x₀}ᵀ μ is O(h²)
+    /// from the solution where μ itself is O(h) away (x₀ = O(h)): Newton's first error, and
+    /// simplified Newton's contraction with it, shrink by a power of h. Only where
+    /// |x₀|² ≤ [`PREDICT_MAX_S`] and p₀ is finite.
+    #[inline]
+    fn predict(&self, x0: &[f64; N], target: &[f64; N]) -> Option<[f64; N]> {
+        let s: f64 = x0.iter().map(|v| v * v).sum();
+        // A NaN x₀ predicts nothing either.
+        if s.is_nan() || s > PREDICT_MAX_S {
+            return None;
+        }
+        let a = self.algebra.ad_transpose_apply(x0, target);
+        let p0: [f64; N] = std::array::from_fn(|i| target[i] - 0.5 * a[i]);
+        p0.iter().all(|v| v.is_finite()).then_some(p0)
     }
 }
 
@@ -175,13 +211,16 @@ pub(crate) struct Newton<'a, const N: usize, R> {
     pub simplified: bool,
     /// Newton stops once |δ|∞ ≤ tol · max(|p|∞, scale_floor).
     pub scale_floor: f64,
+    /// Start from the realization's prediction ([`Realization::predict`]) where it has one.
+    pub predict: bool,
 }
 
 impl<const N: usize, R: Realization<N>> Newton<'_, N, R>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
-    /// One trajectory's step: Newton from p = μ, then μ' at the converged p.
+    /// One trajectory's step: Newton from p = μ (or the realization's prediction from it),
+    /// then μ' at the converged p.
     #[inline]
     pub(crate) fn step<G: Generating<N>>(
         &self,
@@ -192,6 +231,12 @@ where
     ) -> StepResult {
         let target = *mu;
         let mut p = target;
+        if self.predict && self.realization.predicts() {
+            let x0 = generating.gradient(h, &target, ws);
+            if let Some(p0) = self.realization.predict(&x0.g, &target) {
+                p = p0;
+            }
+        }
         let mut iterations = 0;
         let mut factors = None;
         let (mut refresh, mut last) = (true, f64::INFINITY);

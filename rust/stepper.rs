@@ -107,13 +107,19 @@ where
             max_iter: self.newton.max_iter,
             simplified: self.newton.simplified,
             scale_floor: self.scale_floor,
+            predict: true,
         }
     }
 
     /// [`StepMap::step`] by the generic path (dual-number Jacobian, explicit inverse), whatever
-    /// the realization and S: the reference the lane solver is tested against.
+    /// the realization and S, started from μ (no prediction): the reference the lane solver and
+    /// the predicted start are tested against.
     pub fn step_generic(&self, h: f64, mu: &mut [f64; N], ws: &mut G::Workspace) -> StepResult {
-        self.solver().step(&self.generating, h, mu, ws)
+        let solver = Newton {
+            predict: false,
+            ..self.solver()
+        };
+        solver.step(&self.generating, h, mu, ws)
     }
 }
 
@@ -151,7 +157,7 @@ where
             );
             return result[0];
         }
-        self.step_generic(h, mu, ws)
+        self.solver().step(&self.generating, h, mu, ws)
     }
 
     fn batch(&self) -> usize {
@@ -226,6 +232,19 @@ where
         // Gathered momenta of the jet and gradient passes, their results and their owners.
         let (mut pj, mut jets, mut jet_of) = ([[0.0; N]; CAP], [Jet2::default(); CAP], [0; CAP]);
         let (mut pg, mut grads, mut grad_of) = ([[0.0; N]; CAP], [Dual1::default(); CAP], [0; CAP]);
+        if solver.predict && self.realization.predicts() && n_active > 0 {
+            // The one-trajectory step's start (Newton::step), from the same gradients.
+            for (q, &i) in pg.iter_mut().zip(&active[..n_active]) {
+                *q = mu[i];
+            }
+            self.generating
+                .gradients(h, &pg[..n_active], &mut grads[..n_active], ws);
+            for (g, &i) in grads.iter().zip(&active[..n_active]) {
+                if let Some(p0) = self.realization.predict(&g.g, &mu[i]) {
+                    p[i] = p0;
+                }
+            }
+        }
         while n_active > 0 {
             let (mut nj, mut ng) = (0, 0);
             for &i in &active[..n_active] {

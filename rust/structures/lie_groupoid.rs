@@ -92,6 +92,54 @@ pub(crate) fn exp_chart_coefficient_to(s: f64, order: u8) -> (f64, f64, f64) {
     (c, c_th / (2.0 * th), (c_thth - c_th / th) / (4.0 * s))
 }
 
+/// c'(s), c''(s) and c'''(s) of [`exp_chart_coefficient_to`]'s c, up to the derivative `order`
+/// of c' (0, 1 or 2; the rest returned as 0): the coefficient the se(3) chart's translation
+/// block carries ([`se3_chart`]). Series below s = 1, as c's; above, the θ-derivatives of the
+/// closed form taken to s = θ².
+#[inline(always)]
+pub(crate) fn exp_chart_coefficient_derivatives_to(s: f64, order: u8) -> (f64, f64, f64) {
+    if s < 1.0 {
+        let (mut d1, mut d2, mut d3) = (0.0, 0.0, 0.0);
+        for (n, &a) in C_SERIES.iter().enumerate().rev() {
+            let n = n as f64;
+            if n >= 1.0 {
+                d1 = d1 * s + n * a;
+            }
+            if order >= 1 && n >= 2.0 {
+                d2 = d2 * s + n * (n - 1.0) * a;
+            }
+            if order >= 2 && n >= 3.0 {
+                d3 = d3 * s + n * (n - 1.0) * (n - 2.0) * a;
+            }
+        }
+        return (d1, d2, d3);
+    }
+    let th = s.sqrt();
+    let (sn, cs) = (0.5 * th).sin_cos();
+    let cot = cs / sn;
+    let csc2 = 1.0 / (sn * sn);
+    let c_th = -2.0 / (s * th) + cot / (2.0 * s) + csc2 / (4.0 * th);
+    let d1 = c_th / (2.0 * th);
+    if order == 0 {
+        return (d1, 0.0, 0.0);
+    }
+    let c_thth = 6.0 / (s * s) - cot / (s * th) - csc2 / (2.0 * s) - csc2 * cot / (4.0 * th);
+    let d2 = (c_thth - c_th / th) / (4.0 * s);
+    if order == 1 {
+        return (d1, d2, 0.0);
+    }
+    let c_ththth = -24.0 / (s * s * th)
+        + 3.0 * cot / (s * s)
+        + 1.5 * csc2 / (s * th)
+        + 0.75 * csc2 * cot / s
+        + (csc2 * cot * cot + 0.5 * csc2 * csc2) / (4.0 * th);
+    (
+        d1,
+        d2,
+        (c_ththth - 3.0 * c_thth / th + 3.0 * c_th / s) / (8.0 * s * th),
+    )
+}
+
 /// (−1)ⁿ/(2n+1)! and (−1)ⁿ/(2n+2)!, n = 0 … 9: the series of sin θ/θ and (1 − cos θ)/θ² in
 /// s = θ², summed below s = 1 (the tenth terms are below 2e-20 there).
 pub(crate) const SIN_SERIES: [f64; 10] = [
@@ -135,6 +183,102 @@ pub(crate) fn rodrigues_coefficients(s: f64) -> (f64, f64) {
     let th = s.sqrt();
     let (sn, cs) = (0.5 * th).sin_cos();
     (2.0 * sn * cs / th, 2.0 * sn * sn / s)
+}
+
+/// The s-derivatives (a'(s), b'(s)) of [`rodrigues_coefficients`]: series below s = 1, the
+/// half-angle closed forms above (a = sin θ/θ, b = 2 sin²(θ/2)/θ², θ = √s).
+#[inline(always)]
+pub(crate) fn rodrigues_derivatives(s: f64) -> (f64, f64) {
+    if s < 1.0 {
+        let (mut a, mut b) = (0.0, 0.0);
+        for (n, (&u, &v)) in SIN_SERIES.iter().zip(&COS_SERIES).enumerate().rev() {
+            if n == 0 {
+                break;
+            }
+            let n = n as f64;
+            a = a * s + n * u;
+            b = b * s + n * v;
+        }
+        return (a, b);
+    }
+    let th = s.sqrt();
+    let (sn, cs) = (0.5 * th).sin_cos();
+    // d/dθ (sin θ/θ) = (θ cos θ − sin θ)/θ², d/dθ (2 sin²(θ/2)/θ²) = (θ sin θ − 4 sin²(θ/2))/θ³,
+    // and d/ds = d/dθ / (2θ).
+    let (sin, cos) = (2.0 * sn * cs, cs * cs - sn * sn);
+    (
+        (th * cos - sin) / (2.0 * s * th),
+        (th * sin - 4.0 * sn * sn) / (2.0 * s * s),
+    )
+}
+
+/// The se(3) exponential chart in closed form: sou (`sign` = +1) or tar (−1) of x = (ω, v) ∈
+/// se(3) at p = (p_R, p_T) ∈ se(3)*. ad_xᵀ is block upper triangular, [[W(ω), W(v)], [0,
+/// W(ω)]] with W(y) so(3)'s ad_yᵀ, so the Bernoulli series f(ad_xᵀ) is [[f(W(ω)),
+/// Df(W(ω))[W(v)]], [0, f(W(ω))]]: so(3)'s chart on each block, plus its derivative along v,
+///
+///   Df[v] q = ±½ v×q + 2c'(|ω|²)(ω·v) ω×(ω×q) + c(|ω|²)(v×(ω×q) + ω×(v×q)).
+///
+/// The map of [`Groupoid::exp_series`] (its singular set |ω| ≥ 2π included: the eigenvalues of
+/// ad_x are ω's), without its 20-odd dense 6×6 products.
+#[inline(always)]
+fn se3_chart<T: Scalar>(x: &[T; 6], p: &[T; 6], sign: f64) -> Result<[T; 6], StepFailure> {
+    let w = [x[0], x[1], x[2]];
+    let v = [x[3], x[4], x[5]];
+    let pr = [p[0], p[1], p[2]];
+    let pt = [p[3], p[4], p[5]];
+    let s = dot(&w, &w);
+    if s.value() >= EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE {
+        return Err(StepFailure::ChartSingular);
+    }
+    let (c, dc, d2c) = exp_chart_coefficient_to(s.value(), T::ORDER);
+    let (e1, e2, e3) = exp_chart_coefficient_derivatives_to(s.value(), T::ORDER);
+    let c = s.chain(c, dc, d2c);
+    let c1 = s.chain(e1, e2, e3);
+    let half = 0.5 * sign;
+    let (wpr, wpt, vpt) = (cross(&w, &pr), cross(&w, &pt), cross(&v, &pt));
+    let (wwpr, wwpt) = (cross(&w, &wpr), cross(&w, &wpt));
+    let (vwpt, wvpt) = (cross(&v, &wpt), cross(&w, &vpt));
+    let k = dot(&w, &v).scale(2.0) * c1;
+    let mut out = *p;
+    for i in 0..3 {
+        let d = vpt[i].scale(half) + k * wwpt[i] + c * (vwpt[i] + wvpt[i]);
+        out[i] = pr[i] + wpr[i].scale(half) + c * wwpr[i] + d;
+        out[3 + i] = pt[i] + wpt[i].scale(half) + c * wwpt[i];
+    }
+    Ok(out)
+}
+
+/// The coadjoint action of exp(x), x = (ω, v) ∈ se(3), on μ = (M, Γ) in closed form:
+/// e^{−ad_xᵀ} = [[E, DE[v]], [0, E]] with E q = q + a ω×q + b ω×(ω×q) (Rodrigues, so(3)'s
+/// [`Chart::rotate`]) and DE[v] its derivative along v. Keeps |Γ|² and M·Γ up to rounding, as a
+/// rotation keeps |μ|² on so(3)*: the corrections are added to μ last.
+#[inline(always)]
+fn se3_coadjoint(x: &[f64; 6], mu: &[f64; 6]) -> Result<[f64; 6], StepFailure> {
+    let w = [x[0], x[1], x[2]];
+    let v = [x[3], x[4], x[5]];
+    let m = [mu[0], mu[1], mu[2]];
+    let g = [mu[3], mu[4], mu[5]];
+    let s = dot(&w, &w);
+    if s >= EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE {
+        return Err(StepFailure::ChartSingular);
+    }
+    let (a, b) = rodrigues_coefficients(s);
+    let (da, db) = rodrigues_derivatives(s);
+    let k = 2.0 * dot(&w, &v);
+    let (wm, wg, vg) = (cross(&w, &m), cross(&w, &g), cross(&v, &g));
+    let (wwm, wwg) = (cross(&w, &wm), cross(&w, &wg));
+    let (vwg, wvg) = (cross(&v, &wg), cross(&w, &vg));
+    let mut out = [0.0; 6];
+    for i in 0..3 {
+        let d = k * da * wg[i] + a * vg[i] + k * db * wwg[i] + b * (vwg[i] + wvg[i]);
+        out[i] = m[i] + ((a * wm[i] + b * wwm[i]) + d);
+        out[3 + i] = g[i] + (a * wg[i] + b * wwg[i]);
+    }
+    if !out.iter().all(|v| v.is_finite()) {
+        return Err(StepFailure::NonFinite);
+    }
+    Ok(out)
 }
 
 #[inline(always)]
@@ -281,21 +425,28 @@ pub struct LieAlgebra<const N: usize> {
     c: [[[f64; N]; N]; N],
     /// c is exactly the Levi-Civita symbol: so(3), with its closed-form charts.
     so3: bool,
+    /// c is exactly [`LieAlgebra::se3`]'s: the exponential chart and the coadjoint action in
+    /// closed form ([`se3_chart`], [`se3_coadjoint`]).
+    se3: bool,
+}
+
+/// se(3)'s structure constants in the basis (R₁, R₂, R₃, T₁, T₂, T₃) (see [`LieAlgebra::se3`]).
+fn se3_constant(i: usize, j: usize, k: usize) -> f64 {
+    match (i < 3, j < 3, k < 3) {
+        (true, true, true) => levi_civita(i, j, k),
+        (true, false, false) => levi_civita(i, j - 3, k - 3),
+        (false, true, false) => -levi_civita(j, i - 3, k - 3),
+        _ => 0.0,
+    }
 }
 
 impl LieAlgebra<6> {
     /// se(3) in the basis (R₁, R₂, R₃, T₁, T₂, T₃): [R_i, R_j] = ε_ijk R_k,
     /// [R_i, T_j] = ε_ijk T_k, [T_i, T_j] = 0 (the heavy top's algebra, μ = (M, Γ)).
     pub fn se3() -> Self {
-        let mut c = [[[0.0; 6]; 6]; 6];
-        for (i, j, k) in [(0, 1, 2), (1, 2, 0), (2, 0, 1)] {
-            c[i][j][k] = 1.0;
-            c[j][i][k] = -1.0;
-            c[i][3 + j][3 + k] = 1.0;
-            c[3 + j][i][3 + k] = -1.0;
-            c[j][3 + i][3 + k] = -1.0;
-            c[3 + i][j][3 + k] = 1.0;
-        }
+        let c: [[[f64; 6]; 6]; 6] = std::array::from_fn(|i| {
+            std::array::from_fn(|j| std::array::from_fn(|k| se3_constant(i, j, k)))
+        });
         // Antisymmetric and Jacobi by construction: `new` cannot refuse it.
         match LieAlgebra::new(c) {
             Ok(a) => a,
@@ -369,7 +520,9 @@ impl<const N: usize> LieAlgebra<N> {
         }
         let so3 = N == 3
             && (0..3).all(|i| (0..3).all(|j| (0..3).all(|k| c[i][j][k] == levi_civita(i, j, k))));
-        Ok(LieAlgebra { c, so3 })
+        let se3 = N == 6
+            && (0..6).all(|i| (0..6).all(|j| (0..6).all(|k| c[i][j][k] == se3_constant(i, j, k))));
+        Ok(LieAlgebra { c, so3, se3 })
     }
 
     /// so(3) when N = 3 (c = ε); an error for other N.
@@ -476,6 +629,15 @@ impl<const N: usize> Groupoid<N> {
                 return Ok(out);
             }
         }
+        if self.algebra.se3 {
+            // N = 6 here, and the chart is exp (Cayley is refused for any algebra but so(3)).
+            if let (Ok(x6), Ok(p6)) = (<&[T; 6]>::try_from(&x[..]), <&[T; 6]>::try_from(&p[..])) {
+                let s = se3_chart(x6, p6, sign)?;
+                let mut out = *p;
+                out.copy_from_slice(&s);
+                return Ok(out);
+            }
+        }
         self.exp_series(x, p, sign)
     }
 
@@ -532,6 +694,17 @@ impl<const N: usize> Groupoid<N> {
                 <&[f64; 3]>::try_from(&mu[..]),
             ) {
                 let r = self.chart.rotate(x3, m3)?;
+                let mut out = *mu;
+                out.copy_from_slice(&r);
+                return Ok(out);
+            }
+        }
+        if self.algebra.se3 {
+            if let (Ok(x6), Ok(m6)) = (
+                <&[f64; 6]>::try_from(&x[..]),
+                <&[f64; 6]>::try_from(&mu[..]),
+            ) {
+                let r = se3_coadjoint(x6, m6)?;
                 let mut out = *mu;
                 out.copy_from_slice(&r);
                 return Ok(out);
@@ -702,6 +875,155 @@ mod tests {
             Chart::Exp.tar(&xd, &pd).unwrap(),
         );
         assert_eq!(a, b.map(|v| v.v));
+    }
+
+    /// se(3) with its closed forms turned off: the Bernoulli and exponential series of any
+    /// algebra, the independent oracle of [`se3_chart`] and [`se3_coadjoint`].
+    fn se3_by_series() -> Groupoid<6> {
+        let closed = LieAlgebra::se3();
+        assert!(closed.se3 && !closed.so3);
+        let algebra = LieAlgebra {
+            c: closed.c,
+            so3: false,
+            se3: false,
+        };
+        Groupoid {
+            algebra,
+            chart: Chart::Exp,
+        }
+    }
+
+    /// Seeded (x, p) pairs with |ω| from 1e-4 to 6 (across the switch s = 1 and near the pole).
+    fn se3_points() -> Vec<([f64; 6], [f64; 6])> {
+        let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        let mut out = Vec::new();
+        for &r in &[1e-4, 0.05, 0.3, 0.99, 1.01, 2.0, 3.5, 5.0, 6.0] {
+            for _ in 0..4 {
+                let w: [f64; 3] = std::array::from_fn(|_| next());
+                let n = norm(&w);
+                let x = [
+                    w[0] / n * r,
+                    w[1] / n * r,
+                    w[2] / n * r,
+                    next(),
+                    next(),
+                    next(),
+                ];
+                out.push((x, std::array::from_fn(|_| 2.0 * next())));
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn se3_chart_in_closed_form_is_the_bernoulli_series_with_its_derivatives() {
+        let closed = Groupoid::new(LieAlgebra::se3(), Chart::Exp).unwrap();
+        let series = se3_by_series();
+        for (x, p) in se3_points() {
+            // Derivatives in all twelve inputs: x and p.
+            let xd: [Dual1<12>; 6] = std::array::from_fn(|i| Dual1::var(x[i], i));
+            let pd: [Dual1<12>; 6] = std::array::from_fn(|i| Dual1::var(p[i], 6 + i));
+            // The series' own rounding grows with |ω| (a sum of terms up to e^{|ω|} in size).
+            let scale = (1.0 + norm(&[x[0], x[1], x[2]])).powi(4);
+            for sign in [1.0, -1.0] {
+                let a = closed.apply(&xd, &pd, sign).unwrap();
+                // The series converges too slowly near its radius |ω| = 2π to be summed there;
+                // sou = Ad*(tar) checks the closed form out to 6 (the coadjoint test).
+                let Ok(b) = series.apply(&xd, &pd, sign) else {
+                    assert!(norm(&[x[0], x[1], x[2]]) > 4.0, "{x:?}");
+                    continue;
+                };
+                for i in 0..6 {
+                    let (u, w) = (a[i].v, b[i].v);
+                    assert!((u - w).abs() <= 1e-14 * scale, "{x:?} {sign} {i}: {u} {w}");
+                    for j in 0..12 {
+                        let (u, w) = (a[i].g[j], b[i].g[j]);
+                        assert!((u - w).abs() <= 1e-13 * scale, "{x:?} d{i}/d{j}: {u} {w}");
+                    }
+                }
+                // f64 keeps the Dual1 evaluation's value.
+                assert_eq!(closed.apply(&x, &p, sign).unwrap(), a.map(|v| v.v));
+            }
+        }
+        let x = [0.0, 0.0, 2.0 * std::f64::consts::PI, 1.0, 0.0, 0.0];
+        assert_eq!(closed.sou(&x, &[1.0; 6]), Err(StepFailure::ChartSingular));
+        assert_eq!(
+            closed.coadjoint(&x, &[1.0; 6]),
+            Err(StepFailure::ChartSingular)
+        );
+    }
+
+    #[test]
+    fn se3_coadjoint_in_closed_form_is_the_series_and_keeps_both_casimirs() {
+        let closed = Groupoid::new(LieAlgebra::se3(), Chart::Exp).unwrap();
+        let series = se3_by_series();
+        let gg = |m: &[f64; 6]| m[3] * m[3] + m[4] * m[4] + m[5] * m[5];
+        let mg = |m: &[f64; 6]| m[0] * m[3] + m[1] * m[4] + m[2] * m[5];
+        for (x, mu) in se3_points() {
+            let a = closed.coadjoint(&x, &mu).unwrap();
+            let b = series.coadjoint(&x, &mu).unwrap();
+            let size = (1.0 + x.iter().map(|v| v.abs()).sum::<f64>()).powi(2);
+            for i in 0..6 {
+                assert!(
+                    (a[i] - b[i]).abs() <= 1e-14 * size,
+                    "{x:?} {i}: {} {}",
+                    a[i],
+                    b[i]
+                );
+            }
+            assert!((gg(&a) - gg(&mu)).abs() <= 1e-14 * size, "{x:?} |Γ|²");
+            assert!((mg(&a) - mg(&mu)).abs() <= 1e-14 * size, "{x:?} M·Γ");
+            // sou(x, p) = coadjoint(x, tar(x, p)) on the closed forms too.
+            let t = closed.tar(&x, &mu).unwrap();
+            let (s, c) = (
+                closed.sou(&x, &mu).unwrap(),
+                closed.coadjoint(&x, &t).unwrap(),
+            );
+            for i in 0..6 {
+                assert!(
+                    (s[i] - c[i]).abs() <= 1e-13 * size,
+                    "{x:?} sou = Ad* tar, {i}"
+                );
+            }
+        }
+    }
+
+    /// The derivative coefficients against central differences of the lower ones (independent
+    /// formulas: series below s = 1, closed forms above), across the switch.
+    #[test]
+    fn chart_and_rodrigues_derivative_coefficients_are_the_derivatives() {
+        for &s in &[1e-3, 0.2, 0.7, 0.999, 1.001, 1.5, 4.0, 10.0, 25.0, 37.0] {
+            let e: f64 = 1e-5 * f64::max(s, 0.01);
+            let (d1, d2, d3) = exp_chart_coefficient_derivatives_to(s, 2);
+            let (cp, dp, d2p) = exp_chart_coefficient_to(s + e, 2);
+            let (cm, dm, d2m) = exp_chart_coefficient_to(s - e, 2);
+            let (_, dc, d2c) = exp_chart_coefficient_to(s, 2);
+            assert_eq!((d1, d2), (dc, d2c), "s = {s}");
+            let rel = |a: f64, b: f64| (a - b).abs() / b.abs().max(1e-3);
+            assert!(
+                rel((cp - cm) / (2.0 * e), d1) < 1e-7,
+                "first derivative at {s}"
+            );
+            assert!(
+                rel((dp - dm) / (2.0 * e), d2) < 1e-6,
+                "second derivative at {s}"
+            );
+            assert!(
+                rel((d2p - d2m) / (2.0 * e), d3) < 1e-5,
+                "third derivative at {s}"
+            );
+            let (da, db) = rodrigues_derivatives(s);
+            let (ap, bp) = rodrigues_coefficients(s + e);
+            let (am, bm) = rodrigues_coefficients(s - e);
+            assert!(rel((ap - am) / (2.0 * e), da) < 1e-7, "a' at {s}");
+            assert!(rel((bp - bm) / (2.0 * e), db) < 1e-7, "b' at {s}");
+        }
     }
 
     #[test]

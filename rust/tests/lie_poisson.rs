@@ -383,3 +383,69 @@ fn sl2_bisection_keeps_its_casimir_and_is_second_order() {
     let p = fitted_order(&rk, &sys, mu0, 1.0, 0.05);
     assert!((p - 4.0).abs() < 0.3, "rk4 fitted order {p}");
 }
+
+/// The predicted start (p₀ = μ − ½ ad_{x₀}ᵀ μ, what `step` and `step_batch` run) against the
+/// generic step from μ (`step_generic`): the same solution to Newton's tolerance, in fewer
+/// updates; and a batch in lockstep gives each trajectory the bits of its one-trajectory step.
+#[test]
+fn the_predicted_start_solves_the_same_step_in_fewer_updates() {
+    fn check<const N: usize>(sys: &LiePoisson<N>, states: &[[f64; N]], h: f64) -> (u32, u32)
+    where
+        nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
+    {
+        let st = minus_t_h_stepper(sys);
+        let mut ws = st.workspace();
+        let (mut predicted, mut plain) = (0, 0);
+        for mu0 in states {
+            let (mut a, mut b) = (*mu0, *mu0);
+            for _ in 0..50 {
+                let sa = st.step(h, &mut a, &mut ws).unwrap();
+                let sb = st.step_generic(h, &mut b, &mut ws).unwrap();
+                predicted += sa.iterations;
+                plain += sb.iterations;
+                let scale = a.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+                assert!(dist(&a, &b) <= 1e-11 * scale, "{a:?} {b:?}");
+                b = a;
+            }
+        }
+        // Lockstep (a batch, polynomial S: batched jets and gradients) against one at a time.
+        let mut batch: Vec<[f64; N]> = states.to_vec();
+        let mut results = vec![Err(StepFailure::OutOfDomain); batch.len()];
+        st.step_batch(
+            h,
+            &mut batch,
+            &vec![true; states.len()],
+            &mut results,
+            &mut ws,
+        );
+        for (mu0, got) in states.iter().zip(&batch) {
+            let mut one = *mu0;
+            st.step(h, &mut one, &mut ws).unwrap();
+            assert_eq!(&one, got, "lockstep and one-at-a-time steps differ");
+        }
+        (predicted, plain)
+    }
+    let tops = [
+        [0.3, -0.8, 1.2, 0.6, 0.0, 0.8],
+        [2.0, 0.5, -1.0, 0.0, 0.6, 0.8],
+        [-1.1, 0.4, 0.9, 0.36, 0.48, -0.8],
+        [0.5, 1.5, -0.2, -0.6, 0.8, 0.0],
+        [1.4, -1.2, 0.3, 0.0, 0.0, 1.0],
+    ];
+    let (predicted, plain) = check(&heavy_top(), &tops, 0.1);
+    assert!(
+        predicted < plain,
+        "heavy top: {predicted} updates against {plain}"
+    );
+    let sl2_states = [
+        [0.5, 0.3, -0.2],
+        [1.0, -0.4, 0.7],
+        [-0.3, 0.8, 0.1],
+        [0.2, 0.2, 0.9],
+    ];
+    let (predicted, plain) = check(&sl2_system(), &sl2_states, 0.1);
+    assert!(
+        predicted < plain,
+        "sl(2): {predicted} updates against {plain}"
+    );
+}

@@ -15,9 +15,9 @@ use crate::structures::{
 };
 
 /// The batched step (lockstep Newton over a chunk of trajectories, or SIMD lanes) is the
-/// one-trajectory generic step, bit for bit, on the Lie-algebra groupoid with full Newton.
+/// one-trajectory step, bit for bit, on the Lie-algebra groupoid with full Newton.
 #[test]
-fn batched_steps_are_the_generic_step_bit_for_bit() {
+fn batched_steps_are_the_one_trajectory_step_bit_for_bit() {
     let mut rng = Rng::new(20);
     for chart in [Chart::Cayley, Chart::Exp] {
         for gf in [
@@ -31,7 +31,8 @@ fn batched_steps_are_the_generic_step_bit_for_bit() {
             };
             let stepper = BisectionStepper::new(gf.clone(), Groupoid::so3(chart).unwrap(), newton);
             // A polynomial S steps in lockstep SIMD lanes (batch > 1), an MLP this small one
-            // trajectory at a time: both must give the generic step's bits.
+            // trajectory at a time: both must give the one-trajectory step's bits (the generic
+            // path from the predicted start).
             assert_eq!(stepper.batch() > 1, gf.mlp.is_none());
             let mu0: Vec<[f64; 3]> = (0..5).map(|_| rng.sphere(2.0)).collect();
             let steps = 50;
@@ -41,7 +42,7 @@ fn batched_steps_are_the_generic_step_bit_for_bit() {
             for (k, m0) in mu0.iter().enumerate() {
                 let mut mu = *m0;
                 for s in 1..=steps {
-                    stepper.step_generic(0.1, &mut mu, &mut ws).unwrap();
+                    stepper.step(0.1, &mut mu, &mut ws).unwrap();
                     let at = (k * n_records(steps, 1) + s) * 3;
                     assert!((0..3).all(|i| a[at + i].to_bits() == mu[i].to_bits()));
                 }
