@@ -63,7 +63,92 @@ def _number(value: Any, what: str) -> float:
     return v
 
 
-class _Sym:
+class _Arithmetic:
+    """The operators and functions a traced value takes, each in terms of its ``_binary``,
+    ``__pow__`` and ``apply`` (a number's, or a vector's elementwise)."""
+
+    __slots__ = ()
+
+    def _binary(self, other: Any, op: str, reverse: bool) -> Any:
+        raise NotImplementedError
+
+    def apply(self, name: str) -> Any:
+        raise NotImplementedError
+
+    def __add__(self, o: Any) -> Any:
+        return self._binary(o, "+", False)
+
+    def __radd__(self, o: Any) -> Any:
+        return self._binary(o, "+", True)
+
+    def __sub__(self, o: Any) -> Any:
+        return self._binary(o, "-", False)
+
+    def __rsub__(self, o: Any) -> Any:
+        return self._binary(o, "-", True)
+
+    def __mul__(self, o: Any) -> Any:
+        return self._binary(o, "*", False)
+
+    def __rmul__(self, o: Any) -> Any:
+        return self._binary(o, "*", True)
+
+    def __truediv__(self, o: Any) -> Any:
+        return self._binary(o, "/", False)
+
+    def __rtruediv__(self, o: Any) -> Any:
+        return self._binary(o, "/", True)
+
+    def __pos__(self) -> Any:
+        return self
+
+    def exp(self) -> Any:
+        return self.apply("exp")
+
+    def log(self) -> Any:
+        return self.apply("log")
+
+    def sin(self) -> Any:
+        return self.apply("sin")
+
+    def cos(self) -> Any:
+        return self.apply("cos")
+
+    def tan(self) -> Any:
+        return self.apply("tan")
+
+    def sqrt(self) -> Any:
+        return self.apply("sqrt")
+
+    def tanh(self) -> Any:
+        return self.apply("tanh")
+
+    def square(self) -> Any:
+        return self**2  # type: ignore[operator]
+
+    # --- what a traced value cannot do ------------------------------------------------------
+    def __bool__(self) -> bool:
+        raise TraceError(
+            "hamiltonian: the callable branches on the state (a comparison or `if`); H must be "
+            "straight-line arithmetic"
+        )
+
+    def __float__(self) -> float:
+        raise TraceError(
+            "hamiltonian: the callable turns the state into a float (math.* or float()); use "
+            "torch's functions (torch.sin, ...)"
+        )
+
+    def _refuse(self, *_: Any) -> Any:
+        raise TraceError(
+            "hamiltonian: comparisons, abs, min and max are not in the grammar (H must be smooth)"
+        )
+
+    __lt__ = __le__ = __gt__ = __ge__ = __abs__ = _refuse
+    __index__ = __int__ = __float__
+
+
+class _Sym(_Arithmetic):
     """One traced number: its text and the precedence of its outermost operation."""
 
     __slots__ = ("prec", "text")
@@ -94,35 +179,8 @@ class _Sym:
             return _Sym(f"{a.at(_SUM)} {op} {b.at(_PRODUCT)}", _SUM)
         return _Sym(f"{a.at(_PRODUCT)}{op}{b.at(_UNARY)}", _PRODUCT)
 
-    def __add__(self, o: Any) -> Any:
-        return self._binary(o, "+", False)
-
-    def __radd__(self, o: Any) -> Any:
-        return self._binary(o, "+", True)
-
-    def __sub__(self, o: Any) -> Any:
-        return self._binary(o, "-", False)
-
-    def __rsub__(self, o: Any) -> Any:
-        return self._binary(o, "-", True)
-
-    def __mul__(self, o: Any) -> Any:
-        return self._binary(o, "*", False)
-
-    def __rmul__(self, o: Any) -> Any:
-        return self._binary(o, "*", True)
-
-    def __truediv__(self, o: Any) -> Any:
-        return self._binary(o, "/", False)
-
-    def __rtruediv__(self, o: Any) -> Any:
-        return self._binary(o, "/", True)
-
     def __neg__(self) -> _Sym:
         return _Sym(f"-{self.at(_UNARY)}", _UNARY)
-
-    def __pos__(self) -> _Sym:
-        return self
 
     def __pow__(self, e: Any) -> _Sym:
         if isinstance(e, (_Sym, _Vec)):
@@ -142,56 +200,11 @@ class _Sym:
     def apply(self, name: str) -> _Sym:
         return _Sym(f"{name}({self.text})", _ATOM)
 
-    def exp(self) -> _Sym:
-        return self.apply("exp")
-
-    def log(self) -> _Sym:
-        return self.apply("log")
-
-    def sin(self) -> _Sym:
-        return self.apply("sin")
-
-    def cos(self) -> _Sym:
-        return self.apply("cos")
-
-    def tan(self) -> _Sym:
-        return self.apply("tan")
-
-    def sqrt(self) -> _Sym:
-        return self.apply("sqrt")
-
-    def tanh(self) -> _Sym:
-        return self.apply("tanh")
-
-    def square(self) -> _Sym:
-        return self**2
-
     def sum(self, *args: Any, **kwargs: Any) -> _Sym:
         return self
 
-    # --- what a traced number cannot do ------------------------------------------------------
-    def __bool__(self) -> bool:
-        raise TraceError(
-            "hamiltonian: the callable branches on the state (a comparison or `if`); H must be "
-            "straight-line arithmetic"
-        )
 
-    def __float__(self) -> float:
-        raise TraceError(
-            "hamiltonian: the callable turns the state into a float (math.* or float()); use "
-            "torch's functions (torch.sin, ...)"
-        )
-
-    def _refuse(self, *_: Any) -> Any:
-        raise TraceError(
-            "hamiltonian: comparisons, abs, min and max are not in the grammar (H must be smooth)"
-        )
-
-    __lt__ = __le__ = __gt__ = __ge__ = __abs__ = _refuse
-    __index__ = __int__ = __float__
-
-
-class _Vec:
+class _Vec(_Arithmetic):
     """The traced state, or an elementwise result on it: a list of numbers (coordinates)."""
 
     __slots__ = ("items",)
@@ -254,76 +267,14 @@ class _Vec:
             pairs = list(zip(self.items, values.tolist(), strict=True))
         return _Vec([s._binary(o, op, reverse) for s, o in pairs])
 
-    def __add__(self, o: Any) -> _Vec:
-        return self._binary(o, "+", False)
-
-    def __radd__(self, o: Any) -> _Vec:
-        return self._binary(o, "+", True)
-
-    def __sub__(self, o: Any) -> _Vec:
-        return self._binary(o, "-", False)
-
-    def __rsub__(self, o: Any) -> _Vec:
-        return self._binary(o, "-", True)
-
-    def __mul__(self, o: Any) -> _Vec:
-        return self._binary(o, "*", False)
-
-    def __rmul__(self, o: Any) -> _Vec:
-        return self._binary(o, "*", True)
-
-    def __truediv__(self, o: Any) -> _Vec:
-        return self._binary(o, "/", False)
-
-    def __rtruediv__(self, o: Any) -> _Vec:
-        return self._binary(o, "/", True)
-
     def __neg__(self) -> _Vec:
         return _Vec([-s for s in self.items])
-
-    def __pos__(self) -> _Vec:
-        return self
 
     def __pow__(self, e: Any) -> _Vec:
         return _Vec([s**e for s in self.items])
 
     def apply(self, name: str) -> _Vec:
         return _Vec([s.apply(name) for s in self.items])
-
-    def exp(self) -> _Vec:
-        return self.apply("exp")
-
-    def log(self) -> _Vec:
-        return self.apply("log")
-
-    def sin(self) -> _Vec:
-        return self.apply("sin")
-
-    def cos(self) -> _Vec:
-        return self.apply("cos")
-
-    def tan(self) -> _Vec:
-        return self.apply("tan")
-
-    def sqrt(self) -> _Vec:
-        return self.apply("sqrt")
-
-    def tanh(self) -> _Vec:
-        return self.apply("tanh")
-
-    def square(self) -> _Vec:
-        return self**2
-
-    def __bool__(self) -> bool:
-        return _Sym.__bool__(_Sym("", _ATOM))
-
-    def __float__(self) -> float:
-        return _Sym.__float__(_Sym("", _ATOM))
-
-    def _refuse(self, *_: Any) -> Any:
-        return _Sym._refuse(_Sym("", _ATOM))
-
-    __lt__ = __le__ = __gt__ = __ge__ = __abs__ = _refuse
 
 
 def _host(value: Any) -> Any:
