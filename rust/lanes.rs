@@ -22,10 +22,12 @@
 
 use nalgebra::{Const, DimMin};
 
-use crate::classical::{max_abs, ImplicitMidpoint, RigidBody, Rk4};
+use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 pub use crate::isa::{Isa, LANES};
-pub use crate::lane_field::{midpoint_update_lanes, LaneField, MidpointSolve};
+pub use crate::lane_field::{
+    midpoint_predictor_lanes, midpoint_update_lanes, LaneField, MidpointSolve,
+};
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
 use crate::step::{NewtonOptions, StepResult, StepStats};
 use crate::straight_line::{sized_mut, LieField};
@@ -64,6 +66,9 @@ impl LaneField<3> for RigidBody {
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
         crate::straight_line::weighted_cross_lanes(&self.inverse_inertia(), mu, out);
     }
+
+    /// As for [`So3Quadratic`](crate::straight_line::So3Quadratic): 12 flops a sweep.
+    const MIDPOINT_SWEEPS: u32 = crate::straight_line::SO3_MIDPOINT_SWEEPS;
 
     /// The so(3) pattern kernel's Jacobian (the rigid body is that pattern with a = 1/I), so
     /// the midpoint rule solves its Newton systems lane-wide.
@@ -183,9 +188,10 @@ where
     }
 }
 
-/// The scalar [`ImplicitMidpoint`] step of the field `f` lane by lane: the field (and so the
-/// residual), the update and the convergence test for the whole block at once; the Newton
-/// solve lane-wide where the field has a lane-wide Jacobian ([`midpoint_update_lanes`]), else
+/// The scalar [`ImplicitMidpoint`] step of the field `f` lane by lane: the predictor
+/// ([`midpoint_predictor_lanes`]), the field (and so the residual), the update and the
+/// convergence test for the whole block at once; the Newton solve lane-wide where the field has
+/// one ([`LaneField::solve_midpoint_lanes`]), else
 /// (and in the lanes that need pivoting) each unconverged lane's exact Jacobian and LU solve by
 /// the scalar functions on that lane's values (the same bits). A lane that converges is frozen
 /// while the others iterate; one that fails stops with the scalar path's failure alone.
@@ -204,8 +210,7 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
     let half = 0.5 * h;
     let mut fm = [[0.0; L]; N];
     let mut m = [[0.0; L]; N];
-    f.field_lanes(&mu0, &mut fm);
-    axpy_lanes(half, &fm, &mu0, &mut m);
+    midpoint_predictor_lanes(f, half, &mu0, &mut m);
     // `active`: still iterating; `done`: converged. Every active lane has taken the same
     // number of updates, so one counter serves them all.
     let mut active = *live;
@@ -233,7 +238,7 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
         // All lanes at once where the field has a lane-wide Jacobian; the others lane by lane.
         let mut wide = [[0.0; L]; N];
         let mut solved = [false; L];
-        midpoint_update_lanes(f, half, &m, &r, &mut wide, &mut solved);
+        f.solve_midpoint_lanes(half, &m, &r, &mut wide, &mut solved);
         // The lanes the lane-wide solve left (all of them for a field without one): the
         // pivoted LU one by one, or its failure.
         for l in 0..L {
@@ -277,25 +282,30 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
         }
     }
     f.field_lanes(&m, &mut fm);
+    // The scalar step's residual (its `max_abs`, folded in the same order) and μ + h f(m), for
+    // all lanes at once; only the converged lanes keep them.
+    let mut residual = [0.0f64; L];
+    let mut finite = [true; L];
+    for i in 0..N {
+        for l in 0..L {
+            let r = m[i][l] - mu0[i][l] - half * fm[i][l];
+            residual[l] = residual[l].max(r.abs());
+            let next = mu0[i][l] + h * fm[i][l];
+            finite[l] &= next.is_finite();
+            mu[i][l] = if done[l] { next } else { mu[i][l] };
+        }
+    }
     for l in 0..L {
-        if !done[l] {
-            continue;
+        if done[l] {
+            result[l] = if finite[l] {
+                Ok(StepStats {
+                    iterations: iterations[l],
+                    residual: residual[l],
+                })
+            } else {
+                Err(StepFailure::NonFinite)
+            };
         }
-        let r: [f64; N] = std::array::from_fn(|i| m[i][l] - mu0[i][l] - half * fm[i][l]);
-        let residual = max_abs(&r);
-        let mut finite = true;
-        for i in 0..N {
-            mu[i][l] = mu0[i][l] + h * fm[i][l];
-            finite &= mu[i][l].is_finite();
-        }
-        result[l] = if finite {
-            Ok(StepStats {
-                iterations: iterations[l],
-                residual,
-            })
-        } else {
-            Err(StepFailure::NonFinite)
-        };
     }
 }
 
@@ -335,17 +345,27 @@ where
         result: &mut [StepResult; L],
     ) {
         let newton = &self.newton;
+        // A `match`, not `Option::map` with a closure: a closure left out of line would be
+        // compiled without the caller's AVX2 (it ran the heavy top's Newton lanes in SSE2).
         let done = match &self.system {
             LieField::Compiled(f) => {
                 midpoint_lanes(f, newton, h, mu, live, result);
                 true
             }
-            LieField::So3(f) => sized_mut::<_, N, 3>(mu)
-                .map(|m| midpoint_lanes::<3, L, _>(f, newton, h, m, live, result))
-                .is_some(),
-            LieField::Se3(f) => sized_mut::<_, N, 6>(mu)
-                .map(|m| midpoint_lanes::<6, L, _>(f, newton, h, m, live, result))
-                .is_some(),
+            LieField::So3(f) => match sized_mut::<_, N, 3>(mu) {
+                Some(m) => {
+                    midpoint_lanes::<3, L, _>(f, newton, h, m, live, result);
+                    true
+                }
+                None => false,
+            },
+            LieField::Se3(f) => match sized_mut::<_, N, 6>(mu) {
+                Some(m) => {
+                    midpoint_lanes::<6, L, _>(f, newton, h, m, live, result);
+                    true
+                }
+                None => false,
+            },
         };
         if !done {
             // Unreachable: a pattern variant is built for its own dimension only.

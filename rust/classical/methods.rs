@@ -58,8 +58,9 @@ where
         let body = &self.system;
         let mu0 = *mu;
         let half = 0.5 * h;
-        // Start at the explicit Euler midpoint: one Newton update fewer than starting at μ.
-        let mut m = axpy(half, &body.field(&mu0), &mu0);
+        // Start at the explicit Euler midpoint (one Newton update fewer than starting at μ),
+        // refined by the field's fixed-point sweeps: the lanes' predictor on one lane.
+        let mut m = body.midpoint_predictor(half, &mu0);
         let mut iterations = 0;
         loop {
             if iterations >= self.newton.max_iter {

@@ -338,6 +338,9 @@ fn simd_midpoint_equals_the_scalar_path_bit_for_bit() {
     // fall back to the pivoted LU per lane elsewhere: at h = 0.4 the large states do.
     for (b, h) in [
         ([0.0, 0.0, 0.981], 0.05),
+        ([0.0; 3], 0.1),
+        ([0.7, 0.0, 0.0], 0.1),
+        ([0.0, -0.4, 0.0], 0.1),
         ([0.3, -0.5, 0.8], 0.05),
         ([0.3, -0.5, 0.8], 0.4),
     ] {
@@ -689,10 +692,11 @@ fn systems_off_the_pattern_keep_the_compiled_field() {
     check_falls_back(sl2, "so(3) in another basis", &mut rng);
 }
 
-/// The lane-wide Newton solve of the midpoint against the LU with pivoting: the same δ to
-/// rounding where a lane's matrix is diagonally dominant, and the pivoted LU itself, bit for
-/// bit, in the lanes that are not (large states at a large step); a lane's choice and bits do
-/// not depend on its neighbours (the scalar update is the solve with one lane).
+/// The generic lane-wide Newton solve of the midpoint (dense elimination, here on the compiled
+/// heavy top) against the LU with pivoting: the same δ to rounding where a lane's matrix is
+/// diagonally dominant, and the pivoted LU itself, bit for bit, in the lanes that are not (large
+/// states at a large step); a lane's choice and bits do not depend on its neighbours (the scalar
+/// update is the solve with one lane). The se(3) kernel's lane-wide Jacobian is its scalar one.
 #[test]
 fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
     use crate::lane_field::newton_update;
@@ -701,9 +705,11 @@ fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
     let (mut wide, mut pivoted) = (0, 0);
     for _ in 0..40 {
         let b = rng.vec3(-1.0, 1.0);
-        let LieField::Se3(f) = LieField::new(&random_top(&mut rng, b)) else {
+        let top = random_top(&mut rng, b);
+        let LieField::Se3(se3) = LieField::new(&top) else {
             panic!("a heavy top is the se(3) pattern")
         };
+        let f = top.compile();
         let half = 0.5 * rng.range(0.01, 0.5);
         let mut m = [[0.0; LANES]; 6];
         let mut r = [[0.0; LANES]; 6];
@@ -723,15 +729,15 @@ fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
             &mut delta,
             &mut solved
         ));
-        // The lane-wide Jacobian is the scalar one, entry by entry.
+        // The se(3) kernel's lane-wide Jacobian is its scalar one, entry by entry.
         let mut jl = [[[0.0; LANES]; 6]; 6];
-        assert!(crate::lanes::LaneField::jacobian_lanes(&f, &m, &mut jl));
+        assert!(crate::lanes::LaneField::jacobian_lanes(&se3, &m, &mut jl));
         for l in 0..LANES {
             let ml: [f64; 6] = std::array::from_fn(|i| m[i][l]);
             let rl: [f64; 6] = std::array::from_fn(|i| r[i][l]);
             let lu = newton_update(nalgebra::SMatrix::identity() - half * f.jacobian(&ml), &rl);
             let scalar = f.midpoint_update(half, &ml, &rl);
-            let j = f.jacobian(&ml);
+            let j = se3.jacobian(&ml);
             for a in 0..6 {
                 for c in 0..6 {
                     assert_eq!(jl[a][c][l], j[(a, c)], "J[{a},{c}]");
@@ -762,6 +768,159 @@ fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
     assert!(
         wide > 50 && pivoted > 10,
         "lane-wide {wide}, pivoted {pivoted}"
+    );
+}
+
+/// The se(3) kernel's Newton update by blocks (the closed-form inverse of I + s[Ω]× and a 3 × 3
+/// Schur complement) against an independent oracle, nalgebra's pivoted LU of the full 6 × 6
+/// I − s J, on seeded random states, for every pattern of b: δ agrees to 1e-12 relative where a
+/// lane is kept, the lane is kept exactly where the Schur complement (formed here from the
+/// blocks by nalgebra's inverse) is clearly diagonally dominant, the scalar update is the
+/// one-lane solve bit for bit, and the lanes left over (a large state at a large step, built to
+/// be one; a NaN state) take the pivoted LU or fail cleanly.
+#[test]
+fn se3_block_midpoint_solve_matches_the_full_lu() {
+    use crate::lane_field::newton_update;
+    use crate::lanes::{LaneField, MidpointSolve};
+    use nalgebra::{Matrix3, SMatrix};
+    let mut rng = Rng::new(43);
+    let (mut wide, mut pivoted) = (0, 0);
+    let patterns = |rng: &mut Rng| {
+        let v = rng.range(-1.0, 1.0);
+        [
+            [0.0; 3],
+            [v, 0.0, 0.0],
+            [0.0, v, 0.0],
+            [0.0, 0.0, v],
+            rng.vec3(-1.0, 1.0),
+        ]
+    };
+    for round in 0..60 {
+        let b = patterns(&mut rng)[round % 5];
+        let LieField::Se3(f) = LieField::new(&random_top(&mut rng, b)) else {
+            panic!("a heavy top is the se(3) pattern")
+        };
+        let half = 0.5 * rng.range(0.01, 0.5);
+        let mut m = [[0.0; LANES]; 6];
+        let mut r = [[0.0; LANES]; 6];
+        for l in 0..LANES {
+            let s = 10f64.powf(rng.range(-1.0, 1.5));
+            for i in 0..6 {
+                m[i][l] = rng.range(-s, s);
+                r[i][l] = rng.range(-1e-3, 1e-3);
+            }
+        }
+        if round == 0 {
+            // Built to need the fallback: |s J₁₁| ≫ 1 makes the Schur complement's
+            // off-diagonal dominate.
+            for (i, v) in [30.0, -20.0, 10.0, 1.0, 2.0, 3.0].into_iter().enumerate() {
+                m[i][1] = v;
+            }
+        }
+        if round == 1 {
+            m[2][3] = f64::NAN;
+        }
+        let (mut delta, mut solved) = ([[0.0; LANES]; 6], [false; LANES]);
+        assert!(f.solve_midpoint_lanes(half, &m, &r, &mut delta, &mut solved));
+        for l in 0..LANES {
+            let ml: [f64; 6] = std::array::from_fn(|i| m[i][l]);
+            let rl: [f64; 6] = std::array::from_fn(|i| r[i][l]);
+            let a: SMatrix<f64, 6, 6> = SMatrix::identity() - half * f.jacobian(&ml);
+            let lu = newton_update(a, &rl);
+            let scalar = f.midpoint_update(half, &ml, &rl);
+            if round == 1 && l == 3 {
+                assert!(!solved[l], "a NaN state is left to the fallback");
+                assert!(scalar.is_err(), "and fails there: {scalar:?}");
+                continue;
+            }
+            // The Schur complement from the blocks, by nalgebra.
+            let blk = |r0: usize, c0: usize| Matrix3::from_fn(|i, j| a[(r0 + i, c0 + j)]);
+            let s = blk(0, 0) - blk(0, 3) * blk(3, 3).try_inverse().unwrap() * blk(3, 0);
+            let margin = (0..3)
+                .map(|i| {
+                    let off: f64 = (0..3).filter(|&j| j != i).map(|j| s[(i, j)].abs()).sum();
+                    (s[(i, i)].abs() - off) / s.row(i).abs().sum()
+                })
+                .fold(f64::INFINITY, f64::min);
+            if margin > 1e-9 {
+                assert!(
+                    solved[l],
+                    "round {round} lane {l}: dominant, margin {margin:e}"
+                );
+            } else if margin < -1e-9 {
+                assert!(!solved[l], "round {round} lane {l}: not dominant");
+            }
+            if round == 0 && l == 1 {
+                assert!(!solved[l], "the state built for the fallback takes it");
+            }
+            if solved[l] {
+                wide += 1;
+                let got: [f64; 6] = std::array::from_fn(|i| delta[i][l]);
+                assert_eq!(
+                    scalar,
+                    Ok(got),
+                    "lane {l}: the scalar update is the one-lane solve"
+                );
+                let want = lu.unwrap();
+                let size = max_abs(&want);
+                for i in 0..6 {
+                    assert!(
+                        (got[i] - want[i]).abs() <= 1e-12 * size,
+                        "round {round} lane {l}: {got:?} vs {want:?}"
+                    );
+                }
+            } else {
+                pivoted += 1;
+                assert_eq!(scalar, lu, "lane {l}: falls back to the pivoted LU");
+            }
+        }
+    }
+    assert!(
+        wide > 200 && pivoted > 10,
+        "block {wide}, pivoted {pivoted}"
+    );
+}
+
+/// The midpoint step of the heavy top (block solve, fixed-point predictor) fails cleanly, with
+/// the same failure in lanes and on the scalar path, on non-finite states and where Newton
+/// cannot converge within its cap; where it converges the midpoint equation holds.
+#[test]
+fn se3_midpoint_fails_cleanly_and_solves_the_midpoint_equation() {
+    use crate::error::StepFailure;
+    use crate::step::StepMap;
+    let mut rng = Rng::new(47);
+    let field = LieField::new(&random_top(&mut rng, [0.0, 0.0, 0.981]));
+    let mid = ImplicitMidpoint {
+        system: field.clone(),
+        newton: NewtonOptions::default(),
+    };
+    let h = 0.1;
+    for mu in [
+        [0.3, -1.2, 0.8, 0.1, 0.5, 0.86],
+        [1.5, 1.0, -1.4, 0.6, -0.6, 0.5],
+    ] {
+        let mut next = mu;
+        let stats = mid.step(h, &mut next, &mut ()).unwrap();
+        assert!(stats.iterations >= 1 && stats.residual <= 1e-13);
+        // μ' = μ + h f((μ + μ')/2), to the Newton tolerance.
+        let m: [f64; 6] = std::array::from_fn(|i| 0.5 * (mu[i] + next[i]));
+        let fm = field.field(&m);
+        for i in 0..6 {
+            assert!((next[i] - mu[i] - h * fm[i]).abs() <= 1e-12);
+        }
+    }
+    for bad in [f64::NAN, f64::INFINITY] {
+        let mut mu = [0.3, -1.2, bad, 0.1, 0.5, 0.86];
+        assert!(mid.step(h, &mut mu, &mut ()).is_err());
+    }
+    let capped = ImplicitMidpoint {
+        system: field,
+        newton: NewtonOptions::validated(1e-15, 1).unwrap(),
+    };
+    let mut mu = [1.5, 1.0, -1.4, 0.6, -0.6, 0.5];
+    assert_eq!(
+        capped.step(0.3, &mut mu, &mut ()),
+        Err(StepFailure::NotConverged)
     );
 }
 
