@@ -100,7 +100,8 @@ class LogCanonicalTaylorIntegrator:
 
     def torch_step(self, mu: Any, h: float) -> Any:
         """One step in torch on mu's device (float64): Newton for q + ½ c ∇S(q) = ln x per state,
-        stopping as the core does (|δ|∞ ≤ tol · max(|q|∞, 1e-300)), then x' = exp(q − ½ c ∇S(q));
+        stopping as the core does in q = ln x (|δ|∞ ≤ tol · max(|q|∞, 1)), then x' = exp(q − ½ c
+        ∇S(q));
         a state that does not converge in ``max_iter`` updates comes back NaN. mu: (B, n) → (B, n).
         """
         import torch
@@ -127,7 +128,7 @@ class LogCanonicalTaylorIntegrator:
             delta = torch.linalg.solve(eye + half_c @ hs, -f[..., None])[..., 0]
             delta = torch.where(done[:, None], 0.0, delta)
             z = z + delta
-            done |= delta.abs().amax(-1) <= self.tol * z.abs().amax(-1).clamp_min(1e-300)
+            done |= delta.abs().amax(-1) <= self.tol * z.abs().amax(-1).clamp_min(1.0)
             if bool(done.all()):
                 break
         g, _ = derivatives(z)
