@@ -101,9 +101,8 @@ class LogCanonicalTaylorIntegrator:
     def torch_step(self, mu: Any, h: float) -> Any:
         """One step in torch on mu's device (float64): Newton for q + ½ c ∇S(q) = ln x per state,
         stopping as the core does in q = ln x (|δ|∞ ≤ tol · max(|q|∞, 1)), then x' = exp(q − ½ c
-        ∇S(q));
-        a state that does not converge in ``max_iter`` updates comes back NaN. mu: (B, n) → (B, n).
-        """
+        ∇S(q)); a state that does not converge in ``max_iter`` updates comes back NaN.
+        mu: (B, n) → (B, n)."""
         import torch
 
         x = torch.as_tensor(mu, dtype=torch.float64)
