@@ -112,7 +112,8 @@ def test_newton_steps_on_the_cpu_reference_path_are_the_cores(case: str) -> None
     system = stepper.system
     c0, c1 = system.casimirs(dev[:, 0]), system.casimirs(dev[:, -1])
     assert np.abs(c1 - c0).max() <= 1e-12 * max(1.0, np.abs(c0).max())
-    assert stepper.torch_graph is False if hasattr(stepper, "torch_graph") else True
+    # A Newton step branches on convergence: not one graph, so not compiled by default.
+    assert not getattr(stepper, "torch_graph", False)
     assert not pr.on_device(stepper, "cpu").compile
 
 

@@ -697,6 +697,37 @@ fn systems_off_the_pattern_keep_the_compiled_field() {
 /// diagonally dominant, and the pivoted LU itself, bit for bit, in the lanes that are not (large
 /// states at a large step); a lane's choice and bits do not depend on its neighbours (the scalar
 /// update is the solve with one lane). The se(3) kernel's lane-wide Jacobian is its scalar one.
+/// One lane of a lane-wide midpoint solve against the pivoted LU of the full matrix: a lane
+/// kept (`solved`) has δ = `got`, the scalar update's bits and the LU's to `tol` relative; a lane
+/// left over has the LU's update (or its failure) on the scalar path. Returns `solved`.
+fn check_lane_against_lu(
+    solved: bool,
+    got: [f64; 6],
+    scalar: Result<[f64; 6], StepFailure>,
+    lu: Result<[f64; 6], StepFailure>,
+    tol: f64,
+    what: &str,
+) -> bool {
+    if !solved {
+        assert_eq!(scalar, lu, "{what}: falls back to the pivoted LU");
+        return false;
+    }
+    assert_eq!(
+        scalar,
+        Ok(got),
+        "{what}: the scalar update is the one-lane solve"
+    );
+    let want = lu.unwrap();
+    let size = max_abs(&want);
+    for i in 0..6 {
+        assert!(
+            (got[i] - want[i]).abs() <= tol * size,
+            "{what}: {got:?} vs {want:?}"
+        );
+    }
+    true
+}
+
 #[test]
 fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
     use crate::lane_field::newton_update;
@@ -743,25 +774,11 @@ fn lane_wide_midpoint_solve_matches_the_pivoted_lu() {
                     assert_eq!(jl[a][c][l], j[(a, c)], "J[{a},{c}]");
                 }
             }
-            if solved[l] {
+            let got: [f64; 6] = std::array::from_fn(|i| delta[i][l]);
+            if check_lane_against_lu(solved[l], got, scalar, lu, 1e-13, &format!("lane {l}")) {
                 wide += 1;
-                let got: [f64; 6] = std::array::from_fn(|i| delta[i][l]);
-                assert_eq!(
-                    scalar,
-                    Ok(got),
-                    "lane {l}: the scalar update is the one-lane solve"
-                );
-                let want = lu.unwrap();
-                let size = max_abs(&want);
-                for i in 0..6 {
-                    assert!(
-                        (got[i] - want[i]).abs() <= 1e-13 * size,
-                        "{got:?} vs {want:?}"
-                    );
-                }
             } else {
                 pivoted += 1;
-                assert_eq!(scalar, lu, "lane {l}: falls back to the pivoted LU");
             }
         }
     }
@@ -853,25 +870,18 @@ fn se3_block_midpoint_solve_matches_the_full_lu() {
             if round == 0 && l == 1 {
                 assert!(!solved[l], "the state built for the fallback takes it");
             }
-            if solved[l] {
+            let got: [f64; 6] = std::array::from_fn(|i| delta[i][l]);
+            if check_lane_against_lu(
+                solved[l],
+                got,
+                scalar,
+                lu,
+                1e-12,
+                &format!("round {round} lane {l}"),
+            ) {
                 wide += 1;
-                let got: [f64; 6] = std::array::from_fn(|i| delta[i][l]);
-                assert_eq!(
-                    scalar,
-                    Ok(got),
-                    "lane {l}: the scalar update is the one-lane solve"
-                );
-                let want = lu.unwrap();
-                let size = max_abs(&want);
-                for i in 0..6 {
-                    assert!(
-                        (got[i] - want[i]).abs() <= 1e-12 * size,
-                        "round {round} lane {l}: {got:?} vs {want:?}"
-                    );
-                }
             } else {
                 pivoted += 1;
-                assert_eq!(scalar, lu, "lane {l}: falls back to the pivoted LU");
             }
         }
     }

@@ -107,11 +107,18 @@ class LogCanonicalTaylorIntegrator:
 
         x = torch.as_tensor(mu, dtype=torch.float64)
         f64, dev = torch.float64, x.device
-        t_powers, exponents, coeffs = self._arrays
-        ex = torch.tensor(exponents, dtype=f64, device=dev)
-        w0 = torch.tensor(coeffs * float(h) ** t_powers.astype(np.float64), dtype=f64, device=dev)
-        b = torch.tensor(self.system.log_hamiltonian.b, dtype=f64, device=dev) * float(h)
-        half_c = 0.5 * torch.tensor(self.system.c, dtype=f64, device=dev)
+        # S's tables at t = h on the device, built once per (device, h), not at every step.
+        cache = self.__dict__.setdefault("_torch_tables", {})
+        if (dev, float(h)) not in cache:
+            t_powers, exponents, coeffs = self._arrays
+            w = coeffs * float(h) ** t_powers.astype(np.float64)
+            cache[dev, float(h)] = (
+                torch.tensor(exponents, dtype=f64, device=dev),
+                torch.tensor(w, dtype=f64, device=dev),
+                torch.tensor(self.system.log_hamiltonian.b, dtype=f64, device=dev) * float(h),
+                0.5 * torch.tensor(self.system.c, dtype=f64, device=dev),
+            )
+        ex, w0, b, half_c = cache[dev, float(h)]
 
         def derivatives(z: Any) -> tuple[Any, Any]:
             w = w0 * torch.exp(z @ ex.T)  # (B, M)
