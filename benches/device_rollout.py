@@ -12,9 +12,10 @@ ratio to JAX. Every contender's final states are checked against the Rust core's
 a slice of the batch (float64: RK4 in another summation order, so 1e-10 or better on the
 non-chaotic systems; float32: single precision).
 
+The Rust core on the CPU (``core``) runs beside them: what the same call costs without a device.
 Without CUDA (``--device cpu``, the default where torch sees none) it runs the CPU reference path
-at a small batch: that checks the script and the agreement, and its timings say nothing about a
-GPU (on one core the compiled torch step runs about 1e7 steps/s, the core 6e7–1e8).
+at a small batch (eager; ``--compile on`` compiles it for the CPU): that checks the script and
+the agreement, and its timings say nothing about a GPU.
 """
 
 from __future__ import annotations
@@ -66,6 +67,12 @@ def main() -> None:
     ap.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
     ap.add_argument("--systems", nargs="+", default=list(SYSTEMS), choices=SYSTEMS)
     ap.add_argument("--check", type=int, default=256, help="trajectories checked on the core")
+    ap.add_argument(
+        "--compile",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="torch.compile the device step (auto: on CUDA; 'on' compiles for the CPU too)",
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.json is not None:
@@ -78,7 +85,13 @@ def main() -> None:
         core = pr.integrate(rk4_stepper(system), x0[: args.check], h, args.steps, every=args.steps)
         for dtype in args.dtypes:
             runners: dict[str, Any] = {}
-            dev = pr.on_device(rk4_stepper(system), args.device, dtype=dtype)
+            compile_ = None if args.compile == "auto" else args.compile == "on"
+            dev = pr.on_device(rk4_stepper(system), args.device, dtype=dtype, compile=compile_)
+            # The Rust core on the CPU: what the same call costs without a device.
+            cpu = rk4_stepper(system)
+            runners["core"] = lambda x, n, s=cpu, h=h: pr.integrate(
+                s, np.asarray(x, dtype=np.float64), h, n, every=n
+            )[:, -1]
             runners["poisson_rs"] = lambda x, n, d=dev, h=h: pr.integrate(d, x, h, n, every=n)[
                 :, -1
             ]
@@ -107,7 +120,7 @@ def main() -> None:
                     "system": system,
                     "dtype": dtype,
                     "contender": name,
-                    "device": args.device if name == "poisson_rs" else jax_device,
+                    "device": {"poisson_rs": args.device, "core": "cpu"}.get(name, jax_device),
                     "batch": args.batch,
                     "steps": args.steps,
                     "steps_per_s": rate[name],
