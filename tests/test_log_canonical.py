@@ -314,3 +314,31 @@ def test_integer_null_space_of_one_column() -> None:
 
     assert integer_null_space(np.zeros((1, 1))).tolist() == [[1]]
     assert integer_null_space(np.zeros((2, 2))).tolist() == [[1, 0], [0, 1]]
+
+
+def test_the_coordinate_change_is_libms_on_every_cpu() -> None:
+    """x ↔ q = ln x at the rollout's ends is libm's log and exp (Python's math module calls the
+    same functions), bit for bit, including overflow to inf, subnormal results and NaN; NumPy's
+    are CPU-dispatched and differ in the last bit on some arguments (on AVX-512 machines)."""
+    import math
+
+    from poisson_rs import _core
+
+    rng = np.random.default_rng(17)
+    q = np.concatenate(
+        [rng.uniform(-30.0, 30.0, 5009), [-745.0, -708.5, 709.9, 710.0, 1e4, -np.inf, np.nan]]
+    ).reshape(-1, 3, 4)
+    want = np.array([math.exp(v) if v < 709.8 else math.inf for v in q.ravel()])
+    got = q.copy()
+    _core.exp_in_place(got)
+    np.testing.assert_array_equal(got.ravel().view(np.int64)[:-1], want.view(np.int64)[:-1])
+    assert np.isnan(got.ravel()[-1])
+    x = np.exp(rng.uniform(-30.0, 30.0, 4000)).reshape(100, 40)
+    want_log = np.array([math.log(v) for v in x.ravel()])
+    _core.log_in_place(x)
+    np.testing.assert_array_equal(x.ravel().view(np.int64), want_log.view(np.int64))
+    with pytest.raises(ValueError, match="q must be a C-contiguous float64 array"):
+        _core.exp_in_place(np.zeros((4, 6))[:, ::2])
+    with pytest.raises(TypeError):
+        _core.log_in_place(np.zeros(3, dtype=np.float32))
+    # The rollouts' own bits through it: tests/test_rollout_digests.py (lv-*).

@@ -14,8 +14,10 @@ __all__ = [
     "RolloutDiagnostics",
     "__version__",
     "_after_fork_in_child",
+    "exp_in_place",
     "expression_jets",
     "hamiltonian_field",
+    "log_in_place",
     "rollout_classical",
     "rollout_hamiltonian_field",
     "rollout_jets_lie",
@@ -213,6 +215,14 @@ def rollout_lie_poisson(
     """As :func:`rollout_classical`, for the Lie–Poisson system with structure constants ``c``
     (N, N, N) and Hamiltonian Σ coeffs[m] Π μ_i^powers[m, i]: "rk4", "midpoint", or "splitting"
     with ``heavy_top`` = (inertia, mgl, com)."""
+
+def log_in_place(x: npt.NDArray[np.float64]) -> None:
+    """x ← ln x elementwise, in place, by libm (C-contiguous float64, any shape): the same bits
+    on every CPU, where NumPy's log dispatches on it."""
+
+def exp_in_place(q: npt.NDArray[np.float64]) -> None:
+    """q ← e^q elementwise, in place, by libm (C-contiguous float64, any shape): the same bits
+    on every CPU, where NumPy's exp dispatches on it."""
 
 def rollout_log_canonical(
     c: npt.NDArray[np.float64],

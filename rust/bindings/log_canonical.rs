@@ -2,13 +2,13 @@
 //! exact groupoid and the classical baselines.
 
 use numpy::ndarray::Ix3;
-use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyReadwriteArrayDyn, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyMemoryError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::rollout::run_rollout;
-use super::{dim_error, polynomial_terms, rows_match, states, Array};
+use super::{detached, dim_error, polynomial_terms, rows_match, states, Array};
 
 use crate::lanes::Lanes;
 use crate::rollout::PerStep;
@@ -18,6 +18,34 @@ use crate::structures::{
     OrthantChecked,
 };
 use crate::with_dim;
+
+/// `x ← ln x` elementwise, in place, by libm: the states' change of coordinates into q = ln x.
+/// NumPy's log and exp dispatch on the CPU (an AVX-512 kernel where there is one) and differ
+/// from libm in the last bit on some arguments, so a rollout converted by them would not keep
+/// its bits from one machine to the next; libm's are the ones the scalar steps use.
+#[pyfunction]
+pub(super) fn log_in_place(py: Python<'_>, mut x: PyReadwriteArrayDyn<'_, f64>) -> PyResult<()> {
+    let values = x
+        .as_slice_mut()
+        .map_err(|_| PyValueError::new_err("x must be a C-contiguous float64 array"))?;
+    detached(py, || {
+        values.iter_mut().for_each(|v| *v = v.ln());
+        Ok(())
+    })
+}
+
+/// `q ← e^q` elementwise, in place, by libm: the rollouts' states back from q = ln x (see
+/// [`log_in_place`]).
+#[pyfunction]
+pub(super) fn exp_in_place(py: Python<'_>, mut q: PyReadwriteArrayDyn<'_, f64>) -> PyResult<()> {
+    let values = q
+        .as_slice_mut()
+        .map_err(|_| PyValueError::new_err("q must be a C-contiguous float64 array"))?;
+    detached(py, || {
+        values.iter_mut().for_each(|v| *v = v.exp());
+        Ok(())
+    })
+}
 
 /// The (N, N) structure matrix c as a checked [`LogCanonical`].
 pub(super) fn log_structure<const N: usize>(

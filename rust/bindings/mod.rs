@@ -26,7 +26,7 @@ use expression::{
     rollout_jets_polynomial,
 };
 use lie_poisson::{rollout_classical, rollout_lie_poisson, step_angles};
-use log_canonical::{rollout_log_canonical, rollout_log_classical};
+use log_canonical::{exp_in_place, log_in_place, rollout_log_canonical, rollout_log_classical};
 use models::{rollout_model, PyLearnedModel, PyModel};
 use polynomial::{rollout_polynomial_field, rollout_polynomial_realization};
 use rollout::PyDiagnostics;
@@ -234,6 +234,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_after_fork_in_child, m)?)?;
     m.add_function(wrap_pyfunction!(serial_rollouts, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_log_canonical, m)?)?;
+    m.add_function(wrap_pyfunction!(log_in_place, m)?)?;
+    m.add_function(wrap_pyfunction!(exp_in_place, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_polynomial_field, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_log_classical, m)?)?;
     m.add_function(wrap_pyfunction!(rollout_polynomial_realization, m)?)?;

@@ -40,12 +40,20 @@ def _positive_log(x0: np.ndarray) -> np.ndarray:
             f"mu0 must lie in the open positive orthant (every x_i > 0): state {k} is "
             f"{x0[k].tolist()}"
         )
-    return np.ascontiguousarray(np.log(x0))
+    # By libm in the core: NumPy's log and exp dispatch on the CPU (AVX-512 kernels where there
+    # are some) and differ from libm in the last bit on some arguments, so rollouts converted by
+    # them would change bits from one machine to the next.
+    q0 = np.array(x0, dtype=np.float64, order="C")
+    _core.log_in_place(q0)
+    return q0
 
 
 def _exp_states(traj: np.ndarray) -> np.ndarray:
-    with np.errstate(over="ignore"):
-        return np.exp(traj)
+    """x = e^q of a rollout in q (converted in place when it is a C-contiguous float64 array of
+    its own; overflow gives inf, as NumPy's)."""
+    out = np.require(traj, dtype=np.float64, requirements=["C", "W"])
+    _core.exp_in_place(out)
+    return out
 
 
 @provides("log_canonical.taylor")
