@@ -97,7 +97,7 @@ def test_pr_learn_tries_it_last_and_reports_it(bracket: Any) -> None:
     _, report = pr.learn(trajs, 0.1, structure=bracket, max_degree=1, progress=False)
     families = [c.family for c in report.candidates]
     assert families[-1] == "poly1+mlp8" and report.kept.family == "poly1+mlp8"
-    assert report.kept.one_step < 0.2 * min(c.one_step for c in report.candidates[:-1])
+    assert report.kept.one_step < 0.3 * min(c.one_step for c in report.candidates[:-1])
     assert report.kept.parameters == 3 + 8 * 5
     assert "no refit" in report.kept.reason and "tanh" in report.kept.hamiltonian_text
 

@@ -5,6 +5,9 @@ cubic Nambu structure (fitted global order, Casimir drift per step, against DOP8
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 import sympy
@@ -270,6 +273,18 @@ def _no_sympy_work(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(sympy, "expand", work)
 
 
+@pytest.fixture
+def default_recursion_limit() -> Iterator[None]:
+    """The interpreter's default recursion limit for one test: whether a 3000-term sum is
+    "nested too deeply" for Python's parser depends on it, and torch.compile raises it (to 2000,
+    run in the device-rollout tests before these); under a raised limit the sum parses and the
+    degree and term bounds refuse it instead."""
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(1000)
+    yield
+    sys.setrecursionlimit(limit)
+
+
 @pytest.mark.parametrize(
     ("text", "match"),
     [
@@ -287,7 +302,7 @@ def _no_sympy_work(monkeypatch: pytest.MonkeyPatch) -> None:
     ],
 )
 def test_hostile_polynomial_text_is_refused_before_sympy(
-    monkeypatch: pytest.MonkeyPatch, text: str, match: str
+    monkeypatch: pytest.MonkeyPatch, default_recursion_limit: None, text: str, match: str
 ) -> None:
     """Every polynomial field (a bracket entry, H, a Nambu Casimir) is bounded from its syntax
     tree: degree <= MAX_DEGREE, terms and expansion work bounded, constants finite. The refusal
