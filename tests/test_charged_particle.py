@@ -187,8 +187,15 @@ def test_expression_hamiltonians_keep_the_field_and_potential(particle: ChargedP
     np.testing.assert_allclose(other.vector_field(z), np.hstack([v, vdot]), rtol=1e-13)
     assert supports_library(particle)
     names = [f.name for f in library_families(particle, None, 4)]
-    assert names == ["poly2+trig", "poly3+trig", "poly2+logdist", "poly2+dist^-1"]
-    dist = library_families(particle, None, 4)[-1]
+    assert names == [
+        "poly2+trig",
+        "poly3+trig",
+        "poly2+logdist",
+        "poly2+dist^-1",
+        "poly2+exp",
+        "poly2+trig+trigdiff",
+    ]
+    dist = library_families(particle, None, 4)[3]
     theta = np.zeros(len(dist))
     theta[dist.exponents.index((0, 0, 2, 0))] = theta[dist.exponents.index((0, 0, 0, 2))] = 0.5
     theta[dist.exponents.index(("radius", -1, 0))] = 0.01

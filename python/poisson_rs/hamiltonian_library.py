@@ -1,8 +1,16 @@
 """A term library of Hamiltonians beyond polynomials, H_θ = Σ_m θ_m φ_m with φ_m monomials of
-degree ≤ d and sin x_i, cos x_i of each coordinate, or monomials of degree ≤ d and the
-log-distances ln|z_a − z_b|² of planar points, or monomials of degree ≤ d and powers of distances
-|z_a − z_b|^p, |z_a|^p (p < 0: the Coulomb and Kepler potentials), on any structure that steps
-expression Hamiltonians by jets (:meth:`poisson_rs.protocols.PoissonSystemBase.jet_realization`).
+degree ≤ d and sin x_i, cos x_i of each coordinate, or monomials of degree ≤ d and functions of
+linear forms (exp(±x_i) and exp(x_i − x_j): a Toda lattice, Lotka–Volterra in log coordinates;
+sin and cos of x_i − x_j: coupled pendula, Josephson-junction chains), or monomials of degree ≤ d
+and the log-distances ln|z_a − z_b|² of planar points, or monomials of degree ≤ d and powers of
+distances |z_a − z_b|^p, |z_a|^p (p < 0: the Coulomb and Kepler potentials), on any structure that
+steps expression Hamiltonians by jets
+(:meth:`poisson_rs.protocols.PoissonSystemBase.jet_realization`).
+
+Linear forms: the dictionary is the coordinates and their pairwise differences with coefficients
+±1 (every ordered pair for exp, whose sign matters; one order for sin and cos, whose sign only
+flips a coefficient). Frequencies other than 1 are not searched: a term is linear in θ only
+where its form is fixed.
 
 Planar points: where the dimension n is even, the coordinates are read as n/2 consecutive pairs,
 z_a = (x_{2a+1}, x_{2a+2}) for a = 0 … n/2 − 1 (0-based a, 1-based coordinates as in x1 … xn), and
@@ -25,8 +33,10 @@ family (as :class:`poisson_rs.hamiltonian_family.MonomialFamily` does): the grad
 of H_θ written as an expression: built in about a millisecond), the learned system, and a text.
 A term is named by its key: an exponent tuple for a monomial, ``("sin", i)`` or ``("cos", i)``
 for the trigonometric ones (i the 0-based coordinate), ``("logdist", a, b)`` for ln|z_a − z_b|²
-(a < b, 0-based points), ``("dist", p, a, b)`` for |z_a − z_b|^p and ``("radius", p, a)`` for
-|z_a|^p. Nothing here names a structure.
+(a < b, 0-based points), ``("dist", p, a, b)`` for |z_a − z_b|^p, ``("radius", p, a)`` for
+|z_a|^p, and ``(f, form)`` for f(ℓ·x) with f among exp, sin, cos and ``form`` the tuple of the n
+integer coefficients of ℓ (``("exp", (1, -1, 0, 0))`` is exp(x1 − x2)). Nothing here names a
+structure.
 """
 
 from __future__ import annotations
@@ -45,11 +55,13 @@ __all__ = [
     "LIBRARY_DEGREES",
     "LIBRARY_DISTANCE_DEGREES",
     "LIBRARY_DISTANCE_POWERS",
+    "LIBRARY_FORM_DEGREES",
     "LIBRARY_ORDER",
     "LibraryFamily",
     "check_distance_powers",
     "distance_pairs",
     "library_families",
+    "linear_forms",
     "structure_gauge",
     "supports_library",
 ]
@@ -67,6 +79,9 @@ LIBRARY_DEGREES = (2, 3)
 #: ones and only where the dimension is even and ≥ 4: degree 2 also covers a uniform or linear
 #: background flow (the linear and angular impulses are of degree ≤ 2).
 LIBRARY_DISTANCE_DEGREES = (2,)
+#: Polynomial degrees of the linear-form libraries tried by ``pr.learn`` (poly+exp, then
+#: poly+trig+trigdiff), after poly+trig: degree 2 holds the kinetic energy of a canonical system.
+LIBRARY_FORM_DEGREES = (2,)
 #: Powers of distances a library may hold: the inverse-distance (Kepler, Coulomb, −1),
 #: inverse-square (−2: a centrifugal barrier) and inverse-cube (−3: a dipole) laws. Positive even
 #: powers are polynomials already.
@@ -97,6 +112,39 @@ def distance_pairs(dim: int) -> list[tuple[int, int]]:
     return [(a, b) for a in range(k) for b in range(a + 1, k)]
 
 
+def linear_forms(dim: int, kind: str) -> list[tuple[int, ...]]:
+    """The forms ℓ (tuples of ``dim`` integer coefficients) of the library's ``kind`` of terms:
+    "exp": ±x_i for each coordinate and x_i − x_j for each ordered pair i ≠ j; "trigdiff":
+    x_i − x_j for i < j (sin and cos of the coordinates themselves are the "trig" terms)."""
+
+    def form(pos: int, neg: int | None = None, sign: int = 1) -> tuple[int, ...]:
+        out = [0] * dim
+        out[pos] = sign
+        if neg is not None:
+            out[neg] = -1
+        return tuple(out)
+
+    pairs = [(i, j) for i in range(dim) for j in range(i + 1, dim)]
+    if kind == "trigdiff":
+        return [form(i, j) for i, j in pairs]
+    if kind == "exp":
+        singles = [form(i, sign=s) for i in range(dim) for s in (1, -1)]
+        return singles + [form(i, j) for i, j in pairs] + [form(j, i) for i, j in pairs]
+    raise ValueError(f"kind must be 'exp' or 'trigdiff', got {kind!r}")
+
+
+def _form_text(variables: Sequence[str], form: Sequence[int]) -> str:
+    """ℓ·x as text: ``x1 - x2``, ``-x1``, ``2*x3``."""
+    parts = []
+    for v, c in zip(variables, form, strict=True):
+        if c == 0:
+            continue
+        mag = v if abs(c) == 1 else f"{abs(c)}*{v}"
+        parts.append(("- " if c < 0 else "+ ") + mag)
+    text = " ".join(parts)
+    return "-" + text[2:] if text.startswith("- ") else text[2:]
+
+
 def check_distance_powers(powers: Any) -> tuple[int, ...]:
     """``powers`` as a tuple of distinct integers among :data:`DISTANCE_POWERS`; ValueError
     naming ``distance_powers`` otherwise."""
@@ -123,8 +171,10 @@ def library_families(structure: Any, order: int | None, top: int) -> list[Librar
     first: poly+trig of :data:`LIBRARY_DEGREES`, then, where the dimension is even and ≥ 4,
     poly+logdist of :data:`LIBRARY_DISTANCE_DEGREES`, then poly+dist^p of the same degrees and the
     powers :data:`LIBRARY_DISTANCE_POWERS` (k(k + 1)/2 terms a power for k points, more than the
-    k(k − 1)/2 log-distances: data those explain never pay for them). Degrees above ``top`` are
-    left out; none where the structure does not step expressions by jets."""
+    k(k − 1)/2 log-distances: data those explain never pay for them), then the linear forms of
+    :data:`LIBRARY_FORM_DEGREES`: poly+exp and (dimension ≥ 2) poly+trig+trigdiff. Degrees above
+    ``top`` are left out, and libraries whose H_θ exceeds the expression limits; none where the
+    structure does not step expressions by jets."""
     if not supports_library(structure):
         return []
     out = [LibraryFamily(structure, d, order) for d in LIBRARY_DEGREES if d <= top]
@@ -138,6 +188,19 @@ def library_families(structure: Any, order: int | None, top: int) -> list[Librar
         out += [
             LibraryFamily(structure, d, order, trig=False, distance_powers=LIBRARY_DISTANCE_POWERS)
             for d in LIBRARY_DISTANCE_DEGREES
+            if d <= top
+        ]
+    # Functions of linear forms last: 2n + n(n − 1) exponentials and n(n − 1) sines and cosines
+    # of differences, more terms than any library above for n ≥ 3.
+    out += [
+        LibraryFamily(structure, d, order, trig=False, exponentials=True)
+        for d in LIBRARY_FORM_DEGREES
+        if d <= top
+    ]
+    if dim >= 2:  # in 1-D there are no differences: poly+trig again
+        out += [
+            LibraryFamily(structure, d, order, differences=True)
+            for d in LIBRARY_FORM_DEGREES
             if d <= top
         ]
     # H_θ with every term must be one expression (its integrator steps that text): in high
@@ -173,11 +236,13 @@ def structure_gauge(structure: Any) -> str:
 
 class LibraryFamily:
     """H_θ over monomials of degree ≤ ``degree`` (no constant), sin and cos of each coordinate
-    (``trig``), the log-distances ln|z_a − z_b|² of planar points (``log_distances``) and the
-    powers |z_a − z_b|^p, |z_a|^p for each p of ``distance_powers`` (among
-    :data:`DISTANCE_POWERS`; see the module docstring: both distance options raise ValueError
-    where the dimension is odd or below 4), on the bracket of ``structure``, stepped by Taylor-HJ
-    by jets of ``order``. Distances are in the units of the coordinates.
+    (``trig``), exp(±x_i) and exp(x_i − x_j) (``exponentials``), sin and cos of x_i − x_j
+    (``differences``; see :func:`linear_forms`), the log-distances ln|z_a − z_b|² of planar
+    points (``log_distances``) and the powers |z_a − z_b|^p, |z_a|^p for each p of
+    ``distance_powers`` (among :data:`DISTANCE_POWERS`; see the module docstring: both distance
+    options raise ValueError where the dimension is odd or below 4), on the bracket of
+    ``structure``, stepped by Taylor-HJ by jets of ``order``. Distances are in the units of the
+    coordinates.
 
     ``keys`` restricts the family to those terms (see :meth:`restrict`); ``gauge`` is what H is
     identifiable up to, as text (default: what the structure's own polynomial family says).
@@ -193,6 +258,8 @@ class LibraryFamily:
         trig: bool = True,
         log_distances: bool = False,
         distance_powers: Sequence[int] = (),
+        exponentials: bool = False,
+        differences: bool = False,
         gauge: str | None = None,
     ) -> None:
         self.structure = structure
@@ -203,9 +270,15 @@ class LibraryFamily:
         self._degree = degree
         self.trig, self.log_distances = bool(trig), bool(log_distances)
         self.distance_powers = check_distance_powers(distance_powers)
+        self.exponentials, self.differences = bool(exponentials), bool(differences)
         every: list[Key] = list(monomial_exponents(self.dim, degree))
         if self.trig:
             every += [(f, i) for i in range(self.dim) for f in ("sin", "cos")]
+        if self.exponentials:
+            every += [("exp", ell) for ell in linear_forms(self.dim, "exp")]
+        if self.differences:
+            diffs = linear_forms(self.dim, "trigdiff")
+            every += [(f, ell) for ell in diffs for f in ("sin", "cos")]
         if self.log_distances:
             every += [("logdist", a, b) for a, b in distance_pairs(self.dim)]
         for p in self.distance_powers:
@@ -220,7 +293,11 @@ class LibraryFamily:
 
     @staticmethod
     def _key(k: Any) -> Key:
-        return tuple(k) if not isinstance(k, tuple) else k
+        key = tuple(k)
+        # A linear form given as a list (a key read back from JSON) compares as its tuple.
+        if len(key) == 2 and isinstance(key[0], str) and isinstance(key[1], (list, tuple)):
+            key = (key[0], tuple(key[1]))
+        return key
 
     def __len__(self) -> int:
         return len(self.exponents)
@@ -234,6 +311,8 @@ class LibraryFamily:
         return (
             f"poly{self._degree}"
             + ("+trig" if self.trig else "")
+            + ("+exp" if self.exponentials else "")
+            + ("+trigdiff" if self.differences else "")
             + ("+logdist" if self.log_distances else "")
             + "".join(f"+dist^{p}" for p in self.distance_powers)
         )
@@ -243,6 +322,10 @@ class LibraryFamily:
         extra = []
         if self.trig:
             extra.append("sin and cos of each coordinate")
+        if self.exponentials:
+            extra.append("exp(±x_i) and exp(x_i − x_j) of the coordinates")
+        if self.differences:
+            extra.append("sin and cos of x_i − x_j")
         # Planar points exist only in even dimensions (the distance options refuse the others).
         points = ", ".join(
             f"({a}, {b})" for a, b in zip(self.variables[::2], self.variables[1::2], strict=False)
@@ -266,6 +349,8 @@ class LibraryFamily:
             trig=self.trig,
             log_distances=self.log_distances,
             distance_powers=self.distance_powers,
+            exponentials=self.exponentials,
+            differences=self.differences,
             gauge=self.gauge,
         )
 
@@ -349,6 +434,13 @@ class LibraryFamily:
                 if key[0] == "dist":
                     out[:, 2 * key[3] : 2 * key[3] + 2, m] = -g
                 continue
+            if isinstance(key[0], str) and isinstance(key[1], tuple):
+                # ∇ f(ℓ·x) = f'(ℓ·x) ℓ.
+                f, ell = key
+                arg = x @ np.asarray(ell, dtype=np.float64)
+                slope = np.exp(arg) if f == "exp" else np.cos(arg) if f == "sin" else -np.sin(arg)
+                out[:, :, m] = slope[:, None] * np.asarray(ell, dtype=np.float64)
+                continue
             if isinstance(key[0], str):
                 f, i = key
                 out[:, i, m] = np.cos(x[:, i]) if f == "sin" else -np.sin(x[:, i])
@@ -375,6 +467,8 @@ class LibraryFamily:
             # powf), which the jets differentiate exactly.
             b = key[3] if key[0] == "dist" else None
             return f"({_squared(self.variables, key[2], b)})**({key[1] / 2!r})"
+        if isinstance(key[0], str) and isinstance(key[1], tuple):
+            return f"{key[0]}({_form_text(self.variables, key[1])})"
         if isinstance(key[0], str):
             return f"{key[0]}({self.variables[key[1]]})"
         return "*".join(

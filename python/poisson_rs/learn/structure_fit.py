@@ -21,7 +21,8 @@ and its integrator of H_θ. Nothing here names a structure.
    (each time the one that helps most), and the support of smallest Bayesian information
    criterion N·log(RSS/N) + k·log N on either path is kept, every support within the gauge of
    step 2 (a term only a Casimir could stand in for stays). The rest is refitted through the
-   integrator and kept when the fit is as good. The second stage is what noisy
+   integrator and kept when the fit is as good, or when it reaches the data's noise level
+   (mean squared residual ≤ 2σ̂², σ̂ the records' noise bound). The second stage is what noisy
    records need: a library whose terms nearly coincide on the leaves the data visit fits the
    noise with every term (each with a large share of the field); the criterion asks each term
    to pay for itself.
@@ -243,6 +244,8 @@ def fit_structure_hamiltonian(
         share = np.abs(theta) * col / max(float(np.linalg.norm(rhs)), 1e-300)
         sigma = data.noise if math.isfinite(data.noise) else math.sqrt(cost / 2.0)
         floor = max(10.0 * sigma, 1e-9)
+        # A one-step residual of noise σ at both ends has mean square 2σ² per component.
+        explained = 2.0 * data.noise**2 if math.isfinite(data.noise) else 0.0
         above = [m for m in range(p) if share[m] > floor]
         lean = bic_support(jac, r, theta, above, basis=q) if above else []
         tried: list[list[int]] = []
@@ -262,7 +265,11 @@ def fit_structure_hamiltonian(
             if verbose:
                 kept_cost = sub.history[-1]
                 print(f"  {len(support)} of {p} terms: cost {kept_cost:.3e} (all: {cost:.3e})")
-            if sub.history[-1] <= 1.5 * cost + ROUND_OFF_COST:
+            # Kept when it fits as well, or to the data's noise level: on exact records the
+            # spare terms absorb a little of the integrator's truncation error (a cost far below
+            # the noise bound), and a spare exp(x_i) near zero still grows without bound where
+            # a rollout leaves the records' range.
+            if sub.history[-1] <= max(1.5 * cost, explained) + ROUND_OFF_COST:
                 sub.seconds = time.perf_counter() - t0
                 return sub
     system = fam.system(theta)
