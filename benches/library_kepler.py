@@ -78,6 +78,29 @@ def angular_momentum(x: np.ndarray) -> np.ndarray:
     return x[..., 0] * x[..., 3] - x[..., 1] * x[..., 2]
 
 
+def search_rows(report: Any) -> list[dict[str, Any]]:
+    """Every family ``pr.learn`` tried: its held-out one-step error and seconds."""
+    return [
+        {"family": c.family, "one_step": c.one_step, "seconds": round(c.seconds, 1)}
+        for c in report.candidates
+    ]
+
+
+def horizon_errors(
+    rolls: dict[str, np.ndarray], ref: np.ndarray, horizons: tuple[float, ...], h: float
+) -> dict[str, Any]:
+    """max |x(T) − x_ref(T)| per state and over them, at each T of ``horizons``, for each named
+    rollout (B, steps + 1, n) of step ``h``; ``ref`` (B, 1 + len(horizons), n) from t = 0."""
+    errors: dict[str, Any] = {}
+    for j, t in enumerate(horizons):
+        k = round(t / h)
+        for name, roll in rolls.items():
+            per_state = np.max(np.abs(roll[:, k] - ref[:, j + 1]), axis=1)
+            errors[f"error_T{t:g}_{name}"] = float(per_state.max())
+            errors[f"error_T{t:g}_{name}_per_state"] = per_state.tolist()
+    return errors
+
+
 def run(train: list[tuple[float, float, float]]) -> dict[str, Any]:
     """pr.learn on records from the orbits ``train``, then the errors and drifts (one row)."""
     base = canonical_bracket()
@@ -104,13 +127,7 @@ def run(train: list[tuple[float, float, float]]) -> dict[str, Any]:
     roll_true = np.asarray(pr.integrate(true_stepper, x0, H, steps))
     t3 = time.perf_counter()
     ref = np.asarray(pr.reference_solution(system, x0, [0.0, *HORIZONS]))
-    errors: dict[str, Any] = {}
-    for j, t in enumerate(HORIZONS):
-        k = round(t / H)
-        for name, roll in (("learned", roll_learned), ("true", roll_true)):
-            per_state = np.max(np.abs(roll[:, k] - ref[:, j + 1]), axis=1)
-            errors[f"error_T{t:g}_{name}"] = float(per_state.max())
-            errors[f"error_T{t:g}_{name}_per_state"] = per_state.tolist()
+    errors = horizon_errors({"learned": roll_learned, "true": roll_true}, ref, HORIZONS, H)
     drifts = {}
     for name, roll in (("learned", roll_learned), ("true", roll_true)):
         e, ell = kepler_energy(roll), angular_momentum(roll)
@@ -121,10 +138,7 @@ def run(train: list[tuple[float, float, float]]) -> dict[str, Any]:
         "orbit_unseen": dict(zip(("a", "e", "periapsis_angle"), UNSEEN, strict=True)),
         "records": [len(trajs), RECORDS],
         "h": H,
-        "candidates": [
-            {"family": c.family, "one_step": c.one_step, "seconds": round(c.seconds, 1)}
-            for c in report.candidates
-        ],
+        "candidates": search_rows(report),
         "family": report.kept.family,
         "order": report.kept.order,
         "hamiltonian": report.hamiltonian_text,

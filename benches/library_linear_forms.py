@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from library_kepler import horizon_errors, search_rows
 
 import poisson_rs as pr
 from poisson_rs.protocols import NEWTON_MAX_ITER, NEWTON_TOL
@@ -112,13 +113,7 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
     roll_learned = np.asarray(pr.integrate(stepper, x0, H, steps))
     roll_true = np.asarray(pr.integrate(true_stepper, x0, H, steps))
     ref = np.asarray(pr.reference_solution(system, x0, [0.0, *HORIZONS]))
-    errors: dict[str, Any] = {}
-    for j, t in enumerate(HORIZONS):
-        k = round(t / H)
-        for name, roll in (("learned", roll_learned), ("true", roll_true)):
-            per_state = np.max(np.abs(roll[:, k] - ref[:, j + 1]), axis=1)
-            errors[f"error_T{t:g}_{name}"] = float(per_state.max())
-            errors[f"error_T{t:g}_{name}_per_state"] = per_state.tolist()
+    errors = horizon_errors({"learned": roll_learned, "true": roll_true}, ref, HORIZONS, H)
     drifts = {}
     for name, roll in (("learned", roll_learned), ("true", roll_true)):
         e = np.asarray(system.hamiltonian(roll.reshape(-1, roll.shape[-1]))).reshape(roll.shape[:2])
@@ -127,10 +122,7 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
         "system": spec["title"],
         "records": [len(trajs), RECORDS],
         "h": H,
-        "candidates": [
-            {"family": c.family, "one_step": c.one_step, "seconds": round(c.seconds, 1)}
-            for c in report.candidates
-        ],
+        "candidates": search_rows(report),
         "family": report.kept.family,
         "order": report.kept.order,
         "hamiltonian": report.hamiltonian_text,
