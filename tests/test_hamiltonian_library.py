@@ -531,3 +531,25 @@ def test_learn_finds_lotka_volterra_in_log_coordinates():
     roll = pr.integrate(stepper, starts, h, 1000)
     energy = np.asarray(system.hamiltonian(roll.reshape(-1, 2))).reshape(roll.shape[:2])
     assert np.max(np.abs(energy - energy[:, :1])) < 1e-5
+
+
+def test_records_where_an_exponential_overflows_are_refused_or_passed_over(canonical):
+    """exp(ℓ·x) overflows past ℓ·x ≈ 709.8: a record there is refused by name (the largest
+    argument, here x3 − x2 = 705.5) when the library is asked for, and pr.learn's search passes
+    over the library, as over a singular one."""
+    from types import SimpleNamespace
+
+    from poisson_rs.learn.api import _library_applies
+
+    fam = LibraryFamily(canonical, 2, trig=False, exponentials=True)
+    fam.check_states(np.array([[1.0, -2.0, 300.0, 0.5]]))  # e^300 is a float
+    far = np.array([[1.0, 0.0, 0.5, 0.5], [0.0, -705.0, 0.5, 0.5]])
+    message = (
+        r"trajectories: 1 record\(s\) give the term library poly2\+exp's exp\(-x2 \+ x3\) an "
+        r"argument above 700, e.g. 705.5 in the state \[0.0, -705.0, 0.5, 0.5\]"
+    )
+    with pytest.raises(ValueError, match=message):
+        fam.check_states(far)
+    records = SimpleNamespace(train=[far], test=[])
+    assert not _library_applies(fam, records, verbose=False)
+    assert _library_applies(LibraryFamily(canonical, 2, differences=True), records, verbose=False)

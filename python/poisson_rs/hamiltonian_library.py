@@ -52,6 +52,7 @@ from .protocols import NEWTON_MAX_ITER, NEWTON_TOL
 
 __all__ = [
     "DISTANCE_POWERS",
+    "EXP_ARGUMENT_MAX",
     "LIBRARY_DEGREES",
     "LIBRARY_DISTANCE_DEGREES",
     "LIBRARY_DISTANCE_POWERS",
@@ -92,6 +93,9 @@ LIBRARY_DISTANCE_POWERS = (-1,)
 #: Two points closer than this, relative to 1 + |z_a| + |z_b|, count as coinciding: ln|z_a − z_b|²
 #: and its gradient ~1/|z_a − z_b| are then no longer representable to any useful accuracy.
 COINCIDE_RTOL = 1e-12
+#: Largest argument of an exponential term on the records: e^x overflows float64 past ~709.8,
+#: and its gradient with it.
+EXP_ARGUMENT_MAX = 700.0
 
 
 def supports_library(structure: Any) -> bool:
@@ -377,9 +381,24 @@ class LibraryFamily:
     def check_states(self, x: Any, name: str = "trajectories") -> None:
         """ValueError naming ``name`` where a state of ``x`` (B, n) has two points of a
         log-distance or distance-power term at the same place, or the point of a |z_a|^p term at
-        the origin (within :data:`COINCIDE_RTOL`): those terms are singular there. Nothing to
-        check for the other terms, defined everywhere."""
+        the origin (within :data:`COINCIDE_RTOL`): those terms are singular there; or where an
+        exponential term's argument ℓ·x exceeds :data:`EXP_ARGUMENT_MAX` (e^{ℓ·x} and its
+        gradient overflow or swamp every other term). Nothing to check for the other terms,
+        defined and bounded everywhere."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, self.dim)
+        forms = [k[1] for k in self.exponents if k[0] == "exp"]
+        if forms:
+            args = x @ np.asarray(forms, dtype=np.float64).T
+            worst = np.unravel_index(int(np.argmax(args)), args.shape)
+            if args[worst] > EXP_ARGUMENT_MAX:
+                k, m = int(worst[0]), int(worst[1])
+                term = _form_text(self.variables, forms[m])
+                raise ValueError(
+                    f"{name}: {int((args > EXP_ARGUMENT_MAX).any(axis=1).sum())} record(s) give "
+                    f"the term library {self.name}'s exp({term}) an argument above "
+                    f"{EXP_ARGUMENT_MAX:g}, e.g. {args[worst]:.6g} in the state {x[k].tolist()}: "
+                    "it overflows there"
+                )
         for a in self._centred():
             za = x[:, 2 * a : 2 * a + 2]
             r = np.linalg.norm(za, axis=1)
