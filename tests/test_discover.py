@@ -371,3 +371,38 @@ def test_gauge_a_rescaled_bracket_and_h_are_learned_as_one_pair():
     np.testing.assert_allclose(
         pr.integrate(b, x, 0.1, 200), pr.integrate(a, x, 0.1, 200), rtol=0, atol=1e-11
     )
+
+
+def test_a_failed_step_in_the_refinement_does_not_reach_the_solve(monkeypatch, rigid_body):
+    """Where the integrator of a candidate pair fails on a training record (NaN there: noisy
+    records did this on the heavy top), the refinement through the integrator is skipped, not
+    handed NaN: a least squares on it raised "SVD did not converge" out of pr.learn."""
+    from poisson_rs.learn import scoring
+
+    rb, _ = rigid_body
+    rng = np.random.default_rng(1)
+    x0 = rng.normal(size=(6, 3))
+    x0 /= np.linalg.norm(x0, axis=1)[:, None]
+    trajs = np.asarray(pr.reference_solution(rb, x0, np.arange(31) * 0.1))
+    real = scoring.one_step
+
+    def failing(stepper, starts, h):
+        out = np.array(real(stepper, starts, h), dtype=np.float64)
+        out[0] = np.nan  # the first record's step fails
+        return out
+
+    monkeypatch.setattr(scoring, "one_step", failing)
+    calls = []
+    from poisson_rs.learn import discover
+
+    refine = discover.refine_through_integrator
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return refine(*args, **kwargs)
+
+    monkeypatch.setattr(discover, "refine_through_integrator", counted)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, report = pr.learn(list(trajs), 0.1, structure="discover", seed=0, progress=False)
+    assert calls and report.kept is not None

@@ -277,7 +277,8 @@ def refine_through_integrator(
     and Jacobi imposed again after each step. The velocity-level bracket carries the
     finite-difference error of the records' velocities; this removes it. None where no
     iterate improved on the start. ``make``: a system → its Hamiltonian family (of which
-    ``hamiltonians`` is a restriction)."""
+    ``hamiltonians`` is a restriction). None too where the start's integrator fails on a
+    training record."""
     from .scoring import one_step
 
     starts, targets = data.pairs("train")
@@ -305,7 +306,8 @@ def refine_through_integrator(
         return r, (cost if math.isfinite(cost) else math.inf), built
 
     r, cost, built = residual(theta, phi)
-    if built is None:
+    if built is None or not math.isfinite(cost):
+        # A step failed on some record (NaN in r): no chord step can be solved from it.
         return None
     start_cost, history = cost, [cost]
     jacobi = family.jacobi_residual(theta, points)
