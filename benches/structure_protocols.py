@@ -50,6 +50,23 @@ structure given and discovered; about 15 and 30 min on one core)::
     PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
         --pnn /tmp/peers/pnn --protocols lvnoise,pdnoise --noise-levels 0,1e-6,1e-4,1e-2 --merge
 
+The same for DPNN's rigid body and heavy top (``rbnoise``, ``htnoise``: the noise on all 400 × 200
+exact training records, ours on the first 20 noisy trajectories, and 40 records each on the top,
+as without noise; DPNN on all of them, written over its data set's pairs, at reduced epochs, the
+epochs in the row's method). Ours, then DPNN's rows on its own draw of the states (as for rb and
+ht); the JSON holds ours on rbnoise alone so far (about 1 min; htnoise's first two levels took
+about 12 min each and its σ = 1e-2 discovery was stopped unfinished after 40 min; the DPNN
+commands below have not been run for it)::
+
+    PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
+        --protocols rbnoise,htnoise --merge
+    PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
+        --dpnn /tmp/peers/dpnn --peer-site /tmp/peer-site --protocols rbnoise --peers-only \\
+        --dpnn-epochs 5 --merge
+    PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
+        --dpnn /tmp/peers/dpnn --peer-site /tmp/peer-site --protocols htnoise --peers-only \\
+        --dpnn-epochs 5 --merge
+
 Our rows alone (no peer checkout) are refreshed with
 ``--protocols pd --merge``: the discovery rows, once per snap rule, about 10 min.
 
@@ -517,22 +534,28 @@ def noisy_records(train: np.ndarray, sigma: float, draw: int = 0) -> np.ndarray:
 def noise_rows(
     p: Protocol,
     structure: Any,
-    peer: Callable[[np.ndarray], dict[str, Any]] | None,
+    peer: Callable[[np.ndarray], dict[str, Any] | list[dict[str, Any]]] | None,
     sigmas: tuple[float, ...],
+    subset: int | None = None,
+    records: int | None = None,
 ) -> list[dict[str, Any]]:
-    """Protocol ``p`` with noisy training records (draw 0), scored from the exact test starts:
-    ours (the structure given, ``structure``, and discovered) and the peer's row
-    (``peer(records)``), as protocol ``<p.name>_noise`` with the level in each row."""
+    """Protocol ``p`` with noisy training records (draw 0 over all of ``p.train``), scored from
+    the exact test starts: ours (the structure given, ``structure``, and discovered) on the
+    first ``subset`` noisy trajectories (their first ``records`` records), as in
+    :func:`ours_rows`, and the peer's rows (``peer(records)``, all the noisy records), as
+    protocol ``<p.name>_noise`` with the level in each row."""
     rows: list[dict[str, Any]] = []
     name = f"{p.name}_noise"
     for sigma in sigmas:
         noisy = noisy_records(p.train, sigma)
+        train = noisy[:subset, :records]
         tag = f" σ={sigma:g}"
+        level: list[dict[str, Any]] = []
         if not PEERS_ONLY:
             t0 = time.perf_counter()
-            stepper, report = pr.learn(noisy, p.h, structure=structure, seed=0, progress=False)
+            stepper, report = pr.learn(train, p.h, structure=structure, seed=0, progress=False)
             seconds = time.perf_counter() - t0
-            rows.append(
+            level.append(
                 {
                     "protocol": name,
                     "sigma": sigma,
@@ -540,20 +563,25 @@ def noise_rows(
                     "parameters": int(report.kept.parameters),
                     "train_seconds": round(seconds, 2),
                     **p.score(rollout(stepper, p)),
-                    "notes": f"kept {report.kept.family}, K = {report.kept.order}",
+                    "notes": f"kept {report.kept.family}, K = {report.kept.order}; trained on "
+                    f"{len(train)} trajectories × {train.shape[1]} noisy records",
                 }
             )
-            row = ours_discover_row(p, noisy, "noise")
+            row = ours_discover_row(p, train, "noise")
             row.update(protocol=name, sigma=sigma)
             # σ before the first comma: --merge tells rows apart by the method up to it.
             row["method"] = row["method"].replace(", snap", tag + ", snap")
-            rows.append(row)
+            level.append(row)
         if peer is not None:
-            row = peer(noisy)
-            row.update(protocol=name, sigma=sigma)
-            row["method"] += tag
-            rows.append(row)
-        print(table(rows[-3:]), flush=True)
+            got = peer(noisy)
+            for row in got if isinstance(got, list) else [got]:
+                row.update(protocol=name, sigma=sigma)
+                # before the first comma, as above
+                head, comma, rest = row["method"].partition(",")
+                row["method"] = head + tag + comma + rest
+                level.append(row)
+        print(table(level), flush=True)
+        rows += level
     return rows
 
 
@@ -652,8 +680,9 @@ def main() -> None:
     ap.add_argument(
         "--protocols",
         default="lv,pd,rb",
-        help="comma-separated: lv (PNN Lotka–Volterra), pd (PNN extended pendulum), lvnoise and "
-        "pdnoise (the same with noisy records), rb and ht (DPNN's rigid body and heavy top)",
+        help="comma-separated: lv (PNN Lotka–Volterra), pd (PNN extended pendulum), rb and ht "
+        "(DPNN's rigid body and heavy top); lvnoise, pdnoise, rbnoise and htnoise: the same "
+        "with noisy training records (--noise-levels)",
     )
     ap.add_argument("--merge", action="store_true", help="keep the rows of --json not rerun")
     ap.add_argument(
@@ -720,9 +749,11 @@ def main() -> None:
         if ln is not None:
             rows.append(pnn_extended_pendulum(p, ln, mod, args.pd_iterations))
     for key in ("rb", "ht"):
+        methods = (args.dpnn_methods or DPNN_METHODS[key]).split(",")
         if key in wanted:
-            methods = (args.dpnn_methods or DPNN_METHODS[key]).split(",")
             rows += dpnn_rows(dpnn, key, args.dpnn_epochs, methods, args.dpnn_dropout)
+        if f"{key}noise" in wanted:
+            rows += dpnn_rows(dpnn, key, args.dpnn_epochs, methods, args.dpnn_dropout, sigmas)
 
     doc: dict[str, Any] = {}
     if args.merge and args.json.exists():
@@ -883,7 +914,12 @@ class DpnnModel:
 
 
 def dpnn_rows(
-    dpnn: Path | None, key: str, epochs: int | None, methods: list[str], dropout: float
+    dpnn: Path | None,
+    key: str,
+    epochs: int | None,
+    methods: list[str],
+    dropout: float,
+    sigmas: tuple[float, ...] | None = None,
 ) -> list[dict[str, Any]]:
     """DPNN's rigid body (key "rb", typical_args/args_RB.txt: I = (10, 20, 40)) or heavy top
     ("ht", args_HT.txt: the same I, Mgl = 0.981, χ = e₃, r in the ball of radius |(1, −3, 10)|),
@@ -893,7 +929,12 @@ def dpnn_rows(
     Adam lr 1e-3 with cosine annealing over the epochs (50 for the body, 100 for the top).
     Tested on the first 20 of their generalization draw (fresh states, seed 42 + 100·sampling)
     for 200 steps (their ``steps``), 10× that, and 10⁴ steps for the drifts, rolled out by their
-    neural IMR solver (implicit midpoint on the learned field)."""
+    neural IMR solver (implicit midpoint on the learned field).
+
+    With ``sigmas`` (protocols rbnoise and htnoise): :func:`noise_rows` on the same protocol,
+    its training records (the exact ones, 400 × 200) with noise σ·|z| (draw 0 over all 400
+    trajectories); ours on the first 20 noisy trajectories (and 40 records on the top), as
+    without noise, and DPNN on all the noisy records, written over their data set's pairs."""
     import argparse
 
     import torch
@@ -941,6 +982,19 @@ def dpnn_rows(
         p = Protocol(
             model.protocol, system, dt, train, starts, cfg.steps, model.energy, model.casimir
         )
+        if sigmas is not None:
+            peer = None
+            if dpnn is not None:
+                mods = (learn, simulate)
+
+                def peer(noisy: np.ndarray) -> list[dict[str, Any]]:
+                    dpnn_write_records(cfg, learn, model.columns, noisy)
+                    return [
+                        dpnn_method_row(p, model, cfg, mods, tests, method, dropout, noisy=True)
+                        for method in methods
+                    ]
+
+            return noise_rows(p, system, peer, sigmas, DPNN_LEARN, model.learn_records)
         true = pr.taylor_integrator(system, model.order)
         rows += ours_rows(p, true, system, model.true_label, DPNN_LEARN, model.learn_records)
         if dpnn is None:
@@ -948,68 +1002,110 @@ def dpnn_rows(
         their = dpnn_rollout(simulate, cfg, tests, "normal", cfg.steps + 1, model.columns)
         gt_error = p.score(their)["error_test_horizon"]
         for method in methods:
-            torch.manual_seed(cfg.seed)
-            learner = learn.LearnerIMR(
-                model=cfg.model,
-                neurons=cfg.neurons,
-                layers=cfg.layers,
-                batch_size=cfg.batch_size,
-                dt=dt,
-                name=cfg.folder_name,
-                device=cfg.device,
-                dropout_rate=cfg.dropout_rate,
-                quad_features=cfg.quad_features,
-                simulation_batch_size=cfg.simulation_batch_size,
-                no_data_to_gpu=cfg.no_data_to_gpu,
-                jacobi_loss_mode=cfg.jacobi_loss_mode,
-                hutchinson_samples=cfg.hutchinson_samples,
-            )
-            nets = [learner.energy, learner.jac_vec if method == "implicit" else learner.L_tensor]
-            params = sum(count(n) for n in nets)
-            print(f"[{p.name}] DPNN {method}: {params} parameters, {cfg.epochs} epochs")
-            t0, c0 = time.perf_counter(), time.process_time()
-            learner.learn(
-                method=method,
-                learning_rate=cfg.lr,
-                epochs=cfg.epochs,
-                prefactor=cfg.prefactor,
-                jac_prefactor=cfg.jac_prefactor,
-            )
-            seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-            t0 = time.perf_counter()
-            traj = dpnn_rollout(simulate, cfg, tests, method, DRIFT_STEPS + 1, model.columns)
-            curve = [
-                [i + 1, *map(float, t), *map(float, v)]
-                for i, (t, v) in enumerate(
-                    zip(learner.train_errors, learner.validation_errors, strict=True)
-                )
-            ]
-            rows.append(
-                {
-                    "protocol": p.name,
-                    "method": f"DPNN {method}, dropout {dropout} (published code)",
-                    "parameters": params,
-                    "train_seconds": round(seconds, 1),
-                    "train_cpu_seconds": round(cpu, 1),
-                    "iterations": f"{cfg.epochs} epochs × {len(learner.train_loader)} batches",
-                    "their_iterations": f"{model.args['epochs']} epochs",
-                    "fraction_of_theirs": round(cfg.epochs / model.args["epochs"], 4),
-                    **p.score(traj),
-                    "rollout_seconds": round(time.perf_counter() - t0, 2),
-                    "their_ground_truth_error_test_horizon": gt_error,
-                    "loss_curve": {
-                        "columns": ["epoch", "train_mov", "train_reg", "val_mov", "val_reg"],
-                        "rows": curve,
-                    },
-                    "notes": f"typical_args/args_{cfg.model}.txt; trained on their IMR "
-                    "(float32) records, so the target is the implicit midpoint map, not the "
-                    "flow (their ground truth's own error is "
-                    "their_ground_truth_error_test_horizon); train seconds include their "
-                    "per-epoch validation pass; cosine schedule over the epochs run; rolled out "
-                    f"in float32 by their {model.solver}",
-                }
-            )
+            row = dpnn_method_row(p, model, cfg, (learn, simulate), tests, method, dropout)
+            row["their_ground_truth_error_test_horizon"] = gt_error
+            rows.append(row)
     return rows
+
+
+def dpnn_write_records(cfg: Any, learn: Any, columns: list[str], records: np.ndarray) -> None:
+    """Their data set's (old, new) pairs replaced by ``records`` (points, steps, dim), pair
+    k of trajectory i being (records[i, k], records[i, k + 1]) (their rows are in that order)."""
+    import pandas as pd
+
+    path = f"{cfg.folder_name}/{learn.DEFAULT_dataset}"
+    df = pd.read_csv(path, index_col=0)
+    n, m, dim = records.shape
+    if len(df) != n * (m - 1):
+        raise ValueError(f"their data set has {len(df)} pairs, not {n} × {m - 1}")
+    df[[f"old_{c}" for c in columns]] = records[:, :-1].reshape(-1, dim)
+    df[columns] = records[:, 1:].reshape(-1, dim)
+    df.to_csv(path)
+
+
+def dpnn_method_row(
+    p: Protocol,
+    model: DpnnModel,
+    cfg: Any,
+    mods: tuple[Any, Any],
+    tests: Any,
+    method: str,
+    dropout: float,
+    noisy: bool = False,
+) -> dict[str, Any]:
+    """One of DPNN's methods trained on the data set in their folder (``cfg.epochs`` epochs)
+    and rolled out from ``tests`` by their solver; ``noisy``: on the records of
+    :func:`dpnn_write_records`, the epochs named in the method."""
+    import torch
+
+    learn, simulate = mods
+    dt = cfg.dt
+    torch.manual_seed(cfg.seed)
+    if noisy:
+        np.random.seed(cfg.seed)  # noqa: NPY002 (their split draws from it)
+    learner = learn.LearnerIMR(
+        model=cfg.model,
+        neurons=cfg.neurons,
+        layers=cfg.layers,
+        batch_size=cfg.batch_size,
+        dt=dt,
+        name=cfg.folder_name,
+        device=cfg.device,
+        dropout_rate=cfg.dropout_rate,
+        quad_features=cfg.quad_features,
+        simulation_batch_size=cfg.simulation_batch_size,
+        no_data_to_gpu=cfg.no_data_to_gpu,
+        jacobi_loss_mode=cfg.jacobi_loss_mode,
+        hutchinson_samples=cfg.hutchinson_samples,
+    )
+    nets = [learner.energy, learner.jac_vec if method == "implicit" else learner.L_tensor]
+    params = sum(count(n) for n in nets)
+    print(f"[{p.name}] DPNN {method}: {params} parameters, {cfg.epochs} epochs")
+    t0, c0 = time.perf_counter(), time.process_time()
+    learner.learn(
+        method=method,
+        learning_rate=cfg.lr,
+        epochs=cfg.epochs,
+        prefactor=cfg.prefactor,
+        jac_prefactor=cfg.jac_prefactor,
+    )
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+    t0 = time.perf_counter()
+    traj = dpnn_rollout(simulate, cfg, tests, method, DRIFT_STEPS + 1, model.columns)
+    curve = [
+        [i + 1, *map(float, t), *map(float, v)]
+        for i, (t, v) in enumerate(
+            zip(learner.train_errors, learner.validation_errors, strict=True)
+        )
+    ]
+    epochs = f" ({cfg.epochs} epochs)" if noisy else ""
+    data = (
+        "trained on the noisy records (the exact ones plus noise), written over their "
+        "data set's pairs, not their IMR records; "
+        if noisy
+        else "trained on their IMR (float32) records, so the target is the implicit "
+        "midpoint map, not the flow (their ground truth's own error is "
+        "their_ground_truth_error_test_horizon); "
+    )
+    return {
+        "protocol": p.name,
+        "method": f"DPNN {method}{epochs}, dropout {dropout} (published code)",
+        "parameters": params,
+        "train_seconds": round(seconds, 1),
+        "train_cpu_seconds": round(cpu, 1),
+        "iterations": f"{cfg.epochs} epochs × {len(learner.train_loader)} batches",
+        "their_iterations": f"{model.args['epochs']} epochs",
+        "fraction_of_theirs": round(cfg.epochs / model.args["epochs"], 4),
+        **p.score(traj),
+        "rollout_seconds": round(time.perf_counter() - t0, 2),
+        "loss_curve": {
+            "columns": ["epoch", "train_mov", "train_reg", "val_mov", "val_reg"],
+            "rows": curve,
+        },
+        "notes": f"typical_args/args_{cfg.model}.txt; {data}train seconds "
+        "include their per-epoch validation pass; cosine schedule over the epochs "
+        f"run; rolled out in float32 by their {model.solver}",
+    }
 
 
 def dpnn_rollout(
