@@ -54,9 +54,9 @@ The same for DPNN's rigid body and heavy top (``rbnoise``, ``htnoise``: the nois
 exact training records, ours on the first 20 noisy trajectories, and 40 records each on the top,
 as without noise; DPNN on all of them, written over its data set's pairs, at reduced epochs, the
 epochs in the row's method). Ours, then DPNN's rows on its own draw of the states (as for rb and
-ht); the JSON holds ours on rbnoise alone so far (about 1 min; htnoise's first two levels took
-about 12 min each and its σ = 1e-2 discovery was stopped unfinished after 40 min; the DPNN
-commands below have not been run for it)::
+ht); the JSON holds rbnoise alone so far, ours (about 1 min) and DPNN's at 5 epochs (about 6
+min); htnoise's first two levels took about 12 min each and its σ = 1e-2 discovery was stopped
+unfinished after 40 min, and the DPNN command for it has not been run::
 
     PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
         --protocols rbnoise,htnoise --merge
