@@ -58,7 +58,8 @@ ht); the JSON holds rbnoise alone so far, ours (about 1 min) and DPNN's at 5 epo
 min); htnoise's first two levels took about 12 min each and its σ = 1e-2 discovery was stopped
 unfinished after 40 min, and the DPNN command for it failed inside DPNN's heavy-top rollout
 (``HeavyTopNeuralIMR.f() got an unexpected keyword argument 'mrOld'``, after 5 epochs of
-training; not yet looked into)::
+training: DPNN's ``m_new`` falls back to ``fsolve`` on ``f(x, mrOld=…)`` where its fixed point
+does not converge, and the heavy top's ``f`` takes no ``mrOld``)::
 
     PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
         --protocols rbnoise,htnoise --merge
