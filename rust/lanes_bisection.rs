@@ -27,7 +27,7 @@ impl<const L: usize> V<L> {
         V([x; L])
     }
     #[inline(always)]
-    fn zip(self, o: Self, f: impl Fn(f64, f64) -> f64) -> Self {
+    pub(crate) fn zip(self, o: Self, f: impl Fn(f64, f64) -> f64) -> Self {
         let mut r = self;
         for l in 0..L {
             r.0[l] = f(self.0[l], o.0[l]);
@@ -35,7 +35,7 @@ impl<const L: usize> V<L> {
         r
     }
     #[inline(always)]
-    fn scale(self, c: f64) -> Self {
+    pub(crate) fn scale(self, c: f64) -> Self {
         let mut r = self;
         for l in 0..L {
             r.0[l] = self.0[l] * c;
@@ -239,7 +239,7 @@ fn inverse3_lanes<const L: usize>(m: &M3<L>) -> (M3<L>, V<L>) {
 }
 
 /// Largest |x₀|² at which the Newton predictor is used (see [`So3Newton::predict`]).
-const PREDICT_MAX_S: f64 = 1.0;
+pub(crate) const PREDICT_MAX_S: f64 = 1.0;
 
 /// What the lane Newton solve of a polynomial S on so(3) needs: S's polynomial (N = 3), the
 /// chart and the simplified-Newton settings.
@@ -257,7 +257,7 @@ pub(crate) struct So3Newton<'a, const N: usize> {
 /// scalar [`Polynomial::jet`] / [`Polynomial::gradient`]: the same bits as a lane of a block
 /// (see [`jet_lanes_into`]), without storing every factor to memory as the lane code does.
 #[inline(always)]
-fn evaluate<const N: usize, const L: usize, const HESS: bool>(
+pub(crate) fn evaluate<const N: usize, const L: usize, const HESS: bool>(
     poly: &Polynomial<N>,
     t: f64,
     p: &[[f64; L]; N],

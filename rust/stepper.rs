@@ -8,7 +8,8 @@
 //! exponential polynomial, jets of an expression H). The Newton Jacobian is inverted once per
 //! refresh (closed form for N = 3, nalgebra's LU otherwise), so every update, simplified or not,
 //! is one matrix–vector product. A generating function that evaluates several momenta at once
-//! has its Newton systems solved in lockstep; a polynomial S on an so(3) chart in SIMD lanes.
+//! has its Newton systems solved in lockstep; a polynomial S on an so(3) or se(3) chart in SIMD
+//! lanes.
 
 use std::any::Any;
 
@@ -19,6 +20,7 @@ use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, MAX_BATCH};
 use crate::isa::Isa;
 use crate::lanes_bisection::{so3_newton_steps, So3Newton};
+use crate::lanes_bisection_se3::{se3_newton_steps, Se3Newton};
 use crate::realization::{Generating, Newton, Realization};
 use crate::step::step_each;
 pub use crate::step::{
@@ -98,6 +100,24 @@ where
         })
     }
 
+    /// The se(3) lane solver, where it applies: a polynomial S (no MLP) on se(3)'s exponential
+    /// chart, with simplified Newton and the relative tolerance (as [`Self::so3_lanes`]).
+    fn se3_lanes(&self) -> Option<Se3Newton<'_, N>> {
+        if N != 6 || !self.newton.simplified || self.scale_floor != RELATIVE_FLOOR {
+            return None;
+        }
+        let groupoid = (&self.realization as &dyn Any).downcast_ref::<Groupoid<N>>()?;
+        if !groupoid.algebra.is_se3() {
+            return None;
+        }
+        Some(Se3Newton {
+            poly: self.generating.polynomial()?,
+            tol: self.newton.tol,
+            max_iter: self.newton.max_iter,
+            predict: PREDICT,
+        })
+    }
+
     /// The Newton solve with this stepper's settings.
     #[inline]
     fn solver(&self) -> Newton<'_, N, R> {
@@ -142,19 +162,18 @@ where
     /// refreshes the Jacobian every update; simplified Newton keeps the first one's factors
     /// while the updates contract by [`SIMPLIFIED_RATE`] or better, needing ∂S/∂p only).
     ///
-    /// A polynomial S on an so(3) chart with simplified Newton takes the lane solver with one
-    /// lane: the bits of its lane in any block of [`StepMap::step_batch`].
+    /// A polynomial S on an so(3) or se(3) chart with simplified Newton takes the lane solver
+    /// with one lane: the bits of its lane in any block of [`StepMap::step_batch`].
     fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut G::Workspace) -> StepResult {
+        let mut result = [Err(StepFailure::NotConverged)];
         if let Some(sys) = self.so3_lanes() {
-            let mut result = [Err(StepFailure::NotConverged)];
-            so3_newton_steps(
-                &sys,
-                Isa::detect(),
-                h,
-                std::slice::from_mut(mu),
-                &[true],
-                &mut result,
-            );
+            let one = std::slice::from_mut(mu);
+            so3_newton_steps(&sys, Isa::detect(), h, one, &[true], &mut result);
+            return result[0];
+        }
+        if let Some(sys) = self.se3_lanes() {
+            let one = std::slice::from_mut(mu);
+            se3_newton_steps(&sys, Isa::detect(), h, one, &[true], &mut result);
             return result[0];
         }
         self.solver().step(&self.generating, h, mu, ws)
@@ -177,6 +196,9 @@ where
     ) {
         if let Some(sys) = self.so3_lanes() {
             return so3_newton_steps(&sys, Isa::detect(), h, mu, live, results);
+        }
+        if let Some(sys) = self.se3_lanes() {
+            return se3_newton_steps(&sys, Isa::detect(), h, mu, live, results);
         }
         // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
         // small to fill the lanes takes the cheaper path (a rollout of one state, say).

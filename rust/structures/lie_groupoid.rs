@@ -254,7 +254,7 @@ fn se3_chart<T: Scalar>(x: &[T; 6], p: &[T; 6], sign: f64) -> Result<[T; 6], Ste
 /// [`Chart::rotate`]) and DE[v] its derivative along v. Keeps |Γ|² and M·Γ up to rounding, as a
 /// rotation keeps |μ|² on so(3)*: the corrections are added to μ last.
 #[inline(always)]
-fn se3_coadjoint(x: &[f64; 6], mu: &[f64; 6]) -> Result<[f64; 6], StepFailure> {
+pub(crate) fn se3_coadjoint(x: &[f64; 6], mu: &[f64; 6]) -> Result<[f64; 6], StepFailure> {
     let w = [x[0], x[1], x[2]];
     let v = [x[3], x[4], x[5]];
     let m = [mu[0], mu[1], mu[2]];
@@ -549,6 +549,11 @@ impl<const N: usize> LieAlgebra<N> {
 
     pub fn is_so3(&self) -> bool {
         self.so3
+    }
+
+    /// Whether c is exactly [`LieAlgebra::se3`]'s (the closed-form chart applies).
+    pub fn is_se3(&self) -> bool {
+        self.se3
     }
 
     /// A v with A = ad_xᵀ: (A v)_j = Σ_{i,k} c[i][j][k] x_i v_k.

@@ -10,13 +10,6 @@ use crate::dual::Dual1;
 use crate::lanes::{Isa, LANES};
 use crate::lanes_bisection::{polynomial_gradients, polynomial_jets};
 
-fn same_bits(a: &[f64], b: &[f64]) -> bool {
-    a.len() == b.len()
-        && a.iter()
-            .zip(b)
-            .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))
-}
-
 /// Random polynomials in N variables with exponents up to 11 (the table of powers stops at 8:
 /// the `powi` fallback runs too).
 fn random_polynomial<const N: usize>(rng: &mut Rng, n_terms: usize) -> Polynomial<N> {

@@ -76,6 +76,14 @@ const INERTIA: [f64; 3] = [1.5, 2.0, 2.5];
 
 const ALL_INPUTS: [MlpInputs; 2] = [MlpInputs::Plain, MlpInputs::Homogeneous];
 
+/// Equal bit for bit (any NaN equals any NaN).
+fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))
+}
+
 /// Every instruction set this CPU runs: the portable path, and the detected one if wider.
 fn isas() -> Vec<crate::lanes::Isa> {
     use crate::lanes::Isa;
@@ -249,5 +257,6 @@ mod log_canonical;
 mod model_files;
 mod polynomial;
 mod rollouts;
+mod se3_lanes;
 mod splitting_lanes;
 mod steps;

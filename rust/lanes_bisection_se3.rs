@@ -1,0 +1,521 @@
+//! The se(3) Newton solve of a polynomial S in SIMD lanes: the heavy top's Taylor-HJ bisection
+//! step for a block of trajectories in lockstep, each lane bit-identical to the one-trajectory
+//! step. What [`crate::lanes_bisection`] does on so(3), on se(3)'s exponential chart in closed
+//! form (the groupoid's `se3_chart`):
+//!
+//! - tar(x, p) in lanes with the scalar chart's operations, so its values are the scalar chart's
+//!   bits; its exact p-Jacobian J = ∂T/∂p + ∂T/∂x · Hess S in forward mode, six tangents per
+//!   lane (x carries the Hessian's rows, p the identity);
+//! - J⁻¹ by Gauss–Jordan with partial pivoting, the pivot rows chosen and swapped lane by lane;
+//! - Newton started from p₀ = μ − ½ ad_{x₀}ᵀ μ (x₀: the gradient of S's terms linear in t);
+//! - the new state g(x)·μ by the closed-form coadjoint action (`se3_coadjoint`), lane by lane.
+
+// Index loops over lanes, coordinates and matrix entries read as the formulas they evaluate.
+#![allow(clippy::needless_range_loop)]
+
+use std::array::from_fn;
+use std::ops::{Add, Mul, Sub};
+
+use crate::error::StepFailure;
+use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch, SCALAR_AT_MOST};
+use crate::generating::Polynomial;
+use crate::isa::{Isa, LANES};
+use crate::lanes_bisection::{evaluate, PREDICT_MAX_S, V};
+use crate::step::{StepResult, StepStats, SIMPLIFIED_RATE};
+use crate::structures::lie_groupoid::{
+    exp_chart_coefficient_derivatives_to, exp_chart_coefficient_to, se3_coadjoint, C_SERIES,
+    EXP_CHART_MAX_ANGLE,
+};
+
+type V6<const L: usize> = [V<L>; 6];
+type M6<const L: usize> = [[V<L>; 6]; 6];
+
+/// What the chart is evaluated on: lane values ([`V`]) or lane values with their derivatives
+/// along the six p-directions ([`D`]).
+trait Lane<const L: usize>:
+    Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self>
+{
+    fn times(self, c: f64) -> Self;
+    /// f(s), from f's values and s-derivatives at s's values.
+    fn chain(s: &Self, f: V<L>, df: V<L>) -> Self;
+}
+
+impl<const L: usize> Lane<L> for V<L> {
+    #[inline(always)]
+    fn times(self, c: f64) -> Self {
+        self.scale(c)
+    }
+    #[inline(always)]
+    fn chain(_: &Self, f: V<L>, _: V<L>) -> Self {
+        f
+    }
+}
+
+/// L values and their derivatives along six directions (forward mode). The values take the
+/// operations [`V`] takes, so they are its bits.
+#[derive(Clone, Copy)]
+struct D<const L: usize> {
+    v: V<L>,
+    d: V6<L>,
+}
+
+impl<const L: usize> Add for D<L> {
+    type Output = Self;
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        D {
+            v: self.v + o.v,
+            d: from_fn(|k| self.d[k] + o.d[k]),
+        }
+    }
+}
+
+impl<const L: usize> Sub for D<L> {
+    type Output = Self;
+    #[inline(always)]
+    fn sub(self, o: Self) -> Self {
+        D {
+            v: self.v - o.v,
+            d: from_fn(|k| self.d[k] - o.d[k]),
+        }
+    }
+}
+
+impl<const L: usize> Mul for D<L> {
+    type Output = Self;
+    #[inline(always)]
+    fn mul(self, o: Self) -> Self {
+        D {
+            v: self.v * o.v,
+            d: from_fn(|k| self.d[k] * o.v + self.v * o.d[k]),
+        }
+    }
+}
+
+impl<const L: usize> Lane<L> for D<L> {
+    #[inline(always)]
+    fn times(self, c: f64) -> Self {
+        D {
+            v: self.v.scale(c),
+            d: from_fn(|k| self.d[k].scale(c)),
+        }
+    }
+    #[inline(always)]
+    fn chain(s: &Self, f: V<L>, df: V<L>) -> Self {
+        D {
+            v: f,
+            d: from_fn(|k| df * s.d[k]),
+        }
+    }
+}
+
+/// The same products in the same order as the groupoid's `cross`.
+#[inline(always)]
+fn cross<const L: usize, T: Lane<L>>(a: &[T; 3], b: &[T; 3]) -> [T; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+#[inline(always)]
+fn dot<const L: usize, T: Lane<L>>(a: &[T; 3], b: &[T; 3]) -> T {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// c(s), c'(s) and, when `second`, c''(s) of the exponential chart at s = |ω|², lane by lane:
+/// the groupoid's `exp_chart_coefficient_to` / `exp_chart_coefficient_derivatives_to` (the
+/// same Horner chains below s = 1, summed in lanes; their closed forms lane by lane above).
+#[inline(always)]
+fn chart_coefficients<const L: usize>(s: V<L>, second: bool) -> (V<L>, V<L>, V<L>) {
+    let zero = V::splat(0.0);
+    let (mut c, mut c1, mut c2) = (zero, zero, zero);
+    for (n, &a) in C_SERIES.iter().enumerate().rev() {
+        let nf = n as f64;
+        c = c * s + V::splat(a);
+        if n >= 1 {
+            c1 = c1 * s + V::splat(nf * a);
+        }
+        if second && n >= 2 {
+            c2 = c2 * s + V::splat(nf * (nf - 1.0) * a);
+        }
+    }
+    for l in 0..L {
+        if s.0[l] >= 1.0 {
+            c.0[l] = exp_chart_coefficient_to(s.0[l], 0).0;
+            let (d1, d2, _) = exp_chart_coefficient_derivatives_to(s.0[l], u8::from(second));
+            (c1.0[l], c2.0[l]) = (d1, d2);
+        }
+    }
+    (c, c1, c2)
+}
+
+/// tar(x, p) of se(3)'s exponential chart, x = (ω, v), p = (p_R, p_T), given c = c(|ω|²) and
+/// c₁ = c'(|ω|²): the groupoid's `se3_chart` with sign −1, operation for operation.
+#[inline(always)]
+fn tar<const L: usize, T: Lane<L>>(x: &[T; 6], p: &[T; 6], c: T, c1: T) -> [T; 6] {
+    let w = [x[0], x[1], x[2]];
+    let v = [x[3], x[4], x[5]];
+    let pr = [p[0], p[1], p[2]];
+    let pt = [p[3], p[4], p[5]];
+    let half = -0.5;
+    let (wpr, wpt, vpt) = (cross(&w, &pr), cross(&w, &pt), cross(&v, &pt));
+    let (wwpr, wwpt) = (cross(&w, &wpr), cross(&w, &wpt));
+    let (vwpt, wvpt) = (cross(&v, &wpt), cross(&w, &vpt));
+    let k = dot(&w, &v).times(2.0) * c1;
+    let mut out = *p;
+    for i in 0..3 {
+        let d = vpt[i].times(half) + k * wwpt[i] + c * (vwpt[i] + wvpt[i]);
+        out[i] = pr[i] + wpr[i].times(half) + c * wwpr[i] + d;
+        out[3 + i] = pt[i] + wpt[i].times(half) + c * wwpt[i];
+    }
+    out
+}
+
+/// tar(x, p) of se(3)'s exponential chart in lanes (the scalar chart's bits) and |ω|²; with
+/// `hess` (S's Hessian, symmetric) also the exact p-Jacobian of tar(∇S(p), p), J[r][k] =
+/// ∂tar_r/∂p_k.
+#[inline(always)]
+pub(crate) fn se3_tar_lanes<const L: usize>(
+    x: &V6<L>,
+    p: &V6<L>,
+    hess: Option<&M6<L>>,
+) -> (V6<L>, V<L>, Option<M6<L>>) {
+    let w = [x[0], x[1], x[2]];
+    let s = dot(&w, &w);
+    let (c, c1, c2) = chart_coefficients(s, hess.is_some());
+    let Some(h) = hess else {
+        return (tar(x, p, c, c1), s, None);
+    };
+    let (zero, one) = (V::splat(0.0), V::splat(1.0));
+    // ∂x_i/∂p_k = Hess S[i][k]; ∂p_i/∂p_k = δ_ik.
+    let xd: [D<L>; 6] = from_fn(|i| D { v: x[i], d: h[i] });
+    let pd: [D<L>; 6] = from_fn(|i| D {
+        v: p[i],
+        d: from_fn(|k| if k == i { one } else { zero }),
+    });
+    let wd = [xd[0], xd[1], xd[2]];
+    let sd = dot(&wd, &wd);
+    let t = tar(&xd, &pd, D::chain(&sd, c, c1), D::chain(&sd, c1, c2));
+    (from_fn(|i| t[i].v), s, Some(from_fn(|r| t[r].d)))
+}
+
+/// The inverse of a 6×6 matrix lane by lane, by Gauss–Jordan with partial pivoting (each lane
+/// picks and swaps its own pivot rows), and per lane whether every pivot was non-zero and the
+/// inverse finite.
+#[inline(always)]
+pub(crate) fn inverse6_lanes<const L: usize>(m: &M6<L>) -> (M6<L>, [bool; L]) {
+    let (zero, one) = (V::splat(0.0), V::splat(1.0));
+    let mut a = [[zero; 12]; 6];
+    for r in 0..6 {
+        a[r][..6].copy_from_slice(&m[r]);
+        a[r][6 + r] = one;
+    }
+    let mut ok = [true; L];
+    for col in 0..6 {
+        // Rows above `col` are pivot rows; below it, columns before `col` are already zero.
+        for l in 0..L {
+            let mut best = col;
+            for r in col + 1..6 {
+                if a[r][col].0[l].abs() > a[best][col].0[l].abs() {
+                    best = r;
+                }
+            }
+            if best != col {
+                for j in col..12 {
+                    let t = a[best][j].0[l];
+                    a[best][j].0[l] = a[col][j].0[l];
+                    a[col][j].0[l] = t;
+                }
+            }
+        }
+        let pivot = a[col][col];
+        for l in 0..L {
+            ok[l] &= pivot.0[l] != 0.0 && pivot.0[l].is_finite();
+        }
+        let r = one.zip(pivot, |a, b| a / b);
+        for j in col + 1..12 {
+            a[col][j] = a[col][j] * r;
+        }
+        for row in 0..6 {
+            if row != col {
+                let f = a[row][col];
+                for j in col + 1..12 {
+                    a[row][j] = a[row][j] - f * a[col][j];
+                }
+            }
+        }
+    }
+    let inv: M6<L> = from_fn(|r| from_fn(|c| a[r][6 + c]));
+    for l in 0..L {
+        ok[l] &= inv.iter().flatten().all(|v| v.0[l].is_finite());
+    }
+    (inv, ok)
+}
+
+/// What the lane Newton solve of a polynomial S on se(3) needs: S's polynomial (N = 6) and the
+/// simplified-Newton settings.
+pub(crate) struct Se3Newton<'a, const N: usize> {
+    pub poly: &'a Polynomial<N>,
+    pub tol: f64,
+    pub max_iter: u32,
+    /// Start Newton from p₀ = μ − ½ ad_{x₀}ᵀ μ (x₀: the t-linear terms' gradient at μ) instead
+    /// of μ, where |x₀|² ≤ [`PREDICT_MAX_S`].
+    pub predict: bool,
+}
+
+/// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)
+/// by simplified Newton in lanes: the rule and the failures of the generic one-trajectory step
+/// (refresh the Jacobian while updates contract by less than [`SIMPLIFIED_RATE`], stop once
+/// |δ|∞ ≤ tol · max(|p|∞, 1e-300)), lane by lane. A lane that converged or failed is frozen; the
+/// block runs until every lane has.
+#[inline(always)]
+fn se3_block<const N: usize, const L: usize>(
+    sys: &Se3Newton<'_, N>,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    let n = mu.len();
+    debug_assert!(N == 6 && n <= L);
+    let mut pl = [[0.0; L]; N];
+    let mut active = [false; L];
+    for j in 0..n {
+        for i in 0..N {
+            pl[i][j] = mu[j][i];
+        }
+        active[j] = live[j];
+    }
+    let target: V6<L> = from_fn(|i| V(pl[i]));
+    let mut p = target;
+    let mut scratch = Scratch::<N, L>::new();
+    let mut jet = JetLanes {
+        v: [0.0; L],
+        g: [[0.0; L]; N],
+        h: [[[0.0; L]; N]; N],
+    };
+    if sys.predict {
+        // tar(x, p) = p − ½ (ω×p_R + v×p_T, ω×p_T) + O(|x|²), so p₀ = μ + ½ (ω₀×M + v₀×Γ,
+        // ω₀×Γ) is O(h²) from the solution where μ is O(h) (the groupoid's `predict`).
+        jet_lanes_into::<N, L, false, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        let x0: V6<L> = from_fn(|i| V(jet.g[i]));
+        let (w, v) = ([x0[0], x0[1], x0[2]], [x0[3], x0[4], x0[5]]);
+        let (m, g) = (
+            [target[0], target[1], target[2]],
+            [target[3], target[4], target[5]],
+        );
+        let (wm, vg, wg) = (cross(&w, &m), cross(&v, &g), cross(&w, &g));
+        let p0: V6<L> = from_fn(|i| {
+            let turn = if i < 3 { wm[i] + vg[i] } else { wg[i - 3] };
+            target[i] + turn.scale(0.5)
+        });
+        for l in 0..L {
+            let s0 = x0.iter().fold(0.0, |a, v| a + v.0[l] * v.0[l]);
+            if s0 <= PREDICT_MAX_S && (0..6).all(|i| p0[i].0[l].is_finite()) {
+                for i in 0..6 {
+                    p[i].0[l] = p0[i].0[l];
+                }
+            }
+        }
+    }
+    let mut refresh = [true; L];
+    let mut last = [f64::INFINITY; L];
+    let mut iterations = [0u32; L];
+    let mut converged = [false; L];
+    let mut inv: M6<L> = [[V::splat(0.0); 6]; 6];
+    let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
+    while active.iter().any(|&a| a) {
+        let hess = (0..L).any(|l| active[l] && refresh[l]);
+        for i in 0..N {
+            pl[i] = p[i].0;
+        }
+        if hess {
+            evaluate::<N, L, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        } else {
+            evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        }
+        let x: V6<L> = from_fn(|i| V(jet.g[i]));
+        let h: Option<M6<L>> = hess.then(|| from_fn(|a| from_fn(|b| V(jet.h[a.min(b)][a.max(b)]))));
+        let (tar, s, jac) = se3_tar_lanes(&x, &p, h.as_ref());
+        let fresh = jac.map(|j| inverse6_lanes(&j));
+        let mut go = [false; L];
+        for l in 0..L {
+            if !active[l] {
+                continue;
+            }
+            let finite = jet.v[l].is_finite()
+                && (0..6).all(|i| x[i].0[l].is_finite())
+                && (!refresh[l] || h.iter().flatten().flatten().all(|v| v.0[l].is_finite()));
+            let failure = if !finite {
+                Some(StepFailure::NonFinite)
+            } else if s.0[l] >= max_s {
+                Some(StepFailure::ChartSingular)
+            } else if iterations[l] >= sys.max_iter {
+                Some(StepFailure::NotConverged)
+            } else if let (true, Some((fi, ok))) = (refresh[l], &fresh) {
+                if ok[l] {
+                    for r in 0..6 {
+                        for c in 0..6 {
+                            inv[r][c].0[l] = fi[r][c].0[l];
+                        }
+                    }
+                    None
+                } else {
+                    Some(StepFailure::SingularJacobian)
+                }
+            } else {
+                None
+            };
+            match failure {
+                Some(e) => {
+                    results[l] = Err(e);
+                    active[l] = false;
+                }
+                None => go[l] = true,
+            }
+        }
+        // δ = J⁻¹ (μ − tar), each component summed in column order.
+        let f: V6<L> = from_fn(|i| target[i] - tar[i]);
+        let delta: V6<L> = from_fn(|r| {
+            let mut acc = inv[r][0] * f[0];
+            for c in 1..6 {
+                acc = acc + inv[r][c] * f[c];
+            }
+            acc
+        });
+        for l in 0..L {
+            if !go[l] {
+                continue;
+            }
+            if !(0..6).all(|i| delta[i].0[l].is_finite()) {
+                results[l] = Err(StepFailure::SingularJacobian);
+                active[l] = false;
+                continue;
+            }
+            let (mut size, mut pmax) = (0.0f64, 0.0f64);
+            for i in 0..6 {
+                p[i].0[l] += delta[i].0[l];
+                size = size.max(delta[i].0[l].abs());
+                pmax = pmax.max(p[i].0[l].abs());
+            }
+            iterations[l] += 1;
+            if size <= sys.tol * pmax.max(1e-300) {
+                converged[l] = true;
+                active[l] = false;
+            } else {
+                refresh[l] = size > SIMPLIFIED_RATE * last[l];
+                last[l] = size;
+            }
+        }
+    }
+    if !converged.iter().any(|&c| c) {
+        return;
+    }
+    // μ' = g(x)·μ with x = ∇S(p) at the converged p (sou(x, p) up to Newton's residual, which
+    // the coadjoint action leaves out); the residual of the solved equation into the stats.
+    for i in 0..N {
+        pl[i] = p[i].0;
+    }
+    evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+    let x: V6<L> = from_fn(|i| V(jet.g[i]));
+    let (tar, s, _) = se3_tar_lanes(&x, &p, None);
+    for l in (0..n).filter(|&l| converged[l]) {
+        let xl: [f64; 6] = from_fn(|i| x[i].0[l]);
+        let ml: [f64; 6] = from_fn(|i| target[i].0[l]);
+        results[l] = if !(jet.v[l].is_finite() && xl.iter().all(|v| v.is_finite())) {
+            Err(StepFailure::NonFinite)
+        } else if s.0[l] >= max_s {
+            Err(StepFailure::ChartSingular)
+        } else {
+            se3_coadjoint(&xl, &ml).map(|next| {
+                mu[l][..6].copy_from_slice(&next);
+                StepStats {
+                    iterations: iterations[l],
+                    residual: (0..6).fold(0.0f64, |m, i| m.max((tar[i].0[l] - ml[i]).abs())),
+                }
+            })
+        };
+    }
+}
+
+/// [`se3_block`] over a chunk: blocks of [`LANES`] trajectories, or one trajectory at a time
+/// (L = 1, the same bits) where a block has at most [`SCALAR_AT_MOST`] live ones.
+#[inline(always)]
+fn se3_chunk<const N: usize>(
+    sys: &Se3Newton<'_, N>,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    for ((m, lv), r) in mu
+        .chunks_mut(LANES)
+        .zip(live.chunks(LANES))
+        .zip(results.chunks_mut(LANES))
+    {
+        if lv.iter().filter(|&&l| l).count() <= SCALAR_AT_MOST {
+            for j in (0..m.len()).filter(|&j| lv[j]) {
+                se3_one(sys, t, &mut m[j], &mut r[j]);
+            }
+        } else {
+            se3_block::<N, LANES>(sys, t, m, lv, r);
+        }
+    }
+}
+
+/// One trajectory: [`se3_block`] with one lane, compiled on its own.
+#[inline(never)]
+fn se3_one<const N: usize>(
+    sys: &Se3Newton<'_, N>,
+    t: f64,
+    mu: &mut [f64; N],
+    result: &mut StepResult,
+) {
+    se3_block::<N, 1>(
+        sys,
+        t,
+        std::slice::from_mut(mu),
+        &[true],
+        std::slice::from_mut(result),
+    );
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn se3_chunk_avx2<const N: usize>(
+    sys: &Se3Newton<'_, N>,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    se3_chunk(sys, t, mu, live, results);
+}
+
+/// One simplified-Newton bisection step of every `mu[j]` with `live[j]` on se(3)'s exponential
+/// chart (N must be 6), in lanes compiled for `isa`; `results[j]` as
+/// [`crate::stepper::StepMap::step`] reports it. Lane j's bits depend neither on the other
+/// lanes, nor on the block size, nor on `isa`.
+pub(crate) fn se3_newton_steps<const N: usize>(
+    sys: &Se3Newton<'_, N>,
+    isa: Isa,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    assert!(
+        N == 6 && live.len() == mu.len() && results.len() == mu.len(),
+        "se(3) lanes need N = 6 and one flag and result per state"
+    );
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
+        // field is private: safe code cannot forge it).
+        unsafe { se3_chunk_avx2(sys, t, mu, live, results) };
+        return;
+    }
+    se3_chunk(sys, t, mu, live, results);
+}
