@@ -63,10 +63,12 @@ impl<const L: usize> Add for D<L> {
     type Output = Self;
     #[inline(always)]
     fn add(self, o: Self) -> Self {
-        D {
-            v: self.v + o.v,
-            d: from_fn(|k| self.d[k] + o.d[k]),
+        let mut r = self;
+        r.v = self.v + o.v;
+        for k in 0..6 {
+            r.d[k] = self.d[k] + o.d[k];
         }
+        r
     }
 }
 
@@ -74,10 +76,12 @@ impl<const L: usize> Sub for D<L> {
     type Output = Self;
     #[inline(always)]
     fn sub(self, o: Self) -> Self {
-        D {
-            v: self.v - o.v,
-            d: from_fn(|k| self.d[k] - o.d[k]),
+        let mut r = self;
+        r.v = self.v - o.v;
+        for k in 0..6 {
+            r.d[k] = self.d[k] - o.d[k];
         }
+        r
     }
 }
 
@@ -85,27 +89,33 @@ impl<const L: usize> Mul for D<L> {
     type Output = Self;
     #[inline(always)]
     fn mul(self, o: Self) -> Self {
-        D {
-            v: self.v * o.v,
-            d: from_fn(|k| self.d[k] * o.v + self.v * o.d[k]),
+        let mut r = self;
+        r.v = self.v * o.v;
+        for k in 0..6 {
+            r.d[k] = self.d[k] * o.v + self.v * o.d[k];
         }
+        r
     }
 }
 
 impl<const L: usize> Lane<L> for D<L> {
     #[inline(always)]
     fn times(self, c: f64) -> Self {
-        D {
-            v: self.v.scale(c),
-            d: from_fn(|k| self.d[k].scale(c)),
+        let mut r = self;
+        r.v = self.v.scale(c);
+        for k in 0..6 {
+            r.d[k] = self.d[k].scale(c);
         }
+        r
     }
     #[inline(always)]
     fn chain(s: &Self, f: V<L>, df: V<L>) -> Self {
-        D {
-            v: f,
-            d: from_fn(|k| df * s.d[k]),
+        let mut r = *s;
+        r.v = f;
+        for k in 0..6 {
+            r.d[k] = df * s.d[k];
         }
+        r
     }
 }
 
@@ -174,38 +184,50 @@ fn tar<const L: usize, T: Lane<L>>(x: &[T; 6], p: &[T; 6], c: T, c1: T) -> [T; 6
 }
 
 /// tar(x, p) of se(3)'s exponential chart in lanes (the scalar chart's bits) and |ω|²; with
-/// `hess` (S's Hessian, symmetric) also the exact p-Jacobian of tar(∇S(p), p), J[r][k] =
-/// ∂tar_r/∂p_k.
+/// `hess` (S's Hessian, symmetric) also the exact p-Jacobian of tar(∇S(p), p) into `jac`,
+/// J[r][k] = ∂tar_r/∂p_k (left alone without it).
 #[inline(always)]
 pub(crate) fn se3_tar_lanes<const L: usize>(
     x: &V6<L>,
     p: &V6<L>,
     hess: Option<&M6<L>>,
-) -> (V6<L>, V<L>, Option<M6<L>>) {
+    jac: &mut M6<L>,
+) -> (V6<L>, V<L>) {
     let w = [x[0], x[1], x[2]];
     let s = dot(&w, &w);
     let (c, c1, c2) = chart_coefficients(s, hess.is_some());
     let Some(h) = hess else {
-        return (tar(x, p, c, c1), s, None);
+        return (tar(x, p, c, c1), s);
     };
     let (zero, one) = (V::splat(0.0), V::splat(1.0));
     // ∂x_i/∂p_k = Hess S[i][k]; ∂p_i/∂p_k = δ_ik.
-    let xd: [D<L>; 6] = from_fn(|i| D { v: x[i], d: h[i] });
-    let pd: [D<L>; 6] = from_fn(|i| D {
-        v: p[i],
-        d: from_fn(|k| if k == i { one } else { zero }),
-    });
+    let mut xd = [D {
+        v: zero,
+        d: [zero; 6],
+    }; 6];
+    let mut pd = xd;
+    for i in 0..6 {
+        xd[i].v = x[i];
+        xd[i].d = h[i];
+        pd[i].v = p[i];
+        pd[i].d[i] = one;
+    }
     let wd = [xd[0], xd[1], xd[2]];
     let sd = dot(&wd, &wd);
     let t = tar(&xd, &pd, D::chain(&sd, c, c1), D::chain(&sd, c1, c2));
-    (from_fn(|i| t[i].v), s, Some(from_fn(|r| t[r].d)))
+    let mut value = *p;
+    for r in 0..6 {
+        value[r] = t[r].v;
+        jac[r] = t[r].d;
+    }
+    (value, s)
 }
 
 /// The inverse of a 6×6 matrix lane by lane, by Gauss–Jordan with partial pivoting (each lane
 /// picks and swaps its own pivot rows), and per lane whether every pivot was non-zero and the
 /// inverse finite.
 #[inline(always)]
-pub(crate) fn inverse6_lanes<const L: usize>(m: &M6<L>) -> (M6<L>, [bool; L]) {
+pub(crate) fn inverse6_lanes<const L: usize>(m: &M6<L>, inv: &mut M6<L>) -> [bool; L] {
     let (zero, one) = (V::splat(0.0), V::splat(1.0));
     let mut a = [[zero; 12]; 6];
     for r in 0..6 {
@@ -247,11 +269,13 @@ pub(crate) fn inverse6_lanes<const L: usize>(m: &M6<L>) -> (M6<L>, [bool; L]) {
             }
         }
     }
-    let inv: M6<L> = from_fn(|r| from_fn(|c| a[r][6 + c]));
+    for r in 0..6 {
+        inv[r].copy_from_slice(&a[r][6..]);
+    }
     for l in 0..L {
         ok[l] &= inv.iter().flatten().all(|v| v.0[l].is_finite());
     }
-    (inv, ok)
+    ok
 }
 
 /// What the lane Newton solve of a polynomial S on se(3) needs: S's polynomial (N = 6) and the
@@ -324,7 +348,9 @@ fn se3_block<const N: usize, const L: usize>(
     let mut last = [f64::INFINITY; L];
     let mut iterations = [0u32; L];
     let mut converged = [false; L];
+    // The kept inverse per lane, and this round's Hessian, Jacobian and inverse.
     let mut inv: M6<L> = [[V::splat(0.0); 6]; 6];
+    let (mut h, mut jac, mut fresh) = (inv, inv, inv);
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
     while active.iter().any(|&a| a) {
         let hess = (0..L).any(|l| active[l] && refresh[l]);
@@ -336,10 +362,23 @@ fn se3_block<const N: usize, const L: usize>(
         } else {
             evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
         }
-        let x: V6<L> = from_fn(|i| V(jet.g[i]));
-        let h: Option<M6<L>> = hess.then(|| from_fn(|a| from_fn(|b| V(jet.h[a.min(b)][a.max(b)]))));
-        let (tar, s, jac) = se3_tar_lanes(&x, &p, h.as_ref());
-        let fresh = jac.map(|j| inverse6_lanes(&j));
+        let mut x = target;
+        for i in 0..6 {
+            x[i] = V(jet.g[i]);
+        }
+        if hess {
+            for a in 0..6 {
+                for b in 0..6 {
+                    h[a][b] = V(jet.h[a.min(b)][a.max(b)]);
+                }
+            }
+        }
+        let (tar, s) = se3_tar_lanes(&x, &p, hess.then_some(&h), &mut jac);
+        let ok = if hess {
+            inverse6_lanes(&jac, &mut fresh)
+        } else {
+            [false; L]
+        };
         let mut go = [false; L];
         for l in 0..L {
             if !active[l] {
@@ -347,18 +386,18 @@ fn se3_block<const N: usize, const L: usize>(
             }
             let finite = jet.v[l].is_finite()
                 && (0..6).all(|i| x[i].0[l].is_finite())
-                && (!refresh[l] || h.iter().flatten().flatten().all(|v| v.0[l].is_finite()));
+                && (!refresh[l] || h.iter().flatten().all(|v| v.0[l].is_finite()));
             let failure = if !finite {
                 Some(StepFailure::NonFinite)
             } else if s.0[l] >= max_s {
                 Some(StepFailure::ChartSingular)
             } else if iterations[l] >= sys.max_iter {
                 Some(StepFailure::NotConverged)
-            } else if let (true, Some((fi, ok))) = (refresh[l], &fresh) {
+            } else if refresh[l] {
                 if ok[l] {
                     for r in 0..6 {
                         for c in 0..6 {
-                            inv[r][c].0[l] = fi[r][c].0[l];
+                            inv[r][c].0[l] = fresh[r][c].0[l];
                         }
                     }
                     None
@@ -377,14 +416,18 @@ fn se3_block<const N: usize, const L: usize>(
             }
         }
         // δ = J⁻¹ (μ − tar), each component summed in column order.
-        let f: V6<L> = from_fn(|i| target[i] - tar[i]);
-        let delta: V6<L> = from_fn(|r| {
+        let mut f = tar;
+        for i in 0..6 {
+            f[i] = target[i] - tar[i];
+        }
+        let mut delta = f;
+        for r in 0..6 {
             let mut acc = inv[r][0] * f[0];
             for c in 1..6 {
                 acc = acc + inv[r][c] * f[c];
             }
-            acc
-        });
+            delta[r] = acc;
+        }
         for l in 0..L {
             if !go[l] {
                 continue;
@@ -419,8 +462,11 @@ fn se3_block<const N: usize, const L: usize>(
         pl[i] = p[i].0;
     }
     evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
-    let x: V6<L> = from_fn(|i| V(jet.g[i]));
-    let (tar, s, _) = se3_tar_lanes(&x, &p, None);
+    let mut x = target;
+    for i in 0..6 {
+        x[i] = V(jet.g[i]);
+    }
+    let (tar, s) = se3_tar_lanes(&x, &p, None, &mut jac);
     for l in (0..n).filter(|&l| converged[l]) {
         let xl: [f64; 6] = from_fn(|i| x[i].0[l]);
         let ml: [f64; 6] = from_fn(|i| target[i].0[l]);

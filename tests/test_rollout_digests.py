@@ -11,7 +11,10 @@ its central extension) converge to the same steps to Newton's tolerance from ano
 :data:`AFTER_THE_PREDICTOR` holds them. Then the implicit midpoint rule started the rigid body
 and the heavy top from fixed-point sweeps after the Euler midpoint (and solved the heavy top's
 Newton systems on their blocks): the same steps to Newton's tolerance in fewer updates, held in
-:data:`AFTER_THE_MIDPOINT_SWEEPS`. Nothing else may change."""
+:data:`AFTER_THE_MIDPOINT_SWEEPS`. Then the heavy top's Taylor step solved its Newton systems in
+SIMD lanes (the Jacobian in forward mode and a pivoted Gauss–Jordan inverse instead of dual
+numbers and nalgebra's LU; ``rust/tests/se3_lanes.rs`` checks its steps against the generic
+one's to 1e-12): :data:`AFTER_THE_SE3_LANES`. Nothing else may change."""
 
 from __future__ import annotations
 
@@ -84,6 +87,12 @@ AFTER_THE_MIDPOINT_SWEEPS = {
 }
 
 
+#: The heavy top's Taylor rollout after its Newton solve moved into SIMD lanes.
+AFTER_THE_SE3_LANES = {
+    "top-taylor3-exp": "84eb39ed6c76c492",
+}
+
+
 def _digests() -> dict[str, str]:
     out: dict[str, str] = {}
 
@@ -134,6 +143,12 @@ def _digests() -> dict[str, str]:
 def test_every_old_stepper_keeps_its_bits() -> None:
     got = _digests()
     assert set(got) == set(BEFORE)
-    want = {**BEFORE, **AFTER_THE_CASIMIR_FIX, **AFTER_THE_PREDICTOR, **AFTER_THE_MIDPOINT_SWEEPS}
+    want = {
+        **BEFORE,
+        **AFTER_THE_CASIMIR_FIX,
+        **AFTER_THE_PREDICTOR,
+        **AFTER_THE_MIDPOINT_SWEEPS,
+        **AFTER_THE_SE3_LANES,
+    }
     changed = sorted(k for k in want if got[k] != want[k])
     assert not changed, f"rollouts changed: {changed}"

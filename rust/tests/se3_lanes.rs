@@ -88,10 +88,10 @@ fn lane_chart_equals_the_scalar_chart_and_its_dual_jacobian() {
         let h: [[V<L>; 6]; 6] = std::array::from_fn(|a| {
             std::array::from_fn(|b| V(std::array::from_fn(|l| hs[l][a][b])))
         });
-        let (t_plain, s, none) = se3_tar_lanes(&x, &p, None);
-        assert!(none.is_none());
-        let (t, _, jac) = se3_tar_lanes(&x, &p, Some(&h));
-        let jac = jac.unwrap();
+        let mut jac = [[V([f64::NAN; L]); 6]; 6];
+        let (t_plain, s) = se3_tar_lanes(&x, &p, None, &mut jac);
+        assert!(jac.iter().flatten().all(|v| v.0.iter().all(|x| x.is_nan())));
+        let (t, _) = se3_tar_lanes(&x, &p, Some(&h), &mut jac);
         for l in 0..L {
             let want = groupoid.tar(&xs[l], &ps[l]).unwrap();
             let got: [f64; 6] = std::array::from_fn(|i| t[i].0[l]);
@@ -147,7 +147,8 @@ fn lane_inverse_pivots_and_flags_singular_lanes() {
     ms[6][3][3] = f64::NAN;
     let m: [[V<L>; 6]; 6] =
         std::array::from_fn(|r| std::array::from_fn(|c| V(std::array::from_fn(|l| ms[l][r][c]))));
-    let (inv, ok) = inverse6_lanes(&m);
+    let mut inv = [[V([0.0; L]); 6]; 6];
+    let ok = inverse6_lanes(&m, &mut inv);
     assert!(!ok[6], "NaN lane accepted");
     for l in (0..L).filter(|&l| l != 5 && l != 6) {
         assert!(ok[l], "lane {l} refused");
