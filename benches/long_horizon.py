@@ -374,7 +374,8 @@ def main() -> None:
     if lv:
         mu0 = np.exp(rng.uniform(-0.4, 0.4, (args.states, 3))) * np.array(LV_B)
         system = pr.lotka_volterra(LV_C, LV_B)
-        sweep, run, measure, projected = LV_SWEEP, projected_lv_rk4(), lv_invariants, LV_PROJECTED
+        run = None if args.methods else projected_lv_rk4()
+        sweep, measure, projected = LV_SWEEP, lv_invariants, LV_PROJECTED
         for name in sweep:
             steppers[name] = (
                 pr.log_canonical_taylor(system, int(name[6:]))
@@ -389,13 +390,17 @@ def main() -> None:
             axis=1,
         )
         body: pr.LiePoissonSystem = pr.HeavyTop(TOP_INERTIA, MGL, COM)
-        sweep, run, measure = TOP_SWEEP, projected_top_rk4(), top_invariants
+        sweep, run, measure = (
+            TOP_SWEEP,
+            None if args.methods else projected_top_rk4(),
+            top_invariants,
+        )
         projected = TOP_PROJECTED
     else:
         mu0 = rng.uniform(-3, 3, (args.states, 3))
         body = pr.RigidBody(INERTIA)
         inv = 1.0 / np.array(INERTIA)
-        sweep, run, projected = SWEEP, projected_rk4(), PROJECTED
+        sweep, run, projected = SWEEP, None if args.methods else projected_rk4(), PROJECTED
 
         def measure(traj: np.ndarray) -> tuple[float, float]:
             return invariants(traj, inv)
