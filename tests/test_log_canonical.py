@@ -308,6 +308,40 @@ def test_largest_magnitudes_keep_the_taylor_terms_finite() -> None:
         pr.LogPolynomial({(1, 0): 2e15}, [0.0, 0.0])
 
 
+#: A 5-D bracket with decimal entries: its exact null vector has integers far beyond int64.
+C5 = [
+    [0.0, 1.0, -0.5, 0.3, 0.2],
+    [-1.0, 0.0, 0.7, -0.4, 0.1],
+    [0.5, -0.7, 0.0, 0.6, -0.3],
+    [-0.3, 0.4, -0.6, 0.0, 0.9],
+    [-0.2, -0.1, 0.3, -0.9, 0.0],
+]
+
+
+def test_decimal_brackets_get_a_real_casimir_kept_by_taylor_lanes() -> None:
+    """c with entries like 0.3 is an exact binary fraction whose smallest integer null vector
+    has entries beyond 2^53 (this raised OverflowError inside numpy): the Casimir vector is the
+    exact one rounded to float64 and scaled to max |k| = 1; Taylor-HJ (in lanes for any N) keeps
+    Σ k_i ln x_i to round-off over 2,000 steps, and integer_null_space says why it refuses."""
+    from poisson_rs.structures.log_canonical import integer_null_space
+
+    system = pr.lotka_volterra(C5, [1.0, 2.0, 1.5, 0.5, 1.0])
+    (k,) = system.structure.casimir_vectors
+    assert k.dtype == np.float64 and np.max(np.abs(k)) == 1.0
+    np.testing.assert_allclose(np.asarray(C5) @ k, 0.0, atol=1e-15)
+    assert system.casimir_label.startswith("C = 0.721519 ln x₁ + 0.303797 ln x₂ + ln x₃")
+    with pytest.raises(ValueError, match=r"integer null vector has an entry of .* beyond 2\^53"):
+        integer_null_space(np.asarray(C5))
+    rng = np.random.default_rng(11)
+    x0 = np.exp(rng.uniform(-0.3, 0.3, (9, 5))) * np.array([1.0, 2.0, 1.5, 0.5, 1.0])
+    traj = pr.integrate(pr.log_canonical_taylor(system, 3), x0, 0.05, 2000, every=100)
+    drift = np.abs(system.casimirs(traj) - system.casimirs(x0)[:, None, :])
+    assert drift.max() < 1e-12
+    # RK4 in x does not keep it: the check can fail.
+    rk4 = pr.integrate(pr.log_canonical_classical(system, "rk4"), x0, 0.05, 2000, every=100)
+    assert np.abs(system.casimirs(rk4) - system.casimirs(x0)[:, None, :]).max() > 1e-9
+
+
 def test_integer_null_space_of_one_column() -> None:
     """A 1 × 1 zero matrix has the null space (1): sympy's ilcm needs two arguments."""
     from poisson_rs.structures.log_canonical import integer_null_space

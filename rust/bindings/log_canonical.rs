@@ -126,11 +126,8 @@ pub(super) fn rollout_log_canonical<'py>(
         let generating = ExpPolynomial::new(terms, std::array::from_fn(|i| lin[i]))?;
         let stepper = OrthantChecked(LogBisection::<N>::unit_scale(generating, realization, newton));
         let q0 = states::<N>(&q0, "q0")?;
-        // N = 2 and 3 solve their Newton systems in SIMD lanes (every lane the scalar bits).
-        match stepper.0.lanes() {
-            Some(lanes) => run_rollout(py, &Lanes::new(&lanes), &q0, h, n_steps, every, None),
-            None => run_rollout(py, &PerStep(&stepper), &q0, h, n_steps, every, None),
-        }
+        // The Newton systems solved in SIMD lanes (every lane the scalar bits).
+        run_rollout(py, &Lanes::new(&stepper.0.lanes()), &q0, h, n_steps, every, None)
     }, Err(dim_error(dim)))
 }
 

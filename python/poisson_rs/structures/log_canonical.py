@@ -75,11 +75,14 @@ def _check_matrix(c: ArrayLike) -> FloatArray:
     return arr
 
 
-def integer_null_space(c: FloatArray) -> NDArray[np.int64]:
-    """Integer vectors k spanning the rational null space of c (c k = 0), one per row, each
-    divided by the gcd of its entries. The entries of c are read as the exact binary fractions
-    they are, so the null space is exact. Returns an (m, n) int64 array (m = 0 when c is
-    invertible)."""
+#: Largest |k_i| an integer Casimir vector keeps as integers: every such k is exact in float64.
+INTEGER_CASIMIR_MAX = 2**53
+
+
+def _exact_null_rows(c: FloatArray) -> list[list[int]]:
+    """The rational null space of c as integer rows (each divided by the gcd of its entries,
+    first non-zero entry positive), exact: c's entries are read as the binary fractions they
+    are. Python integers, unbounded."""
     import sympy
 
     n = c.shape[0]
@@ -92,7 +95,40 @@ def integer_null_space(c: FloatArray) -> NDArray[np.int64]:
         first = next(k for k in ints if k != 0)
         sign = 1 if first > 0 else -1
         rows.append([sign * k // g for k in ints])
-    return np.array(rows, dtype=np.int64).reshape(len(rows), n)
+    return rows
+
+
+def integer_null_space(c: FloatArray) -> NDArray[np.int64]:
+    """Integer vectors k spanning the rational null space of c (c k = 0), one per row, each
+    divided by the gcd of its entries. The entries of c are read as the exact binary fractions
+    they are, so the null space is exact. Returns an (m, n) int64 array (m = 0 when c is
+    invertible); ValueError where an entry exceeds :data:`INTEGER_CASIMIR_MAX` (c with entries
+    such as 0.3, whose binary fractions make the smallest integer vector astronomically long:
+    see :func:`casimir_basis`)."""
+    rows = _exact_null_rows(c)
+    big = max((abs(k) for row in rows for k in row), default=0)
+    if big > INTEGER_CASIMIR_MAX:
+        raise ValueError(
+            f"c's integer null vector has an entry of {big:.3g}, beyond 2^53: no monomial "
+            "Casimir with exponents that size is meaningful (use casimir_basis)"
+        )
+    return np.array(rows, dtype=np.int64).reshape(len(rows), c.shape[0])
+
+
+def casimir_basis(c: FloatArray) -> NDArray[np.int64] | FloatArray:
+    """The Casimir vectors of the log-canonical bracket with matrix c: :func:`integer_null_space`
+    where its entries stay within :data:`INTEGER_CASIMIR_MAX` (monomial Casimirs Π x_i^{k_i}), else
+    the same exact rational vectors rounded to float64 and scaled to max |k_i| = 1 (the Casimirs
+    Σ k_i ln x_i, real exponents). (m, n); m = 0 when c is invertible."""
+    rows = _exact_null_rows(c)
+    n = c.shape[0]
+    if max((abs(k) for row in rows for k in row), default=0) <= INTEGER_CASIMIR_MAX:
+        return np.array(rows, dtype=np.int64).reshape(len(rows), n)
+    out = np.array(
+        [[float(Fraction(k, max(abs(v) for v in row))) for k in row] for row in rows],
+        dtype=np.float64,
+    )
+    return out.reshape(len(rows), n)
 
 
 #: Order of accuracy and whether a step is a Poisson map, for the classical integrators of a
@@ -118,7 +154,7 @@ class LogCanonical:
     def __init__(self, c: ArrayLike) -> None:
         self._c = _check_matrix(c)
         self._c.flags.writeable = False
-        self._casimir_vectors = integer_null_space(self._c)
+        self._casimir_vectors = casimir_basis(self._c)
         self._casimir_vectors.flags.writeable = False
 
     @property
@@ -130,8 +166,10 @@ class LogCanonical:
         return int(self._c.shape[0])
 
     @property
-    def casimir_vectors(self) -> NDArray[np.int64]:
-        """(m, n) integer rows k with c k = 0: the Casimirs Π x_i^{k_i} (log form Σ k_i ln x_i)."""
+    def casimir_vectors(self) -> NDArray[np.int64] | FloatArray:
+        """(m, n) rows k with c k = 0: the Casimirs Σ k_i ln x_i, integers (monomials Π x_i^{k_i})
+        where c's exact null space has integer vectors of moderate size, else real
+        (:func:`casimir_basis`)."""
         return self._casimir_vectors
 
     def bivector(self, x: Any) -> Any:
@@ -411,7 +449,7 @@ class LogCanonicalSystem(PoissonSystemBase):
                 if ki == 0:
                     continue
                 sign = "−" if ki < 0 else "+"
-                mag = "" if abs(ki) == 1 else f"{abs(ki)} "
+                mag = "" if abs(ki) == 1 else f"{abs(ki):.6g} "
                 parts.append(f"{sign} {mag}ln {name}")
             text = " ".join(parts)
             forms.append(text[2:] if text.startswith("+ ") else "−" + text[2:])

@@ -206,8 +206,9 @@ fn t_power_table(t: f64) -> [f64; T_POWERS] {
     table
 }
 
-/// δ = J⁻¹ f at L lanes by cofactors (N = 2 or 3); `ok[l]` is false where det J is 0 or not
-/// finite.
+/// δ = J⁻¹ f at L lanes: by cofactors for N ≤ 3, by Gaussian elimination with partial pivoting
+/// above ([`solve_pivoted_lanes`]); `ok[l]` is false where J is singular (det 0 or a zero
+/// pivot) or not finite.
 #[inline(always)]
 fn solve_small_lanes<const N: usize, const L: usize>(
     j: &[[[f64; L]; N]; N],
@@ -215,10 +216,17 @@ fn solve_small_lanes<const N: usize, const L: usize>(
     delta: &mut [[f64; L]; N],
     ok: &mut [bool; L],
 ) {
-    debug_assert!(N == 2 || N == 3, "cofactor solves are for N = 2 and 3");
+    if N > 3 {
+        return solve_pivoted_lanes(j, f, delta, ok);
+    }
     for l in 0..L {
         let m: [[f64; N]; N] = std::array::from_fn(|r| std::array::from_fn(|c| j[r][c][l]));
-        let (adj, det): ([[f64; N]; N], f64) = if N == 2 {
+        let (adj, det): ([[f64; N]; N], f64) = if N == 1 {
+            (
+                std::array::from_fn(|_| std::array::from_fn(|_| 1.0)),
+                m[0][0],
+            )
+        } else if N == 2 {
             let adj = [[m[1][1], -m[0][1]], [-m[1][0], m[0][0]]];
             (
                 std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
@@ -244,19 +252,81 @@ fn solve_small_lanes<const N: usize, const L: usize>(
     }
 }
 
+/// δ = J⁻¹ f at L lanes by Gaussian elimination with partial pivoting, each lane choosing and
+/// swapping its own pivot rows (so a lane's bits depend on no other lane), then back
+/// substitution; `ok[l]` is false where a pivot is 0 or not finite.
+#[inline(always)]
+fn solve_pivoted_lanes<const N: usize, const L: usize>(
+    j: &[[[f64; L]; N]; N],
+    f: &[[f64; L]; N],
+    delta: &mut [[f64; L]; N],
+    ok: &mut [bool; L],
+) {
+    let (mut a, mut b) = (*j, *f);
+    *ok = [true; L];
+    for col in 0..N {
+        for l in 0..L {
+            let mut best = col;
+            for r in col + 1..N {
+                if a[r][col][l].abs() > a[best][col][l].abs() {
+                    best = r;
+                }
+            }
+            if best != col {
+                for k in col..N {
+                    let t = a[best][k][l];
+                    a[best][k][l] = a[col][k][l];
+                    a[col][k][l] = t;
+                }
+                let t = b[best][l];
+                b[best][l] = b[col][l];
+                b[col][l] = t;
+            }
+            let pivot = a[col][col][l];
+            ok[l] &= pivot != 0.0 && pivot.is_finite();
+        }
+        for row in col + 1..N {
+            let mut factor = [0.0; L];
+            for l in 0..L {
+                factor[l] = a[row][col][l] / a[col][col][l];
+            }
+            for k in col + 1..N {
+                for l in 0..L {
+                    a[row][k][l] -= factor[l] * a[col][k][l];
+                }
+            }
+            for l in 0..L {
+                b[row][l] -= factor[l] * b[col][l];
+            }
+        }
+    }
+    for row in (0..N).rev() {
+        let mut acc = b[row];
+        for k in row + 1..N {
+            for l in 0..L {
+                acc[l] -= a[row][k][l] * delta[k][l];
+            }
+        }
+        for l in 0..L {
+            delta[row][l] = acc[l] / a[row][row][l];
+        }
+    }
+}
+
 /// Taylor-HJ on the log-canonical groupoid ([`LogBisection`] of an [`ExpPolynomial`], with the
-/// orthant check of [`OrthantChecked`](super::OrthantChecked)) in SIMD lanes, for N = 2 and 3:
+/// orthant check of [`OrthantChecked`](super::OrthantChecked)) in SIMD lanes, for any N:
 /// the Newton solve of q + ½c∇S(q) = q_k runs lane by lane (exact gradient and Hessian of S
-/// from y = e^q, the cofactor inverse of J = I + ½c∇²S, masked convergence), then
+/// from y = e^q, J = I + ½c∇²S solved by cofactors for N ≤ 3 and by pivoted elimination above,
+/// masked convergence), then
 /// q_{k+1} = q_k − c∇S(q) (the same as q − ½c∇S(q) at the solution, and exactly
 /// Casimir-preserving at any iterate). The scalar step is this with one lane, so every lane has
 /// the scalar bits.
 pub struct LogTaylorLanes<'a, const N: usize>(&'a LogBisection<N>);
 
 impl<const N: usize> LogBisection<N> {
-    /// This stepper in SIMD lanes, for N = 2 and 3 (None otherwise).
-    pub fn lanes(&self) -> Option<LogTaylorLanes<'_, N>> {
-        (N == 2 || N == 3).then_some(LogTaylorLanes(self))
+    /// This stepper in SIMD lanes.
+    pub fn lanes(&self) -> LogTaylorLanes<'_, N> {
+        LogTaylorLanes(self)
     }
 }
 
