@@ -2,8 +2,8 @@
 ``RAYON_NUM_THREADS=1 taskset -c 0 python benches/step_costs.py``.
 
 For the rigid body (I = (1.5, 2, 2.5)), the heavy top (I = (1, 1.5, 2), mgl = 0.981, χ = e₃) and
-Lotka–Volterra (PNN's 2D system and the 3D one of ``scenes/lotka_volterra_3d.toml``), h = 0.1, a
-batch of seeded states (``--batch``, default 4096): every fixed-step classical method
+Lotka–Volterra (PNN's 2D system, the 3D one of ``scenes/lotka_volterra_3d.toml`` and a 5D one),
+h = 0.1, a batch of seeded states (``--batch``, default 4096): every fixed-step classical method
 (``pr.classical_methods``, or RK4, the midpoint rule and the log splittings on Lotka–Volterra;
 DOP853 left out: it is adaptive and in SciPy), Taylor-HJ K = 3 and 5 in each chart the system has
 (the exact log-canonical groupoid for Lotka–Volterra), and the shipped learned models of that
@@ -38,6 +38,15 @@ import poisson_rs as pr
 from poisson_rs.files import atomic_write_bytes, check_output_path
 
 H = 0.1
+#: A 5-D Lotka–Volterra system (c of rank 4: one Casimir), for the dimensions above 3.
+LV5_C = [
+    [0.0, 1.0, -1.0, 1.0, 0.0],
+    [-1.0, 0.0, 1.0, 0.0, 1.0],
+    [1.0, -1.0, 0.0, 1.0, -1.0],
+    [-1.0, 0.0, -1.0, 0.0, 1.0],
+    [0.0, -1.0, 1.0, -1.0, 0.0],
+]
+LV5_B = [1.0, 2.0, 1.5, 0.5, 1.0]
 #: Trajectory-steps per timed rollout.
 WORK = 200_000
 
@@ -124,9 +133,20 @@ def main() -> None:
             lotka_volterra_states(args.batch, rng, np.array([1.0, 2.0, 1.0])),
             [],
         ),
+        (
+            "lotka-volterra 5d",
+            pr.lotka_volterra(LV5_C, LV5_B),
+            lotka_volterra_states(args.batch, rng, np.array(LV5_B)),
+            [],
+        ),
     ]
     if args.system != "all":
-        cases = [c for c in cases if c[0].replace(" 3d", "").replace(" ", "-") == args.system]
+        dims = (" 3d", " 5d")
+        cases = [
+            c
+            for c in cases
+            if c[0].replace(dims[0], "").replace(dims[1], "").replace(" ", "-") == args.system
+        ]
     rows: list[dict[str, Any]] = []
     for label, system, mu0, learned in cases:
         table = steppers(system, learned)
