@@ -467,11 +467,38 @@ fn so3_block<const N: usize, const L: usize>(
     }
 }
 
-/// [`so3_block`] over a chunk: blocks of [`LANES`] trajectories, or one trajectory at a time
-/// (L = 1, the same bits) where a block has at most [`SCALAR_AT_MOST`] live ones.
+/// A Newton solve in lanes: one step of a block of at most L trajectories, every lane with the
+/// bits of its one-lane solve ([`So3Newton`]; the se(3) solver of
+/// [`crate::lanes_bisection_se3`]).
+pub(crate) trait LaneSolve<const N: usize> {
+    /// One step of `mu` (at most L states; those with `live` false left alone) into `results`.
+    fn block<const L: usize>(
+        &self,
+        t: f64,
+        mu: &mut [[f64; N]],
+        live: &[bool],
+        results: &mut [StepResult],
+    );
+}
+
+impl<const N: usize> LaneSolve<N> for So3Newton<'_, N> {
+    #[inline(always)]
+    fn block<const L: usize>(
+        &self,
+        t: f64,
+        mu: &mut [[f64; N]],
+        live: &[bool],
+        results: &mut [StepResult],
+    ) {
+        so3_block::<N, L>(self, t, mu, live, results);
+    }
+}
+
+/// [`LaneSolve::block`] over a chunk: blocks of [`LANES`] trajectories, or one trajectory at a
+/// time (L = 1, the same bits) where a block has at most [`SCALAR_AT_MOST`] live ones.
 #[inline(always)]
-fn so3_chunk<const N: usize>(
-    sys: &So3Newton<'_, N>,
+fn solve_chunk<const N: usize, S: LaneSolve<N>>(
+    sys: &S,
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -484,25 +511,25 @@ fn so3_chunk<const N: usize>(
     {
         if lv.iter().filter(|&&l| l).count() <= SCALAR_AT_MOST {
             for j in (0..m.len()).filter(|&j| lv[j]) {
-                so3_one(sys, t, &mut m[j], &mut r[j]);
+                solve_one(sys, t, &mut m[j], &mut r[j]);
             }
         } else {
-            so3_block::<N, LANES>(sys, t, m, lv, r);
+            sys.block::<LANES>(t, m, lv, r);
         }
     }
 }
 
-/// One trajectory: [`so3_block`] with one lane, compiled on its own (scalar code gains nothing
-/// from the block's vector registers, and a separate function keeps its registers to itself).
+/// One trajectory: [`LaneSolve::block`] with one lane, compiled on its own (scalar code gains
+/// nothing from the block's vector registers, and a separate function keeps its registers to
+/// itself).
 #[inline(never)]
-fn so3_one<const N: usize>(
-    sys: &So3Newton<'_, N>,
+fn solve_one<const N: usize, S: LaneSolve<N>>(
+    sys: &S,
     t: f64,
     mu: &mut [f64; N],
     result: &mut StepResult,
 ) {
-    so3_block::<N, 1>(
-        sys,
+    sys.block::<1>(
         t,
         std::slice::from_mut(mu),
         &[true],
@@ -512,20 +539,43 @@ fn so3_one<const N: usize>(
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn so3_chunk_avx2<const N: usize>(
-    sys: &So3Newton<'_, N>,
+fn solve_chunk_avx2<const N: usize, S: LaneSolve<N>>(
+    sys: &S,
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
     results: &mut [StepResult],
 ) {
-    so3_chunk(sys, t, mu, live, results);
+    solve_chunk(sys, t, mu, live, results);
 }
 
-/// One simplified-Newton bisection step of every `mu[j]` with `live[j]` (N must be 3), the
-/// Newton solves and the chart in lanes compiled for `isa`; `results[j]` as
-/// [`crate::stepper::StepMap::step`] reports it. Lane j's bits depend neither on the other
-/// lanes, nor on the block size, nor on `isa`.
+/// One step of every `mu[j]` with `live[j]` by the lane solver `sys`, compiled for `isa`;
+/// `results[j]` as [`crate::stepper::StepMap::step`] reports it. Lane j's bits depend neither on
+/// the other lanes, nor on the block size, nor on `isa`.
+pub(crate) fn lane_newton_steps<const N: usize, S: LaneSolve<N>>(
+    sys: &S,
+    isa: Isa,
+    t: f64,
+    mu: &mut [[f64; N]],
+    live: &[bool],
+    results: &mut [StepResult],
+) {
+    assert!(
+        live.len() == mu.len() && results.len() == mu.len(),
+        "one flag and one result per state"
+    );
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx2() {
+        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
+        // field is private: safe code cannot forge it).
+        unsafe { solve_chunk_avx2(sys, t, mu, live, results) };
+        return;
+    }
+    solve_chunk(sys, t, mu, live, results);
+}
+
+/// One simplified-Newton bisection step of every `mu[j]` with `live[j]` on an so(3) chart (N
+/// must be 3): [`lane_newton_steps`] of [`So3Newton`].
 pub(crate) fn so3_newton_steps<const N: usize>(
     sys: &So3Newton<'_, N>,
     isa: Isa,
@@ -534,16 +584,6 @@ pub(crate) fn so3_newton_steps<const N: usize>(
     live: &[bool],
     results: &mut [StepResult],
 ) {
-    assert!(
-        N == 3 && live.len() == mu.len() && results.len() == mu.len(),
-        "so(3) lanes need N = 3 and one flag and result per state"
-    );
-    #[cfg(target_arch = "x86_64")]
-    if isa.is_avx2() {
-        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
-        // field is private: safe code cannot forge it).
-        unsafe { so3_chunk_avx2(sys, t, mu, live, results) };
-        return;
-    }
-    so3_chunk(sys, t, mu, live, results);
+    assert!(N == 3, "so(3) lanes need N = 3");
+    lane_newton_steps(sys, isa, t, mu, live, results);
 }

@@ -17,10 +17,10 @@ use std::array::from_fn;
 use std::ops::{Add, Mul, Sub};
 
 use crate::error::StepFailure;
-use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch, SCALAR_AT_MOST};
+use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::Polynomial;
-use crate::isa::{Isa, LANES};
-use crate::lanes_bisection::{evaluate, PREDICT_MAX_S, V};
+use crate::isa::Isa;
+use crate::lanes_bisection::{evaluate, lane_newton_steps, LaneSolve, PREDICT_MAX_S, V};
 use crate::step::{StepResult, StepStats, SIMPLIFIED_RATE};
 use crate::structures::lie_groupoid::{
     exp_chart_coefficient_derivatives_to, exp_chart_coefficient_to, se3_coadjoint, C_SERIES,
@@ -486,64 +486,21 @@ fn se3_block<const N: usize, const L: usize>(
     }
 }
 
-/// [`se3_block`] over a chunk: blocks of [`LANES`] trajectories, or one trajectory at a time
-/// (L = 1, the same bits) where a block has at most [`SCALAR_AT_MOST`] live ones.
-#[inline(always)]
-fn se3_chunk<const N: usize>(
-    sys: &Se3Newton<'_, N>,
-    t: f64,
-    mu: &mut [[f64; N]],
-    live: &[bool],
-    results: &mut [StepResult],
-) {
-    for ((m, lv), r) in mu
-        .chunks_mut(LANES)
-        .zip(live.chunks(LANES))
-        .zip(results.chunks_mut(LANES))
-    {
-        if lv.iter().filter(|&&l| l).count() <= SCALAR_AT_MOST {
-            for j in (0..m.len()).filter(|&j| lv[j]) {
-                se3_one(sys, t, &mut m[j], &mut r[j]);
-            }
-        } else {
-            se3_block::<N, LANES>(sys, t, m, lv, r);
-        }
+impl<const N: usize> LaneSolve<N> for Se3Newton<'_, N> {
+    #[inline(always)]
+    fn block<const L: usize>(
+        &self,
+        t: f64,
+        mu: &mut [[f64; N]],
+        live: &[bool],
+        results: &mut [StepResult],
+    ) {
+        se3_block::<N, L>(self, t, mu, live, results);
     }
 }
 
-/// One trajectory: [`se3_block`] with one lane, compiled on its own.
-#[inline(never)]
-fn se3_one<const N: usize>(
-    sys: &Se3Newton<'_, N>,
-    t: f64,
-    mu: &mut [f64; N],
-    result: &mut StepResult,
-) {
-    se3_block::<N, 1>(
-        sys,
-        t,
-        std::slice::from_mut(mu),
-        &[true],
-        std::slice::from_mut(result),
-    );
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn se3_chunk_avx2<const N: usize>(
-    sys: &Se3Newton<'_, N>,
-    t: f64,
-    mu: &mut [[f64; N]],
-    live: &[bool],
-    results: &mut [StepResult],
-) {
-    se3_chunk(sys, t, mu, live, results);
-}
-
 /// One simplified-Newton bisection step of every `mu[j]` with `live[j]` on se(3)'s exponential
-/// chart (N must be 6), in lanes compiled for `isa`; `results[j]` as
-/// [`crate::stepper::StepMap::step`] reports it. Lane j's bits depend neither on the other
-/// lanes, nor on the block size, nor on `isa`.
+/// chart (N must be 6): [`lane_newton_steps`] of [`Se3Newton`].
 pub(crate) fn se3_newton_steps<const N: usize>(
     sys: &Se3Newton<'_, N>,
     isa: Isa,
@@ -552,16 +509,6 @@ pub(crate) fn se3_newton_steps<const N: usize>(
     live: &[bool],
     results: &mut [StepResult],
 ) {
-    assert!(
-        N == 6 && live.len() == mu.len() && results.len() == mu.len(),
-        "se(3) lanes need N = 6 and one flag and result per state"
-    );
-    #[cfg(target_arch = "x86_64")]
-    if isa.is_avx2() {
-        // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
-        // field is private: safe code cannot forge it).
-        unsafe { se3_chunk_avx2(sys, t, mu, live, results) };
-        return;
-    }
-    se3_chunk(sys, t, mu, live, results);
+    assert!(N == 6, "se(3) lanes need N = 6");
+    lane_newton_steps(sys, isa, t, mu, live, results);
 }

@@ -30,7 +30,7 @@ const TOP_INERTIA: [f64; 3] = [1.0, 1.5, 2.0];
 const MGL: f64 = 0.981;
 const COM: [f64; 3] = [0.0, 0.0, 1.0];
 
-fn heavy_top() -> LiePoisson<6> {
+pub(super) fn heavy_top() -> LiePoisson<6> {
     LiePoisson::heavy_top(TOP_INERTIA, COM.map(|c| MGL * c)).unwrap()
 }
 
@@ -62,8 +62,9 @@ fn sl2_casimir(mu: &[f64; 3]) -> f64 {
 }
 
 /// The bisection stepper of S = −t H (a polynomial generating function) in the exp chart.
-fn minus_t_h_stepper<const N: usize>(system: &LiePoisson<N>) -> BisectionStepper<N> {
-    let terms = system
+/// −tH as monomials of S (its first Taylor term).
+pub(super) fn minus_t_h_terms<const N: usize>(system: &LiePoisson<N>) -> Vec<Monomial<N>> {
+    system
         .hamiltonian
         .terms()
         .iter()
@@ -72,7 +73,11 @@ fn minus_t_h_stepper<const N: usize>(system: &LiePoisson<N>) -> BisectionStepper
             p_powers: *e,
             coeff: -c,
         })
-        .collect();
+        .collect()
+}
+
+fn minus_t_h_stepper<const N: usize>(system: &LiePoisson<N>) -> BisectionStepper<N> {
+    let terms = minus_t_h_terms(system);
     BisectionStepper::new(
         GeneratingFunction::new(Polynomial { terms }, None, 0, MlpInputs::Plain).unwrap(),
         Groupoid::new(system.algebra.clone(), Chart::Exp).unwrap(),

@@ -4,33 +4,20 @@
 
 #![allow(clippy::needless_range_loop)]
 
+use super::lie_poisson::{heavy_top, minus_t_h_terms};
 use super::*;
 use crate::dual::Dual1;
 use crate::isa::Isa;
 use crate::lanes_bisection::V;
 use crate::lanes_bisection_se3::{inverse6_lanes, se3_newton_steps, se3_tar_lanes, Se3Newton};
 use crate::structures::lie_groupoid::LieAlgebra;
-use crate::structures::lie_poisson::LiePoisson;
 
 const L: usize = 8;
-
-fn heavy_top() -> LiePoisson<6> {
-    LiePoisson::heavy_top([1.0, 1.5, 2.0], [0.0, 0.0, 0.981]).unwrap()
-}
 
 /// −tH of the heavy top plus `extra` random terms t^k p^a (k = 2, 3; exponents ≤ 2 each, total
 /// ≤ 4; coefficients in ±0.01): a polynomial S a step of h = 0.1 solves for |M| ≤ 2.
 fn top_polynomial(rng: &mut Rng, extra: usize) -> Polynomial<6> {
-    let mut terms: Vec<Monomial<6>> = heavy_top()
-        .hamiltonian
-        .terms()
-        .iter()
-        .map(|(e, c)| Monomial {
-            t_power: 1,
-            p_powers: *e,
-            coeff: -c,
-        })
-        .collect();
+    let mut terms = minus_t_h_terms(&heavy_top());
     while terms.len() < 4 + extra {
         let p_powers = [0u32; 6].map(|_| rng.below(3) as u32);
         if p_powers.iter().sum::<u32>() <= 4 {
