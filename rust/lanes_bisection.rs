@@ -297,6 +297,98 @@ fn gradient_and_hessian<const N: usize, const L: usize>(jet: &JetLanes<N, L>) ->
     (x, h)
 }
 
+/// Simplified Newton's bookkeeping for a block, lane by lane (the rule of the generic
+/// one-trajectory step): which lanes still iterate, which take a fresh Jacobian next, the last
+/// update's size, the update counts and which lanes converged.
+pub(crate) struct Progress<const L: usize> {
+    pub active: [bool; L],
+    pub refresh: [bool; L],
+    last: [f64; L],
+    pub iterations: [u32; L],
+    pub converged: [bool; L],
+}
+
+impl<const L: usize> Progress<L> {
+    /// Every lane in `active` iterates, starting with a fresh Jacobian.
+    #[inline(always)]
+    pub(crate) fn new(active: [bool; L]) -> Self {
+        Progress {
+            active,
+            refresh: [true; L],
+            last: [f64::INFINITY; L],
+            iterations: [0; L],
+            converged: [false; L],
+        }
+    }
+
+    #[inline(always)]
+    pub(crate) fn running(&self) -> bool {
+        self.active.iter().any(|&a| a)
+    }
+
+    /// Whether a lane still iterating needs a fresh Jacobian this round.
+    #[inline(always)]
+    pub(crate) fn jacobian_wanted(&self) -> bool {
+        (0..L).any(|l| self.active[l] && self.refresh[l])
+    }
+
+    /// Lane l stops with `failure` if there is one, else takes this round's update (`go`).
+    #[inline(always)]
+    pub(crate) fn settle(
+        &mut self,
+        l: usize,
+        failure: Option<StepFailure>,
+        go: &mut [bool; L],
+        results: &mut [StepResult],
+    ) {
+        match failure {
+            Some(e) => {
+                results[l] = Err(e);
+                self.active[l] = false;
+            }
+            None => go[l] = true,
+        }
+    }
+
+    /// p += δ on the lanes in `go`: a δ that is not finite fails with SingularJacobian; a lane
+    /// converges once |δ|∞ ≤ tol · max(|p|∞, 1e-300), else takes a fresh Jacobian next round
+    /// where the update contracted by less than [`SIMPLIFIED_RATE`].
+    #[inline(always)]
+    pub(crate) fn update<const D: usize>(
+        &mut self,
+        go: &[bool; L],
+        p: &mut [V<L>; D],
+        delta: &[V<L>; D],
+        tol: f64,
+        results: &mut [StepResult],
+    ) {
+        for l in 0..L {
+            if !go[l] {
+                continue;
+            }
+            if !(0..D).all(|i| delta[i].0[l].is_finite()) {
+                results[l] = Err(StepFailure::SingularJacobian);
+                self.active[l] = false;
+                continue;
+            }
+            let (mut size, mut pmax) = (0.0f64, 0.0f64);
+            for i in 0..D {
+                p[i].0[l] += delta[i].0[l];
+                size = size.max(delta[i].0[l].abs());
+                pmax = pmax.max(p[i].0[l].abs());
+            }
+            self.iterations[l] += 1;
+            if size <= tol * pmax.max(1e-300) {
+                self.converged[l] = true;
+                self.active[l] = false;
+            } else {
+                self.refresh[l] = size > SIMPLIFIED_RATE * self.last[l];
+                self.last[l] = size;
+            }
+        }
+    }
+}
+
 /// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)
 /// by simplified Newton in lanes: the same rule as [`crate::stepper::BisectionStepper`]'s
 /// (refresh the Jacobian while updates contract by less than [`SIMPLIFIED_RATE`], stop once
@@ -348,15 +440,12 @@ fn so3_block<const N: usize, const L: usize>(
             }
         }
     }
-    let mut refresh = [true; L];
-    let mut last = [f64::INFINITY; L];
-    let mut iterations = [0u32; L];
-    let mut converged = [false; L];
+    let mut progress = Progress::new(active);
     let mut inv: M3<L> = [[V::splat(0.0); 3]; 3];
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
     let exp = sys.chart == Chart::Exp;
-    while active.iter().any(|&a| a) {
-        let hess = (0..L).any(|l| active[l] && refresh[l]);
+    while progress.running() {
+        let hess = progress.jacobian_wanted();
         for i in 0..3 {
             pl[i] = p[i].0;
         }
@@ -370,19 +459,20 @@ fn so3_block<const N: usize, const L: usize>(
         let fresh = jac.map(|j| inverse3_lanes(&j));
         let mut go = [false; L];
         for l in 0..L {
-            if !active[l] {
+            if !progress.active[l] {
                 continue;
             }
+            let refresh = progress.refresh[l];
             let finite = jet.v[l].is_finite()
                 && (0..3).all(|i| x[i].0[l].is_finite())
-                && (!refresh[l] || h.iter().flatten().all(|v| v.0[l].is_finite()));
+                && (!refresh || h.iter().flatten().all(|v| v.0[l].is_finite()));
             let failure = if !finite {
                 Some(StepFailure::NonFinite)
             } else if exp && s.0[l] >= max_s {
                 Some(StepFailure::ChartSingular)
-            } else if iterations[l] >= sys.max_iter {
+            } else if progress.iterations[l] >= sys.max_iter {
                 Some(StepFailure::NotConverged)
-            } else if let (true, Some((fi, det))) = (refresh[l], &fresh) {
+            } else if let (true, Some((fi, det))) = (refresh, &fresh) {
                 let ok = det.0[l] != 0.0
                     && det.0[l].is_finite()
                     && fi.iter().flatten().all(|v| v.0[l].is_finite());
@@ -399,43 +489,14 @@ fn so3_block<const N: usize, const L: usize>(
             } else {
                 None
             };
-            match failure {
-                Some(e) => {
-                    results[l] = Err(e);
-                    active[l] = false;
-                }
-                None => go[l] = true,
-            }
+            progress.settle(l, failure, &mut go, results);
         }
         // δ = J⁻¹ (μ − tar), each component summed in column order (Inverse::apply).
         let f = v3(|i| target[i] - tar[i]);
         let delta = v3(|r| inv[r][0] * f[0] + inv[r][1] * f[1] + inv[r][2] * f[2]);
-        for l in 0..L {
-            if !go[l] {
-                continue;
-            }
-            if !(0..3).all(|i| delta[i].0[l].is_finite()) {
-                results[l] = Err(StepFailure::SingularJacobian);
-                active[l] = false;
-                continue;
-            }
-            let (mut size, mut pmax) = (0.0f64, 0.0f64);
-            for i in 0..3 {
-                p[i].0[l] += delta[i].0[l];
-                size = size.max(delta[i].0[l].abs());
-                pmax = pmax.max(p[i].0[l].abs());
-            }
-            iterations[l] += 1;
-            if size <= sys.tol * pmax.max(1e-300) {
-                converged[l] = true;
-                active[l] = false;
-            } else {
-                refresh[l] = size > SIMPLIFIED_RATE * last[l];
-                last[l] = size;
-            }
-        }
+        progress.update(&go, &mut p, &delta, sys.tol, results);
     }
-    if !converged.iter().any(|&c| c) {
+    if !progress.converged.iter().any(|&c| c) {
         return;
     }
     // μ' = R(x) μ with x = ∇S(p) at the converged p (= sou(x, p) up to the residual, which
@@ -447,7 +508,7 @@ fn so3_block<const N: usize, const L: usize>(
     let (x, _) = gradient_and_hessian(&jet);
     let (tar, s, _) = so3_chart_lanes(sys.chart, -1.0, &x, &p, None);
     let next = so3_rotate_lanes(sys.chart, &x, &target, s);
-    for l in (0..n).filter(|&l| converged[l]) {
+    for l in (0..n).filter(|&l| progress.converged[l]) {
         results[l] = if !(jet.v[l].is_finite() && (0..3).all(|i| x[i].0[l].is_finite())) {
             Err(StepFailure::NonFinite)
         } else if exp && s.0[l] >= max_s {
@@ -460,7 +521,7 @@ fn so3_block<const N: usize, const L: usize>(
                 mu[l][i] = next[i].0[l];
             }
             Ok(StepStats {
-                iterations: iterations[l],
+                iterations: progress.iterations[l],
                 residual,
             })
         };

@@ -20,8 +20,8 @@ use crate::error::StepFailure;
 use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::Polynomial;
 use crate::isa::Isa;
-use crate::lanes_bisection::{evaluate, lane_newton_steps, LaneSolve, PREDICT_MAX_S, V};
-use crate::step::{StepResult, StepStats, SIMPLIFIED_RATE};
+use crate::lanes_bisection::{evaluate, lane_newton_steps, LaneSolve, Progress, PREDICT_MAX_S, V};
+use crate::step::{StepResult, StepStats};
 use crate::structures::lie_groupoid::{
     exp_chart_coefficient_derivatives_to, exp_chart_coefficient_to, se3_coadjoint, C_SERIES,
     EXP_CHART_MAX_ANGLE,
@@ -344,16 +344,13 @@ fn se3_block<const N: usize, const L: usize>(
             }
         }
     }
-    let mut refresh = [true; L];
-    let mut last = [f64::INFINITY; L];
-    let mut iterations = [0u32; L];
-    let mut converged = [false; L];
+    let mut progress = Progress::new(active);
     // The kept inverse per lane, and this round's Hessian, Jacobian and inverse.
     let mut inv: M6<L> = [[V::splat(0.0); 6]; 6];
     let (mut h, mut jac, mut fresh) = (inv, inv, inv);
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
-    while active.iter().any(|&a| a) {
-        let hess = (0..L).any(|l| active[l] && refresh[l]);
+    while progress.running() {
+        let hess = progress.jacobian_wanted();
         for i in 0..N {
             pl[i] = p[i].0;
         }
@@ -381,19 +378,20 @@ fn se3_block<const N: usize, const L: usize>(
         };
         let mut go = [false; L];
         for l in 0..L {
-            if !active[l] {
+            if !progress.active[l] {
                 continue;
             }
+            let refresh = progress.refresh[l];
             let finite = jet.v[l].is_finite()
                 && (0..6).all(|i| x[i].0[l].is_finite())
-                && (!refresh[l] || h.iter().flatten().all(|v| v.0[l].is_finite()));
+                && (!refresh || h.iter().flatten().all(|v| v.0[l].is_finite()));
             let failure = if !finite {
                 Some(StepFailure::NonFinite)
             } else if s.0[l] >= max_s {
                 Some(StepFailure::ChartSingular)
-            } else if iterations[l] >= sys.max_iter {
+            } else if progress.iterations[l] >= sys.max_iter {
                 Some(StepFailure::NotConverged)
-            } else if refresh[l] {
+            } else if refresh {
                 if ok[l] {
                     for r in 0..6 {
                         for c in 0..6 {
@@ -407,13 +405,7 @@ fn se3_block<const N: usize, const L: usize>(
             } else {
                 None
             };
-            match failure {
-                Some(e) => {
-                    results[l] = Err(e);
-                    active[l] = false;
-                }
-                None => go[l] = true,
-            }
+            progress.settle(l, failure, &mut go, results);
         }
         // δ = J⁻¹ (μ − tar), each component summed in column order.
         let mut f = tar;
@@ -428,32 +420,9 @@ fn se3_block<const N: usize, const L: usize>(
             }
             delta[r] = acc;
         }
-        for l in 0..L {
-            if !go[l] {
-                continue;
-            }
-            if !(0..6).all(|i| delta[i].0[l].is_finite()) {
-                results[l] = Err(StepFailure::SingularJacobian);
-                active[l] = false;
-                continue;
-            }
-            let (mut size, mut pmax) = (0.0f64, 0.0f64);
-            for i in 0..6 {
-                p[i].0[l] += delta[i].0[l];
-                size = size.max(delta[i].0[l].abs());
-                pmax = pmax.max(p[i].0[l].abs());
-            }
-            iterations[l] += 1;
-            if size <= sys.tol * pmax.max(1e-300) {
-                converged[l] = true;
-                active[l] = false;
-            } else {
-                refresh[l] = size > SIMPLIFIED_RATE * last[l];
-                last[l] = size;
-            }
-        }
+        progress.update(&go, &mut p, &delta, sys.tol, results);
     }
-    if !converged.iter().any(|&c| c) {
+    if !progress.converged.iter().any(|&c| c) {
         return;
     }
     // μ' = g(x)·μ with x = ∇S(p) at the converged p (sou(x, p) up to Newton's residual, which
@@ -467,7 +436,7 @@ fn se3_block<const N: usize, const L: usize>(
         x[i] = V(jet.g[i]);
     }
     let (tar, s) = se3_tar_lanes(&x, &p, None, &mut jac);
-    for l in (0..n).filter(|&l| converged[l]) {
+    for l in (0..n).filter(|&l| progress.converged[l]) {
         let xl: [f64; 6] = from_fn(|i| x[i].0[l]);
         let ml: [f64; 6] = from_fn(|i| target[i].0[l]);
         results[l] = if !(jet.v[l].is_finite() && xl.iter().all(|v| v.is_finite())) {
@@ -478,7 +447,7 @@ fn se3_block<const N: usize, const L: usize>(
             se3_coadjoint(&xl, &ml).map(|next| {
                 mu[l][..6].copy_from_slice(&next);
                 StepStats {
-                    iterations: iterations[l],
+                    iterations: progress.iterations[l],
                     residual: (0..6).fold(0.0f64, |m, i| m.max((tar[i].0[l] - ml[i]).abs())),
                 }
             })
