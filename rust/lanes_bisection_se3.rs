@@ -291,7 +291,8 @@ pub(crate) struct Se3Newton<'a, const N: usize> {
 
 /// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)
 /// by simplified Newton in lanes: the rule and the failures of the generic one-trajectory step
-/// (refresh the Jacobian while updates contract by less than [`SIMPLIFIED_RATE`], stop once
+/// (refresh the Jacobian while updates contract by less than
+/// [`SIMPLIFIED_RATE`](crate::step::SIMPLIFIED_RATE), stop once
 /// |δ|∞ ≤ tol · max(|p|∞, 1e-300)), lane by lane. A lane that converged or failed is frozen; the
 /// block runs until every lane has.
 #[inline(always)]
