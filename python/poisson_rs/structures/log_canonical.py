@@ -98,28 +98,12 @@ def _exact_null_rows(c: FloatArray) -> list[list[int]]:
     return rows
 
 
-def integer_null_space(c: FloatArray) -> NDArray[np.int64]:
-    """Integer vectors k spanning the rational null space of c (c k = 0), one per row, each
-    divided by the gcd of its entries. The entries of c are read as the exact binary fractions
-    they are, so the null space is exact. Returns an (m, n) int64 array (m = 0 when c is
-    invertible); ValueError where an entry exceeds :data:`INTEGER_CASIMIR_MAX` (c with entries
-    such as 0.3, whose binary fractions make the smallest integer vector astronomically long:
-    see :func:`casimir_basis`)."""
-    rows = _exact_null_rows(c)
-    big = max((abs(k) for row in rows for k in row), default=0)
-    if big > INTEGER_CASIMIR_MAX:
-        raise ValueError(
-            f"c's integer null vector has an entry of {big:.3g}, beyond 2^53: no monomial "
-            "Casimir with exponents that size is meaningful (use casimir_basis)"
-        )
-    return np.array(rows, dtype=np.int64).reshape(len(rows), c.shape[0])
-
-
 def casimir_basis(c: FloatArray) -> NDArray[np.int64] | FloatArray:
-    """The Casimir vectors of the log-canonical bracket with matrix c: :func:`integer_null_space`
-    where its entries stay within :data:`INTEGER_CASIMIR_MAX` (monomial Casimirs Π x_i^{k_i}), else
-    the same exact rational vectors rounded to float64 and scaled to max |k_i| = 1 (the Casimirs
-    Σ k_i ln x_i, real exponents). (m, n); m = 0 when c is invertible."""
+    """The Casimir vectors of the log-canonical bracket with matrix c, (m, n) (m = 0 when c is
+    invertible): the exact integer null vectors where their entries stay within
+    :data:`INTEGER_CASIMIR_MAX` (monomial Casimirs Π x_i^{k_i}), int64; else the same exact
+    rational vectors rounded to float64 and scaled to max |k_i| = 1 (the Casimirs Σ k_i ln x_i,
+    real exponents)."""
     rows = _exact_null_rows(c)
     n = c.shape[0]
     if max((abs(k) for row in rows for k in row), default=0) <= INTEGER_CASIMIR_MAX:
@@ -129,6 +113,23 @@ def casimir_basis(c: FloatArray) -> NDArray[np.int64] | FloatArray:
         dtype=np.float64,
     )
     return out.reshape(len(rows), n)
+
+
+def integer_null_space(c: FloatArray) -> NDArray[np.int64]:
+    """Integer vectors k spanning the rational null space of c (c k = 0), one per row, each
+    divided by the gcd of its entries. The entries of c are read as the exact binary fractions
+    they are, so the null space is exact. Returns an (m, n) int64 array (m = 0 when c is
+    invertible); ValueError where an entry exceeds :data:`INTEGER_CASIMIR_MAX` (c with entries
+    such as 0.3, whose binary fractions make the smallest integer vector astronomically long:
+    :func:`casimir_basis` gives real vectors there)."""
+    basis = casimir_basis(c)
+    if basis.dtype != np.int64:
+        big = max(abs(k) for row in _exact_null_rows(c) for k in row)
+        raise ValueError(
+            f"c's integer null vector has an entry of {big:.3g}, beyond 2^53: no monomial "
+            "Casimir with exponents that size is meaningful (use casimir_basis)"
+        )
+    return basis  # type: ignore[return-value]
 
 
 #: Order of accuracy and whether a step is a Poisson map, for the classical integrators of a
