@@ -8,7 +8,7 @@
 use crate::error::StepFailure;
 use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch, SCALAR_AT_MOST};
 pub use crate::generating::polynomial_lanes::{polynomial_gradients, polynomial_jets};
-use crate::generating::Polynomial;
+use crate::generating::{NetworkLanes, Polynomial};
 use crate::isa::{Isa, LANES};
 use crate::step::{StepResult, StepStats, SIMPLIFIED_RATE};
 use crate::structures::lie_groupoid::{
@@ -241,10 +241,11 @@ fn inverse3_lanes<const L: usize>(m: &M3<L>) -> (M3<L>, V<L>) {
 /// Largest |x₀|² at which the Newton predictor is used (see [`So3Newton::predict`]).
 pub(crate) const PREDICT_MAX_S: f64 = 1.0;
 
-/// What the lane Newton solve of a polynomial S on so(3) needs: S's polynomial (N = 3), the
-/// chart and the simplified-Newton settings.
+/// What the lane Newton solve of S on so(3) needs: S's polynomial part (N = 3) and network
+/// term if it has one, the chart and the simplified-Newton settings.
 pub(crate) struct So3Newton<'a, const N: usize> {
     pub poly: &'a Polynomial<N>,
+    pub network: Option<NetworkLanes<'a>>,
     pub chart: Chart,
     pub tol: f64,
     pub max_iter: u32,
@@ -253,11 +254,29 @@ pub(crate) struct So3Newton<'a, const N: usize> {
     pub predict: bool,
 }
 
-/// The jets (the Hessian only when `HESS`) of a block's momenta into `jet`. One lane takes the
-/// scalar [`Polynomial::jet`] / [`Polynomial::gradient`]: the same bits as a lane of a block
-/// (see [`jet_lanes_into`]), without storing every factor to memory as the lane code does.
+/// The jets of S = P + network term (the Hessian only when `HESS`) at a block's momenta into
+/// `jet`; `buf` is the network term's scratch ([`NetworkLanes::add_jet_lanes`]).
 #[inline(always)]
 pub(crate) fn evaluate<const N: usize, const L: usize, const HESS: bool>(
+    poly: &Polynomial<N>,
+    network: Option<&NetworkLanes<'_>>,
+    t: f64,
+    p: &[[f64; L]; N],
+    scratch: &mut Scratch<N, L>,
+    buf: &mut [f64],
+    jet: &mut JetLanes<N, L>,
+) {
+    evaluate_polynomial::<N, L, HESS>(poly, t, p, scratch, jet);
+    if let Some(net) = network {
+        net.add_jet_lanes::<N, L, HESS>(t, p, buf, jet);
+    }
+}
+
+/// The polynomial part of [`evaluate`]. One lane takes the scalar [`Polynomial::jet`] /
+/// [`Polynomial::gradient`]: the same bits as a lane of a block (see [`jet_lanes_into`]),
+/// without storing every factor to memory as the lane code does.
+#[inline(always)]
+fn evaluate_polynomial<const N: usize, const L: usize, const HESS: bool>(
     poly: &Polynomial<N>,
     t: f64,
     p: &[[f64; L]; N],
@@ -397,6 +416,7 @@ impl<const L: usize> Progress<L> {
 #[inline(always)]
 fn so3_block<const N: usize, const L: usize>(
     sys: &So3Newton<'_, N>,
+    buf: &mut [f64],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -414,6 +434,7 @@ fn so3_block<const N: usize, const L: usize>(
     }
     let target: V3<L> = [V(pl[0]), V(pl[1]), V(pl[2])];
     let mut p = target;
+    let net = sys.network.as_ref();
     let mut scratch = Scratch::<N, L>::new();
     let mut jet = JetLanes {
         v: [0.0; L],
@@ -450,9 +471,9 @@ fn so3_block<const N: usize, const L: usize>(
             pl[i] = p[i].0;
         }
         if hess {
-            evaluate::<N, L, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+            evaluate::<N, L, true>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
         } else {
-            evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+            evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
         }
         let (x, h) = gradient_and_hessian(&jet);
         let (tar, s, jac) = so3_chart_lanes(sys.chart, -1.0, &x, &p, hess.then_some(&h));
@@ -504,7 +525,7 @@ fn so3_block<const N: usize, const L: usize>(
     for i in 0..3 {
         pl[i] = p[i].0;
     }
-    evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+    evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
     let (x, _) = gradient_and_hessian(&jet);
     let (tar, s, _) = so3_chart_lanes(sys.chart, -1.0, &x, &p, None);
     let next = so3_rotate_lanes(sys.chart, &x, &target, s);
@@ -535,6 +556,7 @@ pub(crate) trait LaneSolve<const N: usize> {
     /// One step of `mu` (at most L states; those with `live` false left alone) into `results`.
     fn block<const L: usize>(
         &self,
+        buf: &mut [f64],
         t: f64,
         mu: &mut [[f64; N]],
         live: &[bool],
@@ -546,12 +568,13 @@ impl<const N: usize> LaneSolve<N> for So3Newton<'_, N> {
     #[inline(always)]
     fn block<const L: usize>(
         &self,
+        buf: &mut [f64],
         t: f64,
         mu: &mut [[f64; N]],
         live: &[bool],
         results: &mut [StepResult],
     ) {
-        so3_block::<N, L>(self, t, mu, live, results);
+        so3_block::<N, L>(self, buf, t, mu, live, results);
     }
 }
 
@@ -560,6 +583,7 @@ impl<const N: usize> LaneSolve<N> for So3Newton<'_, N> {
 #[inline(always)]
 fn solve_chunk<const N: usize, S: LaneSolve<N>>(
     sys: &S,
+    buf: &mut [f64],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -572,10 +596,10 @@ fn solve_chunk<const N: usize, S: LaneSolve<N>>(
     {
         if lv.iter().filter(|&&l| l).count() <= SCALAR_AT_MOST {
             for j in (0..m.len()).filter(|&j| lv[j]) {
-                solve_one(sys, t, &mut m[j], &mut r[j]);
+                solve_one(sys, buf, t, &mut m[j], &mut r[j]);
             }
         } else {
-            sys.block::<LANES>(t, m, lv, r);
+            sys.block::<LANES>(buf, t, m, lv, r);
         }
     }
 }
@@ -586,11 +610,13 @@ fn solve_chunk<const N: usize, S: LaneSolve<N>>(
 #[inline(never)]
 fn solve_one<const N: usize, S: LaneSolve<N>>(
     sys: &S,
+    buf: &mut [f64],
     t: f64,
     mu: &mut [f64; N],
     result: &mut StepResult,
 ) {
     sys.block::<1>(
+        buf,
         t,
         std::slice::from_mut(mu),
         &[true],
@@ -602,20 +628,23 @@ fn solve_one<const N: usize, S: LaneSolve<N>>(
 #[target_feature(enable = "avx2,fma")]
 fn solve_chunk_avx2<const N: usize, S: LaneSolve<N>>(
     sys: &S,
+    buf: &mut [f64],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
     results: &mut [StepResult],
 ) {
-    solve_chunk(sys, t, mu, live, results);
+    solve_chunk(sys, buf, t, mu, live, results);
 }
 
 /// One step of every `mu[j]` with `live[j]` by the lane solver `sys`, compiled for `isa`;
 /// `results[j]` as [`crate::stepper::StepMap::step`] reports it. Lane j's bits depend neither on
-/// the other lanes, nor on the block size, nor on `isa`.
+/// the other lanes, nor on the block size, nor on `isa`. `buf`: the network term's scratch
+/// (empty for a polynomial S).
 pub(crate) fn lane_newton_steps<const N: usize, S: LaneSolve<N>>(
     sys: &S,
     isa: Isa,
+    buf: &mut [f64],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -629,10 +658,10 @@ pub(crate) fn lane_newton_steps<const N: usize, S: LaneSolve<N>>(
     if isa.is_avx2() {
         // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its
         // field is private: safe code cannot forge it).
-        unsafe { solve_chunk_avx2(sys, t, mu, live, results) };
+        unsafe { solve_chunk_avx2(sys, buf, t, mu, live, results) };
         return;
     }
-    solve_chunk(sys, t, mu, live, results);
+    solve_chunk(sys, buf, t, mu, live, results);
 }
 
 /// One simplified-Newton bisection step of every `mu[j]` with `live[j]` on an so(3) chart (N
@@ -640,11 +669,12 @@ pub(crate) fn lane_newton_steps<const N: usize, S: LaneSolve<N>>(
 pub(crate) fn so3_newton_steps<const N: usize>(
     sys: &So3Newton<'_, N>,
     isa: Isa,
+    buf: &mut [f64],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
     results: &mut [StepResult],
 ) {
     assert!(N == 3, "so(3) lanes need N = 3");
-    lane_newton_steps(sys, isa, t, mu, live, results);
+    lane_newton_steps(sys, isa, buf, t, mu, live, results);
 }

@@ -18,7 +18,7 @@ use std::ops::{Add, Mul, Sub};
 
 use crate::error::StepFailure;
 use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
-use crate::generating::Polynomial;
+use crate::generating::{NetworkLanes, Polynomial};
 use crate::isa::Isa;
 use crate::lanes_bisection::{evaluate, lane_newton_steps, LaneSolve, Progress, PREDICT_MAX_S, V};
 use crate::step::{StepResult, StepStats};
@@ -278,10 +278,11 @@ pub(crate) fn inverse6_lanes<const L: usize>(m: &M6<L>, inv: &mut M6<L>) -> [boo
     ok
 }
 
-/// What the lane Newton solve of a polynomial S on se(3) needs: S's polynomial (N = 6) and the
-/// simplified-Newton settings.
+/// What the lane Newton solve of S on se(3) needs: S's polynomial part (N = 6) and network term
+/// if it has one, and the simplified-Newton settings.
 pub(crate) struct Se3Newton<'a, const N: usize> {
     pub poly: &'a Polynomial<N>,
+    pub network: Option<NetworkLanes<'a>>,
     pub tol: f64,
     pub max_iter: u32,
     /// Start Newton from p₀ = μ − ½ ad_{x₀}ᵀ μ (x₀: the t-linear terms' gradient at μ) instead
@@ -298,6 +299,7 @@ pub(crate) struct Se3Newton<'a, const N: usize> {
 #[inline(always)]
 fn se3_block<const N: usize, const L: usize>(
     sys: &Se3Newton<'_, N>,
+    buf: &mut [f64],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -315,6 +317,7 @@ fn se3_block<const N: usize, const L: usize>(
     }
     let target: V6<L> = from_fn(|i| V(pl[i]));
     let mut p = target;
+    let net = sys.network.as_ref();
     let mut scratch = Scratch::<N, L>::new();
     let mut jet = JetLanes {
         v: [0.0; L],
@@ -356,9 +359,9 @@ fn se3_block<const N: usize, const L: usize>(
             pl[i] = p[i].0;
         }
         if hess {
-            evaluate::<N, L, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+            evaluate::<N, L, true>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
         } else {
-            evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+            evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
         }
         let mut x = target;
         for i in 0..6 {
@@ -431,7 +434,7 @@ fn se3_block<const N: usize, const L: usize>(
     for i in 0..N {
         pl[i] = p[i].0;
     }
-    evaluate::<N, L, false>(sys.poly, t, &pl, &mut scratch, &mut jet);
+    evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
     let mut x = target;
     for i in 0..6 {
         x[i] = V(jet.g[i]);
@@ -460,12 +463,13 @@ impl<const N: usize> LaneSolve<N> for Se3Newton<'_, N> {
     #[inline(always)]
     fn block<const L: usize>(
         &self,
+        buf: &mut [f64],
         t: f64,
         mu: &mut [[f64; N]],
         live: &[bool],
         results: &mut [StepResult],
     ) {
-        se3_block::<N, L>(self, t, mu, live, results);
+        se3_block::<N, L>(self, buf, t, mu, live, results);
     }
 }
 
@@ -474,11 +478,12 @@ impl<const N: usize> LaneSolve<N> for Se3Newton<'_, N> {
 pub(crate) fn se3_newton_steps<const N: usize>(
     sys: &Se3Newton<'_, N>,
     isa: Isa,
+    buf: &mut [f64],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
     results: &mut [StepResult],
 ) {
     assert!(N == 6, "se(3) lanes need N = 6");
-    lane_newton_steps(sys, isa, t, mu, live, results);
+    lane_newton_steps(sys, isa, buf, t, mu, live, results);
 }

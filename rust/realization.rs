@@ -15,7 +15,7 @@ use nalgebra::{Const, DimMin};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::StepFailure;
-use crate::generating::{GeneratingFunction, Mlp, Polynomial, Workspace, MAX_BATCH};
+use crate::generating::{GeneratingFunction, Mlp, NetworkLanes, Polynomial, Workspace, MAX_BATCH};
 use crate::step::{Inverse, StepResult, StepStats, SIMPLIFIED_RATE};
 use crate::structures::lie_groupoid::Groupoid;
 
@@ -138,6 +138,16 @@ pub trait Generating<const N: usize>: Sync {
     fn polynomial(&self) -> Option<&Polynomial<N>> {
         None
     }
+    /// S as the lane Newton solvers take it: its polynomial part and its network term, where S
+    /// is a polynomial, or a polynomial plus a network narrow enough for the lanes
+    /// ([`crate::generating::NETWORK_LANES_MAX_WIDTH`]); None keeps the batched path.
+    fn lane_parts(&self) -> Option<(&Polynomial<N>, Option<NetworkLanes<'_>>)> {
+        self.polynomial().map(|p| (p, None))
+    }
+    /// The lane network term's scratch in a workspace (empty where there is none).
+    fn lane_scratch<'w>(&self, _ws: &'w mut Self::Workspace) -> &'w mut [f64] {
+        &mut []
+    }
 }
 
 impl<const N: usize> Generating<N> for GeneratingFunction<N> {
@@ -167,6 +177,15 @@ impl<const N: usize> Generating<N> for GeneratingFunction<N> {
     }
     fn polynomial(&self) -> Option<&Polynomial<N>> {
         self.mlp.is_none().then_some(&self.polynomial)
+    }
+    fn lane_parts(&self) -> Option<(&Polynomial<N>, Option<NetworkLanes<'_>>)> {
+        match self.mlp {
+            None => Some((&self.polynomial, None)),
+            Some(_) => Some((&self.polynomial, Some(self.network_lanes()?))),
+        }
+    }
+    fn lane_scratch<'w>(&self, ws: &'w mut Workspace<N>) -> &'w mut [f64] {
+        &mut ws.lanes
     }
 }
 

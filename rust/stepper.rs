@@ -80,8 +80,9 @@ impl<const N: usize, R: Realization<N> + Any, G: Generating<N>> BisectionStepper
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
-    /// The lane solver, where it applies: a polynomial S (no MLP) on an so(3) chart with
-    /// simplified Newton and the relative tolerance. Full Newton keeps the generic dual-number
+    /// The lane solver, where it applies: a polynomial S, or one plus a network term that fits
+    /// the lanes ([`Generating::lane_parts`]), on an so(3) chart with simplified Newton and the
+    /// relative tolerance. Full Newton keeps the generic dual-number
     /// path. The chart is found by type ([`Any`]): no other realization needs to know of it.
     fn so3_lanes(&self) -> Option<So3Newton<'_, N>> {
         if N != 3 || !self.newton.simplified || self.scale_floor != RELATIVE_FLOOR {
@@ -91,8 +92,10 @@ where
         if !groupoid.algebra.is_so3() {
             return None;
         }
+        let (poly, network) = self.generating.lane_parts()?;
         Some(So3Newton {
-            poly: self.generating.polynomial()?,
+            poly,
+            network,
             chart: groupoid.chart,
             tol: self.newton.tol,
             max_iter: self.newton.max_iter,
@@ -100,8 +103,8 @@ where
         })
     }
 
-    /// The se(3) lane solver, where it applies: a polynomial S (no MLP) on se(3)'s exponential
-    /// chart, with simplified Newton and the relative tolerance (as [`Self::so3_lanes`]).
+    /// The se(3) lane solver, where it applies: S as [`Self::so3_lanes`] takes it, on se(3)'s
+    /// exponential chart, with simplified Newton and the relative tolerance (as [`Self::so3_lanes`]).
     fn se3_lanes(&self) -> Option<Se3Newton<'_, N>> {
         if N != 6 || !self.newton.simplified || self.scale_floor != RELATIVE_FLOOR {
             return None;
@@ -110,8 +113,10 @@ where
         if !groupoid.algebra.is_se3() {
             return None;
         }
+        let (poly, network) = self.generating.lane_parts()?;
         Some(Se3Newton {
-            poly: self.generating.polynomial()?,
+            poly,
+            network,
             tol: self.newton.tol,
             max_iter: self.newton.max_iter,
             predict: PREDICT,
@@ -162,18 +167,21 @@ where
     /// refreshes the Jacobian every update; simplified Newton keeps the first one's factors
     /// while the updates contract by [`SIMPLIFIED_RATE`] or better, needing ∂S/∂p only).
     ///
-    /// A polynomial S on an so(3) or se(3) chart with simplified Newton takes the lane solver
-    /// with one lane: the bits of its lane in any block of [`StepMap::step_batch`].
+    /// S on an so(3) or se(3) chart with simplified Newton, where it fits the lanes
+    /// ([`Generating::lane_parts`]), takes the lane solver with one lane: the bits of its lane
+    /// in any block of [`StepMap::step_batch`].
     fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut G::Workspace) -> StepResult {
         let mut result = [Err(StepFailure::NotConverged)];
         if let Some(sys) = self.so3_lanes() {
             let one = std::slice::from_mut(mu);
-            so3_newton_steps(&sys, Isa::detect(), h, one, &[true], &mut result);
+            let buf = self.generating.lane_scratch(ws);
+            so3_newton_steps(&sys, Isa::detect(), buf, h, one, &[true], &mut result);
             return result[0];
         }
         if let Some(sys) = self.se3_lanes() {
             let one = std::slice::from_mut(mu);
-            se3_newton_steps(&sys, Isa::detect(), h, one, &[true], &mut result);
+            let buf = self.generating.lane_scratch(ws);
+            se3_newton_steps(&sys, Isa::detect(), buf, h, one, &[true], &mut result);
             return result[0];
         }
         self.solver().step(&self.generating, h, mu, ws)
@@ -195,10 +203,12 @@ where
         ws: &mut G::Workspace,
     ) {
         if let Some(sys) = self.so3_lanes() {
-            return so3_newton_steps(&sys, Isa::detect(), h, mu, live, results);
+            let buf = self.generating.lane_scratch(ws);
+            return so3_newton_steps(&sys, Isa::detect(), buf, h, mu, live, results);
         }
         if let Some(sys) = self.se3_lanes() {
-            return se3_newton_steps(&sys, Isa::detect(), h, mu, live, results);
+            let buf = self.generating.lane_scratch(ws);
+            return se3_newton_steps(&sys, Isa::detect(), buf, h, mu, live, results);
         }
         // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
         // small to fill the lanes takes the cheaper path (a rollout of one state, say).

@@ -9,6 +9,7 @@
 #![allow(clippy::needless_range_loop)]
 
 mod mlp;
+mod network_lanes;
 mod polynomial;
 pub mod polynomial_lanes;
 mod workspace;
@@ -16,6 +17,9 @@ mod workspace;
 #[cfg(test)]
 pub(crate) use mlp::narrow_gemm;
 pub use mlp::{tanh_fast, tanh_fast_fma, Layer, Mlp};
+pub use network_lanes::{
+    scratch_len, NetworkLanes, NETWORK_LANES_MAX_DIM, NETWORK_LANES_MAX_WIDTH,
+};
 pub(crate) use polynomial::TABLE_POWER;
 pub use polynomial::{Monomial, Polynomial};
 pub use workspace::Workspace;
@@ -129,8 +133,10 @@ impl<const N: usize> GeneratingFunction<N> {
     /// A workspace, or [`CoreError::Memory`] where the memory is refused.
     pub fn try_workspace(&self) -> Result<Workspace<N>, CoreError> {
         let (w, batch, acts) = Workspace::sizes(self);
+        let lanes = Workspace::lane_len(self);
         let what = "the evaluation workspace (a very wide layer?)";
         Ok(Workspace {
+            lanes: try_filled(lanes, 0.0, what)?,
             jet_a: try_filled(w, Jet2::default(), what)?,
             jet_b: try_filled(w, Jet2::default(), what)?,
             d1_a: try_filled(w, Dual1::default(), what)?,
@@ -139,6 +145,16 @@ impl<const N: usize> GeneratingFunction<N> {
             batch_b: try_filled(batch, 0.0, what)?,
             acts: try_filled(acts, 0.0, what)?,
         })
+    }
+
+    /// The network term in the form the lane Newton solvers take, where there is one, N is at
+    /// most [`NETWORK_LANES_MAX_DIM`] and its layers fit the lanes
+    /// ([`NETWORK_LANES_MAX_WIDTH`]).
+    pub fn network_lanes(&self) -> Option<NetworkLanes<'_>> {
+        if N > NETWORK_LANES_MAX_DIM {
+            return None;
+        }
+        NetworkLanes::new(self.mlp.as_ref()?, self.mlp_power, self.inputs)
     }
 
     /// S(t, p), ∂S/∂p and ∂²S/∂p² at fixed t, exactly (forward mode).

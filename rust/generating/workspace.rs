@@ -2,6 +2,7 @@
 
 use super::{GeneratingFunction, Mlp, MAX_BATCH};
 use crate::dual::{Dual1, Jet2, Variable};
+use crate::isa::LANES;
 
 /// Scratch memory for one evaluation at a time; allocated once per worker, never per step.
 #[derive(Clone, Debug)]
@@ -15,6 +16,9 @@ pub struct Workspace<const N: usize> {
     pub(super) batch_b: Vec<f64>,
     /// Every layer's activations for MAX_BATCH trajectories, kept for the reverse pass.
     pub(super) acts: Vec<f64>,
+    /// Two layers' jets in lanes, for the lane Newton solvers' network term
+    /// ([`super::NetworkLanes`]); empty where S has no network term that fits the lanes.
+    pub(crate) lanes: Vec<f64>,
 }
 
 impl<const N: usize> Workspace<N> {
@@ -28,6 +32,15 @@ impl<const N: usize> Workspace<N> {
             )
             .saturating_add(batch.saturating_mul(16))
             .saturating_add(acts.saturating_mul(8))
+            .saturating_add(Self::lane_len(generating).saturating_mul(8))
+    }
+
+    /// f64s of the lane scratch: [`super::network_lanes::scratch_len`] for a block of
+    /// [`LANES`] where the network term fits the lanes, else none.
+    pub(super) fn lane_len(generating: &GeneratingFunction<N>) -> usize {
+        generating
+            .network_lanes()
+            .map_or(0, |net| super::scratch_len(net.mlp, N, LANES))
     }
 
     /// Elements of the single-trajectory buffers, of each batch buffer, and of `acts`.

@@ -302,6 +302,7 @@ fn lane_newton_equals_the_generic_step() {
             assert!(st.newton.simplified);
             let plain = So3Newton {
                 poly: &st.generating.polynomial,
+                network: None,
                 chart,
                 tol: st.newton.tol,
                 max_iter: st.newton.max_iter,
@@ -317,7 +318,15 @@ fn lane_newton_equals_the_generic_step() {
                 for _ in 0..20 {
                     let mut sa = [Err(StepFailure::OutOfDomain)];
                     let mut one = [a];
-                    so3_newton_steps(&plain, Isa::detect(), 0.1, &mut one, &[true], &mut sa);
+                    so3_newton_steps(
+                        &plain,
+                        Isa::detect(),
+                        &mut [],
+                        0.1,
+                        &mut one,
+                        &[true],
+                        &mut sa,
+                    );
                     a = one[0];
                     let sa = sa[0].unwrap();
                     let sb = st.step_generic(0.1, &mut b, &mut ws).unwrap();
@@ -362,6 +371,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
         let poly = Polynomial { terms: taylor3() };
         let sys = So3Newton {
             poly: &poly,
+            network: None,
             chart,
             tol: 1e-12,
             max_iter: 50,
@@ -385,7 +395,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
                 .zip(live.chunks(block))
                 .zip(res.chunks_mut(block))
             {
-                so3_newton_steps(&sys, isa, 0.1, m, l, r);
+                so3_newton_steps(&sys, isa, &mut [], 0.1, m, l, r);
             }
             (mu, res)
         };

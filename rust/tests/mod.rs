@@ -255,6 +255,7 @@ mod layout;
 mod lie_poisson;
 mod log_canonical;
 mod model_files;
+mod network_lanes;
 mod polynomial;
 mod rollouts;
 mod se3_lanes;

@@ -170,6 +170,7 @@ fn lane_newton_equals_the_generic_step() {
         let st = top_stepper(top_polynomial(&mut rng, extra));
         let plain = Se3Newton {
             poly: &st.generating.polynomial,
+            network: None,
             tol: st.newton.tol,
             max_iter: st.newton.max_iter,
             predict: false,
@@ -183,7 +184,15 @@ fn lane_newton_equals_the_generic_step() {
             for _ in 0..20 {
                 let mut sa = [Err(StepFailure::OutOfDomain)];
                 let mut one = [a];
-                se3_newton_steps(&plain, Isa::detect(), 0.1, &mut one, &[true], &mut sa);
+                se3_newton_steps(
+                    &plain,
+                    Isa::detect(),
+                    &mut [],
+                    0.1,
+                    &mut one,
+                    &[true],
+                    &mut sa,
+                );
                 a = one[0];
                 let sa = sa[0].unwrap();
                 let sb = st.step_generic(0.1, &mut b, &mut ws).unwrap();
@@ -231,6 +240,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     let st = top_stepper(top_polynomial(&mut rng, 6));
     let sys = Se3Newton {
         poly: &st.generating.polynomial,
+        network: None,
         tol: 1e-12,
         max_iter: 50,
         predict: true,
@@ -248,7 +258,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
             .zip(live.chunks(block))
             .zip(res.chunks_mut(block))
         {
-            se3_newton_steps(sys, isa, 0.1, m, l, r);
+            se3_newton_steps(sys, isa, &mut [], 0.1, m, l, r);
         }
         (mu, res)
     };

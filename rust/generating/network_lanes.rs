@@ -1,0 +1,472 @@
+//! The network term t^m · f · N(inputs) of a generating function in SIMD lanes: its value,
+//! exact p-gradient and (when asked) p-Hessian at L momenta, by forward mode, one lane per
+//! trajectory.
+//!
+//! The batched kernel ([`super::GeneratingFunction::jets`]) runs a layer as a matrix product over
+//! a batch and pays off for wide layers; the shipped models have hidden layers of 4 to 32 units,
+//! where the per-trajectory chart and Newton solve around it cost more than the layers. Here the
+//! network runs inside the lane Newton solvers ([`crate::lanes_bisection`]) instead: every unit
+//! holds its jet (value, N first and N² second derivatives) as lane vectors, a layer is a sum of
+//! weighted jets and tanh acts by the chain rule.
+//!
+//! **Bit identity.** Every lane performs the same operations in the same order (plain
+//! multiplies and adds, IEEE square root and division, the portable [`tanh_fast`]), so one
+//! trajectory (L = 1) and a block (L = [`crate::isa::LANES`]) give the same bits whatever the
+//! instruction set. The numbers agree with the scalar forward mode to round-off (tested), not
+//! bit for bit: the scalar path's tanh is libm's.
+
+// Index loops over lanes, units and components read as the formulas they evaluate.
+#![allow(clippy::needless_range_loop)]
+
+use super::polynomial_lanes::JetLanes;
+use super::{tanh_fast, Mlp, MlpInputs, HOMOGENEOUS_MIN_R2};
+
+/// Widest layer the lane path takes: wider networks keep the batched kernel, whose matrix
+/// products beat forward mode per trajectory.
+pub const NETWORK_LANES_MAX_WIDTH: usize = 32;
+
+/// Largest N whose steps take the network in lanes. A jet carries 1 + N + N² lane vectors: at
+/// N = 6 (the heavy top, hidden layers of 32) the lanes took 7,500 ns a step against the
+/// batched kernel's 6,000, so se(3) models keep the kernel.
+pub const NETWORK_LANES_MAX_DIM: usize = 3;
+
+/// The network term of a generating function, as the lane solvers evaluate it.
+#[derive(Clone, Copy, Debug)]
+pub struct NetworkLanes<'a> {
+    pub mlp: &'a Mlp,
+    /// m in t^m · N.
+    pub power: u32,
+    pub inputs: MlpInputs,
+}
+
+/// Lane vectors one unit's jet takes in the scratch buffer: the value, N first derivatives
+/// and the N × N second derivatives (only a ≤ b are written and read).
+pub const fn unit_components(n: usize) -> usize {
+    1 + n + n * n
+}
+
+/// f64s of scratch [`NetworkLanes::add_jet_lanes`] needs for L lanes: two layers' jets for
+/// forward mode, or every layer's values and two adjoint rows for reverse mode.
+pub fn scratch_len(mlp: &Mlp, n: usize, lanes: usize) -> usize {
+    let width = mlp.max_width().max(n + 1);
+    let forward = 2 * width * unit_components(n);
+    let reverse = n + 1 + mlp.layers.iter().map(|l| l.n_out).sum::<usize>() + 2 * width;
+    forward.max(reverse) * lanes
+}
+
+impl<'a> NetworkLanes<'a> {
+    /// The lane form of a network term, where its layers fit [`NETWORK_LANES_MAX_WIDTH`].
+    pub fn new(mlp: &'a Mlp, power: u32, inputs: MlpInputs) -> Option<Self> {
+        let fits = mlp.max_width() <= NETWORK_LANES_MAX_WIDTH && mlp.n_inputs() <= MAX_INPUTS;
+        fits.then_some(NetworkLanes { mlp, power, inputs })
+    }
+
+    /// `jet` += t^m · f · N at the L momenta `p[i][l]` (the Hessian only when `HESS`), where f
+    /// and the inputs are those of [`MlpInputs`]. `buf` holds at least
+    /// [`scratch_len`]`(mlp, N, L)` f64s; nothing in it needs clearing. Lanes whose homogeneous
+    /// term vanishes (|p|² ≤ [`HOMOGENEOUS_MIN_R2`]) get nothing added, as in the scalar path.
+    ///
+    /// With the Hessian every unit carries its jet forward; without it (most simplified-Newton
+    /// updates) the values go forward and one adjoint comes back, 2 lane operations a weight
+    /// instead of 1 + N.
+    #[inline(always)]
+    pub(crate) fn add_jet_lanes<const N: usize, const L: usize, const HESS: bool>(
+        &self,
+        t: f64,
+        p: &[[f64; L]; N],
+        buf: &mut [f64],
+        jet: &mut JetLanes<N, L>,
+    ) {
+        let (inputs, factor, vanish) = self.inputs_lanes::<N, L, HESS>(t, p);
+        let net = if HESS {
+            self.forward_jet::<N, L>(&inputs, buf)
+        } else {
+            self.reverse_gradient::<N, L>(&inputs, buf)
+        };
+        let term = product::<N, L, HESS>(&factor, &net);
+        for l in (0..L).filter(|&l| !vanish[l]) {
+            jet.v[l] += term.v[l];
+            for a in 0..N {
+                jet.g[a][l] += term.g[a][l];
+                if HESS {
+                    for b in a..N {
+                        jet.h[a][b][l] += term.h[a][b][l];
+                    }
+                }
+            }
+        }
+    }
+
+    /// The network's 1 + N input jets, the factor that multiplies its output (t^m, or
+    /// t^m |p|^(m+1) for the homogeneous map) and the lanes where the term vanishes.
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    fn inputs_lanes<const N: usize, const L: usize, const HESS: bool>(
+        &self,
+        t: f64,
+        p: &[[f64; L]; N],
+    ) -> ([JetLanes<N, L>; MAX_INPUTS], JetLanes<N, L>, [bool; L]) {
+        let tm = t.powi(self.power as i32);
+        let mut inputs = [constant::<N, L>([0.0; L]); MAX_INPUTS];
+        let mut vanish = [false; L];
+        match self.inputs {
+            MlpInputs::Plain => {
+                inputs[0] = constant([t; L]);
+                for i in 0..N {
+                    inputs[1 + i] = variable(p, i);
+                }
+                (inputs, constant([tm; L]), vanish)
+            }
+            MlpInputs::Homogeneous => {
+                // r² = |p|², r, 1/r and r^(m+1) by the chain rule; lanes at the origin take
+                // r² = 1 (finite numbers, then dropped).
+                let mut r2 = constant::<N, L>([0.0; L]);
+                for i in 0..N {
+                    let q = variable(p, i);
+                    r2 = add(&r2, &product::<N, L, HESS>(&q, &q));
+                }
+                for l in 0..L {
+                    if r2.v[l] <= HOMOGENEOUS_MIN_R2 {
+                        vanish[l] = true;
+                        r2.v[l] = 1.0;
+                    }
+                }
+                let (mut f0, mut f1, mut f2) = ([0.0; L], [0.0; L], [0.0; L]);
+                for l in 0..L {
+                    let s = r2.v[l].sqrt();
+                    f0[l] = s;
+                    f1[l] = 0.5 / s;
+                    f2[l] = -0.25 / (s * r2.v[l]);
+                }
+                let r = chain::<N, L, HESS>(&r2, &f0, &f1, &f2);
+                for l in 0..L {
+                    let x = r.v[l];
+                    f0[l] = 1.0 / x;
+                    f1[l] = -1.0 / (x * x);
+                    f2[l] = 2.0 / (x * x * x);
+                }
+                let inv = chain::<N, L, HESS>(&r, &f0, &f1, &f2);
+                // r^(m+1) by repeated products (the same operations in every lane).
+                let k = self.power + 1;
+                let mut powers = [[1.0; L]; 3];
+                for l in 0..L {
+                    let x = r.v[l];
+                    let mut acc = 1.0;
+                    for e in 0..k {
+                        if e + 2 == k {
+                            powers[2][l] = acc;
+                        }
+                        if e + 1 == k {
+                            powers[1][l] = acc;
+                        }
+                        acc *= x;
+                    }
+                    powers[0][l] = acc;
+                    f0[l] = acc;
+                    f1[l] = f64::from(k) * powers[1][l];
+                    f2[l] = f64::from(k * (k - 1)) * powers[2][l];
+                }
+                let factor = scale(&chain::<N, L, HESS>(&r, &f0, &f1, &f2), tm);
+                inputs[0] = scale(&r, t);
+                for i in 0..N {
+                    inputs[1 + i] = product::<N, L, HESS>(&variable(p, i), &inv);
+                }
+                (inputs, factor, vanish)
+            }
+        }
+    }
+
+    /// N's jet by forward mode: every unit's jet, layer by layer, in `buf`.
+    #[inline(always)]
+    fn forward_jet<const N: usize, const L: usize>(
+        &self,
+        inputs: &[JetLanes<N, L>; MAX_INPUTS],
+        buf: &mut [f64],
+    ) -> JetLanes<N, L> {
+        let c = unit_components(N);
+        let width = self.mlp.max_width().max(N + 1);
+        let (lanes, _) = buf.as_chunks_mut::<L>();
+        let (mut src, mut dst) = lanes[..2 * width * c].split_at_mut(width * c);
+        for i in 0..=N {
+            write_unit::<N, L>(&mut src[i * c..(i + 1) * c], &inputs[i]);
+        }
+        let last = self.mlp.layers.len() - 1;
+        for (depth, layer) in self.mlp.layers.iter().enumerate() {
+            for k in 0..layer.n_out {
+                let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
+                let out = &mut dst[k * c..(k + 1) * c];
+                // The value row carries the bias; every derivative row is a plain weighted sum.
+                for comp in (0..c).filter(|&comp| used::<N>(comp)) {
+                    let mut acc = if comp == 0 {
+                        [layer.bias[k]; L]
+                    } else {
+                        [0.0; L]
+                    };
+                    for (j, &w) in row.iter().enumerate() {
+                        let x = &src[j * c + comp];
+                        for l in 0..L {
+                            acc[l] += w * x[l];
+                        }
+                    }
+                    out[comp] = acc;
+                }
+                if depth < last {
+                    tanh_unit::<N, L>(out);
+                }
+            }
+            std::mem::swap(&mut src, &mut dst);
+        }
+        read_unit::<N, L>(&src[..c])
+    }
+
+    /// N and its gradient (no Hessian) by reverse mode: the values forward, keeping every
+    /// layer's activations in `buf`, then one adjoint back to the inputs, whose gradients carry
+    /// it to p.
+    #[inline(always)]
+    fn reverse_gradient<const N: usize, const L: usize>(
+        &self,
+        inputs: &[JetLanes<N, L>; MAX_INPUTS],
+        buf: &mut [f64],
+    ) -> JetLanes<N, L> {
+        let layers = &self.mlp.layers;
+        let width = self.mlp.max_width().max(N + 1);
+        let (lanes, _) = buf.as_chunks_mut::<L>();
+        let rows = N + 1 + layers.iter().map(|l| l.n_out).sum::<usize>();
+        let (acts, rest) = lanes.split_at_mut(rows);
+        let (mut delta, rest) = rest.split_at_mut(width);
+        let mut grad = &mut rest[..width];
+        for i in 0..=N {
+            acts[i] = inputs[i].v;
+        }
+        let last = layers.len() - 1;
+        let mut off = 0;
+        for (depth, layer) in layers.iter().enumerate() {
+            let (x, z) = acts[off..].split_at_mut(layer.n_in);
+            for k in 0..layer.n_out {
+                let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
+                let mut acc = [layer.bias[k]; L];
+                for (j, &w) in row.iter().enumerate() {
+                    for l in 0..L {
+                        acc[l] += w * x[j][l];
+                    }
+                }
+                if depth < last {
+                    for l in 0..L {
+                        acc[l] = tanh_fast(acc[l]);
+                    }
+                }
+                z[k] = acc;
+            }
+            off += layer.n_in;
+        }
+        // `off` is the output row. Adjoints: δ = 1 at the output, g = Wᵀ δ through a layer,
+        // δ = g ⊙ (1 − y²) through a hidden activation y.
+        let value = acts[off];
+        delta[0] = [1.0; L];
+        for (depth, layer) in layers.iter().enumerate().rev() {
+            for j in 0..layer.n_in {
+                grad[j] = [0.0; L];
+            }
+            for k in 0..layer.n_out {
+                let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
+                let d = delta[k];
+                for (j, &w) in row.iter().enumerate() {
+                    for l in 0..L {
+                        grad[j][l] += w * d[l];
+                    }
+                }
+            }
+            off -= layer.n_in;
+            if depth > 0 {
+                for j in 0..layer.n_in {
+                    let y = acts[off + j];
+                    for l in 0..L {
+                        grad[j][l] *= 1.0 - y[l] * y[l];
+                    }
+                }
+            }
+            std::mem::swap(&mut delta, &mut grad);
+        }
+        // ∂N/∂p_a = Σ_i adj_i ∂in_i/∂p_a.
+        let mut out = constant::<N, L>(value);
+        for i in 0..=N {
+            for a in 0..N {
+                for l in 0..L {
+                    out.g[a][l] += delta[i][l] * inputs[i].g[a][l];
+                }
+            }
+        }
+        out
+    }
+}
+
+/// Inputs of a network the lanes take: time and a momentum of at most 7 components (covers the
+/// heavy top's 6).
+const MAX_INPUTS: usize = 8;
+
+/// Whether component `comp` of a unit is computed: the value, the gradient and the upper
+/// Hessian (a ≤ b).
+#[inline(always)]
+const fn used<const N: usize>(comp: usize) -> bool {
+    if comp <= N {
+        return true;
+    }
+    let k = comp - 1 - N;
+    k / N <= k % N
+}
+
+/// A constant's jet.
+#[inline(always)]
+fn constant<const N: usize, const L: usize>(v: [f64; L]) -> JetLanes<N, L> {
+    JetLanes {
+        v,
+        g: [[0.0; L]; N],
+        h: [[[0.0; L]; N]; N],
+    }
+}
+
+/// p_i's jet: its value and the unit vector e_i.
+#[inline(always)]
+fn variable<const N: usize, const L: usize>(p: &[[f64; L]; N], i: usize) -> JetLanes<N, L> {
+    let mut j = constant(p[i]);
+    j.g[i] = [1.0; L];
+    j
+}
+
+#[inline(always)]
+fn add<const N: usize, const L: usize>(a: &JetLanes<N, L>, b: &JetLanes<N, L>) -> JetLanes<N, L> {
+    let mut r = *a;
+    for l in 0..L {
+        r.v[l] += b.v[l];
+    }
+    for i in 0..N {
+        for l in 0..L {
+            r.g[i][l] += b.g[i][l];
+        }
+        for k in i..N {
+            for l in 0..L {
+                r.h[i][k][l] += b.h[i][k][l];
+            }
+        }
+    }
+    r
+}
+
+#[inline(always)]
+fn scale<const N: usize, const L: usize>(a: &JetLanes<N, L>, s: f64) -> JetLanes<N, L> {
+    let mut r = *a;
+    for l in 0..L {
+        r.v[l] *= s;
+    }
+    for i in 0..N {
+        for l in 0..L {
+            r.g[i][l] *= s;
+        }
+        for k in i..N {
+            for l in 0..L {
+                r.h[i][k][l] *= s;
+            }
+        }
+    }
+    r
+}
+
+/// The jet of a·b (the Hessian's upper triangle when `HESS`).
+#[inline(always)]
+fn product<const N: usize, const L: usize, const HESS: bool>(
+    a: &JetLanes<N, L>,
+    b: &JetLanes<N, L>,
+) -> JetLanes<N, L> {
+    let mut r = constant::<N, L>([0.0; L]);
+    for l in 0..L {
+        r.v[l] = a.v[l] * b.v[l];
+    }
+    for i in 0..N {
+        for l in 0..L {
+            r.g[i][l] = a.v[l] * b.g[i][l] + b.v[l] * a.g[i][l];
+        }
+        if HESS {
+            for k in i..N {
+                for l in 0..L {
+                    r.h[i][k][l] = a.v[l] * b.h[i][k][l]
+                        + b.v[l] * a.h[i][k][l]
+                        + (a.g[i][l] * b.g[k][l] + a.g[k][l] * b.g[i][l]);
+                }
+            }
+        }
+    }
+    r
+}
+
+/// The jet of f(z) from f, f′ and f″ at z's value.
+#[inline(always)]
+fn chain<const N: usize, const L: usize, const HESS: bool>(
+    z: &JetLanes<N, L>,
+    f0: &[f64; L],
+    f1: &[f64; L],
+    f2: &[f64; L],
+) -> JetLanes<N, L> {
+    let mut r = constant::<N, L>(*f0);
+    for i in 0..N {
+        for l in 0..L {
+            r.g[i][l] = f1[l] * z.g[i][l];
+        }
+        if HESS {
+            for k in i..N {
+                for l in 0..L {
+                    r.h[i][k][l] = f1[l] * z.h[i][k][l] + f2[l] * (z.g[i][l] * z.g[k][l]);
+                }
+            }
+        }
+    }
+    r
+}
+
+/// y = tanh(z) in place on a unit's jet: y′ = 1 − y², y″ = −2 y y′.
+#[inline(always)]
+fn tanh_unit<const N: usize, const L: usize>(u: &mut [[f64; L]]) {
+    let (mut d1, mut d2) = ([0.0; L], [0.0; L]);
+    for l in 0..L {
+        let y = tanh_fast(u[0][l]);
+        u[0][l] = y;
+        d1[l] = 1.0 - y * y;
+        d2[l] = -2.0 * y * d1[l];
+    }
+    for a in 0..N {
+        for b in a..N {
+            let (ga, gb) = (u[1 + a], u[1 + b]);
+            let h = &mut u[1 + N + a * N + b];
+            for l in 0..L {
+                h[l] = d1[l] * h[l] + d2[l] * (ga[l] * gb[l]);
+            }
+        }
+    }
+    for a in 0..N {
+        for l in 0..L {
+            u[1 + a][l] *= d1[l];
+        }
+    }
+}
+
+#[inline(always)]
+fn write_unit<const N: usize, const L: usize>(u: &mut [[f64; L]], j: &JetLanes<N, L>) {
+    u[0] = j.v;
+    for a in 0..N {
+        u[1 + a] = j.g[a];
+        for b in a..N {
+            u[1 + N + a * N + b] = j.h[a][b];
+        }
+    }
+}
+
+#[inline(always)]
+fn read_unit<const N: usize, const L: usize>(u: &[[f64; L]]) -> JetLanes<N, L> {
+    let mut j = constant::<N, L>(u[0]);
+    for a in 0..N {
+        j.g[a] = u[1 + a];
+        for b in a..N {
+            j.h[a][b] = u[1 + N + a * N + b];
+        }
+    }
+    j
+}
