@@ -8,7 +8,7 @@
 use crate::error::StepFailure;
 use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch, SCALAR_AT_MOST};
 pub use crate::generating::polynomial_lanes::{polynomial_gradients, polynomial_jets};
-use crate::generating::{NetworkLanes, Polynomial};
+use crate::generating::{LaneRow, NetworkLanes, Polynomial};
 use crate::isa::{Isa, LANES};
 use crate::step::{StepResult, StepStats, SIMPLIFIED_RATE};
 use crate::structures::lie_groupoid::{
@@ -263,7 +263,7 @@ pub(crate) fn evaluate<const N: usize, const L: usize, const HESS: bool>(
     t: f64,
     p: &[[f64; L]; N],
     scratch: &mut Scratch<N, L>,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     jet: &mut JetLanes<N, L>,
 ) {
     evaluate_polynomial::<N, L, HESS>(poly, t, p, scratch, jet);
@@ -416,7 +416,7 @@ impl<const L: usize> Progress<L> {
 #[inline(always)]
 fn so3_block<const N: usize, const L: usize>(
     sys: &So3Newton<'_, N>,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -556,7 +556,7 @@ pub(crate) trait LaneSolve<const N: usize> {
     /// One step of `mu` (at most L states; those with `live` false left alone) into `results`.
     fn block<const L: usize>(
         &self,
-        buf: &mut [f64],
+        buf: &mut [LaneRow],
         t: f64,
         mu: &mut [[f64; N]],
         live: &[bool],
@@ -568,7 +568,7 @@ impl<const N: usize> LaneSolve<N> for So3Newton<'_, N> {
     #[inline(always)]
     fn block<const L: usize>(
         &self,
-        buf: &mut [f64],
+        buf: &mut [LaneRow],
         t: f64,
         mu: &mut [[f64; N]],
         live: &[bool],
@@ -583,7 +583,7 @@ impl<const N: usize> LaneSolve<N> for So3Newton<'_, N> {
 #[inline(always)]
 fn solve_chunk<const N: usize, S: LaneSolve<N>>(
     sys: &S,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -610,7 +610,7 @@ fn solve_chunk<const N: usize, S: LaneSolve<N>>(
 #[inline(never)]
 fn solve_one<const N: usize, S: LaneSolve<N>>(
     sys: &S,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     t: f64,
     mu: &mut [f64; N],
     result: &mut StepResult,
@@ -628,7 +628,7 @@ fn solve_one<const N: usize, S: LaneSolve<N>>(
 #[target_feature(enable = "avx2,fma")]
 fn solve_chunk_avx2<const N: usize, S: LaneSolve<N>>(
     sys: &S,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -644,7 +644,7 @@ fn solve_chunk_avx2<const N: usize, S: LaneSolve<N>>(
 pub(crate) fn lane_newton_steps<const N: usize, S: LaneSolve<N>>(
     sys: &S,
     isa: Isa,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -669,7 +669,7 @@ pub(crate) fn lane_newton_steps<const N: usize, S: LaneSolve<N>>(
 pub(crate) fn so3_newton_steps<const N: usize>(
     sys: &So3Newton<'_, N>,
     isa: Isa,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],

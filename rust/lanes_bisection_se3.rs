@@ -18,7 +18,7 @@ use std::ops::{Add, Mul, Sub};
 
 use crate::error::StepFailure;
 use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
-use crate::generating::{NetworkLanes, Polynomial};
+use crate::generating::{LaneRow, NetworkLanes, Polynomial};
 use crate::isa::Isa;
 use crate::lanes_bisection::{evaluate, lane_newton_steps, LaneSolve, Progress, PREDICT_MAX_S, V};
 use crate::step::{StepResult, StepStats};
@@ -299,7 +299,7 @@ pub(crate) struct Se3Newton<'a, const N: usize> {
 #[inline(always)]
 fn se3_block<const N: usize, const L: usize>(
     sys: &Se3Newton<'_, N>,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],
@@ -463,7 +463,7 @@ impl<const N: usize> LaneSolve<N> for Se3Newton<'_, N> {
     #[inline(always)]
     fn block<const L: usize>(
         &self,
-        buf: &mut [f64],
+        buf: &mut [LaneRow],
         t: f64,
         mu: &mut [[f64; N]],
         live: &[bool],
@@ -478,7 +478,7 @@ impl<const N: usize> LaneSolve<N> for Se3Newton<'_, N> {
 pub(crate) fn se3_newton_steps<const N: usize>(
     sys: &Se3Newton<'_, N>,
     isa: Isa,
-    buf: &mut [f64],
+    buf: &mut [LaneRow],
     t: f64,
     mu: &mut [[f64; N]],
     live: &[bool],

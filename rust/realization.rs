@@ -15,7 +15,9 @@ use nalgebra::{Const, DimMin};
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::StepFailure;
-use crate::generating::{GeneratingFunction, Mlp, NetworkLanes, Polynomial, Workspace, MAX_BATCH};
+use crate::generating::{
+    GeneratingFunction, LaneRow, Mlp, NetworkLanes, Polynomial, Workspace, MAX_BATCH,
+};
 use crate::step::{Inverse, StepResult, StepStats, SIMPLIFIED_RATE};
 use crate::structures::lie_groupoid::Groupoid;
 
@@ -145,7 +147,7 @@ pub trait Generating<const N: usize>: Sync {
         self.polynomial().map(|p| (p, None))
     }
     /// The lane network term's scratch in a workspace (empty where there is none).
-    fn lane_scratch<'w>(&self, _ws: &'w mut Self::Workspace) -> &'w mut [f64] {
+    fn lane_scratch<'w>(&self, _ws: &'w mut Self::Workspace) -> &'w mut [LaneRow] {
         &mut []
     }
 }
@@ -184,7 +186,7 @@ impl<const N: usize> Generating<N> for GeneratingFunction<N> {
             Some(_) => Some((&self.polynomial, Some(self.network_lanes()?))),
         }
     }
-    fn lane_scratch<'w>(&self, ws: &'w mut Workspace<N>) -> &'w mut [f64] {
+    fn lane_scratch<'w>(&self, ws: &'w mut Workspace<N>) -> &'w mut [LaneRow] {
         &mut ws.lanes
     }
 }

@@ -18,7 +18,7 @@ mod workspace;
 pub(crate) use mlp::narrow_gemm;
 pub use mlp::{tanh_fast, tanh_fast_fma, Layer, Mlp};
 pub use network_lanes::{
-    scratch_len, NetworkLanes, NETWORK_LANES_MAX_DIM, NETWORK_LANES_MAX_WIDTH,
+    scratch_len, LaneRow, NetworkLanes, NETWORK_LANES_MAX_DIM, NETWORK_LANES_MAX_WIDTH,
 };
 pub(crate) use polynomial::TABLE_POWER;
 pub use polynomial::{Monomial, Polynomial};
@@ -26,7 +26,7 @@ pub use workspace::Workspace;
 
 use crate::dual::{Dual1, Jet2, Scalar, Variable};
 use crate::error::CoreError;
-use crate::isa::Isa;
+use crate::isa::{Isa, LANES};
 use crate::memory::try_filled;
 
 /// Most trajectories one batched evaluation takes.
@@ -136,7 +136,7 @@ impl<const N: usize> GeneratingFunction<N> {
         let lanes = Workspace::lane_len(self);
         let what = "the evaluation workspace (a very wide layer?)";
         Ok(Workspace {
-            lanes: try_filled(lanes, 0.0, what)?,
+            lanes: try_filled(lanes, [0.0; LANES], what)?,
             jet_a: try_filled(w, Jet2::default(), what)?,
             jet_b: try_filled(w, Jet2::default(), what)?,
             d1_a: try_filled(w, Dual1::default(), what)?,

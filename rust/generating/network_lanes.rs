@@ -20,6 +20,7 @@
 
 use super::polynomial_lanes::JetLanes;
 use super::{tanh_fast, Mlp, MlpInputs, HOMOGENEOUS_MIN_R2};
+use crate::isa::LANES;
 
 /// Widest layer the lane path takes: wider networks keep the batched kernel, whose matrix
 /// products beat forward mode per trajectory.
@@ -45,13 +46,28 @@ pub const fn unit_components(n: usize) -> usize {
     1 + n + n * n
 }
 
-/// f64s of scratch [`NetworkLanes::add_jet_lanes`] needs for L lanes: two layers' jets for
-/// forward mode, or every layer's values and two adjoint rows for reverse mode.
-pub fn scratch_len(mlp: &Mlp, n: usize, lanes: usize) -> usize {
+/// One row of the scratch: a number per lane of a block (a one-lane solve uses lane 0).
+pub type LaneRow = [f64; LANES];
+
+/// Rows of scratch [`NetworkLanes::add_jet_lanes`] needs: two layers' jets for forward mode, or
+/// every layer's values and two adjoint rows for reverse mode.
+pub fn scratch_len(mlp: &Mlp, n: usize) -> usize {
     let width = mlp.max_width().max(n + 1);
     let forward = 2 * width * unit_components(n);
     let reverse = n + 1 + mlp.layers.iter().map(|l| l.n_out).sum::<usize>() + 2 * width;
-    forward.max(reverse) * lanes
+    forward.max(reverse)
+}
+
+/// Lanes 0..L of a row.
+#[inline(always)]
+fn get<const L: usize>(row: &LaneRow) -> [f64; L] {
+    std::array::from_fn(|l| row[l])
+}
+
+/// Writes lanes 0..L of a row.
+#[inline(always)]
+fn put<const L: usize>(row: &mut LaneRow, v: &[f64; L]) {
+    row[..L].copy_from_slice(v);
 }
 
 impl<'a> NetworkLanes<'a> {
@@ -63,7 +79,7 @@ impl<'a> NetworkLanes<'a> {
 
     /// `jet` += t^m · f · N at the L momenta `p[i][l]` (the Hessian only when `HESS`), where f
     /// and the inputs are those of [`MlpInputs`]. `buf` holds at least
-    /// [`scratch_len`]`(mlp, N, L)` f64s; nothing in it needs clearing. Lanes whose homogeneous
+    /// [`scratch_len`]`(mlp, N)` rows; nothing in it needs clearing. Lanes whose homogeneous
     /// term vanishes (|p|² ≤ [`HOMOGENEOUS_MIN_R2`]) get nothing added, as in the scalar path.
     ///
     /// With the Hessian every unit carries its jet forward; without it (most simplified-Newton
@@ -74,7 +90,7 @@ impl<'a> NetworkLanes<'a> {
         &self,
         t: f64,
         p: &[[f64; L]; N],
-        buf: &mut [f64],
+        buf: &mut [LaneRow],
         jet: &mut JetLanes<N, L>,
     ) {
         let (inputs, factor, vanish) = self.inputs_lanes::<N, L, HESS>(t, p);
@@ -181,12 +197,11 @@ impl<'a> NetworkLanes<'a> {
     fn forward_jet<const N: usize, const L: usize>(
         &self,
         inputs: &[JetLanes<N, L>; MAX_INPUTS],
-        buf: &mut [f64],
+        buf: &mut [LaneRow],
     ) -> JetLanes<N, L> {
         let c = unit_components(N);
         let width = self.mlp.max_width().max(N + 1);
-        let (lanes, _) = buf.as_chunks_mut::<L>();
-        let (mut src, mut dst) = lanes[..2 * width * c].split_at_mut(width * c);
+        let (mut src, mut dst) = buf[..2 * width * c].split_at_mut(width * c);
         for i in 0..=N {
             write_unit::<N, L>(&mut src[i * c..(i + 1) * c], &inputs[i]);
         }
@@ -208,7 +223,7 @@ impl<'a> NetworkLanes<'a> {
                             acc[l] += w * x[l];
                         }
                     }
-                    out[comp] = acc;
+                    put(&mut out[comp], &acc);
                 }
                 if depth < last {
                     tanh_unit::<N, L>(out);
@@ -226,17 +241,16 @@ impl<'a> NetworkLanes<'a> {
     fn reverse_gradient<const N: usize, const L: usize>(
         &self,
         inputs: &[JetLanes<N, L>; MAX_INPUTS],
-        buf: &mut [f64],
+        buf: &mut [LaneRow],
     ) -> JetLanes<N, L> {
         let layers = &self.mlp.layers;
         let width = self.mlp.max_width().max(N + 1);
-        let (lanes, _) = buf.as_chunks_mut::<L>();
         let rows = N + 1 + layers.iter().map(|l| l.n_out).sum::<usize>();
-        let (acts, rest) = lanes.split_at_mut(rows);
+        let (acts, rest) = buf.split_at_mut(rows);
         let (mut delta, rest) = rest.split_at_mut(width);
         let mut grad = &mut rest[..width];
         for i in 0..=N {
-            acts[i] = inputs[i].v;
+            put(&mut acts[i], &inputs[i].v);
         }
         let last = layers.len() - 1;
         let mut off = 0;
@@ -255,21 +269,21 @@ impl<'a> NetworkLanes<'a> {
                         acc[l] = tanh_fast(acc[l]);
                     }
                 }
-                z[k] = acc;
+                put(&mut z[k], &acc);
             }
             off += layer.n_in;
         }
         // `off` is the output row. Adjoints: δ = 1 at the output, g = Wᵀ δ through a layer,
         // δ = g ⊙ (1 − y²) through a hidden activation y.
-        let value = acts[off];
-        delta[0] = [1.0; L];
+        let value: [f64; L] = get(&acts[off]);
+        put(&mut delta[0], &[1.0; L]);
         for (depth, layer) in layers.iter().enumerate().rev() {
             for j in 0..layer.n_in {
-                grad[j] = [0.0; L];
+                put(&mut grad[j], &[0.0; L]);
             }
             for k in 0..layer.n_out {
                 let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
-                let d = delta[k];
+                let d: [f64; L] = get(&delta[k]);
                 for (j, &w) in row.iter().enumerate() {
                     for l in 0..L {
                         grad[j][l] += w * d[l];
@@ -424,7 +438,7 @@ fn chain<const N: usize, const L: usize, const HESS: bool>(
 
 /// y = tanh(z) in place on a unit's jet: y′ = 1 − y², y″ = −2 y y′.
 #[inline(always)]
-fn tanh_unit<const N: usize, const L: usize>(u: &mut [[f64; L]]) {
+fn tanh_unit<const N: usize, const L: usize>(u: &mut [LaneRow]) {
     let (mut d1, mut d2) = ([0.0; L], [0.0; L]);
     for l in 0..L {
         let y = tanh_fast(u[0][l]);
@@ -449,23 +463,23 @@ fn tanh_unit<const N: usize, const L: usize>(u: &mut [[f64; L]]) {
 }
 
 #[inline(always)]
-fn write_unit<const N: usize, const L: usize>(u: &mut [[f64; L]], j: &JetLanes<N, L>) {
-    u[0] = j.v;
+fn write_unit<const N: usize, const L: usize>(u: &mut [LaneRow], j: &JetLanes<N, L>) {
+    put(&mut u[0], &j.v);
     for a in 0..N {
-        u[1 + a] = j.g[a];
+        put(&mut u[1 + a], &j.g[a]);
         for b in a..N {
-            u[1 + N + a * N + b] = j.h[a][b];
+            put(&mut u[1 + N + a * N + b], &j.h[a][b]);
         }
     }
 }
 
 #[inline(always)]
-fn read_unit<const N: usize, const L: usize>(u: &[[f64; L]]) -> JetLanes<N, L> {
-    let mut j = constant::<N, L>(u[0]);
+fn read_unit<const N: usize, const L: usize>(u: &[LaneRow]) -> JetLanes<N, L> {
+    let mut j = constant::<N, L>(get(&u[0]));
     for a in 0..N {
-        j.g[a] = u[1 + a];
+        j.g[a] = get(&u[1 + a]);
         for b in a..N {
-            j.h[a][b] = u[1 + N + a * N + b];
+            j.h[a][b] = get(&u[1 + N + a * N + b]);
         }
     }
     j

@@ -1,6 +1,6 @@
 //! Scratch memory for the evaluations of a generating function.
 
-use super::{GeneratingFunction, Mlp, MAX_BATCH};
+use super::{GeneratingFunction, LaneRow, Mlp, MAX_BATCH};
 use crate::dual::{Dual1, Jet2, Variable};
 use crate::isa::LANES;
 
@@ -18,7 +18,7 @@ pub struct Workspace<const N: usize> {
     pub(super) acts: Vec<f64>,
     /// Two layers' jets in lanes, for the lane Newton solvers' network term
     /// ([`super::NetworkLanes`]); empty where S has no network term that fits the lanes.
-    pub(crate) lanes: Vec<f64>,
+    pub(crate) lanes: Vec<LaneRow>,
 }
 
 impl<const N: usize> Workspace<N> {
@@ -32,15 +32,15 @@ impl<const N: usize> Workspace<N> {
             )
             .saturating_add(batch.saturating_mul(16))
             .saturating_add(acts.saturating_mul(8))
-            .saturating_add(Self::lane_len(generating).saturating_mul(8))
+            .saturating_add(Self::lane_len(generating).saturating_mul(8 * LANES))
     }
 
-    /// f64s of the lane scratch: [`super::network_lanes::scratch_len`] for a block of
-    /// [`LANES`] where the network term fits the lanes, else none.
+    /// Rows of the lane scratch: [`super::scratch_len`] where the network term fits the lanes,
+    /// else none.
     pub(super) fn lane_len(generating: &GeneratingFunction<N>) -> usize {
         generating
             .network_lanes()
-            .map_or(0, |net| super::scratch_len(net.mlp, N, LANES))
+            .map_or(0, |net| super::scratch_len(net.mlp, N))
     }
 
     /// Elements of the single-trajectory buffers, of each batch buffer, and of `acts`.

@@ -69,7 +69,7 @@ fn lane_jets<const N: usize, const L: usize, const HESS: bool>(
         g: [[0.0; L]; N],
         h: [[[0.0; L]; N]; N],
     };
-    let mut buf = vec![0.0; scratch_len(gf.mlp.as_ref().unwrap(), N, L)];
+    let mut buf = vec![[0.0; LANES]; scratch_len(gf.mlp.as_ref().unwrap(), N)];
     net.add_jet_lanes::<N, L, HESS>(t, &pl, &mut buf, &mut jet);
     jet
 }
@@ -250,7 +250,7 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
         max_iter: st.newton.max_iter,
         predict: false,
     };
-    let mut buf = vec![0.0; scratch_len(st.generating.mlp.as_ref().unwrap(), 6, LANES)];
+    let mut buf = vec![[0.0; LANES]; scratch_len(st.generating.mlp.as_ref().unwrap(), 6)];
     let mut ws = st.workspace();
     let casimirs = |m: &[f64; 6]| {
         let (mm, g) = ([m[0], m[1], m[2]], [m[3], m[4], m[5]]);
