@@ -26,8 +26,8 @@ use crate::generating::{GeneratingFunction, Layer, Mlp, MlpInputs, Monomial, Pol
 use crate::memory::{check_fits, try_collect, try_with_capacity};
 use crate::stepper::{BisectionStepper, NewtonOptions};
 use crate::structures::lie_groupoid::{Chart, Groupoid, LieAlgebra};
-use crate::structures::LearnedLogBisection;
-use crate::structures::{ExpMonomial, ExpPolynomial, LearnedExp, LogCanonical, OrthantChecked};
+use crate::structures::{ExpMonomial, ExpPolynomial, LearnedExp, LogCanonical};
+use crate::structures::{LearnedLogBisection, LearnedLogStepper};
 use crate::{with_dim, MAX_DIM};
 
 /// The format tag every model file carries.
@@ -645,8 +645,8 @@ impl LogModel {
     pub fn stepper<const N: usize>(
         &self,
         newton: NewtonOptions,
-    ) -> Result<OrthantChecked<LearnedLogBisection<N>>, CoreError> {
-        Ok(OrthantChecked(LearnedLogBisection::unit_scale(
+    ) -> Result<LearnedLogStepper<N>, CoreError> {
+        Ok(LearnedLogStepper(LearnedLogBisection::unit_scale(
             self.generating::<N>()?,
             self.structure::<N>()?,
             newton,

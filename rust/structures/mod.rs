@@ -17,8 +17,8 @@ pub mod log_canonical;
 pub mod polynomial;
 
 pub use log_canonical::{
-    ExpMonomial, ExpPolynomial, LearnedExp, LearnedLogBisection, LogBisection, LogCanonical,
-    LogClassical, LogExplicit, LogMethod, LogSystem, LogTaylorLanes, OrthantChecked,
+    ExpMonomial, ExpPolynomial, LearnedExp, LearnedLogBisection, LearnedLogStepper, LogBisection,
+    LogCanonical, LogClassical, LogExplicit, LogMethod, LogSystem, LogTaylorLanes, OrthantChecked,
 };
 pub use polynomial::{
     LearnedPolynomial, LearnedPolynomialBisection, LearnedPolynomialModel, PolynomialBisection,

@@ -1,11 +1,18 @@
 //! Learned generating functions on the log-canonical groupoid: the exact Taylor terms plus a
 //! network term.
 
-use super::{ExpPolynomial, LogCanonical};
+use nalgebra::{Const, DimMin};
+
+use super::taylor::{log_bisection_lanes, LogLaneGenerating, T_POWERS};
+use super::{log_state_in_orthant, ExpPolynomial, LogCanonical};
 use crate::dual::{Dual1, Jet2};
 use crate::error::CoreError;
-use crate::generating::{GeneratingFunction, Workspace};
+use crate::generating::polynomial_lanes::JetLanes;
+use crate::generating::{GeneratingFunction, LaneRow, Workspace, MAX_BATCH};
+use crate::isa::Isa;
+use crate::lanes_bisection::{lane_newton_steps, LaneSolve};
 use crate::realization::Generating;
+use crate::step::{StepMap, StepResult};
 use crate::stepper::BisectionStepper;
 
 /// A learned generating function on the log-canonical groupoid: exact Taylor terms
@@ -54,8 +61,139 @@ impl<const N: usize> Generating<N> for LearnedExp<N> {
     }
 }
 
+impl<const N: usize> LogLaneGenerating<N> for LearnedExp<N> {
+    /// The Taylor terms' closed form plus the network term in lanes. Only called where the
+    /// network fits the lanes ([`GeneratingFunction::network_lanes`]); anywhere else the
+    /// derivatives are NaN, so that a misuse fails as NonFinite instead of dropping the term.
+    #[inline(always)]
+    fn derivatives_lanes<const L: usize, const HESS: bool>(
+        &self,
+        t: f64,
+        t_powers: &[f64; T_POWERS],
+        q: &[[f64; L]; N],
+        buf: &mut [LaneRow],
+        g: &mut [[f64; L]; N],
+        hs: &mut [[[f64; L]; N]; N],
+    ) {
+        self.taylor.taylor_lanes::<L, HESS>(t, t_powers, q, g, hs);
+        let Some(net) = self.network.network_lanes() else {
+            *g = [[f64::NAN; L]; N];
+            return;
+        };
+        let mut jet = JetLanes {
+            v: [0.0; L],
+            g: [[0.0; L]; N],
+            h: [[[0.0; L]; N]; N],
+        };
+        net.add_jet_lanes::<N, L, HESS>(t, q, buf, &mut jet);
+        for a in 0..N {
+            for l in 0..L {
+                g[a][l] += jet.g[a][l];
+            }
+            if HESS {
+                for b in a..N {
+                    for l in 0..L {
+                        hs[a][b][l] += jet.h[a][b][l];
+                    }
+                    hs[b][a] = hs[a][b];
+                }
+            }
+        }
+    }
+}
+
 /// The learned bisection integrator of a log-canonical structure, state q = ln x.
 pub type LearnedLogBisection<const N: usize> = BisectionStepper<N, LogCanonical<N>, LearnedExp<N>>;
+
+/// A learned log-canonical integrator as a model steps it: where the network fits the lanes
+/// ([`GeneratingFunction::network_lanes`]), the Newton solves run in SIMD lanes (the solve of
+/// [`super::LogTaylorLanes`] with the network term added; one trajectory is one lane, so `step`
+/// and `step_batch` give the same bits); otherwise one trajectory at a time through dual
+/// numbers. Every step is checked to keep x = e^q in the orthant.
+pub struct LearnedLogStepper<const N: usize>(pub LearnedLogBisection<N>);
+
+impl<const N: usize> LearnedLogStepper<N> {
+    fn in_lanes(&self) -> bool {
+        self.0.generating.network.network_lanes().is_some()
+    }
+}
+
+impl<const N: usize> LaneSolve<N> for LearnedLogStepper<N> {
+    #[inline(always)]
+    fn block<const L: usize>(
+        &self,
+        buf: &mut [LaneRow],
+        t: f64,
+        mu: &mut [[f64; N]],
+        live: &[bool],
+        results: &mut [StepResult],
+    ) {
+        let n = mu.len();
+        let mut q = [[0.0; L]; N];
+        let mut on = [false; L];
+        for j in 0..n {
+            for i in 0..N {
+                q[i][j] = mu[j][i];
+            }
+            on[j] = live[j];
+        }
+        let mut out = [Ok(Default::default()); L];
+        log_bisection_lanes(&self.0, buf, t, &mut q, &on, &mut out);
+        for j in (0..n).filter(|&j| on[j]) {
+            results[j] = out[j];
+            for i in 0..N {
+                mu[j][i] = q[i][j];
+            }
+        }
+    }
+}
+
+impl<const N: usize> StepMap<N> for LearnedLogStepper<N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    type Workspace = Workspace<N>;
+    fn workspace(&self) -> Workspace<N> {
+        self.0.workspace()
+    }
+    fn workspace_bytes(&self) -> usize {
+        self.0.workspace_bytes()
+    }
+    fn step(&self, h: f64, q: &mut [f64; N], ws: &mut Workspace<N>) -> StepResult {
+        let mut result = [Ok(Default::default())];
+        self.step_batch(h, std::slice::from_mut(q), &[true], &mut result, ws);
+        result[0]
+    }
+    fn batch(&self) -> usize {
+        if self.in_lanes() {
+            MAX_BATCH
+        } else {
+            1
+        }
+    }
+    fn step_batch(
+        &self,
+        h: f64,
+        mu: &mut [[f64; N]],
+        live: &[bool],
+        results: &mut [StepResult],
+        ws: &mut Workspace<N>,
+    ) {
+        if self.in_lanes() {
+            let buf = self.0.generating.network.lane_scratch(ws);
+            return lane_newton_steps(self, Isa::detect(), buf, h, mu, live, results);
+        }
+        // OrthantChecked's step, one trajectory at a time.
+        for ((m, &l), r) in mu.iter_mut().zip(live).zip(results.iter_mut()) {
+            if l {
+                *r = self
+                    .0
+                    .step(h, m, ws)
+                    .and_then(|stats| log_state_in_orthant(m).map(|()| stats));
+            }
+        }
+    }
+}
 
 #[cfg(test)]
 mod tests {

@@ -18,7 +18,7 @@ mod structure;
 mod taylor;
 
 pub use classical::{LogClassical, LogExplicit, LogMethod, OrthantChecked};
-pub use learned::{LearnedExp, LearnedLogBisection};
+pub use learned::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
 pub use structure::{LogCanonical, LogSystem, MAX_HAMILTONIAN_EXPONENT};
 pub use taylor::{ExpMonomial, ExpPolynomial, LogBisection, LogTaylorLanes, MAX_EXPONENT};
 

@@ -8,6 +8,7 @@ use super::{log_state_in_orthant, pow_lanes, LogCanonical};
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::exp::exp_lanes;
+use crate::generating::LaneRow;
 use crate::lanes::LaneStepper;
 use crate::realization::{Generating, Realization};
 use crate::step::{StepMap, StepResult, StepStats};
@@ -106,7 +107,7 @@ impl<const N: usize> ExpPolynomial<N> {
     /// ∇S(t, ·) at L points q, and with `HESS` its Hessian (`hs[a][b][l]`, both triangles),
     /// lane by lane: y = e^q once per coordinate, each term's y^e by binary powering.
     #[inline(always)]
-    fn derivatives_lanes<const L: usize, const HESS: bool>(
+    pub(super) fn taylor_lanes<const L: usize, const HESS: bool>(
         &self,
         t: f64,
         t_powers: &[f64; T_POWERS],
@@ -194,11 +195,43 @@ impl<const N: usize> ExpPolynomial<N> {
 }
 
 /// t⁰ … t^(T_POWERS − 1), computed once a step (larger powers of t take `powi`).
-const T_POWERS: usize = 16;
+pub(super) const T_POWERS: usize = 16;
 
-/// The table of powers of t that [`ExpPolynomial::derivatives_lanes`] reads.
+/// A generating function that the log-canonical lane solver evaluates: ∇S and, with `HESS`,
+/// ∇²S (`hs`, both triangles) at L points q, lane by lane.
+pub trait LogLaneGenerating<const N: usize>: Generating<N> {
+    /// `buf`: scratch for a network term ([`crate::generating::NetworkLanes`]); nothing in it
+    /// needs clearing.
+    #[allow(clippy::too_many_arguments)]
+    fn derivatives_lanes<const L: usize, const HESS: bool>(
+        &self,
+        t: f64,
+        t_powers: &[f64; T_POWERS],
+        q: &[[f64; L]; N],
+        buf: &mut [LaneRow],
+        g: &mut [[f64; L]; N],
+        hs: &mut [[[f64; L]; N]; N],
+    );
+}
+
+impl<const N: usize> LogLaneGenerating<N> for ExpPolynomial<N> {
+    #[inline(always)]
+    fn derivatives_lanes<const L: usize, const HESS: bool>(
+        &self,
+        t: f64,
+        t_powers: &[f64; T_POWERS],
+        q: &[[f64; L]; N],
+        _: &mut [LaneRow],
+        g: &mut [[f64; L]; N],
+        hs: &mut [[[f64; L]; N]; N],
+    ) {
+        self.taylor_lanes::<L, HESS>(t, t_powers, q, g, hs);
+    }
+}
+
+/// The table of powers of t that [`ExpPolynomial::taylor_lanes`] reads.
 #[inline(always)]
-fn t_power_table(t: f64) -> [f64; T_POWERS] {
+pub(super) fn t_power_table(t: f64) -> [f64; T_POWERS] {
     let mut table = [1.0; T_POWERS];
     for k in 1..T_POWERS {
         table[k] = table[k - 1] * t;
@@ -341,116 +374,129 @@ impl<const N: usize> LaneStepper<N> for LogTaylorLanes<'_, N> {
         live: &[bool; L],
         result: &mut [StepResult; L],
     ) {
-        let s = self.0;
-        let c = s.realization.c();
-        let half_c: [[f64; N]; N] = std::array::from_fn(|i| c[i].map(|v| 0.5 * v));
-        let (tol, max_iter) = (s.newton.tol, s.newton.max_iter);
-        let t_powers = t_power_table(h);
-        let target = *mu;
-        let mut p = target;
-        let mut active = *live;
-        let mut converged = [false; L];
-        let mut iterations = [0u32; L];
-        let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
-        while active.contains(&true) {
-            s.generating
-                .derivatives_lanes::<L, true>(h, &t_powers, &p, &mut g, &mut hs);
-            // f = q_k − (q + ½c∇S), J = I + ½c∇²S.
-            let mut f = [[0.0; L]; N];
-            let mut j = [[[0.0; L]; N]; N];
-            for i in 0..N {
-                for l in 0..L {
-                    let mut tar = p[i][l];
-                    for k in 0..N {
-                        tar += half_c[i][k] * g[k][l];
-                    }
-                    f[i][l] = target[i][l] - tar;
-                }
-                for r in 0..N {
-                    for l in 0..L {
-                        let mut acc = if i == r { 1.0 } else { 0.0 };
-                        for k in 0..N {
-                            acc += half_c[i][k] * hs[k][r][l];
-                        }
-                        j[i][r][l] = acc;
-                    }
-                }
-            }
-            let mut delta = [[0.0; L]; N];
-            let mut solvable = [true; L];
-            solve_small_lanes(&j, &f, &mut delta, &mut solvable);
-            for l in 0..L {
-                if !active[l] {
-                    continue;
-                }
-                let finite =
-                    (0..N).all(|a| g[a][l].is_finite() && (0..N).all(|b| hs[a][b][l].is_finite()));
-                let failure = if !finite {
-                    Some(StepFailure::NonFinite)
-                } else if iterations[l] >= max_iter {
-                    Some(StepFailure::NotConverged)
-                } else if !solvable[l] || !(0..N).all(|a| delta[a][l].is_finite()) {
-                    Some(StepFailure::SingularJacobian)
-                } else {
-                    None
-                };
-                if let Some(failure) = failure {
-                    result[l] = Err(failure);
-                    active[l] = false;
-                    continue;
-                }
-                let (mut dmax, mut pmax) = (0.0f64, 0.0f64);
-                for a in 0..N {
-                    p[a][l] += delta[a][l];
-                    dmax = dmax.max(delta[a][l].abs());
-                    pmax = pmax.max(p[a][l].abs());
-                }
-                iterations[l] += 1;
-                if dmax <= tol * pmax.max(s.scale_floor) {
-                    active[l] = false;
-                    converged[l] = true;
-                }
-            }
-        }
+        log_bisection_lanes(self.0, &mut [], h, mu, live, result);
+    }
+}
+
+/// One bisection step of L trajectories of any [`LogLaneGenerating`] S in lanes (the solve of
+/// [`LogTaylorLanes`]); `buf` is S's network scratch.
+#[inline(always)]
+pub(super) fn log_bisection_lanes<const N: usize, const L: usize, G: LogLaneGenerating<N>>(
+    s: &BisectionStepper<N, LogCanonical<N>, G>,
+    buf: &mut [LaneRow],
+    h: f64,
+    mu: &mut [[f64; L]; N],
+    live: &[bool; L],
+    result: &mut [StepResult; L],
+) {
+    let c = s.realization.c();
+    let half_c: [[f64; N]; N] = std::array::from_fn(|i| c[i].map(|v| 0.5 * v));
+    let (tol, max_iter) = (s.newton.tol, s.newton.max_iter);
+    let t_powers = t_power_table(h);
+    let target = *mu;
+    let mut p = target;
+    let mut active = *live;
+    let mut converged = [false; L];
+    let mut iterations = [0u32; L];
+    let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
+    while active.contains(&true) {
         s.generating
-            .derivatives_lanes::<L, false>(h, &t_powers, &p, &mut g, &mut hs);
-        for l in 0..L {
-            if !converged[l] {
-                continue;
-            }
-            if !(0..N).all(|a| g[a][l].is_finite()) {
-                result[l] = Err(StepFailure::NonFinite);
-                continue;
-            }
-            let (gl, pl, tl): ([f64; N], [f64; N], [f64; N]) = (
-                std::array::from_fn(|i| g[i][l]),
-                std::array::from_fn(|i| p[i][l]),
-                std::array::from_fn(|i| target[i][l]),
-            );
-            let mut residual = 0.0f64;
-            for i in 0..N {
-                let mut tar = pl[i];
+            .derivatives_lanes::<L, true>(h, &t_powers, &p, buf, &mut g, &mut hs);
+        // f = q_k − (q + ½c∇S), J = I + ½c∇²S.
+        let mut f = [[0.0; L]; N];
+        let mut j = [[[0.0; L]; N]; N];
+        for i in 0..N {
+            for l in 0..L {
+                let mut tar = p[i][l];
                 for k in 0..N {
-                    tar += half_c[i][k] * gl[k];
+                    tar += half_c[i][k] * g[k][l];
                 }
-                residual = residual.max((tar - tl[i]).abs());
+                f[i][l] = target[i][l] - tar;
             }
-            // q_k − c∇S rather than q − ½c∇S: Newton's residual stays out of the Casimirs.
-            let out = match s.realization.sou_after_solve(&gl, &pl, &tl) {
-                Ok(out) => out,
-                Err(e) => {
-                    result[l] = Err(e);
-                    continue;
+            for r in 0..N {
+                for l in 0..L {
+                    let mut acc = if i == r { 1.0 } else { 0.0 };
+                    for k in 0..N {
+                        acc += half_c[i][k] * hs[k][r][l];
+                    }
+                    j[i][r][l] = acc;
                 }
-            };
-            for i in 0..N {
-                mu[i][l] = out[i];
             }
-            result[l] = log_state_in_orthant(&out).map(|()| StepStats {
-                iterations: iterations[l],
-                residual,
-            });
         }
+        let mut delta = [[0.0; L]; N];
+        let mut solvable = [true; L];
+        solve_small_lanes(&j, &f, &mut delta, &mut solvable);
+        for l in 0..L {
+            if !active[l] {
+                continue;
+            }
+            let finite =
+                (0..N).all(|a| g[a][l].is_finite() && (0..N).all(|b| hs[a][b][l].is_finite()));
+            let failure = if !finite {
+                Some(StepFailure::NonFinite)
+            } else if iterations[l] >= max_iter {
+                Some(StepFailure::NotConverged)
+            } else if !solvable[l] || !(0..N).all(|a| delta[a][l].is_finite()) {
+                Some(StepFailure::SingularJacobian)
+            } else {
+                None
+            };
+            if let Some(failure) = failure {
+                result[l] = Err(failure);
+                active[l] = false;
+                continue;
+            }
+            let (mut dmax, mut pmax) = (0.0f64, 0.0f64);
+            for a in 0..N {
+                p[a][l] += delta[a][l];
+                dmax = dmax.max(delta[a][l].abs());
+                pmax = pmax.max(p[a][l].abs());
+            }
+            iterations[l] += 1;
+            if dmax <= tol * pmax.max(s.scale_floor) {
+                active[l] = false;
+                converged[l] = true;
+            }
+        }
+    }
+    s.generating
+        .derivatives_lanes::<L, false>(h, &t_powers, &p, buf, &mut g, &mut hs);
+    for l in 0..L {
+        if !converged[l] {
+            continue;
+        }
+        if !(0..N).all(|a| g[a][l].is_finite()) {
+            result[l] = Err(StepFailure::NonFinite);
+            continue;
+        }
+        let (gl, pl, tl): ([f64; N], [f64; N], [f64; N]) = (
+            std::array::from_fn(|i| g[i][l]),
+            std::array::from_fn(|i| p[i][l]),
+            std::array::from_fn(|i| target[i][l]),
+        );
+        let mut residual = 0.0f64;
+        for i in 0..N {
+            let mut tar = pl[i];
+            for k in 0..N {
+                tar += half_c[i][k] * gl[k];
+            }
+            residual = residual.max((tar - tl[i]).abs());
+        }
+        // q_k − c∇S rather than q − ½c∇S: Newton's residual stays out of the Casimirs.
+        let out = match s.realization.sou_after_solve(&gl, &pl, &tl) {
+            Ok(out) => out,
+            Err(e) => {
+                result[l] = Err(e);
+                continue;
+            }
+        };
+        for i in 0..N {
+            mu[i][l] = out[i];
+        }
+        result[l] = log_state_in_orthant(&out).map(|()| StepStats {
+            iterations: iterations[l],
+            residual,
+        });
     }
 }
 
