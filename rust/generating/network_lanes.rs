@@ -225,8 +225,18 @@ impl<'a> NetworkLanes<'a> {
                     }
                     put(&mut out[comp], &acc);
                 }
-                if depth < last {
-                    tanh_unit::<N, L>(out);
+            }
+            if depth < last {
+                // Every unit's tanh first (independent chains that overlap), then the chain
+                // rule unit by unit: one tanh after another's sums left each waiting on its
+                // own latency.
+                for k in 0..layer.n_out {
+                    for l in 0..L {
+                        dst[k * c][l] = tanh_fast(dst[k * c][l]);
+                    }
+                }
+                for k in 0..layer.n_out {
+                    tanh_chain_rule::<N, L>(&mut dst[k * c..(k + 1) * c]);
                 }
             }
             std::mem::swap(&mut src, &mut dst);
@@ -264,12 +274,14 @@ impl<'a> NetworkLanes<'a> {
                         acc[l] += w * x[j][l];
                     }
                 }
-                if depth < last {
+                put(&mut z[k], &acc);
+            }
+            if depth < last {
+                for k in 0..layer.n_out {
                     for l in 0..L {
-                        acc[l] = tanh_fast(acc[l]);
+                        z[k][l] = tanh_fast(z[k][l]);
                     }
                 }
-                put(&mut z[k], &acc);
             }
             off += layer.n_in;
         }
@@ -436,13 +448,13 @@ fn chain<const N: usize, const L: usize, const HESS: bool>(
     r
 }
 
-/// y = tanh(z) in place on a unit's jet: y′ = 1 − y², y″ = −2 y y′.
+/// The jet of y = tanh(z) from z's derivatives, in place, with y already in the value row:
+/// y′ = 1 − y², y″ = −2 y y′.
 #[inline(always)]
-fn tanh_unit<const N: usize, const L: usize>(u: &mut [LaneRow]) {
+fn tanh_chain_rule<const N: usize, const L: usize>(u: &mut [LaneRow]) {
     let (mut d1, mut d2) = ([0.0; L], [0.0; L]);
     for l in 0..L {
-        let y = tanh_fast(u[0][l]);
-        u[0][l] = y;
+        let y = u[0][l];
         d1[l] = 1.0 - y * y;
         d2[l] = -2.0 * y * d1[l];
     }
