@@ -14,7 +14,11 @@ Newton systems on their blocks): the same steps to Newton's tolerance in fewer u
 :data:`AFTER_THE_MIDPOINT_SWEEPS`. Then the heavy top's Taylor step solved its Newton systems in
 SIMD lanes (the Jacobian in forward mode and a pivoted Gauss–Jordan inverse instead of dual
 numbers and nalgebra's LU; ``rust/tests/se3_lanes.rs`` checks its steps against the generic
-one's to 1e-12): :data:`AFTER_THE_SE3_LANES`. Nothing else may change."""
+one's to 1e-12): :data:`AFTER_THE_SE3_LANES`. Then the learned rigid body's network moved into
+the so(3) lane Newton solve (forward-mode jets and reverse-mode gradients in lanes with the
+portable tanh, instead of the batched kernel's fused tanh; ``rust/tests/network_lanes.rs`` checks
+its steps against the generic one's to 1e-12): :data:`AFTER_THE_NETWORK_LANES`. Nothing else may
+change."""
 
 from __future__ import annotations
 
@@ -93,6 +97,12 @@ AFTER_THE_SE3_LANES = {
 }
 
 
+#: The learned rigid body's rollout after its network moved into the lane Newton solve.
+AFTER_THE_NETWORK_LANES = {
+    "rb-learned-default": "2dc4dc64cee9b497",
+}
+
+
 def _digests() -> dict[str, str]:
     out: dict[str, str] = {}
 
@@ -149,6 +159,7 @@ def test_every_old_stepper_keeps_its_bits() -> None:
         **AFTER_THE_PREDICTOR,
         **AFTER_THE_MIDPOINT_SWEEPS,
         **AFTER_THE_SE3_LANES,
+        **AFTER_THE_NETWORK_LANES,
     }
     changed = sorted(k for k in want if got[k] != want[k])
     assert not changed, f"rollouts changed: {changed}"
