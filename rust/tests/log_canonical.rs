@@ -59,7 +59,7 @@ fn pnn() -> LogSystem<2> {
 
 /// S = t S₁ (+ t³ S₃) for PNN's system: S₁ = −(u + v) + (ln u + 2 ln v), and S₃ as derived
 /// by the Python HJ series (checked there against the flow).
-fn pnn_taylor(order: u32) -> LogBisection<2> {
+pub(super) fn pnn_taylor(order: u32) -> LogBisection<2> {
     let mut terms = vec![
         ExpMonomial {
             t_power: 1,

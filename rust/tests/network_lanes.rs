@@ -325,37 +325,19 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
 /// same bits; a network too wide for the lanes takes the generic step itself.
 #[test]
 fn learned_log_canonical_steps_in_lanes_equal_the_generic_step() {
-    use crate::structures::log_canonical::{
-        ExpMonomial, ExpPolynomial, LearnedExp, LearnedLogBisection, LearnedLogStepper,
-        LogCanonical,
-    };
+    use crate::structures::log_canonical::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
     let mut rng = Rng::new(0x4E7_1A52);
-    // H = x₁ + x₂ − ln x₁ − 2 ln x₂ on c = [[0, 1], [−1, 0]]: S = −t(x₁ + x₂) + t(1, 2)·q + …
-    let taylor = ExpPolynomial::new(
-        vec![
-            ExpMonomial {
-                t_power: 1,
-                exponents: [1, 0],
-                coeff: -1.0,
-            },
-            ExpMonomial {
-                t_power: 1,
-                exponents: [0, 1],
-                coeff: -1.0,
-            },
-        ],
-        [1.0, 2.0],
-    )
-    .unwrap();
+    // PNN's H = x₁ + x₂ − ln x₁ − 2 ln x₂: S = −t(x₁ + x₂) + t(1, 2)·q plus the network.
+    let base = super::log_canonical::pnn_taylor(1);
+    let (taylor, c) = (base.generating, base.realization);
     for width in [6, NETWORK_LANES_MAX_WIDTH + 4] {
         let mut network = network::<2>(&mut rng, width, MlpInputs::Plain);
         network.mlp_power = 3;
         let wide = network.network_lanes().is_none();
         let s = LearnedExp::new(taylor.clone(), network).unwrap();
-        let c = LogCanonical::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap();
         let stepper = LearnedLogStepper(LearnedLogBisection::unit_scale(
             s,
-            c,
+            c.clone(),
             NewtonOptions::default(),
         ));
         assert_eq!(stepper.batch() == 1, wide);
