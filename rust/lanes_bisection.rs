@@ -1,6 +1,7 @@
-//! The so(3) Newton solve of a polynomial S in SIMD lanes: the bisection step of a Taylor-HJ
-//! integrator on an so(3) chart, for a block of trajectories in lockstep, each lane
-//! bit-identical to the scalar step.
+//! The so(3) Newton solve of S in SIMD lanes: the bisection step of a Taylor-HJ integrator (a
+//! polynomial S) or of a learned one (a polynomial plus a network term,
+//! [`crate::generating::NetworkLanes`]) on an so(3) chart, for a block of trajectories in
+//! lockstep, each lane bit-identical to the one-lane step.
 
 // Index loops over lanes and coordinates read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]

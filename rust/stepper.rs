@@ -8,8 +8,8 @@
 //! exponential polynomial, jets of an expression H). The Newton Jacobian is inverted once per
 //! refresh (closed form for N = 3, nalgebra's LU otherwise), so every update, simplified or not,
 //! is one matrix–vector product. A generating function that evaluates several momenta at once
-//! has its Newton systems solved in lockstep; a polynomial S on an so(3) or se(3) chart in SIMD
-//! lanes.
+//! has its Newton systems solved in lockstep; on an so(3) or se(3) chart, a polynomial S, or one
+//! plus a network narrow enough ([`Generating::lane_parts`]), in SIMD lanes.
 
 use std::any::Any;
 
