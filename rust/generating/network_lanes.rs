@@ -85,7 +85,11 @@ impl<'a> NetworkLanes<'a> {
     /// With the Hessian every unit carries its jet forward; without it (most simplified-Newton
     /// updates) the values go forward and one adjoint comes back, 2 lane operations a weight
     /// instead of 1 + N.
-    #[inline(always)]
+    // Inlined into the lane solvers in optimised builds (so that it runs with their AVX2
+    // features); a call of its own in debug builds, where every inlined local keeps its own
+    // stack slot and the so(3) and se(3) blocks overflowed a test thread's stack.
+    #[cfg_attr(not(debug_assertions), inline(always))]
+    #[cfg_attr(debug_assertions, inline(never))]
     pub(crate) fn add_jet_lanes<const N: usize, const L: usize, const HESS: bool>(
         &self,
         t: f64,
