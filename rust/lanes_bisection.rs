@@ -409,24 +409,6 @@ impl<const L: usize> Progress<L> {
     }
 }
 
-/// A block's states in lanes (`[i][l]`: coordinate i of state l; lanes past `mu.len()` zero)
-/// and which lanes are live (at most L states).
-#[inline(always)]
-pub(crate) fn gather<const N: usize, const L: usize>(
-    mu: &[[f64; N]],
-    live: &[bool],
-) -> ([[f64; L]; N], [bool; L]) {
-    let mut lanes = [[0.0; L]; N];
-    let mut on = [false; L];
-    for (j, (m, &l)) in mu.iter().zip(live).enumerate() {
-        for i in 0..N {
-            lanes[i][j] = m[i];
-        }
-        on[j] = l;
-    }
-    (lanes, on)
-}
-
 /// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)
 /// by simplified Newton in lanes: the same rule as [`crate::stepper::BisectionStepper`]'s
 /// (refresh the Jacobian while updates contract by less than [`SIMPLIFIED_RATE`], stop once
@@ -443,7 +425,14 @@ fn so3_block<const N: usize, const L: usize>(
 ) {
     let n = mu.len();
     debug_assert!(N == 3 && n <= L);
-    let (mut pl, active) = gather::<N, L>(mu, live);
+    let mut pl = [[0.0; L]; N];
+    let mut active = [false; L];
+    for j in 0..n {
+        for i in 0..3 {
+            pl[i][j] = mu[j][i];
+        }
+        active[j] = live[j];
+    }
     let target: V3<L> = [V(pl[0]), V(pl[1]), V(pl[2])];
     let mut p = target;
     let net = sys.network.as_ref();

@@ -20,9 +20,7 @@ use crate::error::StepFailure;
 use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::{LaneRow, NetworkLanes, Polynomial};
 use crate::isa::Isa;
-use crate::lanes_bisection::{
-    evaluate, gather, lane_newton_steps, LaneSolve, Progress, PREDICT_MAX_S, V,
-};
+use crate::lanes_bisection::{evaluate, lane_newton_steps, LaneSolve, Progress, PREDICT_MAX_S, V};
 use crate::step::{StepResult, StepStats};
 use crate::structures::lie_groupoid::{
     exp_chart_coefficient_derivatives_to, exp_chart_coefficient_to, se3_coadjoint, C_SERIES,
@@ -309,7 +307,14 @@ fn se3_block<const N: usize, const L: usize>(
 ) {
     let n = mu.len();
     debug_assert!(N == 6 && n <= L);
-    let (mut pl, active) = gather::<N, L>(mu, live);
+    let mut pl = [[0.0; L]; N];
+    let mut active = [false; L];
+    for j in 0..n {
+        for i in 0..N {
+            pl[i][j] = mu[j][i];
+        }
+        active[j] = live[j];
+    }
     let target: V6<L> = from_fn(|i| V(pl[i]));
     let mut p = target;
     let net = sys.network.as_ref();

@@ -10,7 +10,7 @@ use crate::error::CoreError;
 use crate::generating::polynomial_lanes::JetLanes;
 use crate::generating::{GeneratingFunction, LaneRow, Workspace, MAX_BATCH};
 use crate::isa::Isa;
-use crate::lanes_bisection::{gather, lane_newton_steps, LaneSolve};
+use crate::lanes_bisection::{lane_newton_steps, LaneSolve};
 use crate::realization::Generating;
 use crate::step::{StepMap, StepResult};
 use crate::stepper::BisectionStepper;
@@ -129,7 +129,14 @@ impl<const N: usize> LaneSolve<N> for LearnedLogStepper<N> {
         results: &mut [StepResult],
     ) {
         let n = mu.len();
-        let (mut q, on) = gather::<N, L>(mu, live);
+        let mut q = [[0.0; L]; N];
+        let mut on = [false; L];
+        for j in 0..n {
+            for i in 0..N {
+                q[i][j] = mu[j][i];
+            }
+            on[j] = live[j];
+        }
         let mut out = [Ok(Default::default()); L];
         log_bisection_lanes(&self.0, buf, t, &mut q, &on, &mut out);
         for j in (0..n).filter(|&j| on[j]) {
