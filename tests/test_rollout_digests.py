@@ -17,8 +17,10 @@ numbers and nalgebra's LU; ``rust/tests/se3_lanes.rs`` checks its steps against 
 one's to 1e-12): :data:`AFTER_THE_SE3_LANES`. Then the learned rigid body's network moved into
 the so(3) lane Newton solve (forward-mode jets and reverse-mode gradients in lanes with the
 portable tanh, instead of the batched kernel's fused tanh; ``rust/tests/network_lanes.rs`` checks
-its steps against the generic one's to 1e-12): :data:`AFTER_THE_NETWORK_LANES`. Nothing else may
-change."""
+its steps against the generic one's to 1e-12): :data:`AFTER_THE_NETWORK_LANES`. Then the
+log-canonical Taylor step started Newton from the predicted q_k − ½c∇S(q_k) and took ∇S at the
+solution from its last update to first order (the same 200-step rollouts to 1.2e-14):
+:data:`AFTER_THE_LOG_PREDICTOR`. Nothing else may change."""
 
 from __future__ import annotations
 
@@ -103,6 +105,15 @@ AFTER_THE_NETWORK_LANES = {
 }
 
 
+#: The log-canonical Taylor rollouts after the predicted start and the first-order ∇S at the
+#: solution.
+AFTER_THE_LOG_PREDICTOR = {
+    "lv-taylor1": "2ec7bff426a1385c",
+    "lv-taylor3": "df66f887c689c0d9",
+    "lv-taylor5": "81e30a4b5210a299",
+}
+
+
 def _digests() -> dict[str, str]:
     out: dict[str, str] = {}
 
@@ -160,6 +171,7 @@ def test_every_old_stepper_keeps_its_bits() -> None:
         **AFTER_THE_MIDPOINT_SWEEPS,
         **AFTER_THE_SE3_LANES,
         **AFTER_THE_NETWORK_LANES,
+        **AFTER_THE_LOG_PREDICTOR,
     }
     changed = sorted(k for k in want if got[k] != want[k])
     assert not changed, f"rollouts changed: {changed}"

@@ -9,6 +9,7 @@ use super::*;
 use crate::exp::{exp, exp_lanes, EXP_MAX, EXP_MIN};
 use crate::lanes::{Isa, LANES};
 use crate::realization::Realization;
+use crate::structures::log_canonical::PREDICT_MAX_SHIFT;
 use crate::structures::{
     ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
     OrthantChecked,
@@ -572,4 +573,39 @@ fn null_vector(c: &[[f64; 5]; 5]) -> [f64; 5] {
         assert!(row.iter().zip(&k).map(|(a, b)| a * b).sum::<f64>().abs() < 1e-14);
     }
     k
+}
+
+/// The predicted start q_k − ½c∇S(q_k) of the log-canonical Newton solve: started there, the
+/// lanes reach the same states as the generic step started from q_k (to 1e-13 over 20 steps of
+/// 200 states of PNN's Taylor-3 at h = 0.1 and 0.2) in fewer updates; the prediction is left out
+/// where its shift exceeds [`PREDICT_MAX_SHIFT`] or is not finite.
+#[test]
+fn predicted_start_saves_newton_updates() {
+    let pnn = pnn_taylor(3);
+    let lanes = pnn.lanes();
+    let mut rng = Rng::new(0x9_2ED1C7);
+    for h in [0.1, 0.2] {
+        let (mut predicted, mut unpredicted, mut worst) = (0u32, 0u32, 0.0f64);
+        for _ in 0..200 {
+            let q0 = [rng.range(-0.6, 0.6), 2f64.ln() + rng.range(-0.6, 0.6)];
+            let (mut a, mut b) = (q0, q0);
+            for _ in 0..20 {
+                predicted += lanes.step(h, &mut a, &mut ()).unwrap().iterations;
+                unpredicted += pnn.step_generic(h, &mut b, &mut ()).unwrap().iterations;
+                worst = worst.max((a[0] - b[0]).abs().max((a[1] - b[1]).abs()));
+            }
+        }
+        assert!(worst <= 1e-13, "h = {h}: predicted vs not {worst:e}");
+        // Measured: 3.00 against 4.00 updates a step at h = 0.1.
+        assert!(
+            f64::from(predicted) <= 0.85 * f64::from(unpredicted),
+            "h = {h}: {predicted} updates predicted against {unpredicted}"
+        );
+    }
+    let c = pnn.realization;
+    let q = [0.1, 0.2];
+    // x₀ = (0, 1): a shift of ½ in q₁ is taken, (0, 3) is refused, and so is a NaN.
+    assert_eq!(c.predict(&[0.0, 1.0], &q), Some([0.1 - 0.5, 0.2]));
+    assert_eq!(c.predict(&[0.0, 2.0 * PREDICT_MAX_SHIFT + 1.0], &q), None);
+    assert_eq!(c.predict(&[f64::NAN, 0.0], &q), None);
 }

@@ -19,7 +19,7 @@ mod taylor;
 
 pub use classical::{LogClassical, LogExplicit, LogMethod, OrthantChecked};
 pub use learned::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
-pub use structure::{LogCanonical, LogSystem, MAX_HAMILTONIAN_EXPONENT};
+pub use structure::{LogCanonical, LogSystem, MAX_HAMILTONIAN_EXPONENT, PREDICT_MAX_SHIFT};
 pub use taylor::{ExpMonomial, ExpPolynomial, LogBisection, LogTaylorLanes, MAX_EXPONENT};
 
 use crate::error::StepFailure;

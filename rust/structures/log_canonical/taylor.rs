@@ -4,7 +4,7 @@
 // Index loops over small fixed-size vectors and matrices read as the formulas they implement.
 #![allow(clippy::needless_range_loop)]
 
-use super::{log_state_in_orthant, pow_lanes, LogCanonical};
+use super::{log_state_in_orthant, pow_lanes, LogCanonical, PREDICT_MAX_SHIFT};
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::exp::exp_lanes;
@@ -348,10 +348,11 @@ fn solve_pivoted_lanes<const N: usize, const L: usize>(
 
 /// Taylor-HJ on the log-canonical groupoid ([`LogBisection`] of an [`ExpPolynomial`], with the
 /// orthant check of [`OrthantChecked`](super::OrthantChecked)) in SIMD lanes, for any N:
-/// the Newton solve of q + ½c∇S(q) = q_k runs lane by lane (exact gradient and Hessian of S
+/// the Newton solve of q + ½c∇S(q) = q_k runs lane by lane from the predicted start
+/// q_k − ½c∇S(q_k) (exact gradient and Hessian of S
 /// from y = e^q, J = I + ½c∇²S solved by cofactors for N ≤ 3 and by pivoted elimination above,
-/// masked convergence), then
-/// q_{k+1} = q_k − c∇S(q) (the same as q − ½c∇S(q) at the solution, and exactly
+/// masked convergence; ∇S at the solution from the last update's gradient and Hessian, to
+/// O(|δ|²)), then q_{k+1} = q_k − c∇S(q) (the same as q − ½c∇S(q) at the solution, and exactly
 /// Casimir-preserving at any iterate). The scalar step is this with one lane, so every lane has
 /// the scalar bits.
 pub struct LogTaylorLanes<'a, const N: usize>(&'a LogBisection<N>);
@@ -399,6 +400,30 @@ pub(super) fn log_bisection_lanes<const N: usize, const L: usize, G: LogLaneGene
     let mut converged = [false; L];
     let mut iterations = [0u32; L];
     let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
+    // ∇S at each converged lane's p.
+    let mut x = [[0.0; L]; N];
+    // The start q_k − ½c∇S(q_k) of Realization::predict, from one gradient pass, with its
+    // rule: kept where every shift is at most PREDICT_MAX_SHIFT and finite.
+    s.generating
+        .derivatives_lanes::<L, false>(h, &t_powers, &target, buf, &mut g, &mut hs);
+    let mut near = [true; L];
+    for i in 0..N {
+        for l in 0..L {
+            let mut shift = 0.0;
+            for k in 0..N {
+                shift += half_c[i][k] * g[k][l];
+            }
+            p[i][l] = target[i][l] - shift;
+            near[l] &= shift.abs() <= PREDICT_MAX_SHIFT && p[i][l].is_finite();
+        }
+    }
+    for l in 0..L {
+        if !near[l] {
+            for i in 0..N {
+                p[i][l] = target[i][l];
+            }
+        }
+    }
     while active.contains(&true) {
         s.generating
             .derivatives_lanes::<L, true>(h, &t_powers, &p, buf, &mut g, &mut hs);
@@ -456,21 +481,28 @@ pub(super) fn log_bisection_lanes<const N: usize, const L: usize, G: LogLaneGene
             if dmax <= tol * pmax.max(s.scale_floor) {
                 active[l] = false;
                 converged[l] = true;
+                // ∇S at the new p to first order, from the pass just made: off by
+                // O(|δ|²) ≤ (tol·|p|)², far below a rounding, and one gradient pass saved.
+                for a in 0..N {
+                    let mut acc = g[a][l];
+                    for b in 0..N {
+                        acc += hs[a][b][l] * delta[b][l];
+                    }
+                    x[a][l] = acc;
+                }
             }
         }
     }
-    s.generating
-        .derivatives_lanes::<L, false>(h, &t_powers, &p, buf, &mut g, &mut hs);
     for l in 0..L {
         if !converged[l] {
             continue;
         }
-        if !(0..N).all(|a| g[a][l].is_finite()) {
+        if !(0..N).all(|a| x[a][l].is_finite()) {
             result[l] = Err(StepFailure::NonFinite);
             continue;
         }
         let (gl, pl, tl): ([f64; N], [f64; N], [f64; N]) = (
-            std::array::from_fn(|i| g[i][l]),
+            std::array::from_fn(|i| x[i][l]),
             std::array::from_fn(|i| p[i][l]),
             std::array::from_fn(|i| target[i][l]),
         );
