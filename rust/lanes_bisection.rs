@@ -414,7 +414,10 @@ impl<const L: usize> Progress<L> {
 /// (refresh the Jacobian while updates contract by less than [`SIMPLIFIED_RATE`], stop once
 /// |δ|∞ ≤ tol · max(|p|∞, 1e-300)) and the same failures in the same order, lane by lane. A
 /// lane that converged or failed is frozen; the block runs until every lane has.
-#[inline(always)]
+// Out of line in debug builds: inlined there, every local of every instantiation keeps its
+// own slot in the dispatching frames, and a test thread's stack overflowed.
+#[cfg_attr(not(debug_assertions), inline(always))]
+#[cfg_attr(debug_assertions, inline(never))]
 fn so3_block<const N: usize, const L: usize>(
     sys: &So3Newton<'_, N>,
     buf: &mut [LaneRow],
@@ -464,6 +467,12 @@ fn so3_block<const N: usize, const L: usize>(
     }
     let mut progress = Progress::new(active);
     let mut inv: M3<L> = [[V::splat(0.0); 3]; 3];
+    // x = ∇S at each converged lane's p, to first order from its last update: x + Hess S · δ
+    // with the Hessian of the lane's last refresh (the current one after a refresh, at most a
+    // few simplified updates old otherwise), off by O(|δ| · |p − p_refresh| + |δ|²), far below a
+    // rounding at |δ| ≤ tol·|p|; it saves the gradient pass at the solution.
+    let mut xs: V3<L> = [V::splat(0.0); 3];
+    let mut hk: M3<L> = [[V::splat(0.0); 3]; 3];
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
     let exp = sys.chart == Chart::Exp;
     while progress.running() {
@@ -516,22 +525,33 @@ fn so3_block<const N: usize, const L: usize>(
         // δ = J⁻¹ (μ − tar), each component summed in column order (Inverse::apply).
         let f = v3(|i| target[i] - tar[i]);
         let delta = v3(|r| inv[r][0] * f[0] + inv[r][1] * f[1] + inv[r][2] * f[2]);
+        // Each lane's own last Hessian: the one of its last refresh (a block evaluates the
+        // Hessian for every lane when one of them refreshes; a lane's bits must not see that).
+        for l in (0..L).filter(|&l| go[l] && progress.refresh[l]) {
+            for a in 0..3 {
+                for b in 0..3 {
+                    hk[a][b].0[l] = h[a][b].0[l];
+                }
+            }
+        }
         progress.update(&go, &mut p, &delta, sys.tol, results);
+        let step = v3(|a| hk[a][0] * delta[0] + hk[a][1] * delta[1] + hk[a][2] * delta[2]);
+        for l in (0..L).filter(|&l| go[l] && progress.converged[l]) {
+            for a in 0..3 {
+                xs[a].0[l] = x[a].0[l] + step[a].0[l];
+            }
+        }
     }
     if !progress.converged.iter().any(|&c| c) {
         return;
     }
     // μ' = R(x) μ with x = ∇S(p) at the converged p (= sou(x, p) up to the residual, which
     // R(x) μ leaves out: see Groupoid::coadjoint); the residual of the solved equation.
-    for i in 0..3 {
-        pl[i] = p[i].0;
-    }
-    evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
-    let (x, _) = gradient_and_hessian(&jet);
+    let x = xs;
     let (tar, s, _) = so3_chart_lanes(sys.chart, -1.0, &x, &p, None);
     let next = so3_rotate_lanes(sys.chart, &x, &target, s);
     for l in (0..n).filter(|&l| progress.converged[l]) {
-        results[l] = if !(jet.v[l].is_finite() && (0..3).all(|i| x[i].0[l].is_finite())) {
+        results[l] = if !(0..3).all(|i| x[i].0[l].is_finite()) {
             Err(StepFailure::NonFinite)
         } else if exp && s.0[l] >= max_s {
             Err(StepFailure::ChartSingular)

@@ -296,7 +296,10 @@ pub(crate) struct Se3Newton<'a, const N: usize> {
 /// [`SIMPLIFIED_RATE`](crate::step::SIMPLIFIED_RATE), stop once
 /// |δ|∞ ≤ tol · max(|p|∞, 1e-300)), lane by lane. A lane that converged or failed is frozen; the
 /// block runs until every lane has.
-#[inline(always)]
+// Out of line in debug builds: inlined there, every local of every instantiation keeps its
+// own slot in the dispatching frames, and a test thread's stack overflowed.
+#[cfg_attr(not(debug_assertions), inline(always))]
+#[cfg_attr(debug_assertions, inline(never))]
 fn se3_block<const N: usize, const L: usize>(
     sys: &Se3Newton<'_, N>,
     buf: &mut [LaneRow],
@@ -352,6 +355,10 @@ fn se3_block<const N: usize, const L: usize>(
     // The kept inverse per lane, and this round's Hessian, Jacobian and inverse.
     let mut inv: M6<L> = [[V::splat(0.0); 6]; 6];
     let (mut h, mut jac, mut fresh) = (inv, inv, inv);
+    // x = ∇S at each converged lane's p from its last update, x + Hess S · δ with the Hessian
+    // of the lane's last refresh (as on so(3): off by far less than a rounding at |δ| ≤ tol·|p|, and
+    // the gradient pass at the solution saved).
+    let mut xs: V6<L> = [V::splat(0.0); 6];
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
     while progress.running() {
         let hess = progress.jacobian_wanted();
@@ -368,9 +375,15 @@ fn se3_block<const N: usize, const L: usize>(
             x[i] = V(jet.g[i]);
         }
         if hess {
-            for a in 0..6 {
-                for b in 0..6 {
-                    h[a][b] = V(jet.h[a.min(b)][a.max(b)]);
+            // Only the refreshing lanes take the new Hessian: `h` is each lane's Hessian of its
+            // own last refresh (the others' Jacobians this round are not used), which the
+            // first-order x at the solution needs (another lane's refresh must not change a
+            // lane's bits).
+            for l in (0..L).filter(|&l| progress.active[l] && progress.refresh[l]) {
+                for a in 0..6 {
+                    for b in 0..6 {
+                        h[a][b].0[l] = jet.h[a.min(b)][a.max(b)][l];
+                    }
                 }
             }
         }
@@ -425,25 +438,27 @@ fn se3_block<const N: usize, const L: usize>(
             delta[r] = acc;
         }
         progress.update(&go, &mut p, &delta, sys.tol, results);
+        for l in (0..L).filter(|&l| go[l] && progress.converged[l]) {
+            for a in 0..6 {
+                let mut acc = x[a].0[l];
+                for b in 0..6 {
+                    acc += h[a][b].0[l] * delta[b].0[l];
+                }
+                xs[a].0[l] = acc;
+            }
+        }
     }
     if !progress.converged.iter().any(|&c| c) {
         return;
     }
     // μ' = g(x)·μ with x = ∇S(p) at the converged p (sou(x, p) up to Newton's residual, which
     // the coadjoint action leaves out); the residual of the solved equation into the stats.
-    for i in 0..N {
-        pl[i] = p[i].0;
-    }
-    evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
-    let mut x = target;
-    for i in 0..6 {
-        x[i] = V(jet.g[i]);
-    }
+    let x = xs;
     let (tar, s) = se3_tar_lanes(&x, &p, None, &mut jac);
     for l in (0..n).filter(|&l| progress.converged[l]) {
         let xl: [f64; 6] = from_fn(|i| x[i].0[l]);
         let ml: [f64; 6] = from_fn(|i| target[i].0[l]);
-        results[l] = if !(jet.v[l].is_finite() && xl.iter().all(|v| v.is_finite())) {
+        results[l] = if !xl.iter().all(|v| v.is_finite()) {
             Err(StepFailure::NonFinite)
         } else if s.0[l] >= max_s {
             Err(StepFailure::ChartSingular)

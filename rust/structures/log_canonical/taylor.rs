@@ -381,7 +381,10 @@ impl<const N: usize> LaneStepper<N> for LogTaylorLanes<'_, N> {
 
 /// One bisection step of L trajectories of any [`LogLaneGenerating`] S in lanes (the solve of
 /// [`LogTaylorLanes`]); `buf` is S's network scratch.
-#[inline(always)]
+// Out of line in debug builds: inlined there, every local of every instantiation keeps its
+// own slot in the dispatching frames, and a test thread's stack overflowed.
+#[cfg_attr(not(debug_assertions), inline(always))]
+#[cfg_attr(debug_assertions, inline(never))]
 pub(super) fn log_bisection_lanes<const N: usize, const L: usize, G: LogLaneGenerating<N>>(
     s: &BisectionStepper<N, LogCanonical<N>, G>,
     buf: &mut [LaneRow],
