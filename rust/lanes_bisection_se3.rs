@@ -379,10 +379,15 @@ fn se3_block<const N: usize, const L: usize>(
             // own last refresh (the others' Jacobians this round are not used), which the
             // first-order x at the solution needs (another lane's refresh must not change a
             // lane's bits).
-            for l in (0..L).filter(|&l| progress.active[l] && progress.refresh[l]) {
-                for a in 0..6 {
-                    for b in 0..6 {
-                        h[a][b].0[l] = jet.h[a.min(b)][a.max(b)][l];
+            let mut take = [false; L];
+            for l in 0..L {
+                take[l] = progress.active[l] && progress.refresh[l];
+            }
+            for a in 0..6 {
+                for b in 0..6 {
+                    let new = &jet.h[a.min(b)][a.max(b)];
+                    for l in 0..L {
+                        h[a][b].0[l] = if take[l] { new[l] } else { h[a][b].0[l] };
                     }
                 }
             }
@@ -438,13 +443,19 @@ fn se3_block<const N: usize, const L: usize>(
             delta[r] = acc;
         }
         progress.update(&go, &mut p, &delta, sys.tol, results);
-        for l in (0..L).filter(|&l| go[l] && progress.converged[l]) {
+        let mut newly = [false; L];
+        for l in 0..L {
+            newly[l] = go[l] && progress.converged[l];
+        }
+        if newly.contains(&true) {
             for a in 0..6 {
-                let mut acc = x[a].0[l];
+                let mut acc = x[a];
                 for b in 0..6 {
-                    acc += h[a][b].0[l] * delta[b].0[l];
+                    acc = acc + h[a][b] * delta[b];
                 }
-                xs[a].0[l] = acc;
+                for l in 0..L {
+                    xs[a].0[l] = if newly[l] { acc.0[l] } else { xs[a].0[l] };
+                }
             }
         }
     }

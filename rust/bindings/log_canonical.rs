@@ -172,7 +172,10 @@ pub(super) fn rollout_log_classical<'py>(
         let system = LogSystem::new(structure, terms, std::array::from_fn(|i| bb[i]))?;
         let stepper = LogClassical::new(method, system, newton)?;
         let s0 = states::<N>(&s0, "s0")?;
-        // The explicit methods step blocks of trajectories in SIMD lanes (the same bits).
+        // Every method steps blocks of trajectories in SIMD lanes (the same bits).
+        if let Some(midpoint) = stepper.midpoint_in_lanes() {
+            return run_rollout(py, &Lanes::new(&midpoint), &s0, h, n_steps, every, None);
+        }
         match stepper.explicit() {
             Some(explicit) => run_rollout(py, &Lanes::new(&explicit), &s0, h, n_steps, every, None),
             None => run_rollout(py, &PerStep(&stepper), &s0, h, n_steps, every, None),

@@ -4,14 +4,17 @@
 // Index loops over small fixed-size vectors and matrices read as the formulas they implement.
 #![allow(clippy::needless_range_loop)]
 
-use nalgebra::{Const, DimMin, SMatrix, SVector};
+use nalgebra::{Const, DimMin, SMatrix};
 
 use super::{in_orthant, log_state_in_orthant, LogSystem};
-use crate::dual::{Dual1, Scalar};
+use crate::classical::ImplicitMidpoint;
+use crate::dual::Dual1;
 use crate::error::{CoreError, StepFailure};
 use crate::exp::{exp_lanes, EXP_MAX, EXP_MIN};
+use crate::lane_field::LaneField;
 use crate::lanes::LaneStepper;
 use crate::step::{NewtonOptions, StepMap, StepResult, StepStats};
+use crate::structures::lie_poisson::VectorField;
 
 /// Classical integrators of a log-canonical system.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -195,48 +198,9 @@ where
         }
     }
 
-    /// z = x + h f((x + z)/2) by Newton from z = x + h f(x).
-    fn midpoint(&self, h: f64, x: &mut [f64; N]) -> StepResult {
-        let x0 = *x;
-        let f0 = self.system.vector_field(&x0);
-        let mut z: [f64; N] = std::array::from_fn(|i| x0[i] + h * f0[i]);
-        let mut iterations = 0;
-        loop {
-            if iterations >= self.newton.max_iter {
-                return Err(StepFailure::NotConverged);
-            }
-            let m: [Dual1<N>; N] = std::array::from_fn(|i| {
-                let mut d = Dual1::var(0.5 * (x0[i] + z[i]), i);
-                d.g[i] = 0.5;
-                d
-            });
-            let fm = self.system.vector_field(&m);
-            let jac =
-                SMatrix::<f64, N, N>::from_fn(|r, c| f64::from(u8::from(r == c)) - h * fm[r].g[c]);
-            let res = SVector::<f64, N>::from_fn(|i, _| x0[i] + h * fm[i].v - z[i]);
-            let delta = jac.lu().solve(&res).ok_or(StepFailure::SingularJacobian)?;
-            if !delta.iter().all(|d| d.is_finite()) {
-                return Err(StepFailure::NonFinite);
-            }
-            for i in 0..N {
-                z[i] += delta[i];
-            }
-            iterations += 1;
-            let scale = z.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-300);
-            if delta.amax() <= self.newton.tol * scale {
-                let fm = self
-                    .system
-                    .vector_field(&std::array::from_fn(|i| 0.5 * (x0[i] + z[i])));
-                let residual = (0..N)
-                    .map(|i| (x0[i] + h * fm[i] - z[i]).abs())
-                    .fold(0.0, f64::max);
-                *x = z;
-                return Ok(StepStats {
-                    iterations,
-                    residual,
-                });
-            }
-        }
+    /// This stepper in SIMD lanes, for the implicit midpoint rule (None for the others).
+    pub fn midpoint_in_lanes(&self) -> Option<LogMidpoint<'_, N>> {
+        (self.method == LogMethod::Midpoint).then_some(LogMidpoint(self))
     }
 }
 
@@ -249,16 +213,18 @@ where
     fn workspace(&self) {}
 
     fn step(&self, h: f64, s: &mut [f64; N], _: &mut ()) -> StepResult {
-        let mut stats = StepStats::default();
-        if self.method == LogMethod::Midpoint {
-            stats = self.midpoint(h, s)?;
-        } else {
-            let mut lane: [[f64; 1]; N] = s.map(|v| [v]);
-            self.step_explicit_lanes(h, &mut lane);
+        let mut lane: [[f64; 1]; N] = s.map(|v| [v]);
+        if let Some(midpoint) = self.midpoint_in_lanes() {
+            // The midpoint rule on one lane (its own orthant check included).
+            let mut result = [Ok(StepStats::default())];
+            midpoint.step_lanes_reporting(h, &mut lane, &[true], &mut result);
             *s = lane.map(|v| v[0]);
+            return result[0];
         }
+        self.step_explicit_lanes(h, &mut lane);
+        *s = lane.map(|v| v[0]);
         self.domain(s)?;
-        Ok(stats)
+        Ok(StepStats::default())
     }
 }
 
@@ -308,5 +274,91 @@ where
 
     fn domain(&self, state: &[f64; N]) -> Result<(), StepFailure> {
         self.0.domain(state)
+    }
+}
+
+/// A log-canonical system's vector field in x, ẋ_i = x_i (c g(x))_i, as the classical steppers
+/// take a field: in lanes (the scalar field is its one-lane case) with its Jacobian in closed
+/// form lane by lane ([`LogSystem::jacobian_in_lanes`]), and exactly by dual numbers for a lane
+/// that needs a pivoted solve.
+#[derive(Clone, Copy)]
+pub struct FieldInX<'a, const N: usize>(pub &'a LogSystem<N>);
+
+impl<const N: usize> VectorField<N> for FieldInX<'_, N> {
+    fn field(&self, x: &[f64; N]) -> [f64; N] {
+        let mut out = [[0.0; 1]; N];
+        self.0.field_lanes(&x.map(|v| [v]), &mut out);
+        out.map(|v| v[0])
+    }
+
+    fn jacobian(&self, x: &[f64; N]) -> SMatrix<f64, N, N> {
+        let d: [Dual1<N>; N] = std::array::from_fn(|i| Dual1::var(x[i], i));
+        let f = self.0.vector_field(&d);
+        SMatrix::from_fn(|r, c| f[r].g[c])
+    }
+}
+
+impl<const N: usize> LaneField<N> for FieldInX<'_, N> {
+    #[inline(always)]
+    fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        self.0.field_lanes(x, out);
+    }
+
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        x: &[[f64; L]; N],
+        out: &mut [[[f64; L]; N]; N],
+    ) -> bool {
+        self.0.jacobian_in_lanes(x, out);
+        true
+    }
+}
+
+/// The implicit midpoint rule in x of a [`LogClassical`] as a [`LaneStepper`]: the classical
+/// midpoint's Newton solve on [`FieldInX`] lane by lane (the Euler-midpoint start, the
+/// residual, the lane-wide solve, masked convergence), then each converged lane's orthant
+/// check. The scalar step is this with one lane, so every lane has its bits.
+pub struct LogMidpoint<'a, const N: usize>(&'a LogClassical<N>);
+
+impl<const N: usize> StepMap<N> for LogMidpoint<'_, N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    type Workspace = ();
+    fn workspace(&self) {}
+    fn step(&self, h: f64, s: &mut [f64; N], ws: &mut ()) -> StepResult {
+        self.0.step(h, s, ws)
+    }
+}
+
+impl<const N: usize> LaneStepper<N> for LogMidpoint<'_, N>
+where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    const REPORTS: bool = true;
+
+    #[inline(always)]
+    fn step_lanes_reporting<const L: usize>(
+        &self,
+        h: f64,
+        x: &mut [[f64; L]; N],
+        live: &[bool; L],
+        result: &mut [StepResult; L],
+    ) {
+        let midpoint = ImplicitMidpoint {
+            system: FieldInX(&self.0.system),
+            newton: self.0.newton,
+        };
+        midpoint.step_lanes_reporting(h, x, live, result);
+        for l in 0..L {
+            if !live[l] || result[l].is_err() {
+                continue;
+            }
+            let state: [f64; N] = std::array::from_fn(|i| x[i][l]);
+            if let Err(e) = in_orthant(&state) {
+                result[l] = Err(e);
+            }
+        }
     }
 }

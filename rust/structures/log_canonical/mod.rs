@@ -17,7 +17,7 @@ mod learned;
 mod structure;
 mod taylor;
 
-pub use classical::{LogClassical, LogExplicit, LogMethod, OrthantChecked};
+pub use classical::{FieldInX, LogClassical, LogExplicit, LogMethod, LogMidpoint, OrthantChecked};
 pub use learned::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
 pub use structure::{LogCanonical, LogSystem, MAX_HAMILTONIAN_EXPONENT, PREDICT_MAX_SHIFT};
 pub use taylor::{ExpMonomial, ExpPolynomial, LogBisection, LogTaylorLanes, MAX_EXPONENT};

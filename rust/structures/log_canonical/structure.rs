@@ -222,6 +222,85 @@ impl<const N: usize> LogSystem<N> {
         }
     }
 
+    /// ∂f/∂x at L states (`out[i][k][l]`), lane by lane in closed form: with g_j = x_j ∂H/∂x_j,
+    /// ∂f_i/∂x_k = δ_ik (c g)_i + x_i Σ_j c_ij ∂g_j/∂x_k and ∂g_j/∂x_k = Σ_m a_m e_mj e_mk
+    /// x^{e_m − 1_k}.
+    #[inline(always)]
+    pub(super) fn jacobian_in_lanes<const L: usize>(
+        &self,
+        x: &[[f64; L]; N],
+        out: &mut [[[f64; L]; N]; N],
+    ) {
+        let mut g: [[f64; L]; N] = std::array::from_fn(|j| [-self.b[j]; L]);
+        let mut dg = [[[0.0; L]; N]; N];
+        for (e, a) in &self.terms {
+            let mut m = [*a; L];
+            for i in 0..N {
+                if e[i] > 0 {
+                    let power = pow_lanes(&x[i], e[i]);
+                    for l in 0..L {
+                        m[l] *= power[l];
+                    }
+                }
+            }
+            for k in 0..N {
+                if e[k] == 0 {
+                    continue;
+                }
+                let ek = f64::from(e[k]);
+                for l in 0..L {
+                    g[k][l] += m[l] * ek;
+                }
+                // a x^{e − 1_k}, without dividing by x_k (which may be 0).
+                let mut d = [*a * ek; L];
+                for i in 0..N {
+                    let p = e[i] - u32::from(i == k);
+                    if p > 0 {
+                        let power = pow_lanes(&x[i], p);
+                        for l in 0..L {
+                            d[l] *= power[l];
+                        }
+                    }
+                }
+                for j in 0..N {
+                    if e[j] > 0 {
+                        let ej = f64::from(e[j]);
+                        for l in 0..L {
+                            dg[j][k][l] += d[l] * ej;
+                        }
+                    }
+                }
+            }
+        }
+        let c = self.structure.c();
+        for i in 0..N {
+            for k in 0..N {
+                let mut acc = [0.0; L];
+                for j in 0..N {
+                    if c[i][j] != 0.0 {
+                        for l in 0..L {
+                            acc[l] += dg[j][k][l] * c[i][j];
+                        }
+                    }
+                }
+                for l in 0..L {
+                    out[i][k][l] = x[i][l] * acc[l];
+                }
+            }
+            let mut cg = [0.0; L];
+            for j in 0..N {
+                if c[i][j] != 0.0 {
+                    for l in 0..L {
+                        cg[l] += g[j][l] * c[i][j];
+                    }
+                }
+            }
+            for l in 0..L {
+                out[i][i][l] += cg[l];
+            }
+        }
+    }
+
     /// H' of the one-variable parts: the flow of H_i(q_i) = Σ_{m ∈ i} a_m e^{e_mi q_i} − b_i q_i
     /// is q_j += t c_ji H_i'(q_i) (q_i fixed since c_ii = 0). None unless H is separable (every
     /// monomial in one variable).
