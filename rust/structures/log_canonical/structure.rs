@@ -188,34 +188,10 @@ impl<const N: usize> LogSystem<N> {
     pub(super) fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
         let mut g: [[f64; L]; N] = std::array::from_fn(|j| [-self.b[j]; L]);
         for (e, a) in &self.terms {
-            let mut m = [*a; L];
-            for i in 0..N {
-                if e[i] > 0 {
-                    let power = pow_lanes(&x[i], e[i]);
-                    for l in 0..L {
-                        m[l] *= power[l];
-                    }
-                }
-            }
-            for j in 0..N {
-                if e[j] > 0 {
-                    let ej = f64::from(e[j]);
-                    for l in 0..L {
-                        g[j][l] += m[l] * ej;
-                    }
-                }
-            }
+            add_monomial_gradient(&mut g, e, &monomial_lanes(e, *a, x));
         }
-        let c = self.structure.c();
         for i in 0..N {
-            let mut acc = [0.0; L];
-            for j in 0..N {
-                if c[i][j] != 0.0 {
-                    for l in 0..L {
-                        acc[l] += g[j][l] * c[i][j];
-                    }
-                }
-            }
+            let acc = self.c_row_lanes(i, &g);
             for l in 0..L {
                 out[i][l] = x[i][l] * acc[l];
             }
@@ -232,73 +208,45 @@ impl<const N: usize> LogSystem<N> {
         out: &mut [[[f64; L]; N]; N],
     ) {
         let mut g: [[f64; L]; N] = std::array::from_fn(|j| [-self.b[j]; L]);
+        // dg[k][j] = ∂g_j/∂x_k.
         let mut dg = [[[0.0; L]; N]; N];
         for (e, a) in &self.terms {
-            let mut m = [*a; L];
-            for i in 0..N {
-                if e[i] > 0 {
-                    let power = pow_lanes(&x[i], e[i]);
-                    for l in 0..L {
-                        m[l] *= power[l];
-                    }
-                }
-            }
-            for k in 0..N {
-                if e[k] == 0 {
-                    continue;
-                }
-                let ek = f64::from(e[k]);
-                for l in 0..L {
-                    g[k][l] += m[l] * ek;
-                }
-                // a x^{e − 1_k}, without dividing by x_k (which may be 0).
-                let mut d = [*a * ek; L];
-                for i in 0..N {
-                    let p = e[i] - u32::from(i == k);
-                    if p > 0 {
-                        let power = pow_lanes(&x[i], p);
-                        for l in 0..L {
-                            d[l] *= power[l];
-                        }
-                    }
-                }
-                for j in 0..N {
-                    if e[j] > 0 {
-                        let ej = f64::from(e[j]);
-                        for l in 0..L {
-                            dg[j][k][l] += d[l] * ej;
-                        }
-                    }
-                }
+            add_monomial_gradient(&mut g, e, &monomial_lanes(e, *a, x));
+            for k in (0..N).filter(|&k| e[k] > 0) {
+                // a e_k x^{e − 1_k}, without dividing by x_k (which may be 0).
+                let mut lowered = *e;
+                lowered[k] -= 1;
+                let d = monomial_lanes(&lowered, *a * f64::from(e[k]), x);
+                add_monomial_gradient(&mut dg[k], e, &d);
             }
         }
-        let c = self.structure.c();
         for i in 0..N {
             for k in 0..N {
-                let mut acc = [0.0; L];
-                for j in 0..N {
-                    if c[i][j] != 0.0 {
-                        for l in 0..L {
-                            acc[l] += dg[j][k][l] * c[i][j];
-                        }
-                    }
-                }
+                let acc = self.c_row_lanes(i, &dg[k]);
                 for l in 0..L {
                     out[i][k][l] = x[i][l] * acc[l];
                 }
             }
-            let mut cg = [0.0; L];
-            for j in 0..N {
-                if c[i][j] != 0.0 {
-                    for l in 0..L {
-                        cg[l] += g[j][l] * c[i][j];
-                    }
-                }
-            }
+            let cg = self.c_row_lanes(i, &g);
             for l in 0..L {
                 out[i][i][l] += cg[l];
             }
         }
+    }
+
+    /// (c v)_i at L lanes, the zero entries of c skipped.
+    #[inline(always)]
+    fn c_row_lanes<const L: usize>(&self, i: usize, v: &[[f64; L]; N]) -> [f64; L] {
+        let c = self.structure.c();
+        let mut acc = [0.0; L];
+        for j in 0..N {
+            if c[i][j] != 0.0 {
+                for l in 0..L {
+                    acc[l] += v[j][l] * c[i][j];
+                }
+            }
+        }
+        acc
     }
 
     /// H' of the one-variable parts: the flow of H_i(q_i) = Σ_{m ∈ i} a_m e^{e_mi q_i} − b_i q_i
@@ -314,5 +262,41 @@ impl<const N: usize> LogSystem<N> {
             parts.push((vars[0], e[vars[0]], *a));
         }
         Some(parts)
+    }
+}
+
+/// a · x^e at L lanes.
+#[inline(always)]
+fn monomial_lanes<const N: usize, const L: usize>(
+    e: &[u32; N],
+    a: f64,
+    x: &[[f64; L]; N],
+) -> [f64; L] {
+    let mut m = [a; L];
+    for i in 0..N {
+        if e[i] > 0 {
+            let power = pow_lanes(&x[i], e[i]);
+            for l in 0..L {
+                m[l] *= power[l];
+            }
+        }
+    }
+    m
+}
+
+/// g_j += e_j · m for every j with e_j > 0 (x_j ∂/∂x_j of a monomial m = a x^e).
+#[inline(always)]
+fn add_monomial_gradient<const N: usize, const L: usize>(
+    g: &mut [[f64; L]; N],
+    e: &[u32; N],
+    m: &[f64; L],
+) {
+    for j in 0..N {
+        if e[j] > 0 {
+            let ej = f64::from(e[j]);
+            for l in 0..L {
+                g[j][l] += m[l] * ej;
+            }
+        }
     }
 }
