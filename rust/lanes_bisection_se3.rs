@@ -356,8 +356,8 @@ fn se3_block<const N: usize, const L: usize>(
     let mut inv: M6<L> = [[V::splat(0.0); 6]; 6];
     let (mut h, mut jac, mut fresh) = (inv, inv, inv);
     // x = ∇S at each converged lane's p from its last update, x + Hess S · δ with the Hessian
-    // of the lane's last refresh (as on so(3): off by far less than a rounding at |δ| ≤ tol·|p|, and
-    // the gradient pass at the solution saved).
+    // of the lane's last refresh (as on so(3): off by far less than a rounding at
+    // |δ| ≤ tol·|p|, and the gradient pass at the solution saved).
     let mut xs: V6<L> = [V::splat(0.0); 6];
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
     while progress.running() {
