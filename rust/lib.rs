@@ -28,6 +28,7 @@
 //! `python` feature.
 
 pub mod classical;
+pub mod distance_sum;
 pub mod dual;
 pub mod error;
 pub mod exp;

@@ -331,6 +331,17 @@ def hamiltonian_field(
         npt.NDArray[np.int64],
     ]
     | None = None,
+    distances: tuple[
+        npt.NDArray[np.int64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.int64],
+    ]
+    | None = None,
 ) -> npt.NDArray[np.float64]: ...
 def rollout_hamiltonian_field(
     name: str,
@@ -348,6 +359,17 @@ def rollout_hamiltonian_field(
     tol: float = 1e-13,
     max_iter: int = 50,
     program: tuple[
+        npt.NDArray[np.int64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.int64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.int64],
+    ]
+    | None = None,
+    distances: tuple[
+        npt.NDArray[np.int64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
         npt.NDArray[np.int64],
         npt.NDArray[np.int64],
         npt.NDArray[np.int64],

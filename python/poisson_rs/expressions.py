@@ -76,11 +76,17 @@ def _tokens(text: str, field_name: str) -> list[tuple[str, str]]:
 class _Builder:
     """Hash-consed program: equal subexpressions get one register; constants fold."""
 
-    def __init__(self, field_name: str, limit: int = MAX_INSTRUCTIONS) -> None:
+    def __init__(
+        self, field_name: str, limit: int = MAX_INSTRUCTIONS, *, reassociate: bool = False
+    ) -> None:
         self.nodes: list[Node] = []
         self.index: dict[Node, int] = {}
         self.field = field_name
         self.limit = limit
+        # Constant factors moved out of products and quotients and into sums (exact in real
+        # arithmetic, not bit for bit): for a field program, where the chain rule scatters
+        # constants (2·dx, −2·dx, ½·…, the bracket's entries) through otherwise equal products.
+        self.reassociate = reassociate
 
     def add(self, node: Node) -> int:
         simpler = self._simplify(node)
@@ -133,6 +139,10 @@ class _Builder:
                 return int(a)
             if op == "div" and cb is not None and cb != 0.0 and math.frexp(cb)[0] == 0.5:
                 return self.add(("mul", self.add(("const", 1.0 / cb)), a))
+            if self.reassociate and ca is None and cb is None:
+                moved = self._move_constants(op, a, b)
+                if moved is not None:
+                    return moved
             if op in ("add", "sub") and self.nodes[b][0] == "neg":
                 return self.add(("sub" if op == "add" else "add", a, self.nodes[b][1]))
             if op == "add" and self.nodes[a][0] == "neg":
@@ -144,6 +154,36 @@ class _Builder:
             if inner[0] == "mul" and self.const_value(inner[1]) is not None:
                 c = -float(self.nodes[inner[1]][1])
                 return self.add(("mul", self.add(("const", c)), inner[2]))
+        return None
+
+    def _scaled(self, r: int) -> tuple[float, int] | None:
+        """(c, y) where register r is c · y or −y (c = −1), else None."""
+        node = self.nodes[r]
+        if node[0] == "mul" and self.const_value(node[1]) is not None:
+            return float(self.nodes[node[1]][1]), int(node[2])
+        if node[0] == "neg":
+            return -1.0, int(node[1])
+        return None
+
+    def _move_constants(self, op: str, a: int, b: int) -> int | None:
+        """(c·x)·y → c·(x·y), x·(c·y) → c·(x·y), (c·x)/y → c·(x/y), and c·x ± d·y → c·(x ± y)
+        where d = c (c·(x ∓ y) where d = −c): one constant factor per product, met by the
+        others, so the products it scales are shared."""
+        sa, sb = self._scaled(a), self._scaled(b)
+        if op == "mul" and (sa is not None or sb is not None):
+            ca, xa = sa if sa is not None else (1.0, a)
+            cb, xb = sb if sb is not None else (1.0, b)
+            return self.add(("mul", self.add(("const", ca * cb)), self.add(("mul", xa, xb))))
+        if op == "div" and sa is not None:
+            return self.add(("mul", self.add(("const", sa[0])), self.add(("div", sa[1], b))))
+        if op in ("add", "sub") and sa is not None and sb is not None:
+            if sa[0] == sb[0]:
+                inner = self.add((op, sa[1], sb[1]))
+            elif sa[0] == -sb[0]:
+                inner = self.add(("sub" if op == "add" else "add", sa[1], sb[1]))
+            else:
+                return None
+            return self.add(("mul", self.add(("const", sa[0])), inner))
         return None
 
     def const_value(self, r: int) -> float | None:
@@ -624,7 +664,7 @@ def field_program(
     size."""
     n = expression.dim
     # Dead intermediate nodes are dropped at the end: build with room for them.
-    b = _Builder("hamiltonian", limit=4 * MAX_FIELD_INSTRUCTIONS)
+    b = _Builder("hamiltonian", limit=4 * MAX_FIELD_INSTRUCTIONS, reassociate=True)
     _, der = _derivatives(b, expression.program, n)
     pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
     entry: dict[tuple[int, int], int] = {}

@@ -9,10 +9,11 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::polynomial::{component_polynomials, indexed_polynomials};
+use super::polynomial::{component_polynomials, indexed_polynomials, polynomial, term_table};
 use super::rollout::run_rollout;
 use super::{check_output_bytes, detached, dim_error, states, Array};
 
+use crate::distance_sum::{DistanceSum, MAX_POINT_DIM};
 use crate::dual::Jet2;
 use crate::error::CoreError;
 use crate::expression::Expression;
@@ -20,7 +21,7 @@ use crate::jet_hj::{JetGenerating, LieSource, PolynomialSource, SeriesSource};
 use crate::lanes::Lanes;
 use crate::rollout::PerStep;
 use crate::stepper::NewtonOptions;
-use crate::structures::bivector::HamiltonianField;
+use crate::structures::bivector::{DistanceField, HamiltonianField};
 use crate::structures::lie_groupoid::LieAlgebra;
 use crate::structures::lie_poisson::VectorField;
 use crate::structures::PolynomialRealization;
@@ -77,7 +78,7 @@ pub(super) fn expression_jets<'py>(
 /// ẋ = π(x) ∇H(x) at each row of `x` (n, N): H an expression, π's upper triangle (π_ij,
 /// i < j, row by row) a term table (index, coeffs, exponents (M, N)).
 #[pyfunction]
-#[pyo3(signature = (code, a, b, c, upper_index, upper_coeffs, upper_exponents, x, program=None))]
+#[pyo3(signature = (code, a, b, c, upper_index, upper_coeffs, upper_exponents, x, program=None, distances=None))]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn hamiltonian_field<'py>(
     py: Python<'py>,
@@ -90,12 +91,13 @@ pub(super) fn hamiltonian_field<'py>(
     upper_exponents: PyReadonlyArray2<'py, i64>,
     x: PyReadonlyArray2<'py, f64>,
     program: Option<FieldProgram<'py>>,
+    distances: Option<DistanceTable<'py>>,
 ) -> PyResult<Array<'py, Ix2>> {
     let dim = x.shape()[1];
     let n = x.shape()[0];
     check_output_bytes(n.saturating_mul(dim), 0)?;
     with_dim!(dim, N => {
-        let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents, program.as_ref())?;
+        let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents, program.as_ref(), distances.as_ref())?;
         let rows = states::<N>(&x, "x")?;
         let out = detached(py, || {
             let mut out = Vec::new();
@@ -118,6 +120,61 @@ pub(super) type FieldProgram<'py> = (
     PyReadonlyArray1<'py, i64>,
 );
 
+/// H as a sum over distances ([`DistanceSum`]): (radial (K,), weight (K,), power (K,), dims
+/// (K,), first (K, 3), second (K, 3)) per term, and the polynomial rest as a term table
+/// (coeffs (M,), exponents (M, N)).
+pub(super) type DistanceTable<'py> = (
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray2<'py, i64>,
+    PyReadonlyArray2<'py, i64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray2<'py, i64>,
+);
+
+/// The [`DistanceSum`] of a table, every shape and entry checked (errors name `distances` and
+/// the field).
+fn distance_sum<const N: usize>(t: &DistanceTable<'_>) -> PyResult<DistanceSum> {
+    let (radial, weight, power, dims, first, second, coeffs, exponents) = t;
+    let k = radial.len();
+    let points =
+        |a: &PyReadonlyArray2<'_, i64>, what: &str| -> PyResult<Vec<[i64; MAX_POINT_DIM]>> {
+            let v = a.as_array();
+            if v.shape() != [k, MAX_POINT_DIM] {
+                return Err(PyValueError::new_err(format!(
+                    "distances: {what} must have shape ({k}, {MAX_POINT_DIM}), got {:?}",
+                    v.shape()
+                )));
+            }
+            Ok(v.outer_iter()
+                .map(|row| std::array::from_fn(|j| row[j]))
+                .collect())
+        };
+    let (first, second) = (points(first, "first")?, points(second, "second")?);
+    let (co, ex) = term_table("distances: the polynomial", coeffs, exponents, N)?;
+    let rest = if co.is_empty() {
+        None
+    } else {
+        let rows: Vec<usize> = (0..co.len()).collect();
+        Some(polynomial("distances: the polynomial", &co, &ex, &rows, N)?)
+    };
+    let slice_i = |a: &PyReadonlyArray1<'_, i64>| a.as_array().iter().copied().collect::<Vec<_>>();
+    let slice_f = |a: &PyReadonlyArray1<'_, f64>| a.as_array().iter().copied().collect::<Vec<_>>();
+    DistanceSum::new(
+        N,
+        &slice_i(radial),
+        &slice_f(weight),
+        &slice_f(power),
+        &slice_i(dims),
+        &first,
+        &second,
+        rest,
+    )
+    .map_err(|e| PyValueError::new_err(format!("distances: {e}")))
+}
+
 #[allow(clippy::too_many_arguments)]
 pub(super) fn field_of<const N: usize>(
     code: &PyReadonlyArray1<'_, i64>,
@@ -128,6 +185,7 @@ pub(super) fn field_of<const N: usize>(
     upper_coeffs: &PyReadonlyArray1<'_, f64>,
     upper_exponents: &PyReadonlyArray2<'_, i64>,
     program: Option<&FieldProgram<'_>>,
+    distances: Option<&DistanceTable<'_>>,
 ) -> PyResult<HamiltonianField<N>> {
     let e = expression(N, code, a, b, c)?;
     let program = match program {
@@ -150,14 +208,15 @@ pub(super) fn field_of<const N: usize>(
         N * (N - 1) / 2,
         N,
     )?;
-    Ok(HamiltonianField::<N>::new(upper, e, program)?)
+    let distances = distances.map(distance_sum::<N>).transpose()?;
+    Ok(HamiltonianField::<N>::new(upper, e, program, distances)?)
 }
 
 /// Rolls out "rk4" or "midpoint" on ẋ = π(x) ∇H(x) (arguments as [`hamiltonian_field`]) from
 /// each row of `x0` (n, N), in SIMD lanes; the midpoint's Newton stops at |δ|∞ ≤ tol ·
 /// max(|m|∞, 1e-300).
 #[pyfunction]
-#[pyo3(signature = (name, code, a, b, c, upper_index, upper_coeffs, upper_exponents, x0, h, n_steps, every=1, tol=1e-13, max_iter=50, program=None))]
+#[pyo3(signature = (name, code, a, b, c, upper_index, upper_coeffs, upper_exponents, x0, h, n_steps, every=1, tol=1e-13, max_iter=50, program=None, distances=None))]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn rollout_hamiltonian_field<'py>(
     py: Python<'py>,
@@ -176,13 +235,18 @@ pub(super) fn rollout_hamiltonian_field<'py>(
     tol: f64,
     max_iter: u32,
     program: Option<FieldProgram<'py>>,
+    distances: Option<DistanceTable<'py>>,
 ) -> PyResult<(Array<'py, Ix3>, Bound<'py, PyDict>)> {
     let newton = NewtonOptions::validated(tol, max_iter)?;
     let dim = x0.shape()[1];
     with_dim!(dim, N => {
-        let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents, program.as_ref())?;
+        let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents, program.as_ref(), distances.as_ref())?;
         let x0 = states::<N>(&x0, "x0")?;
         match name {
+            "rk4" if field.has_distances() => {
+                let rk4 = crate::classical::Rk4 { system: DistanceField::new(field)? };
+                run_rollout(py, &Lanes::new(&rk4), &x0, h, n_steps, every, None)
+            }
             "rk4" => {
                 let rk4 = crate::classical::Rk4 { system: field };
                 run_rollout(py, &Lanes::new(&rk4), &x0, h, n_steps, every, None)

@@ -6,6 +6,7 @@
 
 use nalgebra::SMatrix;
 
+use crate::distance_sum::DistanceSum;
 use crate::dual::{Dual1, Jet2};
 use crate::error::CoreError;
 use crate::expression::Expression;
@@ -23,6 +24,12 @@ pub struct HamiltonianField<const N: usize> {
     /// π's entries multiplied in): values only, the fast path of the field. None: H's gradient
     /// by forward mode, then π.
     program: Option<Expression>,
+    /// H as a sum over distances (the same H as `hamiltonian`): its gradient compiled, then π.
+    /// Takes precedence over `program`.
+    distances: Option<DistanceSum>,
+    /// π's entries that are not zero: (i, j, the entry's index in `upper`, its value where it
+    /// is a constant).
+    entries: Vec<(usize, usize, usize, Option<f64>)>,
 }
 
 impl<const N: usize> HamiltonianField<N> {
@@ -30,6 +37,7 @@ impl<const N: usize> HamiltonianField<N> {
         upper: Vec<SparsePolynomial>,
         hamiltonian: Expression,
         program: Option<Expression>,
+        distances: Option<DistanceSum>,
     ) -> Result<Self, CoreError> {
         if hamiltonian.ops().len() > crate::expression::MAX_TAPE {
             return Err(CoreError::Invalid(format!(
@@ -59,10 +67,38 @@ impl<const N: usize> HamiltonianField<N> {
                 hamiltonian.vars()
             )));
         }
+        if let Some(d) = &distances {
+            if d.vars() != N {
+                return Err(CoreError::Invalid(format!(
+                    "the distance terms have {} variables; the bivector {N}",
+                    d.vars()
+                )));
+            }
+        }
+        let mut entries = Vec::new();
+        entries
+            .try_reserve_exact(upper.len())
+            .map_err(|_| CoreError::Memory("the bivector's entries".into()))?;
+        let mut k = 0;
+        for i in 0..N {
+            for j in i + 1..N {
+                let terms: Vec<(f64, &[u8])> = upper[k].terms().filter(|t| t.0 != 0.0).collect();
+                if !terms.is_empty() {
+                    let constant = match terms.as_slice() {
+                        [(c, e)] if e.iter().all(|&p| p == 0) => Some(*c),
+                        _ => None,
+                    };
+                    entries.push((i, j, k, constant));
+                }
+                k += 1;
+            }
+        }
         Ok(HamiltonianField {
             upper,
             hamiltonian,
             program,
+            distances,
+            entries,
         })
     }
 
@@ -82,6 +118,10 @@ impl<const N: usize> HamiltonianField<N> {
     /// π(x)∇H(x) at L states: H's gradient in lanes, then π's entries.
     #[inline(always)]
     fn field_in_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        if let Some(d) = &self.distances {
+            self.distance_field(d, x, out);
+            return;
+        }
         if let Some(p) = &self.program {
             p.values_lanes(x, out);
             return;
@@ -106,16 +146,45 @@ impl<const N: usize> HamiltonianField<N> {
         }
         let (mut v, mut g) = ([0.0; L], [[0.0; L]; N]);
         self.hamiltonian.gradient_lanes(x, &mut v, &mut g);
+        self.bivector_times(x, &g, out);
+    }
+
+    /// Whether H's gradient is the compiled one of a sum over distances.
+    pub fn has_distances(&self) -> bool {
+        self.distances.is_some()
+    }
+
+    /// π∇H at W states, ∇H from the distance terms.
+    #[inline(always)]
+    fn distance_field<const W: usize>(
+        &self,
+        d: &DistanceSum,
+        x: &[[f64; W]; N],
+        out: &mut [[f64; W]; N],
+    ) {
+        let mut g = [[0.0; W]; N];
+        d.gradient_lanes(x, &mut g);
+        self.bivector_times(x, &g, out);
+    }
+
+    /// out = π(x) g at L states, over π's entries that are not zero (a constant one without
+    /// evaluating its polynomial).
+    #[inline(always)]
+    fn bivector_times<const L: usize>(
+        &self,
+        x: &[[f64; L]; N],
+        g: &[[f64; L]; N],
+        out: &mut [[f64; L]; N],
+    ) {
         *out = [[0.0; L]; N];
-        let mut k = 0;
-        for i in 0..N {
-            for j in i + 1..N {
-                let p = self.upper[k].eval_lanes(x);
-                for l in 0..L {
-                    out[i][l] += p[l] * g[j][l];
-                    out[j][l] -= p[l] * g[i][l];
-                }
-                k += 1;
+        for &(i, j, k, constant) in &self.entries {
+            let p = match constant {
+                Some(c) => [c; L],
+                None => self.upper[k].eval_lanes(x),
+            };
+            for l in 0..L {
+                out[i][l] += p[l] * g[j][l];
+                out[j][l] -= p[l] * g[i][l];
             }
         }
     }
@@ -180,6 +249,51 @@ impl<const N: usize> LaneField<N> for HamiltonianField<N> {
     }
 }
 
+/// A [`HamiltonianField`] whose H is a sum over distances: its field in lanes is compiled code
+/// ([`DistanceSum`]), so RK4 steps it in blocks of one lane group, where the wide blocks pay
+/// only for an interpreter's dispatch (a term's differences and factors would go through
+/// memory there). The same bits as the field itself: each lane is computed alone.
+#[derive(Clone, Debug)]
+pub struct DistanceField<const N: usize>(HamiltonianField<N>);
+
+impl<const N: usize> DistanceField<N> {
+    /// The field, which must carry distance terms.
+    pub fn new(field: HamiltonianField<N>) -> Result<Self, CoreError> {
+        if !field.has_distances() {
+            return Err(CoreError::Invalid(
+                "a distance field needs H's distance terms".into(),
+            ));
+        }
+        Ok(DistanceField(field))
+    }
+}
+
+impl<const N: usize> VectorField<N> for DistanceField<N> {
+    fn field(&self, x: &[f64; N]) -> [f64; N] {
+        self.0.field(x)
+    }
+
+    fn jacobian(&self, x: &[f64; N]) -> SMatrix<f64, N, N> {
+        self.0.jacobian(x)
+    }
+}
+
+impl<const N: usize> LaneField<N> for DistanceField<N> {
+    #[inline(always)]
+    fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        self.0.field_in_lanes(x, out);
+    }
+
+    #[inline(always)]
+    fn jacobian_lanes<const L: usize>(
+        &self,
+        x: &[[f64; L]; N],
+        out: &mut [[[f64; L]; N]; N],
+    ) -> bool {
+        self.0.jacobian_lanes(x, out)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -203,7 +317,7 @@ mod tests {
             &[0.0, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0],
         )
         .unwrap();
-        let f = HamiltonianField::<3>::new(upper, h, None).unwrap();
+        let f = HamiltonianField::<3>::new(upper, h, None, None).unwrap();
         let x: [f64; 3] = [0.4, -0.7, 1.1];
         let g = [x[0], 0.0, -x[2].sin()];
         let cross = [

@@ -165,6 +165,7 @@ class FieldIntegrator:
             self.tol,
             self.max_iter,
             program=self.system.field_program,
+            distances=None if self.system.distances is None else self.system.distances.table(),
         )
 
     def __repr__(self) -> str:
