@@ -37,7 +37,9 @@ RECOGNISED = {
         [-1.5, 0.7, 0.0],
     ),
     "inverse square, scaled inside": (
-        "1.5/(2*(x1 - x3)**2 + 2*(x2 - x4)**2) + x5", [POWER], [-1.0]
+        "1.5/(2*(x1 - x3)**2 + 2*(x2 - x4)**2) + x5",
+        [POWER],
+        [-1.0],
     ),
     "a distance to the power one": ("sqrt((x1 - x3)**2 + (x2 - x4)**2)", [POWER], [0.5]),
 }

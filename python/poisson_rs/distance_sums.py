@@ -120,9 +120,9 @@ class _Reader:
         out: dict[tuple[int, ...], float] | None
         zero = (0,) * self.dim
         if op == "var":
-            e = [0] * self.dim
-            e[int(node[1])] = 1
-            out = {tuple(e): 1.0}
+            unit = [0] * self.dim
+            unit[int(node[1])] = 1
+            out = {tuple(unit): 1.0}
         elif op == "const":
             out = {zero: float(node[1])}
         elif op in ("add", "sub", "neg"):
@@ -211,10 +211,10 @@ class _Reader:
             q = self.distance_square(inner[1] if half else node[1])
             return None if q is None else (LOG, 0.0, 0.5 if half else 1.0, q[1])
         if op == "div" and self.const(node[1]) is not None:
-            inner = self.radial(node[2])
-            if inner is None or inner[0] != POWER:
+            below = self.radial(node[2])
+            if below is None or below[0] != POWER:
                 return None
-            return POWER, -inner[1], float(self.const(node[1])) / inner[2], inner[3]  # type: ignore[arg-type]
+            return POWER, -below[1], float(self.const(node[1])) / below[2], below[3]  # type: ignore[arg-type]
         if op in ("sqrt", "powf", "powi"):
             p = 0.5 if op == "sqrt" else float(node[2])
             inner_node = self.program[node[1]]
