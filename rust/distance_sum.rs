@@ -55,6 +55,7 @@ impl DistanceSum {
     /// points (`first`, `second`: at least D entries each; `second`'s all −1 for the origin);
     /// `polynomial` the rest P. Errors name the term and field that is out of range: the input
     /// is untrusted.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         vars: usize,
         radial: &[i64],
@@ -199,12 +200,12 @@ impl DistanceSum {
                     }
                 }
                 // r⁻¹, the gravitational and Coulomb potential: (r²)^{−3/2} = 1/(r² √r²).
-                Radial::Power(p) if p == -0.5 => {
+                Radial::Power(-0.5) => {
                     for l in 0..L {
                         s[l] = t.scale / (q[l] * q[l].sqrt());
                     }
                 }
-                Radial::Power(p) if p == -1.0 => {
+                Radial::Power(-1.0) => {
                     for l in 0..L {
                         s[l] = t.scale / (q[l] * q[l]);
                     }

@@ -102,6 +102,7 @@ ORDERS = [
     ("rigid_body_potential", 5),
     ("point_vortices", 1),
     ("point_vortices", 3),
+    ("point_vortices_4", 1),
 ]
 
 
@@ -135,15 +136,20 @@ def test_jets_keep_the_casimirs_to_round_off_where_rk4_does_not(name: str) -> No
     assert drift["rk4"] > 1e3 * drift["jets"], drift
 
 
-def test_vortex_impulses_are_kept_and_the_bracket_has_no_casimir() -> None:
-    scene = _scene("point_vortices")
+@pytest.mark.parametrize(
+    ("name", "gamma"), [("point_vortices", [1.0, 1.0, 0.5]), ("point_vortices_4", [1, 1, 0.5, 0.5])]
+)
+def test_vortex_impulses_are_kept_and_the_bracket_has_no_casimir(
+    name: str, gamma: list[float]
+) -> None:
+    scene = _scene(name)
     s = scene.system
     assert s.casimirs(np.asarray(scene.points)) is None
-    gamma = np.array([1.0, 1.0, 0.5])
+    g = np.asarray(gamma)
     traj = pr.integrate(s.taylor_integrator(1), np.asarray(scene.points), 0.05, 4000, every=40)
     xs, ys = traj[..., 0::2], traj[..., 1::2]
     impulses = np.stack(
-        [(gamma * xs).sum(-1), (gamma * ys).sum(-1), (gamma * (xs**2 + ys**2)).sum(-1)], axis=-1
+        [(g * xs).sum(-1), (g * ys).sum(-1), (g * (xs**2 + ys**2)).sum(-1)], axis=-1
     )
     assert np.abs(impulses - impulses[:, :1]).max() < 1e-12
 
