@@ -38,6 +38,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..distance_sums import DistanceTerms, distance_terms
 from ..expressions import Expression
 from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystemBase, provided
 from .polynomial import (
@@ -365,6 +366,11 @@ class ChargedParticle(PoissonSystemBase):
         self.tape = self.hamiltonian_expression.tape()
         self.field_program = field_program(
             self.hamiltonian_expression, *self.terms.tables(), entries=programs
+        )
+        # The compiled gradient of a sum over distances meets π through its polynomial terms
+        # only: a bracket with entries that are programs (B not polynomial) keeps the program.
+        self.distances: DistanceTerms | None = (
+            None if programs else distance_terms(self.hamiltonian_expression.program, 2 * d)
         )
 
     @property
