@@ -1,7 +1,7 @@
 """Type stubs for the Rust extension module."""
 
 from os import PathLike
-from typing import Any, final
+from typing import Any, TypeAlias, final
 
 import numpy as np
 import numpy.typing as npt
@@ -35,6 +35,26 @@ __all__ = [
 
 MODEL_FORMAT: str
 MAX_DIM: int
+# A field program: (code, a, b, c, outputs).
+_FieldProgram: TypeAlias = tuple[
+    npt.NDArray[np.int64],
+    npt.NDArray[np.int64],
+    npt.NDArray[np.int64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.int64],
+]
+# H as a sum over distances: (radial, weight, power, dims, first, second, coeffs, exponents).
+_DistanceTable: TypeAlias = tuple[
+    npt.NDArray[np.int64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.int64],
+    npt.NDArray[np.int64],
+    npt.NDArray[np.int64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.int64],
+]
+
 __version__: str
 
 def _after_fork_in_child() -> None:
@@ -323,25 +343,8 @@ def hamiltonian_field(
     upper_coeffs: npt.NDArray[np.float64],
     upper_exponents: npt.NDArray[np.int64],
     x: npt.NDArray[np.float64],
-    program: tuple[
-        npt.NDArray[np.int64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.int64],
-    ]
-    | None = None,
-    distances: tuple[
-        npt.NDArray[np.int64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.int64],
-    ]
-    | None = None,
+    program: _FieldProgram | None = None,
+    distances: _DistanceTable | None = None,
 ) -> npt.NDArray[np.float64]: ...
 def rollout_hamiltonian_field(
     name: str,
@@ -358,25 +361,8 @@ def rollout_hamiltonian_field(
     every: int = 1,
     tol: float = 1e-13,
     max_iter: int = 50,
-    program: tuple[
-        npt.NDArray[np.int64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.int64],
-    ]
-    | None = None,
-    distances: tuple[
-        npt.NDArray[np.int64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.int64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.int64],
-    ]
-    | None = None,
+    program: _FieldProgram | None = None,
+    distances: _DistanceTable | None = None,
 ) -> tuple[npt.NDArray[np.float64], dict[str, npt.NDArray[np.generic]]]: ...
 def rollout_jets_polynomial(
     code: npt.NDArray[np.int64],
