@@ -17,8 +17,11 @@ from poisson_rs.expressions import (
     MAX_DEPTH,
     MAX_INSTRUCTIONS,
     MAX_POWER,
+    OPCODES,
     Expression,
     ExpressionError,
+    evaluate_table,
+    field_program,
 )
 
 NAMES = ("u", "v", "r")
@@ -75,6 +78,29 @@ def test_common_subexpressions_are_shared_and_constants_folded() -> None:
     assert [n[0] for n in e.program].count("sin") == 1
     assert ("const", 6.0) in e.program
     assert e.program[-1][0] == "add"
+
+
+def test_a_field_program_shares_products_that_differ_by_a_constant_factor() -> None:
+    """ẋ = π∇H for H = ln((x1 − x3)² + (x2 − x4)²) on the canonical pairs: the chain rule gives
+    ±2·(1/r²)·dx and ±2·(1/r²)·dy; with the constants moved out the program holds one product
+    (1/r²)·dx and one (1/r²)·dy, and the field still equals autograd's."""
+    h = Expression("log((x1 - x3)**2 + (x2 - x4)**2)", ("x1", "x2", "x3", "x4"))
+    # π_01 = π_23 = 1 (upper triangle, row by row: (0,1) is pair 0, (2,3) is pair 5).
+    index = np.array([0, 5], dtype=np.int64)
+    coeffs = np.array([1.0, 1.0])
+    exponents = np.zeros((2, 4), dtype=np.int64)
+    code, a, b, c, outputs = field_program(h, index, coeffs, exponents)
+    nodes = [(OPCODES[k], int(i), int(j)) for k, i, j in zip(code, a, b, strict=True)]
+    consts = {k for k, n in enumerate(nodes) if n[0] == "const"}
+    products = [n for n in nodes if n[0] == "mul" and not {n[1], n[2]} & consts]
+    assert len(products) == 2, nodes
+    x = np.random.default_rng(2).uniform(-1.0, 1.0, size=(16, 4))
+    xt = torch.tensor(x, requires_grad=True)
+    (g,) = torch.autograd.grad(h.evaluate(xt, torch).sum(), xt)
+    g = g.numpy()
+    want = np.stack([g[:, 1], -g[:, 0], g[:, 3], -g[:, 2]], axis=-1)
+    got = evaluate_table((code, a, b, c), outputs, x)
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
 
 
 def test_names_and_aliases_refer_to_the_same_coordinate() -> None:
