@@ -49,7 +49,11 @@ class ExpressionSystem(PoissonSystemBase):
     """The bracket of ``structure`` (any system) with the Hamiltonian ``hamiltonian``: an
     expression in the structure's component names or x1 … xn (see
     :mod:`poisson_rs.expressions`). ValueError naming 'hamiltonian' for a text outside the
-    grammar; ValueError naming 'structure' for one whose bracket is not polynomial."""
+    grammar; ValueError naming 'structure' for one whose bracket is not polynomial.
+
+    ``distances``: H read as a sum over distances (:mod:`poisson_rs.distance_sums`), whose
+    gradient the core runs as compiled code for RK4 and the midpoint rule, or None (the field
+    program is interpreted)."""
 
     kind = "expression"
 
