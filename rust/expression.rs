@@ -7,9 +7,12 @@
 use crate::dual::Scalar;
 use crate::error::CoreError;
 
-/// Most instructions of a tape evaluated with derivatives: the registers of one evaluation
-/// live on the stack.
-pub const MAX_TAPE: usize = 256;
+/// Most instructions of a tape evaluated with derivatives (a Hamiltonian).
+pub const MAX_TAPE: usize = 1024;
+/// Most registers of a tape live at once. [`Expression::eval`]'s registers live on the stack, one
+/// slot per live value (a slot is reused once its value's last reader has run), so a long sum of
+/// short terms fits where a wide one would not.
+pub const MAX_LIVE: usize = 256;
 /// Most instructions of a program evaluated for values only (a vector field: H's gradient
 /// written out, and π).
 pub const MAX_PROGRAM: usize = 1024;
@@ -53,6 +56,10 @@ pub struct Expression {
     /// The same program for [`Expression::values_lanes`]: constants carried in the
     /// instructions that use them, single-use products fused ([`Lowered`]).
     lowered: Lowered,
+    /// [`Expression::eval`]'s register slot of each instruction ([`slots`]), and how many slots
+    /// it needs (the most values live at once).
+    slots: Vec<u16>,
+    live: usize,
 }
 
 impl Expression {
@@ -72,7 +79,14 @@ impl Expression {
                 code.len()
             )));
         }
-        Self::program(vars, code, a, b, c, &[code.len() as i64 - 1])
+        let e = Self::program(vars, code, a, b, c, &[code.len() as i64 - 1])?;
+        if e.live > MAX_LIVE {
+            return Err(CoreError::Invalid(format!(
+                "an expression may keep at most {MAX_LIVE} values live at once, this one keeps {}",
+                e.live
+            )));
+        }
+        Ok(e)
     }
 
     /// A program with several outputs (`outputs[m]`: the register of output m), evaluated for
@@ -165,12 +179,20 @@ impl Expression {
             .map_err(|_| CoreError::Invalid("too many outputs".into()))?;
         outs.extend(outputs.iter().map(|&o| o as usize));
         let lowered = Lowered::new(vars, &ops, &outs)?;
+        let (slots, live) = slots(&ops, &outs)?;
         Ok(Expression {
             vars,
             ops,
             outputs: outs,
             lowered,
+            slots,
+            live,
         })
+    }
+
+    /// The most values live at once in [`Self::eval`] (its register slots).
+    pub fn live(&self) -> usize {
+        self.live
     }
 
     /// The number of outputs.
@@ -189,53 +211,147 @@ impl Expression {
     /// The value at `x` (at least `vars` entries), on any scalar. Outside the domain of a
     /// function (log of a negative number, a pole) the result is not finite, never a panic.
     pub fn eval<T: Scalar>(&self, x: &[T]) -> T {
-        let mut r = [T::cst(0.0); MAX_TAPE];
-        if self.ops.len() > MAX_TAPE {
-            // Only a multi-output program is this long, and it is evaluated by values_lanes.
+        let mut r = [T::cst(0.0); MAX_LIVE];
+        let n = self.ops.len();
+        if self.live > MAX_LIVE {
+            // Only a multi-output program is this wide, and it is evaluated by values_lanes.
             return T::cst(f64::NAN);
         }
-        for (k, op) in self.ops.iter().enumerate() {
-            r[k] = match *op {
-                Op::Var(i) => x[i],
-                Op::Const(c) => T::cst(c),
-                Op::Add(a, b) => r[a] + r[b],
-                Op::Sub(a, b) => r[a] - r[b],
-                Op::Mul(a, b) => r[a] * r[b],
-                Op::Div(a, b) => r[a] * r[b].recip(),
-                Op::Neg(a) => -r[a],
-                Op::Powi(a, n) => powi(r[a], n),
-                Op::Powf(a, p) => {
-                    let v = r[a].value();
-                    let vp = v.powf(p);
-                    r[a].chain(vp, p * vp / v, p * (p - 1.0) * vp / (v * v))
-                }
-                Op::Exp(a) => {
-                    let e = r[a].value().exp();
-                    r[a].chain(e, e, e)
-                }
-                Op::Log(a) => {
-                    let v = r[a].value();
-                    r[a].chain(v.ln(), 1.0 / v, -1.0 / (v * v))
-                }
-                Op::Sin(a) => {
-                    let (s, c) = r[a].value().sin_cos();
-                    r[a].chain(s, c, -s)
-                }
-                Op::Cos(a) => {
-                    let (s, c) = r[a].value().sin_cos();
-                    r[a].chain(c, -s, -c)
-                }
-                Op::Tan(a) => {
-                    let t = r[a].value().tan();
-                    let d = 1.0 + t * t;
-                    r[a].chain(t, d, 2.0 * t * d)
-                }
-                Op::Sqrt(a) => r[a].sqrt(),
-                Op::Tanh(a) => r[a].tanh(),
-            };
+        if n <= MAX_LIVE {
+            // Every instruction its own register: no slot lookups on the common short tape.
+            for (k, op) in self.ops.iter().enumerate() {
+                r[k] = apply(op, x, &r, |j| j);
+            }
+            r[n - 1]
+        } else {
+            let slots = &self.slots;
+            for (k, op) in self.ops.iter().enumerate() {
+                // Computed before it is stored: the slot may be an operand's, freed here.
+                let v = apply(op, x, &r, |j| usize::from(slots[j]));
+                r[usize::from(slots[k])] = v;
+            }
+            r[usize::from(slots[n - 1])]
         }
-        r[self.ops.len() - 1]
     }
+}
+
+/// One instruction's value, its operands read from `r` at the slots `at` gives them.
+#[inline(always)]
+fn apply<T: Scalar>(op: &Op, x: &[T], r: &[T], at: impl Fn(usize) -> usize) -> T {
+    let r = |j: usize| r[at(j)];
+    match *op {
+        Op::Var(i) => x[i],
+        Op::Const(c) => T::cst(c),
+        Op::Add(a, b) => r(a) + r(b),
+        Op::Sub(a, b) => r(a) - r(b),
+        Op::Mul(a, b) => r(a) * r(b),
+        Op::Div(a, b) => r(a) * r(b).recip(),
+        Op::Neg(a) => -r(a),
+        Op::Powi(a, n) => powi(r(a), n),
+        Op::Powf(a, p) => {
+            let a = r(a);
+            let v = a.value();
+            let vp = v.powf(p);
+            a.chain(vp, p * vp / v, p * (p - 1.0) * vp / (v * v))
+        }
+        Op::Exp(a) => {
+            let a = r(a);
+            let e = a.value().exp();
+            a.chain(e, e, e)
+        }
+        Op::Log(a) => {
+            let a = r(a);
+            let v = a.value();
+            a.chain(v.ln(), 1.0 / v, -1.0 / (v * v))
+        }
+        Op::Sin(a) => {
+            let a = r(a);
+            let (s, c) = a.value().sin_cos();
+            a.chain(s, c, -s)
+        }
+        Op::Cos(a) => {
+            let a = r(a);
+            let (s, c) = a.value().sin_cos();
+            a.chain(c, -s, -c)
+        }
+        Op::Tan(a) => {
+            let a = r(a);
+            let t = a.value().tan();
+            let d = 1.0 + t * t;
+            a.chain(t, d, 2.0 * t * d)
+        }
+        Op::Sqrt(a) => r(a).sqrt(),
+        Op::Tanh(a) => r(a).tanh(),
+    }
+}
+
+impl Op {
+    /// The instructions this one reads.
+    fn operands(&self) -> [Option<usize>; 2] {
+        match *self {
+            Op::Var(_) | Op::Const(_) => [None, None],
+            Op::Add(a, b) | Op::Sub(a, b) | Op::Mul(a, b) | Op::Div(a, b) => [Some(a), Some(b)],
+            Op::Neg(a)
+            | Op::Powi(a, _)
+            | Op::Powf(a, _)
+            | Op::Exp(a)
+            | Op::Log(a)
+            | Op::Sin(a)
+            | Op::Cos(a)
+            | Op::Tan(a)
+            | Op::Sqrt(a)
+            | Op::Tanh(a) => [Some(a), None],
+        }
+    }
+}
+
+/// A register slot for each instruction of `ops` (the outputs kept to the end), by a linear scan:
+/// a value's slot is freed once its last reader has run, and the next instruction takes the slot
+/// freed last. Returns the slots and how many there are (the most values live at once).
+fn slots(ops: &[Op], outputs: &[usize]) -> Result<(Vec<u16>, usize), CoreError> {
+    let oom = || CoreError::Memory("the register slots of an expression".into());
+    let n = ops.len();
+    // The last instruction that reads each value (itself where none does; past the end for an
+    // output).
+    let mut last: Vec<usize> = Vec::new();
+    last.try_reserve_exact(n).map_err(|_| oom())?;
+    last.extend(0..n);
+    for (k, op) in ops.iter().enumerate() {
+        for a in op.operands().into_iter().flatten() {
+            last[a] = k;
+        }
+    }
+    for &o in outputs {
+        last[o] = usize::MAX;
+    }
+    let mut slot: Vec<u16> = Vec::new();
+    slot.try_reserve_exact(n).map_err(|_| oom())?;
+    let mut free: Vec<u16> = Vec::new();
+    free.try_reserve_exact(n).map_err(|_| oom())?;
+    let mut count = 0usize;
+    for (k, op) in ops.iter().enumerate() {
+        let [a, b] = op.operands();
+        for (i, o) in [a, b].into_iter().enumerate() {
+            // x·x reads one value twice: its slot is freed once.
+            if let Some(o) = o.filter(|&o| last[o] == k && (i == 0 || a != Some(o))) {
+                free.push(slot[o]);
+            }
+        }
+        let s = match free.pop() {
+            Some(s) => s,
+            None => {
+                count += 1;
+                u16::try_from(count - 1).map_err(|_| {
+                    CoreError::Invalid(format!("an expression keeps over {} values live", u16::MAX))
+                })?
+            }
+        };
+        slot.push(s);
+        if last[k] == k {
+            free.push(s); // never read
+        }
+    }
+    Ok((slot, count))
 }
 
 /// Lanes of one block of [`Expression::values_lanes`] (the rollouts' SIMD width).
@@ -267,8 +383,8 @@ macro_rules! by_capacity {
                 const $cap: usize = 128;
                 $body
             }
-            129..=MAX_TAPE => {
-                const $cap: usize = MAX_TAPE;
+            129..=256 => {
+                const $cap: usize = 256;
                 $body
             }
             _ => {
@@ -1004,6 +1120,133 @@ mod tests {
         assert!((jet.g[0] - gx).abs() < 1e-14 && (jet.g[1] - gy).abs() < 1e-14);
         let hyy = -x * x * y.sin() / (1.0 + x) + y.exp() * (2.0 + x * x).ln();
         assert!((jet.hess()[1][1] - hyy).abs() < 1e-14);
+    }
+
+    /// A table of `ops` (the inverse of `from_table`'s decoding, for the ops used here).
+    fn table(ops: &[Op]) -> (Vec<i64>, Vec<i64>, Vec<i64>, Vec<f64>) {
+        let mut t = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for op in ops {
+            let (k, a, b, c) = match *op {
+                Op::Var(i) => (0, i as i64, 0, 0.0),
+                Op::Const(v) => (1, 0, 0, v),
+                Op::Add(p, q) => (2, p as i64, q as i64, 0.0),
+                Op::Sub(p, q) => (3, p as i64, q as i64, 0.0),
+                Op::Mul(p, q) => (4, p as i64, q as i64, 0.0),
+                Op::Powi(p, n) => (7, p as i64, n as i64, 0.0),
+                Op::Log(p) => (10, p as i64, 0, 0.0),
+                Op::Sqrt(p) => (14, p as i64, 0, 0.0),
+                other => unreachable!("{other:?}"),
+            };
+            t.0.push(k);
+            t.1.push(a);
+            t.2.push(b);
+            t.3.push(c);
+        }
+        t
+    }
+
+    /// A long sum of short terms in 3 variables, more instructions than `MAX_LIVE` (so `eval`
+    /// runs on reused slots): its value has the bits of the slot-free oracle, and its gradient
+    /// and Hessian by `eval` on jets match the lane path's gradient (which keeps every value)
+    /// and central differences of it.
+    #[test]
+    fn a_tape_longer_than_the_live_registers_evaluates_on_reused_slots() {
+        let mut ops = vec![Op::Var(0), Op::Var(1), Op::Var(2)];
+        let mut sum = None;
+        for k in 0..120 {
+            let n = ops.len();
+            // (x_i + 1) · log(c_k + x_j²), some minus sqrt(c_k + x_j²), the variables read again.
+            ops.push(Op::Const(0.25 + k as f64 / 97.0));
+            ops.push(Op::Powi(k % 3, 2));
+            ops.push(Op::Add(n, n + 1));
+            ops.push(Op::Log(n + 2));
+            ops.push(Op::Mul((k + 1) % 3, n + 3));
+            // The log read by two instructions in a row, the sum inside it three apart.
+            ops.push(Op::Add(n + 4, n + 3));
+            let term = if k % 4 == 0 {
+                ops.push(Op::Sqrt(n + 2));
+                ops.push(Op::Sub(n + 5, n + 6));
+                n + 7
+            } else {
+                n + 5
+            };
+            sum = Some(match sum {
+                None => term,
+                Some(s) => {
+                    ops.push(Op::Add(s, term));
+                    ops.len() - 1
+                }
+            });
+        }
+        assert!(ops.len() > MAX_LIVE, "{} instructions", ops.len());
+        let (code, a, b, c) = table(&ops);
+        let e = Expression::from_table(3, &code, &a, &b, &c).unwrap();
+        assert!(e.live() < 12, "{} slots", e.live());
+        let x = [0.3, -0.8, 1.4];
+        let oracle = interpret(&e, &x)[0];
+        assert_eq!(e.eval(&x).to_bits(), oracle.to_bits());
+        let jet = e.eval(&[
+            Jet2::<3>::var(x[0], 0),
+            Jet2::<3>::var(x[1], 1),
+            Jet2::<3>::var(x[2], 2),
+        ]);
+        assert_eq!(jet.v.to_bits(), oracle.to_bits());
+        let grad_at = |x: [f64; 3]| {
+            let xl: [[f64; 1]; 3] = std::array::from_fn(|i| [x[i]]);
+            let (mut v, mut g) = ([0.0; 1], [[0.0; 1]; 3]);
+            e.gradient_lanes(&xl, &mut v, &mut g);
+            g.map(|r| r[0])
+        };
+        let g = grad_at(x);
+        let hess = jet.hess();
+        for i in 0..3 {
+            assert!(
+                (jet.g[i] - g[i]).abs() <= 1e-12 * g[i].abs().max(1.0),
+                "{i}"
+            );
+            let (mut up, mut down) = (x, x);
+            up[i] += 1e-5;
+            down[i] -= 1e-5;
+            let (gu, gd) = (grad_at(up), grad_at(down));
+            for j in 0..3 {
+                let fd = (gu[j] - gd[j]) / 2e-5;
+                assert!(
+                    (hess[j][i] - fd).abs() <= 1e-6 * fd.abs().max(1.0),
+                    "{i} {j}"
+                );
+            }
+        }
+    }
+
+    /// Values kept live past `MAX_LIVE` are refused with the count; the same values summed as
+    /// they are made need two slots.
+    #[test]
+    fn live_values_are_bounded_not_instructions() {
+        let n = MAX_LIVE + 10;
+        let mut wide: Vec<Op> = (0..n).map(|k| Op::Const(k as f64)).collect();
+        wide.push(Op::Add(0, 1));
+        for k in 2..n {
+            wide.push(Op::Add(wide.len() - 1, k));
+        }
+        let (code, a, b, c) = table(&wide);
+        let err = Expression::from_table(1, &code, &a, &b, &c).unwrap_err();
+        assert!(
+            err.to_string().contains(&format!("this one keeps {n}")),
+            "{err}"
+        );
+        let mut narrow = vec![Op::Const(0.0)];
+        for k in 1..n {
+            narrow.push(Op::Const(k as f64));
+            narrow.push(Op::Add(narrow.len() - 2, narrow.len() - 1));
+        }
+        let (code, a, b, c) = table(&narrow);
+        let e = Expression::from_table(1, &code, &a, &b, &c).unwrap();
+        assert_eq!(e.live(), 2);
+        let want = (n * (n - 1) / 2) as f64;
+        assert_eq!(e.eval(&[0.0]), want);
+        let long = vec![Op::Const(1.0); MAX_TAPE + 1];
+        let (code, a, b, c) = table(&long);
+        assert!(Expression::from_table(1, &code, &a, &b, &c).is_err());
     }
 
     #[test]

@@ -121,6 +121,32 @@ def test_jet_taylor_fits_order_m_plus_one(name: str, order: int) -> None:
     assert abs(slope - (order + 1)) < 0.35, (errs, slope)
 
 
+def test_an_h_longer_than_the_live_registers_fits_each_methods_order() -> None:
+    """The vortices' H plus a cubic of 56 distinct terms: a program of over 256 instructions
+    (the core evaluates its derivatives on reused register slots). The implicit midpoint rule
+    (its Newton Jacobians from those derivatives) fits order 2, jets m = 1 order 2, RK4 order 4,
+    against the reference solution."""
+    from itertools import combinations_with_replacement
+
+    from poisson_rs.expressions import MAX_LIVE, live_values
+
+    vortices = _scene("point_vortices")
+    cubic = " + ".join(
+        f"{1e-3 * (1 + k / 50):.6f}*x{i + 1}*x{j + 1}*x{m + 1}"
+        for k, (i, j, m) in enumerate(combinations_with_replacement(range(6), 3))
+    )
+    s = pr.with_hamiltonian(vortices.system.base, f"{vortices.system.h.text} + {cubic}")
+    assert len(s.h.program) > MAX_LIVE and live_values(s.h.program) < 32
+    x0 = np.asarray(vortices.points)[:1]
+    ref = s.reference_solution(x0, np.array([0.0, 1.0]))[:, -1]
+    hs = np.array([0.2, 0.1, 0.05])
+    for stepper, order in ((s.classical("midpoint"), 2), (s.taylor_integrator(1), 2),
+                           (s.classical("rk4"), 4)):  # fmt: skip
+        errs = [np.abs(pr.integrate(stepper, x0, h, round(1 / h))[:, -1] - ref).max() for h in hs]
+        slope = np.polyfit(np.log(hs), np.log(errs), 1)[0]
+        assert abs(slope - order) < 0.35, (stepper, errs, slope)
+
+
 @pytest.mark.parametrize("name", ["extended_pendulum_pnn", "rigid_body_potential"])
 def test_jets_keep_the_casimirs_to_round_off_where_rk4_does_not(name: str) -> None:
     scene = _scene(name)

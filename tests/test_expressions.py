@@ -16,12 +16,15 @@ from poisson_rs.expressions import (
     MAX_CHARS,
     MAX_DEPTH,
     MAX_INSTRUCTIONS,
+    MAX_LIVE,
     MAX_POWER,
     OPCODES,
     Expression,
     ExpressionError,
     evaluate_table,
     field_program,
+    live_values,
+    parse_program,
 )
 
 NAMES = ("u", "v", "r")
@@ -178,6 +181,45 @@ def test_bounds_are_refused_with_their_number() -> None:
     Expression(f"u**{MAX_POWER}", NAMES)
     with pytest.raises(ExpressionError, match="must be a string"):
         Expression(3, NAMES)  # type: ignore[arg-type]
+
+
+#: A sum of 69 short terms: over 256 instructions, a handful of values live at once.
+LONG = " + ".join(f"{0.1 + k / 97:.6f}*sin({k}*u + v)*r" for k in range(1, 70))
+#: Two sums over the same constants 2 … 9: the second reads each again.
+WIDE = " + ".join([*(f"{k}*u" for k in range(2, 10)), *(f"{k}*v" for k in range(2, 10))])
+
+
+def test_a_long_sum_is_evaluated_by_the_core_against_autograd() -> None:
+    e = Expression(LONG, NAMES)
+    assert len(e.program) > MAX_LIVE and live_values(e.program) < 10
+    x = _states(4)
+    value, grad, hess = _core.expression_jets(*e.tape(), np.ascontiguousarray(x))
+    for k in range(len(x)):
+        xt = torch.tensor(x[k], dtype=torch.float64, requires_grad=True)
+        h = e.evaluate(xt, torch)
+        (g,) = torch.autograd.grad(h, xt)
+        hs = torch.autograd.functional.hessian(lambda y: e.evaluate(y, torch), xt)
+        np.testing.assert_allclose(value[k], h.item(), rtol=1e-13)
+        np.testing.assert_allclose(grad[k], g.numpy(), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(hess[k], hs.numpy(), rtol=1e-11, atol=1e-11)
+
+
+def test_live_values_count_the_core_slots() -> None:
+    # u·v + sin(u): the product takes v's slot (v read last there), the sine u's.
+    assert live_values(parse_program("u*v + sin(u)", NAMES)) == 2
+    # A sum as it is made keeps u, the running sum and one term.
+    assert live_values(parse_program(" + ".join(f"{k}*u" for k in range(2, 200)), NAMES)) == 3
+    # The constants 2 … 9 are read again by the second sum: live across it.
+    assert live_values(parse_program(WIDE, NAMES)) >= 8 + 2
+
+
+def test_values_live_beyond_the_limit_are_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    import poisson_rs.expressions as ex
+
+    monkeypatch.setattr(ex, "MAX_LIVE", 8)
+    with pytest.raises(ExpressionError, match=r"^hamiltonian: .* values live at once, more than 8"):
+        Expression(WIDE, NAMES)
+    Expression(" + ".join(f"{k}*u" for k in range(2, 200)), NAMES)
 
 
 def test_the_core_refuses_a_forged_tape() -> None:

@@ -173,13 +173,20 @@ def test_log_distances_need_an_even_dimension_of_at_least_4(pendulum, vortices):
         "poly2+exp",
         "poly2+trig+trigdiff",
     ]
-    # In 6-D poly3+trig and the linear forms' libraries (69 terms each) exceed the expression
-    # limits (never fittable) and are left out.
+    # In 6-D every library of degree ≤ 3 fits the expression limits (69 terms for poly3+trig,
+    # 48 for the linear forms'); of the 8-D ones, poly3+trig (116 terms) does too.
     assert [f.name for f in library_families(vortices.system.base, None, 12)] == [
         "poly2+trig",
+        "poly3+trig",
         "poly2+logdist",
         "poly2+dist^-1",
+        "poly2+exp",
+        "poly2+trig+trigdiff",
     ]
+    four = load_scene("scenes/point_vortices_4.toml").system.base
+    assert "poly3+trig" in [f.name for f in library_families(four, None, 12)]
+    # Beyond them, a family is still left out (poly4+trig in 8-D: over 1024 instructions).
+    assert not LibraryFamily(four, 4).writable()
     assert distance_pairs(8) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
 
 

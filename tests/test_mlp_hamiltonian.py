@@ -105,8 +105,9 @@ def test_pr_learn_tries_it_last_and_reports_it(bracket: Any) -> None:
 def test_an_h_beyond_the_expression_limits_is_not_tried_and_bad_sizes_are_refused(
     bracket: Any,
 ) -> None:
-    assert MlpFamily(bracket, 8, 3).writable()
-    assert not MlpFamily(bracket, 9, 3).writable()
+    # In 3-D, 48 units beside a cubic fit the expression limits (1024 instructions); 49 do not.
+    assert MlpFamily(bracket, 48, 3).writable()
+    assert not MlpFamily(bracket, 49, 3).writable()
     # Every weight negative is the costliest text (a negation each): it must still parse.
     rng = np.random.default_rng(4)
     fam = MlpFamily(bracket, 8, 3)
@@ -116,11 +117,12 @@ def test_an_h_beyond_the_expression_limits_is_not_tried_and_bad_sizes_are_refuse
         -rng.uniform(1, 2, 8), np.zeros(3), np.ones(3),
     )  # fmt: skip
     Expression(text, default_names(3))
-    # In 4-D a cubic beside 8 units does not fit: pr.learn's family is made smaller.
-    cp = load_scene("scenes/charged_particle_pnn.toml").system
-    chosen = mlp_family(cp, 4)
+    # In 8-D a cubic beside 8 units does not fit: pr.learn's family is made smaller.
+    four = load_scene("scenes/point_vortices_4.toml").system.base
+    chosen = mlp_family(four, 4)
     assert chosen is not None and chosen.writable()
     assert (chosen.degree, chosen.width) == (2, 8)
+    assert mlp_family(load_scene("scenes/charged_particle_pnn.toml").system, 4).degree == 3
     for width in (-1, 65, True, 2.0):
         with pytest.raises(ValueError, match="width"):
             MlpFamily(bracket, width)

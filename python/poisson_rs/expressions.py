@@ -8,8 +8,9 @@ constants folded) that the Rust core evaluates exactly with its derivatives, and
 torch evaluate here (the torch form gives autograd's ∇H, the core's oracle).
 
 Bounds, each refused with one ValueError naming the field: the text (``MAX_CHARS``), its nesting
-(``MAX_DEPTH``), the program (``MAX_INSTRUCTIONS``, the core's tape), integer exponents
-(``|n| <= MAX_POWER``) and real ones (finite, ``|r| <= MAX_POWER``); numbers must be finite.
+(``MAX_DEPTH``), the program (``MAX_INSTRUCTIONS``, the core's tape, of which at most
+``MAX_LIVE`` values are live at once), integer exponents (``|n| <= MAX_POWER``) and real ones
+(finite, ``|r| <= MAX_POWER``); numbers must be finite.
 """
 
 from __future__ import annotations
@@ -26,11 +27,15 @@ from numpy.typing import ArrayLike, NDArray
 FloatArray = NDArray[np.float64]
 
 #: Longest text.
-MAX_CHARS = 4096
+MAX_CHARS = 16384
 #: Deepest nesting of parentheses, functions and operators.
 MAX_DEPTH = 64
 #: Longest program (the core's ``MAX_TAPE``).
-MAX_INSTRUCTIONS = 256
+MAX_INSTRUCTIONS = 1024
+#: Most values of a program live at once (the core's ``MAX_LIVE``: its registers with
+#: derivatives live on the stack, a slot reused once its value's last reader has run). A long
+#: sum of short terms keeps a few; see :func:`live_values`.
+MAX_LIVE = 256
 #: Longest program of a vector field (H's gradient and π; the core's ``MAX_PROGRAM``).
 MAX_FIELD_INSTRUCTIONS = 1024
 #: Largest |exponent|.
@@ -479,7 +484,54 @@ def parse_program(
     }
     p = _Parser(_tokens(text, field_name), table, field_name)
     root = p.parse()
-    return _compact(p.b.nodes, root)
+    program = _compact(p.b.nodes, root)
+    live = live_values(program)
+    if live > MAX_LIVE:
+        raise ExpressionError(
+            f"{field_name}: the expression keeps {live} values live at once, more than "
+            f"{MAX_LIVE} (write repeated subexpressions once, or sum terms as they are made)"
+        )
+    return program
+
+
+def _operands(node: Node) -> tuple[int, ...]:
+    """The registers ``node`` reads."""
+    op = node[0]
+    if op in ("var", "const"):
+        return ()
+    if op in ("powi", "powf") or len(node) == 2:
+        return (int(node[1]),)
+    return (int(node[1]), int(node[2]))
+
+
+def live_values(program: Sequence[Node]) -> int:
+    """The most values of ``program`` live at once as the core evaluates it with derivatives
+    (its last instruction the output): a linear scan in which a value's slot is freed once its
+    last reader has run and the next instruction takes the slot freed last (the core's slot
+    assignment, counted the same way)."""
+    n = len(program)
+    last = list(range(n))
+    for k, node in enumerate(program):
+        for a in _operands(node):
+            last[a] = k
+    if n:
+        last[n - 1] = n  # the output: kept to the end
+    slot = [0] * n
+    free: list[int] = []
+    count = 0
+    for k, node in enumerate(program):
+        ops = _operands(node)
+        for i, o in enumerate(ops):
+            if last[o] == k and (i == 0 or o != ops[0]):
+                free.append(slot[o])
+        if free:
+            slot[k] = free.pop()
+        else:
+            slot[k] = count
+            count += 1
+        if last[k] == k:
+            free.append(slot[k])
+    return count
 
 
 def _compact(nodes: list[Node], root: int) -> tuple[Node, ...]:

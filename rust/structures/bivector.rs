@@ -39,10 +39,13 @@ impl<const N: usize> HamiltonianField<N> {
         program: Option<Expression>,
         distances: Option<DistanceSum>,
     ) -> Result<Self, CoreError> {
-        if hamiltonian.ops().len() > crate::expression::MAX_TAPE {
+        use crate::expression::{MAX_LIVE, MAX_TAPE};
+        if hamiltonian.ops().len() > MAX_TAPE || hamiltonian.live() > MAX_LIVE {
             return Err(CoreError::Invalid(format!(
-                "H has more than {} instructions",
-                crate::expression::MAX_TAPE
+                "H has {} instructions and keeps {} values live; the core takes up to \
+                 {MAX_TAPE} and {MAX_LIVE}",
+                hamiltonian.ops().len(),
+                hamiltonian.live()
             )));
         }
         if let Some(p) = &program {
