@@ -88,3 +88,16 @@ def test_cli_writes_the_map_and_its_numbers(tmp_path: Path) -> None:
     n_methods = len(default_methods(RigidBody()))
     assert n_methods >= 7 and len(rows) == n_methods * 2 * 12
     assert {"rel_error", "max_rel_dH", "max_rel_dC", "converged", "failure"} <= set(rows[0])
+
+
+def test_the_map_takes_the_taylor_orders_the_system_offers_a_study() -> None:
+    """Jets stop at order 3 in a study (a fifth-order jet step of the four vortices takes over
+    100 ms): the map of an expression system has no taylor5; the rigid body keeps both orders in
+    its first chart."""
+    from poisson_rs.scenes import load_scene
+
+    scene = Path(__file__).resolve().parent.parent / "scenes" / "point_vortices_4.toml"
+    vortices = [k for k in default_methods(load_scene(scene).system) if k.startswith("taylor")]
+    assert vortices == ["taylor3-jets"]
+    rigid = [k for k in default_methods(RigidBody()) if k.startswith("taylor")]
+    assert rigid == ["taylor3-cayley", "taylor5-cayley", "taylor3-exp"]
