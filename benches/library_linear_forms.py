@@ -1,11 +1,14 @@
 """``pr.learn`` finds Hamiltonians made of functions of linear forms (the term library's poly2+exp
-and poly2+trig+trigdiff), from exact records on canonical brackets {q_i, p_i} = 1:
+and poly2+trig+trigdiff) and of products of coordinates with them (poly2+trig+xtrig), from exact
+records on canonical brackets {q_i, p_i} = 1:
 
 - Lotka–Volterra in log coordinates (q, p) = (ln x, ln y) of ẋ = x(1 − y), ẏ = y(x − 1):
   H = p − exp(p) + q − exp(q) on the 2-D canonical bracket (exp of each coordinate);
 - the periodic Toda pair on (q1, q2, p1, p2): H = |p|²/2 + exp(q1 − q2) + exp(q2 − q1)
   (exp of the differences);
-- two coupled pendula: H = |p|²/2 − 2 cos q1 − cos q2 − ½ cos(q1 − q2) (cos of a difference).
+- two coupled pendula: H = |p|²/2 − 2 cos q1 − cos q2 − ½ cos(q1 − q2) (cos of a difference);
+- a pendulum on a spring: H = |p|²/2 − (1 + ½q2) cos q1 + q2² (the product q2 cos q1,
+  poly2+trig+xtrig).
 
 Records: 3 states each, 41 records (h = 0.1, T = 4; DOP853 at rtol = atol = 1e-13 through
 ``pr.reference_solution``). ``pr.learn(records, h, structure=<the canonical bracket>, seed=0)`` in
@@ -86,6 +89,20 @@ SYSTEMS: dict[str, dict[str, Any]] = {
         },
         "starts": [[0.5, -0.3, 0.2, 0.4], [-0.8, 0.6, 0.1, -0.3], [0.2, 1.0, -0.4, 0.0]],
         "unseen": [1.2, -0.5, 0.0, 0.3],
+    },
+    "spring-pendulum": {
+        "title": "a pendulum on a spring, H = |p|²/2 − (1 + ½q2) cos q1 + q2²",
+        "freedom": 2,
+        "text": "0.5*(x3**2 + x4**2) - (1 + 0.5*x2)*cos(x1) + x2**2",
+        "truth": {
+            (0, 0, 2, 0): 0.5,
+            (0, 0, 0, 2): 0.5,
+            (0, 2, 0, 0): 1.0,
+            ("cos", 0): -1.0,
+            ("xcos", 1, 0): -0.5,
+        },
+        "starts": [[0.5, -0.3, 0.2, 0.4], [-0.8, 0.6, 0.1, -0.3], [0.2, 0.4, -0.4, 0.0]],
+        "unseen": [1.0, -0.2, 0.1, 0.3],
     },
 }
 

@@ -3,7 +3,9 @@ degree ≤ d and sin x_i, cos x_i of each coordinate, or monomials of degree ≤
 linear forms (exp(±x_i) and exp(x_i − x_j): a Toda lattice, Lotka–Volterra in log coordinates;
 sin and cos of x_i − x_j: coupled pendula, Josephson-junction chains), or monomials of degree ≤ d
 and the log-distances ln|z_a − z_b|² of planar points, or monomials of degree ≤ d and powers of
-distances |z_a − z_b|^p, |z_a|^p (p < 0: the Coulomb and Kepler potentials), on any structure that
+distances |z_a − z_b|^p, |z_a|^p (p < 0: the Coulomb and Kepler potentials), or monomials of
+degree ≤ d, sin x_i, cos x_i and the products x_j sin x_i, x_j cos x_i (a pendulum whose gravity
+term a second coordinate scales: a pendulum on a spring, a driven support), on any structure that
 steps expression Hamiltonians by jets
 (:meth:`poisson_rs.protocols.PoissonSystemBase.jet_realization`).
 
@@ -32,7 +34,8 @@ family (as :class:`poisson_rs.hamiltonian_family.MonomialFamily` does): the grad
 (so the vector field is linear in θ), the structure's integrator of H_θ (here Taylor-HJ by jets
 of H_θ written as an expression: built in about a millisecond), the learned system, and a text.
 A term is named by its key: an exponent tuple for a monomial, ``("sin", i)`` or ``("cos", i)``
-for the trigonometric ones (i the 0-based coordinate), ``("logdist", a, b)`` for ln|z_a − z_b|²
+for the trigonometric ones (i the 0-based coordinate), ``("xsin", j, i)`` and ``("xcos", j, i)``
+for x_j sin x_i and x_j cos x_i, ``("logdist", a, b)`` for ln|z_a − z_b|²
 (a < b, 0-based points), ``("dist", p, a, b)`` for |z_a − z_b|^p, ``("radius", p, a)`` for
 |z_a|^p, and ``(f, form)`` for f(ℓ·x) with f among exp, sin, cos and ``form`` the tuple of the n
 integer coefficients of ℓ (``("exp", (1, -1, 0, 0))`` is exp(x1 − x2)). Nothing here names a
@@ -81,7 +84,8 @@ LIBRARY_DEGREES = (2, 3)
 #: background flow (the linear and angular impulses are of degree ≤ 2).
 LIBRARY_DISTANCE_DEGREES = (2,)
 #: Polynomial degrees of the linear-form libraries tried by ``pr.learn`` (poly+exp, then
-#: poly+trig+trigdiff), after poly+trig: degree 2 holds the kinetic energy of a canonical system.
+#: poly+trig+trigdiff, then poly+trig+xtrig), after poly+trig: degree 2 holds the kinetic energy
+#: of a canonical system.
 LIBRARY_FORM_DEGREES = (2,)
 #: Powers of distances a library may hold: the inverse-distance (Kepler, Coulomb, −1),
 #: inverse-square (−2: a centrifugal barrier) and inverse-cube (−3: a dipole) laws. Positive even
@@ -176,7 +180,8 @@ def library_families(structure: Any, order: int | None, top: int) -> list[Librar
     poly+logdist of :data:`LIBRARY_DISTANCE_DEGREES`, then poly+dist^p of the same degrees and the
     powers :data:`LIBRARY_DISTANCE_POWERS` (k(k + 1)/2 terms a power for k points, more than the
     k(k − 1)/2 log-distances: data those explain never pay for them), then the linear forms of
-    :data:`LIBRARY_FORM_DEGREES`: poly+exp and (dimension ≥ 2) poly+trig+trigdiff. Degrees above
+    :data:`LIBRARY_FORM_DEGREES`: poly+exp, (dimension ≥ 2) poly+trig+trigdiff, then the products
+    of coordinates with sines and cosines, poly+trig+xtrig (2n² more terms). Degrees above
     ``top`` are left out, and libraries whose H_θ exceeds the expression limits; none where the
     structure does not step expressions by jets."""
     if not supports_library(structure):
@@ -207,6 +212,9 @@ def library_families(structure: Any, order: int | None, top: int) -> list[Librar
             for d in LIBRARY_FORM_DEGREES
             if d <= top
         ]
+    out += [
+        LibraryFamily(structure, d, order, products=True) for d in LIBRARY_FORM_DEGREES if d <= top
+    ]
     # H_θ with every term must be one expression (its integrator steps that text): in high
     # dimensions the larger libraries exceed the expression limits and could never be fitted.
     return [f for f in out if f.writable()]
@@ -241,7 +249,8 @@ def structure_gauge(structure: Any) -> str:
 class LibraryFamily:
     """H_θ over monomials of degree ≤ ``degree`` (no constant), sin and cos of each coordinate
     (``trig``), exp(±x_i) and exp(x_i − x_j) (``exponentials``), sin and cos of x_i − x_j
-    (``differences``; see :func:`linear_forms`), the log-distances ln|z_a − z_b|² of planar
+    (``differences``; see :func:`linear_forms`), x_j sin x_i and x_j cos x_i for every j and i
+    (``products``), the log-distances ln|z_a − z_b|² of planar
     points (``log_distances``) and the powers |z_a − z_b|^p, |z_a|^p for each p of
     ``distance_powers`` (among :data:`DISTANCE_POWERS`; see the module docstring: both distance
     options raise ValueError where the dimension is odd or below 4), on the bracket of
@@ -264,6 +273,7 @@ class LibraryFamily:
         distance_powers: Sequence[int] = (),
         exponentials: bool = False,
         differences: bool = False,
+        products: bool = False,
         gauge: str | None = None,
     ) -> None:
         self.structure = structure
@@ -275,6 +285,7 @@ class LibraryFamily:
         self.trig, self.log_distances = bool(trig), bool(log_distances)
         self.distance_powers = check_distance_powers(distance_powers)
         self.exponentials, self.differences = bool(exponentials), bool(differences)
+        self.products = bool(products)
         every: list[Key] = list(monomial_exponents(self.dim, degree))
         if self.trig:
             every += [(f, i) for i in range(self.dim) for f in ("sin", "cos")]
@@ -283,6 +294,9 @@ class LibraryFamily:
         if self.differences:
             diffs = linear_forms(self.dim, "trigdiff")
             every += [(f, ell) for ell in diffs for f in ("sin", "cos")]
+        if self.products:
+            n = self.dim
+            every += [(f, j, i) for j in range(n) for i in range(n) for f in ("xsin", "xcos")]
         if self.log_distances:
             every += [("logdist", a, b) for a, b in distance_pairs(self.dim)]
         for p in self.distance_powers:
@@ -317,6 +331,7 @@ class LibraryFamily:
             + ("+trig" if self.trig else "")
             + ("+exp" if self.exponentials else "")
             + ("+trigdiff" if self.differences else "")
+            + ("+xtrig" if self.products else "")
             + ("+logdist" if self.log_distances else "")
             + "".join(f"+dist^{p}" for p in self.distance_powers)
         )
@@ -330,6 +345,8 @@ class LibraryFamily:
             extra.append("exp(±x_i) and exp(x_i − x_j) of the coordinates")
         if self.differences:
             extra.append("sin and cos of x_i − x_j")
+        if self.products:
+            extra.append("x_j sin x_i and x_j cos x_i")
         # Planar points exist only in even dimensions (the distance options refuse the others).
         points = ", ".join(
             f"({a}, {b})" for a, b in zip(self.variables[::2], self.variables[1::2], strict=False)
@@ -355,6 +372,7 @@ class LibraryFamily:
             distance_powers=self.distance_powers,
             exponentials=self.exponentials,
             differences=self.differences,
+            products=self.products,
             gauge=self.gauge,
         )
 
@@ -453,6 +471,13 @@ class LibraryFamily:
                 if key[0] == "dist":
                     out[:, 2 * key[3] : 2 * key[3] + 2, m] = -g
                 continue
+            if key[0] in ("xsin", "xcos"):
+                # ∇ x_j s(x_i) = s(x_i) e_j + x_j s'(x_i) e_i (both on x_i where j = i).
+                _, j, i = key
+                sin, cos = np.sin(x[:, i]), np.cos(x[:, i])
+                out[:, j, m] += sin if key[0] == "xsin" else cos
+                out[:, i, m] += x[:, j] * (cos if key[0] == "xsin" else -sin)
+                continue
             if isinstance(key[0], str) and isinstance(key[1], tuple):
                 # ∇ f(ℓ·x) = f'(ℓ·x) ℓ.
                 f, ell = key
@@ -486,6 +511,8 @@ class LibraryFamily:
             # powf), which the jets differentiate exactly.
             b = key[3] if key[0] == "dist" else None
             return f"({_squared(self.variables, key[2], b)})**({key[1] / 2!r})"
+        if key[0] in ("xsin", "xcos"):
+            return f"{self.variables[key[1]]}*{key[0][1:]}({self.variables[key[2]]})"
         if isinstance(key[0], str) and isinstance(key[1], tuple):
             return f"{key[0]}({_form_text(self.variables, key[1])})"
         if isinstance(key[0], str):
