@@ -147,6 +147,40 @@ def test_an_h_longer_than_the_live_registers_fits_each_methods_order() -> None:
         assert abs(slope - order) < 0.35, (stepper, errs, slope)
 
 
+def test_an_h_whose_field_exceeds_the_program_runs_on_its_tape() -> None:
+    """A 10-D H of 150 cubic terms beside a quadratic (781 instructions): π∇H written out would
+    exceed the core's 1024-instruction field program, so the system keeps none and the core
+    differentiates H's tape in lanes. Its field equals autograd's π∇H on the canonical bracket,
+    RK4 fits order 4 against the reference, and the torch step refuses in one line."""
+    from itertools import combinations_with_replacement, islice
+
+    torch = pytest.importorskip("torch")
+    base = pr.PolynomialPoissonSystem(
+        pr.PolynomialBivector(10, {(i, i + 5): "1" for i in range(5)}), "x1**2"
+    )
+    cubic = " + ".join(
+        f"{0.01 * (1 + k / 50):.5f}*x{i + 1}*x{j + 1}*x{m + 1}"
+        for k, (i, j, m) in enumerate(islice(combinations_with_replacement(range(10), 3), 150))
+    )
+    quadratic = " + ".join(f"x{i}**2" for i in range(1, 11))
+    s = pr.with_hamiltonian(base, f"0.5*({quadratic}) + {cubic}")
+    assert s.field_program is None and len(s.h.program) > 512
+    x = np.random.default_rng(8).uniform(-0.5, 0.5, size=(9, 10))
+    xt = torch.tensor(x, requires_grad=True)
+    (g,) = torch.autograd.grad(s.h.evaluate(xt, torch).sum(), xt)
+    g = g.numpy()
+    np.testing.assert_allclose(s.vector_field(x), np.hstack([g[:, 5:], -g[:, :5]]), rtol=1e-13,
+                               atol=1e-13)  # fmt: skip
+    x0 = x[:2] * 0.5
+    ref = s.reference_solution(x0, np.array([0.0, 1.0]))[:, -1]
+    hs = np.array([0.2, 0.1, 0.05])
+    rk4 = s.classical("rk4")
+    errs = [np.abs(pr.integrate(rk4, x0, h, round(1 / h))[:, -1] - ref).max() for h in hs]
+    assert abs(np.polyfit(np.log(hs), np.log(errs), 1)[0] - 4) < 0.35, errs
+    with pytest.raises(ValueError, match=r"^hamiltonian: .*longer than the core's field program"):
+        rk4.torch_step(torch.tensor(x0), 0.1)
+
+
 @pytest.mark.parametrize("name", ["extended_pendulum_pnn", "rigid_body_potential"])
 def test_jets_keep_the_casimirs_to_round_off_where_rk4_does_not(name: str) -> None:
     scene = _scene(name)

@@ -54,6 +54,10 @@ _TOKEN = re.compile(
 
 # A node: (opcode, operand registers..., constant) in the program; registers are indices.
 Node = tuple[Any, ...]
+#: A vector field's program as the core takes it: (code, a, b, c, output registers).
+FieldProgram = tuple[
+    NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], FloatArray, NDArray[np.int64]
+]
 
 
 class ExpressionError(ValueError):
@@ -707,7 +711,7 @@ def field_program(
     coeffs: FloatArray,
     exponents: NDArray[np.int64],
     entries: Mapping[tuple[int, int], Sequence[Node]] | None = None,
-) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], FloatArray, NDArray[np.int64]]:
+) -> FieldProgram:
     """The program of ẋ = π(x)∇H(x), one output per coordinate: ∇H by forward differentiation
     of H's program (shared subexpressions, exact identities folded), π from its upper-triangle
     term table (index, coeffs, exponents (M, n)) plus ``entries``, programs in the same

@@ -137,10 +137,16 @@ class FieldIntegrator:
         autograd). mu: (B, n) → (B, n)."""
         import torch
 
-        from ..expressions import evaluate_table
+        from ..expressions import MAX_FIELD_INSTRUCTIONS, evaluate_table
         from .classical_torch import require_torch_method, rk4_step
 
         require_torch_method(self.name, "the classical integrator")
+        if self.system.field_program is None:
+            raise ValueError(
+                "hamiltonian: π∇H of this H is longer than the core's field program "
+                f"({MAX_FIELD_INSTRUCTIONS} instructions), which the torch step evaluates; "
+                "step it in the core (no device)"
+            )
         code, a, b, c, outputs = self.system.field_program
         table = (code, a, b, c)
         return rk4_step(lambda x: evaluate_table(table, outputs, x, torch), mu, float(h))

@@ -18,7 +18,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..distance_sums import DistanceTerms, distance_terms
-from ..expressions import Expression, default_names, field_program
+from ..expressions import (
+    Expression,
+    ExpressionError,
+    FieldProgram,
+    default_names,
+    field_program,
+)
 from ..protocols import (
     NEWTON_MAX_ITER,
     NEWTON_TOL,
@@ -84,8 +90,14 @@ class ExpressionSystem(PoissonSystemBase):
         #: H's program as the core's table (code, a, b, c).
         self.tape = self.h.tape()
         self._jets: dict[int, JetRealization] = {}
-        # π∇H as one program (∇H written out): the core's fast path for the field.
-        self.field_program = field_program(self.h, *self.terms.tables())
+        # π∇H as one program (∇H written out): the core's fast path for the field. None where it
+        # exceeds the core's program size (a long H: its gradient is several times its length):
+        # the core then differentiates H's tape in lanes and applies π, the same field, slower.
+        self.field_program: FieldProgram | None
+        try:
+            self.field_program = field_program(self.h, *self.terms.tables())
+        except ExpressionError:
+            self.field_program = None
         # A sum over distances (vortices, Kepler): ∇H compiled in the core, faster still.
         self.distances: DistanceTerms | None = distance_terms(self.h.program, self.dim)
 
