@@ -201,6 +201,7 @@ def test_expression_hamiltonians_keep_the_field_and_potential(particle: ChargedP
         "poly2+exp",
         "poly2+trig+trigdiff",
         "poly2+trig+xtrig",
+        "poly2+trig+harmonics",
     ]
     dist = library_families(particle, None, 4)[3]
     theta = np.zeros(len(dist))

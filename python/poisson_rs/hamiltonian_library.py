@@ -11,8 +11,9 @@ steps expression Hamiltonians by jets
 
 Linear forms: the dictionary is the coordinates and their pairwise differences with coefficients
 ±1 (every ordered pair for exp, whose sign matters; one order for sin and cos, whose sign only
-flips a coefficient). Frequencies other than 1 are not searched: a term is linear in θ only
-where its form is fixed.
+flips a coefficient), and the harmonics 2x_i and 3x_i of each coordinate for sin and cos (the
+torsion potentials Σ_n k_n cos(nφ − δ_n) of molecular dihedral angles, a rotor in a quadrupole
+field). Other frequencies are not searched: a term is linear in θ only where its form is fixed.
 
 Planar points: where the dimension n is even, the coordinates are read as n/2 consecutive pairs,
 z_a = (x_{2a+1}, x_{2a+2}) for a = 0 … n/2 − 1 (0-based a, 1-based coordinates as in x1 … xn), and
@@ -56,6 +57,7 @@ from .protocols import NEWTON_MAX_ITER, NEWTON_TOL
 __all__ = [
     "DISTANCE_POWERS",
     "EXP_ARGUMENT_MAX",
+    "HARMONICS",
     "LIBRARY_DEGREES",
     "LIBRARY_DISTANCE_DEGREES",
     "LIBRARY_DISTANCE_POWERS",
@@ -97,6 +99,8 @@ LIBRARY_DISTANCE_POWERS = (-1,)
 #: Two points closer than this, relative to 1 + |z_a| + |z_b|, count as coinciding: ln|z_a − z_b|²
 #: and its gradient ~1/|z_a − z_b| are then no longer representable to any useful accuracy.
 COINCIDE_RTOL = 1e-12
+#: The multiples n·x_i whose sine and cosine the harmonics library holds (n = 1 is "trig").
+HARMONICS = (2, 3)
 #: Largest argument of an exponential term on the records: e^x overflows float64 past ~709.8,
 #: and its gradient with it.
 EXP_ARGUMENT_MAX = 700.0
@@ -123,7 +127,8 @@ def distance_pairs(dim: int) -> list[tuple[int, int]]:
 def linear_forms(dim: int, kind: str) -> list[tuple[int, ...]]:
     """The forms ℓ (tuples of ``dim`` integer coefficients) of the library's ``kind`` of terms:
     "exp": ±x_i for each coordinate and x_i − x_j for each ordered pair i ≠ j; "trigdiff":
-    x_i − x_j for i < j (sin and cos of the coordinates themselves are the "trig" terms)."""
+    x_i − x_j for i < j (sin and cos of the coordinates themselves are the "trig" terms);
+    "harmonics": n·x_i for each coordinate and each n of :data:`HARMONICS`."""
 
     def form(pos: int, neg: int | None = None, sign: int = 1) -> tuple[int, ...]:
         out = [0] * dim
@@ -133,12 +138,14 @@ def linear_forms(dim: int, kind: str) -> list[tuple[int, ...]]:
         return tuple(out)
 
     pairs = [(i, j) for i in range(dim) for j in range(i + 1, dim)]
+    if kind == "harmonics":
+        return [form(i, sign=n) for i in range(dim) for n in HARMONICS]
     if kind == "trigdiff":
         return [form(i, j) for i, j in pairs]
     if kind == "exp":
         singles = [form(i, sign=s) for i in range(dim) for s in (1, -1)]
         return singles + [form(i, j) for i, j in pairs] + [form(j, i) for i, j in pairs]
-    raise ValueError(f"kind must be 'exp' or 'trigdiff', got {kind!r}")
+    raise ValueError(f"kind must be 'exp', 'trigdiff' or 'harmonics', got {kind!r}")
 
 
 def _form_text(variables: Sequence[str], form: Sequence[int]) -> str:
@@ -181,7 +188,8 @@ def library_families(structure: Any, order: int | None, top: int) -> list[Librar
     powers :data:`LIBRARY_DISTANCE_POWERS` (k(k + 1)/2 terms a power for k points, more than the
     k(k − 1)/2 log-distances: data those explain never pay for them), then the linear forms of
     :data:`LIBRARY_FORM_DEGREES`: poly+exp, (dimension ≥ 2) poly+trig+trigdiff, then the products
-    of coordinates with sines and cosines, poly+trig+xtrig (2n² more terms). Degrees above
+    of coordinates with sines and cosines, poly+trig+xtrig (2n² more terms), and the harmonics
+    sin, cos of 2x_i and 3x_i, poly+trig+harmonics. Degrees above
     ``top`` are left out, and libraries whose H_θ exceeds the expression limits; none where the
     structure does not step expressions by jets."""
     if not supports_library(structure):
@@ -214,6 +222,9 @@ def library_families(structure: Any, order: int | None, top: int) -> list[Librar
         ]
     out += [
         LibraryFamily(structure, d, order, products=True) for d in LIBRARY_FORM_DEGREES if d <= top
+    ]
+    out += [
+        LibraryFamily(structure, d, order, harmonics=True) for d in LIBRARY_FORM_DEGREES if d <= top
     ]
     # H_θ with every term must be one expression (its integrator steps that text): in high
     # dimensions the larger libraries exceed the expression limits and could never be fitted.
@@ -250,7 +261,8 @@ class LibraryFamily:
     """H_θ over monomials of degree ≤ ``degree`` (no constant), sin and cos of each coordinate
     (``trig``), exp(±x_i) and exp(x_i − x_j) (``exponentials``), sin and cos of x_i − x_j
     (``differences``; see :func:`linear_forms`), x_j sin x_i and x_j cos x_i for every j and i
-    (``products``), the log-distances ln|z_a − z_b|² of planar
+    (``products``), sin and cos of n·x_i for n in :data:`HARMONICS` (``harmonics``), the
+    log-distances ln|z_a − z_b|² of planar
     points (``log_distances``) and the powers |z_a − z_b|^p, |z_a|^p for each p of
     ``distance_powers`` (among :data:`DISTANCE_POWERS`; see the module docstring: both distance
     options raise ValueError where the dimension is odd or below 4), on the bracket of
@@ -274,6 +286,7 @@ class LibraryFamily:
         exponentials: bool = False,
         differences: bool = False,
         products: bool = False,
+        harmonics: bool = False,
         gauge: str | None = None,
     ) -> None:
         self.structure = structure
@@ -285,7 +298,7 @@ class LibraryFamily:
         self.trig, self.log_distances = bool(trig), bool(log_distances)
         self.distance_powers = check_distance_powers(distance_powers)
         self.exponentials, self.differences = bool(exponentials), bool(differences)
-        self.products = bool(products)
+        self.products, self.harmonics = bool(products), bool(harmonics)
         every: list[Key] = list(monomial_exponents(self.dim, degree))
         if self.trig:
             every += [(f, i) for i in range(self.dim) for f in ("sin", "cos")]
@@ -297,6 +310,9 @@ class LibraryFamily:
         if self.products:
             n = self.dim
             every += [(f, j, i) for j in range(n) for i in range(n) for f in ("xsin", "xcos")]
+        if self.harmonics:
+            multiples = linear_forms(self.dim, "harmonics")
+            every += [(f, ell) for ell in multiples for f in ("sin", "cos")]
         if self.log_distances:
             every += [("logdist", a, b) for a, b in distance_pairs(self.dim)]
         for p in self.distance_powers:
@@ -332,6 +348,7 @@ class LibraryFamily:
             + ("+exp" if self.exponentials else "")
             + ("+trigdiff" if self.differences else "")
             + ("+xtrig" if self.products else "")
+            + ("+harmonics" if self.harmonics else "")
             + ("+logdist" if self.log_distances else "")
             + "".join(f"+dist^{p}" for p in self.distance_powers)
         )
@@ -347,6 +364,8 @@ class LibraryFamily:
             extra.append("sin and cos of x_i − x_j")
         if self.products:
             extra.append("x_j sin x_i and x_j cos x_i")
+        if self.harmonics:
+            extra.append("sin and cos of " + " and ".join(f"{n}x_i" for n in HARMONICS))
         # Planar points exist only in even dimensions (the distance options refuse the others).
         points = ", ".join(
             f"({a}, {b})" for a, b in zip(self.variables[::2], self.variables[1::2], strict=False)
@@ -373,6 +392,7 @@ class LibraryFamily:
             exponentials=self.exponentials,
             differences=self.differences,
             products=self.products,
+            harmonics=self.harmonics,
             gauge=self.gauge,
         )
 
