@@ -152,7 +152,6 @@ def test_learning_offers_the_degrees_whose_polynomial_fits_the_tape(
     assert particle.learn_degrees() == (2, 3, 4)
     monkeypatch.setattr(ex, "MAX_LIVE", 12)
     assert particle.learn_degrees() == (2, 3)
-    monkeypatch.undo()
     family = particle.hamiltonian_family(2)
     assert family.order == 3 and len(family) == 14
 

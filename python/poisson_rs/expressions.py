@@ -64,6 +64,16 @@ class ExpressionError(ValueError):
     """A Hamiltonian text the grammar refuses."""
 
 
+def _operands(node: Node) -> tuple[int, ...]:
+    """The registers ``node`` reads."""
+    op = node[0]
+    if op in ("var", "const"):
+        return ()
+    if op in ("powi", "powf") or len(node) == 2:
+        return (int(node[1]),)
+    return (int(node[1]), int(node[2]))
+
+
 def _tokens(text: str, field_name: str) -> list[tuple[str, str]]:
     out: list[tuple[str, str]] = []
     pos = 0
@@ -203,8 +213,7 @@ class _Builder:
         op = node[0]
         if op in ("var", "const"):
             return node
-        operands = node[1:2] if op in ("powi", "powf") else node[1:]
-        args = [self.const_value(r) for r in operands]
+        args = [self.const_value(r) for r in _operands(node)]
         if any(a is None for a in args):
             return node
         vals = [float(a) for a in args if a is not None]
@@ -498,16 +507,6 @@ def parse_program(
     return program
 
 
-def _operands(node: Node) -> tuple[int, ...]:
-    """The registers ``node`` reads."""
-    op = node[0]
-    if op in ("var", "const"):
-        return ()
-    if op in ("powi", "powf") or len(node) == 2:
-        return (int(node[1]),)
-    return (int(node[1]), int(node[2]))
-
-
 def live_values(program: Sequence[Node]) -> int:
     """The most values of ``program`` live at once as the core evaluates it with derivatives
     (its last instruction the output): a linear scan in which a value's slot is freed once its
@@ -552,11 +551,9 @@ def _compact_roots(nodes: list[Node], roots: Sequence[int]) -> tuple[tuple[Node,
         live[r] = True
     root = top
     for k in range(root, -1, -1):
-        if live[k] and nodes[k][0] not in ("var", "const", "powi", "powf"):
-            for r in nodes[k][1:]:
+        if live[k]:
+            for r in _operands(nodes[k]):
                 live[r] = True
-        elif live[k] and nodes[k][0] in ("powi", "powf"):
-            live[nodes[k][1]] = True
     new: dict[int, int] = {}
     out: list[Node] = []
     for k in range(root + 1):
