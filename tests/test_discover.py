@@ -406,3 +406,31 @@ def test_a_failed_step_in_the_refinement_does_not_reach_the_solve(monkeypatch, r
         warnings.simplefilter("ignore")
         _, report = pr.learn(list(trajs), 0.1, structure="discover", seed=0, progress=False)
     assert calls and report.kept is not None
+
+
+def test_noisy_velocities_leave_weakly_seen_directions_to_the_gauge(monkeypatch):
+    """Heavy-top records with relative noise 1e-4: directions of θ that the exact data cannot
+    see come out seen at the noise level (singular values 1e-5 relative). Kept as seen (the
+    round-off threshold alone), the Jacobi projection moves θ along them to a Lie algebra 0.59
+    off the velocities (checked with UNSEEN_FACTOR = 0); left to the gauge, the nearest Lie
+    algebra in their span fits to a few times the noise, and is a Lie algebra."""
+    from poisson_rs.learn import discover
+    from poisson_rs.learn.data import prepare
+    from poisson_rs.learn.hamiltonian import velocities
+
+    rng = np.random.default_rng(7)
+    top = pr.HeavyTop((10.0, 20.0, 40.0), mgl=0.981, com=(0.0, 0.0, 1.0))
+    starts = np.concatenate([rng.normal(size=(6, 3)) * 6, rng.normal(size=(6, 3)) * 6], axis=1)
+    h = 2 * np.pi / 100
+    exact = np.asarray(top.reference_solution(starts, h * np.arange(30)))
+    noisy = exact + 1e-4 * np.linalg.norm(exact, axis=2)[..., None] * rng.normal(size=exact.shape)
+    data = prepare(
+        list(noisy), h, None, test_fraction=0.2, seed=0, system=discover.UnknownStructure(6)
+    )
+    x, v = velocities(data.train, data.h)
+    family = _family(6, "lie-poisson")
+    hams = discover._polynomials(2, None)(family.template_system())
+    fit = discover.fit_bracket(data, family, hams, x, v, 0)
+    assert fit.velocity_residual < 0.05
+    assert fit.jacobi < 1e-12
+    assert fit.gauge_null > 10  # the exact data's 10, and the ones seen only at the noise level

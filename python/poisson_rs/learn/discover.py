@@ -63,6 +63,10 @@ MAX_RESTARTS = 24
 VARPRO_ITER = 200
 #: Singular values below this fraction of the largest are gauge directions.
 GAUGE_RTOL = 1e-9
+#: A bracket direction whose singular value, relative to the largest, is below this many times
+#: the velocity fit's relative residual is seen no better than the noise: gauge (see
+#: :func:`_unseen_below`).
+UNSEEN_FACTOR = 3.0
 #: A learned bracket coefficient this close (relative to the largest) to a multiple of 1/12 is
 #: tried at it.
 SNAP_RTOL = 1e-5
@@ -171,6 +175,18 @@ def bilinear_fit(
     return min(results, key=lambda r: r[2])
 
 
+def _unseen_below(sv: np.ndarray, residual: float) -> float:
+    """The singular value of the bracket's design matrix A(φ) (``sv``, largest first) below
+    which a direction of θ counts as unseen by the data, hence gauge: round-off
+    (:data:`GAUGE_RTOL`), or, with noisy velocities, :data:`UNSEEN_FACTOR` × the fit's
+    relative residual ``residual``. On the heavy top at σ = 1e-4 three directions of the exact
+    data's gauge orbit (singular values 0 there) come out at 1e-5 relative: kept as seen, the
+    Jacobi projection moved θ along them to a bracket 0.9 off the velocities."""
+    if not sv.size or not sv[0] > 0:
+        return math.inf
+    return max(GAUGE_RTOL, UNSEEN_FACTOR * residual) * float(sv[0])
+
+
 def fit_bracket(
     data: TrajectoryData,
     family: Any,
@@ -197,10 +213,10 @@ def fit_bracket(
     rng = np.random.default_rng(seed)
     ts, ps, rel = bilinear_fit(t / sp[None, :, None] / sm[None, None, :], rhs, rng)
     theta, phi = ts / sp, ps / sm
-    # Gauge: the least-norm θ among those giving the same field with this H.
+    # Gauge: the least-norm θ among those giving the same field with this H (to the noise).
     a = np.einsum("kam,m->ka", t, phi)
     _, sv, vt = np.linalg.svd(a, full_matrices=False)
-    keep = sv > GAUGE_RTOL * sv[0] if sv.size and sv[0] > 0 else np.zeros(len(sv), bool)
+    keep = sv > _unseen_below(sv, rel)
     theta = vt[keep].T @ (vt[keep] @ theta)
     pts = family.jacobi_points(data.lo, data.hi, seed)
     jacobi_fit = family.jacobi_residual(theta, pts)
@@ -325,6 +341,10 @@ def refine_through_integrator(
             th = theta.copy()
             th[free] += lam * step[: len(free)]
             th, jac_res = family.project(th, points, support=support)
+            if not (np.isfinite(th[pinned]) and abs(th[pinned]) > 0):
+                # The projection took the scale-gauge coefficient to 0: a shorter step.
+                lam /= 2
+                continue
             th = th / th[pinned]
             ph = phi + lam * step[len(free) :]
             r_new, c_new, b_new = residual(th, ph)
