@@ -14,6 +14,18 @@ trajectory-step, the ratio to the package's own RK4 step in the same run, and th
 updates per step of the implicit ones (from ``integrate(..., return_info=True)``). ``--json
 FILE`` writes the numbers.
 
+``--baseline DIR`` times the build before in the same run: ``DIR`` is a directory from which
+``import poisson_rs`` loads that build (a checkout's ``python/`` with its extension built, or a
+``site-packages`` where its wheel is installed). This build and that one then run in two worker
+processes on the same core, one timed rollout at a time, the builds alternating within every
+round; each cell gains the baseline's ns per step, the ratio now / before and its Newton updates.
+A stepper one build lacks is "n/a" there. For a revision ``REV``::
+
+    git worktree add /tmp/base REV
+    (cd /tmp/base && cargo build --release --features python &&
+     cp target/release/libpoisson_rs.so python/poisson_rs/_core.abi3.so)
+    RAYON_NUM_THREADS=1 taskset -c 0 python benches/step_costs.py --baseline /tmp/base/python
+
 A step's cost is only half of the choice: what it buys in accuracy is charted by ``poisson-rs
 select`` and the work–precision charts; this table says where the time of a step goes.
 """
@@ -25,6 +37,8 @@ import json
 import os
 import platform
 import statistics
+import subprocess
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -71,25 +85,178 @@ def lotka_volterra_states(batch: int, rng: np.random.Generator, b: np.ndarray) -
 
 
 def steppers(system: Any, learned: list[str]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
+    """Every stepper of ``system`` this build offers, by name. One that the build cannot make
+    (an older build, under ``--baseline``) is left out, and the table says n/a."""
+    makers: dict[str, Any] = {}
     if isinstance(system, pr.LogCanonicalSystem):
         for name in ("rk4", "midpoint", "log_splitting", "log_splitting4"):
-            out[name] = pr.log_canonical_classical(system, name)
+            makers[name] = lambda n=name: pr.log_canonical_classical(system, n)
         for order in (3, 5):
-            out[f"taylor{order}-log"] = pr.log_canonical_taylor(system, order)
-        for name in learned:
-            out[f"learned:{name}"] = pr.load_model(name)
-        return out
-    for name in pr.classical_methods(system):
-        if name != "dop853":
-            out[name] = pr.classical(system, name)
-    charts = ("exp", "cayley") if isinstance(system, pr.RigidBody) else ("exp",)
-    for order in (3, 5):
-        for chart in charts:
-            out[f"taylor{order}-{chart}"] = pr.taylor_integrator(system, order=order, chart=chart)
+            makers[f"taylor{order}-log"] = lambda k=order: pr.log_canonical_taylor(system, k)
+    else:
+        for name in pr.classical_methods(system):
+            if name != "dop853":
+                makers[name] = lambda n=name: pr.classical(system, n)
+        charts = ("exp", "cayley") if isinstance(system, pr.RigidBody) else ("exp",)
+        for order in (3, 5):
+            for chart in charts:
+                makers[f"taylor{order}-{chart}"] = lambda k=order, c=chart: pr.taylor_integrator(
+                    system, order=k, chart=c
+                )
     for name in learned:
-        out[f"learned:{name}"] = pr.load_model(name)
+        makers[f"learned:{name}"] = lambda n=name: pr.load_model(n)
+    out: dict[str, Any] = {}
+    for name, make in makers.items():
+        try:
+            out[name] = make()
+        except (AttributeError, TypeError, ValueError, KeyError, OSError) as exc:
+            print(f"{name}: not in this build ({type(exc).__name__}: {exc})", file=sys.stderr)
     return out
+
+
+def cases(batch: int, which: str) -> list[tuple[str, Any, np.ndarray, list[str]]]:
+    """(label, system, seeded states, learned model names) of the systems ``which`` names."""
+    rng = np.random.default_rng(42)
+    out = [
+        ("rigid body", pr.RigidBody((1.5, 2.0, 2.5)), rigid_states(batch, rng), ["default"]),
+        (
+            "heavy top",
+            pr.HeavyTop((1.0, 1.5, 2.0), 0.981, (0.0, 0.0, 1.0)),
+            top_states(batch, rng),
+            ["heavy_top_h05"],
+        ),
+    ]
+    pnn = pr.lotka_volterra([[0.0, 1.0], [-1.0, 0.0]], [1.0, 2.0])
+    lv3 = pr.lotka_volterra([[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]], [1.0, 2.0, 1.0])
+    out += [
+        (
+            "lotka-volterra",
+            pnn,
+            lotka_volterra_states(batch, rng, np.array([1.0, 2.0])),
+            ["lotka_volterra_h01"],
+        ),
+        (
+            "lotka-volterra 3d",
+            lv3,
+            lotka_volterra_states(batch, rng, np.array([1.0, 2.0, 1.0])),
+            [],
+        ),
+        (
+            "lotka-volterra 5d",
+            pr.lotka_volterra(LV5_C, LV5_B),
+            lotka_volterra_states(batch, rng, np.array(LV5_B)),
+            [],
+        ),
+    ]
+    if which == "all":
+        return out
+    return [c for c in out if c[0].replace(" 3d", "").replace(" 5d", "").replace(" ", "-") == which]
+
+
+def steps_for(name: str, batch: int) -> int:
+    """Steps of one timed rollout: cheap explicit steps take more, so every timing is well
+    above noise (the same in every build)."""
+    n = max(1, WORK // batch)
+    return n * 20 if name in ("rk4", "splitting", "splitting_casimir", "log_splitting") else n
+
+
+class Build:
+    """The steppers of the build this process imports, timed on request."""
+
+    def __init__(self, batch: int, which: str) -> None:
+        # A learned model's orbits may leave its training domain over the rollout: that
+        # changes its accuracy, not the cost of a step, and the warning would only clutter.
+        warnings.filterwarnings("ignore", message=".*outside the training domain.*")
+        self.batch = batch
+        self.table = {
+            label: (mu0, steppers(system, learned))
+            for label, system, mu0, learned in cases(batch, which)
+        }
+
+    def names(self) -> dict[str, list[str]]:
+        return {label: list(t) for label, (_, t) in self.table.items()}
+
+    def package(self) -> str:
+        return str(Path(pr.__file__).resolve().parent)
+
+    def updates(self, label: str, name: str) -> float | None:
+        """Mean Newton updates per step over one rollout (None for explicit steps)."""
+        mu0, table = self.table[label]
+        n = steps_for(name, self.batch)
+        _, info = pr.integrate(table[name], mu0, H, n, every=n, return_info=True)
+        if not np.all(info.converged):
+            raise RuntimeError(f"{label}, {name}: a step failed in the bench rollout")
+        total = float(np.sum(info.newton_iterations))
+        return total / (len(mu0) * n) if total else None
+
+    def time(self, label: str, name: str) -> float:
+        """Seconds per trajectory-step of one rollout."""
+        mu0, table = self.table[label]
+        n = steps_for(name, self.batch)
+        start = time.perf_counter()
+        pr.integrate(table[name], mu0, H, n, every=n)
+        return (time.perf_counter() - start) / (len(mu0) * n)
+
+
+class Worker:
+    """A :class:`Build` in a child process that imports ``poisson_rs`` from ``path`` (one JSON
+    request and answer per line); the child inherits this process's core and threads."""
+
+    def __init__(self, path: Path, batch: int, which: str) -> None:
+        env = {**os.environ, "PYTHONPATH": str(path)}
+        self.proc = subprocess.Popen(
+            [sys.executable, __file__, "--worker", "--batch", str(batch), "--system", which],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+            text=True,
+        )
+
+    def _ask(self, method: str, *args: Any) -> Any:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps([method, *args]) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise SystemExit(f"the worker for {method} exited (code {self.proc.wait()})")
+        answer = json.loads(line)
+        if "error" in answer:
+            raise SystemExit(answer["error"])
+        return answer["value"]
+
+    def names(self) -> dict[str, list[str]]:
+        return dict(self._ask("names"))
+
+    def package(self) -> str:
+        return str(self._ask("package"))
+
+    def updates(self, label: str, name: str) -> float | None:
+        value = self._ask("updates", label, name)
+        return None if value is None else float(value)
+
+    def time(self, label: str, name: str) -> float:
+        return float(self._ask("time", label, name))
+
+    def close(self) -> None:
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
+        self.proc.wait()
+
+
+def serve(batch: int, which: str) -> None:
+    """The worker's loop: requests on stdin, answers on the real stdout; anything the package
+    prints goes to stderr, so it cannot break the protocol."""
+    out = sys.stdout
+    sys.stdout = sys.stderr
+    build = Build(batch, which)
+    for line in sys.stdin:
+        method, *args = json.loads(line)
+        try:
+            answer = {"value": getattr(build, method)(*args)}
+        except Exception as exc:  # reported to the parent, which stops
+            answer = {"error": f"{method}{tuple(args)}: {type(exc).__name__}: {exc}"}
+        out.write(json.dumps(answer) + "\n")
+        out.flush()
 
 
 def main() -> None:
@@ -100,99 +267,111 @@ def main() -> None:
     parser.add_argument(
         "--system", choices=("all", "rigid-body", "heavy-top", "lotka-volterra"), default="all"
     )
+    parser.add_argument(
+        "--baseline",
+        type=Path,
+        default=None,
+        help="a directory from which `import poisson_rs` loads the build before",
+    )
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.batch < 1 or args.rounds < 1:
         raise SystemExit("--batch and --rounds must be at least 1")
+    if args.worker:
+        return serve(args.batch, args.system)
     if args.json is not None:
         check_output_path(args.json)
-    # A learned model's orbits may leave its training domain over the rollout: that changes its
-    # accuracy, not the cost of a step, and the warning would only clutter the table.
-    warnings.filterwarnings("ignore", message=".*outside the training domain.*")
-    rng = np.random.default_rng(42)
-    cases = [
-        ("rigid body", pr.RigidBody((1.5, 2.0, 2.5)), rigid_states(args.batch, rng), ["default"]),
-        (
-            "heavy top",
-            pr.HeavyTop((1.0, 1.5, 2.0), 0.981, (0.0, 0.0, 1.0)),
-            top_states(args.batch, rng),
-            ["heavy_top_h05"],
-        ),
-    ]
-    pnn = pr.lotka_volterra([[0.0, 1.0], [-1.0, 0.0]], [1.0, 2.0])
-    lv3 = pr.lotka_volterra([[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]], [1.0, 2.0, 1.0])
-    cases += [
-        (
-            "lotka-volterra",
-            pnn,
-            lotka_volterra_states(args.batch, rng, np.array([1.0, 2.0])),
-            ["lotka_volterra_h01"],
-        ),
-        (
-            "lotka-volterra 3d",
-            lv3,
-            lotka_volterra_states(args.batch, rng, np.array([1.0, 2.0, 1.0])),
-            [],
-        ),
-        (
-            "lotka-volterra 5d",
-            pr.lotka_volterra(LV5_C, LV5_B),
-            lotka_volterra_states(args.batch, rng, np.array(LV5_B)),
-            [],
-        ),
-    ]
-    if args.system != "all":
-        dims = (" 3d", " 5d")
-        cases = [
-            c
-            for c in cases
-            if c[0].replace(dims[0], "").replace(dims[1], "").replace(" ", "-") == args.system
-        ]
-    rows: list[dict[str, Any]] = []
-    for label, system, mu0, learned in cases:
-        table = steppers(system, learned)
-        n_steps = {name: max(1, WORK // args.batch) for name in table}
-        # Cheap explicit steps take more steps a rollout, so every timing is well above noise.
-        for name in ("rk4", "splitting", "splitting_casimir", "log_splitting"):
-            if name in n_steps:
-                n_steps[name] *= 20
-        updates: dict[str, float] = {}
-        for name, s in table.items():
-            _, info = pr.integrate(s, mu0, H, n_steps[name], every=n_steps[name], return_info=True)
-            if not np.all(info.converged):
-                raise SystemExit(f"{label}, {name}: a step failed in the bench rollout")
-            total = float(np.sum(info.newton_iterations))
-            updates[name] = total / (len(mu0) * n_steps[name]) if total else float("nan")
-        times: dict[str, list[float]] = {name: [] for name in table}
-        for _ in range(args.rounds):
-            for name, s in table.items():
-                start = time.perf_counter()
-                pr.integrate(s, mu0, H, n_steps[name], every=n_steps[name])
-                times[name].append((time.perf_counter() - start) / (len(mu0) * n_steps[name]))
-        base = statistics.median(times["rk4"])
-        for name in table:
-            ns = statistics.median(times[name]) * 1e9
-            u = updates[name]
-            rows.append(
-                {
-                    "system": label,
-                    "stepper": name,
-                    "batch": args.batch,
-                    "ns_per_step": ns,
-                    "vs_rk4": ns / (base * 1e9),
-                    "newton_updates_per_step": None if np.isnan(u) else u,
-                }
-            )
-            note = "" if np.isnan(u) else f", {u:.2f} Newton updates/step"
-            print(
-                f"{label:17s} {name:24s} {ns:9.1f} ns/trajectory-step "
-                f"{ns / (base * 1e9):7.1f}x RK4{note}",
-                flush=True,
-            )
+    builds: dict[str, Any]
+    if args.baseline is None:
+        builds = {"now": Build(args.batch, args.system)}
+    else:
+        if not (args.baseline / "poisson_rs" / "__init__.py").is_file():
+            raise SystemExit(f"--baseline: {args.baseline} holds no poisson_rs package")
+        here = Path(pr.__file__).resolve().parent.parent
+        builds = {
+            "now": Worker(here, args.batch, args.system),
+            "before": Worker(args.baseline, args.batch, args.system),
+        }
+        packages = {k: b.package() for k, b in builds.items()}
+        if packages["now"] == packages["before"]:
+            raise SystemExit(f"--baseline: both builds load {packages['now']}")
+        print(f"now: {packages['now']}\nbefore: {packages['before']}")
+    try:
+        rows = measure(builds, args.batch, args.rounds)
+    finally:
+        for b in builds.values():
+            if isinstance(b, Worker):
+                b.close()
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; load average {load}")
     if args.json is not None:
         meta = {"h": H, "batch": args.batch, "rounds": args.rounds, "load_average": load}
+        if args.baseline is not None:
+            meta["baseline"] = str(args.baseline)
         atomic_write_bytes(args.json, json.dumps({**meta, "rows": rows}, indent=1).encode())
+
+
+def measure(builds: dict[str, Any], batch: int, rounds: int) -> list[dict[str, Any]]:
+    """Every system's steppers in every build: Newton updates from one rollout, then ``rounds``
+    rounds of one timed rollout per stepper and build, the builds' order alternating."""
+    names = {key: b.names() for key, b in builds.items()}
+    rows: list[dict[str, Any]] = []
+    for label in names["now"]:
+        order = list(names["now"][label])
+        for key in builds:
+            order += [n for n in names[key].get(label, []) if n not in order]
+        have = {key: set(names[key].get(label, [])) for key in builds}
+        updates = {
+            key: {n: b.updates(label, n) for n in order if n in have[key]}
+            for key, b in builds.items()
+        }
+        times: dict[str, dict[str, list[float]]] = {key: {n: [] for n in order} for key in builds}
+        keys = list(builds)
+        for r in range(rounds):
+            for name in order:
+                for key in keys if r % 2 == 0 else keys[::-1]:
+                    if name in have[key]:
+                        times[key][name].append(builds[key].time(label, name))
+        med = {
+            k: {n: statistics.median(v) * 1e9 for n, v in t.items() if v} for k, t in times.items()
+        }
+        for name in order:
+            row: dict[str, Any] = {"system": label, "stepper": name, "batch": batch}
+            for key in keys:
+                tag = "" if key == "now" else "_baseline"
+                ns, rk4 = med[key].get(name), med[key].get("rk4")
+                row["ns_per_step" + tag] = ns
+                row["vs_rk4" + tag] = ns / rk4 if ns is not None and rk4 else None
+                row["newton_updates_per_step" + tag] = updates[key].get(name)
+            if "before" in builds:
+                a, b = row["ns_per_step"], row["ns_per_step_baseline"]
+                row["vs_baseline"] = a / b if a is not None and b else None
+            rows.append(row)
+            print(line_of(row), flush=True)
+    return rows
+
+
+def line_of(row: dict[str, Any]) -> str:
+    """One printed row: ns per step, × RK4, Newton updates; with a baseline, its cells."""
+
+    def cell(ns: float | None, ratio: float | None, u: float | None) -> str:
+        if ns is None:
+            return f"{'n/a':>9s} {'':11s}"
+        note = f", {u:.2f} upd" if u is not None else ""
+        return f"{ns:9.1f} ns {ratio:7.1f}x RK4{note}"
+
+    text = f"{row['system']:17s} {row['stepper']:24s} " + cell(
+        row["ns_per_step"], row["vs_rk4"], row["newton_updates_per_step"]
+    )
+    if "vs_baseline" in row:
+        text += " | before " + cell(
+            row["ns_per_step_baseline"],
+            row["vs_rk4_baseline"],
+            row["newton_updates_per_step_baseline"],
+        )
+        ratio = row["vs_baseline"]
+        text += f" | now/before {ratio:.2f}" if ratio is not None else " | now/before n/a"
+    return text
 
 
 if __name__ == "__main__":
