@@ -434,3 +434,23 @@ def test_noisy_velocities_leave_weakly_seen_directions_to_the_gauge(monkeypatch)
     assert fit.velocity_residual < 0.05
     assert fit.jacobi < 1e-12
     assert fit.gauge_null > 10  # the exact data's 10, and the ones seen only at the noise level
+
+
+def test_snap_tolerance_follows_the_noise_level_within_its_bounds():
+    """Exact data keep SNAP_RTOL; noisy data try coefficients within SNAP_NOISE × their noise
+    level of a twelfth, never beyond SNAP_MAX; an unknown level keeps SNAP_RTOL."""
+    from poisson_rs.learn import discover
+
+    assert discover.snap_tolerance(float("nan")) == discover.SNAP_RTOL
+    assert discover.snap_tolerance(1e-9) == discover.SNAP_RTOL
+    assert discover.snap_tolerance(1e-4) == pytest.approx(discover.SNAP_NOISE * 1e-4)
+    assert discover.snap_tolerance(0.5) == discover.SNAP_MAX
+    theta = np.array([1.0, -0.9997, 3e-4, 0.41, 0.5 + 2e-6])
+    # the se(3)* coefficients of the σ = 1e-4 heavy top sit this far from ±1 and 0
+    np.testing.assert_array_equal(
+        discover._snap(theta, discover.snap_tolerance(1e-4)), [1.0, -1.0, 0.0, 0.41, 0.5]
+    )
+    np.testing.assert_array_equal(
+        discover._snap(theta, discover.SNAP_RTOL), [1.0, -0.9997, 3e-4, 0.41, 0.5]
+    )
+    assert discover._snap(np.array([1.0, 0.41]), discover.snap_tolerance(1e-4)) is None

@@ -67,9 +67,17 @@ GAUGE_RTOL = 1e-9
 #: the velocity fit's relative residual is seen no better than the noise: gauge (see
 #: :func:`_unseen_below`).
 UNSEEN_FACTOR = 3.0
+#: The noise-level gauge is tried where the bracket settled with the round-off gauge fits the
+#: velocities worse than this many times the bilinear fit did.
+RELAX_ABOVE = 2.0
 #: A learned bracket coefficient this close (relative to the largest) to a multiple of 1/12 is
 #: tried at it.
 SNAP_RTOL = 1e-5
+#: With noisy records a coefficient is tried at its twelfth within this many times the records'
+#: relative noise level, at most :data:`SNAP_MAX` (the snapped bracket is kept only where it
+#: passes the snap rule, as on exact data).
+SNAP_NOISE = 10.0
+SNAP_MAX = 1e-2
 #: When the snapped bracket replaces the learned one: where H refitted on it explains the
 #: records at the noise level or fits them as well ("noise"), fits them as well ("fit"), never.
 SNAPS = ("noise", "fit", "off")
@@ -213,42 +221,60 @@ def fit_bracket(
     rng = np.random.default_rng(seed)
     ts, ps, rel = bilinear_fit(t / sp[None, :, None] / sm[None, None, :], rhs, rng)
     theta, phi = ts / sp, ps / sm
-    # Gauge: the least-norm θ among those giving the same field with this H (to the noise).
+    fitted = rel
     a = np.einsum("kam,m->ka", t, phi)
     _, sv, vt = np.linalg.svd(a, full_matrices=False)
-    keep = sv > _unseen_below(sv, rel)
-    theta = vt[keep].T @ (vt[keep] @ theta)
     pts = family.jacobi_points(data.lo, data.hi, seed)
-    jacobi_fit = family.jacobi_residual(theta, pts)
-    if jacobi_fit > 1e-12 and not keep.all():
-        # The least-norm θ may sit far from every Poisson bracket of its orbit: the nearest
-        # one along the directions the data cannot see first, then the (small) projection.
-        theta, _ = family.jacobi_in_subspace(theta, vt[~keep].T, pts, seed)
-    theta, jacobi = family.project(theta, pts, free=vt[~keep].T)
-    big = int(np.argmax(np.abs(theta)))
-    scale = theta[big] if theta[big] != 0 else 1.0
-    theta = theta / scale
-    null = [n / n[np.argmax(np.abs(n))] for n in vt[~keep]]
 
     def refit(th: np.ndarray) -> tuple[np.ndarray, float]:
         ph = _lstsq(np.einsum("kam,a->km", t, th), rhs)
         r = np.einsum("kam,a,m->k", t, th, ph) - rhs
         return ph, float(np.linalg.norm(r)) / max(float(np.linalg.norm(rhs)), 1e-300)
 
-    phi, rel = refit(theta)
-    # Sparsity: coefficients the fit cannot tell from zero are dropped (and Jacobi imposed
-    # again), at the largest threshold where the fit stays as good.
-    for level in SPARSE_LEVELS:
-        small = np.abs(theta) < level
-        if not small.any() or small.all():
-            continue
-        start = np.where(small, 0.0, theta)
-        sparse, jac_sparse = family.project(start, pts, support=np.flatnonzero(start))
-        sparse[np.abs(sparse) < 1e-15] = 0.0
-        ph_s, rel_s = refit(sparse)
-        if rel_s <= 1.5 * rel + 1e-14 and jac_sparse <= max(jacobi, JACOBI_RTOL):
-            theta, jacobi, phi, rel = sparse, jac_sparse, ph_s, rel_s
-            break
+    def settle(keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+        """Gauge, Jacobi and sparsity with the directions ``~keep`` free: θ, φ, the relative
+        residual, Jacobi before and after the projection."""
+        # Gauge: the least-norm θ among those giving the same field with this H.
+        th = vt[keep].T @ (vt[keep] @ theta)
+        jacobi_fit = family.jacobi_residual(th, pts)
+        if jacobi_fit > 1e-12 and not keep.all():
+            # The least-norm θ may sit far from every Poisson bracket of its orbit: the
+            # nearest one along the directions the data cannot see first, then the (small)
+            # projection.
+            th, _ = family.jacobi_in_subspace(th, vt[~keep].T, pts, seed)
+        th, jacobi = family.project(th, pts, free=vt[~keep].T)
+        big = int(np.argmax(np.abs(th)))
+        th = th / (th[big] if th[big] != 0 else 1.0)
+        ph, res = refit(th)
+        # Sparsity: coefficients the fit cannot tell from zero are dropped (and Jacobi
+        # imposed again), at the largest threshold where the fit stays as good.
+        for level in SPARSE_LEVELS:
+            small = np.abs(th) < level
+            if not small.any() or small.all():
+                continue
+            start = np.where(small, 0.0, th)
+            sparse, jac_sparse = family.project(start, pts, support=np.flatnonzero(start))
+            sparse[np.abs(sparse) < 1e-15] = 0.0
+            ph_s, res_s = refit(sparse)
+            if res_s <= 1.5 * res + 1e-14 and jac_sparse <= max(jacobi, JACOBI_RTOL):
+                th, jacobi, ph, res = sparse, jac_sparse, ph_s, res_s
+                break
+        return th, ph, res, jacobi_fit, jacobi
+
+    # The directions the data cannot see at all are gauge. Where the bracket settled along
+    # them lost the fit (noisy records: directions the exact data cannot see come out seen at
+    # the noise level, and a Jacobi bracket along the rest may be far off), those seen no better
+    # than the noise are freed too, and the better fit of the two is kept.
+    keep = sv > _unseen_below(sv, 0.0)
+    theta_, phi_, rel_, jacobi_fit, jacobi = settle(keep)
+    loose = sv > _unseen_below(sv, fitted)
+    if rel_ > RELAX_ABOVE * fitted and (~loose).sum() > (~keep).sum():
+        other = settle(loose)
+        if other[2] < rel_:
+            keep = loose
+            theta_, phi_, rel_, jacobi_fit, jacobi = other
+    theta, phi, rel = theta_, phi_, rel_
+    null = [n / n[np.argmax(np.abs(n))] for n in vt[~keep]]
     return BracketFit(
         family=family,
         hamiltonians=hamiltonians,
@@ -476,6 +502,7 @@ def learn_discover(
     refuse_drift(data)
     offered = bracket_families(data.dim)
     threshold = 1.5 * math.sqrt(2 * data.dim) * data.noise + 1e-12
+    snap_tol = snap_tolerance(data.noise)
 
     def reaches_noise(one_step: float) -> bool:
         """Whether a one-step error explains the records: at their noise level, or below
@@ -543,11 +570,11 @@ def learn_discover(
                 if verbose:
                     print(f"{name}: refined through the integrator, cost {better.history}")
         # Brackets of physical systems have simple coefficients: the learned θ snapped to
-        # twelfths where it lies within SNAP_RTOL of one, kept if Jacobi holds exactly and H
+        # twelfths where it lies within snap_tol of one, kept if Jacobi holds exactly and H
         # refitted on it fits the training records at least as well, or explains them at the
         # noise level: the refinement's bracket may absorb the integrator's own error (a better
         # one-step fit, a worse structure), and the simpler bracket that explains the data wins.
-        snapped = _snap(fit.theta) if snap != "off" else None
+        snapped = _snap(fit.theta, snap_tol) if snap != "off" else None
         if snapped is not None and fit.family.jacobi_residual(snapped, fit.points) <= JACOBI_RTOL:
             try:
                 structure = fit.family.system(snapped)
@@ -745,11 +772,21 @@ def _refit_on_all_records(
     kept.reason += "; H's coefficients refitted on all records"
 
 
-def _snap(theta: np.ndarray) -> np.ndarray | None:
-    """θ with every coefficient within :data:`SNAP_RTOL` (of the largest, +1) of a multiple of
+def snap_tolerance(noise: float) -> float:
+    """How close (relative to the largest coefficient) a coefficient must be to a twelfth to be
+    tried at it: :data:`SNAP_RTOL`, or :data:`SNAP_NOISE` × the records' relative noise level
+    ``noise`` where that is larger, capped at :data:`SNAP_MAX`. On the heavy top at σ = 1e-4
+    the refined se(3)* coefficients sit 3e-4 from ±1: tried at ±1 they explain the records."""
+    if not math.isfinite(noise):
+        return SNAP_RTOL
+    return max(SNAP_RTOL, min(SNAP_NOISE * noise, SNAP_MAX))
+
+
+def _snap(theta: np.ndarray, tol: float = SNAP_RTOL) -> np.ndarray | None:
+    """θ with every coefficient within ``tol`` (relative to the largest, +1) of a multiple of
     1/12 set to it; None where nothing moves."""
     near = np.round(theta * 12.0) / 12.0
-    close = np.abs(theta - near) <= SNAP_RTOL * max(float(np.max(np.abs(theta))), 1e-300)
+    close = np.abs(theta - near) <= tol * max(float(np.max(np.abs(theta))), 1e-300)
     out = np.where(close, near, theta)
     return None if np.array_equal(out, theta) else out
 
