@@ -218,9 +218,42 @@ def test_discovered_stepper_keeps_the_learned_casimir_to_round_off(rigid_body):
     assert len(polys) == 1  # a 3-D algebra of rank 2: one Casimir, found by the null space
     c = np.stack([np.asarray(p(roll)) for p in polys], axis=1)
     assert np.max(np.abs(c - c[0])) < 1e-12 * max(1.0, float(np.max(np.abs(c))))
-    # The true Casimir |μ|² is kept as well as the bracket was learned.
+    # The bracket snapped along its gauge orbit is so(3)* (below): the true Casimir |μ|² is
+    # kept to round-off too (1e-6 off before, the least-norm bracket's).
     true = np.sum(roll**2, axis=1)
-    assert np.max(np.abs(true - true[0])) < 1e-6
+    assert np.max(np.abs(true - true[0])) < 1e-12
+
+
+def test_rigid_body_bracket_snaps_to_so3_along_its_gauge_orbit(rigid_body):
+    """The least-norm bracket of the body's data is another Lie algebra of its orbit θ + αN
+    (N∇H ≡ 0); so(3)* lies on that orbit and is its simplest point: kept, up to the sign of
+    the scale gauge, with H the body's energy (times that sign) plus a Casimir multiple."""
+    rb, (_, report) = rigid_body
+    fam = _family(3, "lie-poisson")
+    theta = _theta_of_algebra(fam, report.structure.algebra.c)
+    so3 = _theta_of_algebra(fam, LieAlgebra.so3().c)
+    assert np.array_equal(theta, so3) or np.array_equal(theta, -so3)
+    x = np.random.default_rng(2).normal(size=(20, 3))
+    np.testing.assert_allclose(
+        report.structure.vector_field(x), rb.vector_field(x), atol=1e-8 * np.abs(x).max()
+    )
+
+
+def test_snap_in_orbit_finds_the_simplest_bracket_of_twelfths():
+    """θ = (so(3)* + αN)/s with N = (0.1, −0.3, 1) (inertia-like, rational): the orbit holds
+    several brackets of twelfths; the one with the smallest denominators and no coefficient
+    moved to 0 is so(3)*'s (1, −1, 1); a direction along which nothing simple lies gives None."""
+    from poisson_rs.learn.discover import _snap_in_orbit
+
+    so3 = np.array([1.0, -1.0, 1.0])
+    n = np.array([0.1, -0.3, 1.0])
+    theta = (so3 + 0.37 * n) / 1.37
+    theta /= np.max(np.abs(theta))
+    np.testing.assert_array_equal(_snap_in_orbit(theta, n, 1e-9), so3)
+    noisy = theta + np.array([3e-7, -2e-7, 0.0])
+    np.testing.assert_array_equal(_snap_in_orbit(noisy, n, 1e-5), so3)
+    assert _snap_in_orbit(noisy, n, 1e-9) is None
+    assert _snap_in_orbit(np.array([1.0, 0.3 + np.pi / 100]), np.array([0.0, 0.0]), 1e-5) is None
 
 
 def test_damped_oscillator_is_reported_not_poisson():

@@ -574,7 +574,14 @@ def learn_discover(
         # refitted on it fits the training records at least as well, or explains them at the
         # noise level: the refinement's bracket may absorb the integrator's own error (a better
         # one-step fit, a worse structure), and the simpler bracket that explains the data wins.
+        # Where one direction N of the bracket is unseen (N∇H ≡ 0 on the data), the simple
+        # bracket may lie along it: the rigid body's least-norm θ is not so(3)*, θ + αN is.
         snapped = _snap(fit.theta, snap_tol) if snap != "off" else None
+        if snap != "off" and not _simple(snapped if snapped is not None else fit.theta, 0.0):
+            along = None
+            if len(fit.null_directions) == 1:
+                along = _snap_in_orbit(fit.theta, fit.null_directions[0], snap_tol)
+            snapped = along if along is not None else snapped
         if snapped is not None and fit.family.jacobi_residual(snapped, fit.points) <= JACOBI_RTOL:
             try:
                 structure = fit.family.system(snapped)
@@ -789,6 +796,58 @@ def _snap(theta: np.ndarray, tol: float = SNAP_RTOL) -> np.ndarray | None:
     close = np.abs(theta - near) <= tol * max(float(np.max(np.abs(theta))), 1e-300)
     out = np.where(close, near, theta)
     return None if np.array_equal(out, theta) else out
+
+
+def _simple(theta: np.ndarray, tol: float) -> bool:
+    """Whether every coefficient lies within ``tol`` (relative to the largest) of a twelfth."""
+    scale = max(float(np.max(np.abs(theta))), 1e-300)
+    return bool(np.all(np.abs(theta - np.round(theta * 12.0) / 12.0) <= tol * scale))
+
+
+def _snap_in_orbit(theta: np.ndarray, direction: np.ndarray, tol: float) -> np.ndarray | None:
+    """A bracket (θ + αN)/s, N = ``direction``, whose every coefficient is a twelfth and whose
+    largest is +1, where one lies within ``tol`` of θ's orbit (the simplest; None where none
+    does). Two coefficients i, j set to twelfths v_i, v_j fix (α, s):
+    θ_i + αN_i = s v_i, θ_j + αN_j = s v_j; every pair and every v in [−1, 1] is tried."""
+    support = np.flatnonzero((np.abs(theta) > 0) | (np.abs(direction) > 0))
+    if support.size < 2 or support.size > 40:
+        return None
+    grid = np.arange(-12, 13) / 12.0
+    best: tuple[tuple[int, int, float], np.ndarray] | None = None
+    for a_, i in enumerate(support):
+        for j in support[a_ + 1 :]:
+            vi, vj = np.meshgrid(grid, grid, indexing="ij")
+            vi, vj = vi.ravel(), vj.ravel()
+            # [N_i, −v_i; N_j, −v_j] (α, s) = (−θ_i, −θ_j)
+            det = -direction[i] * vj + vi * direction[j]
+            ok = np.abs(det) > 1e-12
+            if not ok.any():
+                continue
+            alpha = (theta[i] * vj - vi * theta[j])[ok] / det[ok]
+            scale = (theta[i] * direction[j] - direction[i] * theta[j]) / det[ok]
+            good = np.abs(scale) > 1e-12
+            if not good.any():
+                continue
+            cands = (theta[None, :] + alpha[good, None] * direction[None, :]) / scale[good, None]
+            # the scale gauge of fit_bracket: the (first) largest coefficient +1
+            big = np.argmax(np.abs(cands), axis=1)
+            cands = cands / cands[np.arange(len(cands)), big][:, None]
+            dist = np.max(np.abs(cands - np.round(cands * 12.0) / 12.0), axis=1)
+            # The simplest of those in the orbit: the smallest sum of denominators, then the
+            # fewest coefficients moved to 0, then the closest. The rigid body with rational
+            # inertia has many brackets of twelfths along N: so(3)* (all ±1) and the one
+            # with a zero and H = |μ|²/4 tie on denominators; so(3)* is the first.
+            twelfths = np.round(cands * 12.0).astype(np.int64)
+            # ties of the largest |coefficient| broken on the rounded values, not on noise
+            lead = twelfths[np.arange(len(twelfths)), np.argmax(np.abs(twelfths), axis=1)]
+            twelfths = twelfths * np.sign(lead)[:, None]
+            denominators = np.sum(12 // np.gcd(twelfths, 12), axis=1)
+            zeros = np.sum(twelfths[:, support] == 0, axis=1)
+            for k in np.flatnonzero(dist <= tol):
+                key = (int(denominators[k]), int(zeros[k]), float(dist[k]))
+                if best is None or key < best[0]:
+                    best = (key, twelfths[k] / 12.0)
+    return None if best is None else best[1]
 
 
 def train_cost(stepper: Any, data: TrajectoryData) -> float:
