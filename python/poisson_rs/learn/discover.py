@@ -813,11 +813,11 @@ def _snap_in_orbit(theta: np.ndarray, direction: np.ndarray, tol: float) -> np.n
     if support.size < 2 or support.size > 40:
         return None
     grid = np.arange(-12, 13) / 12.0
+    # every pair (v_i, v_j) of twelfths in [−1, 1]
+    vi, vj = np.repeat(grid, grid.size), np.tile(grid, grid.size)
     best: tuple[tuple[int, int, float], np.ndarray] | None = None
     for a_, i in enumerate(support):
         for j in support[a_ + 1 :]:
-            vi, vj = np.meshgrid(grid, grid, indexing="ij")
-            vi, vj = vi.ravel(), vj.ravel()
             # [N_i, −v_i; N_j, −v_j] (α, s) = (−θ_i, −θ_j)
             det = -direction[i] * vj + vi * direction[j]
             ok = np.abs(det) > 1e-12
