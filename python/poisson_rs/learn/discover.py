@@ -101,7 +101,9 @@ class BracketFit:
     exponents); ``velocity_residual``: relative RMS residual of the weighted velocities;
     ``jacobi_fit``/``jacobi``: the Jacobi residual before and after the projection;
     ``gauge_null``: bracket directions the data cannot see (dropped), ``null_directions``
-    those directions (largest entry +1); ``seconds``.
+    those directions (largest entry +1), ``weak_directions`` those seen no better than the
+    noise (largest entry +1; where they were not freed, tried by the orbit snap alone);
+    ``seconds``.
     """
 
     family: Any
@@ -115,6 +117,7 @@ class BracketFit:
     seconds: float
     null_directions: list[np.ndarray] = field(default_factory=list)
     points: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    weak_directions: list[np.ndarray] = field(default_factory=list)
 
 
 def _lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -275,6 +278,7 @@ def fit_bracket(
             theta_, phi_, rel_, jacobi_fit, jacobi = other
     theta, phi, rel = theta_, phi_, rel_
     null = [n / n[np.argmax(np.abs(n))] for n in vt[~keep]]
+    weak = [n / n[np.argmax(np.abs(n))] for n in vt[~loose]]
     return BracketFit(
         family=family,
         hamiltonians=hamiltonians,
@@ -287,6 +291,7 @@ def fit_bracket(
         null_directions=null,
         points=pts,
         seconds=time.perf_counter() - t0,
+        weak_directions=weak,
     )
 
 
@@ -574,13 +579,15 @@ def learn_discover(
         # refitted on it fits the training records at least as well, or explains them at the
         # noise level: the refinement's bracket may absorb the integrator's own error (a better
         # one-step fit, a worse structure), and the simpler bracket that explains the data wins.
-        # Where one direction N of the bracket is unseen (N∇H ≡ 0 on the data), the simple
-        # bracket may lie along it: the rigid body's least-norm θ is not so(3)*, θ + αN is.
+        # Where one direction N of the bracket is unseen (N∇H ≡ 0 on the data), or, with noisy
+        # records, seen no better than the noise, the simple bracket may lie along it: the
+        # rigid body's least-norm θ is not so(3)*, θ + αN is.
         snapped = _snap(fit.theta, snap_tol) if snap != "off" else None
         if snap != "off" and not _simple(snapped if snapped is not None else fit.theta, 0.0):
             along = None
-            if len(fit.null_directions) == 1:
-                along = _snap_in_orbit(fit.theta, fit.null_directions[0], snap_tol)
+            for directions in (fit.null_directions, fit.weak_directions):
+                if along is None and len(directions) == 1:
+                    along = _snap_in_orbit(fit.theta, directions[0], snap_tol)
             snapped = along if along is not None else snapped
         if snapped is not None and fit.family.jacobi_residual(snapped, fit.points) <= JACOBI_RTOL:
             try:
