@@ -15,13 +15,18 @@ families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, �
 2. Gauge: the field is unchanged by π → λπ with H → H/λ, by H → H + a Casimir, and by
    π → π + N where N∇H ≡ 0 (on so(3)* with a quadratic H, the brackets ε·∇(C + αH)). Fixed
    here: θ is the least-norm one among those the data cannot tell apart, scaled so that its
-   largest coefficient is +1; the structure's H fit drops the Casimir directions.
+   largest coefficient is +1; the structure's H fit drops the Casimir directions. With noisy
+   records, directions seen no better than the noise join them where the round-off gauge
+   lost the fit (:func:`_unseen_below`).
 3. Jacobi: a family whose θ does not obey Jacobi identically (Lie–Poisson, affine,
    polynomial) is projected onto it (least-norm Gauss–Newton on the quadratic residual at the
    data's states); the residual before and after is reported.
 4. Through the integrator: the projected bracket becomes the structure's own system, and H is
-   fitted through its Taylor-HJ integrator (:mod:`poisson_rs.learn.structure_fit`), scored by
-   the held-out one-step error. Pairs are tried smallest first; the first that reaches the
+   fitted through its Taylor-HJ integrator (:mod:`poisson_rs.learn.structure_fit`), bracket
+   and H refined jointly, and the bracket snapped to twelfths where it explains the records
+   as well (within a tolerance that follows their noise level, :func:`snap_tolerance`; along
+   its one unseen direction where it does not snap by itself, :func:`_snap_in_orbit`), scored
+   by the held-out one-step error. Pairs are tried smallest first; the first that reaches the
    data's noise level is kept. Where none does, the data are reported as explained by no family
    tried (a warning, and ``report.explained`` False): a Poisson integrator of the best is still
    returned, marked so.
