@@ -298,6 +298,8 @@ def main() -> None:
         print(f"now: {packages['now']}\nbefore: {packages['before']}")
     try:
         rows = measure(builds, args.batch, args.rounds)
+    except RuntimeError as exc:  # a failed step in this process's rollout: said, no traceback
+        raise SystemExit(str(exc)) from None
     finally:
         for b in builds.values():
             if isinstance(b, Worker):
