@@ -227,9 +227,9 @@ def fit_bracket(
     sp[sp == 0] = 1.0
     sm[sm == 0] = 1.0
     rng = np.random.default_rng(seed)
-    ts, ps, rel = bilinear_fit(t / sp[None, :, None] / sm[None, None, :], rhs, rng)
+    # fitted: the bilinear fit's relative residual, before gauge, Jacobi and sparsity
+    ts, ps, fitted = bilinear_fit(t / sp[None, :, None] / sm[None, None, :], rhs, rng)
     theta, phi = ts / sp, ps / sm
-    fitted = rel
     a = np.einsum("kam,m->ka", t, phi)
     _, sv, vt = np.linalg.svd(a, full_matrices=False)
     pts = family.jacobi_points(data.lo, data.hi, seed)
@@ -801,19 +801,24 @@ def snap_tolerance(noise: float) -> float:
     return max(SNAP_RTOL, min(SNAP_NOISE * noise, SNAP_MAX))
 
 
+def _near_twelfths(theta: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each coefficient's nearest multiple of 1/12, and whether it lies within ``tol``
+    (relative to the largest coefficient) of it."""
+    near = np.round(theta * 12.0) / 12.0
+    return near, np.abs(theta - near) <= tol * max(float(np.max(np.abs(theta))), 1e-300)
+
+
 def _snap(theta: np.ndarray, tol: float = SNAP_RTOL) -> np.ndarray | None:
     """θ with every coefficient within ``tol`` (relative to the largest, +1) of a multiple of
     1/12 set to it; None where nothing moves."""
-    near = np.round(theta * 12.0) / 12.0
-    close = np.abs(theta - near) <= tol * max(float(np.max(np.abs(theta))), 1e-300)
+    near, close = _near_twelfths(theta, tol)
     out = np.where(close, near, theta)
     return None if np.array_equal(out, theta) else out
 
 
 def _simple(theta: np.ndarray, tol: float) -> bool:
     """Whether every coefficient lies within ``tol`` (relative to the largest) of a twelfth."""
-    scale = max(float(np.max(np.abs(theta))), 1e-300)
-    return bool(np.all(np.abs(theta - np.round(theta * 12.0) / 12.0) <= tol * scale))
+    return bool(np.all(_near_twelfths(theta, tol)[1]))
 
 
 def _snap_in_orbit(theta: np.ndarray, direction: np.ndarray, tol: float) -> np.ndarray | None:
