@@ -306,8 +306,11 @@ def ours_discover(trajectories: np.ndarray, h: float, snap: str) -> Any:
     ``.system``) and the seconds."""
     from poisson_rs.learn.discover import learn_discover
 
+    def given(found: Any) -> Any:  # as pr.learn(structure="discover") passes it
+        return pr.learn(trajectories, h, mode="hamiltonian", structure=found, progress=False)
+
     t0 = time.perf_counter()
-    stepper, report = learn_discover(trajectories, h, progress=False, snap=snap)
+    stepper, report = learn_discover(trajectories, h, progress=False, snap=snap, given=given)
     return stepper, report, time.perf_counter() - t0
 
 
