@@ -30,6 +30,9 @@ families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, �
    data's noise level is kept. Where none does, the data are reported as explained by no family
    tried (a warning, and ``report.explained`` False): a Poisson integrator of the best is still
    returned, marked so.
+5. Noisy records: where the kept bracket's structure learns on T*G (a Lie–Poisson system), H
+   is fitted again by that path's shooting windows (``given``, the structure-given
+   ``pr.learn``), kept where it explains the held-out records at the noise level too.
 
 Nothing here names a structure: the families come from the structure modules' tables.
 """
