@@ -306,8 +306,10 @@ def ours_discover(trajectories: np.ndarray, h: float, snap: str) -> Any:
     ``.system``) and the seconds."""
     from poisson_rs.learn.discover import learn_discover
 
-    def given(found: Any) -> Any:  # as pr.learn(structure="discover") passes it
-        return pr.learn(trajectories, h, mode="hamiltonian", structure=found, progress=False)
+    def given(found: Any, degree: int) -> Any:  # as pr.learn(structure="discover") passes it
+        return pr.learn(
+            trajectories, h, mode="hamiltonian", structure=found, degree=degree, progress=False
+        )
 
     t0 = time.perf_counter()
     stepper, report = learn_discover(trajectories, h, progress=False, snap=snap, given=given)

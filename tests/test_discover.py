@@ -551,7 +551,12 @@ def test_exact_records_skip_the_t_star_g_refit():
     x0 = np.random.default_rng(0).normal(size=(8, 3))
     x0 /= np.linalg.norm(x0, axis=1)[:, None]
     trajs = np.asarray(pr.reference_solution(rb, x0, np.arange(41) * 0.1))
-    calls: list[object] = []
-    _, report = learn_discover(list(trajs), 0.1, progress=False, given=calls.append)
+    calls: list[tuple[object, int]] = []
+
+    def given(structure: object, degree: int) -> tuple[object, object]:
+        calls.append((structure, degree))
+        raise AssertionError("the structure-given path ran on exact records")
+
+    _, report = learn_discover(list(trajs), 0.1, progress=False, given=given)
     assert report.explained and calls == []
     assert not any("T*G" in c.family for c in report.candidates)

@@ -368,13 +368,13 @@ def learn(
         if isinstance(structure, str) and structure == "discover":
             from .discover import learn_discover
 
-            def given(found: Any) -> tuple[Any, LearnReport]:
-                # H alone on a found structure that learns on T*G (its own path's shooting
-                # fit), the same split and options.
+            def given(found: Any, found_degree: int) -> tuple[Any, LearnReport]:
+                # H alone, of the pair's degree, on a found structure that learns on T*G (its
+                # own path's shooting fit), the same split and options.
                 return learn(
-                    trajectories, h, mode="hamiltonian", structure=found, degree=degree,
-                    max_degree=max_degree, order=order, test_fraction=test_fraction, seed=seed,
-                    max_iter=max_iter, refit=refit, progress=False,
+                    trajectories, h, mode="hamiltonian", structure=found, degree=found_degree,
+                    order=order, test_fraction=test_fraction, seed=seed, max_iter=max_iter,
+                    refit=refit, progress=False,
                 )  # fmt: skip
 
             return learn_discover(

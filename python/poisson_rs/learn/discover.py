@@ -476,7 +476,7 @@ def learn_discover(
     refine: bool = True,
     snap: str = "noise",
     refit: bool = True,
-    given: Callable[[Any], tuple[Any, Any]] | None = None,
+    given: Callable[[Any, int], tuple[Any, Any]] | None = None,
 ) -> tuple[Any, Any]:
     """:func:`poisson_rs.learn` with ``structure="discover"``: see the module docstring.
     ``refine``: refine the bracket and H jointly through the found structure's integrator
@@ -486,7 +486,8 @@ def learn_discover(
     at least as well only, "off" never. ``refit``: once a pair explains the data, H's
     coefficients on the kept bracket are fitted again on every record, held-out ones included
     (the choice and the errors in the report stay the held-out ones). ``given``: learns H with
-    a structure given (``pr.learn(..., structure=found)``, same split and options); with
+    a structure given, of a degree (``pr.learn(..., structure=found, degree=d)``, same split
+    and options); with
     noisy records, where the kept bracket's structure learns on T*G, H is fitted again by that
     path (:func:`_through_own_path`) and the better held-out rollout kept."""
     from ..structures import bracket_families
@@ -646,6 +647,37 @@ def learn_discover(
         finals[id(cand)] = final
         return cand
 
+    def judge_on_own_path(
+        cand: Candidate, kept: Candidate | None, candidates: list[Candidate]
+    ) -> Candidate | None:
+        """With noisy records (the pair's one-step error above EXACT_LEVEL), the pair with H
+        fitted again on its structure's own path where it learns on T*G: shooting windows
+        average the noise over each window where the one-step fit regresses on noisy starts.
+        Where both explain the held-out records at the noise level their errors cannot tell
+        them apart (DPNN's heavy top at σ = 1e-4: rollouts 6.1e-4 against 5.9e-4, the T*G fit 7×
+        closer to the exact flow), so the T*G fit is kept where it reaches the noise level, or,
+        with the pair kept, where its rollout is closer. Returns the kept candidate."""
+        if given is None or id(cand) not in finals or not cand.one_step > EXACT_LEVEL:
+            return kept
+        structure, hfam, phi = finals[id(cand)]
+        own = _through_own_path(cand, structure, hfam.degree, int(np.count_nonzero(phi)), given)
+        if own is None:
+            return kept
+        candidates.append(own)
+        if reaches_noise(own.one_step) or (kept is cand and own.rollout < cand.rollout):
+            own.reason = (
+                f"the pair above, H fitted again on T*G (noisy records): held-out one-step "
+                f"{own.one_step:.2e}, rollout {own.rollout:.2e} against {cand.rollout:.2e}"
+                + ("; H's coefficients refitted on all records" if held and refit else "")
+            )
+            cand.reason += "; H fitted again on T*G below"
+            return own
+        own.reason = (
+            f"H fitted again on T*G: {err} {own.one_step:.2e} above the noise level, rollout "
+            f"{own.rollout:.2e} not below the pair's {cand.rollout:.2e}"
+        )
+        return kept
+
     kept: Candidate | None = None
     best_v = math.inf
     skipped: list[tuple[BracketFit, int, Any, int]] = []
@@ -710,6 +742,7 @@ def learn_discover(
                 cand.reason = f"noise level unknown; {err} below {EXACT_LEVEL:g} (exact data)"
             else:
                 cand.reason = f"{err} {cand.one_step:.2e} above the noise level {threshold:.2e}"
+            kept = judge_on_own_path(cand, kept, candidates)
         # Nothing came near the velocity floor: the best pairs whose integrator can be built
         # are still fitted through it, so that the report shows how far they are.
         skipped.sort(key=lambda item: item[0].velocity_residual)
@@ -741,30 +774,6 @@ def learn_discover(
         kept = min(scored, key=lambda c: c.one_step)
         kept.reason = f"NOT EXPLAINED: no pair reached the noise level; the best {err}"
         warn_not_explained(kept.family, kept.one_step, threshold)
-    own = None
-    if explained and given is not None and id(kept) in finals and kept.one_step > EXACT_LEVEL:
-        structure, _, phi = finals[id(kept)]
-        own = _through_own_path(kept, structure, int(np.count_nonzero(phi)), given)
-    if own is not None:
-        # The T*G path fits through shooting windows, which average the noise over each window
-        # where the one-step fit regresses on noisy starts; where both explain the held-out
-        # records at the noise level, their errors cannot tell them apart (on DPNN's heavy top
-        # at σ = 1e-4 rollouts 6.1e-4 against 5.9e-4, the T*G fit 7× closer to the exact
-        # flow), and the T*G fit is kept.
-        candidates.append(own)
-        if reaches_noise(own.one_step) or own.rollout < kept.rollout:
-            kept.reason = f"{kept.reason}; H fitted again on T*G below"
-            own.reason = (
-                f"the kept bracket, H fitted again on T*G (noisy records): held-out one-step "
-                f"{own.one_step:.2e}, rollout {own.rollout:.2e} against {kept.rollout:.2e}"
-                + ("; H's coefficients refitted on all records" if held and refit else "")
-            )
-            kept = own
-        else:
-            own.reason = (
-                f"H fitted again on T*G: held-out one-step {own.one_step:.2e} above the noise "
-                f"level, rollout {own.rollout:.2e} not below the kept pair's {kept.rollout:.2e}"
-            )
     if explained and held and refit and id(kept) in finals:
         _refit_on_all_records(kept, finals[id(kept)], all_records(data), max_iter)
     kept.kept = True
@@ -801,7 +810,11 @@ def _bracket_text(fit: BracketFit, names: list[str]) -> str:
 
 
 def _through_own_path(
-    kept: Any, structure: Any, h_parameters: int, given: Callable[[Any], tuple[Any, Any]]
+    kept: Any,
+    structure: Any,
+    degree: int,
+    h_parameters: int,
+    given: Callable[[Any, int], tuple[Any, Any]],
 ) -> Any | None:
     """The kept bracket with H fitted by the found structure's own learning path, as a
     candidate, or None where it has none (only a structure that learns on T*G has one besides
@@ -812,7 +825,7 @@ def _through_own_path(
         return None
     t0 = time.perf_counter()
     try:
-        stepper, report = given(structure)
+        stepper, report = given(structure, degree)
     except (ValueError, FloatingPointError, np.linalg.LinAlgError):
         return None
     their = report.kept

@@ -337,16 +337,44 @@ def taylor_series(
 COMPLEX_STEP = 1e-30
 
 
+#: Bytes the complex-step batch of :func:`series_jacobian` may hold at once: the P + 1
+#: Hamiltonians are evaluated in chunks of rows below it (each row's series is independent).
+#: A quartic H on a 6-dimensional algebra asked for 27 GB in one piece.
+SERIES_BATCH_BYTES = 1 << 30
+
+
+def series_row_bytes(n: int, family: list[tuple[int, ...]], order: int) -> int:
+    """An upper bound on the bytes one complex row of :func:`taylor_series` holds in its
+    largest product: every group of H's monomial prefixes (the same length) times at most
+    C(2n + D, D) kept monomial pairs (degree ≤ D in the two factors together), complex128, and
+    twice that where the product runs as a dense outer product."""
+    d = max(sum(e) for e in family)
+    degree = max(1, order * (d - 1) + 1)
+    prefixes: dict[int, set[tuple[int, ...]]] = {}
+    for e in family:
+        f = tuple(i for i, a in enumerate(e) for _ in range(a))
+        if len(f) >= 2:
+            prefixes.setdefault(len(f) - 1, set()).add(f[:-1])
+    groups = max([n, *(len(g) for g in prefixes.values())])
+    return 2 * 16 * groups * math.comb(2 * n + degree, degree)
+
+
 def series_jacobian(
     c: np.ndarray, family: list[tuple[int, ...]], theta: np.ndarray, order: int, h: float
 ) -> tuple[MonomialBasis, Tensor, Tensor]:
-    """S(h, ·) = Σ_k h^k S_k as coefficients (N,) and their Jacobian in θ (N, P), by one batched
-    complex-step evaluation of :func:`taylor_series` (P + 1 Hamiltonians at once)."""
+    """S(h, ·) = Σ_k h^k S_k as coefficients (N,) and their Jacobian in θ (N, P), by batched
+    complex-step evaluations of :func:`taylor_series` (the P + 1 Hamiltonians in chunks of at
+    most :data:`SERIES_BATCH_BYTES`, by :func:`series_row_bytes`)."""
     th = np.asarray(theta, dtype=np.float64)
     p = th.size
     batch = np.tile(th.astype(np.complex128), (p + 1, 1))
     batch[1:] += 1j * COMPLEX_STEP * np.eye(p)
-    b, sk = taylor_series(c, family, torch.as_tensor(batch), order)
+    rows = max(1, SERIES_BATCH_BYTES // series_row_bytes(c.shape[0], family, order))
+    parts = [
+        taylor_series(c, family, torch.as_tensor(batch[i : i + rows]), order)
+        for i in range(0, p + 1, rows)
+    ]
+    b, sk = parts[0][0], torch.cat([part[1] for part in parts])
     powers = torch.tensor([h**k for k in range(1, order + 1)], dtype=torch.complex128)
     s = torch.einsum("k,bkN->bN", powers, sk)
     return b, s[0].real.clone(), (s[1:].imag / COMPLEX_STEP).T.contiguous()
