@@ -218,6 +218,11 @@ def test_discover_not_explained_has_its_own_status_and_writes_nothing(
     assert main([*argv, "--keep-unexplained"]) == NOT_EXPLAINED_STATUS
     doc = json.loads(out.read_text())
     assert doc["learned"]["report"]["explained"] is False
+    # A spent budget: the first pair alone is fitted, the rest listed as not tried.
+    budget = [*argv, "--keep-unexplained", "--force", "--max-seconds", "1e-9"]
+    assert main(budget) == NOT_EXPLAINED_STATUS
+    rows = json.loads(out.read_text())["learned"]["report"]["candidates"]
+    assert any("time budget (max_seconds = 1e-09)" in r["reason"] for r in rows)
 
 
 # --- refusals: exit status 2, one line naming the flag, no work --------------------------------
@@ -261,6 +266,9 @@ def _bad_cases(tmp: Path, f: dict[str, str]) -> list[tuple[list[str], str]]:
         (["--structure", lv, "--out", str(tmp / "folder.json")], "--out"),  # a directory
         (["--structure", lv, "--h", "-1", *out], "--h"),
         (["--structure", "discover", "--seed", "-1", *out], "--seed"),
+        (["--structure", "discover", "--max-seconds", "0", *out], "--max-seconds"),
+        (["--structure", "discover", "--max-seconds", "nan", *out], "--max-seconds"),
+        (["--structure", lv, "--max-seconds", "10", *out], "--max-seconds"),
     ]
 
 

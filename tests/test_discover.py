@@ -256,7 +256,7 @@ def test_snap_in_orbit_finds_the_simplest_bracket_of_twelfths():
     assert _snap_in_orbit(np.array([1.0, 0.3 + np.pi / 100]), np.array([0.0, 0.0]), 1e-5) is None
 
 
-def test_damped_oscillator_is_reported_not_poisson():
+def _damped_oscillator() -> list[np.ndarray]:
     rng = np.random.default_rng(2)
     trajs = []
     for z0 in rng.normal(size=(6, 2)):
@@ -269,6 +269,11 @@ def test_damped_oscillator_is_reported_not_poisson():
             atol=1e-12,
         )
         trajs.append(sol.y.T)
+    return trajs
+
+
+def test_damped_oscillator_is_reported_not_poisson():
+    trajs = _damped_oscillator()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         _, report = pr.learn(trajs, 0.1, structure="discover", degree=2, progress=False)
@@ -276,6 +281,32 @@ def test_damped_oscillator_is_reported_not_poisson():
     assert not report.explained
     assert "NOT EXPLAINED" in str(report)
     assert report.kept.one_step > 100 * report.threshold
+
+
+def test_a_spent_time_budget_starts_no_further_pair(monkeypatch):
+    """max_seconds: the pair running when the budget is spent finishes, no other is started
+    (shown by the bracket fits that ran), the rest are listed as not tried, and the best tried
+    is kept, NOT EXPLAINED where it does not reach the noise level."""
+    from poisson_rs.learn import discover
+
+    fitted: list[str] = []
+    real = discover.fit_bracket
+
+    def counted(data, family, hams, *args):
+        fitted.append(f"{family.name}/{hams.name}")
+        return real(data, family, hams, *args)
+
+    monkeypatch.setattr(discover, "fit_bracket", counted)
+    with pytest.warns(NotExplainedWarning):
+        _, report = pr.learn(
+            _damped_oscillator(), 0.1, structure="discover", degree=2, progress=False,
+            max_seconds=1e-9,
+        )  # fmt: skip
+    assert len(fitted) == 1 and not report.explained
+    assert report.kept.family == fitted[0]
+    skipped = [c for c in report.candidates if "time budget (max_seconds = 1e-09)" in c.reason]
+    searched = [c for c in report.candidates if not c.reason.startswith("not searched")]
+    assert len(skipped) == len(searched) - 1 > 0
 
 
 def test_discover_refuses_bad_input_before_any_fit(monkeypatch):
@@ -304,6 +335,13 @@ def test_discover_refuses_bad_input_before_any_fit(monkeypatch):
         discover.learn_discover(data, 0.1, snap="always")
     with pytest.raises(ValueError, match="refit"):
         pr.learn(data, 0.1, structure="discover", refit="yes")
+    for budget in (0, -1.0, float("nan"), "10"):
+        with pytest.raises(ValueError, match="max_seconds must be a finite number > 0"):
+            pr.learn(data, 0.1, structure="discover", max_seconds=budget)
+    with pytest.raises(ValueError, match="max_seconds applies to structure='discover' only"):
+        pr.learn(
+            data, 0.1, structure=pr.lotka_volterra([[0, 1], [-1, 0]], [1.0, 2.0]), max_seconds=10
+        )
 
 
 def test_discovers_the_extended_pendulums_affine_bracket():

@@ -17,7 +17,15 @@ from .data import TrajectoryData, check_seed, prepare
 from .data import refuse_drift as _refuse_drift
 from .fixed_step import FixedStepIntegrator
 from .mlp_hamiltonian import mlp_family
-from .options import EXACT_LEVEL, MAX_DEGREE, ORDER_RANGE, check_bool, check_int, check_map_options
+from .options import (
+    EXACT_LEVEL,
+    MAX_DEGREE,
+    ORDER_RANGE,
+    check_bool,
+    check_int,
+    check_map_options,
+    check_seconds,
+)
 from .report import Candidate, LearnReport
 from .scoring import all_records as _all_records
 from .scoring import errors as _errors
@@ -284,6 +292,7 @@ def learn(
     correction: str = "polynomial",
     lam: float = 1.0,
     progress: bool | None = None,
+    max_seconds: float | None = None,
 ) -> tuple[Any, LearnReport]:
     """Learns a Poisson integrator from trajectories whose Poisson structure is known.
 
@@ -345,6 +354,10 @@ def learn(
         data.
     progress : a progress bar with an ETA over the fits on stderr (tqdm); default: when stderr
         is a terminal.
+    max_seconds : ``structure="discover"`` only: a time budget (s). Once it is spent no further
+        (bracket, H) pair is started (the first always is); the pair running finishes, the rest
+        are listed as not tried, and the best tried is kept (marked NOT EXPLAINED where none
+        reached the noise level). Default: none.
 
     Returns
     -------
@@ -362,6 +375,9 @@ def learn(
     # Every option is checked here, before any work.
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    max_seconds = check_seconds(max_seconds, "max_seconds")
+    if max_seconds is not None and not (isinstance(structure, str) and structure == "discover"):
+        raise ValueError("max_seconds applies to structure='discover' only")
     if structure is not None:
         if algebra is not None or system is not None:
             raise ValueError("structure: give the structure alone, not with algebra= or system=")
@@ -380,7 +396,7 @@ def learn(
             return learn_discover(
                 trajectories, h, mode=mode, degree=degree, max_degree=max_degree, order=order,
                 test_fraction=test_fraction, seed=seed, max_iter=max_iter, verbose=verbose,
-                progress=progress, refit=refit, given=given,
+                progress=progress, refit=refit, given=given, max_seconds=max_seconds,
             )  # fmt: skip
         if getattr(structure, "trainable", False):
             system = structure  # a Lie–Poisson system: learning runs on T*G

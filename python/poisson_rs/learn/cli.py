@@ -136,6 +136,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help=f"--structure discover: write the best pair tried even when the data are NOT "
         f"EXPLAINED (the exit status is still {NOT_EXPLAINED_STATUS})",
     )
+    p.add_argument(
+        "--max-seconds",
+        help="--structure discover: a time budget (s); no pair is started once it is spent, and "
+        "the best tried is kept",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     return p
@@ -289,7 +294,15 @@ def run(args: argparse.Namespace) -> int:
         max_degree = _degree(args.max_degree, "--max-degree")
         if degree is not None and degree > max_degree:
             raise ValueError(f"--degree {degree} exceeds --max-degree {max_degree}")
+    max_seconds = None
+    if getattr(args, "max_seconds", None) is not None:
+        with parsing("--max-seconds", None):
+            max_seconds = float(args.max_seconds)
+            if not (math.isfinite(max_seconds) and max_seconds > 0):
+                raise ValueError(f"must be finite and > 0, got {args.max_seconds}")
     spec = getattr(args, "structure", None)
+    if max_seconds is not None and spec != "discover":
+        raise ValueError("--max-seconds applies to --structure discover only")
     structure: Any = None
     if spec is not None:
         if args.algebra is not None or args.system is not None:
@@ -354,6 +367,7 @@ def run(args: argparse.Namespace) -> int:
             seed=seed,
             command=command,
             progress=False if getattr(args, "no_progress", False) else None,
+            max_seconds=max_seconds,
         )
     seconds = time.perf_counter() - t0
     print(report)

@@ -477,6 +477,7 @@ def learn_discover(
     snap: str = "noise",
     refit: bool = True,
     given: Callable[[Any, int], tuple[Any, Any]] | None = None,
+    max_seconds: float | None = None,
 ) -> tuple[Any, Any]:
     """:func:`poisson_rs.learn` with ``structure="discover"``: see the module docstring.
     ``refine``: refine the bracket and H jointly through the found structure's integrator
@@ -489,10 +490,12 @@ def learn_discover(
     a structure given, of a degree (``pr.learn(..., structure=found, degree=d)``, same split
     and options); with
     noisy records, where the kept bracket's structure learns on T*G, H is fitted again by that
-    path (:func:`_through_own_path`) and the better held-out rollout kept."""
+    path (:func:`_through_own_path`) and the better held-out rollout kept. ``max_seconds``:
+    no pair after the first is started once this many seconds have passed (the rest are listed
+    as not tried)."""
     from ..structures import bracket_families
     from .data import _as_list, check_seed, prepare, refuse_drift
-    from .options import EXACT_LEVEL, MAX_DEGREE, check_bool, check_int
+    from .options import EXACT_LEVEL, MAX_DEGREE, check_bool, check_int, check_seconds
     from .report import Candidate, LearnReport
     from .scoring import all_records, errors, progress_bar
     from .structure_fit import fit_structure_hamiltonian, velocities
@@ -509,6 +512,7 @@ def learn_discover(
     if snap not in SNAPS:
         raise ValueError(f"snap must be one of {SNAPS}, got {snap!r}")
     max_iter = check_int(max_iter, "max_iter", 1, 10_000)
+    max_seconds = check_seconds(max_seconds, "max_seconds")
     refit = check_bool(refit, "refit")
     seed = check_seed(seed)
     verbose = check_bool(verbose, "verbose")
@@ -684,18 +688,23 @@ def learn_discover(
     floor = velocity_floor(data.train, data.h)
     screen_level = SCREEN_FACTOR * max(floor, 1e-10) if math.isfinite(floor) else math.nan
     bar = progress_bar(len(pairs), progress)
+    started, unsearched = time.perf_counter(), len(candidates)
     try:
         for family, hams, d, make in pairs:
             name = f"{family.name}/{hams.name}"
-            if kept is not None:
-                candidates.append(
-                    _row(
-                        Candidate,
-                        name,
-                        len(family) + len(hams),
-                        "not tried: a smaller pair was kept",
-                    )
+            # The first pair always runs: something is fitted, however small the budget.
+            spent = (
+                max_seconds is not None
+                and len(candidates) > unsearched
+                and time.perf_counter() - started >= max_seconds
+            )
+            if kept is not None or spent:
+                why = (
+                    "not tried: a smaller pair was kept"
+                    if kept is not None
+                    else f"not tried: the time budget (max_seconds = {max_seconds:g}) was spent"
                 )
+                candidates.append(_row(Candidate, name, len(family) + len(hams), why))
                 continue
             bar.set_postfix_str(name)
             fit = fit_bracket(data, family, hams, x, v, seed)

@@ -42,6 +42,12 @@ def check_bool(value: Any, name: str) -> bool:
     return value
 
 
+def check_seconds(value: Any, name: str) -> float | None:
+    """``value`` as a time budget in seconds (a finite number > 0) or None, or ValueError naming
+    ``name``."""
+    return None if value is None else _positive(value, name)
+
+
 def _positive(value: Any, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
