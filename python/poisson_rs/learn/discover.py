@@ -30,9 +30,10 @@ families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, �
    data's noise level is kept. Where none does, the data are reported as explained by no family
    tried (a warning, and ``report.explained`` False): a Poisson integrator of the best is still
    returned, marked so.
-5. Noisy records: where the kept bracket's structure learns on T*G (a Lie–Poisson system), H
-   is fitted again by that path's shooting windows (``given``, the structure-given
-   ``pr.learn``), kept where it explains the held-out records at the noise level too.
+5. Noisy records: where a pair's structure learns on T*G (a Lie–Poisson system) and its
+   one-step error is within :data:`OWN_PATH_WITHIN` of the noise level, H is fitted again by
+   that path's shooting windows (``given``, the structure-given ``pr.learn``), kept where it
+   explains the held-out records at the noise level (or, the pair kept, rolls out closer).
 
 Nothing here names a structure: the families come from the structure modules' tables.
 """
@@ -91,6 +92,9 @@ SNAP_MAX = 1e-2
 #: When the snapped bracket replaces the learned one: where H refitted on it explains the
 #: records at the noise level or fits them as well ("noise"), fits them as well ("fit"), never.
 SNAPS = ("noise", "fit", "off")
+#: With noisy records, a pair whose held-out one-step error is within this factor of the noise
+#: threshold has H fitted again on T*G where its structure learns there (step 5).
+OWN_PATH_WITHIN = 10.0
 #: Gauss–Newton iterates of the joint refinement through the integrator.
 REFINE_ITER = 12
 #: Bracket coefficients below these (relative to the largest, +1) are tried at zero, the
@@ -654,14 +658,19 @@ def learn_discover(
     def judge_on_own_path(
         cand: Candidate, kept: Candidate | None, candidates: list[Candidate]
     ) -> Candidate | None:
-        """With noisy records (the pair's one-step error above EXACT_LEVEL), the pair with H
+        """With noisy records (a noise threshold and the pair's one-step error above
+        EXACT_LEVEL), a pair within :data:`OWN_PATH_WITHIN` of the noise level is tried with H
         fitted again on its structure's own path where it learns on T*G: shooting windows
         average the noise over each window where the one-step fit regresses on noisy starts.
         Where both explain the held-out records at the noise level their errors cannot tell
         them apart (DPNN's heavy top at σ = 1e-4: rollouts 6.1e-4 against 5.9e-4, the T*G fit 7×
         closer to the exact flow), so the T*G fit is kept where it reaches the noise level, or,
         with the pair kept, where its rollout is closer. Returns the kept candidate."""
-        if given is None or id(cand) not in finals or not cand.one_step > EXACT_LEVEL:
+        # Not on exact records (a fit to round-off has nothing to gain), nor far from the
+        # noise level (no refit of H turns a wrong bracket into the right one).
+        noisy = math.isfinite(threshold) and min(threshold, cand.one_step) > EXACT_LEVEL
+        near = cand.one_step <= OWN_PATH_WITHIN * threshold
+        if given is None or id(cand) not in finals or not (noisy and near):
             return kept
         structure, hfam, phi = finals[id(cand)]
         own = _through_own_path(cand, structure, hfam.degree, int(np.count_nonzero(phi)), given)
