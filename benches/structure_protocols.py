@@ -242,6 +242,8 @@ def rollout(stepper: Any, p: Protocol) -> np.ndarray:
 
 #: ``--discover-only``: our rows are the discovered structure's alone; ``--peers-only``: none.
 DISCOVER_ONLY = PEERS_ONLY = False
+#: Discovery's time budget (``--max-seconds``), None: none.
+MAX_SECONDS: float | None = None
 
 
 def ours_rows(
@@ -312,7 +314,9 @@ def ours_discover(trajectories: np.ndarray, h: float, snap: str) -> Any:
         )
 
     t0 = time.perf_counter()
-    stepper, report = learn_discover(trajectories, h, progress=False, snap=snap, given=given)
+    stepper, report = learn_discover(
+        trajectories, h, progress=False, snap=snap, given=given, max_seconds=MAX_SECONDS
+    )
     return stepper, report, time.perf_counter() - t0
 
 
@@ -367,8 +371,11 @@ def ours_discover_row(p: Protocol, train: np.ndarray, snap: str) -> dict[str, An
             "fraction_of_theirs": "n/a",
             **p.score(traj),
             "bracket_error": bracket_error(report.structure, p.system),
-            "notes": f"{SNAP_RULES[snap]}; kept {kept.family}, bracket "
-            f"{kept.bracket_text}; H = {kept.hamiltonian_text:.160}",
+            "notes": f"{SNAP_RULES[snap]}; "
+            + ("" if report.explained else "NOT EXPLAINED (no pair reached the noise level); ")
+            + f"kept {kept.family}, bracket {kept.bracket_text}; "
+            f"H = {report.hamiltonian_text:.160}"
+            + (f"; max_seconds {MAX_SECONDS:g}" if MAX_SECONDS is not None else ""),
         }
     )
     return row
@@ -699,10 +706,17 @@ def main() -> None:
     ap.add_argument(
         "--peers-only", action="store_true", help="the peers' rows alone (with --merge)"
     )
+    ap.add_argument(
+        "--max-seconds",
+        type=float,
+        default=None,
+        help="discovery's time budget (pr.learn max_seconds); default none",
+    )
     ap.add_argument("--json", type=Path, default=OUT)
     args = ap.parse_args()
-    global DISCOVER_ONLY, PEERS_ONLY
+    global DISCOVER_ONLY, PEERS_ONLY, MAX_SECONDS
     DISCOVER_ONLY, PEERS_ONLY = args.discover_only, args.peers_only
+    MAX_SECONDS = args.max_seconds
 
     import torch
 
