@@ -309,7 +309,8 @@ def learn(
         of them (or ``structure``) is required: nothing is assumed.
     structure : ``"discover"`` to learn the bracket as well (:mod:`poisson_rs.learn.discover`:
         the bivector families every structure offers, smallest first, the smallest that
-        reaches the data's noise level kept; modes "auto" and "hamiltonian"), or the Poisson
+        reaches the data's noise level kept, a found Lie algebra's H fitted again on T*G with
+        noisy records; modes "auto" and "hamiltonian"), or the Poisson
         structure, as any system on it (:class:`poisson_rs.PoissonSystem`;
         its own H is ignored) or a Lie algebra: a Lie–Poisson system or algebra learns as
         ``system=``/``algebra=`` do; any other structure (affine, polynomial bivector, charged

@@ -490,13 +490,11 @@ def learn_discover(
     training records at least as well or explains them at the noise level, "fit" where it fits
     at least as well only, "off" never. ``refit``: once a pair explains the data, H's
     coefficients on the kept bracket are fitted again on every record, held-out ones included
-    (the choice and the errors in the report stay the held-out ones). ``given``: learns H with
-    a structure given, of a degree (``pr.learn(..., structure=found, degree=d)``, same split
-    and options); with
-    noisy records, where the kept bracket's structure learns on T*G, H is fitted again by that
-    path (:func:`_through_own_path`) and the better held-out rollout kept. ``max_seconds``:
-    no pair after the first is started once this many seconds have passed (the rest are listed
-    as not tried)."""
+    (the choice and the errors in the report stay the held-out ones). ``given``: learns H of
+    a degree with a structure given (``pr.learn(..., structure=found, degree=d)``, the same
+    split and options), for step 5 of the module docstring (:func:`_through_own_path`); None:
+    step 5 is skipped. ``max_seconds``: no pair after the first is started once this many
+    seconds have passed (the rest are listed as not tried)."""
     from ..structures import bracket_families
     from .data import _as_list, check_seed, prepare, refuse_drift
     from .options import EXACT_LEVEL, MAX_DEGREE, check_bool, check_int, check_seconds
@@ -859,6 +857,7 @@ def _through_own_path(
         rollout=their.rollout,
         reason="",
         stepper=stepper,
+        model_bytes=their.model_bytes,
         system=report.system,
         hamiltonian_family="",
         hamiltonian_text="",
