@@ -30,11 +30,11 @@ families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, �
    data's noise level is kept. Where none does, the data are reported as explained by no family
    tried (a warning, and ``report.explained`` False): a Poisson integrator of the best is still
    returned, marked so.
-5. Noisy records: where a pair's structure learns on T*G (a Lie–Poisson system), its H is a
-   polynomial and its one-step error is within :data:`OWN_PATH_WITHIN` of the noise level, H is
-   fitted again by that path's shooting windows (``given``, the structure-given ``pr.learn``),
-   kept where it explains the held-out records at the noise level (or, the pair kept, rolls
-   out closer).
+5. Noisy records: where a pair's structure learns on T*G (a Lie–Poisson system) and its
+   one-step error is within :data:`OWN_PATH_WITHIN` of the noise level, H (a polynomial of the
+   pair's degree) is fitted again by that path's shooting windows (``given``, the
+   structure-given ``pr.learn``), kept where it explains the held-out records at the noise
+   level (or, the pair kept, rolls out closer).
 
 Nothing here names a structure: the families come from the structure modules' tables.
 """
@@ -672,10 +672,6 @@ def learn_discover(
         if given is None or id(cand) not in finals or not (noisy and near):
             return kept
         structure, hfam, phi = finals[id(cand)]
-        if isinstance(hfam, LibraryFamily):
-            # The T*G path fits polynomials: a library pair's H is not one (on DPNN's top at
-            # σ = 1e-2 its bracket with a quadratic H reached the noise level and diverged).
-            return kept
         own = _through_own_path(cand, structure, hfam.degree, int(np.count_nonzero(phi)), given)
         if own is None:
             return kept
