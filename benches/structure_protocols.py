@@ -54,12 +54,12 @@ The same for DPNN's rigid body and heavy top (``rbnoise``, ``htnoise``: the nois
 exact training records, ours on the first 20 noisy trajectories, and 40 records each on the top,
 as without noise; DPNN on all of them, written over its data set's pairs, at reduced epochs, the
 epochs in the row's method). Ours, then DPNN's rows on its own draw of the states (as for rb and
-ht); the JSON holds rbnoise alone so far, ours (about 1 min) and DPNN's at 5 epochs (about 6
-min); htnoise's first two levels took about 12 min each and its σ = 1e-2 discovery was stopped
-unfinished after 40 min, and the DPNN command for it failed inside DPNN's heavy-top rollout
-(``HeavyTopNeuralIMR.f() got an unexpected keyword argument 'mrOld'``, after 5 epochs of
-training: DPNN's ``m_new`` falls back to ``fsolve`` on ``f(x, mrOld=…)`` where its fixed point
-does not converge, and the heavy top's ``f`` takes no ``mrOld``)::
+ht); the JSON holds rbnoise, ours (about 1 min) and DPNN's at 5 epochs (about 6 min), and
+htnoise's first two levels (ours, about 2 min); its σ = 1e-2 level took 13 min (discovery
+750 s; ``--max-seconds`` bounds discovery), and the DPNN command for it failed inside DPNN's
+heavy-top rollout (``HeavyTopNeuralIMR.f() got an unexpected keyword argument 'mrOld'``,
+after 5 epochs of training: DPNN's ``m_new`` falls back to ``fsolve`` on ``f(x, mrOld=…)``
+where its fixed point does not converge, and the heavy top's ``f`` takes no ``mrOld``)::
 
     PYTHONPATH=python taskset -c 1 .venv/bin/python benches/structure_protocols.py \\
         --protocols rbnoise,htnoise --merge
