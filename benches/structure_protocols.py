@@ -306,13 +306,10 @@ def ours_discover(trajectories: np.ndarray, h: float, snap: str) -> Any:
     """The structure discovered from the data (``structure="discover"``) with the snap rule
     ``snap`` (:data:`poisson_rs.learn.discover.SNAPS`). Returns the stepper, the report (with
     ``.system``) and the seconds."""
+    from poisson_rs.learn.api import learning_on_found
     from poisson_rs.learn.discover import learn_discover
 
-    def given(found: Any, degree: int) -> Any:  # as pr.learn(structure="discover") passes it
-        return pr.learn(
-            trajectories, h, mode="hamiltonian", structure=found, degree=degree, progress=False
-        )
-
+    given = learning_on_found(trajectories, h)  # as pr.learn(structure="discover") passes it
     t0 = time.perf_counter()
     stepper, report = learn_discover(
         trajectories, h, progress=False, snap=snap, given=given, max_seconds=MAX_SECONDS

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import pickle
 import warnings
@@ -96,15 +97,32 @@ def test_series_jacobian_in_chunks_is_the_one_batch_jacobian(monkeypatch) -> Non
     assert torch.allclose(jac_chunked, jac_one, rtol=1e-13, atol=1e-13 * float(jac_one.abs().max()))
 
 
-def test_series_row_bound_covers_the_quartic_on_se3() -> None:
-    """The case that asked for 27 GB in one piece (a quartic H on se(3)*, K = 3, 210 rows):
-    its chunks stay within the budget."""
+@pytest.mark.parametrize(
+    ("algebra", "degree", "order"),
+    [(pr.LieAlgebra.so3(), 3, 5), (pr.LieAlgebra.se3(), 2, 5), (pr.LieAlgebra.se3(), 3, 2)],
+)
+def test_series_row_bound_covers_every_product_of_one_row(monkeypatch, algebra, degree, order):
+    """The chunk size rests on series_row_bytes bounding what one row's largest truncated
+    product holds: every product taylor_series forms (recorded through the basis' own pair
+    tables) stays within it, per row, complex128."""
     from poisson_rs.learn import series
 
-    family = monomials(6, 4, min_degree=1)
-    row = series.series_row_bytes(6, family, 3)
-    rows = max(1, series.SERIES_BATCH_BYTES // row)
-    assert rows * 27e9 / (len(family) + 1) <= series.SERIES_BATCH_BYTES
+    family = monomials(algebra.dim, degree, min_degree=1)
+    rows = 3
+    theta = torch.as_tensor(np.random.default_rng(5).normal(size=(rows, len(family)))) + 0j
+    largest = [0]
+    real_mul = series.MonomialBasis.mul
+
+    def recorded(self, a, b):
+        ia, _, _, _, dense = self._mul_table(self.degree_of(a), self.degree_of(b))
+        pairs = a.shape[-1] * b.shape[-1] if dense is not None else len(ia)
+        lead = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+        largest[0] = max(largest[0], 16 * math.prod(lead) * pairs // rows)
+        return real_mul(self, a, b)
+
+    monkeypatch.setattr(series.MonomialBasis, "mul", recorded)
+    taylor_series(algebra.c, family, theta, order)
+    assert 0 < largest[0] <= series.series_row_bytes(algebra.dim, family, order)
 
 
 def test_ift_gradients_match_finite_differences_of_the_step_map() -> None:

@@ -110,8 +110,8 @@ def model_bytes(
     }
     for k, v in (record or {}).items():
         meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
-    if isinstance(system, RigidBody):
-        meta["inertia"] = json.dumps([float(i) for i in system.inertia])
+    if system.file_inertia is not None:
+        meta["inertia"] = json.dumps([float(i) for i in system.file_inertia])
     return safetensors_bytes(tensors, meta)
 
 
@@ -363,12 +363,13 @@ def parse_metadata(raw: Mapping[str, str], source: str = "model metadata") -> di
             except InputError as e:  # named after the metadata, not the inner dictionary
                 raise InputError(source, "system", e.problem) from None
     with parsing(source, "inertia"):
-        if isinstance(meta["system"], RigidBody):
-            if inertia is not None and inertia != meta["system"].inertia:
+        recorded = meta["system"].file_inertia
+        if recorded is not None:
+            if inertia is not None and inertia != recorded:
                 raise ValueError(
                     f"metadata 'inertia' {list(inertia)} disagrees with 'system' {meta['system']!r}"
                 )
-            meta["inertia"] = meta["system"].inertia
+            meta["inertia"] = recorded
         elif inertia is not None:
             raise ValueError(f"metadata 'inertia' given for {meta['system']!r}, not a rigid body")
     with parsing(source, "h_max"):

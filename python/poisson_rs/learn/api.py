@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -31,7 +32,7 @@ from .scoring import all_records as _all_records
 from .scoring import errors as _errors
 from .scoring import progress_bar as _progress_bar
 
-__all__ = ["MODES", "learn", "resolve_algebra"]
+__all__ = ["MODES", "learn", "learning_on_found", "resolve_algebra"]
 
 MODES = ("auto", "hamiltonian", "map", "hj+data")
 #: Degrees of the map's polynomial S(h, ·) tried (the held-out one-step error chooses).
@@ -270,6 +271,24 @@ def _map_base(s_fn: Any, algebra: LieAlgebra) -> LiePoissonSystem:
     )
 
 
+def learning_on_found(
+    trajectories: Any, h: float, **options: Any
+) -> Callable[[Any, int], tuple[Any, LearnReport]]:
+    """What structure discovery's step 5 calls (``given`` of
+    :func:`~poisson_rs.learn.discover.learn_discover`): (found structure, degree d) → H alone,
+    a polynomial of degree d, learned with that structure given
+    (``learn(trajectories, h, structure=found, degree=d, mode="hamiltonian", **options)``), on
+    the same records, split and options as the discovery."""
+
+    def given(found: Any, degree: int) -> tuple[Any, LearnReport]:
+        return learn(
+            trajectories, h, mode="hamiltonian", structure=found, degree=degree, progress=False,
+            **options,
+        )  # fmt: skip
+
+    return given
+
+
 def learn(
     trajectories: Any,
     h: float,
@@ -385,15 +404,10 @@ def learn(
         if isinstance(structure, str) and structure == "discover":
             from .discover import learn_discover
 
-            def given(found: Any, found_degree: int) -> tuple[Any, LearnReport]:
-                # H alone, of the pair's degree, on a found structure that learns on T*G (its
-                # own path's shooting fit), the same split and options.
-                return learn(
-                    trajectories, h, mode="hamiltonian", structure=found, degree=found_degree,
-                    order=order, test_fraction=test_fraction, seed=seed, max_iter=max_iter,
-                    refit=refit, progress=False,
-                )  # fmt: skip
-
+            given = learning_on_found(
+                trajectories, h, order=order, test_fraction=test_fraction, seed=seed,
+                max_iter=max_iter, refit=refit,
+            )  # fmt: skip
             return learn_discover(
                 trajectories, h, mode=mode, degree=degree, max_degree=max_degree, order=order,
                 test_fraction=test_fraction, seed=seed, max_iter=max_iter, verbose=verbose,

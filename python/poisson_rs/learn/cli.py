@@ -138,8 +138,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument(
         "--max-seconds",
-        help="--structure discover: a time budget (s); no pair is started once it is spent, and "
-        "the best tried is kept",
+        help="--structure discover: a time budget (s); no pair after the first is started once "
+        "it is spent, and the best tried is kept",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -196,6 +196,12 @@ class LiePoissonSystem(PoissonSystemBase):
     #: A learned S can be trained for it (``poisson_rs.train``, the PINN on T*G).
     trainable: ClassVar[bool] = True
 
+    @property
+    def file_inertia(self) -> tuple[float, ...] | None:
+        """The principal moments a model file records under "inertia" (its readers before the
+        "system" key took the body from them), or None where the file has no such entry."""
+        return None
+
     def bracket_terms(self) -> BracketTerms:
         """π_ij = −Σ_k c[i,j,k] μ_k (linear)."""
         return linear_bracket_terms(self.algebra.c)
@@ -413,6 +419,10 @@ class RigidBody(LiePoissonSystem):
 
     kind: ClassVar[str] = "rigid_body"
     inertia: tuple[float, float, float] = (1.5, 2.0, 2.5)
+
+    @property
+    def file_inertia(self) -> tuple[float, ...] | None:
+        return self.inertia
 
     def __post_init__(self) -> None:
         values = _inertia(self.inertia)
