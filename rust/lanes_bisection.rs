@@ -43,6 +43,44 @@ impl<const L: usize> V<L> {
         }
         r
     }
+    /// `a` on the lanes where `take` holds, `self` elsewhere: a blend, where writing the lanes
+    /// one at a time and then reading the vector back stalls on store forwarding.
+    #[inline(always)]
+    pub(crate) fn blend(self, take: &[bool; L], a: Self) -> Self {
+        let mut r = self;
+        for l in 0..L {
+            r.0[l] = if take[l] { a.0[l] } else { self.0[l] };
+        }
+        r
+    }
+    /// a − a: 0 for a finite a, NaN for ±∞ and NaN. A sum of such probes is 0 exactly where
+    /// every term is finite (NaN survives any sum), so one vector sum checks many numbers.
+    #[inline(always)]
+    pub(crate) fn finite_probe(self) -> Self {
+        self - self
+    }
+    /// |a| lane by lane.
+    #[inline(always)]
+    pub(crate) fn abs(self) -> Self {
+        let mut r = self;
+        for l in 0..L {
+            r.0[l] = self.0[l].abs();
+        }
+        r
+    }
+    /// f64::max lane by lane.
+    #[inline(always)]
+    pub(crate) fn max(self, o: Self) -> Self {
+        self.zip(o, f64::max)
+    }
+}
+
+/// The sum of the [`V::finite_probe`]s of `vs`: lane l is 0 exactly where every `vs[k]` is
+/// finite on lane l.
+#[inline(always)]
+pub(crate) fn finite_probe<'a, const L: usize>(vs: impl IntoIterator<Item = &'a V<L>>) -> V<L> {
+    vs.into_iter()
+        .fold(V::splat(0.0), |acc, v| acc + v.finite_probe())
 }
 
 impl<const L: usize> std::ops::Add for V<L> {
@@ -372,7 +410,8 @@ impl<const L: usize> Progress<L> {
 
     /// p += δ on the lanes in `go`: a δ that is not finite fails with SingularJacobian; a lane
     /// converges once |δ|∞ ≤ tol · max(|p|∞, 1e-300), else takes a fresh Jacobian next round
-    /// where the update contracted by less than [`SIMPLIFIED_RATE`].
+    /// where the update contracted by less than [`SIMPLIFIED_RATE`]. The sums, sizes and
+    /// blends run on whole vectors; only the verdicts are taken lane by lane.
     #[inline(always)]
     pub(crate) fn update<const D: usize>(
         &mut self,
@@ -382,23 +421,28 @@ impl<const L: usize> Progress<L> {
         tol: f64,
         results: &mut [StepResult],
     ) {
+        let probe = finite_probe(delta);
+        let mut take = *go;
         for l in 0..L {
-            if !go[l] {
-                continue;
-            }
-            if !(0..D).all(|i| delta[i].0[l].is_finite()) {
+            if go[l] && probe.0[l] != 0.0 {
                 results[l] = Err(StepFailure::SingularJacobian);
                 self.active[l] = false;
+                take[l] = false;
+            }
+        }
+        let (mut size, mut pmax) = (V::splat(0.0), V::splat(0.0));
+        for i in 0..D {
+            p[i] = p[i].blend(&take, p[i] + delta[i]);
+            size = size.max(delta[i].abs());
+            pmax = pmax.max(p[i].abs());
+        }
+        for l in 0..L {
+            if !take[l] {
                 continue;
             }
-            let (mut size, mut pmax) = (0.0f64, 0.0f64);
-            for i in 0..D {
-                p[i].0[l] += delta[i].0[l];
-                size = size.max(delta[i].0[l].abs());
-                pmax = pmax.max(p[i].0[l].abs());
-            }
+            let size = size.0[l];
             self.iterations[l] += 1;
-            if size <= tol * pmax.max(1e-300) {
+            if size <= tol * pmax.0[l].max(1e-300) {
                 self.converged[l] = true;
                 self.active[l] = false;
             } else {
@@ -488,31 +532,35 @@ fn so3_block<const N: usize, const L: usize>(
         let (x, h) = gradient_and_hessian(&jet);
         let (tar, s, jac) = so3_chart_lanes(sys.chart, -1.0, &x, &p, hess.then_some(&h));
         let fresh = jac.map(|j| inverse3_lanes(&j));
+        // Every finiteness check of the round as vector sums (see [`finite_probe`]).
+        let jet_v = V(jet.v);
+        let probe = finite_probe([&jet_v].into_iter().chain(&x));
+        let hess_probe = if hess {
+            finite_probe(h.iter().flatten())
+        } else {
+            V::splat(0.0)
+        };
+        let fresh_probe = fresh
+            .as_ref()
+            .map(|(fi, det)| finite_probe(fi.iter().flatten().chain([det])));
         let mut go = [false; L];
+        // The lanes whose fresh inverse is taken this round.
+        let mut take = [false; L];
         for l in 0..L {
             if !progress.active[l] {
                 continue;
             }
             let refresh = progress.refresh[l];
-            let finite = jet.v[l].is_finite()
-                && (0..3).all(|i| x[i].0[l].is_finite())
-                && (!refresh || h.iter().flatten().all(|v| v.0[l].is_finite()));
+            let finite = probe.0[l] == 0.0 && (!refresh || hess_probe.0[l] == 0.0);
             let failure = if !finite {
                 Some(StepFailure::NonFinite)
             } else if exp && s.0[l] >= max_s {
                 Some(StepFailure::ChartSingular)
             } else if progress.iterations[l] >= sys.max_iter {
                 Some(StepFailure::NotConverged)
-            } else if let (true, Some((fi, det))) = (refresh, &fresh) {
-                let ok = det.0[l] != 0.0
-                    && det.0[l].is_finite()
-                    && fi.iter().flatten().all(|v| v.0[l].is_finite());
-                if ok {
-                    for r in 0..3 {
-                        for c in 0..3 {
-                            inv[r][c].0[l] = fi[r][c].0[l];
-                        }
-                    }
+            } else if let (true, Some((_, det)), Some(fp)) = (refresh, &fresh, &fresh_probe) {
+                if det.0[l] != 0.0 && fp.0[l] == 0.0 {
+                    take[l] = true;
                     None
                 } else {
                     Some(StepFailure::SingularJacobian)
@@ -522,24 +570,29 @@ fn so3_block<const N: usize, const L: usize>(
             };
             progress.settle(l, failure, &mut go, results);
         }
-        // δ = J⁻¹ (μ − tar), each component summed in column order (Inverse::apply).
-        let f = v3(|i| target[i] - tar[i]);
-        let delta = v3(|r| inv[r][0] * f[0] + inv[r][1] * f[1] + inv[r][2] * f[2]);
-        // Each lane's own last Hessian: the one of its last refresh (a block evaluates the
-        // Hessian for every lane when one of them refreshes; a lane's bits must not see that).
-        for l in (0..L).filter(|&l| go[l] && progress.refresh[l]) {
+        if let Some((fi, _)) = &fresh {
+            for r in 0..3 {
+                for c in 0..3 {
+                    inv[r][c] = inv[r][c].blend(&take, fi[r][c]);
+                }
+            }
+            // Each lane's own last Hessian: the one of its last refresh (a block evaluates the
+            // Hessian for every lane when one of them refreshes; a lane's bits must not see
+            // that).
             for a in 0..3 {
                 for b in 0..3 {
-                    hk[a][b].0[l] = h[a][b].0[l];
+                    hk[a][b] = hk[a][b].blend(&take, h[a][b]);
                 }
             }
         }
+        // δ = J⁻¹ (μ − tar), each component summed in column order (Inverse::apply).
+        let f = v3(|i| target[i] - tar[i]);
+        let delta = v3(|r| inv[r][0] * f[0] + inv[r][1] * f[1] + inv[r][2] * f[2]);
         progress.update(&go, &mut p, &delta, sys.tol, results);
         let step = v3(|a| hk[a][0] * delta[0] + hk[a][1] * delta[1] + hk[a][2] * delta[2]);
-        for l in (0..L).filter(|&l| go[l] && progress.converged[l]) {
-            for a in 0..3 {
-                xs[a].0[l] = x[a].0[l] + step[a].0[l];
-            }
+        let newly: [bool; L] = std::array::from_fn(|l| go[l] && progress.converged[l]);
+        for a in 0..3 {
+            xs[a] = xs[a].blend(&newly, x[a] + step[a]);
         }
     }
     if !progress.converged.iter().any(|&c| c) {

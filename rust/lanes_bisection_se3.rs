@@ -20,7 +20,9 @@ use crate::error::StepFailure;
 use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::{LaneRow, NetworkLanes, Polynomial};
 use crate::isa::Isa;
-use crate::lanes_bisection::{evaluate, lane_newton_steps, LaneSolve, Progress, PREDICT_MAX_S, V};
+use crate::lanes_bisection::{
+    evaluate, finite_probe, lane_newton_steps, LaneSolve, Progress, PREDICT_MAX_S, V,
+};
 use crate::step::{StepResult, StepStats};
 use crate::structures::lie_groupoid::{
     exp_chart_coefficient_derivatives_to, exp_chart_coefficient_to, se3_coadjoint, C_SERIES,
@@ -398,15 +400,23 @@ fn se3_block<const N: usize, const L: usize>(
         } else {
             [false; L]
         };
+        // The round's finiteness checks as vector sums (see [`finite_probe`]).
+        let jet_v = V(jet.v);
+        let probe = finite_probe([&jet_v].into_iter().chain(&x));
+        let hess_probe = if hess {
+            finite_probe(h.iter().flatten())
+        } else {
+            V::splat(0.0)
+        };
         let mut go = [false; L];
+        // The lanes whose fresh inverse is taken this round.
+        let mut take = [false; L];
         for l in 0..L {
             if !progress.active[l] {
                 continue;
             }
             let refresh = progress.refresh[l];
-            let finite = jet.v[l].is_finite()
-                && (0..6).all(|i| x[i].0[l].is_finite())
-                && (!refresh || h.iter().flatten().all(|v| v.0[l].is_finite()));
+            let finite = probe.0[l] == 0.0 && (!refresh || hess_probe.0[l] == 0.0);
             let failure = if !finite {
                 Some(StepFailure::NonFinite)
             } else if s.0[l] >= max_s {
@@ -415,11 +425,7 @@ fn se3_block<const N: usize, const L: usize>(
                 Some(StepFailure::NotConverged)
             } else if refresh {
                 if ok[l] {
-                    for r in 0..6 {
-                        for c in 0..6 {
-                            inv[r][c].0[l] = fresh[r][c].0[l];
-                        }
-                    }
+                    take[l] = true;
                     None
                 } else {
                     Some(StepFailure::SingularJacobian)
@@ -428,6 +434,13 @@ fn se3_block<const N: usize, const L: usize>(
                 None
             };
             progress.settle(l, failure, &mut go, results);
+        }
+        if take.contains(&true) {
+            for r in 0..6 {
+                for c in 0..6 {
+                    inv[r][c] = inv[r][c].blend(&take, fresh[r][c]);
+                }
+            }
         }
         // δ = J⁻¹ (μ − tar), each component summed in column order.
         let mut f = tar;
