@@ -344,13 +344,11 @@ fn se3_block<const N: usize, const L: usize>(
             let turn = if i < 3 { wm[i] + vg[i] } else { wg[i - 3] };
             target[i] + turn.scale(0.5)
         });
-        for l in 0..L {
-            let s0 = x0.iter().fold(0.0, |a, v| a + v.0[l] * v.0[l]);
-            if s0 <= PREDICT_MAX_S && (0..6).all(|i| p0[i].0[l].is_finite()) {
-                for i in 0..6 {
-                    p[i].0[l] = p0[i].0[l];
-                }
-            }
+        let s0 = x0.iter().fold(V::splat(0.0), |a, v| a + *v * *v);
+        let probe = finite_probe(&p0);
+        let near: [bool; L] = from_fn(|l| s0.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
+        for i in 0..6 {
+            p[i] = p[i].blend(&near, p0[i]);
         }
     }
     let mut progress = Progress::new(active);
