@@ -56,6 +56,8 @@ impl<const L: usize> V<L> {
     /// a − a: 0 for a finite a, NaN for ±∞ and NaN. A sum of such probes is 0 exactly where
     /// every term is finite (NaN survives any sum), so one vector sum checks many numbers.
     #[inline(always)]
+    // a − a on purpose: it is the probe.
+    #[allow(clippy::eq_op)]
     pub(crate) fn finite_probe(self) -> Self {
         self - self
     }
@@ -98,18 +100,6 @@ impl<const L: usize> std::ops::Sub for V<L> {
     #[inline(always)]
     fn sub(self, o: Self) -> Self {
         self.zip(o, |a, b| a - b)
-    }
-}
-
-impl<const L: usize> std::ops::Neg for V<L> {
-    type Output = Self;
-    #[inline(always)]
-    fn neg(self) -> Self {
-        let mut r = self;
-        for l in 0..L {
-            r.0[l] = -self.0[l];
-        }
-        r
     }
 }
 
@@ -512,14 +502,15 @@ fn so3_block<const N: usize, const L: usize>(
         let turn = cross(&x0, &target);
         let p0 = v3(|i| target[i] + turn[i].scale(0.5));
         let s0 = dot(&x0, &x0);
-        let probe = finite_probe(&p0);
-        // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large for
-        // the series, h = 5 say) the predictor can throw Newton past the exp chart's singular
-        // angle that a start from μ avoids.
-        let near: [bool; L] =
-            std::array::from_fn(|l| s0.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
-        for i in 0..3 {
-            p[i] = p[i].blend(&near, p0[i]);
+        for l in 0..L {
+            // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large
+            // for the series, h = 5 say) the predictor can throw Newton past the exp chart's
+            // singular angle that a start from μ avoids.
+            if s0.0[l] <= PREDICT_MAX_S && (0..3).all(|i| p0[i].0[l].is_finite()) {
+                for i in 0..3 {
+                    p[i].0[l] = p0[i].0[l];
+                }
+            }
         }
     }
     let mut progress = Progress::new(active);

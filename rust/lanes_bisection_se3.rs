@@ -274,8 +274,9 @@ pub(crate) fn inverse6_lanes<const L: usize>(m: &M6<L>, inv: &mut M6<L>) -> [boo
     for r in 0..6 {
         inv[r].copy_from_slice(&a[r][6..]);
     }
+    let probe = finite_probe(inv.iter().flatten());
     for l in 0..L {
-        ok[l] &= inv.iter().flatten().all(|v| v.0[l].is_finite());
+        ok[l] &= probe.0[l] == 0.0;
     }
     ok
 }
@@ -345,7 +346,7 @@ fn se3_block<const N: usize, const L: usize>(
             target[i] + turn.scale(0.5)
         });
         let s0 = x0.iter().fold(V::splat(0.0), |a, v| a + *v * *v);
-        let probe = finite_probe(&p0);
+        let probe = finite_probe(p0);
         let near: [bool; L] = from_fn(|l| s0.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
         for i in 0..6 {
             p[i] = p[i].blend(&near, p0[i]);

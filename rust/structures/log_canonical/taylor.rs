@@ -10,7 +10,6 @@ use crate::error::{CoreError, StepFailure};
 use crate::exp::exp_lanes;
 use crate::generating::LaneRow;
 use crate::lanes::LaneStepper;
-use crate::lanes_bisection::{finite_probe, V};
 use crate::realization::{Generating, Realization};
 use crate::step::{StepMap, StepResult, StepStats};
 use crate::stepper::BisectionStepper;
@@ -253,37 +252,36 @@ fn solve_small_lanes<const N: usize, const L: usize>(
     if N > 3 {
         return solve_pivoted_lanes(j, f, delta, ok);
     }
-    // On whole vectors: the per-lane scalar solve read each lane out of the vectors and wrote
-    // it back one number at a time. The same operations lane by lane.
-    let m: [[V<L>; N]; N] = std::array::from_fn(|r| std::array::from_fn(|c| V(j[r][c])));
-    let (adj, det): ([[V<L>; N]; N], V<L>) = if N == 1 {
-        (
-            std::array::from_fn(|_| std::array::from_fn(|_| V::splat(1.0))),
-            m[0][0],
-        )
-    } else if N == 2 {
-        let adj = [[m[1][1], -m[0][1]], [-m[1][0], m[0][0]]];
-        (
-            std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
-            m[0][0] * m[1][1] - m[0][1] * m[1][0],
-        )
-    } else {
-        let m3: [[V<L>; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]));
-        let (adj, det) = crate::step::adjugate3(&m3);
-        (
-            std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
-            det,
-        )
-    };
-    let probe = det.finite_probe();
-    *ok = std::array::from_fn(|l| det.0[l] != 0.0 && probe.0[l] == 0.0);
-    let r = V::splat(1.0).zip(det, |a, b| a / b);
-    for a in 0..N {
-        let mut acc = V::splat(0.0);
-        for b in 0..N {
-            acc = acc + adj[a][b] * V(f[b]);
+    for l in 0..L {
+        let m: [[f64; N]; N] = std::array::from_fn(|r| std::array::from_fn(|c| j[r][c][l]));
+        let (adj, det): ([[f64; N]; N], f64) = if N == 1 {
+            (
+                std::array::from_fn(|_| std::array::from_fn(|_| 1.0)),
+                m[0][0],
+            )
+        } else if N == 2 {
+            let adj = [[m[1][1], -m[0][1]], [-m[1][0], m[0][0]]];
+            (
+                std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
+                m[0][0] * m[1][1] - m[0][1] * m[1][0],
+            )
+        } else {
+            let m3: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]));
+            let (adj, det) = crate::step::adjugate3(&m3);
+            (
+                std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
+                det,
+            )
+        };
+        ok[l] = det != 0.0 && det.is_finite();
+        let r = 1.0 / det;
+        for a in 0..N {
+            let mut acc = 0.0;
+            for b in 0..N {
+                acc += adj[a][b] * f[b][l];
+            }
+            delta[a][l] = acc * r;
         }
-        delta[a] = (acc * r).0;
     }
 }
 
@@ -422,9 +420,12 @@ pub(super) fn log_bisection_lanes<const N: usize, const L: usize, G: LogLaneGene
             near[l] &= shift.abs() <= PREDICT_MAX_SHIFT && p[i][l].is_finite();
         }
     }
-    let far: [bool; L] = std::array::from_fn(|l| !near[l]);
-    for i in 0..N {
-        p[i] = V(p[i]).blend(&far, V(target[i])).0;
+    for l in 0..L {
+        if !near[l] {
+            for i in 0..N {
+                p[i][l] = target[i][l];
+            }
+        }
     }
     while active.contains(&true) {
         s.generating
@@ -453,58 +454,45 @@ pub(super) fn log_bisection_lanes<const N: usize, const L: usize, G: LogLaneGene
         let mut delta = [[0.0; L]; N];
         let mut solvable = [true; L];
         solve_small_lanes(&j, &f, &mut delta, &mut solvable);
-        // The checks as vector sums (see [`finite_probe`]), the update and its size on whole
-        // vectors; only the verdicts lane by lane.
-        let probe = finite_probe(g.iter().chain(hs.iter().flatten()).map(|r| V(*r)));
-        let delta_probe = finite_probe(delta.iter().map(|r| V(*r)));
-        let mut take = [false; L];
         for l in 0..L {
             if !active[l] {
                 continue;
             }
-            let failure = if probe.0[l] != 0.0 {
+            let finite =
+                (0..N).all(|a| g[a][l].is_finite() && (0..N).all(|b| hs[a][b][l].is_finite()));
+            let failure = if !finite {
                 Some(StepFailure::NonFinite)
             } else if iterations[l] >= max_iter {
                 Some(StepFailure::NotConverged)
-            } else if !solvable[l] || delta_probe.0[l] != 0.0 {
+            } else if !solvable[l] || !(0..N).all(|a| delta[a][l].is_finite()) {
                 Some(StepFailure::SingularJacobian)
             } else {
                 None
             };
-            match failure {
-                Some(failure) => {
-                    result[l] = Err(failure);
-                    active[l] = false;
-                }
-                None => take[l] = true,
+            if let Some(failure) = failure {
+                result[l] = Err(failure);
+                active[l] = false;
+                continue;
             }
-        }
-        let (mut dmax, mut pmax) = (V::<L>::splat(0.0), V::<L>::splat(0.0));
-        for a in 0..N {
-            let (pa, da) = (V(p[a]), V(delta[a]));
-            let next = pa.blend(&take, pa + da);
-            p[a] = next.0;
-            dmax = dmax.max(da.abs());
-            pmax = pmax.max(next.abs());
-        }
-        let mut newly = [false; L];
-        for l in (0..L).filter(|&l| take[l]) {
+            let (mut dmax, mut pmax) = (0.0f64, 0.0f64);
+            for a in 0..N {
+                p[a][l] += delta[a][l];
+                dmax = dmax.max(delta[a][l].abs());
+                pmax = pmax.max(p[a][l].abs());
+            }
             iterations[l] += 1;
-            if dmax.0[l] <= tol * pmax.0[l].max(s.scale_floor) {
+            if dmax <= tol * pmax.max(s.scale_floor) {
                 active[l] = false;
                 converged[l] = true;
-                newly[l] = true;
-            }
-        }
-        if newly.contains(&true) {
-            // ∇S at the new p to first order, from the pass just made: off by O(|δ|²) ≤
-            // (tol·|p|)², far below a rounding, and one gradient pass saved.
-            for a in 0..N {
-                let mut acc = V(g[a]);
-                for b in 0..N {
-                    acc = acc + V(hs[a][b]) * V(delta[b]);
+                // ∇S at the new p to first order, from the pass just made: off by
+                // O(|δ|²) ≤ (tol·|p|)², far below a rounding, and one gradient pass saved.
+                for a in 0..N {
+                    let mut acc = g[a][l];
+                    for b in 0..N {
+                        acc += hs[a][b][l] * delta[b][l];
+                    }
+                    x[a][l] = acc;
                 }
-                x[a] = V(x[a]).blend(&newly, acc).0;
             }
         }
     }
