@@ -77,6 +77,24 @@ impl<const L: usize> V<L> {
     }
 }
 
+/// A Newton round's finiteness checks as vector sums: (S and ∇S, the Hessian where `hess`,
+/// else 0), each lane 0 exactly where those numbers are finite on it.
+#[inline(always)]
+pub(crate) fn round_probes<const D: usize, const L: usize>(
+    value: &[f64; L],
+    x: &[V<L>; D],
+    h: &[[V<L>; D]; D],
+    hess: bool,
+) -> (V<L>, V<L>) {
+    let probe = finite_probe(x) + V(*value).finite_probe();
+    let hess_probe = if hess {
+        finite_probe(h.iter().flatten())
+    } else {
+        V::splat(0.0)
+    };
+    (probe, hess_probe)
+}
+
 /// The sum of the [`V::finite_probe`]s of `vs`: lane l is 0 exactly where every `vs[k]` is
 /// finite on lane l.
 #[inline(always)]
@@ -536,14 +554,7 @@ fn so3_block<const N: usize, const L: usize>(
         let (x, h) = gradient_and_hessian(&jet);
         let (tar, s, jac) = so3_chart_lanes(sys.chart, -1.0, &x, &p, hess.then_some(&h));
         let fresh = jac.map(|j| inverse3_lanes(&j));
-        // Every finiteness check of the round as vector sums (see [`finite_probe`]).
-        let jet_v = V(jet.v);
-        let probe = finite_probe([&jet_v].into_iter().chain(&x));
-        let hess_probe = if hess {
-            finite_probe(h.iter().flatten())
-        } else {
-            V::splat(0.0)
-        };
+        let (probe, hess_probe) = round_probes(&jet.v, &x, &h, hess);
         let fresh_probe = fresh
             .as_ref()
             .map(|(fi, det)| finite_probe(fi.iter().flatten().chain([det])));

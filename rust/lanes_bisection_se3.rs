@@ -21,7 +21,7 @@ use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::{LaneRow, NetworkLanes, Polynomial};
 use crate::isa::Isa;
 use crate::lanes_bisection::{
-    evaluate, finite_probe, lane_newton_steps, LaneSolve, Progress, PREDICT_MAX_S, V,
+    evaluate, finite_probe, lane_newton_steps, round_probes, LaneSolve, Progress, PREDICT_MAX_S, V,
 };
 use crate::step::{StepResult, StepStats};
 use crate::structures::lie_groupoid::{
@@ -399,14 +399,7 @@ fn se3_block<const N: usize, const L: usize>(
         } else {
             [false; L]
         };
-        // The round's finiteness checks as vector sums (see [`finite_probe`]).
-        let jet_v = V(jet.v);
-        let probe = finite_probe([&jet_v].into_iter().chain(&x));
-        let hess_probe = if hess {
-            finite_probe(h.iter().flatten())
-        } else {
-            V::splat(0.0)
-        };
+        let (probe, hess_probe) = round_probes(&jet.v, &x, &h, hess);
         let mut go = [false; L];
         // The lanes whose fresh inverse is taken this round.
         let mut take = [false; L];

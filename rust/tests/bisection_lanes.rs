@@ -424,3 +424,60 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
         }
     }
 }
+
+/// The vector finiteness check the lane rounds use: a lane's sum of a − a probes is 0 exactly
+/// where every number summed is finite (±∞ and NaN anywhere make it non-zero, the largest and
+/// the subnormal finite numbers do not), whatever else the other lanes hold.
+#[test]
+fn finite_probes_agree_with_is_finite_lane_by_lane() {
+    use crate::lanes_bisection::{finite_probe, round_probes, V};
+    let specials = [
+        0.0,
+        -0.0,
+        f64::MAX,
+        -f64::MAX,
+        f64::MIN_POSITIVE / 4.0,
+        1.5,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::NAN,
+    ];
+    let mut rng = Rng::new(0x1A2E_5020);
+    for _ in 0..500 {
+        // Three vectors of 8 lanes, each number a special value or a random one.
+        let pick = |rng: &mut Rng| -> f64 {
+            if rng.below(3) == 0 {
+                specials[rng.below(specials.len())]
+            } else {
+                rng.range(-1e300, 1e300)
+            }
+        };
+        let vs: [V<8>; 3] = [0; 3].map(|_| V([0; 8].map(|_| pick(&mut rng))));
+        let probe = finite_probe(vs);
+        for l in 0..8 {
+            let finite = vs.iter().all(|v| v.0[l].is_finite());
+            assert_eq!(
+                probe.0[l] == 0.0,
+                finite,
+                "lane {l}: {:?}",
+                vs.map(|v| v.0[l])
+            );
+        }
+        let value = [0; 8].map(|_| pick(&mut rng));
+        let h = [
+            [vs[0], vs[1], vs[2]],
+            [vs[2], vs[0], vs[1]],
+            [vs[1], vs[2], vs[0]],
+        ];
+        let x = [V(value), vs[1], vs[0]];
+        for hess in [false, true] {
+            let (p, hp) = round_probes(&value, &x, &h, hess);
+            for l in 0..8 {
+                let finite = value[l].is_finite() && x.iter().all(|v| v.0[l].is_finite());
+                assert_eq!(p.0[l] == 0.0, finite);
+                let h_finite = !hess || h.iter().flatten().all(|v| v.0[l].is_finite());
+                assert_eq!(hp.0[l] == 0.0, h_finite);
+            }
+        }
+    }
+}
