@@ -11,8 +11,6 @@
 //! has its Newton systems solved in lockstep; on an so(3) or se(3) chart, a polynomial S, or one
 //! plus a network narrow enough ([`Generating::lane_parts`]), in SIMD lanes.
 
-use std::any::Any;
-
 use nalgebra::{Const, DimMin};
 
 use crate::dual::{Dual1, Jet2};
@@ -21,7 +19,7 @@ use crate::generating::{GeneratingFunction, MAX_BATCH};
 use crate::isa::Isa;
 use crate::lanes_bisection::{so3_newton_steps, So3Newton};
 use crate::lanes_bisection_se3::{se3_newton_steps, Se3Newton};
-use crate::realization::{Generating, Newton, Realization};
+use crate::realization::{Generating, LaneChart, Newton, Realization};
 use crate::step::step_each;
 pub use crate::step::{
     adjugate3, inverse3, Inverse, NewtonOptions, StepMap, StepResult, StepStats, SIMPLIFIED_RATE,
@@ -76,27 +74,26 @@ impl<const N: usize, R, G> BisectionStepper<N, R, G> {
     }
 }
 
-impl<const N: usize, R: Realization<N> + Any, G: Generating<N>> BisectionStepper<N, R, G>
+impl<const N: usize, R: Realization<N>, G: Generating<N>> BisectionStepper<N, R, G>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
-    /// The lane solver, where it applies: a polynomial S, or one plus a network term that fits
-    /// the lanes ([`Generating::lane_parts`]), on an so(3) chart with simplified Newton and the
-    /// relative tolerance. Full Newton keeps the generic dual-number
-    /// path. The chart is found by type ([`Any`]): no other realization needs to know of it.
+    /// The so(3) lane solver, where it applies: a polynomial S, or one plus a network term that
+    /// fits the lanes ([`Generating::lane_parts`]), on a chart the realization names
+    /// ([`Realization::lane_chart`]), with simplified Newton and the relative tolerance. Full
+    /// Newton keeps the generic dual-number path.
     fn so3_lanes(&self) -> Option<So3Newton<'_, N>> {
         if N != 3 || !self.newton.simplified || self.scale_floor != RELATIVE_FLOOR {
             return None;
         }
-        let groupoid = (&self.realization as &dyn Any).downcast_ref::<Groupoid<N>>()?;
-        if !groupoid.algebra.is_so3() {
+        let Some(LaneChart::So3(chart)) = self.realization.lane_chart() else {
             return None;
-        }
+        };
         let (poly, network) = self.generating.lane_parts()?;
         Some(So3Newton {
             poly,
             network,
-            chart: groupoid.chart,
+            chart,
             tol: self.newton.tol,
             max_iter: self.newton.max_iter,
             predict: PREDICT,
@@ -109,8 +106,7 @@ where
         if N != 6 || !self.newton.simplified || self.scale_floor != RELATIVE_FLOOR {
             return None;
         }
-        let groupoid = (&self.realization as &dyn Any).downcast_ref::<Groupoid<N>>()?;
-        if !groupoid.algebra.is_se3() {
+        if self.realization.lane_chart() != Some(LaneChart::Se3Exp) {
             return None;
         }
         let (poly, network) = self.generating.lane_parts()?;
@@ -148,8 +144,7 @@ where
     }
 }
 
-impl<const N: usize, R: Realization<N> + Any, G: Generating<N>> StepMap<N>
-    for BisectionStepper<N, R, G>
+impl<const N: usize, R: Realization<N>, G: Generating<N>> StepMap<N> for BisectionStepper<N, R, G>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
@@ -230,7 +225,7 @@ where
 /// Chunks of at most this many trajectories take the small lockstep scratch.
 const FEW: usize = 4;
 
-impl<const N: usize, R: Realization<N> + Any, G: Generating<N>> BisectionStepper<N, R, G>
+impl<const N: usize, R: Realization<N>, G: Generating<N>> BisectionStepper<N, R, G>
 where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {

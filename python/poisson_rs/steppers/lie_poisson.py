@@ -5,34 +5,29 @@ top's splitting, DOP853)."""
 from __future__ import annotations
 
 import numbers
-from typing import TYPE_CHECKING, Any
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
-from .. import _core
 from ..export import (
     model_bytes,
+)
+from ..model_files import (
+    TaylorIntegrator,
 )
 from ..protocols import (
     NEWTON_MAX_ITER,
     NEWTON_TOL,
     provides,
 )
-from ..structures.lie_poisson import (
-    CLASSICAL_METHODS,
-    LIE_POISSON_METHODS,
-    HeavyTop,
-    LiePoissonSystem,
-    RigidBody,
-)
-
-if TYPE_CHECKING:
-    pass
-from ..model_files import (
-    TaylorIntegrator,
-)
 from ..rollout import (
     dop853_rollout,
+)
+from ..structures.lie_poisson import (  # noqa: F401 (the tables, re-exported)
+    CLASSICAL_METHODS,
+    LIE_POISSON_METHODS,
+    LiePoissonSystem,
 )
 
 
@@ -161,8 +156,8 @@ class ClassicalIntegrator:
     def dim(self) -> int:
         return self._dim
 
-    def _table(self) -> dict[str, tuple[int, bool]]:
-        return CLASSICAL_METHODS if isinstance(self.body, RigidBody) else LIE_POISSON_METHODS
+    def _table(self) -> Mapping[str, tuple[int, bool]]:
+        return self.body.method_table
 
     @property
     def order(self) -> int:
@@ -191,30 +186,8 @@ class ClassicalIntegrator:
     ) -> tuple[np.ndarray, Any] | None:
         """``(traj, diagnostics)`` from the core; mu0 an (n, dim) float64 array, or a list of
         dim plain numbers (one state; None where the list holds anything else)."""
-        body = self.body
-        if isinstance(body, RigidBody):
-            return _core.rollout_classical(
-                self.name, body.inertia, mu0, h, n_steps, every, self.tol, self.max_iter, lazy
-            )
-        c, powers, coeffs = body.core_arrays()
-        top = (
-            (body.inertia, body.mgl, body.com)
-            if isinstance(body, HeavyTop) and self.name == "splitting"
-            else None
-        )
-        return _core.rollout_lie_poisson(
-            self.name,
-            c,
-            powers,
-            coeffs,
-            mu0,
-            h,
-            n_steps,
-            every,
-            self.tol,
-            self.max_iter,
-            top,
-            lazy,
+        return self.body.classical_rollout(
+            self.name, mu0, h, n_steps, every, self.tol, self.max_iter, lazy
         )
 
     def rollout(

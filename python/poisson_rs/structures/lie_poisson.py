@@ -310,8 +310,40 @@ class LiePoissonSystem(PoissonSystemBase):
             variables=[f"μ{i + 1}" for i in range(n)],
         )
 
+    @property
+    def method_table(self) -> Mapping[str, tuple[int, bool]]:
+        """Each classical integrator's (order, whether a step is a Poisson map) for this system:
+        the generic methods ("splitting" belongs to the systems that have one)."""
+        return {m: v for m, v in LIE_POISSON_METHODS.items() if m != "splitting"}
+
     def classical_methods(self) -> list[str]:
-        return [m for m in LIE_POISSON_METHODS if m != "splitting"]
+        return list(self.method_table)
+
+    @property
+    def splitting_parameters(self) -> tuple[Any, ...] | None:
+        """What the core's explicit splitting of this system takes, or None where it has none."""
+        return None
+
+    def classical_rollout(
+        self,
+        name: str,
+        mu0: Any,
+        h: float,
+        n_steps: int,
+        every: int,
+        tol: float,
+        max_iter: int,
+        lazy: bool,
+    ) -> tuple[np.ndarray, Any] | None:
+        """The core's rollout of classical integrator ``name`` (not "dop853"): ``(traj,
+        diagnostics)``, None where ``mu0`` is a list that is not one state of plain numbers."""
+        from .. import _core
+
+        c, powers, coeffs = self.core_arrays()
+        top = self.splitting_parameters if name == "splitting" else None
+        return _core.rollout_lie_poisson(  # type: ignore[no-any-return]
+            name, c, powers, coeffs, mu0, h, n_steps, every, tol, max_iter, top, lazy
+        )
 
     def classical(self, name: str, *, tol: float, max_iter: int) -> Any:
         return provided("lie_poisson.classical")(self, name, tol=tol, max_iter=max_iter)
@@ -497,8 +529,29 @@ class RigidBody(LiePoissonSystem):
         """("cayley", "exp"): the Cayley chart's closed forms exist for the rigid body only."""
         return ("cayley", "exp")
 
-    def classical_methods(self) -> list[str]:
-        return list(CLASSICAL_METHODS)
+    @property
+    def method_table(self) -> Mapping[str, tuple[int, bool]]:
+        """The rigid body's own splittings and DMV beside the generic methods, and the midpoint
+        rule a Poisson map (H is quadratic)."""
+        return CLASSICAL_METHODS
+
+    def classical_rollout(
+        self,
+        name: str,
+        mu0: Any,
+        h: float,
+        n_steps: int,
+        every: int,
+        tol: float,
+        max_iter: int,
+        lazy: bool,
+    ) -> tuple[np.ndarray, Any] | None:
+        """The core's closed-form rigid-body kernels (Euler's equations written out)."""
+        from .. import _core
+
+        return _core.rollout_classical(  # type: ignore[no-any-return]
+            name, self.inertia, mu0, h, n_steps, every, tol, max_iter, lazy
+        )
 
     def reference_solution(
         self,
@@ -563,9 +616,15 @@ class HeavyTop(LiePoissonSystem):
     def title(self) -> str:
         return f"heavy top, I = {self.inertia}, mgl = {self.mgl:g}, χ = {self.com}"
 
-    def classical_methods(self) -> list[str]:
+    @property
+    def method_table(self) -> Mapping[str, tuple[int, bool]]:
         """The generic methods and the heavy top's own explicit Poisson splitting."""
-        return list(LIE_POISSON_METHODS)
+        return LIE_POISSON_METHODS
+
+    @property
+    def splitting_parameters(self) -> tuple[Any, ...] | None:
+        """(inertia, mgl, χ): the splitting's free rotor and gravity flows."""
+        return (self.inertia, self.mgl, self.com)
 
     def to_dict(self) -> dict[str, Any]:
         return {
