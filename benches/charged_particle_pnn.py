@@ -19,7 +19,8 @@ recorded as cut off past that. One pinned core, one torch thread::
 full batch, float32, best checkpoint by their test loss) on their own ``LFData`` records, N of
 their 2M iterations (about 70 ms an iteration on one core here: all of them would take ~40 h),
 scored as the rows above; ``--only-pnn`` runs that row alone and keeps the others of ``--out``;
-without ``--pnn`` an existing PNN row of ``--out`` is kept.
+without ``--pnn`` an existing PNN row of ``--out`` is kept; ``--only-discover`` runs the
+discovery row alone and keeps the others.
 The checkout is taken at bench time, never vendored (see ``benches/structure_protocols.py``)::
 
     PYTHONPATH=python taskset -c 1 .venv/bin/python benches/charged_particle_pnn.py \\
@@ -151,6 +152,30 @@ def _discover_child(queue: Any, system: Any, train: np.ndarray, start: np.ndarra
     queue.put(row)
 
 
+def discover_row(system: Any, train: np.ndarray, start: np.ndarray, exact: np.ndarray,
+                 seconds: float) -> dict[str, Any]:  # fmt: skip
+    """``pr.learn(structure="discover")`` in a child process, cut off after ``seconds``."""
+    queue: Any = mp.get_context("fork").Queue()
+    child = mp.get_context("fork").Process(
+        target=_discover_child, args=(queue, system, train, start, exact)
+    )
+    t0 = time.perf_counter()
+    child.start()
+    child.join(seconds)
+    if child.is_alive():
+        child.kill()
+        child.join()
+        row = {
+            "method": 'pr.learn(structure="discover")',
+            "notes": f"cut off after {seconds:.0f} s on one core: no result (partial)",
+        }
+    else:
+        row = queue.get()
+        row["wall_seconds"] = round(time.perf_counter() - t0, 2)
+    print({k: v for k, v in row.items() if k != "candidates"}, flush=True)
+    return row
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
@@ -162,6 +187,11 @@ def main() -> None:
     parser.add_argument("--peer-site", type=Path, help="site directory of PNN's imports")
     parser.add_argument(
         "--only-pnn", action="store_true", help="run PNN's row alone; keep the other rows of --out"
+    )
+    parser.add_argument(
+        "--only-discover",
+        action="store_true",
+        help='run the pr.learn(structure="discover") row alone; keep the other rows of --out',
     )
     args = parser.parse_args()
     # A bad output path fails here, not after half an hour of work.
@@ -186,6 +216,17 @@ def main() -> None:
         args.out.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {args.out}")
         return
+    if args.only_discover:
+        doc = json.loads(args.out.read_text())
+        label = 'pr.learn(structure="discover")'
+        doc["rows"] = [r for r in doc["rows"] if r["method"] != label]
+        row = discover_row(system, train, start, exact, args.discover_seconds)
+        at = len(doc["rows"]) - (doc["rows"][-1]["method"].startswith("PNN") if doc["rows"] else 0)
+        doc["rows"].insert(at, row)
+        doc["meta"]["discover_command"] = " ".join(sys.argv)
+        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"wrote {args.out}")
+        return
     rows: list[dict[str, Any]] = []
     for label, stepper in (
         ("true system, Taylor-HJ by jets m = 3", pr.taylor_integrator(system, 3)),
@@ -199,23 +240,7 @@ def main() -> None:
     rows.append(learn_row(system, train, start, exact, system,
                           "pr.learn(structure=the system: B and A given, H learned)"))  # fmt: skip
     print({k: v for k, v in rows[-1].items() if k != "candidates"}, flush=True)
-    queue: Any = mp.get_context("fork").Queue()
-    child = mp.get_context("fork").Process(
-        target=_discover_child, args=(queue, system, train, start, exact)
-    )
-    t0 = time.perf_counter()
-    child.start()
-    child.join(args.discover_seconds)
-    if child.is_alive():
-        child.kill()
-        child.join()
-        rows.append({"method": 'pr.learn(structure="discover")',
-                     "notes": f"cut off after {args.discover_seconds:.0f} s on one core: no "
-                     "result (partial)"})  # fmt: skip
-    else:
-        rows.append(queue.get())
-        rows[-1]["wall_seconds"] = round(time.perf_counter() - t0, 2)
-    print({k: v for k, v in rows[-1].items() if k != "candidates"}, flush=True)
+    rows.append(discover_row(system, train, start, exact, args.discover_seconds))
     kept_meta: dict[str, Any] = {}
     if args.pnn is not None:
         rows.append(pnn_row(args.pnn.resolve(), args.pnn_iterations, system, start, exact))

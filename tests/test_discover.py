@@ -68,17 +68,48 @@ def test_family_bivector_is_the_built_systems_own(name):
     )
 
 
-def test_basis_derivative_matches_finite_differences():
+@pytest.mark.parametrize(("dim", "name"), [(3, "poly2-bivector"), (4, "magnetic")])
+def test_basis_derivative_matches_finite_differences(dim, name):
     rng = np.random.default_rng(4)
-    family = _family(3, "poly2-bivector")
-    x = rng.normal(size=(5, 3))
+    family = _family(dim, name)
+    x = rng.normal(size=(5, dim))
     d = family.basis_derivative(x)
     eps = 1e-6
-    for ell in range(3):
-        step = np.zeros(3)
+    for ell in range(dim):
+        step = np.zeros(dim)
         step[ell] = eps
         fd = (family.basis(x + step) - family.basis(x - step)) / (2 * eps)
         np.testing.assert_allclose(d[:, :, :, ell, :], fd, atol=1e-8)
+
+
+def test_magnetic_family_bivector_is_the_built_charged_particles_own_in_its_gauge():
+    """π_θ/θ₀ is the bivector of the system θ builds (B = Σ θ_k/θ₀ b_k, its potential checked
+    by the constructor: curl A = B at seeded points), on the polynomial and expression routes."""
+    family = _family(4, "magnetic")
+    assert [f.name for f in bracket_families(3) + bracket_families(6)].count("magnetic") == 0
+    rng = np.random.default_rng(8)
+    x = rng.normal(size=(7, 4))
+    for polynomial in (True, False):
+        theta = rng.normal(size=len(family))
+        theta[0] = 1.7
+        if polynomial:
+            theta[[4, 8]] = 0.0  # no |x|, no 1/|x|
+        system = family.system(theta)
+        assert (system.direct is not None) == polynomial
+        np.testing.assert_allclose(
+            family.bivector(x, theta) / 1.7, system.bivector(x), rtol=1e-12, atol=1e-12
+        )
+    assert family.jacobi_residual(theta, x) == 0.0  # a planar B: every θ is Poisson
+
+
+def test_magnetic_family_refuses_x_at_the_origin_and_a_vanishing_canonical_part():
+    family = _family(4, "magnetic")
+    assert family.applies(np.array([[0.5, 1.0, 1.0, 0.5]])) is None
+    assert "x = 0" in family.applies(np.array([[0.5, 1.0, 1.0, 0.5], [0.0, 0.0, 1.0, 0.0]]))
+    theta = np.zeros(len(family))
+    theta[4] = 1.0
+    with pytest.raises(ValueError, match="not a charged particle"):
+        family.system(theta)
 
 
 def test_jacobi_residual_zero_on_lie_algebras_and_not_on_a_random_bracket():
@@ -292,9 +323,9 @@ def test_a_spent_time_budget_starts_no_further_pair(monkeypatch):
     fitted: list[str] = []
     real = discover.fit_bracket
 
-    def counted(data, family, hams, *args):
+    def counted(data, family, hams, *args, **kwargs):
         fitted.append(f"{family.name}/{hams.name}")
-        return real(data, family, hams, *args)
+        return real(data, family, hams, *args, **kwargs)
 
     monkeypatch.setattr(discover, "fit_bracket", counted)
     with pytest.warns(NotExplainedWarning):
@@ -598,3 +629,47 @@ def test_exact_records_skip_the_t_star_g_refit():
     _, report = learn_discover(list(trajs), 0.1, progress=False, given=given)
     assert report.explained and calls == []
     assert not any("T*G" in c.family for c in report.candidates)
+
+
+# --- PNN's charged particle: B = |x| is no polynomial ------------------------------------------
+
+PNN_FIELD = "sqrt(x1**2 + x2**2)"
+PNN_H = "(x3**2 + x4**2)/2 + 1/(100*sqrt(x1**2 + x2**2))"
+
+
+@pytest.fixture(scope="module")
+def charged_particle():
+    """PNN's charged particle (their LFData), 3 exact trajectories of 30 records, h = 0.1."""
+    from poisson_rs.structures.charged_particle import ChargedParticle
+
+    true = ChargedParticle(
+        PNN_FIELD, PNN_H, potential=[f"-({PNN_FIELD})*x2/3", f"({PNN_FIELD})*x1/3"]
+    )
+    rng = np.random.default_rng(0)
+    starts = [np.array([0.5, 1.0, 1.0, 0.5])] + [
+        np.concatenate([rng.uniform(0.4, 1.2, 2) * rng.choice([-1, 1], 2), rng.uniform(-1, 1, 2)])
+        for _ in range(2)
+    ]
+    trajs = [true.reference_solution(s[None], np.arange(30) * 0.1)[0] for s in starts]
+    return true, trajs, pr.learn(trajs, 0.1, structure="discover", seed=0, progress=False)
+
+
+def test_discovers_pnns_magnetic_field_and_h(charged_particle):
+    """The bracket with B = |x| and H = |v|²/2 + 1/(100|x|), both unknown and neither a
+    polynomial: the magnetic family with the distance library, the field and H recovered (the
+    oracle: the true system's bivector and H at fresh states), and a rollout 10× past the
+    records' span against DOP853."""
+    true, trajs, (stepper, report) = charged_particle
+    assert report.explained and report.kept.family == "magnetic/poly2+dist^-1"
+    assert "{v₁, v₂} = " in report.bracket and "sqrt(x₁**2 + x₂**2)" in report.bracket
+    rng = np.random.default_rng(1)
+    z = np.concatenate([rng.uniform(0.5, 1.5, (20, 2)), rng.uniform(-1, 1, (20, 2))], axis=1)
+    learned = report.structure
+    b_err = np.abs(learned.bivector(z) - true.bivector(z)).max() / np.abs(true.bivector(z)).max()
+    assert b_err < 1e-4, f"bracket off by {b_err:.1e}"
+    dh = learned.hamiltonian(z) - true.hamiltonian(z)
+    assert np.ptp(dh) < 1e-4 * np.abs(true.hamiltonian(z)).max()  # H up to a constant
+    x0 = trajs[0][0]
+    reference = true.reference_solution(x0[None], np.arange(301) * 0.1)[0]
+    roll = pr.integrate(stepper, x0, 0.1, 300)
+    assert np.abs(roll - reference).max() < 1e-3 * np.abs(reference).max()

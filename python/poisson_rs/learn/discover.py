@@ -9,9 +9,11 @@ families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, �
 1. Velocity-level fit: the finite-difference velocities of the training records are fitted by
    variable projection (φ eliminated by least squares, θ by Levenberg–Marquardt) from a lifted
    start (the rank-1 part of the least-squares fit of the products θ_aφ_m) and seeded random
-   starts. Its relative residual screens the pairs: one far above the records' own velocity
-   error (:func:`velocity_floor`: order-8 against order-6 differences) cannot explain the
-   data and is not fitted further.
+   starts. Each record's velocity counts by its own error estimate (:func:`velocity_weights`:
+   order-8 against order-6 differences at the record), so that a fast passage, where the
+   differences are poor, does not set the bracket's error. The relative residual screens the
+   pairs: one far above the records' own velocity error (:func:`velocity_floor`, in the same
+   weights) cannot explain the data and is not fitted further.
 2. Gauge: the field is unchanged by π → λπ with H → H/λ, by H → H + a Casimir, and by
    π → π + N where N∇H ≡ 0 (on so(3)* with a quadratic H, the brackets ε·∇(C + αH)). Fixed
    here: θ is the least-norm one among those the data cannot tell apart, scaled so that its
@@ -52,7 +54,13 @@ from typing import Any
 import numpy as np
 
 from ..bracket_family import JACOBI_RTOL
-from ..hamiltonian_library import LIBRARY_DEGREES, LibraryFamily, supports_library
+from ..hamiltonian_library import (
+    LIBRARY_DEGREES,
+    LIBRARY_DISTANCE_DEGREES,
+    LIBRARY_DISTANCE_POWERS,
+    LibraryFamily,
+    supports_library,
+)
 from .data import TrajectoryData
 
 __all__ = [
@@ -96,6 +104,12 @@ SNAPS = ("noise", "fit", "off")
 #: With noisy records, a pair whose held-out one-step error is within this factor of the noise
 #: threshold has H fitted again on T*G where its structure learns there (step 5).
 OWN_PATH_WITHIN = 10.0
+#: The distance libraries tried after poly+trig where the dimension is even and ≥ 4 (the
+#: coordinates read as planar points): log-distances, then the powers of distances.
+DISTANCE_LIBRARIES: tuple[dict[str, Any], ...] = (
+    {"trig": False, "log_distances": True},
+    {"trig": False, "distance_powers": LIBRARY_DISTANCE_POWERS},
+)
 #: Gauss–Newton iterates of the joint refinement through the integrator.
 REFINE_ITER = 12
 #: Bracket coefficients below these (relative to the largest, +1) are tried at zero, the
@@ -220,12 +234,16 @@ def fit_bracket(
     x: np.ndarray,
     v: np.ndarray,
     seed: int,
+    weights: np.ndarray | None = None,
 ) -> BracketFit:
     """The velocity-level fit of ``family`` × ``hamiltonians`` (a Hamiltonian family of the
     family's template system) to velocities ``v`` at states ``x`` (B, n), gauge-fixed and
-    Jacobi-projected; see the module docstring."""
+    Jacobi-projected; see the module docstring. ``weights`` (B,): each velocity's weight
+    (:func:`velocity_weights`; default 1), beside 1/|x|."""
     t0 = time.perf_counter()
     w = 1.0 / np.linalg.norm(x, axis=1).clip(1e-300)
+    if weights is not None:
+        w = w * weights
     basis = family.basis(x)  # (B, n, n, P)
     grads = hamiltonians.gradients(x)  # (B, n, M)
     t = np.einsum("bija,bjm->biam", basis, grads) * w[:, None, None, None]
@@ -420,25 +438,54 @@ def refine_through_integrator(
     )
 
 
-def velocity_floor(trajs: list[np.ndarray], h: float) -> float:
-    """The records' own velocity error, relative: |v₈ − v₆| / |v₈| over the interior records
-    of trajectories of at least 9 (central differences of orders 8 and 6, weighted by 1/|x|
-    as the fits are); NaN where no trajectory is long enough. It bounds the order-8
-    velocities' error (truncation and noise alike)."""
+def velocity_errors(trajs: list[np.ndarray], h: float) -> np.ndarray:
+    """Each velocity's own relative error estimate, in the order of
+    :func:`~poisson_rs.learn.structure_fit.velocities`: |v_{2q} − v_{2q−2}| / |v_{2q}|, central
+    differences of orders 2q and 2q − 2 at the record (q ≤ 4; truncation and noise alike); NaN
+    where a trajectory is too short for two orders (q < 2)."""
     from .hamiltonian import _fd_weights
 
-    w8, w6 = _fd_weights(np.arange(-4, 5)), _fd_weights(np.arange(-3, 4))
-    num = den = 0.0
+    out = []
     for t in trajs:
-        if len(t) < 9:
+        q = min(4, (len(t) - 1) // 2)
+        if q < 2:
+            out.append(np.full(len(t) - 1 if q == 0 else len(t) - 2 * q, np.nan))
             continue
-        m = len(t) - 8
-        v8 = sum(w8[j] * t[j : j + m] for j in range(9)) / h
-        v6 = sum(w6[j] * t[j + 1 : j + 1 + m] for j in range(7)) / h
-        w = 1.0 / np.linalg.norm(t[4 : 4 + m], axis=1).clip(1e-300)
-        num += float(np.sum(((v8 - v6) * w[:, None]) ** 2))
-        den += float(np.sum((v8 * w[:, None]) ** 2))
-    return math.sqrt(num / den) if den > 0 else math.nan
+        m = len(t) - 2 * q
+        hi, lo = _fd_weights(np.arange(-q, q + 1)), _fd_weights(np.arange(-q + 1, q))
+        v_hi = sum(hi[j] * t[j : j + m] for j in range(2 * q + 1)) / h
+        v_lo = sum(lo[j] * t[j + 1 : j + 1 + m] for j in range(2 * q - 1)) / h
+        out.append(np.linalg.norm(v_hi - v_lo, axis=1) / np.linalg.norm(v_hi, axis=1).clip(1e-300))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def velocity_weights(errors: np.ndarray) -> np.ndarray:
+    """A weight per velocity, med/max(e, med) for its error estimate e (:func:`velocity_errors`)
+    and their median med; 1 where e is not defined. Records where the differences are poor (a
+    fast passage: on PNN's charged particle 1e-3 there, 1e-7 elsewhere) count as what they are
+    worth instead of setting the bracket's error."""
+    seen = np.isfinite(errors)
+    if not seen.any():
+        return np.ones(errors.shape)
+    med = max(float(np.median(errors[seen])), 1e-300)
+    return np.where(seen, med / np.maximum(np.where(seen, errors, med), med), 1.0)
+
+
+def velocity_floor(
+    x: np.ndarray, v: np.ndarray, errors: np.ndarray, weights: np.ndarray | None = None
+) -> float:
+    """The records' own velocity error, relative, in the fits' weights (1/|x| times
+    ``weights``): √(Σ (w e |v|)² / Σ (w |v|)²) over the velocities ``v`` at states ``x`` whose
+    error estimate ``errors`` (:func:`velocity_errors`) is defined; NaN where none is."""
+    seen = np.isfinite(errors)
+    if not seen.any():
+        return math.nan
+    w = 1.0 / np.linalg.norm(x, axis=1).clip(1e-300)
+    if weights is not None:
+        w = w * weights
+    size = (np.linalg.norm(v, axis=1) * w)[seen]
+    den = float(np.sum(size**2))
+    return math.sqrt(float(np.sum((errors[seen] * size) ** 2)) / den) if den > 0 else math.nan
 
 
 class UnknownStructure:
@@ -539,6 +586,8 @@ def learn_discover(
     held = bool(data.test)
     err = "held-out one-step error" if held else "training one-step error (nothing held out)"
     x, v = velocities(data.train, data.h)
+    verr = velocity_errors(data.train, data.h)
+    vw = velocity_weights(verr)
     states = np.concatenate(data.train + data.test)
 
     # The (bracket family, H degree) pairs, smallest first.
@@ -558,6 +607,15 @@ def learn_discover(
         makes = [(d, _polynomials(d, order)) for d in degrees]
         if degree is None and supports_library(template):
             makes += [(d, _library(d, order)) for d in LIBRARY_DEGREES if d <= top]
+            if data.dim % 2 == 0 and data.dim >= 4:
+                # Planar points (x₁, x₂), (x₃, x₄), …: the distance libraries, as pr.learn
+                # tries them with the structure given (PNN's charged particle: 1/|x| in H).
+                makes += [
+                    (d, _library(d, order, **options))
+                    for options in DISTANCE_LIBRARIES
+                    for d in LIBRARY_DISTANCE_DEGREES
+                    if d <= top
+                ]
         pairs += [(family, make(template), d, make) for d, make in makes]
     if not pairs:
         raise ValueError(
@@ -693,7 +751,7 @@ def learn_discover(
     kept: Candidate | None = None
     best_v = math.inf
     skipped: list[tuple[BracketFit, int, Any, int]] = []
-    floor = velocity_floor(data.train, data.h)
+    floor = velocity_floor(x, v, verr, vw)
     screen_level = SCREEN_FACTOR * max(floor, 1e-10) if math.isfinite(floor) else math.nan
     bar = progress_bar(len(pairs), progress)
     started, unsearched = time.perf_counter(), len(candidates)
@@ -715,7 +773,7 @@ def learn_discover(
                 candidates.append(_row(Candidate, name, len(family) + len(hams), why))
                 continue
             bar.set_postfix_str(name)
-            fit = fit_bracket(data, family, hams, x, v, seed)
+            fit = fit_bracket(data, family, hams, x, v, seed, weights=vw)
             best_v = min(best_v, fit.velocity_residual)
             if verbose:
                 print(
@@ -984,9 +1042,10 @@ def _polynomials(degree: int, order: int | None) -> Any:
     return lambda system: system.hamiltonian_family(degree, order)
 
 
-def _library(degree: int, order: int | None) -> Any:
-    """system → the term library of ``degree`` on its bracket (Taylor-HJ by jets)."""
-    return lambda system: LibraryFamily(system, degree, order)
+def _library(degree: int, order: int | None, **options: Any) -> Any:
+    """system → the term library of ``degree`` (and ``options``, :class:`LibraryFamily`'s) on
+    its bracket (Taylor-HJ by jets)."""
+    return lambda system: LibraryFamily(system, degree, order, **options)
 
 
 def _row(candidate: Any, family: str, parameters: int, reason: str) -> Any:

@@ -38,6 +38,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..bracket_family import BracketFamily
 from ..distance_sums import DistanceTerms, distance_terms
 from ..expressions import Expression
 from ..protocols import NEWTON_MAX_ITER, NEWTON_TOL, PoissonSystemBase, provided
@@ -827,6 +828,121 @@ def _scene_table(raw: Mapping[str, Any]) -> ChargedParticle:
         return ChargedParticle(field, h, potential=potential, name=name)
 
 
-#: The kinds of system dictionaries and scene [system] tables this module reads.
+# --- the magnetic bracket family (structure discovery) -----------------------------------------
+
+#: B's candidate terms for discovery: homogeneous in x of degree k (> −2), so that the radial
+#: gauge gives the potential in closed form, A = b(x)/(k + 2)·(−x₂, x₁) (curl A = b), with its
+#: value and gradient on NumPy arrays x (..., 2). |x| and |x|⁻¹ are PNN's B's and its kin.
+MAGNETIC_TERMS: tuple[tuple[str, int, Any, Any], ...] = (
+    ("1", 0, lambda x: np.ones(x.shape[:-1]), lambda x: np.zeros(x.shape)),
+    ("x1", 1, lambda x: x[..., 0], lambda x: np.stack([np.ones(x.shape[:-1]), 0 * x[..., 0]], -1)),
+    ("x2", 1, lambda x: x[..., 1], lambda x: np.stack([0 * x[..., 0], np.ones(x.shape[:-1])], -1)),
+    ("sqrt(x1**2 + x2**2)", 1, lambda x: np.linalg.norm(x, axis=-1),
+     lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)),
+    ("x1**2", 2, lambda x: x[..., 0] ** 2,
+     lambda x: np.stack([2 * x[..., 0], 0 * x[..., 0]], -1)),
+    ("x1*x2", 2, lambda x: x[..., 0] * x[..., 1], lambda x: x[..., ::-1].copy()),
+    ("x2**2", 2, lambda x: x[..., 1] ** 2,
+     lambda x: np.stack([0 * x[..., 0], 2 * x[..., 1]], -1)),
+    ("1/sqrt(x1**2 + x2**2)", -1, lambda x: 1.0 / np.linalg.norm(x, axis=-1),
+     lambda x: -x / np.linalg.norm(x, axis=-1, keepdims=True) ** 3),
+)  # fmt: skip
+
+
+class MagneticFamily(BracketFamily):
+    """Planar charged-particle brackets on (x₁, x₂, v₁, v₂): {x_i, v_i} = θ₀ and
+    {v₁, v₂} = Σ_k θ_k b_k(x) over :data:`MAGNETIC_TERMS`. Every θ obeys Jacobi (a planar B is
+    closed whatever it is), so nothing is projected. The system θ builds is the charged particle
+    with B = Σ_k (θ_k/θ₀) b_k, i.e. π_θ/θ₀ (the gauge π → λπ, H → H/λ fixed at {x_i, v_i} = 1),
+    and :meth:`text` writes the bracket in that gauge."""
+
+    def __init__(self) -> None:
+        self.name, self.dim = "magnetic", 4
+        self.description = (
+            "{x_i, v_i} = 1, {v₁, v₂} = B(x) with B a combination of 1, x₁, x₂, |x|, x₁², "
+            "x₁x₂, x₂², |x|⁻¹ (a planar charged particle; Jacobi holds for every B)"
+        )
+        # Placeholder entries: the family's basis is its own (see basis()).
+        zero: tuple[int, ...] = (0, 0, 0, 0)
+        self.terms = [(0, 2, zero)] + [(2, 3, zero)] * len(MAGNETIC_TERMS)
+        self.jacobi_free, self._domain = True, _off_origin
+        self._build = _magnetic_system
+        self._template = np.zeros(len(self.terms))
+        self._template[0] = self._template[4] = 1.0  # B = |x|: the expression route
+        self._exps = np.zeros((len(self.terms), 4), dtype=np.int64)
+
+    @property
+    def degree(self) -> int:
+        return 2
+
+    def basis(self, x: Any) -> FloatArray:
+        """Π_a(x), (B, 4, 4, P): θ₀ in {x₁, v₁} and {x₂, v₂}, b_k(x) in {v₁, v₂}."""
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        out = np.zeros((x.shape[0], 4, 4, len(self)))
+        for i in range(2):
+            out[:, i, 2 + i, 0], out[:, 2 + i, i, 0] = 1.0, -1.0
+        with np.errstate(all="ignore"):
+            for a, (_, _, value, _) in enumerate(MAGNETIC_TERMS, start=1):
+                b = value(x[:, :2])
+                out[:, 2, 3, a], out[:, 3, 2, a] = b, -b
+        return out
+
+    def basis_derivative(self, x: Any) -> FloatArray:
+        """∂_l Π_a(x)_ij, (B, 4, 4, 4, P) indexed [b, i, j, l, a]."""
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        out = np.zeros((x.shape[0], 4, 4, 4, len(self)))
+        with np.errstate(all="ignore"):
+            for a, (_, _, _, grad) in enumerate(MAGNETIC_TERMS, start=1):
+                g = grad(x[:, :2])
+                out[:, 2, 3, :2, a], out[:, 3, 2, :2, a] = g, -g
+        return out
+
+    def text(self, theta: Any, names: Sequence[str], digits: int = 10) -> str:
+        """ "{x₁, v₁} = {x₂, v₂} = 1; {v₁, v₂} = 1.0*sqrt(x₁**2 + x₂**2)", in the gauge θ₀ = 1
+        (θ₀ = 0: the raw coefficients)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        scale = theta[0] if theta[0] != 0 else 1.0
+        parts = []
+        for (label, _, _, _), t in zip(MAGNETIC_TERMS, theta[1:] / scale, strict=True):
+            if t != 0.0:
+                label = label.replace("x1", names[0]).replace("x2", names[1])
+                parts.append(f"{t:.{digits}g}" + ("" if label == "1" else f"*{label}"))
+        b = " + ".join(parts).replace("+ -", "- ") if parts else "0"
+        head = f"{{{names[0]}, {names[2]}}} = {{{names[1]}, {names[3]}}}"
+        return f"{head} = {1 if theta[0] != 0 else 0}; {{{names[2]}, {names[3]}}} = {b}"
+
+
+def _off_origin(states: FloatArray) -> str | None:
+    """Why the magnetic family cannot describe ``states``: |x| is not smooth at x = 0."""
+    if not np.all(np.linalg.norm(np.asarray(states)[:, :2], axis=1) > 0):
+        return "a state has x = 0, where |x| and |x|⁻¹ are not smooth"
+    return None
+
+
+def _magnetic_system(theta: FloatArray) -> ChargedParticle:
+    """The charged particle of :class:`MagneticFamily`'s θ (B = Σ θ_k/θ₀ b_k, H = 0)."""
+    if not (np.isfinite(theta).all() and theta[0] != 0):
+        raise ValueError("{x_i, v_i} = 0 or a coefficient is not finite: not a charged particle")
+    field, scaled, polynomial = [], [], True
+    for (label, degree, _, _), t in zip(MAGNETIC_TERMS, theta[1:] / theta[0], strict=True):
+        if t != 0.0:
+            field.append(f"({float(t)!r})*({label})")
+            scaled.append(f"({float(t) / (degree + 2)!r})*({label})")
+            polynomial = polynomial and "sqrt" not in label
+    b = " + ".join(field) or "0"
+    g = " + ".join(scaled) or "0"
+    # A polynomial B gets its potential derived exactly (sympy would compare the radial
+    # gauge's rounded coefficients exactly); |x| and |x|⁻¹ take the radial gauge's, checked.
+    potential = None if polynomial else [f"-({g})*x2", f"({g})*x1"]
+    return ChargedParticle(b, "0", potential=potential, name="learned")
+
+
+def _magnetic_brackets(dim: int) -> MagneticFamily | None:
+    return MagneticFamily() if dim == 4 else None
+
+
+#: The kinds of system dictionaries and scene [system] tables this module reads, and the
+#: bracket family structure discovery searches.
 SYSTEM_KINDS = {ChargedParticle.kind: ChargedParticle.from_dict}
 SCENE_KINDS = {ChargedParticle.kind: _scene_table}
+BRACKET_FAMILIES = {"magnetic": _magnetic_brackets}
