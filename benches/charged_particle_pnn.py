@@ -20,7 +20,7 @@ full batch, float32, best checkpoint by their test loss) on their own ``LFData``
 their 2M iterations (about 70 ms an iteration on one core here: all of them would take ~40 h),
 scored as the rows above; ``--only-pnn`` runs that row alone and keeps the others of ``--out``;
 without ``--pnn`` an existing PNN row of ``--out`` is kept; ``--only-discover`` runs the
-discovery row alone and keeps the others.
+discovery row alone and keeps the others, ``--sigma S`` with it on records with relative noise S.
 The checkout is taken at bench time, never vendored (see ``benches/structure_protocols.py``)::
 
     PYTHONPATH=python taskset -c 1 .venv/bin/python benches/charged_particle_pnn.py \\
@@ -142,22 +142,33 @@ def pnn_row(pnn: Path, iterations: int, system: Any, start: np.ndarray,
 
 
 def _discover_child(queue: Any, system: Any, train: np.ndarray, start: np.ndarray,
-                    exact: np.ndarray) -> None:  # fmt: skip
+                    exact: np.ndarray, label: str) -> None:  # fmt: skip
     torch.set_num_threads(1)
     try:
-        row = learn_row(system, train, start, exact, "discover",
-                        'pr.learn(structure="discover")')  # fmt: skip
+        row = learn_row(system, train, start, exact, "discover", label)
     except ValueError as err:
-        row = {"method": 'pr.learn(structure="discover")', "notes": f"refused: {err}"}
+        row = {"method": label, "notes": f"refused: {err}"}
     queue.put(row)
 
 
+def discover_label(sigma: float) -> str:
+    return 'pr.learn(structure="discover")' + (f", σ = {sigma:g}" if sigma else "")
+
+
 def discover_row(system: Any, train: np.ndarray, start: np.ndarray, exact: np.ndarray,
-                 seconds: float) -> dict[str, Any]:  # fmt: skip
-    """``pr.learn(structure="discover")`` in a child process, cut off after ``seconds``."""
+                 seconds: float, sigma: float = 0.0) -> dict[str, Any]:  # fmt: skip
+    """``pr.learn(structure="discover")`` in a child process, cut off after ``seconds``; with
+    ``sigma`` > 0 on records with relative noise σ (``structure_protocols.noisy_records``,
+    draw 0), scored against the exact test trajectory as every row."""
+    label = discover_label(sigma)
+    if sigma:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import structure_protocols as sp
+
+        train = sp.noisy_records(train, sigma, 0)
     queue: Any = mp.get_context("fork").Queue()
     child = mp.get_context("fork").Process(
-        target=_discover_child, args=(queue, system, train, start, exact)
+        target=_discover_child, args=(queue, system, train, start, exact, label)
     )
     t0 = time.perf_counter()
     child.start()
@@ -166,7 +177,7 @@ def discover_row(system: Any, train: np.ndarray, start: np.ndarray, exact: np.nd
         child.kill()
         child.join()
         row = {
-            "method": 'pr.learn(structure="discover")',
+            "method": label,
             "notes": f"cut off after {seconds:.0f} s on one core: no result (partial)",
         }
     else:
@@ -193,7 +204,15 @@ def main() -> None:
         action="store_true",
         help='run the pr.learn(structure="discover") row alone; keep the other rows of --out',
     )
+    parser.add_argument(
+        "--sigma",
+        type=float,
+        default=0.0,
+        help="with --only-discover: relative noise on the training records (draw 0)",
+    )
     args = parser.parse_args()
+    if args.sigma and not args.only_discover:
+        parser.error("--sigma needs --only-discover")
     # A bad output path fails here, not after half an hour of work.
     args.out.parent.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
@@ -218,12 +237,14 @@ def main() -> None:
         return
     if args.only_discover:
         doc = json.loads(args.out.read_text())
-        label = 'pr.learn(structure="discover")'
+        label = discover_label(args.sigma)
         doc["rows"] = [r for r in doc["rows"] if r["method"] != label]
-        row = discover_row(system, train, start, exact, args.discover_seconds)
+        row = discover_row(system, train, start, exact, args.discover_seconds, args.sigma)
         at = len(doc["rows"]) - (doc["rows"][-1]["method"].startswith("PNN") if doc["rows"] else 0)
         doc["rows"].insert(at, row)
-        doc["meta"]["discover_command"] = " ".join(sys.argv)
+        doc["meta"][f"discover_command{f'_sigma_{args.sigma:g}' if args.sigma else ''}"] = " ".join(
+            sys.argv
+        )
         args.out.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {args.out}")
         return
