@@ -690,3 +690,74 @@ def test_discovered_charged_particle_round_trips_bit_for_bit(charged_particle):
     assert back == report.structure
     rebuilt = pr.taylor_integrator(back, report.kept.order)
     np.testing.assert_array_equal(pr.integrate(rebuilt, x0, 0.1, 50), steps)
+
+
+# --- velocities weighted by their own difference errors ----------------------------------------
+
+
+def test_velocity_errors_follow_truncation_and_level_noise_aligned_with_the_velocities():
+    """The estimates line up with ``velocities`` record for record (short trajectories: NaN);
+    on a sine whose frequency jumps, the running median follows the jump (truncation error is
+    smooth), and noise spikes are levelled out."""
+    from poisson_rs.learn import discover
+    from poisson_rs.learn.hamiltonian import velocities
+
+    rng = np.random.default_rng(11)
+    short = [rng.normal(size=(n, 2)) for n in (2, 3, 5, 6)]
+    x, _ = velocities(short, 0.1)
+    e = discover.velocity_errors(short, 0.1)
+    assert e.shape == (len(x),) and np.isnan(e[:2]).all() and np.isfinite(e[2:]).all()
+    t = np.arange(200) * 0.1
+    omega = np.where(t < 16, 1.0, 6.0)  # a fast last fifth: its differences are poorer
+    phase = np.cumsum(omega) * 0.1
+    traj = np.stack([np.cos(phase), np.sin(phase)], axis=1) + 3.0
+    e = discover.velocity_errors([traj], 0.1)  # record k of e is record k + 4 of traj
+    slow, fast = np.median(e[:140]), np.median(e[165:])
+    assert fast > 1e3 * slow
+    w = discover.velocity_weights(e)
+    assert w[:140].min() > 0.9  # at the median, up to the sine's own variation
+    assert w[165:].max() < 1e-3
+    noisy = traj[:100] * (1 + 1e-6 * rng.normal(size=(100, 2)))
+    assert np.all(discover.velocity_weights(discover.velocity_errors([noisy], 0.1)) == 1.0)
+
+
+def test_velocity_weights_are_one_unless_the_errors_span_a_decade():
+    from poisson_rs.learn import discover
+
+    alike = np.array([1.0, 2.0, 3.0, 9.0, np.nan]) * 1e-6
+    np.testing.assert_array_equal(discover.velocity_weights(alike), np.ones(5))
+    spread = np.array([1.0, 2.0, 2.0, 40.0, np.nan]) * 1e-6
+    np.testing.assert_allclose(discover.velocity_weights(spread), [1.0, 1.0, 1.0, 0.05, 1.0])
+    np.testing.assert_array_equal(discover.velocity_weights(np.full(3, np.nan)), np.ones(3))
+
+
+def test_weighted_velocities_fit_pnns_field_where_plain_ones_cannot():
+    """PNN's trajectory passes |x| = 0.27, where order-8 differences are 1e-4 off against 2e-6
+    at the median: plain velocities leave the magnetic family's fit far above the records'
+    velocity error, weighted ones reach it, with B = |x| (and no constant) in the bracket."""
+    from poisson_rs.learn import discover
+    from poisson_rs.learn.data import prepare
+    from poisson_rs.learn.hamiltonian import velocities
+    from poisson_rs.structures.charged_particle import ChargedParticle
+
+    true = ChargedParticle(
+        PNN_FIELD, PNN_H, potential=[f"-({PNN_FIELD})*x2/3", f"({PNN_FIELD})*x1/3"]
+    )
+    traj = true.reference_solution(np.array([[0.5, 1.0, 1.0, 0.5]]), np.arange(400) * 0.1)[0]
+    data = prepare(
+        [traj], 0.1, None, test_fraction=0.0, seed=0, system=discover.UnknownStructure(4)
+    )
+    x, v = velocities(data.train, data.h)
+    e = discover.velocity_errors(data.train, data.h)
+    weights = discover.velocity_weights(e)
+    assert weights.min() < 0.05
+    family = _family(4, "magnetic")
+    hams = discover._library(2, None, **discover.DISTANCE_LIBRARIES[1])(family.template_system())
+    plain = discover.fit_bracket(data, family, hams, x, v, 0)
+    weighted = discover.fit_bracket(data, family, hams, x, v, 0, weights=weights)
+    floor = discover.velocity_floor(x, v, e, weights)
+    # Plain: above the screen (30× the records' velocity error), never fitted further.
+    assert weighted.velocity_residual < 3 * floor
+    assert plain.velocity_residual > discover.SCREEN_FACTOR * floor
+    b = weighted.theta[1:] / weighted.theta[0]
+    assert abs(b[3] - 1.0) < 1e-4 and np.abs(np.delete(b, 3)).max() < 1e-4

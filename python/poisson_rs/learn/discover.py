@@ -9,8 +9,9 @@ families linear in φ. The vector field π_θ(x)∇H_φ(x) is bilinear in (θ, �
 1. Velocity-level fit: the finite-difference velocities of the training records are fitted by
    variable projection (φ eliminated by least squares, θ by Levenberg–Marquardt) from a lifted
    start (the rank-1 part of the least-squares fit of the products θ_aφ_m) and seeded random
-   starts. Each record's velocity counts by its own error estimate (:func:`velocity_weights`:
-   order-8 against order-6 differences at the record), so that a fast passage, where the
+   starts. Where the records' own velocity error estimates (order-8 against order-6
+   differences, a running median along the trajectory) span a decade, a record above the median
+   counts less, in proportion (:func:`velocity_weights`), so that a fast passage, where the
    differences are poor, does not set the bracket's error. The relative residual screens the
    pairs: one far above the records' own velocity error (:func:`velocity_floor`, in the same
    weights) cannot explain the data and is not fitted further.
@@ -104,6 +105,11 @@ SNAPS = ("noise", "fit", "off")
 #: With noisy records, a pair whose held-out one-step error is within this factor of the noise
 #: threshold has H fitted again on T*G where its structure learns there (step 5).
 OWN_PATH_WITHIN = 10.0
+#: Records of the running median of the velocities' error estimates (:func:`velocity_errors`).
+ERROR_WINDOW = 9
+#: The velocities are weighted by their error estimates only where some estimate is this many
+#: times their median (:func:`velocity_weights`).
+ERROR_SPREAD = 10.0
 #: The distance libraries tried after poly+trig where the dimension is even and ≥ 4 (the
 #: coordinates read as planar points): log-distances, then the powers of distances.
 DISTANCE_LIBRARIES: tuple[dict[str, Any], ...] = (
@@ -441,8 +447,10 @@ def refine_through_integrator(
 def velocity_errors(trajs: list[np.ndarray], h: float) -> np.ndarray:
     """Each velocity's own relative error estimate, in the order of
     :func:`~poisson_rs.learn.structure_fit.velocities`: |v_{2q} − v_{2q−2}| / |v_{2q}|, central
-    differences of orders 2q and 2q − 2 at the record (q ≤ 4; truncation and noise alike); NaN
-    where a trajectory is too short for two orders (q < 2)."""
+    differences of orders 2q and 2q − 2 at the record (q ≤ 4), its running median over the
+    :data:`ERROR_WINDOW` records about it on the trajectory; NaN where a trajectory is too short
+    for two orders (q < 2). Truncation error changes smoothly along a trajectory and the running
+    median follows it; noise changes from record to record and the median levels it out."""
     from .hamiltonian import _fd_weights
 
     out = []
@@ -455,19 +463,29 @@ def velocity_errors(trajs: list[np.ndarray], h: float) -> np.ndarray:
         hi, lo = _fd_weights(np.arange(-q, q + 1)), _fd_weights(np.arange(-q + 1, q))
         v_hi = sum(hi[j] * t[j : j + m] for j in range(2 * q + 1)) / h
         v_lo = sum(lo[j] * t[j + 1 : j + 1 + m] for j in range(2 * q - 1)) / h
-        out.append(np.linalg.norm(v_hi - v_lo, axis=1) / np.linalg.norm(v_hi, axis=1).clip(1e-300))
+        e = np.linalg.norm(v_hi - v_lo, axis=1) / np.linalg.norm(v_hi, axis=1).clip(1e-300)
+        half = min(ERROR_WINDOW // 2, (m - 1) // 2)
+        padded = np.pad(e, half, mode="edge")
+        window = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
+        out.append(np.median(window, axis=1))
     return np.concatenate(out) if out else np.zeros(0)
 
 
 def velocity_weights(errors: np.ndarray) -> np.ndarray:
     """A weight per velocity, med/max(e, med) for its error estimate e (:func:`velocity_errors`)
-    and their median med; 1 where e is not defined. Records where the differences are poor (a
-    fast passage: on PNN's charged particle 1e-3 there, 1e-7 elsewhere) count as what they are
-    worth instead of setting the bracket's error."""
+    and their median med; 1 where e is not defined. Records whose differences are poorer than
+    the rest (a fast passage: on PNN's charged particle 3e-4 there, 2e-6 at the median) count as
+    what they are worth instead of setting the bracket's error. All weights are 1 where no
+    estimate reaches :data:`ERROR_SPREAD` × the median (noise, whose estimates the running
+    median levels, or a trajectory without fast passages)."""
     seen = np.isfinite(errors)
     if not seen.any():
         return np.ones(errors.shape)
     med = max(float(np.median(errors[seen])), 1e-300)
+    if float(np.max(errors[seen])) < ERROR_SPREAD * med:
+        # Errors alike (noise, or a slow trajectory): weights would only cost efficiency
+        # (discovery on DPNN's heavy top at σ = 1e-4 stops snapping to se(3)* with them).
+        return np.ones(errors.shape)
     return np.where(seen, med / np.maximum(np.where(seen, errors, med), med), 1.0)
 
 
