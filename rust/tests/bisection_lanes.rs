@@ -481,3 +481,30 @@ fn finite_probes_agree_with_is_finite_lane_by_lane() {
         }
     }
 }
+
+/// The lane solver a stepper takes is the realization's own answer: so(3) in either chart,
+/// se(3) in its exponential chart, nothing for another algebra of the same dimension (sl(2))
+/// or another realization (log-canonical).
+#[test]
+fn the_lane_chart_is_the_realizations_answer() {
+    use crate::realization::{LaneChart, Realization};
+    use crate::structures::lie_groupoid::LieAlgebra;
+    use crate::structures::LogCanonical;
+
+    for chart in [Chart::Exp, Chart::Cayley] {
+        let so3 = Groupoid::<3>::so3(chart).unwrap();
+        assert_eq!(so3.lane_chart(), Some(LaneChart::So3(chart)));
+    }
+    let se3 = Groupoid::new(LieAlgebra::<6>::se3(), Chart::Exp).unwrap();
+    assert_eq!(se3.lane_chart(), Some(LaneChart::Se3Exp));
+    // sl(2) in the basis (h, e, f): [h, e] = 2e, [h, f] = −2f, [e, f] = h.
+    let mut c = [[[0.0; 3]; 3]; 3];
+    for (i, j, k, v) in [(0, 1, 1, 2.0), (0, 2, 2, -2.0), (1, 2, 0, 1.0)] {
+        c[i][j][k] = v;
+        c[j][i][k] = -v;
+    }
+    let sl2 = Groupoid::new(LieAlgebra::<3>::new(c).unwrap(), Chart::Exp).unwrap();
+    assert_eq!(sl2.lane_chart(), None);
+    let log = LogCanonical::<2>::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap();
+    assert_eq!(log.lane_chart(), None);
+}
