@@ -19,18 +19,8 @@ use crate::generating::{
     GeneratingFunction, LaneRow, Mlp, NetworkLanes, Polynomial, Workspace, MAX_BATCH,
 };
 use crate::step::{Inverse, StepResult, StepStats, SIMPLIFIED_RATE};
-use crate::structures::lie_groupoid::{Chart, Groupoid};
-
-/// A realization whose chart the SIMD lane solvers have in closed form
-/// ([`Realization::lane_chart`]): the stepper picks its lane solver by this value, never by
-/// the realization's type.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum LaneChart {
-    /// so(3)'s groupoid in the given chart ([`crate::lanes_bisection`]).
-    So3(Chart),
-    /// se(3)'s groupoid in the exponential chart ([`crate::lanes_bisection_se3`]).
-    Se3Exp,
-}
+use crate::structures::lie_groupoid::Groupoid;
+pub use crate::structures::lie_groupoid::LaneChart;
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
 /// p base): sou is the Poisson map (β), tar the anti-Poisson one (α), and sou(0, p) = tar(0, p)
@@ -101,16 +91,10 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
     ) -> Result<[f64; N], StepFailure> {
         self.coadjoint(x, target)
     }
-    /// so(3) in either chart, se(3) in the exponential one (the only chart it has).
+    /// [`Groupoid::lane_chart`]: so(3) in either chart, se(3) in the exponential one.
     #[inline]
     fn lane_chart(&self) -> Option<LaneChart> {
-        if N == 3 && self.algebra.is_so3() {
-            Some(LaneChart::So3(self.chart))
-        } else if N == 6 && self.algebra.is_se3() && self.chart == Chart::Exp {
-            Some(LaneChart::Se3Exp)
-        } else {
-            None
-        }
+        Groupoid::lane_chart(self)
     }
     #[inline]
     fn predicts(&self) -> bool {

@@ -31,6 +31,17 @@ pub enum Chart {
     Exp,
 }
 
+/// A groupoid whose chart the SIMD lane solvers have in closed form
+/// ([`crate::realization::Realization::lane_chart`]): the stepper picks its lane solver by this
+/// value, never by the realization's type.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LaneChart {
+    /// so(3)'s groupoid in the given chart ([`crate::lanes_bisection`]).
+    So3(Chart),
+    /// se(3)'s groupoid in the exponential chart ([`crate::lanes_bisection_se3`]).
+    Se3Exp,
+}
+
 /// Largest |x| the exponential chart accepts: c(θ) has a pole at 2π.
 pub const EXP_CHART_MAX_ANGLE: f64 = 2.0 * std::f64::consts::PI - 0.1;
 
@@ -608,6 +619,18 @@ pub struct Groupoid<const N: usize> {
 }
 
 impl<const N: usize> Groupoid<N> {
+    /// The lane solver's closed-form chart this groupoid is: so(3) in either chart, se(3) in
+    /// the exponential one (the only chart it has); None for any other algebra.
+    pub fn lane_chart(&self) -> Option<LaneChart> {
+        if N == 3 && self.algebra.is_so3() {
+            Some(LaneChart::So3(self.chart))
+        } else if N == 6 && self.algebra.is_se3() && self.chart == Chart::Exp {
+            Some(LaneChart::Se3Exp)
+        } else {
+            None
+        }
+    }
+
     /// The Cayley chart exists for so(3) only.
     pub fn new(algebra: LieAlgebra<N>, chart: Chart) -> Result<Self, CoreError> {
         if chart == Chart::Cayley && !algebra.is_so3() {

@@ -16,8 +16,9 @@ when a tensor arrives.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
@@ -337,13 +338,24 @@ class LiePoissonSystem(PoissonSystemBase):
     ) -> tuple[np.ndarray, Any] | None:
         """The core's rollout of classical integrator ``name`` (not "dop853"): ``(traj,
         diagnostics)``, None where ``mu0`` is a list that is not one state of plain numbers."""
+        return self._core_classical(name)(  # type: ignore[no-any-return]
+            mu0, h, n_steps, every, tol, max_iter, lazy
+        )
+
+    def _core_classical(self, name: str) -> Callable[..., Any]:
+        """The core's rollout of ``name`` for this system, taking (mu0, h, n_steps, every, tol,
+        max_iter, lazy): the generic Lie–Poisson kernels (and the system's own splitting)."""
         from .. import _core
 
         c, powers, coeffs = self.core_arrays()
         top = self.splitting_parameters if name == "splitting" else None
-        return _core.rollout_lie_poisson(  # type: ignore[no-any-return]
-            name, c, powers, coeffs, mu0, h, n_steps, every, tol, max_iter, top, lazy
-        )
+
+        def run(mu0: Any, h: float, n: int, every: int, tol: float, it: int, lazy: bool) -> Any:
+            return _core.rollout_lie_poisson(
+                name, c, powers, coeffs, mu0, h, n, every, tol, it, top, lazy
+            )
+
+        return run
 
     def classical(self, name: str, *, tol: float, max_iter: int) -> Any:
         return provided("lie_poisson.classical")(self, name, tol=tol, max_iter=max_iter)
@@ -535,23 +547,11 @@ class RigidBody(LiePoissonSystem):
         rule a Poisson map (H is quadratic)."""
         return CLASSICAL_METHODS
 
-    def classical_rollout(
-        self,
-        name: str,
-        mu0: Any,
-        h: float,
-        n_steps: int,
-        every: int,
-        tol: float,
-        max_iter: int,
-        lazy: bool,
-    ) -> tuple[np.ndarray, Any] | None:
+    def _core_classical(self, name: str) -> Callable[..., Any]:
         """The core's closed-form rigid-body kernels (Euler's equations written out)."""
         from .. import _core
 
-        return _core.rollout_classical(  # type: ignore[no-any-return]
-            name, self.inertia, mu0, h, n_steps, every, tol, max_iter, lazy
-        )
+        return functools.partial(_core.rollout_classical, name, self.inertia)
 
     def reference_solution(
         self,
