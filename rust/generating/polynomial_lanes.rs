@@ -38,54 +38,57 @@ pub(crate) struct JetLanes<const N: usize, const L: usize> {
     pub(crate) h: [[[f64; L]; N]; N],
 }
 
-/// The powers x⁰ … x^[`TABLE_POWER`] of each coordinate, lane by lane: `pw[i][k][l]`.
-type PowerLanes<const N: usize, const L: usize> = [[[f64; L]; TABLE_POWER + 1]; N];
+/// The factor jets (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of each coordinate x for n = 0 … [`TABLE_POWER`],
+/// lane by lane: `fj[i][n][d][l]` (the second derivative read only for n ≥ 2).
+type FactorLanes<const N: usize, const L: usize> = [[[[f64; L]; 3]; TABLE_POWER + 1]; N];
 
-/// Scratch of [`jet_lanes_into`] kept across the evaluations of a block: the tables of powers
-/// (only the rows up to each coordinate's largest exponent are written and read) and the factor
-/// jets of one term (only those of its variables are written and read). Nothing in it needs
-/// clearing between evaluations.
+/// Scratch of [`jet_lanes_into`] kept across the evaluations of a block: the factor jets of each
+/// coordinate's powers (only the rows up to its largest exponent are written and read), and those
+/// of a term's exponents above the table, by position in the term. Nothing in it needs clearing
+/// between evaluations.
 pub(crate) struct Scratch<const N: usize, const L: usize> {
-    pw: PowerLanes<N, L>,
-    j: [[[f64; L]; 3]; N],
+    fj: FactorLanes<N, L>,
+    high: [[[f64; L]; 3]; N],
 }
 
 impl<const N: usize, const L: usize> Scratch<N, L> {
     #[inline(always)]
     pub(crate) fn new() -> Self {
         Scratch {
-            pw: [[[0.0; L]; TABLE_POWER + 1]; N],
-            j: [[[0.0; L]; 3]; N],
+            fj: [[[[0.0; L]; 3]; TABLE_POWER + 1]; N],
+            high: [[[0.0; L]; 3]; N],
         }
     }
 }
 
-/// `acc[l] += c · Π_i j[i][d_i][l]` over the variables i of the term (`powers[i]` > 0), in
-/// increasing i, where d_i counts how many of `a` and `b` equal i (N for neither): the value
-/// (a = b = N), ∂/∂p_a (b = N) or ∂²/∂p_a∂p_b. The orders are computed, not read from an array
-/// of indices: such an array is stored and reloaded per product, a store-forwarding stall.
+/// `acc[l] += x[l]` lane by lane.
 #[inline(always)]
-fn add_product<const N: usize, const L: usize>(
-    c: f64,
-    powers: &[u32; N],
-    j: &[[[f64; L]; 3]; N],
-    a: usize,
-    b: usize,
-    acc: &mut [f64; L],
-) {
-    let mut prod = [c; L];
-    for i in 0..N {
-        if powers[i] == 0 {
-            continue;
-        }
-        let d = usize::from(i == a) + usize::from(i == b);
-        for l in 0..L {
-            prod[l] *= j[i][d][l];
-        }
-    }
+fn add_into<const L: usize>(acc: &mut [f64; L], x: &[f64; L]) {
     for l in 0..L {
-        acc[l] += prod[l];
+        acc[l] += x[l];
     }
+}
+
+/// `x[l] *= y[l]` lane by lane.
+#[inline(always)]
+fn mul_into<const L: usize>(x: &mut [f64; L], y: &[f64; L]) {
+    for l in 0..L {
+        x[l] *= y[l];
+    }
+}
+
+/// `x · Π_{r ≥ from} f[r][0]` lane by lane, multiplied left to right.
+#[inline(always)]
+fn times_values<const N: usize, const L: usize>(
+    mut x: [f64; L],
+    f: &[&[[f64; L]; 3]; N],
+    from: usize,
+    m: usize,
+) -> [f64; L] {
+    for r in from..m {
+        mul_into(&mut x, &f[r][0]);
+    }
+    x
 }
 
 /// The jets of P(t, ·) at the L momenta `p[i][l]` (the Hessian only when `HESS`) into `out`:
@@ -95,6 +98,9 @@ fn add_product<const N: usize, const L: usize>(
 /// term contributes the factor 1 to the value and 0 to its derivatives. Here such factors are
 /// skipped: a product by 1 is exact, and a zero product added to a non-zero sum (or to +0)
 /// leaves it unchanged, so for finite inputs the sums are the same bits (the tests check it).
+/// The products of one term are formed left to right in the scalar order too, but those that
+/// begin with the same factors share them: a term in m variables takes m + m(m−1)/2 multiplies
+/// for its value and gradient where m + m² were spent before, and with its Hessian about half.
 #[inline(always)]
 pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, const T1: bool>(
     poly: &Polynomial<N>,
@@ -112,7 +118,8 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
             }
         }
     }
-    // The tables of powers, as Polynomial::powers builds them.
+    // The tables of powers, as Polynomial::powers builds them, with each power's factor jet
+    // (generating::power_jet) beside it: computed once per evaluation, not once per term.
     let (mut tmax, mut pmax) = (0u32, [0u32; N]);
     for m in &poly.terms {
         tmax = tmax.max(m.t_power);
@@ -125,16 +132,28 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
     for k in 1..=(tmax as usize).min(TABLE_POWER) {
         tp[k] = tp[k - 1] * t;
     }
-    let pw = &mut scratch.pw;
+    let fj = &mut scratch.fj;
     for i in 0..N {
-        pw[i][0] = [1.0; L];
-        for k in 1..=(pmax[i] as usize).min(TABLE_POWER) {
+        fj[i][0][0] = [1.0; L];
+        let top = (pmax[i] as usize).min(TABLE_POWER);
+        for k in 1..=top {
             for l in 0..L {
-                pw[i][k][l] = pw[i][k - 1][l] * p[i][l];
+                fj[i][k][0][l] = fj[i][k - 1][0][l] * p[i][l];
+            }
+        }
+        if top >= 1 {
+            fj[i][1][1] = [1.0; L];
+        }
+        for k in 2..=top {
+            let nf = k as f64;
+            let nn = nf * (nf - 1.0);
+            for l in 0..L {
+                fj[i][k][1][l] = nf * fj[i][k - 1][0][l];
+                fj[i][k][2][l] = nn * fj[i][k - 2][0][l];
             }
         }
     }
-    let j = &mut scratch.j;
+    let (fj, high) = (&scratch.fj, &mut scratch.high);
     for m in &poly.terms {
         // With T1, only the terms linear in t (t ∂S/∂t(0, p)): the Newton predictor's.
         if T1 && m.t_power != 1 {
@@ -146,57 +165,68 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
             t.powi(m.t_power as i32)
         };
         let c = m.coeff * tk;
-        // The (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of this term's variables lane by lane
-        // (generating::power_jet); the second derivative only where n ≥ 2.
+        // This term's variables in increasing order (`var[k]` the k-th); the factor jets of
+        // exponents above the table by `powi`, into `high` by position.
+        let mut var = [0usize; N];
+        let mut count = 0;
         for i in 0..N {
             let n = m.p_powers[i];
             if n == 0 {
                 continue;
             }
-            let ji = &mut j[i];
-            if n == 1 {
-                for l in 0..L {
-                    ji[0][l] = p[i][l];
-                    ji[1][l] = 1.0;
-                }
-            } else if n as usize <= TABLE_POWER {
-                let (k, nf) = (n as usize, n as f64);
-                let nn = nf * (nf - 1.0);
-                for l in 0..L {
-                    ji[0][l] = pw[i][k][l];
-                    ji[1][l] = nf * pw[i][k - 1][l];
-                    ji[2][l] = nn * pw[i][k - 2][l];
-                }
-            } else {
+            if n as usize > TABLE_POWER {
                 let nf = n as f64;
                 let nn = nf * (nf - 1.0);
+                let hk = &mut high[count];
                 for l in 0..L {
                     let x = p[i][l];
                     let xn2 = x.powi(n as i32 - 2);
-                    ji[0][l] = xn2 * x * x;
-                    ji[1][l] = nf * xn2 * x;
-                    ji[2][l] = nn * xn2;
+                    hk[0][l] = xn2 * x * x;
+                    hk[1][l] = nf * xn2 * x;
+                    hk[2][l] = nn * xn2;
                 }
             }
+            var[count] = i;
+            count += 1;
         }
-        let pp = &m.p_powers;
-        add_product(c, pp, j, N, N, &mut out.v);
-        for a in 0..N {
-            if pp[a] == 0 {
-                continue;
+        let high = &*high;
+        let f: [&[[f64; L]; 3]; N] = std::array::from_fn(|k| {
+            let (i, n) = (var[k], m.p_powers[var[k]] as usize);
+            if n > TABLE_POWER {
+                &high[k]
+            } else {
+                &fj[i][n]
             }
-            add_product(c, pp, j, a, N, &mut out.g[a]);
+        });
+        // Every product is c times the factors in increasing variable order, left to right,
+        // as the scalar jet forms it; products that start alike share their common prefix.
+        // `prefix` = c · Π_{r<k} xⁿ of position r.
+        let mut prefix = [c; L];
+        for k in 0..count {
+            let a = var[k];
+            // ∂/∂p_a = prefix · n xⁿ⁻¹ · Π_{r>k} xⁿ; the off-diagonal ∂²/∂p_a∂p_b (b at a
+            // position l > k) branch off this chain at l.
+            let mut chain = prefix;
+            mul_into(&mut chain, &f[k][1]);
             if HESS {
-                if pp[a] >= 2 {
-                    add_product(c, pp, j, a, a, &mut out.h[a][a]);
+                if m.p_powers[a] >= 2 {
+                    let mut aa = prefix;
+                    mul_into(&mut aa, &f[k][2]);
+                    add_into(&mut out.h[a][a], &times_values(aa, &f, k + 1, count));
                 }
-                for b in a + 1..N {
-                    if pp[b] > 0 {
-                        add_product(c, pp, j, a, b, &mut out.h[a][b]);
-                    }
+                for l in k + 1..count {
+                    let mut ab = chain;
+                    mul_into(&mut ab, &f[l][1]);
+                    add_into(&mut out.h[a][var[l]], &times_values(ab, &f, l + 1, count));
+                    mul_into(&mut chain, &f[l][0]);
                 }
+            } else {
+                chain = times_values(chain, &f, k + 1, count);
             }
+            add_into(&mut out.g[a], &chain);
+            mul_into(&mut prefix, &f[k][0]);
         }
+        add_into(&mut out.v, &prefix);
     }
 }
 
