@@ -1,13 +1,15 @@
 """What one step of every stepper of the package costs, in one process, one thread:
 ``RAYON_NUM_THREADS=1 taskset -c 0 python benches/step_costs.py``.
 
-For the rigid body (I = (1.5, 2, 2.5)), the heavy top (I = (1, 1.5, 2), mgl = 0.981, χ = e₃) and
+For the rigid body (I = (1.5, 2, 2.5)), the heavy top (I = (1, 1.5, 2), mgl = 0.981, χ = e₃),
 Lotka–Volterra (PNN's 2D system, the 3D one of ``scenes/lotka_volterra_3d.toml`` and a 5D one),
+an affine structure (``scenes/extended_pendulum.toml``) and a polynomial bivector
+(``scenes/nambu_cubic.toml``; their scenes' states scaled by seeded factors in [0.95, 1.05]),
 h = 0.1, a batch of seeded states (``--batch``, default 4096): every fixed-step classical method
-(``pr.classical_methods``, or RK4, the midpoint rule and the log splittings on Lotka–Volterra;
-DOP853 left out: it is adaptive and in SciPy), Taylor-HJ K = 3 and 5 in each chart the system has
-(the exact log-canonical groupoid for Lotka–Volterra), and the shipped learned models of that
-system. ``--system`` picks one system. Each stepper rolls the
+the system names (``pr.classical_methods``; DOP853 left out: it is adaptive and in SciPy),
+Taylor-HJ K = 3 and 5 in each chart the system names (``system.taylor_charts()``; the exact
+log-canonical groupoid for Lotka–Volterra, a polynomial bivector's default realization only),
+and the shipped learned models of that system. ``--system`` picks one system. Each stepper rolls the
 batch forward for a fixed amount of work and keeps only the final state; a cell is the median of
 ``--rounds`` timed rollouts after a warm-up, rounds alternating the steppers. Reported: ns per
 trajectory-step, the ratio to the package's own RK4 step in the same run, and the mean Newton
@@ -50,6 +52,7 @@ import numpy as np
 
 import poisson_rs as pr
 from poisson_rs.files import atomic_write_bytes, check_output_path
+from poisson_rs.scenes import load_scene
 
 H = 0.1
 #: A 5-D Lotka–Volterra system (c of rank 4: one Casimir), for the dimensions above 3.
@@ -61,6 +64,8 @@ LV5_C = [
     [0.0, -1.0, 1.0, -1.0, 0.0],
 ]
 LV5_B = [1.0, 2.0, 1.5, 0.5, 1.0]
+#: The package's scene files.
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
 #: Trajectory-steps per timed rollout.
 WORK = 200_000
 
@@ -88,21 +93,18 @@ def steppers(system: Any, learned: list[str]) -> dict[str, Any]:
     """Every stepper of ``system`` this build offers, by name. One that the build cannot make
     (an older build, under ``--baseline``) is left out, and the table says n/a."""
     makers: dict[str, Any] = {}
-    if isinstance(system, pr.LogCanonicalSystem):
-        for name in ("rk4", "midpoint", "log_splitting", "log_splitting4"):
-            makers[name] = lambda n=name: pr.log_canonical_classical(system, n)
-        for order in (3, 5):
-            makers[f"taylor{order}-log"] = lambda k=order: pr.log_canonical_taylor(system, k)
-    else:
-        for name in pr.classical_methods(system):
-            if name != "dop853":
-                makers[name] = lambda n=name: pr.classical(system, n)
-        charts = ("exp", "cayley") if isinstance(system, pr.RigidBody) else ("exp",)
-        for order in (3, 5):
-            for chart in charts:
-                makers[f"taylor{order}-{chart}"] = lambda k=order, c=chart: pr.taylor_integrator(
-                    system, order=k, chart=c
-                )
+    # Through the structure protocol: the system's own classical methods and Taylor-HJ charts.
+    for name in pr.classical_methods(system):
+        if name != "dop853":
+            makers[name] = lambda n=name: pr.classical(system, n)
+    # Every chart the system has; where it has more than two (a polynomial bivector's
+    # realizations of order 1 to 6 beside the matched one), its default, the first, only.
+    charts = system.taylor_charts()
+    for order in (3, 5):
+        for chart in charts if len(charts) <= 2 else charts[:1]:
+            makers[f"taylor{order}-{chart}"] = lambda k=order, c=chart: pr.taylor_integrator(
+                system, order=k, chart=c
+            )
     for name in learned:
         makers[f"learned:{name}"] = lambda n=name: pr.load_model(n)
     out: dict[str, Any] = {}
@@ -148,9 +150,33 @@ def cases(batch: int, which: str) -> list[tuple[str, Any, np.ndarray, list[str]]
             [],
         ),
     ]
+    for label, name in SCENE_CASES.items():
+        scene = load_scene(SCENES / f"{name}.toml")
+        points = np.asarray(scene.points, dtype=float)
+        out.append((label, scene.system, scene_states(points, batch, rng), []))
     if which == "all":
         return out
-    return [c for c in out if c[0].replace(" 3d", "").replace(" 5d", "").replace(" ", "-") == which]
+    return [c for c in out if system_key(c[0]) == which]
+
+
+def system_key(label: str) -> str:
+    """The ``--system`` value that picks a case: its label up to a dimension or a parenthesis."""
+    for tail in (" 3d", " 5d"):
+        label = label.removesuffix(tail)
+    return label.split(" (")[0].replace(" ", "-")
+
+
+#: The structures with no system of their own above, from the package's scenes (label: scene).
+SCENE_CASES = {
+    "affine (extended pendulum)": "extended_pendulum",
+    "polynomial bivector (Nambu cubic)": "nambu_cubic",
+}
+
+
+def scene_states(points: np.ndarray, batch: int, rng: np.random.Generator) -> np.ndarray:
+    """The scene's states, each coordinate scaled by a seeded factor in [0.95, 1.05]."""
+    picks = points[rng.integers(0, len(points), batch)]
+    return picks * rng.uniform(0.95, 1.05, picks.shape)
 
 
 def steps_for(name: str, batch: int) -> int:
@@ -265,7 +291,16 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument(
-        "--system", choices=("all", "rigid-body", "heavy-top", "lotka-volterra"), default="all"
+        "--system",
+        choices=(
+            "all",
+            "rigid-body",
+            "heavy-top",
+            "lotka-volterra",
+            "affine",
+            "polynomial-bivector",
+        ),
+        default="all",
     )
     parser.add_argument(
         "--baseline",
