@@ -386,10 +386,7 @@ fn se3_block<const N: usize, const L: usize>(
             }
             for a in 0..6 {
                 for b in 0..6 {
-                    let new = &jet.h[a.min(b)][a.max(b)];
-                    for l in 0..L {
-                        h[a][b].0[l] = if take[l] { new[l] } else { h[a][b].0[l] };
-                    }
+                    h[a][b] = h[a][b].blend(&take, V(jet.h[a.min(b)][a.max(b)]));
                 }
             }
         }
