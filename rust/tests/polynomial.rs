@@ -46,3 +46,37 @@ fn sparse_polynomial_refuses_bad_tables() {
     let two = SparsePolynomial::new(2, &[1.0], &[1, 1]).unwrap();
     assert!(PolynomialGenerating::<2>::new(two).is_err()); // S needs t and 2 coordinates
 }
+
+/// S's jets with t multiplied in f64 first are `eval`'s jets with t a constant jet, bit for bit:
+/// at t = +0, −0, t > 0 and t < 0 (the fallback), and where c·tᵉ overflows (the fallback per
+/// term, whose jet products turn the derivatives into NaN as `eval`'s do).
+#[test]
+fn jets_after_the_constant_t_are_evals_bits() {
+    use crate::dual::{Dual1, Jet2, Scalar};
+    let mut rng = Rng::new(0x5EED_0007);
+    for round in 0..40 {
+        let n_terms = 1 + rng.below(12);
+        let coeffs: Vec<f64> = (0..n_terms).map(|_| rng.range(-2.0, 2.0)).collect();
+        let exps: Vec<u32> = (0..n_terms * 4).map(|_| rng.below(5) as u32).collect();
+        let s = SparsePolynomial::new(4, &coeffs, &exps).unwrap();
+        let t = match round % 5 {
+            0 => 0.0,
+            1 => -0.0,
+            2 => rng.range(0.0, 0.5),
+            3 => rng.range(-0.5, 0.0),
+            _ => 1e200,
+        };
+        let p = [rng.range(-2.0, 2.0), rng.range(-2.0, 2.0), rng.range(-2.0, 2.0)];
+        let jets: [Jet2<3>; 3] = std::array::from_fn(|i| Jet2::var(p[i], i));
+        let duals: [Dual1<3>; 3] = std::array::from_fn(|i| Dual1::var(p[i], i));
+        let mut v = [Jet2::<3>::cst(t); 4];
+        v[1..].copy_from_slice(&jets);
+        let mut d = [Dual1::<3>::cst(t); 4];
+        d[1..].copy_from_slice(&duals);
+        let (a, b) = (s.eval(&v), s.eval_after_constant(t, &jets));
+        assert!(same_bits(&a.flat(), &b.flat()), "round {round}, t = {t}: jets");
+        let (a, b) = (s.eval(&d), s.eval_after_constant(t, &duals));
+        assert_eq!(a.v.to_bits(), b.v.to_bits(), "round {round}: dual value");
+        assert!(same_bits(&a.g, &b.g), "round {round}, t = {t}: dual gradient");
+    }
+}
