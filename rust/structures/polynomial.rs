@@ -133,9 +133,7 @@ impl SparsePolynomial {
         }
         sum
     }
-}
 
-impl SparsePolynomial {
     /// [`Self::eval`] at (t, `rest`), t the first variable and a plain number: each term's
     /// c·tᵉ multiplied in f64 before its first product of jets. For t = +0 or t > 0 and a
     /// finite c·tᵉ, `eval`'s products of constant jets give the value c·tᵉ with derivatives

@@ -66,7 +66,11 @@ fn jets_after_the_constant_t_are_evals_bits() {
             3 => rng.range(-0.5, 0.0),
             _ => 1e200,
         };
-        let p = [rng.range(-2.0, 2.0), rng.range(-2.0, 2.0), rng.range(-2.0, 2.0)];
+        let p = [
+            rng.range(-2.0, 2.0),
+            rng.range(-2.0, 2.0),
+            rng.range(-2.0, 2.0),
+        ];
         let jets: [Jet2<3>; 3] = std::array::from_fn(|i| Jet2::var(p[i], i));
         let duals: [Dual1<3>; 3] = std::array::from_fn(|i| Dual1::var(p[i], i));
         let mut v = [Jet2::<3>::cst(t); 4];
@@ -74,9 +78,15 @@ fn jets_after_the_constant_t_are_evals_bits() {
         let mut d = [Dual1::<3>::cst(t); 4];
         d[1..].copy_from_slice(&duals);
         let (a, b) = (s.eval(&v), s.eval_after_constant(t, &jets));
-        assert!(same_bits(&a.flat(), &b.flat()), "round {round}, t = {t}: jets");
+        assert!(
+            same_bits(&a.flat(), &b.flat()),
+            "round {round}, t = {t}: jets"
+        );
         let (a, b) = (s.eval(&d), s.eval_after_constant(t, &duals));
         assert_eq!(a.v.to_bits(), b.v.to_bits(), "round {round}: dual value");
-        assert!(same_bits(&a.g, &b.g), "round {round}, t = {t}: dual gradient");
+        assert!(
+            same_bits(&a.g, &b.g),
+            "round {round}, t = {t}: dual gradient"
+        );
     }
 }
