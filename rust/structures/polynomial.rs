@@ -117,21 +117,9 @@ impl SparsePolynomial {
     /// multiplication, so f64, duals and jets all get exact results and derivatives.
     #[inline]
     pub fn eval<T: Scalar>(&self, v: &[T]) -> T {
-        let mut sum = T::cst(0.0);
-        for (c, row) in self
-            .coeffs
-            .iter()
-            .zip(self.exponents.chunks_exact(self.vars))
-        {
-            let mut term = T::cst(*c);
-            for (x, &e) in v.iter().zip(row) {
-                for _ in 0..e {
-                    term = term * *x;
-                }
-            }
-            sum = sum + term;
-        }
-        sum
+        self.terms().fold(T::cst(0.0), |sum, (c, row)| {
+            sum + times_powers(T::cst(c), v, row)
+        })
     }
 
     /// [`Self::eval`] at (t, `rest`), t the first variable and a plain number: each term's
@@ -142,35 +130,28 @@ impl SparsePolynomial {
     #[inline]
     pub fn eval_after_constant<T: Scalar>(&self, t: f64, rest: &[T]) -> T {
         let positive = t > 0.0 || t.to_bits() == 0;
-        let mut sum = T::cst(0.0);
-        for (c, row) in self
-            .coeffs
-            .iter()
-            .zip(self.exponents.chunks_exact(self.vars))
-        {
-            let mut ct = *c;
-            for _ in 0..row[0] {
-                ct *= t;
-            }
-            let mut term = if positive && ct.is_finite() {
+        self.terms().fold(T::cst(0.0), |sum, (c, row)| {
+            let ct = times_powers(c, &[t], &row[..1]);
+            let head = if positive && ct.is_finite() {
                 T::cst(ct)
             } else {
-                let tt = T::cst(t);
-                let mut term = T::cst(*c);
-                for _ in 0..row[0] {
-                    term = term * tt;
-                }
-                term
+                times_powers(T::cst(c), &[T::cst(t)], &row[..1])
             };
-            for (x, &e) in rest.iter().zip(&row[1..]) {
-                for _ in 0..e {
-                    term = term * *x;
-                }
-            }
-            sum = sum + term;
-        }
-        sum
+            sum + times_powers(head, rest, &row[1..])
+        })
     }
+}
+
+/// `term · Π_i v_i^{row_i}`, each power by repeated multiplication, left to right: the
+/// products of [`SparsePolynomial::eval`] for any scalar.
+#[inline(always)]
+fn times_powers<T: Scalar>(mut term: T, v: &[T], row: &[u8]) -> T {
+    for (x, &e) in v.iter().zip(row) {
+        for _ in 0..e {
+            term = term * *x;
+        }
+    }
+    term
 }
 
 /// A polynomial vector field ẋ_i = f_i(x), f = π∇H of a polynomial bivector and Hamiltonian
