@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from . import devices
+
 #: The state dtypes on the device, by name.
 DTYPES = ("float64", "float32")
 
@@ -27,27 +29,10 @@ DTYPES = ("float64", "float32")
 def check_device(device: Any) -> Any:
     """``device`` as a ``torch.device`` ("cpu", "cuda", "cuda:1", or a torch.device): ValueError
     naming 'device' for anything else, and for CUDA where torch sees none (before any work)."""
-    import torch
-
-    if not isinstance(device, (str, torch.device)):
-        raise TypeError(f"device must be a string such as 'cuda' or 'cpu', got {device!r}")
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, ValueError):
-        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
-    if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError(
-                f"device {device!r}: torch sees no CUDA device here; use device='cpu' (the "
-                "torch reference path) or leave device unset (the Rust core)"
-            )
-        if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise ValueError(
-                f"device {device!r}: torch sees {torch.cuda.device_count()} CUDA device(s)"
-            )
-    return dev
+    return devices.check_device(
+        device,
+        instead="use device='cpu' (the torch reference path) or leave device unset (the Rust core)",
+    )
 
 
 class DeviceStepper:

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .devices import AUTO_DEVICE, auto_device, check_device
 from .export import model_bytes, save_model
 from .files import atomic_write_bytes, check_input_file, probe_writable
 from .fit import (
@@ -139,7 +140,11 @@ class TrainConfig(FitConfig):
     schedule: str = "cosine"
     seed: int = 0
     dtype: str = "float64"
-    device: str = "cpu"
+    device: str = "auto"
+    """Where training runs: "auto" (CUDA when torch sees a device, else the CPU: resolved when
+    the configuration is made, so the recorded configuration names the device used), "cpu",
+    "cuda" or "cuda:N". float64 on either; a model trained on a GPU is written to CPU tensors
+    and loads anywhere."""
     derivatives: str = "reverse"
     """How the HJ loss takes ∂S/∂t and ∂S/∂p (``generating.hj_derivatives``): "reverse" (a
     hand-written backward pass; the faster on a CPU) or "autograd" (nested autograd: the paper
@@ -177,6 +182,8 @@ class TrainConfig(FitConfig):
         # A system object is kept as its dictionary: the configuration is recorded as JSON.
         if self.system is not None and not isinstance(self.system, Mapping):
             self.system = self.system.to_dict()
+        if self.device == AUTO_DEVICE:
+            self.device = auto_device()
 
     def resolved_mlp_power(self) -> int:
         if self.mlp_power is not None:
@@ -249,14 +256,11 @@ class TrainConfig(FitConfig):
         if self.init not in INIT:
             raise ValueError(f"init must be one of {INIT}, got {self.init!r}")
         self._validate_sampling()
-        if self.device.startswith("cuda") and not torch.cuda.is_available():
-            raise ValueError("device 'cuda' requested but torch sees no CUDA device")
-        try:
-            torch.device(self.device)
-        except (RuntimeError, TypeError):
+        if not isinstance(self.device, str):
             raise ValueError(
-                f"device must be a torch device (cpu, cuda, cuda:0, ...), got {self.device!r}"
-            ) from None
+                f"device must be a string such as 'cuda' or 'cpu', got {self.device!r}"
+            )
+        check_device(self.device, instead="use device='cpu' (or 'auto': CUDA where torch sees it)")
 
     def _validate_numbers(self) -> None:
         """Types, finiteness and sane ranges: an inf or absurd setting would train to NaN and

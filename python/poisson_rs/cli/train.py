@@ -105,7 +105,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "--sampling-horizon", dest="sampling_horizon", type=POSITIVE, help="orbit time span (10)"
     )
     t.add_argument("--dtype", choices=["float32", "float64"])
-    t.add_argument("--device", help="cpu, cuda, cuda:0, ...")
+    t.add_argument(
+        "--device", help="auto (default: CUDA where torch sees it, else the CPU), cpu, cuda, cuda:0"
+    )
     t.add_argument(
         "--derivatives",
         choices=["reverse", "autograd"],
