@@ -19,8 +19,8 @@ use crate::generating::{
     GeneratingFunction, LaneRow, Mlp, NetworkLanes, Polynomial, Workspace, MAX_BATCH,
 };
 use crate::step::{Inverse, StepResult, StepStats, SIMPLIFIED_RATE};
-use crate::structures::lie_groupoid::Groupoid;
 pub use crate::structures::lie_groupoid::LaneChart;
+use crate::structures::lie_groupoid::{Chart, Groupoid};
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
 /// p base): sou is the Poisson map (β), tar the anti-Poisson one (α), and sou(0, p) = tar(0, p)
@@ -102,7 +102,9 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
     }
     /// tar(x, p) = p + ½ ad_xᵀ p + O(|x|²) in every chart, so p₀ = μ − ½ ad_{x₀}ᵀ μ is O(h²)
     /// from the solution where μ itself is O(h) away (x₀ = O(h)): Newton's first error, and
-    /// simplified Newton's contraction with it, shrink by a power of h. Only where
+    /// simplified Newton's contraction with it, shrink by a power of h. In the Cayley chart
+    /// p₀ also takes tar's quadratic term, ¼ x₀ (x₀·μ) (p₀ = 2μ − tar(x₀, μ)); in the exponential
+    /// one the whole chart predicts no better (`benches/newton_predictors.py`). Only where
     /// |x₀|² ≤ [`PREDICT_MAX_S`] and p₀ is finite.
     #[inline]
     fn predict(&self, x0: &[f64; N], target: &[f64; N]) -> Option<[f64; N]> {
@@ -112,7 +114,14 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
             return None;
         }
         let a = self.algebra.ad_transpose_apply(x0, target);
-        let p0: [f64; N] = std::array::from_fn(|i| target[i] - 0.5 * a[i]);
+        let mut p0: [f64; N] = std::array::from_fn(|i| target[i] - 0.5 * a[i]);
+        if self.chart == Chart::Cayley {
+            // The Cayley chart's quadratic term too (p₀ = 2μ − tar(x₀, μ)), as the so(3) lanes.
+            let along = 0.25 * x0.iter().zip(target).fold(0.0, |s, (a, b)| s + a * b);
+            for i in 0..N {
+                p0[i] -= x0[i] * along;
+            }
+        }
         p0.iter().all(|v| v.is_finite()).then_some(p0)
     }
 }

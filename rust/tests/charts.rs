@@ -109,3 +109,41 @@ fn cayley_chart_matches_matrix_form() {
         }
     }
 }
+
+/// Newton's start on so(3): p₀ = 2μ − tar(x₀, μ) in the Cayley chart (tar's quadratic term
+/// included), μ + ½ x₀ × μ in the exponential one (tar's linear part), and none where
+/// |x₀|² > 1.
+#[test]
+fn so3_predictor_is_the_chart_at_x0() {
+    use crate::realization::Realization;
+    let mut rng = Rng::new(0x5EED_0082);
+    for _ in 0..50 {
+        let x = rng.vec3(-0.5, 0.5);
+        let mu = rng.vec3(-3.0, 3.0);
+        let cayley = Groupoid::so3(Chart::Cayley).unwrap();
+        let got = cayley.predict(&x, &mu).unwrap();
+        let t = Chart::Cayley.tar(&x, &mu).unwrap();
+        let want: [f64; 3] = std::array::from_fn(|i| 2.0 * mu[i] - t[i]);
+        assert!(
+            norm(&sub(&got, &want)) < 1e-14 * norm(&mu),
+            "{got:?} {want:?}"
+        );
+        let exp = Groupoid::so3(Chart::Exp).unwrap();
+        let got = exp.predict(&x, &mu).unwrap();
+        let turn = [
+            x[1] * mu[2] - x[2] * mu[1],
+            x[2] * mu[0] - x[0] * mu[2],
+            x[0] * mu[1] - x[1] * mu[0],
+        ];
+        let want: [f64; 3] = std::array::from_fn(|i| mu[i] + 0.5 * turn[i]);
+        assert!(
+            norm(&sub(&got, &want)) < 1e-14 * norm(&mu),
+            "{got:?} {want:?}"
+        );
+    }
+    let far = [1.0, 0.5, 0.1];
+    assert!(Groupoid::so3(Chart::Cayley)
+        .unwrap()
+        .predict(&far, &[1.0, 2.0, 3.0])
+        .is_none());
+}

@@ -1,0 +1,168 @@
+"""Newton updates per Taylor-HJ step with the core's predictor and with a second-order one.
+
+    PYTHONPATH=python python benches/newton_predictors.py --json docs/newton_predictors.json
+
+A Taylor-HJ step on g* solves tar(∇S(h, p), p) = μ for p by simplified Newton (a fresh Jacobian
+while the updates contract by less than 1/4, stop once |δ|∞ ≤ 1e-12 · |p|∞). The core starts
+from a first-order predictor, x₀ the gradient of S's t-linear terms at μ: O(h²) from the
+solution. The second-order one adds a step of the fixed-point iteration
+p ← p + μ − tar(x, p) with x the gradient of S's terms up to t² at p₀ (the cheap part of S, no
+network and no t³…t^K terms): O(h³). Replayed: "linear" (tar's part linear in x₀, the core's
+start in the exponential chart), "chart" (p₀ = 2μ − tar(x₀, μ), the whole chart at x₀: the
+core's start in the Cayley chart) and "second".
+
+Each row replays the three in float64 torch (autograd Jacobians, the package's own ``tar`` and
+Taylor terms) on the states of ``benches/step_costs.py`` (seed 42, h = 0.1) and counts the
+updates; the core's own count on the same states (``integrate(..., return_info=True)``, one
+step) checks the replay of its predictor. Reported: mean updates per step and the median
+size of each update. No timing: what an update saved is worth is the cost of an update, in
+``docs/step_costs.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import poisson_rs as pr
+from poisson_rs.files import atomic_write_bytes, check_output_path
+from poisson_rs.realizations.lie_groupoid import tar
+from poisson_rs.taylor import system_taylor_terms
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from step_costs import H, rigid_states, top_states
+
+TOL = 1e-12
+SIMPLIFIED_RATE = 0.25
+
+
+def polynomial(powers: np.ndarray, coeffs: np.ndarray, max_t: int | None = None) -> Any:
+    """S(t, p) = Σ c tᵏ pᵉ over the terms with k ≤ max_t (all when None), in torch."""
+    keep = np.ones(len(powers), bool) if max_t is None else powers[:, 0] <= max_t
+    pw, cf = torch.as_tensor(powers[keep]), torch.as_tensor(coeffs[keep])
+
+    def s(t: float, p: torch.Tensor) -> torch.Tensor:
+        m = t ** pw[:, 0].to(p.dtype)
+        for i in range(p.shape[-1]):
+            m = m * p[..., i : i + 1] ** pw[:, i + 1]
+        return (m * cf).sum(-1)
+
+    return s
+
+
+def gradient(s: Any, t: float, p: torch.Tensor, graph: bool = False) -> torch.Tensor:
+    if not p.requires_grad:
+        p = p.detach().requires_grad_(True)
+    return torch.autograd.grad(s(t, p), p, create_graph=graph)[0]
+
+
+#: The predictors replayed: the core's (tar's part linear in x₀), the whole chart at x₀, and
+#: the whole chart at x₀ followed by one fixed-point step with S's terms up to t².
+PREDICTORS = ("linear", "chart", "second")
+
+
+def solve(
+    system: Any, order: int, chart: str, mu: torch.Tensor, predictor: str
+) -> tuple[int, list[float]]:
+    """Simplified Newton from a predictor of :data:`PREDICTORS`: updates and their sizes."""
+    powers, coeffs = system_taylor_terms(system, order, chart)
+    alg = system.algebra
+    s, s1, s2 = (polynomial(powers, coeffs, k) for k in (None, 1, 2))
+    x0 = gradient(s1, H, mu)
+    if predictor == "linear":
+        # tar(x, p) = p − ½ ad*_x p + O(|x|²): p₀ = μ + ½ ad*_{x₀} μ, the core's predictor.
+        one = torch.ones((), dtype=mu.dtype)
+        _, lin = torch.autograd.functional.jvp(
+            lambda e: tar(chart, e * x0, mu, alg), (0 * one,), (one,)
+        )
+        p = mu - lin
+    else:
+        p = mu + (mu - tar(chart, x0, mu, alg))
+    if predictor == "second":
+        xa = gradient(s2, H, p)
+        p = p + (mu - tar(chart, xa, p, alg))
+    sizes: list[float] = []
+    refresh, last, inv = True, float("inf"), None
+    while len(sizes) < 50:
+        if refresh:
+            jac = torch.autograd.functional.jacobian(
+                lambda q: tar(chart, gradient(s, H, q, graph=True), q, alg), p
+            )
+            inv = torch.linalg.inv(jac)
+        assert inv is not None
+        delta = inv @ (mu - tar(chart, gradient(s, H, p), p, alg))
+        p = (p + delta).detach()
+        size = float(delta.abs().max())
+        sizes.append(size)
+        if size <= TOL * float(p.abs().max()):
+            break
+        refresh, last = size > SIMPLIFIED_RATE * last, size
+    return len(sizes), sizes
+
+
+def core_updates(system: Any, order: int, chart: str, states: np.ndarray) -> float:
+    stepper = pr.taylor_integrator(system, order=order, chart=chart)
+    _, info = pr.integrate(stepper, states, H, 1, return_info=True)
+    return float(np.mean(info.newton_iterations))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--states", type=int, default=64, help="states per system (64)")
+    ap.add_argument("--json", type=Path, help="write the rows here")
+    args = ap.parse_args()
+    if args.json is not None:
+        check_output_path(args.json)
+    torch.set_default_dtype(torch.float64)
+    rng = np.random.default_rng(42)
+    systems = [
+        (
+            "rigid body",
+            pr.RigidBody((1.5, 2.0, 2.5)),
+            rigid_states(args.states, rng),
+            ("exp", "cayley"),
+        ),
+        (
+            "heavy top",
+            pr.HeavyTop((1.0, 1.5, 2.0), 0.981, (0.0, 0.0, 1.0)),
+            top_states(args.states, rng),
+            ("exp",),
+        ),
+    ]
+    rows = []
+    print("| system | chart, K | core | linear | chart | second | median |δ| (each predictor) |")
+    print("|---|---|---|---|---|---|---|")
+    for label, system, states, charts in systems:
+        for chart in charts:
+            for order in (3, 5):
+                row: dict[str, Any] = {"system": label, "chart": chart, "order": order}
+                row["core"] = core_updates(system, order, chart, states)
+                for key in PREDICTORS:
+                    runs = [solve(system, order, chart, torch.as_tensor(m), key) for m in states]
+                    row[key] = float(np.mean([n for n, _ in runs]))
+                    depth = max(len(z) for _, z in runs)
+                    row[f"{key}_median_sizes"] = [
+                        float(np.median([z[i] for _, z in runs if len(z) > i]))
+                        for i in range(depth)
+                    ]
+                rows.append(row)
+                sizes = " / ".join(
+                    ", ".join(f"{v:.1e}" for v in row[f"{k}_median_sizes"]) for k in PREDICTORS
+                )
+                print(
+                    f"| {label} | {chart}, {order} | {row['core']:.2f} | "
+                    f"{row['linear']:.2f} | {row['chart']:.2f} | {row['second']:.2f} | {sizes} |"
+                )
+    if args.json is not None:
+        doc = {"h": H, "tol": TOL, "states": args.states, "rows": rows}
+        atomic_write_bytes(args.json, (json.dumps(doc, indent=1) + "\n").encode())
+
+
+if __name__ == "__main__":
+    main()
