@@ -3,18 +3,20 @@
     PYTHONPATH=python python benches/newton_predictors.py --json docs/newton_predictors.json
 
 A Taylor-HJ step on g* solves tar(∇S(h, p), p) = μ for p by simplified Newton (a fresh Jacobian
-while the updates contract by less than 1/4, stop once |δ|∞ ≤ 1e-12 · |p|∞). The core starts
-from a first-order predictor, x₀ the gradient of S's t-linear terms at μ: O(h²) from the
-solution. The second-order one adds a step of the fixed-point iteration
-p ← p + μ − tar(x, p) with x the gradient of S's terms up to t² at p₀ (the cheap part of S, no
-network and no t³…t^K terms): O(h³). Replayed: "linear" (tar's part linear in x₀, the core's
-start in the exponential chart), "chart" (p₀ = 2μ − tar(x₀, μ), the whole chart at x₀: the
-core's start in the Cayley chart) and "second".
+while the updates contract by less than 1/4, stop once |δ|∞ ≤ 1e-12 · |p|∞), started from a
+prediction. First order, from x₀ the gradient of S's t-linear terms at μ, O(h²) from the
+solution: "linear" (tar's part linear in x₀, p₀ = μ + ½ ad*_{x₀} μ) or "chart" (p₀ = 2μ −
+tar(x₀, μ), the whole chart at x₀). "second": "linear" in the exponential chart, "chart" in the
+Cayley one, then one step of the fixed-point iteration p ← p + μ − tar(x, p) with x the gradient
+of S's t¹ and t² terms at p₀ (the cheap part of S: no network, no t³ … t^K terms; on g* the
+Taylor-HJ S has no t² term, so x is t∇H at p₀), O(h³): the core's start on se(3). On so(3) the
+core keeps the first-order start: the fixed-point step saved an update there but cost more than
+the cheap 3×3 update it saved (``benches/step_costs.py``).
 
 Each row replays the three in float64 torch (autograd Jacobians, the package's own ``tar`` and
 Taylor terms) on the states of ``benches/step_costs.py`` (seed 42, h = 0.1) and counts the
 updates; the core's own count on the same states (``integrate(..., return_info=True)``, one
-step) checks the replay of its predictor. Reported: mean updates per step and the median
+step) checks the replay of its start. Reported: mean updates per step and the median
 size of each update. No timing: what an update saved is worth is the cost of an update, in
 ``docs/step_costs.json``.
 """
@@ -62,8 +64,7 @@ def gradient(s: Any, t: float, p: torch.Tensor, graph: bool = False) -> torch.Te
     return torch.autograd.grad(s(t, p), p, create_graph=graph)[0]
 
 
-#: The predictors replayed: the core's (tar's part linear in x₀), the whole chart at x₀, and
-#: the whole chart at x₀ followed by one fixed-point step with S's terms up to t².
+#: The predictors replayed (see the module's docstring).
 PREDICTORS = ("linear", "chart", "second")
 
 
@@ -75,7 +76,7 @@ def solve(
     alg = system.algebra
     s, s1, s2 = (polynomial(powers, coeffs, k) for k in (None, 1, 2))
     x0 = gradient(s1, H, mu)
-    if predictor == "linear":
+    if predictor == "linear" or (predictor == "second" and chart == "exp"):
         # tar(x, p) = p − ½ ad*_x p + O(|x|²): p₀ = μ + ½ ad*_{x₀} μ, the core's predictor.
         one = torch.ones((), dtype=mu.dtype)
         _, lin = torch.autograd.functional.jvp(

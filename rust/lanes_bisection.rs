@@ -345,7 +345,7 @@ fn evaluate_polynomial<const N: usize, const L: usize, const HESS: bool>(
     jet: &mut JetLanes<N, L>,
 ) {
     if L != 1 {
-        return jet_lanes_into::<N, L, HESS, false>(poly, t, p, scratch, jet);
+        return jet_lanes_into::<N, L, HESS, 0>(poly, t, p, scratch, jet);
     }
     let q: [f64; N] = std::array::from_fn(|i| p[i][0]);
     if HESS {
@@ -515,7 +515,7 @@ fn so3_block<const N: usize, const L: usize>(
         // p₀ = μ + ½ x₀ × μ, with x₀ the gradient of the terms of S linear in t at μ: tar(x, p)
         // = p − ½ x×p + O(|x|²) in both charts, so p₀ is O(h²) from the solution where μ is
         // O(h). Simplified Newton's contraction is proportional to that first error.
-        jet_lanes_into::<N, L, false, true>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        jet_lanes_into::<N, L, false, 1>(sys.poly, t, &pl, &mut scratch, &mut jet);
         let x0: V3<L> = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
         let turn = cross(&x0, &target);
         let mut p0 = v3(|i| target[i] + turn[i].scale(0.5));

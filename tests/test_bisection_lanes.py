@@ -68,8 +68,9 @@ def test_lane_solver_agrees_with_full_newton_and_predicts(chart: str):
     """The so(3) lane solver (simplified Newton from the explicit predictor) against the generic
     full-Newton path (dual-number Jacobian, started from μ): both solve the same equation to
     the tolerance, so the states agree to ~1e-12 after 50 steps, and the Casimir is kept to
-    round-off. The predictor starts Newton O(h²) from the solution, so the exp chart needs
-    about 3 updates a step where simplified Newton from μ needs 3.9 (a count, not a timing)."""
+    round-off. The predictor starts Newton O(h²) from the solution (in the Cayley chart with the
+    chart's quadratic term), so either chart needs about 3 updates a step where simplified Newton
+    from μ needs 3.9 (a count, not a timing)."""
     lanes = pr.taylor_integrator(BODY, order=5, chart=chart)
     full = pr.TaylorIntegrator(lanes._bytes, tol=lanes.tol, max_iter=lanes.max_iter, newton="full")
     mu0 = _states(37, seed=17)
@@ -81,5 +82,5 @@ def test_lane_solver_agrees_with_full_newton_and_predicts(chart: str):
     casimir = np.abs(np.linalg.norm(a, axis=2) - r[:, None]).max()
     assert casimir <= 1e-14 * r.max()
     per_step = ia.newton_iterations.sum() / (37 * 50)
-    if chart == "exp":
-        assert per_step < 3.2, per_step
+    # benches/newton_predictors.py: 3.00 in both charts on its states (Cayley 3.66 before).
+    assert per_step < 3.1, per_step

@@ -103,7 +103,7 @@ fn times_values<const N: usize, const L: usize>(
 /// (A table of every power's factor jets, built once an evaluation instead of once a term, was
 /// tried: 1–4 % slower on the heavy top.)
 #[inline(always)]
-pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, const T1: bool>(
+pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, const T_MAX: u32>(
     poly: &Polynomial<N>,
     t: f64,
     p: &[[f64; L]; N],
@@ -143,8 +143,9 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
     }
     let f = &mut scratch.j;
     for m in &poly.terms {
-        // With T1, only the terms linear in t (t ∂S/∂t(0, p)): the Newton predictor's.
-        if T1 && m.t_power != 1 {
+        // With T_MAX > 0, only the terms in t¹ … t^T_MAX (the cheap part of S that the Newton
+        // predictors take: T_MAX = 1 is t ∂S/∂t(0, p)).
+        if T_MAX > 0 && (m.t_power == 0 || m.t_power > T_MAX) {
             continue;
         }
         let tk = if m.t_power as usize <= TABLE_POWER {
@@ -235,7 +236,7 @@ fn jet_lanes<const N: usize, const L: usize, const HESS: bool>(
         g: [[0.0; L]; N],
         h: [[[0.0; L]; N]; N],
     };
-    jet_lanes_into::<N, L, HESS, false>(poly, t, p, &mut Scratch::new(), &mut out);
+    jet_lanes_into::<N, L, HESS, 0>(poly, t, p, &mut Scratch::new(), &mut out);
     out
 }
 
