@@ -288,8 +288,8 @@ pub(crate) struct Se3Newton<'a, const N: usize> {
     pub network: Option<NetworkLanes<'a>>,
     pub tol: f64,
     pub max_iter: u32,
-    /// Start Newton from p₀ = μ − ½ ad_{x₀}ᵀ μ (x₀: the t-linear terms' gradient at μ) instead
-    /// of μ, where |x₀|² ≤ [`PREDICT_MAX_S`].
+    /// Start Newton from p₀ = μ − ½ ad_{x₀}ᵀ μ (x₀: the t-linear terms' gradient at μ) and one
+    /// fixed-point step from there, instead of μ, where |x₀|² ≤ [`PREDICT_MAX_S`].
     pub predict: bool,
 }
 
