@@ -1,13 +1,13 @@
 //! The network term t^m · f · N(inputs) of a generating function in SIMD lanes: its value,
-//! exact p-gradient and (when asked) p-Hessian at L momenta, by forward mode, one lane per
-//! trajectory.
+//! exact p-gradient and (when asked) p-Hessian at L momenta, one lane per trajectory.
 //!
 //! The batched kernel ([`super::GeneratingFunction::jets`]) runs a layer as a matrix product over
 //! a batch and pays off for wide layers; the shipped models have hidden layers of 4 to 32 units,
 //! where the per-trajectory chart and Newton solve around it cost more than the layers. Here the
 //! network runs inside the lane Newton solvers ([`crate::lanes_bisection`]) instead: every unit
-//! holds its jet (value, N first and N² second derivatives) as lane vectors, a layer is a sum of
-//! weighted jets and tanh acts by the chain rule.
+//! holds its value and N tangents (first derivatives) as lane vectors, a layer is a sum of
+//! weighted tangents, one adjoint comes back, and the Hessian is a sum of outer products of the
+//! units' tangents (tanh is the only nonlinearity).
 //!
 //! **Bit identity.** Every lane performs the same operations in the same order (plain
 //! multiplies and adds, IEEE square root and division, the portable [`tanh_fast`]), so one
@@ -26,10 +26,11 @@ use crate::isa::LANES;
 /// products beat forward mode per trajectory.
 pub const NETWORK_LANES_MAX_WIDTH: usize = 32;
 
-/// Largest N whose steps take the network in lanes. A jet carries 1 + N + N² lane vectors: at
-/// N = 6 (the heavy top, hidden layers of 32) the lanes took 7,500 ns a step against the
-/// batched kernel's 6,000, so se(3) models keep the kernel.
-pub const NETWORK_LANES_MAX_DIM: usize = 3;
+/// Largest N whose steps take the network in lanes (every structure the lane solvers cover).
+/// With the Hessian from tangents and one adjoint, the heavy top's model (N = 6, hidden layers
+/// of 32) steps in 0.60× the batched kernel's time; with whole jets (1 + N + N(N+1)/2 rows a
+/// unit) it took 1.25×.
+pub const NETWORK_LANES_MAX_DIM: usize = 6;
 
 /// The network term of a generating function, as the lane solvers evaluate it.
 #[derive(Clone, Copy, Debug)]
@@ -40,22 +41,22 @@ pub struct NetworkLanes<'a> {
     pub inputs: MlpInputs,
 }
 
-/// Lane vectors one unit's jet takes in the scratch buffer: the value, N first derivatives
-/// and the N × N second derivatives (only a ≤ b are written and read).
-pub const fn unit_components(n: usize) -> usize {
-    1 + n + n * n
+/// Lane rows one unit takes in [`NetworkLanes::add_jet_lanes`]'s Hessian pass: its value, N
+/// tangents of y and N of z.
+pub const fn unit_rows(n: usize) -> usize {
+    1 + 2 * n
 }
 
 /// One row of the scratch: a number per lane of a block (a one-lane solve uses lane 0).
 pub type LaneRow = [f64; LANES];
 
-/// Rows of scratch [`NetworkLanes::add_jet_lanes`] needs: two layers' jets for forward mode, or
-/// every layer's values and two adjoint rows for reverse mode.
+/// Rows of scratch [`NetworkLanes::add_jet_lanes`] needs: every unit's value and tangents plus
+/// two adjoint rows a unit of the widest layer for the Hessian, or every unit's value and the
+/// same adjoint rows for the gradient alone.
 pub fn scratch_len(mlp: &Mlp, n: usize) -> usize {
     let width = mlp.max_width().max(n + 1);
-    let forward = 2 * width * unit_components(n);
-    let reverse = n + 1 + mlp.layers.iter().map(|l| l.n_out).sum::<usize>() + 2 * width;
-    forward.max(reverse)
+    let units = n + 1 + mlp.layers.iter().map(|l| l.n_out).sum::<usize>();
+    units * unit_rows(n) + 2 * width
 }
 
 /// Lanes 0..L of a row.
@@ -82,9 +83,9 @@ impl<'a> NetworkLanes<'a> {
     /// [`scratch_len`]`(mlp, N)` rows; nothing in it needs clearing. Lanes whose homogeneous
     /// term vanishes (|p|² ≤ [`HOMOGENEOUS_MIN_R2`]) get nothing added, as in the scalar path.
     ///
-    /// With the Hessian every unit carries its jet forward; without it (most simplified-Newton
-    /// updates) the values go forward and one adjoint comes back, 2 lane operations a weight
-    /// instead of 1 + N.
+    /// With the Hessian every unit carries its value and N tangents forward and one adjoint
+    /// comes back ([`Self::tangent_jet`]); without it (most simplified-Newton updates) only the
+    /// values go forward, 2 lane operations a weight instead of 2 + N.
     // Inlined into the lane solvers in optimised builds (so that it runs with their AVX2
     // features); a call of its own in debug builds, where every inlined local keeps its own
     // stack slot and the so(3) and se(3) blocks overflowed a test thread's stack.
@@ -99,7 +100,7 @@ impl<'a> NetworkLanes<'a> {
     ) {
         let (inputs, factor, vanish) = self.inputs_lanes::<N, L, HESS>(t, p);
         let net = if HESS {
-            self.forward_jet::<N, L>(&inputs, buf)
+            self.tangent_jet::<N, L>(&inputs, buf)
         } else {
             self.reverse_gradient::<N, L>(&inputs, buf)
         };
@@ -196,56 +197,137 @@ impl<'a> NetworkLanes<'a> {
         }
     }
 
-    /// N's jet by forward mode: every unit's jet, layer by layer, in `buf`.
+    /// N's jet with its Hessian by tangents forward and one adjoint back. Every unit carries its
+    /// value and N tangents (1 + N lane rows a weight, where a jet would take 1 + N + N(N+1)/2);
+    /// tanh is the network's only nonlinearity, so the Hessian is
+    ///
+    ///     ∇²N = Σ_hidden units ȳ · tanh″(z) · ∇z ∇zᵀ + Σ_inputs x̄_i ∇²x_i,
+    ///
+    /// with ȳ and x̄ the adjoints of the reverse pass (∂N/∂y, ∂N/∂x) and ∇z the unit's tangents.
+    /// A unit holds 1 + 2N rows in `buf`: y, ∇y (what the next layer sums) and ∇z (what the
+    /// outer product takes); the inputs use the first 1 + N.
     #[inline(always)]
-    fn forward_jet<const N: usize, const L: usize>(
+    fn tangent_jet<const N: usize, const L: usize>(
         &self,
         inputs: &[JetLanes<N, L>; MAX_INPUTS],
         buf: &mut [LaneRow],
     ) -> JetLanes<N, L> {
-        let c = unit_components(N);
+        let layers = &self.mlp.layers;
+        let c = 1 + 2 * N;
+        let units = N + 1 + layers.iter().map(|l| l.n_out).sum::<usize>();
         let width = self.mlp.max_width().max(N + 1);
-        let (mut src, mut dst) = buf[..2 * width * c].split_at_mut(width * c);
+        let (rows, rest) = buf[..units * c + 2 * width].split_at_mut(units * c);
+        let (mut delta, mut grad) = rest.split_at_mut(width);
         for i in 0..=N {
-            write_unit::<N, L>(&mut src[i * c..(i + 1) * c], &inputs[i]);
+            put(&mut rows[i * c], &inputs[i].v);
+            for a in 0..N {
+                put(&mut rows[i * c + 1 + a], &inputs[i].g[a]);
+            }
         }
-        let last = self.mlp.layers.len() - 1;
-        for (depth, layer) in self.mlp.layers.iter().enumerate() {
+        let last = layers.len() - 1;
+        let mut base = 0;
+        for (depth, layer) in layers.iter().enumerate() {
+            let (src, dst) = rows[base * c..].split_at_mut(layer.n_in * c);
             for k in 0..layer.n_out {
                 let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
-                let out = &mut dst[k * c..(k + 1) * c];
-                // The value row carries the bias; every derivative row is a plain weighted sum.
-                for comp in (0..c).filter(|&comp| used::<N>(comp)) {
-                    let mut acc = if comp == 0 {
-                        [layer.bias[k]; L]
-                    } else {
-                        [0.0; L]
-                    };
-                    for (j, &w) in row.iter().enumerate() {
-                        let x = &src[j * c + comp];
+                let mut v = [layer.bias[k]; L];
+                let mut d = [[0.0; L]; N];
+                for (j, &w) in row.iter().enumerate() {
+                    let x = &src[j * c..j * c + 1 + N];
+                    for l in 0..L {
+                        v[l] += w * x[0][l];
+                    }
+                    for a in 0..N {
                         for l in 0..L {
-                            acc[l] += w * x[l];
+                            d[a][l] += w * x[1 + a][l];
                         }
                     }
-                    put(&mut out[comp], &acc);
+                }
+                let out = &mut dst[k * c..(k + 1) * c];
+                put(&mut out[0], &v);
+                // The output's tangents are the gradient; a hidden unit's are ∇z, kept for the
+                // outer product, with ∇y = tanh′(z) ∇z written once y is known.
+                let at = if depth < last { 1 + N } else { 1 };
+                for a in 0..N {
+                    put(&mut out[at + a], &d[a]);
                 }
             }
             if depth < last {
-                // Every unit's tanh first (independent chains that overlap), then the chain
-                // rule unit by unit: one tanh after another's sums left each waiting on its
-                // own latency.
+                // Every unit's tanh first (independent chains that overlap), then ∇y.
                 for k in 0..layer.n_out {
                     for l in 0..L {
                         dst[k * c][l] = tanh_fast(dst[k * c][l]);
                     }
                 }
                 for k in 0..layer.n_out {
-                    tanh_chain_rule::<N, L>(&mut dst[k * c..(k + 1) * c]);
+                    let u = &mut dst[k * c..(k + 1) * c];
+                    let s: [f64; L] = std::array::from_fn(|l| 1.0 - u[0][l] * u[0][l]);
+                    for a in 0..N {
+                        for l in 0..L {
+                            u[1 + a][l] = s[l] * u[1 + N + a][l];
+                        }
+                    }
                 }
             }
-            std::mem::swap(&mut src, &mut dst);
+            base += layer.n_in;
         }
-        read_unit::<N, L>(&src[..c])
+        // `base` is the output unit.
+        let mut out = constant::<N, L>(get(&rows[base * c]));
+        for a in 0..N {
+            out.g[a] = get(&rows[base * c + 1 + a]);
+        }
+        put(&mut delta[0], &[1.0; L]);
+        for (depth, layer) in layers.iter().enumerate().rev() {
+            for j in 0..layer.n_in {
+                put(&mut grad[j], &[0.0; L]);
+            }
+            for k in 0..layer.n_out {
+                let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
+                let d: [f64; L] = get(&delta[k]);
+                for (j, &w) in row.iter().enumerate() {
+                    for l in 0..L {
+                        grad[j][l] += w * d[l];
+                    }
+                }
+            }
+            base -= layer.n_in;
+            if depth > 0 {
+                // grad holds ȳ of the layer below: its Hessian term, then z̄ = ȳ tanh′(z).
+                for j in 0..layer.n_in {
+                    let u = &rows[(base + j) * c..(base + j + 1) * c];
+                    let (mut s, mut curv) = ([0.0; L], [0.0; L]);
+                    for l in 0..L {
+                        let y = u[0][l];
+                        s[l] = 1.0 - y * y;
+                        curv[l] = grad[j][l] * (-2.0 * y * s[l]);
+                    }
+                    for a in 0..N {
+                        for b in a..N {
+                            for l in 0..L {
+                                out.h[a][b][l] += curv[l] * (u[1 + N + a][l] * u[1 + N + b][l]);
+                            }
+                        }
+                    }
+                    for l in 0..L {
+                        grad[j][l] *= s[l];
+                    }
+                }
+            }
+            std::mem::swap(&mut delta, &mut grad);
+        }
+        // delta holds x̄; the plain inputs (t and p) are linear in p and add nothing.
+        if self.inputs != MlpInputs::Plain {
+            for i in 0..=N {
+                for a in 0..N {
+                    for b in a..N {
+                        for l in 0..L {
+                            out.h[a][b][l] += delta[i][l] * inputs[i].h[a][b][l];
+                        }
+                    }
+                }
+            }
+        }
+        out
     }
 
     /// N and its gradient (no Hessian) by reverse mode: the values forward, keeping every
@@ -333,17 +415,6 @@ impl<'a> NetworkLanes<'a> {
 /// Inputs of a network the lanes take: time and a momentum of at most 7 components (covers the
 /// heavy top's 6).
 const MAX_INPUTS: usize = 8;
-
-/// Whether component `comp` of a unit is computed: the value, the gradient and the upper
-/// Hessian (a ≤ b).
-#[inline(always)]
-const fn used<const N: usize>(comp: usize) -> bool {
-    if comp <= N {
-        return true;
-    }
-    let k = comp - 1 - N;
-    k / N <= k % N
-}
 
 /// A constant's jet.
 #[inline(always)]
@@ -450,53 +521,4 @@ fn chain<const N: usize, const L: usize, const HESS: bool>(
         }
     }
     r
-}
-
-/// The jet of y = tanh(z) from z's derivatives, in place, with y already in the value row:
-/// y′ = 1 − y², y″ = −2 y y′.
-#[inline(always)]
-fn tanh_chain_rule<const N: usize, const L: usize>(u: &mut [LaneRow]) {
-    let (mut d1, mut d2) = ([0.0; L], [0.0; L]);
-    for l in 0..L {
-        let y = u[0][l];
-        d1[l] = 1.0 - y * y;
-        d2[l] = -2.0 * y * d1[l];
-    }
-    for a in 0..N {
-        for b in a..N {
-            let (ga, gb) = (u[1 + a], u[1 + b]);
-            let h = &mut u[1 + N + a * N + b];
-            for l in 0..L {
-                h[l] = d1[l] * h[l] + d2[l] * (ga[l] * gb[l]);
-            }
-        }
-    }
-    for a in 0..N {
-        for l in 0..L {
-            u[1 + a][l] *= d1[l];
-        }
-    }
-}
-
-#[inline(always)]
-fn write_unit<const N: usize, const L: usize>(u: &mut [LaneRow], j: &JetLanes<N, L>) {
-    put(&mut u[0], &j.v);
-    for a in 0..N {
-        put(&mut u[1 + a], &j.g[a]);
-        for b in a..N {
-            put(&mut u[1 + N + a * N + b], &j.h[a][b]);
-        }
-    }
-}
-
-#[inline(always)]
-fn read_unit<const N: usize, const L: usize>(u: &[LaneRow]) -> JetLanes<N, L> {
-    let mut j = constant::<N, L>(get(&u[0]));
-    for a in 0..N {
-        j.g[a] = get(&u[1 + a]);
-        for b in a..N {
-            j.h[a][b] = get(&u[1 + N + a * N + b]);
-        }
-    }
-    j
 }

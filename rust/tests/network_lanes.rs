@@ -1,9 +1,9 @@
 //! The network term in SIMD lanes ([`crate::generating::NetworkLanes`]) and the lane Newton
 //! solves of a learned S (polynomial plus network) on so(3) and se(3):
-//! - the lane jets (forward mode) and gradients (reverse mode) against the scalar forward mode
-//!   ([`GeneratingFunction::jet`], libm's tanh) to round-off, for both input maps, in 2, 3 and 6
-//!   dimensions, the origin of the homogeneous map included; one lane and a block give the
-//!   same bits;
+//! - the lane jets (tangents forward, one adjoint back) and gradients (reverse mode) against the
+//!   scalar forward mode ([`GeneratingFunction::jet`], libm's tanh) to round-off, for both input
+//!   maps, in 2, 3 and 6 dimensions, the origin of the homogeneous map included; one lane and a
+//!   block give the same bits;
 //! - a learned step in lanes against the generic dual-number step of the same stepper, on so(3)
 //!   through the stepper and on se(3) through the lane solver itself;
 //! - `step` and `step_batch` give the same bits in every block.
@@ -15,6 +15,8 @@ use crate::generating::polynomial_lanes::JetLanes;
 use crate::generating::{scratch_len, NetworkLanes, NETWORK_LANES_MAX_WIDTH};
 use crate::lanes::{Isa, LANES};
 use crate::structures::lie_groupoid::LieAlgebra;
+use crate::structures::{ExpMonomial, ExpPolynomial, LogCanonical};
+use nalgebra::{Const, DimMin};
 
 /// The lane form of `gf`'s network whatever N (the steppers take it for N ≤ 3 only).
 fn lanes_of<const N: usize>(gf: &GeneratingFunction<N>) -> NetworkLanes<'_> {
@@ -208,10 +210,11 @@ fn learned_so3_step_in_lanes_equals_the_generic_step() {
     }
 }
 
-/// A learned S on se(3) (−tH of a heavy top plus a random network, plain inputs): the steppers
-/// keep the batched kernel there (`network_lanes` is None for N = 6), but the se(3) lane solver
-/// takes a network all the same: from μ, the generic step's Newton counts and states to 1e-12
-/// over 15 steps, both Casimirs kept to 1e-13 a step, and a block of 8 gives the one-lane bits.
+/// A learned S on se(3) (−tH of a heavy top plus a random network, plain inputs), in the lane
+/// solver itself from μ: the generic step's Newton counts and states to 1e-12 over 15 steps,
+/// both Casimirs kept to 1e-13 a step, and a block of 8 gives the one-lane bits; through the
+/// stepper (which takes the lanes for N = 6 too, from the predicted start): the generic step's
+/// states to 1e-12 and `step_batch` gives `step`'s bits.
 #[test]
 fn learned_se3_lane_solve_equals_the_generic_step() {
     use crate::lanes_bisection_se3::{se3_newton_steps, Se3Newton};
@@ -237,7 +240,7 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
     let mut gf = network::<6>(&mut rng, 16, MlpInputs::Plain);
     gf.polynomial = Polynomial { terms };
     gf.mlp_power = 3;
-    assert!(gf.network_lanes().is_none());
+    assert!(gf.network_lanes().is_some());
     let st = BisectionStepper::new(
         gf,
         Groupoid::new(LieAlgebra::se3(), Chart::Exp).unwrap(),
@@ -316,22 +319,84 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
         &mut results,
     );
     assert!(same_bits(&block.concat(), &one.concat()));
+    // The stepper's own step: the lanes with the predicted start.
+    let mut worst = 0.0f64;
+    for &mu in &states {
+        let (mut a, mut b) = (mu, mu);
+        for _ in 0..15 {
+            st.step(0.1, &mut a, &mut ws).unwrap();
+            st.step_generic(0.1, &mut b, &mut ws).unwrap();
+            worst = worst.max((0..6).fold(0.0f64, |m, i| m.max((a[i] - b[i]).abs())));
+        }
+    }
+    assert!(worst <= 1e-12, "stepper lanes vs generic {worst:e}");
+    let mut one = states.clone();
+    for m in &mut one {
+        st.step(0.1, m, &mut ws).unwrap();
+    }
+    let mut block = states.clone();
+    st.step_batch(0.1, &mut block, &[true; 8], &mut results, &mut ws);
+    assert!(results.iter().all(|r| r.is_ok()));
+    assert!(same_bits(&block.concat(), &one.concat()));
 }
 
-/// A learned log-canonical S (the exact t-linear terms of a 2-D Lotka–Volterra H plus a random
+/// A learned log-canonical S (the exact t-linear terms of a Lotka–Volterra H plus a random
 /// network, plain inputs) stepped by [`LearnedLogStepper`] in lanes against the generic
-/// dual-number step of the same integrator: the same states to 1e-12 over 20 steps of 13
-/// states, the same Newton counts; `step` and `step_batch` in blocks of 1, 5, 8 and 13 give the
-/// same bits; a network too wide for the lanes takes the generic step itself.
+/// dual-number step of the same integrator, on PNN's 2-D system and a 5-D one (one Casimir): the
+/// same states to 1e-12 over 20 steps of 13 states, the same Newton counts; `step` and
+/// `step_batch` in blocks of 1, 5, 8 and 13 give the same bits; a network too wide for the lanes
+/// takes the generic step itself.
 #[test]
 fn learned_log_canonical_steps_in_lanes_equal_the_generic_step() {
-    use crate::structures::log_canonical::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
     let mut rng = Rng::new(0x4E7_1A52);
     // PNN's H = x₁ + x₂ − ln x₁ − 2 ln x₂: S = −t(x₁ + x₂) + t(1, 2)·q plus the network.
     let base = super::log_canonical::pnn_taylor(1);
-    let (taylor, c) = (base.generating, base.realization);
+    check_learned_log(
+        &mut rng,
+        base.generating,
+        base.realization,
+        [0.0, 2f64.ln()],
+    );
+    // H = Σ x_i − b_i ln x_i on a rank-4 c: S = −t Σ x_i + t b·q, states about x = b.
+    let b = [1.0, 2.0, 1.5, 0.5, 1.0];
+    let c = [
+        [0.0, 1.0, -1.0, 1.0, 0.0],
+        [-1.0, 0.0, 1.0, 0.0, 1.0],
+        [1.0, -1.0, 0.0, 1.0, -1.0],
+        [-1.0, 0.0, -1.0, 0.0, 1.0],
+        [0.0, -1.0, 1.0, -1.0, 0.0],
+    ];
+    let terms = (0..5)
+        .map(|i| {
+            let mut exponents = [0; 5];
+            exponents[i] = 1;
+            ExpMonomial {
+                t_power: 1,
+                exponents,
+                coeff: -1.0,
+            }
+        })
+        .collect();
+    let taylor = ExpPolynomial::new(terms, b).unwrap();
+    check_learned_log(
+        &mut rng,
+        taylor,
+        LogCanonical::new(c).unwrap(),
+        b.map(f64::ln),
+    );
+}
+
+fn check_learned_log<const N: usize>(
+    rng: &mut Rng,
+    taylor: ExpPolynomial<N>,
+    c: LogCanonical<N>,
+    centre: [f64; N],
+) where
+    Const<N>: DimMin<Const<N>, Output = Const<N>>,
+{
+    use crate::structures::log_canonical::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
     for width in [6, NETWORK_LANES_MAX_WIDTH + 4] {
-        let mut network = network::<2>(&mut rng, width, MlpInputs::Plain);
+        let mut network = network::<N>(rng, width, MlpInputs::Plain);
         network.mlp_power = 3;
         let wide = network.network_lanes().is_none();
         let s = LearnedExp::new(taylor.clone(), network).unwrap();
@@ -342,8 +407,8 @@ fn learned_log_canonical_steps_in_lanes_equal_the_generic_step() {
         ));
         assert_eq!(stepper.batch() == 1, wide);
         let mut ws = stepper.workspace();
-        let states: Vec<[f64; 2]> = (0..13)
-            .map(|_| [rng.range(-0.4, 0.4), 2f64.ln() + rng.range(-0.4, 0.4)])
+        let states: Vec<[f64; N]> = (0..13)
+            .map(|_| centre.map(|q| q + rng.range(-0.4, 0.4)))
             .collect();
         let mut worst = 0.0f64;
         for &q0 in &states {
@@ -352,10 +417,13 @@ fn learned_log_canonical_steps_in_lanes_equal_the_generic_step() {
                 let ra = stepper.step(0.1, &mut a, &mut ws).unwrap();
                 let rb = stepper.0.step(0.1, &mut b, &mut ws).unwrap();
                 assert_eq!(ra.iterations, rb.iterations, "Newton counts");
-                worst = worst.max((a[0] - b[0]).abs().max((a[1] - b[1]).abs()));
+                worst = worst.max((0..N).fold(0.0f64, |m, i| m.max((a[i] - b[i]).abs())));
             }
         }
-        assert!(worst <= 1e-12, "width {width}: lanes vs generic {worst:e}");
+        assert!(
+            worst <= 1e-12,
+            "N = {N}, width {width}: lanes vs generic {worst:e}"
+        );
         let mut one = states.clone();
         for q in &mut one {
             stepper.step(0.1, q, &mut ws).unwrap();
