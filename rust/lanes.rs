@@ -594,3 +594,110 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
         }
     }
 }
+
+/// δ = J⁻¹ f at L lanes: by cofactors for N ≤ 3, by Gaussian elimination with partial pivoting
+/// above ([`solve_pivoted_lanes`]); `ok[l]` is false where J is singular (det 0 or a zero
+/// pivot) or not finite.
+#[inline(always)]
+pub(crate) fn solve_small_lanes<const N: usize, const L: usize>(
+    j: &[[[f64; L]; N]; N],
+    f: &[[f64; L]; N],
+    delta: &mut [[f64; L]; N],
+    ok: &mut [bool; L],
+) {
+    if N > 3 {
+        return solve_pivoted_lanes(j, f, delta, ok);
+    }
+    for l in 0..L {
+        let m: [[f64; N]; N] = std::array::from_fn(|r| std::array::from_fn(|c| j[r][c][l]));
+        let (adj, det): ([[f64; N]; N], f64) = if N == 1 {
+            (
+                std::array::from_fn(|_| std::array::from_fn(|_| 1.0)),
+                m[0][0],
+            )
+        } else if N == 2 {
+            let adj = [[m[1][1], -m[0][1]], [-m[1][0], m[0][0]]];
+            (
+                std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
+                m[0][0] * m[1][1] - m[0][1] * m[1][0],
+            )
+        } else {
+            let m3: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]));
+            let (adj, det) = crate::step::adjugate3(&m3);
+            (
+                std::array::from_fn(|r| std::array::from_fn(|c| adj[r][c])),
+                det,
+            )
+        };
+        ok[l] = det != 0.0 && det.is_finite();
+        let r = 1.0 / det;
+        for a in 0..N {
+            let mut acc = 0.0;
+            for b in 0..N {
+                acc += adj[a][b] * f[b][l];
+            }
+            delta[a][l] = acc * r;
+        }
+    }
+}
+
+/// δ = J⁻¹ f at L lanes by Gaussian elimination with partial pivoting, each lane choosing and
+/// swapping its own pivot rows (so a lane's bits depend on no other lane), then back
+/// substitution; `ok[l]` is false where a pivot is 0 or not finite.
+#[inline(always)]
+pub(crate) fn solve_pivoted_lanes<const N: usize, const L: usize>(
+    j: &[[[f64; L]; N]; N],
+    f: &[[f64; L]; N],
+    delta: &mut [[f64; L]; N],
+    ok: &mut [bool; L],
+) {
+    let (mut a, mut b) = (*j, *f);
+    *ok = [true; L];
+    for col in 0..N {
+        for l in 0..L {
+            let mut best = col;
+            for r in col + 1..N {
+                if a[r][col][l].abs() > a[best][col][l].abs() {
+                    best = r;
+                }
+            }
+            if best != col {
+                for k in col..N {
+                    let t = a[best][k][l];
+                    a[best][k][l] = a[col][k][l];
+                    a[col][k][l] = t;
+                }
+                let t = b[best][l];
+                b[best][l] = b[col][l];
+                b[col][l] = t;
+            }
+            let pivot = a[col][col][l];
+            ok[l] &= pivot != 0.0 && pivot.is_finite();
+        }
+        for row in col + 1..N {
+            let mut factor = [0.0; L];
+            for l in 0..L {
+                factor[l] = a[row][col][l] / a[col][col][l];
+            }
+            for k in col + 1..N {
+                for l in 0..L {
+                    a[row][k][l] -= factor[l] * a[col][k][l];
+                }
+            }
+            for l in 0..L {
+                b[row][l] -= factor[l] * b[col][l];
+            }
+        }
+    }
+    for row in (0..N).rev() {
+        let mut acc = b[row];
+        for k in row + 1..N {
+            for l in 0..L {
+                acc[l] -= a[row][k][l] * delta[k][l];
+            }
+        }
+        for l in 0..L {
+            delta[row][l] = acc[l] / a[row][row][l];
+        }
+    }
+}

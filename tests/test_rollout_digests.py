@@ -31,8 +31,12 @@ with dual numbers and nalgebra's LU; the same rollout to 1.7e-14 after 200 steps
 keep their bits), the same rollouts to 1.3e-14 after 200 steps:
 :data:`AFTER_THE_CAYLEY_PREDICTOR`. Then the se(3) lane solve took one fixed-point step with S's
 t¹ terms at that start (a second-order start: 3.67 → 3.00 updates on the heavy top), the same
-rollout to 2.2e-15 after 100 steps: :data:`AFTER_THE_SECOND_ORDER_START`. Nothing else may
-change."""
+rollout to 2.2e-15 after 100 steps: :data:`AFTER_THE_SECOND_ORDER_START`. Then the order-n
+realization's Taylor step went into SIMD lanes (∇S, ∇²S and ∂α from derivative polynomials in f64
+instead of dual numbers; ``rust/tests/polynomial.rs`` checks its steps against the dual-number
+step's to 1e-12 with the same Newton counts), the same rollout to 1.4e-17 after 50 steps:
+:data:`AFTER_THE_POLYNOMIAL_LANES`. The learned models' network Hessian from tangents and one
+adjoint left every digest here as it was. Nothing else may change."""
 
 from __future__ import annotations
 
@@ -158,6 +162,12 @@ AFTER_THE_SECOND_ORDER_START = {
 }
 
 
+#: The order-n realization's Taylor rollout after its Newton solve went into lanes.
+AFTER_THE_POLYNOMIAL_LANES = {
+    "nambu-taylor3": "472e02a997bab72d",
+}
+
+
 def _digests() -> dict[str, str]:
     out: dict[str, str] = {}
 
@@ -220,6 +230,7 @@ def test_every_old_stepper_keeps_its_bits() -> None:
         **AFTER_THE_LOG_MIDPOINT_LANES,
         **AFTER_THE_CAYLEY_PREDICTOR,
         **AFTER_THE_SECOND_ORDER_START,
+        **AFTER_THE_POLYNOMIAL_LANES,
     }
     changed = sorted(k for k in want if got[k] != want[k])
     assert not changed, f"rollouts changed: {changed}"

@@ -12,11 +12,10 @@ use super::rollout::run_rollout;
 use super::{dim_error, rows_match, states, Array};
 
 use crate::lanes::Lanes;
-use crate::rollout::PerStep;
 use crate::stepper::NewtonOptions;
 use crate::structures::{
-    PolynomialBisection, PolynomialField, PolynomialGenerating, PolynomialRealization,
-    SparsePolynomial,
+    PolynomialBisection, PolynomialField, PolynomialGenerating, PolynomialLanes,
+    PolynomialRealization, SparsePolynomial,
 };
 use crate::with_dim;
 
@@ -153,8 +152,10 @@ pub(super) fn rollout_polynomial_realization<'py>(
             PolynomialRealization::new(sou, tar)?,
             newton,
         );
+        // The Newton systems solved in SIMD lanes (every lane the scalar bits).
+        let lanes = PolynomialLanes::new(&stepper)?;
         let x0 = states::<N>(&x0, "x0")?;
-        run_rollout(py, &PerStep(&stepper), &x0, h, n_steps, every, None)
+        run_rollout(py, &Lanes::new(&lanes), &x0, h, n_steps, every, None)
     }, Err(dim_error(dim)))
 }
 

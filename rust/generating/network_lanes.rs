@@ -41,7 +41,7 @@ pub struct NetworkLanes<'a> {
     pub inputs: MlpInputs,
 }
 
-/// Lane rows one unit takes in [`NetworkLanes::add_jet_lanes`]'s Hessian pass: its value, N
+/// Lane rows one unit takes in the Hessian pass (`NetworkLanes::tangent_jet`): its value, N
 /// tangents of y and N of z.
 pub const fn unit_rows(n: usize) -> usize {
     1 + 2 * n

@@ -15,6 +15,7 @@ pub mod lie_groupoid;
 pub mod lie_poisson;
 pub mod log_canonical;
 pub mod polynomial;
+pub mod polynomial_lanes;
 
 pub use log_canonical::{
     ExpMonomial, ExpPolynomial, LearnedExp, LearnedLogBisection, LearnedLogStepper, LogBisection,
@@ -24,3 +25,4 @@ pub use polynomial::{
     LearnedPolynomial, LearnedPolynomialBisection, LearnedPolynomialModel, PolynomialBisection,
     PolynomialField, PolynomialGenerating, PolynomialRealization, SparsePolynomial,
 };
+pub use polynomial_lanes::PolynomialLanes;

@@ -5,7 +5,8 @@
 //! (fibre p, base x), and S(t, x) as a polynomial in (t, x). A step is then the same Newton
 //! bisection as on every other realization ([`BisectionStepper`]): solve α(∇S(h, x), x) = x_k
 //! for x and return β(∇S(h, x), x). Derivatives come from evaluating the same polynomials on
-//! dual numbers, so they are exact.
+//! dual numbers, so they are exact; the rollouts step in SIMD lanes instead, on the derivative
+//! polynomials ([`super::polynomial_lanes`]).
 
 use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
@@ -111,6 +112,51 @@ impl SparsePolynomial {
             }
         }
         sum
+    }
+
+    /// The polynomial at (t, `rest`) for L points at once, t the first variable and one plain
+    /// number: each term's c·tᵉ in f64 (as [`Self::eval_after_constant`] forms it), then the
+    /// powers of the other variables lane by lane, by repeated multiplication.
+    #[inline]
+    pub fn eval_lanes_after_t<const L: usize>(&self, t: f64, rest: &[[f64; L]]) -> [f64; L] {
+        let mut sum = [0.0; L];
+        for (c, row) in self.terms() {
+            let mut term = [times_powers(c, &[t], &row[..1]); L];
+            for (x, &e) in rest.iter().zip(&row[1..]) {
+                for _ in 0..e {
+                    for l in 0..L {
+                        term[l] *= x[l];
+                    }
+                }
+            }
+            for l in 0..L {
+                sum[l] += term[l];
+            }
+        }
+        sum
+    }
+
+    /// ∂/∂v_var, exactly: each term with a positive exponent e of v_var becomes c·e times the
+    /// same powers with e − 1 (the others drop out). Fallible allocation.
+    pub fn derivative(&self, var: usize) -> Result<Self, CoreError> {
+        let rows = self.terms().filter(|(_, row)| row[var] > 0).count();
+        let mut coeffs = Vec::new();
+        let mut exponents = Vec::new();
+        coeffs
+            .try_reserve_exact(rows)
+            .map_err(|_| CoreError::Invalid("too many polynomial terms".into()))?;
+        exponents
+            .try_reserve_exact(rows * self.vars)
+            .map_err(|_| CoreError::Invalid("too many polynomial terms".into()))?;
+        for (c, row) in self.terms().filter(|(_, row)| row[var] > 0) {
+            coeffs.push(c * f64::from(row[var]));
+            exponents.extend(
+                row.iter()
+                    .enumerate()
+                    .map(|(i, &e)| u32::from(e) - u32::from(i == var)),
+            );
+        }
+        SparsePolynomial::new(self.vars, &coeffs, &exponents)
     }
 
     /// The polynomial at `v` (at least `vars` values), any scalar: powers by repeated
@@ -258,6 +304,13 @@ impl<const N: usize> PolynomialRealization<N> {
     }
 }
 
+impl<const N: usize> PolynomialRealization<N> {
+    /// β's and α's N polynomials in (fibre, base).
+    pub fn maps(&self) -> (&[SparsePolynomial], &[SparsePolynomial]) {
+        (&self.sou, &self.tar)
+    }
+}
+
 impl<const N: usize> Realization<N> for PolynomialRealization<N> {
     #[inline]
     fn sou<T: Scalar>(&self, x: &[T; N], p: &[T; N]) -> Result<[T; N], StepFailure> {
@@ -284,6 +337,13 @@ impl<const N: usize> PolynomialGenerating<N> {
             )));
         }
         Ok(PolynomialGenerating { s })
+    }
+}
+
+impl<const N: usize> PolynomialGenerating<N> {
+    /// S as a polynomial in (t, x), t first.
+    pub fn as_polynomial(&self) -> &SparsePolynomial {
+        &self.s
     }
 }
 

@@ -1,0 +1,230 @@
+//! Taylor-HJ on an approximate realization of a polynomial bivector in SIMD lanes: the step of
+//! [`PolynomialBisection`] (full Newton on α(∇S(h, x), x) = x_k, then β) for a block of
+//! trajectories in lockstep, one trajectory a lane.
+//!
+//! Every derivative the solve needs is a polynomial of its own, differentiated once when the
+//! stepper is built ([`SparsePolynomial::derivative`], exact coefficients): ∇S and the upper
+//! Hessian of S in (t, x), and ∂α/∂(p, x). A Newton update evaluates them lane by lane in f64
+//! (powers by repeated multiplication, as the scalar polynomials), forms
+//! J = ∂α/∂x + ∂α/∂p · ∇²S and solves J δ = x_k − α by cofactors (N ≤ 3) or pivoted
+//! elimination. The rules are the dual-number step's (start at x_k, |δ|∞ ≤ tol · max(|x|∞, 1),
+//! the same failures in the same order, β at ∇S of the converged x), so the two agree to
+//! round-off (tested); the scalar step is this one with one lane, so every lane has its bits.
+
+// Index loops over lanes, coordinates and matrix entries read as the formulas they evaluate.
+#![allow(clippy::needless_range_loop)]
+
+use super::polynomial::{PolynomialBisection, SparsePolynomial, MAX_DIM};
+use crate::error::{CoreError, StepFailure};
+use crate::lanes::{solve_small_lanes, LaneStepper};
+use crate::step::{StepMap, StepResult, StepStats};
+
+/// [`PolynomialBisection`] with its derivative polynomials, stepped in lanes.
+#[derive(Clone, Debug)]
+pub struct PolynomialLanes<const N: usize> {
+    /// ∂S/∂x_a, polynomials in (t, x).
+    grad: Vec<SparsePolynomial>,
+    /// ∂²S/∂x_a∂x_b for a ≤ b, row by row (N(N+1)/2 of them).
+    hess: Vec<SparsePolynomial>,
+    /// α's and β's components, polynomials in (p, x).
+    tar: Vec<SparsePolynomial>,
+    sou: Vec<SparsePolynomial>,
+    /// ∂α_i/∂v_k at i · 2N + k, v = (p, x).
+    tar_d: Vec<SparsePolynomial>,
+    tol: f64,
+    max_iter: u32,
+    scale_floor: f64,
+}
+
+/// A fallibly allocated vector of `n` polynomials.
+fn polynomials(
+    n: usize,
+    f: impl Fn(usize) -> Result<SparsePolynomial, CoreError>,
+) -> Result<Vec<SparsePolynomial>, CoreError> {
+    let mut out = Vec::new();
+    out.try_reserve_exact(n)
+        .map_err(|_| CoreError::Invalid("too many polynomials".into()))?;
+    for k in 0..n {
+        out.push(f(k)?);
+    }
+    Ok(out)
+}
+
+impl<const N: usize> PolynomialLanes<N> {
+    /// The lane form of `stepper`: its derivative polynomials, its Newton settings.
+    pub fn new(stepper: &PolynomialBisection<N>) -> Result<Self, CoreError> {
+        let s = stepper.generating.as_polynomial();
+        let (sou, tar) = stepper.realization.maps();
+        // S's variables are (t, x): x_a is variable 1 + a.
+        let grad = polynomials(N, |a| s.derivative(1 + a))?;
+        let pairs: Vec<(usize, usize)> = (0..N).flat_map(|a| (a..N).map(move |b| (a, b))).collect();
+        let hess = polynomials(pairs.len(), |k| grad[pairs[k].0].derivative(1 + pairs[k].1))?;
+        let tar_d = polynomials(2 * N * N, |k| tar[k / (2 * N)].derivative(k % (2 * N)))?;
+        Ok(PolynomialLanes {
+            grad,
+            hess,
+            tar: polynomials(N, |i| Ok(tar[i].clone()))?,
+            sou: polynomials(N, |i| Ok(sou[i].clone()))?,
+            tar_d,
+            tol: stepper.newton.tol,
+            max_iter: stepper.newton.max_iter,
+            scale_floor: stepper.scale_floor,
+        })
+    }
+
+    /// ∇S at L points x (t = h).
+    #[inline(always)]
+    fn gradient<const L: usize>(&self, h: f64, x: &[[f64; L]; N]) -> [[f64; L]; N] {
+        std::array::from_fn(|a| self.grad[a].eval_lanes_after_t(h, x))
+    }
+
+    /// `maps` at (p, x) for L points.
+    #[inline(always)]
+    fn apply<const L: usize>(
+        maps: &[SparsePolynomial],
+        p: &[[f64; L]; N],
+        x: &[[f64; L]; N],
+    ) -> [[f64; L]; N] {
+        let mut v = [[0.0; L]; 2 * MAX_DIM];
+        v[..N].copy_from_slice(p);
+        v[N..2 * N].copy_from_slice(x);
+        std::array::from_fn(|i| maps[i].eval_lanes(&v[..2 * N]))
+    }
+}
+
+/// Whether every lane value of `rows` is finite, lane by lane.
+#[inline(always)]
+fn finite<const L: usize>(rows: &[[f64; L]]) -> [bool; L] {
+    std::array::from_fn(|l| rows.iter().all(|r| r[l].is_finite()))
+}
+
+impl<const N: usize> LaneStepper<N> for PolynomialLanes<N> {
+    const REPORTS: bool = true;
+
+    #[inline(always)]
+    fn step_lanes_reporting<const L: usize>(
+        &self,
+        h: f64,
+        mu: &mut [[f64; L]; N],
+        live: &[bool; L],
+        result: &mut [StepResult; L],
+    ) {
+        let target = *mu;
+        let mut x = target;
+        let mut active = *live;
+        let mut converged = [false; L];
+        let mut iterations = [0u32; L];
+        while active.contains(&true) {
+            let p = self.gradient(h, &x);
+            let mut hs = [[[0.0; L]; N]; N];
+            let mut k = 0;
+            for a in 0..N {
+                for b in a..N {
+                    hs[a][b] = self.hess[k].eval_lanes_after_t(h, &x);
+                    hs[b][a] = hs[a][b];
+                    k += 1;
+                }
+            }
+            let jet_ok: [bool; L] =
+                std::array::from_fn(|l| finite(&p)[l] && (0..N).all(|a| finite(&hs[a])[l]));
+            let tar = Self::apply(&self.tar, &p, &x);
+            let tar_ok = finite(&tar);
+            // J = ∂α/∂x + ∂α/∂p · ∇²S (x moves p = ∇S(x)); f = x_k − α.
+            let mut v = [[0.0; L]; 2 * MAX_DIM];
+            v[..N].copy_from_slice(&p);
+            v[N..2 * N].copy_from_slice(&x);
+            let mut j = [[[0.0; L]; N]; N];
+            let mut f = [[0.0; L]; N];
+            for i in 0..N {
+                let d: [[f64; L]; 2 * MAX_DIM] = std::array::from_fn(|k| {
+                    if k < 2 * N {
+                        self.tar_d[i * 2 * N + k].eval_lanes(&v[..2 * N])
+                    } else {
+                        [0.0; L]
+                    }
+                });
+                for c in 0..N {
+                    let mut acc = d[N + c];
+                    for m in 0..N {
+                        for l in 0..L {
+                            acc[l] += d[m][l] * hs[m][c][l];
+                        }
+                    }
+                    j[i][c] = acc;
+                }
+                for l in 0..L {
+                    f[i][l] = target[i][l] - tar[i][l];
+                }
+            }
+            let mut delta = [[0.0; L]; N];
+            let mut solvable = [true; L];
+            solve_small_lanes(&j, &f, &mut delta, &mut solvable);
+            for l in 0..L {
+                if !active[l] {
+                    continue;
+                }
+                // The dual-number step's order: S's jet, α, the cap, the solve.
+                let failure = if !jet_ok[l] || !tar_ok[l] {
+                    Some(StepFailure::NonFinite)
+                } else if iterations[l] >= self.max_iter {
+                    Some(StepFailure::NotConverged)
+                } else if !solvable[l] || !(0..N).all(|a| delta[a][l].is_finite()) {
+                    Some(StepFailure::SingularJacobian)
+                } else {
+                    None
+                };
+                if let Some(failure) = failure {
+                    result[l] = Err(failure);
+                    active[l] = false;
+                    continue;
+                }
+                let (mut dmax, mut xmax) = (0.0f64, 0.0f64);
+                for a in 0..N {
+                    x[a][l] += delta[a][l];
+                    dmax = dmax.max(delta[a][l].abs());
+                    xmax = xmax.max(x[a][l].abs());
+                }
+                iterations[l] += 1;
+                if dmax <= self.tol * xmax.max(self.scale_floor) {
+                    active[l] = false;
+                    converged[l] = true;
+                }
+            }
+        }
+        if !converged.contains(&true) {
+            return;
+        }
+        // β(∇S(x), x) at the converged x, and α's residual there.
+        let p = self.gradient(h, &x);
+        let tar = Self::apply(&self.tar, &p, &x);
+        let out = Self::apply(&self.sou, &p, &x);
+        let (p_ok, tar_ok, out_ok) = (finite(&p), finite(&tar), finite(&out));
+        for l in (0..L).filter(|&l| converged[l]) {
+            if !(p_ok[l] && tar_ok[l] && out_ok[l]) {
+                result[l] = Err(StepFailure::NonFinite);
+                continue;
+            }
+            let mut residual = 0.0f64;
+            for i in 0..N {
+                residual = residual.max((tar[i][l] - target[i][l]).abs());
+                mu[i][l] = out[i][l];
+            }
+            result[l] = Ok(StepStats {
+                iterations: iterations[l],
+                residual,
+            });
+        }
+    }
+}
+
+impl<const N: usize> StepMap<N> for PolynomialLanes<N> {
+    type Workspace = ();
+    fn workspace(&self) {}
+    fn step(&self, h: f64, mu: &mut [f64; N], _: &mut ()) -> StepResult {
+        let mut lane: [[f64; 1]; N] = mu.map(|v| [v]);
+        let mut result = [Ok(StepStats::default())];
+        self.step_lanes_reporting(h, &mut lane, &[true], &mut result);
+        *mu = lane.map(|v| v[0]);
+        result[0]
+    }
+}
