@@ -701,3 +701,58 @@ pub(crate) fn solve_pivoted_lanes<const N: usize, const L: usize>(
         }
     }
 }
+
+/// Full Newton's rule for one lane of a lane solve (the log-canonical and the order-n
+/// realization steps), the generic step's order of failures: derivatives not finite →
+/// NonFinite, the update cap → NotConverged, J singular or δ not finite → SingularJacobian.
+pub(crate) struct FullNewton {
+    pub tol: f64,
+    pub max_iter: u32,
+    /// Newton stops once |δ|∞ ≤ tol · max(|p|∞, floor).
+    pub floor: f64,
+}
+
+impl FullNewton {
+    /// Lane l fails (its result written, `active` cleared) or takes p += δ and counts the
+    /// update; returns whether it converged with it (then `active` is cleared too).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn settle<const N: usize, const L: usize>(
+        &self,
+        l: usize,
+        finite: bool,
+        solvable: bool,
+        delta: &[[f64; L]; N],
+        p: &mut [[f64; L]; N],
+        iterations: &mut [u32; L],
+        active: &mut [bool; L],
+        result: &mut [StepResult; L],
+    ) -> bool {
+        let failure = if !finite {
+            Some(StepFailure::NonFinite)
+        } else if iterations[l] >= self.max_iter {
+            Some(StepFailure::NotConverged)
+        } else if !solvable || !(0..N).all(|a| delta[a][l].is_finite()) {
+            Some(StepFailure::SingularJacobian)
+        } else {
+            None
+        };
+        if let Some(failure) = failure {
+            result[l] = Err(failure);
+            active[l] = false;
+            return false;
+        }
+        let (mut dmax, mut pmax) = (0.0f64, 0.0f64);
+        for a in 0..N {
+            p[a][l] += delta[a][l];
+            dmax = dmax.max(delta[a][l].abs());
+            pmax = pmax.max(p[a][l].abs());
+        }
+        iterations[l] += 1;
+        let done = dmax <= self.tol * pmax.max(self.floor);
+        if done {
+            active[l] = false;
+        }
+        done
+    }
+}

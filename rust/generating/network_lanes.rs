@@ -19,7 +19,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::polynomial_lanes::JetLanes;
-use super::{tanh_fast, Mlp, MlpInputs, HOMOGENEOUS_MIN_R2};
+use super::{tanh_fast, Layer, Mlp, MlpInputs, HOMOGENEOUS_MIN_R2};
 use crate::isa::LANES;
 
 /// Widest layer the lane path takes: wider networks keep the batched kernel, whose matrix
@@ -278,18 +278,7 @@ impl<'a> NetworkLanes<'a> {
         }
         put(&mut delta[0], &[1.0; L]);
         for (depth, layer) in layers.iter().enumerate().rev() {
-            for j in 0..layer.n_in {
-                put(&mut grad[j], &[0.0; L]);
-            }
-            for k in 0..layer.n_out {
-                let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
-                let d: [f64; L] = get(&delta[k]);
-                for (j, &w) in row.iter().enumerate() {
-                    for l in 0..L {
-                        grad[j][l] += w * d[l];
-                    }
-                }
-            }
+            adjoint_through::<L>(layer, delta, grad);
             base -= layer.n_in;
             if depth > 0 {
                 // grad holds ȳ of the layer below: its Hessian term, then z̄ = ȳ tanh′(z).
@@ -376,18 +365,7 @@ impl<'a> NetworkLanes<'a> {
         let value: [f64; L] = get(&acts[off]);
         put(&mut delta[0], &[1.0; L]);
         for (depth, layer) in layers.iter().enumerate().rev() {
-            for j in 0..layer.n_in {
-                put(&mut grad[j], &[0.0; L]);
-            }
-            for k in 0..layer.n_out {
-                let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
-                let d: [f64; L] = get(&delta[k]);
-                for (j, &w) in row.iter().enumerate() {
-                    for l in 0..L {
-                        grad[j][l] += w * d[l];
-                    }
-                }
-            }
+            adjoint_through::<L>(layer, delta, grad);
             off -= layer.n_in;
             if depth > 0 {
                 for j in 0..layer.n_in {
@@ -409,6 +387,24 @@ impl<'a> NetworkLanes<'a> {
             }
         }
         out
+    }
+}
+
+/// g = Wᵀ δ through one layer: the input adjoints (`grad`, n_in rows) from the output ones
+/// (`delta`, n_out rows).
+#[inline(always)]
+fn adjoint_through<const L: usize>(layer: &Layer, delta: &[LaneRow], grad: &mut [LaneRow]) {
+    for j in 0..layer.n_in {
+        put(&mut grad[j], &[0.0; L]);
+    }
+    for k in 0..layer.n_out {
+        let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
+        let d: [f64; L] = get(&delta[k]);
+        for (j, &w) in row.iter().enumerate() {
+            for l in 0..L {
+                grad[j][l] += w * d[l];
+            }
+        }
     }
 }
 

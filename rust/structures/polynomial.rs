@@ -93,25 +93,7 @@ impl SparsePolynomial {
     /// operations in the same order as [`Self::eval`] on f64, so every lane gets its bits.
     #[inline]
     pub fn eval_lanes<const L: usize>(&self, v: &[[f64; L]]) -> [f64; L] {
-        let mut sum = [0.0; L];
-        for (c, row) in self
-            .coeffs
-            .iter()
-            .zip(self.exponents.chunks_exact(self.vars))
-        {
-            let mut term = [*c; L];
-            for (x, &e) in v.iter().zip(row) {
-                for _ in 0..e {
-                    for l in 0..L {
-                        term[l] *= x[l];
-                    }
-                }
-            }
-            for l in 0..L {
-                sum[l] += term[l];
-            }
-        }
-        sum
+        self.sum_lanes(v, 0, |c, _| c)
     }
 
     /// The polynomial at (t, `rest`) for L points at once, t the first variable and one plain
@@ -119,10 +101,22 @@ impl SparsePolynomial {
     /// powers of the other variables lane by lane, by repeated multiplication.
     #[inline]
     pub fn eval_lanes_after_t<const L: usize>(&self, t: f64, rest: &[[f64; L]]) -> [f64; L] {
+        self.sum_lanes(rest, 1, |c, row| times_powers(c, &[t], &row[..1]))
+    }
+
+    /// Σ_k head_k · Π_i v_i^{e_k,skip+i} at L points: each term's `head(c, exponents)` times
+    /// the powers of the variables from `skip` on, by repeated multiplication left to right.
+    #[inline(always)]
+    fn sum_lanes<const L: usize>(
+        &self,
+        v: &[[f64; L]],
+        skip: usize,
+        head: impl Fn(f64, &[u8]) -> f64,
+    ) -> [f64; L] {
         let mut sum = [0.0; L];
         for (c, row) in self.terms() {
-            let mut term = [times_powers(c, &[t], &row[..1]); L];
-            for (x, &e) in rest.iter().zip(&row[1..]) {
+            let mut term = [head(c, row); L];
+            for (x, &e) in v.iter().zip(&row[skip..]) {
                 for _ in 0..e {
                     for l in 0..L {
                         term[l] *= x[l];

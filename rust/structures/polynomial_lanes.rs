@@ -16,11 +16,10 @@
 
 use super::polynomial::{PolynomialBisection, SparsePolynomial, MAX_DIM};
 use crate::error::{CoreError, StepFailure};
-use crate::lanes::{solve_small_lanes, LaneStepper};
+use crate::lanes::{solve_small_lanes, FullNewton, LaneStepper};
 use crate::step::{StepMap, StepResult, StepStats};
 
 /// [`PolynomialBisection`] with its derivative polynomials, stepped in lanes.
-#[derive(Clone, Debug)]
 pub struct PolynomialLanes<const N: usize> {
     /// ∂S/∂x_a, polynomials in (t, x).
     grad: Vec<SparsePolynomial>,
@@ -31,9 +30,7 @@ pub struct PolynomialLanes<const N: usize> {
     sou: Vec<SparsePolynomial>,
     /// ∂α_i/∂v_k at i · 2N + k, v = (p, x).
     tar_d: Vec<SparsePolynomial>,
-    tol: f64,
-    max_iter: u32,
-    scale_floor: f64,
+    newton: FullNewton,
 }
 
 /// A fallibly allocated vector of `n` polynomials.
@@ -66,9 +63,11 @@ impl<const N: usize> PolynomialLanes<N> {
             tar: polynomials(N, |i| Ok(tar[i].clone()))?,
             sou: polynomials(N, |i| Ok(sou[i].clone()))?,
             tar_d,
-            tol: stepper.newton.tol,
-            max_iter: stepper.newton.max_iter,
-            scale_floor: stepper.scale_floor,
+            newton: FullNewton {
+                tol: stepper.newton.tol,
+                max_iter: stepper.newton.max_iter,
+                floor: stepper.scale_floor,
+            },
         })
     }
 
@@ -160,34 +159,18 @@ impl<const N: usize> LaneStepper<N> for PolynomialLanes<N> {
             let mut solvable = [true; L];
             solve_small_lanes(&j, &f, &mut delta, &mut solvable);
             for l in 0..L {
-                if !active[l] {
-                    continue;
-                }
-                // The dual-number step's order: S's jet, α, the cap, the solve.
-                let failure = if !jet_ok[l] || !tar_ok[l] {
-                    Some(StepFailure::NonFinite)
-                } else if iterations[l] >= self.max_iter {
-                    Some(StepFailure::NotConverged)
-                } else if !solvable[l] || !(0..N).all(|a| delta[a][l].is_finite()) {
-                    Some(StepFailure::SingularJacobian)
-                } else {
-                    None
-                };
-                if let Some(failure) = failure {
-                    result[l] = Err(failure);
-                    active[l] = false;
-                    continue;
-                }
-                let (mut dmax, mut xmax) = (0.0f64, 0.0f64);
-                for a in 0..N {
-                    x[a][l] += delta[a][l];
-                    dmax = dmax.max(delta[a][l].abs());
-                    xmax = xmax.max(x[a][l].abs());
-                }
-                iterations[l] += 1;
-                if dmax <= self.tol * xmax.max(self.scale_floor) {
-                    active[l] = false;
-                    converged[l] = true;
+                // The dual-number step's order: S's jet and α, the cap, the solve.
+                if active[l] {
+                    converged[l] = self.newton.settle(
+                        l,
+                        jet_ok[l] && tar_ok[l],
+                        solvable[l],
+                        &delta,
+                        &mut x,
+                        &mut iterations,
+                        &mut active,
+                        result,
+                    );
                 }
             }
         }

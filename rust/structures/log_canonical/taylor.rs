@@ -9,7 +9,7 @@ use crate::dual::{Dual1, Jet2, Scalar};
 use crate::error::{CoreError, StepFailure};
 use crate::exp::exp_lanes;
 use crate::generating::LaneRow;
-use crate::lanes::{solve_small_lanes, LaneStepper};
+use crate::lanes::{solve_small_lanes, FullNewton, LaneStepper};
 use crate::realization::{Generating, Realization};
 use crate::step::{StepMap, StepResult, StepStats};
 use crate::stepper::BisectionStepper;
@@ -288,7 +288,11 @@ pub(super) fn log_bisection_lanes<const N: usize, const L: usize, G: LogLaneGene
 ) {
     let c = s.realization.c();
     let half_c: [[f64; N]; N] = std::array::from_fn(|i| c[i].map(|v| 0.5 * v));
-    let (tol, max_iter) = (s.newton.tol, s.newton.max_iter);
+    let newton = FullNewton {
+        tol: s.newton.tol,
+        max_iter: s.newton.max_iter,
+        floor: s.scale_floor,
+    };
     let t_powers = t_power_table(h);
     let target = *mu;
     let mut p = target;
@@ -353,29 +357,16 @@ pub(super) fn log_bisection_lanes<const N: usize, const L: usize, G: LogLaneGene
             }
             let finite =
                 (0..N).all(|a| g[a][l].is_finite() && (0..N).all(|b| hs[a][b][l].is_finite()));
-            let failure = if !finite {
-                Some(StepFailure::NonFinite)
-            } else if iterations[l] >= max_iter {
-                Some(StepFailure::NotConverged)
-            } else if !solvable[l] || !(0..N).all(|a| delta[a][l].is_finite()) {
-                Some(StepFailure::SingularJacobian)
-            } else {
-                None
-            };
-            if let Some(failure) = failure {
-                result[l] = Err(failure);
-                active[l] = false;
-                continue;
-            }
-            let (mut dmax, mut pmax) = (0.0f64, 0.0f64);
-            for a in 0..N {
-                p[a][l] += delta[a][l];
-                dmax = dmax.max(delta[a][l].abs());
-                pmax = pmax.max(p[a][l].abs());
-            }
-            iterations[l] += 1;
-            if dmax <= tol * pmax.max(s.scale_floor) {
-                active[l] = false;
+            if newton.settle(
+                l,
+                finite,
+                solvable[l],
+                &delta,
+                &mut p,
+                &mut iterations,
+                &mut active,
+                result,
+            ) {
                 converged[l] = true;
                 // ∇S at the new p to first order, from the pass just made: off by
                 // O(|δ|²) ≤ (tol·|p|)², far below a rounding, and one gradient pass saved.
