@@ -200,9 +200,7 @@ impl<'a> NetworkLanes<'a> {
     /// N's jet with its Hessian by tangents forward and one adjoint back. Every unit carries its
     /// value and N tangents (1 + N lane rows a weight, where a jet would take 1 + N + N(N+1)/2);
     /// tanh is the network's only nonlinearity, so the Hessian is
-    ///
-    ///     ∇²N = Σ_hidden units ȳ · tanh″(z) · ∇z ∇zᵀ + Σ_inputs x̄_i ∇²x_i,
-    ///
+    /// ∇²N = Σ_hidden units ȳ · tanh″(z) · ∇z ∇zᵀ + Σ_inputs x̄_i ∇²x_i,
     /// with ȳ and x̄ the adjoints of the reverse pass (∂N/∂y, ∂N/∂x) and ∇z the unit's tangents.
     /// A unit holds 1 + 2N rows in `buf`: y, ∇y (what the next layer sums) and ∇z (what the
     /// outer product takes); the inputs use the first 1 + N.
