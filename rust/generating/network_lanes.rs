@@ -211,7 +211,7 @@ impl<'a> NetworkLanes<'a> {
         buf: &mut [LaneRow],
     ) -> JetLanes<N, L> {
         let layers = &self.mlp.layers;
-        let c = 1 + 2 * N;
+        let c = unit_rows(N);
         let units = N + 1 + layers.iter().map(|l| l.n_out).sum::<usize>();
         let width = self.mlp.max_width().max(N + 1);
         let (rows, rest) = buf[..units * c + 2 * width].split_at_mut(units * c);

@@ -20,17 +20,14 @@ use crate::lanes::{solve_small_lanes, FullNewton, LaneStepper};
 use crate::step::{StepMap, StepResult, StepStats};
 
 /// [`PolynomialBisection`] with its derivative polynomials, stepped in lanes.
-pub struct PolynomialLanes<const N: usize> {
+pub struct PolynomialLanes<'a, const N: usize> {
+    stepper: &'a PolynomialBisection<N>,
     /// ∂S/∂x_a, polynomials in (t, x).
     grad: Vec<SparsePolynomial>,
     /// ∂²S/∂x_a∂x_b for a ≤ b, row by row (N(N+1)/2 of them).
     hess: Vec<SparsePolynomial>,
-    /// α's and β's components, polynomials in (p, x).
-    tar: Vec<SparsePolynomial>,
-    sou: Vec<SparsePolynomial>,
     /// ∂α_i/∂v_k at i · 2N + k, v = (p, x).
     tar_d: Vec<SparsePolynomial>,
-    newton: FullNewton,
 }
 
 /// A fallibly allocated vector of `n` polynomials.
@@ -47,27 +44,33 @@ fn polynomials(
     Ok(out)
 }
 
-impl<const N: usize> PolynomialLanes<N> {
-    /// The lane form of `stepper`: its derivative polynomials, its Newton settings.
-    pub fn new(stepper: &PolynomialBisection<N>) -> Result<Self, CoreError> {
+/// (a, b) with a ≤ b of the k-th upper-triangle entry of an N × N matrix, row by row.
+fn upper_entry<const N: usize>(mut k: usize) -> (usize, usize) {
+    let mut a = 0;
+    while k >= N - a {
+        k -= N - a;
+        a += 1;
+    }
+    (a, a + k)
+}
+
+impl<'a, const N: usize> PolynomialLanes<'a, N> {
+    /// The lane form of `stepper`: its derivative polynomials.
+    pub fn new(stepper: &'a PolynomialBisection<N>) -> Result<Self, CoreError> {
         let s = stepper.generating.as_polynomial();
-        let (sou, tar) = stepper.realization.maps();
+        let (_, tar) = stepper.realization.maps();
         // S's variables are (t, x): x_a is variable 1 + a.
         let grad = polynomials(N, |a| s.derivative(1 + a))?;
-        let pairs: Vec<(usize, usize)> = (0..N).flat_map(|a| (a..N).map(move |b| (a, b))).collect();
-        let hess = polynomials(pairs.len(), |k| grad[pairs[k].0].derivative(1 + pairs[k].1))?;
+        let hess = polynomials(N * (N + 1) / 2, |k| {
+            let (a, b) = upper_entry::<N>(k);
+            grad[a].derivative(1 + b)
+        })?;
         let tar_d = polynomials(2 * N * N, |k| tar[k / (2 * N)].derivative(k % (2 * N)))?;
         Ok(PolynomialLanes {
+            stepper,
             grad,
             hess,
-            tar: polynomials(N, |i| Ok(tar[i].clone()))?,
-            sou: polynomials(N, |i| Ok(sou[i].clone()))?,
             tar_d,
-            newton: FullNewton {
-                tol: stepper.newton.tol,
-                max_iter: stepper.newton.max_iter,
-                floor: stepper.scale_floor,
-            },
         })
     }
 
@@ -97,7 +100,7 @@ fn finite<const L: usize>(rows: &[[f64; L]]) -> [bool; L] {
     std::array::from_fn(|l| rows.iter().all(|r| r[l].is_finite()))
 }
 
-impl<const N: usize> LaneStepper<N> for PolynomialLanes<N> {
+impl<const N: usize> LaneStepper<N> for PolynomialLanes<'_, N> {
     const REPORTS: bool = true;
 
     #[inline(always)]
@@ -108,6 +111,12 @@ impl<const N: usize> LaneStepper<N> for PolynomialLanes<N> {
         live: &[bool; L],
         result: &mut [StepResult; L],
     ) {
+        let (sou, tar_maps) = self.stepper.realization.maps();
+        let newton = FullNewton {
+            tol: self.stepper.newton.tol,
+            max_iter: self.stepper.newton.max_iter,
+            floor: self.stepper.scale_floor,
+        };
         let target = *mu;
         let mut x = target;
         let mut active = *live;
@@ -124,9 +133,14 @@ impl<const N: usize> LaneStepper<N> for PolynomialLanes<N> {
                     k += 1;
                 }
             }
-            let jet_ok: [bool; L] =
-                std::array::from_fn(|l| finite(&p)[l] && (0..N).all(|a| finite(&hs[a])[l]));
-            let tar = Self::apply(&self.tar, &p, &x);
+            let mut jet_ok = finite(&p);
+            for row in &hs {
+                let ok = finite(row);
+                for l in 0..L {
+                    jet_ok[l] &= ok[l];
+                }
+            }
+            let tar = Self::apply(tar_maps, &p, &x);
             let tar_ok = finite(&tar);
             // J = ∂α/∂x + ∂α/∂p · ∇²S (x moves p = ∇S(x)); f = x_k − α.
             let mut v = [[0.0; L]; 2 * MAX_DIM];
@@ -161,7 +175,7 @@ impl<const N: usize> LaneStepper<N> for PolynomialLanes<N> {
             for l in 0..L {
                 // The dual-number step's order: S's jet and α, the cap, the solve.
                 if active[l] {
-                    converged[l] = self.newton.settle(
+                    converged[l] = newton.settle(
                         l,
                         jet_ok[l] && tar_ok[l],
                         solvable[l],
@@ -179,8 +193,8 @@ impl<const N: usize> LaneStepper<N> for PolynomialLanes<N> {
         }
         // β(∇S(x), x) at the converged x, and α's residual there.
         let p = self.gradient(h, &x);
-        let tar = Self::apply(&self.tar, &p, &x);
-        let out = Self::apply(&self.sou, &p, &x);
+        let tar = Self::apply(tar_maps, &p, &x);
+        let out = Self::apply(sou, &p, &x);
         let (p_ok, tar_ok, out_ok) = (finite(&p), finite(&tar), finite(&out));
         for l in (0..L).filter(|&l| converged[l]) {
             if !(p_ok[l] && tar_ok[l] && out_ok[l]) {
@@ -200,7 +214,7 @@ impl<const N: usize> LaneStepper<N> for PolynomialLanes<N> {
     }
 }
 
-impl<const N: usize> StepMap<N> for PolynomialLanes<N> {
+impl<const N: usize> StepMap<N> for PolynomialLanes<'_, N> {
     type Workspace = ();
     fn workspace(&self) {}
     fn step(&self, h: f64, mu: &mut [f64; N], _: &mut ()) -> StepResult {
