@@ -129,6 +129,151 @@ impl<const L: usize> std::ops::Mul for V<L> {
     }
 }
 
+/// L values and their derivatives along K directions (forward mode). The values take the
+/// operations [`V`] takes, so they are its bits.
+#[derive(Clone, Copy)]
+pub(crate) struct D<const L: usize, const K: usize> {
+    pub v: V<L>,
+    pub d: [V<L>; K],
+}
+
+impl<const L: usize, const K: usize> D<L, K> {
+    /// A constant: `v` with derivative 0.
+    #[inline(always)]
+    pub(crate) fn constant(v: V<L>) -> Self {
+        D {
+            v,
+            d: [V::splat(0.0); K],
+        }
+    }
+    #[inline(always)]
+    pub(crate) fn times(self, c: f64) -> Self {
+        let mut r = self;
+        r.v = self.v.scale(c);
+        for k in 0..K {
+            r.d[k] = self.d[k].scale(c);
+        }
+        r
+    }
+    /// `a` on the lanes where `take` holds (value and derivatives), `self` elsewhere.
+    #[inline(always)]
+    pub(crate) fn blend(self, take: &[bool; L], a: Self) -> Self {
+        let mut r = self;
+        r.v = self.v.blend(take, a.v);
+        for k in 0..K {
+            r.d[k] = self.d[k].blend(take, a.d[k]);
+        }
+        r
+    }
+}
+
+impl<const L: usize, const K: usize> std::ops::Add for D<L, K> {
+    type Output = Self;
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        let mut r = self;
+        r.v = self.v + o.v;
+        for k in 0..K {
+            r.d[k] = self.d[k] + o.d[k];
+        }
+        r
+    }
+}
+
+impl<const L: usize, const K: usize> std::ops::Sub for D<L, K> {
+    type Output = Self;
+    #[inline(always)]
+    fn sub(self, o: Self) -> Self {
+        let mut r = self;
+        r.v = self.v - o.v;
+        for k in 0..K {
+            r.d[k] = self.d[k] - o.d[k];
+        }
+        r
+    }
+}
+
+impl<const L: usize, const K: usize> std::ops::Mul for D<L, K> {
+    type Output = Self;
+    #[inline(always)]
+    fn mul(self, o: Self) -> Self {
+        let mut r = self;
+        r.v = self.v * o.v;
+        for k in 0..K {
+            r.d[k] = self.d[k] * o.v + self.v * o.d[k];
+        }
+        r
+    }
+}
+
+/// The inverse of an N×N matrix lane by lane, by Gauss–Jordan with partial pivoting (each lane
+/// picks and swaps its own pivot rows), and per lane whether every pivot was non-zero and the
+/// inverse finite. `m` is reduced in `a` while `inv` (starting at I) takes the same row
+/// operations.
+#[inline(always)]
+pub(crate) fn inverse_lanes<const N: usize, const L: usize>(
+    m: &[[V<L>; N]; N],
+    inv: &mut [[V<L>; N]; N],
+) -> [bool; L] {
+    let (zero, one) = (V::splat(0.0), V::splat(1.0));
+    let mut a = *m;
+    for r in 0..N {
+        inv[r] = [zero; N];
+        inv[r][r] = one;
+    }
+    let mut ok = [true; L];
+    for col in 0..N {
+        // Rows above `col` are pivot rows; below it, columns before `col` are already zero.
+        for l in 0..L {
+            let mut best = col;
+            for r in col + 1..N {
+                if a[r][col].0[l].abs() > a[best][col].0[l].abs() {
+                    best = r;
+                }
+            }
+            if best != col {
+                for j in col..N {
+                    let t = a[best][j].0[l];
+                    a[best][j].0[l] = a[col][j].0[l];
+                    a[col][j].0[l] = t;
+                }
+                for j in 0..N {
+                    let t = inv[best][j].0[l];
+                    inv[best][j].0[l] = inv[col][j].0[l];
+                    inv[col][j].0[l] = t;
+                }
+            }
+        }
+        let pivot = a[col][col];
+        for l in 0..L {
+            ok[l] &= pivot.0[l] != 0.0 && pivot.0[l].is_finite();
+        }
+        let r = one.zip(pivot, |a, b| a / b);
+        for j in col + 1..N {
+            a[col][j] = a[col][j] * r;
+        }
+        for j in 0..N {
+            inv[col][j] = inv[col][j] * r;
+        }
+        for row in 0..N {
+            if row != col {
+                let f = a[row][col];
+                for j in col + 1..N {
+                    a[row][j] = a[row][j] - f * a[col][j];
+                }
+                for j in 0..N {
+                    inv[row][j] = inv[row][j] - f * inv[col][j];
+                }
+            }
+        }
+    }
+    let probe = finite_probe(inv.iter().flatten());
+    for l in 0..L {
+        ok[l] &= probe.0[l] == 0.0;
+    }
+    ok
+}
+
 type V3<const L: usize> = [V<L>; 3];
 type M3<const L: usize> = [[V<L>; 3]; 3];
 

@@ -21,7 +21,8 @@ use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::{LaneRow, NetworkLanes, Polynomial};
 use crate::isa::Isa;
 use crate::lanes_bisection::{
-    evaluate, finite_probe, lane_newton_steps, round_probes, LaneSolve, Progress, PREDICT_MAX_S, V,
+    evaluate, finite_probe, inverse_lanes, lane_newton_steps, round_probes, LaneSolve, Progress, D,
+    PREDICT_MAX_S, V,
 };
 use crate::step::{StepResult, StepStats};
 use crate::structures::lie_groupoid::{
@@ -53,62 +54,13 @@ impl<const L: usize> Lane<L> for V<L> {
     }
 }
 
-/// L values and their derivatives along six directions (forward mode). The values take the
-/// operations [`V`] takes, so they are its bits.
-#[derive(Clone, Copy)]
-struct D<const L: usize> {
-    v: V<L>,
-    d: V6<L>,
-}
+/// L values with their derivatives along the six p-directions.
+type D6<const L: usize> = D<L, 6>;
 
-impl<const L: usize> Add for D<L> {
-    type Output = Self;
-    #[inline(always)]
-    fn add(self, o: Self) -> Self {
-        let mut r = self;
-        r.v = self.v + o.v;
-        for k in 0..6 {
-            r.d[k] = self.d[k] + o.d[k];
-        }
-        r
-    }
-}
-
-impl<const L: usize> Sub for D<L> {
-    type Output = Self;
-    #[inline(always)]
-    fn sub(self, o: Self) -> Self {
-        let mut r = self;
-        r.v = self.v - o.v;
-        for k in 0..6 {
-            r.d[k] = self.d[k] - o.d[k];
-        }
-        r
-    }
-}
-
-impl<const L: usize> Mul for D<L> {
-    type Output = Self;
-    #[inline(always)]
-    fn mul(self, o: Self) -> Self {
-        let mut r = self;
-        r.v = self.v * o.v;
-        for k in 0..6 {
-            r.d[k] = self.d[k] * o.v + self.v * o.d[k];
-        }
-        r
-    }
-}
-
-impl<const L: usize> Lane<L> for D<L> {
+impl<const L: usize> Lane<L> for D6<L> {
     #[inline(always)]
     fn times(self, c: f64) -> Self {
-        let mut r = self;
-        r.v = self.v.scale(c);
-        for k in 0..6 {
-            r.d[k] = self.d[k].scale(c);
-        }
-        r
+        D::times(self, c)
     }
     #[inline(always)]
     fn chain(s: &Self, f: V<L>, df: V<L>) -> Self {
@@ -223,62 +175,6 @@ pub(crate) fn se3_tar_lanes<const L: usize>(
         jac[r] = t[r].d;
     }
     (value, s)
-}
-
-/// The inverse of a 6×6 matrix lane by lane, by Gauss–Jordan with partial pivoting (each lane
-/// picks and swaps its own pivot rows), and per lane whether every pivot was non-zero and the
-/// inverse finite.
-#[inline(always)]
-pub(crate) fn inverse6_lanes<const L: usize>(m: &M6<L>, inv: &mut M6<L>) -> [bool; L] {
-    let (zero, one) = (V::splat(0.0), V::splat(1.0));
-    let mut a = [[zero; 12]; 6];
-    for r in 0..6 {
-        a[r][..6].copy_from_slice(&m[r]);
-        a[r][6 + r] = one;
-    }
-    let mut ok = [true; L];
-    for col in 0..6 {
-        // Rows above `col` are pivot rows; below it, columns before `col` are already zero.
-        for l in 0..L {
-            let mut best = col;
-            for r in col + 1..6 {
-                if a[r][col].0[l].abs() > a[best][col].0[l].abs() {
-                    best = r;
-                }
-            }
-            if best != col {
-                for j in col..12 {
-                    let t = a[best][j].0[l];
-                    a[best][j].0[l] = a[col][j].0[l];
-                    a[col][j].0[l] = t;
-                }
-            }
-        }
-        let pivot = a[col][col];
-        for l in 0..L {
-            ok[l] &= pivot.0[l] != 0.0 && pivot.0[l].is_finite();
-        }
-        let r = one.zip(pivot, |a, b| a / b);
-        for j in col + 1..12 {
-            a[col][j] = a[col][j] * r;
-        }
-        for row in 0..6 {
-            if row != col {
-                let f = a[row][col];
-                for j in col + 1..12 {
-                    a[row][j] = a[row][j] - f * a[col][j];
-                }
-            }
-        }
-    }
-    for r in 0..6 {
-        inv[r].copy_from_slice(&a[r][6..]);
-    }
-    let probe = finite_probe(inv.iter().flatten());
-    for l in 0..L {
-        ok[l] &= probe.0[l] == 0.0;
-    }
-    ok
 }
 
 /// What the lane Newton solve of S on se(3) needs: S's polynomial part (N = 6) and network term
@@ -415,7 +311,7 @@ fn se3_block<const N: usize, const L: usize>(
         }
         let (tar, s) = se3_tar_lanes(&x, &p, hess.then_some(&h), &mut jac);
         let ok = if hess {
-            inverse6_lanes(&jac, &mut fresh)
+            inverse_lanes(&jac, &mut fresh)
         } else {
             [false; L]
         };

@@ -41,6 +41,7 @@ pub mod lane_field;
 pub mod lanes;
 pub mod lanes_bisection;
 pub mod lanes_bisection_se3;
+pub mod lanes_bisection_series;
 pub mod lanes_splitting;
 pub mod memory;
 pub mod model;

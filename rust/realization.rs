@@ -20,7 +20,7 @@ use crate::generating::{
 };
 use crate::step::{Inverse, StepResult, StepStats, SIMPLIFIED_RATE};
 pub use crate::structures::lie_groupoid::LaneChart;
-use crate::structures::lie_groupoid::{Chart, Groupoid};
+use crate::structures::lie_groupoid::{Chart, Groupoid, LieAlgebra};
 
 /// The source and target maps of a symplectic realization in canonical coordinates (x fibre,
 /// p base): sou is the Poisson map (β), tar the anti-Poisson one (α), and sou(0, p) = tar(0, p)
@@ -60,6 +60,12 @@ pub trait Realization<const N: usize>: Sync {
     fn lane_chart(&self) -> Option<LaneChart> {
         None
     }
+    /// The Lie algebra of a Lie groupoid's chart ([`LaneChart::ExpSeries`] sums its series);
+    /// None for any other realization.
+    #[inline]
+    fn lie_algebra(&self) -> Option<&LieAlgebra<N>> {
+        None
+    }
 }
 
 /// Largest |x₀|² at which [`Realization::predict`] is used on a Lie groupoid: beyond it (a step
@@ -95,6 +101,10 @@ impl<const N: usize> Realization<N> for Groupoid<N> {
     #[inline]
     fn lane_chart(&self) -> Option<LaneChart> {
         Groupoid::lane_chart(self)
+    }
+    #[inline]
+    fn lie_algebra(&self) -> Option<&LieAlgebra<N>> {
+        Some(&self.algebra)
     }
     #[inline]
     fn predicts(&self) -> bool {

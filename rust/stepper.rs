@@ -19,6 +19,7 @@ use crate::generating::{GeneratingFunction, MAX_BATCH};
 use crate::isa::Isa;
 use crate::lanes_bisection::{so3_newton_steps, So3Newton};
 use crate::lanes_bisection_se3::{se3_newton_steps, Se3Newton};
+use crate::lanes_bisection_series::{series_newton_steps, SeriesNewton};
 use crate::realization::{Generating, LaneChart, Newton, Realization};
 use crate::step::step_each;
 pub use crate::step::{
@@ -119,6 +120,28 @@ where
         })
     }
 
+    /// The series lane solver, where it applies: S as [`Self::so3_lanes`] takes it, on the
+    /// exponential chart of any other Lie algebra ([`LaneChart::ExpSeries`]), with simplified
+    /// Newton and the relative tolerance (as [`Self::so3_lanes`]).
+    fn series_lanes(&self) -> Option<SeriesNewton<'_, N>> {
+        if !self.newton.simplified || self.scale_floor != RELATIVE_FLOOR {
+            return None;
+        }
+        if self.realization.lane_chart() != Some(LaneChart::ExpSeries) {
+            return None;
+        }
+        let algebra = self.realization.lie_algebra()?;
+        let (poly, network) = self.generating.lane_parts()?;
+        Some(SeriesNewton {
+            poly,
+            network,
+            algebra,
+            tol: self.newton.tol,
+            max_iter: self.newton.max_iter,
+            predict: PREDICT,
+        })
+    }
+
     /// The Newton solve with this stepper's settings.
     #[inline]
     fn solver(&self) -> Newton<'_, N, R> {
@@ -162,7 +185,7 @@ where
     /// refreshes the Jacobian every update; simplified Newton keeps the first one's factors
     /// while the updates contract by [`SIMPLIFIED_RATE`] or better, needing ∂S/∂p only).
     ///
-    /// S on an so(3) or se(3) chart with simplified Newton, where it fits the lanes
+    /// S on a Lie algebra's chart with simplified Newton, where it fits the lanes
     /// ([`Generating::lane_parts`]), takes the lane solver with one lane: the bits of its lane
     /// in any block of [`StepMap::step_batch`].
     fn step(&self, h: f64, mu: &mut [f64; N], ws: &mut G::Workspace) -> StepResult {
@@ -177,6 +200,12 @@ where
             let one = std::slice::from_mut(mu);
             let buf = self.generating.lane_scratch(ws);
             se3_newton_steps(&sys, Isa::detect(), buf, h, one, &[true], &mut result);
+            return result[0];
+        }
+        if let Some(sys) = self.series_lanes() {
+            let one = std::slice::from_mut(mu);
+            let buf = self.generating.lane_scratch(ws);
+            series_newton_steps(&sys, Isa::detect(), buf, h, one, &[true], &mut result);
             return result[0];
         }
         self.solver().step(&self.generating, h, mu, ws)
@@ -204,6 +233,10 @@ where
         if let Some(sys) = self.se3_lanes() {
             let buf = self.generating.lane_scratch(ws);
             return se3_newton_steps(&sys, Isa::detect(), buf, h, mu, live, results);
+        }
+        if let Some(sys) = self.series_lanes() {
+            let buf = self.generating.lane_scratch(ws);
+            return series_newton_steps(&sys, Isa::detect(), buf, h, mu, live, results);
         }
         // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
         // small to fill the lanes takes the cheaper path (a rollout of one state, say).

@@ -40,6 +40,10 @@ pub enum LaneChart {
     So3(Chart),
     /// se(3)'s groupoid in the exponential chart ([`crate::lanes_bisection_se3`]).
     Se3Exp,
+    /// Any other algebra's groupoid in the exponential chart, by its Bernoulli series
+    /// ([`crate::lanes_bisection_series`]; the constants from
+    /// [`crate::realization::Realization::lie_algebra`]).
+    ExpSeries,
 }
 
 /// Largest |x| the exponential chart accepts: c(θ) has a pole at 2π.
@@ -574,6 +578,50 @@ impl<const N: usize> LieAlgebra<N> {
         apply(&a, v)
     }
 
+    /// e^{−A} μ with A = ad_xᵀ (the coadjoint action of exp(x) on μ), summed as Σ (−A)ⁿ μ / n!
+    /// until the tail is below round-off: [`Groupoid::coadjoint`] on an algebra without a
+    /// closed form.
+    pub fn exp_coadjoint(&self, x: &[f64; N], mu: &[f64; N]) -> Result<[f64; N], StepFailure> {
+        let a = self.ad_transpose(x);
+        // ρ = ‖A‖∞ bounds ‖Aⁿ‖∞ by ρⁿ: the terms past K, Σ_{n>K} ρⁿ/n!, stay below
+        // COADJOINT_TAIL · e^ρ relative to |μ|∞ once ρ^{K+1}/(K+1)! is.
+        let rho = a
+            .iter()
+            .map(|row| row.iter().map(|v| v.abs()).sum::<f64>())
+            .fold(0.0f64, f64::max);
+        if !rho.is_finite() {
+            return Err(StepFailure::NonFinite);
+        }
+        let mut k = 0;
+        let mut bound = 1.0;
+        while bound > COADJOINT_TAIL {
+            k += 1;
+            if k > MAX_SERIES_TERMS {
+                return Err(StepFailure::ChartSingular);
+            }
+            bound *= rho / k as f64;
+        }
+        // Horner from the innermost term: w = μ, then w = μ − (A w)/n for n = K … 2, and
+        // μ − A w. Every addition adds a correction far above μ's last bit, so its rounding has
+        // no sign: summing the terms one after another from the largest would drop the sub-ulp
+        // tail of every component the same way at every step, a bias on the Casimirs. (A
+        // division, not a product by a rounded 1/n, for the same reason.)
+        let mut w = *mu;
+        for n in (2..=k).rev() {
+            let n = n as f64;
+            let aw = apply(&a, &w);
+            w = std::array::from_fn(|i| mu[i] - aw[i] / n);
+        }
+        let out = {
+            let aw = apply(&a, &w);
+            std::array::from_fn(|i| mu[i] - aw[i])
+        };
+        if !out.iter().all(|v: &f64| v.is_finite()) {
+            return Err(StepFailure::NonFinite);
+        }
+        Ok(out)
+    }
+
     /// The matrix ad_xᵀ, (ad_xᵀ)_{jk} = Σ_i c[i][j][k] x_i.
     #[inline]
     fn ad_transpose<T: Scalar>(&self, x: &[T; N]) -> [[T; N]; N] {
@@ -619,13 +667,16 @@ pub struct Groupoid<const N: usize> {
 }
 
 impl<const N: usize> Groupoid<N> {
-    /// The lane solver's closed-form chart this groupoid is: so(3) in either chart, se(3) in
-    /// the exponential one (the only chart it has); None for any other algebra.
+    /// The lane solver's chart this groupoid is: so(3) in either chart and se(3) in the
+    /// exponential one in closed form, any other algebra's exponential chart (the only chart it
+    /// has) by its series.
     pub fn lane_chart(&self) -> Option<LaneChart> {
         if N == 3 && self.algebra.is_so3() {
             Some(LaneChart::So3(self.chart))
         } else if N == 6 && self.algebra.is_se3() && self.chart == Chart::Exp {
             Some(LaneChart::Se3Exp)
+        } else if self.chart == Chart::Exp {
+            Some(LaneChart::ExpSeries)
         } else {
             None
         }
@@ -738,44 +789,7 @@ impl<const N: usize> Groupoid<N> {
                 return Ok(out);
             }
         }
-        let a = self.algebra.ad_transpose(x);
-        // ρ = ‖A‖∞ bounds ‖Aⁿ‖∞ by ρⁿ: the terms past K, Σ_{n>K} ρⁿ/n!, stay below
-        // COADJOINT_TAIL · e^ρ relative to |μ|∞ once ρ^{K+1}/(K+1)! is.
-        let rho = a
-            .iter()
-            .map(|row| row.iter().map(|v| v.abs()).sum::<f64>())
-            .fold(0.0f64, f64::max);
-        if !rho.is_finite() {
-            return Err(StepFailure::NonFinite);
-        }
-        let mut k = 0;
-        let mut bound = 1.0;
-        while bound > COADJOINT_TAIL {
-            k += 1;
-            if k > MAX_SERIES_TERMS {
-                return Err(StepFailure::ChartSingular);
-            }
-            bound *= rho / k as f64;
-        }
-        // Horner from the innermost term: w = μ, then w = μ − (A w)/n for n = K … 2, and
-        // μ − A w. Every addition adds a correction far above μ's last bit, so its rounding has
-        // no sign: summing the terms one after another from the largest would drop the sub-ulp
-        // tail of every component the same way at every step, a bias on the Casimirs. (A
-        // division, not a product by a rounded 1/n, for the same reason.)
-        let mut w = *mu;
-        for n in (2..=k).rev() {
-            let n = n as f64;
-            let aw = apply(&a, &w);
-            w = std::array::from_fn(|i| mu[i] - aw[i] / n);
-        }
-        let out = {
-            let aw = apply(&a, &w);
-            std::array::from_fn(|i| mu[i] - aw[i])
-        };
-        if !out.iter().all(|v: &f64| v.is_finite()) {
-            return Err(StepFailure::NonFinite);
-        }
-        Ok(out)
+        self.algebra.exp_coadjoint(x, mu)
     }
 
     /// Source map: the momentum sou(x, p) ∈ g*.

@@ -483,8 +483,8 @@ fn finite_probes_agree_with_is_finite_lane_by_lane() {
 }
 
 /// The lane solver a stepper takes is the realization's own answer: so(3) in either chart,
-/// se(3) in its exponential chart, nothing for another algebra of the same dimension (sl(2))
-/// or another realization (log-canonical).
+/// se(3) in its exponential chart, the series chart for another algebra of the same dimension
+/// (sl(2)), nothing for another realization (log-canonical).
 #[test]
 fn the_lane_chart_is_the_realizations_answer() {
     use crate::realization::{LaneChart, Realization};
@@ -504,7 +504,8 @@ fn the_lane_chart_is_the_realizations_answer() {
         c[j][i][k] = -v;
     }
     let sl2 = Groupoid::new(LieAlgebra::<3>::new(c).unwrap(), Chart::Exp).unwrap();
-    assert_eq!(sl2.lane_chart(), None);
+    assert_eq!(sl2.lane_chart(), Some(LaneChart::ExpSeries));
     let log = LogCanonical::<2>::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap();
     assert_eq!(log.lane_chart(), None);
+    assert!(sl2.lie_algebra().is_some() && log.lie_algebra().is_none());
 }

@@ -259,5 +259,6 @@ mod network_lanes;
 mod polynomial;
 mod rollouts;
 mod se3_lanes;
+mod series_lanes;
 mod splitting_lanes;
 mod steps;

@@ -24,7 +24,7 @@ fn lanes_of<const N: usize>(gf: &GeneratingFunction<N>) -> NetworkLanes<'_> {
 }
 
 /// A random network term with 1 + N inputs: one or two hidden layers of at most `width`.
-fn network<const N: usize>(
+pub(super) fn network<const N: usize>(
     rng: &mut Rng,
     width: usize,
     inputs: MlpInputs,

@@ -8,8 +8,8 @@ use super::lie_poisson::{heavy_top, minus_t_h_terms};
 use super::*;
 use crate::dual::Dual1;
 use crate::isa::Isa;
-use crate::lanes_bisection::V;
-use crate::lanes_bisection_se3::{inverse6_lanes, se3_newton_steps, se3_tar_lanes, Se3Newton};
+use crate::lanes_bisection::{inverse_lanes, V};
+use crate::lanes_bisection_se3::{se3_newton_steps, se3_tar_lanes, Se3Newton};
 use crate::structures::lie_groupoid::LieAlgebra;
 
 const L: usize = 8;
@@ -135,7 +135,7 @@ fn lane_inverse_pivots_and_flags_singular_lanes() {
     let m: [[V<L>; 6]; 6] =
         std::array::from_fn(|r| std::array::from_fn(|c| V(std::array::from_fn(|l| ms[l][r][c]))));
     let mut inv = [[V([0.0; L]); 6]; 6];
-    let ok = inverse6_lanes(&m, &mut inv);
+    let ok = inverse_lanes(&m, &mut inv);
     assert!(!ok[6], "NaN lane accepted");
     for l in (0..L).filter(|&l| l != 5 && l != 6) {
         assert!(ok[l], "lane {l} refused");
