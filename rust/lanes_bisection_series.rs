@@ -13,7 +13,7 @@
 //!   carries the Hessian's rows, p the identity), summed to the values' term count;
 //! - J⁻¹ by Gauss–Jordan with partial pivoting lane by lane ([`inverse_lanes`]);
 //! - Newton started from p₀ = μ − ½ A(x₀) μ (x₀: the gradient of S's terms linear in t), the
-//!   groupoid's first-order predictor;
+//!   groupoid's first-order predictor, and one fixed-point step from there (as on se(3));
 //! - the new state e^{−A(x)} μ lane by lane ([`LieAlgebra::exp_coadjoint`]), on μ's coadjoint
 //!   orbit whatever Newton's residual.
 
@@ -224,8 +224,9 @@ pub(crate) struct SeriesNewton<'a, const N: usize> {
     pub algebra: &'a LieAlgebra<N>,
     pub tol: f64,
     pub max_iter: u32,
-    /// Start Newton from p₀ = μ − ½ A(x₀) μ (x₀: the t-linear terms' gradient at μ) instead of
-    /// μ, where |x₀|² ≤ [`PREDICT_MAX_S`] and p₀ is finite.
+    /// Start Newton from p₀ = μ − ½ A(x₀) μ (x₀: the t-linear terms' gradient at μ) and one
+    /// fixed-point step from there instead of μ, where |x₀|² ≤ [`PREDICT_MAX_S`] and p₀ is
+    /// finite.
     pub predict: bool,
 }
 
@@ -280,6 +281,24 @@ fn series_block<const N: usize, const L: usize>(
         let near: [bool; L] = from_fn(|l| s0.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
         for i in 0..N {
             p[i] = p[i].blend(&near, p0[i]);
+        }
+        // Second order, as on se(3): one fixed-point step p ← p + μ − tar(x, p) with x the
+        // gradient of S's t¹ and t² terms at p₀ leaves an O(h³) error. Kept where p₀ was, |x|²
+        // ≤ PREDICT_MAX_S, the series summed and the new start is finite.
+        for i in 0..N {
+            pl[i] = p[i].0;
+        }
+        jet_lanes_into::<N, L, false, 2>(sys.poly, t, &pl, &mut scratch, &mut jet);
+        let xa: [V<L>; N] = from_fn(|i| V(jet.g[i]));
+        let sa = xa.iter().fold(V::splat(0.0), |a, v| a + *v * *v);
+        let (tar, chart) = tar_series(c, &xa, &p, &near);
+        let p1: [V<L>; N] = from_fn(|i| p[i] + (target[i] - tar[i]));
+        let probe = finite_probe(p1);
+        let keep: [bool; L] = from_fn(|l| {
+            near[l] && sa.0[l] <= PREDICT_MAX_S && chart[l].is_none() && probe.0[l] == 0.0
+        });
+        for i in 0..N {
+            p[i] = p[i].blend(&keep, p1[i]);
         }
     }
     let mut progress = Progress::new(active);
