@@ -36,7 +36,11 @@ realization's Taylor step went into SIMD lanes (∇S, ∇²S and ∂α from deri
 instead of dual numbers; ``rust/tests/polynomial.rs`` checks its steps against the dual-number
 step's to 1e-12 with the same Newton counts), the same rollout to 1.4e-17 after 50 steps:
 :data:`AFTER_THE_POLYNOMIAL_LANES`. The learned models' network Hessian from tangents and one
-adjoint left every digest here as it was. Nothing else may change."""
+adjoint left every digest here as it was. Then the exponential chart of every other Lie algebra
+(the affine system's central extension among them) went into SIMD lanes by its Bernoulli series
+(``rust/tests/series_lanes.rs`` checks its steps against the generic dual-number step's to 1e-12
+with the same Newton counts from the same start), the same rollout to 6.1e-16 after 100 steps:
+:data:`AFTER_THE_SERIES_LANES`. Nothing else may change."""
 
 from __future__ import annotations
 
@@ -168,6 +172,12 @@ AFTER_THE_POLYNOMIAL_LANES = {
 }
 
 
+#: The affine system's Taylor rollout after the series chart's Newton solve went into lanes.
+AFTER_THE_SERIES_LANES = {
+    "affine-taylor3": "840d43696d386876",
+}
+
+
 def _digests() -> dict[str, str]:
     out: dict[str, str] = {}
 
@@ -231,6 +241,7 @@ def test_every_old_stepper_keeps_its_bits() -> None:
         **AFTER_THE_CAYLEY_PREDICTOR,
         **AFTER_THE_SECOND_ORDER_START,
         **AFTER_THE_POLYNOMIAL_LANES,
+        **AFTER_THE_SERIES_LANES,
     }
     changed = sorted(k for k in want if got[k] != want[k])
     assert not changed, f"rollouts changed: {changed}"
