@@ -14,8 +14,8 @@
 //! - J⁻¹ by Gauss–Jordan with partial pivoting lane by lane ([`inverse_lanes`]);
 //! - Newton started from p₀ = μ − ½ A(x₀) μ (x₀: the gradient of S's terms linear in t), the
 //!   groupoid's first-order predictor, and one fixed-point step from there (as on se(3));
-//! - the new state e^{−A(x)} μ lane by lane ([`LieAlgebra::exp_coadjoint`]), on μ's coadjoint
-//!   orbit whatever Newton's residual.
+//! - the new state e^{−A(x)} μ in lanes ([`LieAlgebra::exp_coadjoint`]'s rule, each lane its own
+//!   term count), on μ's coadjoint orbit whatever Newton's residual.
 
 // Index loops over lanes, coordinates and matrix entries read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
@@ -32,7 +32,9 @@ use crate::lanes_bisection::{
     PREDICT_MAX_S, V,
 };
 use crate::step::{StepResult, StepStats};
-use crate::structures::lie_groupoid::{bernoulli_over_factorial, LieAlgebra};
+use crate::structures::lie_groupoid::{
+    bernoulli_over_factorial, LieAlgebra, COADJOINT_TAIL, MAX_SERIES_TERMS,
+};
 
 /// What the series is summed on: lane values ([`V`]) or lane values with their derivatives
 /// along the N p-directions ([`D`]).
@@ -131,7 +133,7 @@ fn size<const N: usize, const L: usize, T: Lane<L>>(v: &[T; N]) -> V<L> {
 /// tar(x, p) = Σ (Bₙ/n!) (−A)ⁿ p, A = ad_xᵀ, on the lanes in `live` (the others are left at
 /// p), and per lane why it has none: NonFinite where a term is not finite (a NaN too, which the
 /// scalar series' sizes skip), ChartSingular where
-/// [`MAX_SERIES_TERMS`](crate::structures::lie_groupoid::MAX_SERIES_TERMS) terms do not reach round-off (the chart's singular angle, or beyond).
+/// [`MAX_SERIES_TERMS`] terms do not reach round-off (the chart's singular angle, or beyond).
 /// Each lane sums until two consecutive non-zero terms are at most 1e-17 of its sum (values).
 #[inline(always)]
 fn tar_series<const N: usize, const L: usize, T: Lane<L>>(
@@ -214,6 +216,74 @@ pub(crate) fn series_tar_lanes<const N: usize, const L: usize>(
         jac[r] = t[r].d;
     }
     (from_fn(|r| t[r].v), failed)
+}
+
+/// e^{−A} μ with A = ad_xᵀ on the lanes in `live`, the rule of [`LieAlgebra::exp_coadjoint`] in
+/// lanes: each lane's term count K from its own ρ = ‖A‖∞ (the terms past K below
+/// [`COADJOINT_TAIL`] · e^ρ), then Horner from the innermost term, w = μ − (A w)/n for
+/// n = K … 2 (a lane whose K is below n keeps w = μ) and μ − A w. Per lane the failure, if any:
+/// ChartSingular where K would pass [`MAX_SERIES_TERMS`], NonFinite where ρ or the result is
+/// not finite.
+#[inline(always)]
+pub(crate) fn coadjoint_lanes<const N: usize, const L: usize>(
+    c: &[[[f64; N]; N]; N],
+    x: &[V<L>; N],
+    mu: &[V<L>; N],
+    live: &[bool; L],
+) -> ([V<L>; N], [Option<StepFailure>; L]) {
+    let (a, used) = ad_transpose(c, x);
+    let mut rho = V::splat(0.0);
+    for j in 0..N {
+        let mut row = V::splat(0.0);
+        for k in 0..N {
+            if used[j][k] {
+                row = row + a[j][k].abs();
+            }
+        }
+        rho = rho.max(row);
+    }
+    let mut failed = [None; L];
+    let mut terms = [0usize; L];
+    let mut most = 0;
+    for l in 0..L {
+        if !live[l] {
+            continue;
+        }
+        let r = rho.0[l];
+        if !r.is_finite() {
+            failed[l] = Some(StepFailure::NonFinite);
+            continue;
+        }
+        let (mut k, mut bound) = (0, 1.0f64);
+        while bound > COADJOINT_TAIL && k <= MAX_SERIES_TERMS {
+            k += 1;
+            bound *= r / k as f64;
+        }
+        if k > MAX_SERIES_TERMS {
+            failed[l] = Some(StepFailure::ChartSingular);
+        } else {
+            terms[l] = k;
+            most = most.max(k);
+        }
+    }
+    let mut w = *mu;
+    for n in (2..=most).rev() {
+        let inner: [bool; L] = from_fn(|l| n <= terms[l]);
+        let aw = apply(&a, &used, &w);
+        let nf = V::splat(n as f64);
+        for i in 0..N {
+            w[i] = w[i].blend(&inner, mu[i] - aw[i].zip(nf, |a, b| a / b));
+        }
+    }
+    let aw = apply(&a, &used, &w);
+    let out: [V<L>; N] = from_fn(|i| mu[i] - aw[i]);
+    let probe = finite_probe(out);
+    for l in 0..L {
+        if live[l] && failed[l].is_none() && probe.0[l] != 0.0 {
+            failed[l] = Some(StepFailure::NonFinite);
+        }
+    }
+    (out, failed)
 }
 
 /// What the lane Newton solve of S on a Lie algebra's exponential chart needs: S's polynomial
@@ -405,21 +475,24 @@ fn series_block<const N: usize, const L: usize>(
     // which the coadjoint action leaves out); the residual of the solved equation into the
     // stats.
     let x = xs;
-    let (tar, chart) = series_tar_lanes(sys.algebra, &x, &p, None, &mut jac, &progress.converged);
-    for l in (0..n).filter(|&l| progress.converged[l]) {
-        let xl: [f64; N] = from_fn(|i| x[i].0[l]);
-        let ml: [f64; N] = from_fn(|i| target[i].0[l]);
-        results[l] = if !xl.iter().all(|v| v.is_finite()) {
+    let done = progress.converged;
+    let (tar, chart) = series_tar_lanes(sys.algebra, &x, &p, None, &mut jac, &done);
+    let (next, moved) = coadjoint_lanes(c, &x, &target, &done);
+    let x_probe = finite_probe(x);
+    for l in (0..n).filter(|&l| done[l]) {
+        results[l] = if x_probe.0[l] != 0.0 {
             Err(StepFailure::NonFinite)
-        } else if let Some(e) = chart[l] {
+        } else if let Some(e) = chart[l].or(moved[l]) {
             Err(e)
         } else {
-            sys.algebra.exp_coadjoint(&xl, &ml).map(|next| {
-                mu[l] = next;
-                StepStats {
-                    iterations: progress.iterations[l],
-                    residual: (0..N).fold(0.0f64, |m, i| m.max((tar[i].0[l] - ml[i]).abs())),
-                }
+            let mut residual = 0.0f64;
+            for i in 0..N {
+                mu[l][i] = next[i].0[l];
+                residual = residual.max((tar[i].0[l] - target[i].0[l]).abs());
+            }
+            Ok(StepStats {
+                iterations: progress.iterations[l],
+                residual,
             })
         };
     }

@@ -409,7 +409,7 @@ pub const MAX_SERIES_TERMS: usize = 240;
 /// Relative size below which [`Groupoid::coadjoint`] drops the tail of the exponential series:
 /// far below round-off, so that the neglected terms (the same smooth function of the state at
 /// every step) add up to nothing over 10⁹ steps.
-const COADJOINT_TAIL: f64 = 1e-26;
+pub(crate) const COADJOINT_TAIL: f64 = 1e-26;
 
 /// Bₙ/n! for n = 0 … MAX_SERIES_TERMS (B₁ = −½, odd n > 1 vanish). B₂ₖ/(2k)! =
 /// (−1)^{k+1} 2ζ(2k)/(2π)^{2k}; the first twelve are exact ratios (as in C_SERIES).
