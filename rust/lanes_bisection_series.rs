@@ -106,22 +106,26 @@ fn ad_transpose<const N: usize, const L: usize, T: Lane<L>>(
     (a, used)
 }
 
-/// A v over A's structurally non-zero entries, each component summed in column order.
+/// A v over A's structurally non-zero entries, each component summed in column order. (Loops,
+/// not `array::from_fn`: its closures over lane vectors were left out of line, and their
+/// results copied through memory.)
 #[inline(always)]
 fn apply<const N: usize, const L: usize, T: Lane<L>>(
     a: &[[T; N]; N],
     used: &[[bool; N]; N],
     v: &[T; N],
 ) -> [T; N] {
-    from_fn(|j| {
+    let mut out = [T::zero(); N];
+    for j in 0..N {
         let mut s = T::zero();
         for k in 0..N {
             if used[j][k] {
                 s = s + a[j][k] * v[k];
             }
         }
-        s
-    })
+        out[j] = s;
+    }
+    out
 }
 
 /// max_i |v_i| lane by lane, on the values.
@@ -205,17 +209,20 @@ pub(crate) fn series_tar_lanes<const N: usize, const L: usize>(
         return tar_series(c, x, p, live);
     };
     // ∂x_i/∂p_k = Hess S[i][k]; ∂p_i/∂p_k = δ_ik.
-    let xd: [D<L, N>; N] = from_fn(|i| D { v: x[i], d: h[i] });
-    let pd: [D<L, N>; N] = from_fn(|i| {
-        let mut d = D::constant(p[i]);
-        d.d[i] = V::splat(1.0);
-        d
-    });
+    let mut xd = [D::constant(V::splat(0.0)); N];
+    let mut pd = xd;
+    for i in 0..N {
+        xd[i] = D { v: x[i], d: h[i] };
+        pd[i] = D::constant(p[i]);
+        pd[i].d[i] = V::splat(1.0);
+    }
     let (t, failed) = tar_series(c, &xd, &pd, live);
+    let mut value = *p;
     for r in 0..N {
         jac[r] = t[r].d;
+        value[r] = t[r].v;
     }
-    (from_fn(|r| t[r].v), failed)
+    (value, failed)
 }
 
 /// e^{−A} μ with A = ad_xᵀ on the lanes in `live`, the rule of [`LieAlgebra::exp_coadjoint`] in
@@ -276,7 +283,10 @@ pub(crate) fn coadjoint_lanes<const N: usize, const L: usize>(
         }
     }
     let aw = apply(&a, &used, &w);
-    let out: [V<L>; N] = from_fn(|i| mu[i] - aw[i]);
+    let mut out = *mu;
+    for i in 0..N {
+        out[i] = mu[i] - aw[i];
+    }
     let probe = finite_probe(out);
     for l in 0..L {
         if live[l] && failed[l].is_none() && probe.0[l] != 0.0 {
@@ -388,7 +398,10 @@ fn series_block<const N: usize, const L: usize>(
         } else {
             evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
         }
-        let x: [V<L>; N] = from_fn(|i| V(jet.g[i]));
+        let mut x = target;
+        for i in 0..N {
+            x[i] = V(jet.g[i]);
+        }
         if hess {
             // Only the refreshing lanes take the new Hessian (another lane's refresh must not
             // change a lane's bits).
@@ -448,14 +461,18 @@ fn series_block<const N: usize, const L: usize>(
             }
         }
         // δ = J⁻¹ (μ − tar), each component summed in column order.
-        let f: [V<L>; N] = from_fn(|i| target[i] - tar[i]);
-        let delta: [V<L>; N] = from_fn(|r| {
+        let mut f = tar;
+        for i in 0..N {
+            f[i] = target[i] - tar[i];
+        }
+        let mut delta = f;
+        for r in 0..N {
             let mut acc = inv[r][0] * f[0];
             for k in 1..N {
                 acc = acc + inv[r][k] * f[k];
             }
-            acc
-        });
+            delta[r] = acc;
+        }
         progress.update(&go, &mut p, &delta, sys.tol, results);
         let newly: [bool; L] = from_fn(|l| go[l] && progress.converged[l]);
         if newly.contains(&true) {
