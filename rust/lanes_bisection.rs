@@ -620,6 +620,24 @@ impl<const L: usize> Progress<L> {
     }
 }
 
+/// A block's states as lanes (`pl[i][j]` = `mu[j][i]`, zero past `mu.len()`) and which lanes
+/// are live.
+#[inline(always)]
+pub(crate) fn load_block<const N: usize, const L: usize>(
+    mu: &[[f64; N]],
+    live: &[bool],
+) -> ([[f64; L]; N], [bool; L]) {
+    let mut pl = [[0.0; L]; N];
+    let mut active = [false; L];
+    for (j, m) in mu.iter().enumerate() {
+        for i in 0..N {
+            pl[i][j] = m[i];
+        }
+        active[j] = live[j];
+    }
+    (pl, active)
+}
+
 /// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)
 /// by simplified Newton in lanes: the same rule as [`crate::stepper::BisectionStepper`]'s
 /// (refresh the Jacobian while updates contract by less than [`SIMPLIFIED_RATE`], stop once
@@ -639,14 +657,7 @@ fn so3_block<const N: usize, const L: usize>(
 ) {
     let n = mu.len();
     debug_assert!(N == 3 && n <= L);
-    let mut pl = [[0.0; L]; N];
-    let mut active = [false; L];
-    for j in 0..n {
-        for i in 0..3 {
-            pl[i][j] = mu[j][i];
-        }
-        active[j] = live[j];
-    }
+    let (mut pl, active) = load_block::<N, L>(mu, live);
     let target: V3<L> = [V(pl[0]), V(pl[1]), V(pl[2])];
     let mut p = target;
     let net = sys.network.as_ref();

@@ -21,8 +21,8 @@ use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::{LaneRow, NetworkLanes, Polynomial};
 use crate::isa::Isa;
 use crate::lanes_bisection::{
-    evaluate, finite_probe, inverse_lanes, lane_newton_steps, round_probes, LaneSolve, Progress, D,
-    PREDICT_MAX_S, V,
+    evaluate, finite_probe, inverse_lanes, lane_newton_steps, load_block, round_probes, LaneSolve,
+    Progress, D, PREDICT_MAX_S, V,
 };
 use crate::step::{StepResult, StepStats};
 use crate::structures::lie_groupoid::{
@@ -209,14 +209,7 @@ fn se3_block<const N: usize, const L: usize>(
 ) {
     let n = mu.len();
     debug_assert!(N == 6 && n <= L);
-    let mut pl = [[0.0; L]; N];
-    let mut active = [false; L];
-    for j in 0..n {
-        for i in 0..N {
-            pl[i][j] = mu[j][i];
-        }
-        active[j] = live[j];
-    }
+    let (mut pl, active) = load_block::<N, L>(mu, live);
     let target: V6<L> = from_fn(|i| V(pl[i]));
     let mut p = target;
     let net = sys.network.as_ref();
