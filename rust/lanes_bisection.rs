@@ -557,22 +557,51 @@ impl<const L: usize> Progress<L> {
         (0..L).any(|l| self.active[l] && self.refresh[l])
     }
 
-    /// Lane l stops with `failure` if there is one, else takes this round's update (`go`).
+    /// This round's verdict on every active lane, in the one-trajectory step's order:
+    /// NonFinite where S's jet is not finite (`probe`; on a refresh `hess_probe` too), the
+    /// chart's own failure (`chart`), NotConverged after `max_iter` updates, SingularJacobian
+    /// where a refreshing lane's fresh inverse is unusable (`inverted` false). A lane that fails
+    /// stops with its failure in `results`. Returns the lanes that take this round's update and,
+    /// of those, the ones that take the fresh inverse.
     #[inline(always)]
-    pub(crate) fn settle(
+    pub(crate) fn judge(
         &mut self,
-        l: usize,
-        failure: Option<StepFailure>,
-        go: &mut [bool; L],
+        probe: &V<L>,
+        hess_probe: &V<L>,
+        chart: &[Option<StepFailure>; L],
+        max_iter: u32,
+        inverted: &[bool; L],
         results: &mut [StepResult],
-    ) {
-        match failure {
-            Some(e) => {
-                results[l] = Err(e);
-                self.active[l] = false;
+    ) -> ([bool; L], [bool; L]) {
+        let mut go = [false; L];
+        let mut take = [false; L];
+        for l in 0..L {
+            if !self.active[l] {
+                continue;
             }
-            None => go[l] = true,
+            let refresh = self.refresh[l];
+            let finite = probe.0[l] == 0.0 && (!refresh || hess_probe.0[l] == 0.0);
+            let failure = if !finite {
+                Some(StepFailure::NonFinite)
+            } else if chart[l].is_some() {
+                chart[l]
+            } else if self.iterations[l] >= max_iter {
+                Some(StepFailure::NotConverged)
+            } else if refresh && !inverted[l] {
+                Some(StepFailure::SingularJacobian)
+            } else {
+                take[l] = refresh;
+                None
+            };
+            match failure {
+                Some(e) => {
+                    results[l] = Err(e);
+                    self.active[l] = false;
+                }
+                None => go[l] = true,
+            }
         }
+        (go, take)
     }
 
     /// p += δ on the lanes in `go`: a δ that is not finite fails with SingularJacobian; a lane
@@ -721,33 +750,25 @@ fn so3_block<const N: usize, const L: usize>(
         let fresh_probe = fresh
             .as_ref()
             .map(|(fi, det)| finite_probe(fi.iter().flatten().chain([det])));
-        let mut go = [false; L];
-        // The lanes whose fresh inverse is taken this round.
-        let mut take = [false; L];
+        let mut chart = [None; L];
+        let mut inverted = [false; L];
         for l in 0..L {
-            if !progress.active[l] {
-                continue;
+            if exp && s.0[l] >= max_s {
+                chart[l] = Some(StepFailure::ChartSingular);
             }
-            let refresh = progress.refresh[l];
-            let finite = probe.0[l] == 0.0 && (!refresh || hess_probe.0[l] == 0.0);
-            let failure = if !finite {
-                Some(StepFailure::NonFinite)
-            } else if exp && s.0[l] >= max_s {
-                Some(StepFailure::ChartSingular)
-            } else if progress.iterations[l] >= sys.max_iter {
-                Some(StepFailure::NotConverged)
-            } else if let (true, Some((_, det)), Some(fp)) = (refresh, &fresh, &fresh_probe) {
-                if det.0[l] != 0.0 && fp.0[l] == 0.0 {
-                    take[l] = true;
-                    None
-                } else {
-                    Some(StepFailure::SingularJacobian)
-                }
-            } else {
-                None
-            };
-            progress.settle(l, failure, &mut go, results);
+            if let (Some((_, det)), Some(fp)) = (&fresh, &fresh_probe) {
+                inverted[l] = det.0[l] != 0.0 && fp.0[l] == 0.0;
+            }
         }
+        // `take`: the lanes whose fresh inverse is taken this round.
+        let (go, take) = progress.judge(
+            &probe,
+            &hess_probe,
+            &chart,
+            sys.max_iter,
+            &inverted,
+            results,
+        );
         if let Some((fi, _)) = &fresh {
             for r in 0..3 {
                 for c in 0..3 {

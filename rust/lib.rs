@@ -40,6 +40,7 @@ pub mod kernel;
 pub mod lane_field;
 pub mod lanes;
 pub mod lanes_bisection;
+pub mod lanes_bisection_exp;
 pub mod lanes_bisection_se3;
 pub mod lanes_bisection_series;
 pub mod lanes_splitting;

@@ -18,8 +18,9 @@ use crate::error::StepFailure;
 use crate::generating::{GeneratingFunction, MAX_BATCH};
 use crate::isa::Isa;
 use crate::lanes_bisection::{so3_newton_steps, So3Newton};
-use crate::lanes_bisection_se3::{se3_newton_steps, Se3Newton};
-use crate::lanes_bisection_series::{series_newton_steps, SeriesNewton};
+use crate::lanes_bisection_exp::chart_newton_steps;
+use crate::lanes_bisection_se3::{Se3Chart, Se3Newton};
+use crate::lanes_bisection_series::{SeriesChart, SeriesNewton};
 use crate::realization::{Generating, LaneChart, Newton, Realization};
 use crate::step::step_each;
 pub use crate::step::{
@@ -114,6 +115,7 @@ where
         Some(Se3Newton {
             poly,
             network,
+            chart: Se3Chart,
             tol: self.newton.tol,
             max_iter: self.newton.max_iter,
             predict: PREDICT,
@@ -135,7 +137,7 @@ where
         Some(SeriesNewton {
             poly,
             network,
-            algebra,
+            chart: SeriesChart { algebra },
             tol: self.newton.tol,
             max_iter: self.newton.max_iter,
             predict: PREDICT,
@@ -199,13 +201,13 @@ where
         if let Some(sys) = self.se3_lanes() {
             let one = std::slice::from_mut(mu);
             let buf = self.generating.lane_scratch(ws);
-            se3_newton_steps(&sys, Isa::detect(), buf, h, one, &[true], &mut result);
+            chart_newton_steps(&sys, Isa::detect(), buf, h, one, &[true], &mut result);
             return result[0];
         }
         if let Some(sys) = self.series_lanes() {
             let one = std::slice::from_mut(mu);
             let buf = self.generating.lane_scratch(ws);
-            series_newton_steps(&sys, Isa::detect(), buf, h, one, &[true], &mut result);
+            chart_newton_steps(&sys, Isa::detect(), buf, h, one, &[true], &mut result);
             return result[0];
         }
         self.solver().step(&self.generating, h, mu, ws)
@@ -232,11 +234,11 @@ where
         }
         if let Some(sys) = self.se3_lanes() {
             let buf = self.generating.lane_scratch(ws);
-            return se3_newton_steps(&sys, Isa::detect(), buf, h, mu, live, results);
+            return chart_newton_steps(&sys, Isa::detect(), buf, h, mu, live, results);
         }
         if let Some(sys) = self.series_lanes() {
             let buf = self.generating.lane_scratch(ws);
-            return series_newton_steps(&sys, Isa::detect(), buf, h, mu, live, results);
+            return chart_newton_steps(&sys, Isa::detect(), buf, h, mu, live, results);
         }
         // A polynomial S gives the same bits in lockstep lanes and one at a time, so a chunk too
         // small to fill the lanes takes the cheaper path (a rollout of one state, say).

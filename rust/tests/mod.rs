@@ -250,6 +250,7 @@ mod batched;
 mod bisection_lanes;
 mod charts;
 mod derivatives;
+mod exp_chart_lanes;
 mod lanes;
 mod layout;
 mod lie_poisson;

@@ -217,7 +217,8 @@ fn learned_so3_step_in_lanes_equals_the_generic_step() {
 /// states to 1e-12 and `step_batch` gives `step`'s bits.
 #[test]
 fn learned_se3_lane_solve_equals_the_generic_step() {
-    use crate::lanes_bisection_se3::{se3_newton_steps, Se3Newton};
+    use crate::lanes_bisection_exp::chart_newton_steps;
+    use crate::lanes_bisection_se3::{Se3Chart, Se3Newton};
     let mut rng = Rng::new(0x4E7_1A51);
     // −tH for H = ½ Σ M_i²/I_i + Γ₃ (mgl = 1, χ = e₃).
     let inertia = [1.0, 1.5, 2.0];
@@ -249,6 +250,7 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
     let sys = Se3Newton {
         poly: &st.generating.polynomial,
         network: Some(lanes_of(&st.generating)),
+        chart: Se3Chart,
         tol: st.newton.tol,
         max_iter: st.newton.max_iter,
         predict: false,
@@ -272,7 +274,7 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
             let (c1, c2) = casimirs(&a);
             let mut ra = [Err(StepFailure::OutOfDomain)];
             let mut one = [a];
-            se3_newton_steps(
+            chart_newton_steps(
                 &sys,
                 Isa::detect(),
                 &mut buf,
@@ -297,7 +299,7 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
     let mut one = states.clone();
     for m in &mut one {
         let mut r = [Err(StepFailure::OutOfDomain)];
-        se3_newton_steps(
+        chart_newton_steps(
             &sys,
             Isa::detect(),
             &mut buf,
@@ -309,7 +311,7 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
     }
     let mut block = states.clone();
     let mut results = vec![Ok(StepStats::default()); 8];
-    se3_newton_steps(
+    chart_newton_steps(
         &sys,
         Isa::detect(),
         &mut buf,

@@ -1,15 +1,16 @@
 //! The se(3) lane solver (`lanes_bisection_se3`): its chart against the groupoid's scalar chart
-//! (values bit for bit, Jacobian against dual numbers), its 6×6 inverse, its Newton solve against
-//! the generic dual-number step, and lane bits that depend on neither the block nor the dispatch.
+//! (values bit for bit, Jacobian against dual numbers), its 6×6 inverse, and the shared lane
+//! solver's checks (`exp_chart_lanes`) on the heavy top: against the generic dual-number step,
+//! and lane bits that depend on neither the block nor the dispatch.
 
 #![allow(clippy::needless_range_loop)]
 
+use super::exp_chart_lanes::{newton_against_the_generic_step, same_for_every_dispatch_and_block};
 use super::lie_poisson::{heavy_top, minus_t_h_terms};
 use super::*;
 use crate::dual::Dual1;
-use crate::isa::Isa;
 use crate::lanes_bisection::{inverse_lanes, V};
-use crate::lanes_bisection_se3::{se3_newton_steps, se3_tar_lanes, Se3Newton};
+use crate::lanes_bisection_se3::{se3_tar_lanes, Se3Chart, Se3Newton};
 use crate::structures::lie_groupoid::LieAlgebra;
 
 const L: usize = 8;
@@ -159,81 +160,21 @@ fn lane_inverse_pivots_and_flags_singular_lanes() {
     );
 }
 
-/// The lane solver against the generic dual-number step (`step_generic`, nalgebra's LU) on the
-/// heavy top's −tH plus random terms, 25 states × 20 steps: started from μ, the same Newton
-/// counts and states within 1e-13 relative; with the predictor (what `step` runs), the same
-/// states within 1e-12 and fewer updates in all; Casimirs |Γ|² and M·Γ kept to 1e-14 per step.
+/// The shared solver's checks (`exp_chart_lanes`) on the heavy top's −tH plus random terms:
+/// against the generic dual-number step from 25 states, Casimirs |Γ|² and M·Γ kept.
 #[test]
 fn lane_newton_equals_the_generic_step() {
     let mut rng = Rng::new(0x5E3_0003);
     for extra in [0, 8] {
         let st = top_stepper(top_polynomial(&mut rng, extra));
-        let plain = Se3Newton {
-            poly: &st.generating.polynomial,
-            network: None,
-            tol: st.newton.tol,
-            max_iter: st.newton.max_iter,
-            predict: false,
-        };
-        let mut ws = st.workspace();
-        let (mut worst, mut worst_predicted, mut worst_casimir) = (0.0f64, 0.0f64, 0.0f64);
-        let (mut n_lane, mut n_predicted, mut n_generic) = (0, 0, 0);
-        for _ in 0..25 {
-            let mu = top_state(&mut rng);
-            let (mut a, mut b, mut c) = (mu, mu, mu);
-            for _ in 0..20 {
-                let mut sa = [Err(StepFailure::OutOfDomain)];
-                let mut one = [a];
-                se3_newton_steps(
-                    &plain,
-                    Isa::detect(),
-                    &mut [],
-                    0.1,
-                    &mut one,
-                    &[true],
-                    &mut sa,
-                );
-                a = one[0];
-                let sa = sa[0].unwrap();
-                let sb = st.step_generic(0.1, &mut b, &mut ws).unwrap();
-                let before = c;
-                let sc = st.step(0.1, &mut c, &mut ws).unwrap();
-                assert_eq!(sa.iterations, sb.iterations, "Newton counts differ");
-                n_lane += sa.iterations;
-                n_generic += sb.iterations;
-                n_predicted += sc.iterations;
-                let scale = b.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-                worst = worst.max(dist6(&a, &b) / scale);
-                worst_predicted = worst_predicted.max(dist6(&c, &b) / scale);
-                let (c0, c1) = (casimirs(&before), casimirs(&c));
-                worst_casimir = worst_casimir
-                    .max((c1[0] - c0[0]).abs())
-                    .max((c1[1] - c0[1]).abs());
-                (a, b) = (c, c);
-            }
-        }
-        assert!(worst <= 1e-13, "{extra} extra terms: {worst:e}");
-        assert!(
-            worst_predicted <= 1e-12,
-            "{extra}: predicted {worst_predicted:e}"
-        );
-        assert!(
-            worst_casimir <= 1e-14,
-            "{extra}: Casimirs moved {worst_casimir:e}"
-        );
-        assert_eq!(n_lane, n_generic);
-        assert!(
-            n_predicted < n_generic,
-            "{n_predicted} vs {n_generic} updates"
-        );
-        eprintln!("se(3), {extra} extra terms: {n_predicted} / {n_generic} updates");
+        let states: Vec<[f64; 6]> = (0..25).map(|_| top_state(&mut rng)).collect();
+        let label = format!("se(3), {extra} extra terms");
+        newton_against_the_generic_step(&st, Se3Chart, &states, casimirs, &label);
     }
 }
 
-/// Lane bits depend on neither the dispatch nor the block: the portable and the detected
-/// dispatch, blocks of 1, 3, 8, 13 and 29 states and the stepper's `step` / `step_batch` agree
-/// bit for bit, failures included (NaN: NonFinite; |ω| beyond the exp chart: ChartSingular; one
-/// Newton update allowed: NotConverged), and a lane that is not live is left alone.
+/// The shared solver's bits for every dispatch and block (`exp_chart_lanes`) on se(3): the
+/// singular lane has |ω| beyond the exp chart.
 #[test]
 fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     let mut rng = Rng::new(0x5E3_0004);
@@ -241,6 +182,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     let sys = Se3Newton {
         poly: &st.generating.polynomial,
         network: None,
+        chart: Se3Chart,
         tol: 1e-12,
         max_iter: 50,
         predict: true,
@@ -248,64 +190,12 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     let mut mu0: Vec<[f64; 6]> = (0..29).map(|_| top_state(&mut rng)).collect();
     mu0[5] = [f64::NAN, 1.0, 0.0, 0.0, 0.0, 1.0];
     mu0[17] = [400.0, -300.0, 250.0, 0.0, 0.6, 0.8];
-    let mut live = vec![true; mu0.len()];
-    live[9] = false;
-    let run = |sys: &Se3Newton<'_, 6>, isa: Isa, block: usize| {
-        let mut mu = mu0.clone();
-        let mut res = vec![Err(StepFailure::OutOfDomain); mu.len()];
-        for ((m, l), r) in mu
-            .chunks_mut(block)
-            .zip(live.chunks(block))
-            .zip(res.chunks_mut(block))
-        {
-            se3_newton_steps(sys, isa, &mut [], 0.1, m, l, r);
-        }
-        (mu, res)
-    };
-    let (reference, ref_results) = run(&sys, Isa::PORTABLE, 29);
-    assert_eq!(ref_results[5], Err(StepFailure::NonFinite));
-    assert_eq!(ref_results[17], Err(StepFailure::ChartSingular));
-    assert_eq!(ref_results[9], Err(StepFailure::OutOfDomain), "not live");
-    assert!(same_bits(&reference[9], &mu0[9]) && same_bits(&reference[17], &mu0[17]));
-    assert!(ref_results
-        .iter()
-        .enumerate()
-        .all(|(j, r)| [5, 9, 17].contains(&j) || r.is_ok()));
-    for isa in isas() {
-        for block in [1, 3, 8, 13, 29] {
-            let (mu, res) = run(&sys, isa, block);
-            assert_eq!(res, ref_results, "{isa:?} block {block}");
-            for j in 0..mu.len() {
-                assert!(same_bits(&mu[j], &reference[j]), "{isa:?} {block} {j}");
-            }
-        }
-    }
-    // The stepper takes the lane solver one at a time and in batches.
-    let mut ws = st.workspace();
-    let mut batch = mu0.clone();
-    let mut res = vec![Err(StepFailure::OutOfDomain); batch.len()];
-    st.step_batch(0.1, &mut batch, &live, &mut res, &mut ws);
-    assert_eq!(res, ref_results);
-    for j in (0..mu0.len()).filter(|&j| ref_results[j].is_ok()) {
-        let mut one = mu0[j];
-        st.step(0.1, &mut one, &mut ws).unwrap();
-        assert!(same_bits(&one, &reference[j]) && same_bits(&batch[j], &reference[j]));
-    }
-    // One update allowed: every finite lane stops NotConverged.
-    let capped = Se3Newton { max_iter: 1, ..sys };
-    let (_, res) = run(&capped, Isa::detect(), 8);
-    for j in (0..mu0.len()).filter(|&j| ![5, 9, 17].contains(&j)) {
-        assert_eq!(res[j], Err(StepFailure::NotConverged), "state {j}");
-    }
-}
-
-fn dist6(a: &[f64; 6], b: &[f64; 6]) -> f64 {
-    (0..6).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt()
+    same_for_every_dispatch_and_block(&st, sys, &mu0);
 }
 
 /// |Γ|² and M·Γ.
-fn casimirs(mu: &[f64; 6]) -> [f64; 2] {
-    [
+fn casimirs(mu: &[f64; 6]) -> Vec<f64> {
+    vec![
         mu[3] * mu[3] + mu[4] * mu[4] + mu[5] * mu[5],
         mu[0] * mu[3] + mu[1] * mu[4] + mu[2] * mu[5],
     ]

@@ -6,13 +6,11 @@
 
 #![allow(clippy::needless_range_loop)]
 
+use super::exp_chart_lanes::{newton_against_the_generic_step, same_for_every_dispatch_and_block};
 use super::*;
 use crate::dual::Dual1;
-use crate::isa::Isa;
 use crate::lanes_bisection::V;
-use crate::lanes_bisection_series::{
-    coadjoint_lanes, series_newton_steps, series_tar_lanes, SeriesNewton,
-};
+use crate::lanes_bisection_series::{coadjoint_lanes, series_tar_lanes, SeriesChart, SeriesNewton};
 use crate::structures::lie_groupoid::LieAlgebra;
 
 const L: usize = 8;
@@ -199,96 +197,30 @@ fn lane_series_equals_the_scalar_series_and_its_dual_jacobian() {
     chart_against_the_scalar_series(oscillator(), 0x5E1_0002);
 }
 
-/// The lane solver against the generic dual-number step (`step_generic`, nalgebra's LU) on one
-/// algebra, 20 states × 20 steps of h = 0.1: started from μ, the same Newton counts and states
-/// within 1e-13 relative; with the predictor (what `step` runs), within 1e-12 and fewer updates
-/// in all; every Casimir kept to 1e-14 a step (relative to |μ|²).
-fn newton_against_the_generic_step<const N: usize>(
-    algebra: LieAlgebra<N>,
-    casimirs: fn(&[f64; N]) -> Vec<f64>,
-    seed: u64,
-) where
+/// The shared solver's checks (`exp_chart_lanes`) against the generic dual-number step on one
+/// algebra: 20 states, with and without 8 extra random terms in S.
+fn newton_on<const N: usize>(algebra: LieAlgebra<N>, casimirs: fn(&[f64; N]) -> Vec<f64>, seed: u64)
+where
     nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
 {
     let mut rng = Rng::new(seed);
     for extra in [0, 8] {
         let st = stepper(algebra.clone(), polynomial::<N>(&mut rng, extra));
-        let plain = SeriesNewton {
-            poly: &st.generating.polynomial,
-            network: None,
-            algebra: &algebra,
-            tol: st.newton.tol,
-            max_iter: st.newton.max_iter,
-            predict: false,
-        };
-        let mut ws = st.workspace();
-        let (mut worst, mut worst_predicted, mut worst_casimir) = (0.0f64, 0.0f64, 0.0f64);
-        let (mut n_lane, mut n_predicted, mut n_generic) = (0, 0, 0);
-        for _ in 0..20 {
-            let mu = state::<N>(&mut rng);
-            let (mut a, mut b, mut c) = (mu, mu, mu);
-            for _ in 0..20 {
-                let mut sa = [Err(StepFailure::OutOfDomain)];
-                let mut one = [a];
-                series_newton_steps(
-                    &plain,
-                    Isa::detect(),
-                    &mut [],
-                    0.1,
-                    &mut one,
-                    &[true],
-                    &mut sa,
-                );
-                a = one[0];
-                let sa = sa[0].unwrap();
-                let sb = st.step_generic(0.1, &mut b, &mut ws).unwrap();
-                let before = c;
-                let sc = st.step(0.1, &mut c, &mut ws).unwrap();
-                assert_eq!(sa.iterations, sb.iterations, "Newton counts differ");
-                n_lane += sa.iterations;
-                n_generic += sb.iterations;
-                n_predicted += sc.iterations;
-                let scale = b.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-                let dist = |u: &[f64; N], v: &[f64; N]| {
-                    (0..N).fold(0.0f64, |m, i| m.max((u[i] - v[i]).abs()))
-                };
-                worst = worst.max(dist(&a, &b) / scale);
-                worst_predicted = worst_predicted.max(dist(&c, &b) / scale);
-                for (c0, c1) in casimirs(&before).iter().zip(casimirs(&c)) {
-                    worst_casimir = worst_casimir.max((c1 - c0).abs() / (scale * scale));
-                }
-                (a, b) = (c, c);
-            }
-        }
-        assert!(worst <= 1e-13, "{extra} extra terms: {worst:e}");
-        assert!(
-            worst_predicted <= 1e-12,
-            "{extra}: predicted {worst_predicted:e}"
-        );
-        assert!(
-            worst_casimir <= 1e-14,
-            "{extra}: Casimirs moved {worst_casimir:e}"
-        );
-        assert_eq!(n_lane, n_generic);
-        assert!(
-            n_predicted < n_generic,
-            "{n_predicted} vs {n_generic} updates"
-        );
-        eprintln!("dim {N}, {extra} extra terms: {n_predicted} / {n_generic} updates");
+        let states: Vec<[f64; N]> = (0..20).map(|_| state::<N>(&mut rng)).collect();
+        let chart = SeriesChart { algebra: &algebra };
+        let label = format!("dim {N}, {extra} extra terms");
+        newton_against_the_generic_step(&st, chart, &states, casimirs, &label);
     }
 }
 
 #[test]
 fn lane_newton_equals_the_generic_step() {
-    newton_against_the_generic_step(sl2(), sl2_casimirs, 0x5E1_0003);
-    newton_against_the_generic_step(oscillator(), oscillator_casimirs, 0x5E1_0004);
+    newton_on(sl2(), sl2_casimirs, 0x5E1_0003);
+    newton_on(oscillator(), oscillator_casimirs, 0x5E1_0004);
 }
 
-/// Lane bits depend on neither the dispatch nor the block (oscillator algebra): the portable
-/// and the detected dispatch, blocks of 1, 3, 8, 13 and 29 states and the stepper's `step` /
-/// `step_batch` agree bit for bit, failures included (NaN: NonFinite; a state whose x is far
-/// past the singular angle: ChartSingular; one Newton update allowed: NotConverged), and a lane
-/// that is not live is left alone.
+/// The shared solver's bits for every dispatch and block (`exp_chart_lanes`) on the oscillator
+/// algebra: the singular lane's x is far past the singular angle.
 #[test]
 fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     let mut rng = Rng::new(0x5E1_0005);
@@ -297,7 +229,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     let sys = SeriesNewton {
         poly: &st.generating.polynomial,
         network: None,
-        algebra: &algebra,
+        chart: SeriesChart { algebra: &algebra },
         tol: 1e-12,
         max_iter: 50,
         predict: true,
@@ -305,55 +237,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     let mut mu0: Vec<[f64; 4]> = (0..29).map(|_| state::<4>(&mut rng)).collect();
     mu0[5] = [f64::NAN, 1.0, 0.0, 0.5];
     mu0[17] = [400.0, -300.0, 250.0, 200.0];
-    let mut live = vec![true; mu0.len()];
-    live[9] = false;
-    let run = |sys: &SeriesNewton<'_, 4>, isa: Isa, block: usize| {
-        let mut mu = mu0.clone();
-        let mut res = vec![Err(StepFailure::OutOfDomain); mu.len()];
-        for ((m, l), r) in mu
-            .chunks_mut(block)
-            .zip(live.chunks(block))
-            .zip(res.chunks_mut(block))
-        {
-            series_newton_steps(sys, isa, &mut [], 0.1, m, l, r);
-        }
-        (mu, res)
-    };
-    let (reference, ref_results) = run(&sys, Isa::PORTABLE, 29);
-    assert_eq!(ref_results[5], Err(StepFailure::NonFinite));
-    assert_eq!(ref_results[17], Err(StepFailure::ChartSingular));
-    assert_eq!(ref_results[9], Err(StepFailure::OutOfDomain), "not live");
-    assert!(same_bits(&reference[9], &mu0[9]) && same_bits(&reference[17], &mu0[17]));
-    assert!(ref_results
-        .iter()
-        .enumerate()
-        .all(|(j, r)| [5, 9, 17].contains(&j) || r.is_ok()));
-    for isa in isas() {
-        for block in [1, 3, 8, 13, 29] {
-            let (mu, res) = run(&sys, isa, block);
-            assert_eq!(res, ref_results, "{isa:?} block {block}");
-            for j in 0..mu.len() {
-                assert!(same_bits(&mu[j], &reference[j]), "{isa:?} {block} {j}");
-            }
-        }
-    }
-    // The stepper takes the lane solver one at a time and in batches.
-    let mut ws = st.workspace();
-    let mut batch = mu0.clone();
-    let mut res = vec![Err(StepFailure::OutOfDomain); batch.len()];
-    st.step_batch(0.1, &mut batch, &live, &mut res, &mut ws);
-    assert_eq!(res, ref_results);
-    for j in (0..mu0.len()).filter(|&j| ref_results[j].is_ok()) {
-        let mut one = mu0[j];
-        st.step(0.1, &mut one, &mut ws).unwrap();
-        assert!(same_bits(&one, &reference[j]) && same_bits(&batch[j], &reference[j]));
-    }
-    // One update allowed: every finite lane stops NotConverged.
-    let capped = SeriesNewton { max_iter: 1, ..sys };
-    let (_, res) = run(&capped, Isa::detect(), 8);
-    for j in (0..mu0.len()).filter(|&j| ![5, 9, 17].contains(&j)) {
-        assert_eq!(res[j], Err(StepFailure::NotConverged), "state {j}");
-    }
+    same_for_every_dispatch_and_block(&st, sys, &mu0);
 }
 
 /// A learned S (−tH plus a network term) on the oscillator algebra takes the series lanes
