@@ -175,7 +175,14 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
         };
         let (probe, hess_probe) = round_probes(&jet.v, &x, &h, hess);
         // `take`: the lanes whose fresh inverse is taken this round.
-        let (go, take) = progress.judge(&probe, &hess_probe, &chart, sys.max_iter, &ok, results);
+        let (go, take) = progress.judge(
+            &probe,
+            &hess_probe,
+            |l| chart[l],
+            sys.max_iter,
+            |l| ok[l],
+            results,
+        );
         if take.contains(&true) {
             for r in 0..N {
                 for k in 0..N {
