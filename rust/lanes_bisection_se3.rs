@@ -27,7 +27,6 @@ use crate::structures::lie_groupoid::{
 };
 
 type V6<const L: usize> = [V<L>; 6];
-type M6<const L: usize> = [[V<L>; 6]; 6];
 
 /// What the chart is evaluated on: lane values ([`V`]) or lane values with their derivatives
 /// along the six p-directions ([`D`]).
@@ -135,19 +134,25 @@ fn tar<const L: usize, T: Lane<L>>(x: &[T; 6], p: &[T; 6], c: T, c1: T) -> [T; 6
 
 /// tar(x, p) of se(3)'s exponential chart in lanes (the scalar chart's bits) and |ω|²; with
 /// `hess` (S's Hessian, symmetric) also the exact p-Jacobian of tar(∇S(p), p) into `jac`,
-/// J[r][k] = ∂tar_r/∂p_k (left alone without it).
+/// J[r][k] = ∂tar_r/∂p_k (left alone without it). N must be 6 (generic so that the lane solver
+/// passes its arrays as they are, without copies).
 #[inline(always)]
-pub(crate) fn se3_tar_lanes<const L: usize>(
-    x: &V6<L>,
-    p: &V6<L>,
-    hess: Option<&M6<L>>,
-    jac: &mut M6<L>,
-) -> (V6<L>, V<L>) {
+pub(crate) fn se3_tar_lanes<const N: usize, const L: usize>(
+    x: &[V<L>; N],
+    p: &[V<L>; N],
+    hess: Option<&[[V<L>; N]; N]>,
+    jac: &mut [[V<L>; N]; N],
+) -> ([V<L>; N], V<L>) {
+    debug_assert!(N == 6);
+    let x6: V6<L> = [x[0], x[1], x[2], x[3], x[4], x[5]];
+    let p6: V6<L> = [p[0], p[1], p[2], p[3], p[4], p[5]];
     let w = [x[0], x[1], x[2]];
     let s = dot(&w, &w);
     let (c, c1, c2) = chart_coefficients(s, hess.is_some());
+    let mut value = *p;
     let Some(h) = hess else {
-        return (tar(x, p, c, c1), s);
+        value[..6].copy_from_slice(&tar(&x6, &p6, c, c1));
+        return (value, s);
     };
     let (zero, one) = (V::splat(0.0), V::splat(1.0));
     // ∂x_i/∂p_k = Hess S[i][k]; ∂p_i/∂p_k = δ_ik.
@@ -158,17 +163,18 @@ pub(crate) fn se3_tar_lanes<const L: usize>(
     let mut pd = xd;
     for i in 0..6 {
         xd[i].v = x[i];
-        xd[i].d = h[i];
+        for k in 0..6 {
+            xd[i].d[k] = h[i][k];
+        }
         pd[i].v = p[i];
         pd[i].d[i] = one;
     }
     let wd = [xd[0], xd[1], xd[2]];
     let sd = dot(&wd, &wd);
     let t = tar(&xd, &pd, D::chain(&sd, c, c1), D::chain(&sd, c1, c2));
-    let mut value = *p;
     for r in 0..6 {
         value[r] = t[r].v;
-        jac[r] = t[r].d;
+        jac[r][..6].copy_from_slice(&t[r].d);
     }
     (value, s)
 }
@@ -206,32 +212,7 @@ impl<const N: usize> ExpChartLanes<N> for Se3Chart {
         jac: &mut [[V<L>; N]; N],
         _live: &[bool; L],
     ) -> ([V<L>; N], [Option<StepFailure>; L], V<L>) {
-        // N = 6 (the stepper takes this chart only there); the copies give the closed form its
-        // fixed-size arrays.
-        debug_assert!(N == 6);
-        let zero = V::splat(0.0);
-        let (mut x6, mut p6): (V6<L>, V6<L>) = ([zero; 6], [zero; 6]);
-        x6.copy_from_slice(&x[..6]);
-        p6.copy_from_slice(&p[..6]);
-        let mut j6: M6<L> = [[zero; 6]; 6];
-        let (value, s) = match hess {
-            None => se3_tar_lanes(&x6, &p6, None, &mut j6),
-            Some(h) => {
-                let mut h6: M6<L> = [[zero; 6]; 6];
-                for a in 0..6 {
-                    for b in 0..6 {
-                        h6[a][b] = h[a][b];
-                    }
-                }
-                let out = se3_tar_lanes(&x6, &p6, Some(&h6), &mut j6);
-                for r in 0..6 {
-                    for k in 0..6 {
-                        jac[r][k] = j6[r][k];
-                    }
-                }
-                out
-            }
-        };
+        let (value, s) = se3_tar_lanes(x, p, hess, jac);
         let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
         let mut failed = [None; L];
         for l in 0..L {
@@ -239,9 +220,7 @@ impl<const N: usize> ExpChartLanes<N> for Se3Chart {
                 failed[l] = Some(StepFailure::ChartSingular);
             }
         }
-        let mut out = *p;
-        out[..6].copy_from_slice(&value);
-        (out, failed, s)
+        (value, failed, s)
     }
 
     /// The closed-form coadjoint action ([`se3_coadjoint`]), lane by lane.
