@@ -447,18 +447,24 @@ fn inverse3_lanes<const L: usize>(m: &M3<L>) -> (M3<L>, V<L>) {
 /// Largest |x₀|² at which the Newton predictor is used (see [`So3Newton::predict`]).
 pub(crate) const PREDICT_MAX_S: f64 = 1.0;
 
-/// What the lane Newton solve of S on so(3) needs: S's polynomial part (N = 3) and network
-/// term if it has one, the chart and the simplified-Newton settings.
-pub(crate) struct So3Newton<'a, const N: usize> {
+/// What a lane Newton solve of S needs: S's polynomial part and network term if it has one,
+/// the chart (so(3)'s [`Chart`] here; any [`crate::lanes_bisection_exp::ExpChartLanes`] for the
+/// exponential-chart solver) and the simplified-Newton settings.
+pub(crate) struct ChartNewton<'a, const N: usize, C> {
     pub poly: &'a Polynomial<N>,
     pub network: Option<NetworkLanes<'a>>,
-    pub chart: Chart,
+    pub chart: C,
     pub tol: f64,
     pub max_iter: u32,
-    /// Start Newton from μ + ½ x₀ × μ (x₀: the t-linear terms' gradient at μ; in the Cayley
-    /// chart minus ¼ x₀ (x₀·μ) as well) instead of μ, where |x₀|² ≤ [`PREDICT_MAX_S`].
+    /// Start Newton from a predicted p₀ instead of μ, where |x₀|² ≤ [`PREDICT_MAX_S`] (x₀: the
+    /// t-linear terms' gradient at μ). On so(3), p₀ = μ + ½ x₀ × μ (in the Cayley chart minus
+    /// ¼ x₀ (x₀·μ) as well); on the exponential charts, the chart's first-order start and one
+    /// fixed-point step from there.
     pub predict: bool,
 }
+
+/// The so(3) lane solve: S on N = 3 in either so(3) chart.
+pub(crate) type So3Newton<'a, const N: usize> = ChartNewton<'a, N, Chart>;
 
 /// The jets of S = P + network term (the Hessian only when `HESS`) at a block's momenta into
 /// `jet`; `buf` is the network term's scratch ([`NetworkLanes::add_jet_lanes`]).

@@ -21,11 +21,11 @@ use std::array::from_fn;
 
 use crate::error::StepFailure;
 use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
-use crate::generating::{LaneRow, NetworkLanes, Polynomial};
+use crate::generating::LaneRow;
 use crate::isa::Isa;
 use crate::lanes_bisection::{
-    evaluate, finite_probe, inverse_lanes, lane_newton_steps, load_block, round_probes, LaneSolve,
-    Progress, PREDICT_MAX_S, V,
+    evaluate, finite_probe, inverse_lanes, lane_newton_steps, load_block, round_probes,
+    ChartNewton, LaneSolve, Progress, PREDICT_MAX_S, V,
 };
 use crate::step::{StepResult, StepStats};
 
@@ -56,19 +56,6 @@ pub(crate) trait ExpChartLanes<const N: usize> {
         mu: &[V<L>; N],
         live: &[bool; L],
     ) -> ([V<L>; N], [Option<StepFailure>; L]);
-}
-
-/// What the lane Newton solve of S on an exponential chart needs: S's polynomial part and network
-/// term if it has one, the chart, and the simplified-Newton settings.
-pub(crate) struct ChartNewton<'a, const N: usize, C> {
-    pub poly: &'a Polynomial<N>,
-    pub network: Option<NetworkLanes<'a>>,
-    pub chart: C,
-    pub tol: f64,
-    pub max_iter: u32,
-    /// Start Newton from [`ExpChartLanes::first_order_start`] and one fixed-point step from there
-    /// instead of μ, where |x₀|² ≤ [`PREDICT_MAX_S`] and p₀ is finite.
-    pub predict: bool,
 }
 
 /// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)

@@ -19,8 +19,9 @@ use std::array::from_fn;
 use std::ops::{Add, Mul, Sub};
 
 use crate::error::StepFailure;
+use crate::lanes_bisection::ChartNewton;
 use crate::lanes_bisection::{D, V};
-use crate::lanes_bisection_exp::{ChartNewton, ExpChartLanes};
+use crate::lanes_bisection_exp::ExpChartLanes;
 use crate::structures::lie_groupoid::{
     exp_chart_coefficient_derivatives_to, exp_chart_coefficient_to, se3_coadjoint, C_SERIES,
     EXP_CHART_MAX_ANGLE,

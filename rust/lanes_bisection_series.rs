@@ -25,8 +25,9 @@ use std::array::from_fn;
 use std::ops::{Add, Mul};
 
 use crate::error::StepFailure;
+use crate::lanes_bisection::ChartNewton;
 use crate::lanes_bisection::{finite_probe, D, V};
-use crate::lanes_bisection_exp::{ChartNewton, ExpChartLanes};
+use crate::lanes_bisection_exp::ExpChartLanes;
 use crate::structures::lie_groupoid::{
     bernoulli_over_factorial, LieAlgebra, COADJOINT_TAIL, MAX_SERIES_TERMS,
 };

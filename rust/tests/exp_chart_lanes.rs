@@ -5,7 +5,8 @@
 
 use super::*;
 use crate::isa::Isa;
-use crate::lanes_bisection_exp::{chart_newton_steps, ChartNewton, ExpChartLanes};
+use crate::lanes_bisection::ChartNewton;
+use crate::lanes_bisection_exp::{chart_newton_steps, ExpChartLanes};
 
 /// The lane solver on `chart` against the generic dual-number step (`step_generic`, nalgebra's
 /// LU) of `st`, 20 steps of h = 0.1 from each of `states`: started from μ, the same Newton counts
