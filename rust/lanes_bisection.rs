@@ -820,8 +820,8 @@ fn so3_block<const N: usize, const L: usize>(
 }
 
 /// A Newton solve in lanes: one step of a block of at most L trajectories, every lane with the
-/// bits of its one-lane solve ([`So3Newton`]; the se(3) solver of
-/// [`crate::lanes_bisection_se3`]).
+/// bits of its one-lane solve ([`So3Newton`]; [`ChartNewton`] on any
+/// [`crate::lanes_bisection_exp::ExpChartLanes`]).
 pub(crate) trait LaneSolve<const N: usize> {
     /// One step of `mu` (at most L states; those with `live` false left alone) into `results`.
     fn block<const L: usize>(
