@@ -11,7 +11,8 @@ use crate::lanes_bisection_exp::{chart_newton_steps, ExpChartLanes};
 /// The lane solver on `chart` against the generic dual-number step (`step_generic`, nalgebra's
 /// LU) of `st`, 20 steps of h = 0.1 from each of `states`: started from μ, the same Newton counts
 /// and states within 1e-13 relative; with the predictor (what `step` runs), within 1e-12 and
-/// fewer updates in all; every Casimir kept to 1e-14 a step (relative to max(|μ|∞, 1)²).
+/// fewer updates in all; every Casimir kept to 1e-14 a step. Distances are Euclidean, relative
+/// to max(|μ|∞, 1).
 pub(super) fn newton_against_the_generic_step<const N: usize, C: ExpChartLanes<N>>(
     st: &BisectionStepper<N>,
     chart: C,
@@ -32,7 +33,8 @@ pub(super) fn newton_against_the_generic_step<const N: usize, C: ExpChartLanes<N
     let mut ws = st.workspace();
     let (mut worst, mut worst_predicted, mut worst_casimir) = (0.0f64, 0.0f64, 0.0f64);
     let (mut n_lane, mut n_predicted, mut n_generic) = (0, 0, 0);
-    let dist = |u: &[f64; N], v: &[f64; N]| (0..N).fold(0.0f64, |m, i| m.max((u[i] - v[i]).abs()));
+    let dist =
+        |u: &[f64; N], v: &[f64; N]| (0..N).map(|i| (u[i] - v[i]).powi(2)).sum::<f64>().sqrt();
     for &mu in states {
         let (mut a, mut b, mut c) = (mu, mu, mu);
         for _ in 0..20 {
@@ -63,7 +65,7 @@ pub(super) fn newton_against_the_generic_step<const N: usize, C: ExpChartLanes<N
             worst = worst.max(dist(&a, &b) / scale);
             worst_predicted = worst_predicted.max(dist(&c, &b) / scale);
             for (c0, c1) in casimirs(&before).iter().zip(casimirs(&c)) {
-                worst_casimir = worst_casimir.max((c1 - c0).abs() / (scale * scale));
+                worst_casimir = worst_casimir.max((c1 - c0).abs());
             }
             (a, b) = (c, c);
         }
