@@ -362,7 +362,7 @@ impl Model {
             })
             .collect();
         GeneratingFunction::new(
-            Polynomial { terms },
+            Polynomial::new(terms)?,
             self.mlp.clone(),
             self.mlp_power,
             self.inputs,

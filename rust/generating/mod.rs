@@ -88,13 +88,13 @@ impl<const N: usize> GeneratingFunction<N> {
         mlp_power: u32,
         inputs: MlpInputs,
     ) -> Result<Self, CoreError> {
-        if let Some(m) = polynomial.terms.iter().find(|m| m.t_power == 0) {
+        if let Some(m) = polynomial.terms().iter().find(|m| m.t_power == 0) {
             return Err(CoreError::Format(format!(
                 "polynomial term with t-power 0 (p-powers {:?}) would break S(0, p) = 0",
                 m.p_powers
             )));
         }
-        if let Some(m) = polynomial.terms.iter().find(|m| !m.coeff.is_finite()) {
+        if let Some(m) = polynomial.terms().iter().find(|m| !m.coeff.is_finite()) {
             return Err(CoreError::Format(format!(
                 "polynomial coefficient {} is not finite",
                 m.coeff

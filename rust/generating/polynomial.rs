@@ -5,6 +5,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::dual::{Dual1, Jet2};
+use crate::error::CoreError;
+use crate::memory::try_collect;
 
 /// One monomial c · t^k p₁^e₁ ⋯ p_N^e_N.
 #[derive(Clone, Debug, PartialEq)]
@@ -14,15 +16,120 @@ pub struct Monomial<const N: usize> {
     pub coeff: f64,
 }
 
-/// A sparse polynomial in (t, p).
+/// A sparse polynomial in (t, p), with its terms compiled for evaluation once, when it is made:
+/// the largest exponents (the size of the tables of powers) and each term's variables and
+/// factor constants, which every evaluation read from the terms before (a scan of all terms and
+/// N branches a term, at every Newton update).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Polynomial<const N: usize> {
-    pub terms: Vec<Monomial<N>>,
+    terms: Vec<Monomial<N>>,
+    plan: Plan<N>,
+}
+
+/// One factor xⁿ (n ≥ 1) of a [`PlannedTerm`]: its variable and the constants of its jet
+/// (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²), formed as [`power_jet`] forms them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Factor {
+    pub(crate) var: usize,
+    pub(crate) n: u32,
+    pub(crate) nf: f64,
+    pub(crate) nn: f64,
+}
+
+/// A term as the lanes evaluate it: c · t^k times its `count` factors in increasing variable
+/// order (`factors[..count]`); variables absent from it are not listed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct PlannedTerm<const N: usize> {
+    pub(crate) t_power: u32,
+    pub(crate) coeff: f64,
+    pub(crate) count: usize,
+    pub(crate) factors: [Factor; N],
+}
+
+/// What the evaluations of a [`Polynomial`] read instead of its terms.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Plan<const N: usize> {
+    /// The largest t-power and p_i-powers of any term: the rows of the tables of powers.
+    pub(crate) t_max: u32,
+    pub(crate) p_max: [u32; N],
+    pub(crate) terms: Vec<PlannedTerm<N>>,
 }
 
 impl<const N: usize> Default for Polynomial<N> {
     fn default() -> Self {
-        Polynomial { terms: Vec::new() }
+        Polynomial {
+            terms: Vec::new(),
+            plan: Plan {
+                t_max: 0,
+                p_max: [0; N],
+                terms: Vec::new(),
+            },
+        }
+    }
+}
+
+impl<const N: usize> Polynomial<N> {
+    /// The polynomial Σ `terms`, compiled (the plan's memory is taken fallibly: a model file sets
+    /// the number of terms).
+    pub fn new(terms: Vec<Monomial<N>>) -> Result<Self, CoreError> {
+        let (mut t_max, mut p_max) = (0u32, [0u32; N]);
+        for m in &terms {
+            t_max = t_max.max(m.t_power);
+            for i in 0..N {
+                p_max[i] = p_max[i].max(m.p_powers[i]);
+            }
+        }
+        let planned = try_collect(
+            terms.len(),
+            terms.iter().map(|m| {
+                let none = Factor {
+                    var: 0,
+                    n: 0,
+                    nf: 0.0,
+                    nn: 0.0,
+                };
+                let mut factors = [none; N];
+                let mut count = 0;
+                for (i, &n) in m.p_powers.iter().enumerate() {
+                    if n > 0 {
+                        let nf = n as f64;
+                        factors[count] = Factor {
+                            var: i,
+                            n,
+                            nf,
+                            nn: nf * (nf - 1.0),
+                        };
+                        count += 1;
+                    }
+                }
+                PlannedTerm {
+                    t_power: m.t_power,
+                    coeff: m.coeff,
+                    count,
+                    factors,
+                }
+            }),
+            "the polynomial's terms",
+        )?;
+        Ok(Polynomial {
+            terms,
+            plan: Plan {
+                t_max,
+                p_max,
+                terms: planned,
+            },
+        })
+    }
+
+    /// The terms, in the order they are summed.
+    pub fn terms(&self) -> &[Monomial<N>] {
+        &self.terms
+    }
+
+    /// The compiled terms the lanes evaluate.
+    #[inline(always)]
+    pub(crate) fn plan(&self) -> &Plan<N> {
+        &self.plan
     }
 }
 
@@ -64,16 +171,9 @@ impl<const N: usize> Polynomial<N> {
     /// Fills the tables of powers of t and of each p_i, up to the largest exponent of any term.
     #[inline(always)]
     fn powers(&self, t: f64, p: &[f64; N], tp: &mut PowerTable, pp: &mut [PowerTable; N]) {
-        let (mut tmax, mut pmax) = (0u32, [0u32; N]);
-        for m in &self.terms {
-            tmax = tmax.max(m.t_power);
-            for i in 0..N {
-                pmax[i] = pmax[i].max(m.p_powers[i]);
-            }
-        }
-        power_table(t, tmax, tp);
+        power_table(t, self.plan.t_max, tp);
         for i in 0..N {
-            power_table(p[i], pmax[i], &mut pp[i]);
+            power_table(p[i], self.plan.p_max[i], &mut pp[i]);
         }
     }
 

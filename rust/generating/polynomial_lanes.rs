@@ -22,6 +22,7 @@
 // Index loops over lanes, coordinates and monomials read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
+use super::polynomial::Factor;
 use super::{Polynomial, TABLE_POWER};
 use crate::dual::{Dual1, Jet2};
 use crate::isa::{Isa, LANES};
@@ -119,30 +120,24 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
             }
         }
     }
-    // The tables of powers, as Polynomial::powers builds them.
-    let (mut tmax, mut pmax) = (0u32, [0u32; N]);
-    for m in &poly.terms {
-        tmax = tmax.max(m.t_power);
-        for i in 0..N {
-            pmax[i] = pmax[i].max(m.p_powers[i]);
-        }
-    }
+    // The tables of powers, as Polynomial::powers builds them, to the plan's largest exponents.
+    let plan = poly.plan();
     let mut tp = [0.0; TABLE_POWER + 1];
     tp[0] = 1.0;
-    for k in 1..=(tmax as usize).min(TABLE_POWER) {
+    for k in 1..=(plan.t_max as usize).min(TABLE_POWER) {
         tp[k] = tp[k - 1] * t;
     }
     let pw = &mut scratch.pw;
     for i in 0..N {
         pw[i][0] = [1.0; L];
-        for k in 1..=(pmax[i] as usize).min(TABLE_POWER) {
+        for k in 1..=(plan.p_max[i] as usize).min(TABLE_POWER) {
             for l in 0..L {
                 pw[i][k][l] = pw[i][k - 1][l] * p[i][l];
             }
         }
     }
     let f = &mut scratch.j;
-    for m in &poly.terms {
+    for m in &plan.terms {
         // With T_MAX > 0, only the terms in t¹ … t^T_MAX (the cheap part of S that the Newton
         // predictors take: T_MAX = 1 is t ∂S/∂t(0, p)).
         if T_MAX > 0 && (m.t_power == 0 || m.t_power > T_MAX) {
@@ -155,34 +150,25 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
         };
         let c = m.coeff * tk;
         // The (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of this term's variables lane by lane
-        // (generating::power_jet), by position in the term (variables in increasing order,
-        // `var[k]` the k-th); the second derivative only where n ≥ 2.
-        let mut var = [0usize; N];
-        let mut count = 0;
-        for i in 0..N {
-            let n = m.p_powers[i];
-            if n == 0 {
-                continue;
-            }
-            let fk = &mut f[count];
-            var[count] = i;
-            count += 1;
+        // (generating::power_jet), by position in the term (the plan lists its variables in
+        // increasing order); the second derivative only where n ≥ 2.
+        let count = m.count;
+        for k in 0..count {
+            let Factor { var: i, n, nf, nn } = m.factors[k];
+            let fk = &mut f[k];
             if n == 1 {
                 for l in 0..L {
                     fk[0][l] = p[i][l];
                     fk[1][l] = 1.0;
                 }
             } else if n as usize <= TABLE_POWER {
-                let (k, nf) = (n as usize, n as f64);
-                let nn = nf * (nf - 1.0);
+                let k = n as usize;
                 for l in 0..L {
                     fk[0][l] = pw[i][k][l];
                     fk[1][l] = nf * pw[i][k - 1][l];
                     fk[2][l] = nn * pw[i][k - 2][l];
                 }
             } else {
-                let nf = n as f64;
-                let nn = nf * (nf - 1.0);
                 for l in 0..L {
                     let x = p[i][l];
                     let xn2 = x.powi(n as i32 - 2);
@@ -197,13 +183,13 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
         // `prefix` = c · Π_{r<k} xⁿ of position r.
         let mut prefix = [c; L];
         for k in 0..count {
-            let a = var[k];
+            let a = m.factors[k].var;
             // ∂/∂p_a = prefix · n xⁿ⁻¹ · Π_{r>k} xⁿ; the off-diagonal ∂²/∂p_a∂p_b (b at a
             // position l > k) branch off this chain at l.
             let mut chain = prefix;
             mul_into(&mut chain, &f[k][1]);
             if HESS {
-                if m.p_powers[a] >= 2 {
+                if m.factors[k].n >= 2 {
                     let mut aa = prefix;
                     mul_into(&mut aa, &f[k][2]);
                     add_into(&mut out.h[a][a], &times_values(aa, f, k + 1, count));
@@ -211,7 +197,10 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
                 for l in k + 1..count {
                     let mut ab = chain;
                     mul_into(&mut ab, &f[l][1]);
-                    add_into(&mut out.h[a][var[l]], &times_values(ab, f, l + 1, count));
+                    add_into(
+                        &mut out.h[a][m.factors[l].var],
+                        &times_values(ab, f, l + 1, count),
+                    );
                     mul_into(&mut chain, &f[l][0]);
                 }
             } else {

@@ -375,7 +375,7 @@ impl<const N: usize> LearnedPolynomial<N> {
         taylor: PolynomialGenerating<N>,
         network: GeneratingFunction<N>,
     ) -> Result<Self, CoreError> {
-        if !network.polynomial.terms.is_empty() {
+        if !network.polynomial.terms().is_empty() {
             return Err(CoreError::Invalid(
                 "the network part of a learned polynomial-realization generating function must \
                  hold no polynomial terms (the Taylor terms are given separately)"

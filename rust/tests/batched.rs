@@ -170,7 +170,7 @@ fn batched_rollout_where_every_trajectory_fails() {
         })
         .collect();
     let gf = GeneratingFunction::new(
-        Polynomial { terms: minus_t_h() },
+        Polynomial::new(minus_t_h()).unwrap(),
         Some(Mlp::new(layers).unwrap()),
         1,
         MlpInputs::Plain,

@@ -13,15 +13,16 @@ use crate::lanes_bisection::{polynomial_gradients, polynomial_jets};
 /// Random polynomials in N variables with exponents up to 11 (the table of powers stops at 8:
 /// the `powi` fallback runs too).
 fn random_polynomial<const N: usize>(rng: &mut Rng, n_terms: usize) -> Polynomial<N> {
-    Polynomial {
-        terms: (0..n_terms)
+    Polynomial::new(
+        (0..n_terms)
             .map(|_| Monomial {
                 t_power: 1 + rng.below(10) as u32,
                 p_powers: [0; N].map(|_: u32| rng.below(12) as u32),
                 coeff: rng.range(-1.0, 1.0),
             })
             .collect(),
-    }
+    )
+    .unwrap()
 }
 
 fn check_jets<const N: usize>(rng: &mut Rng) {
@@ -66,8 +67,13 @@ fn taylor_steppers() -> Vec<BisectionStepper<3>> {
     for chart in [Chart::Cayley, Chart::Exp] {
         for simplified in [true, false] {
             let mut st = stepper(
-                GeneratingFunction::new(Polynomial { terms: taylor3() }, None, 0, MlpInputs::Plain)
-                    .unwrap(),
+                GeneratingFunction::new(
+                    Polynomial::new(taylor3()).unwrap(),
+                    None,
+                    0,
+                    MlpInputs::Plain,
+                )
+                .unwrap(),
                 chart,
             );
             st.newton.simplified = simplified;
@@ -297,7 +303,8 @@ fn lane_newton_equals_the_generic_step() {
             let mut terms = taylor3();
             terms.extend(random_terms(&mut rng, extra, (2, 5), 3, 0.01));
             let gf =
-                GeneratingFunction::new(Polynomial { terms }, None, 0, MlpInputs::Plain).unwrap();
+                GeneratingFunction::new(Polynomial::new(terms).unwrap(), None, 0, MlpInputs::Plain)
+                    .unwrap();
             let st = stepper(gf, chart);
             assert!(st.newton.simplified);
             let plain = So3Newton {
@@ -368,7 +375,7 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     use crate::lanes_bisection::{so3_newton_steps, So3Newton};
     let mut rng = Rng::new(0x1A2E_5019);
     for chart in [Chart::Cayley, Chart::Exp] {
-        let poly = Polynomial { terms: taylor3() };
+        let poly = Polynomial::new(taylor3()).unwrap();
         let sys = So3Newton {
             poly: &poly,
             network: None,

@@ -21,7 +21,8 @@ fn jet2_gradient_and_hessian_match_central_differences() {
         let mlp = random_mlp(&mut rng, 12, 1.0);
         let terms = random_terms(&mut rng, 5, (1, 4), 3, 0.5);
         let m = 1 + rng.below(4) as u32;
-        let gf = GeneratingFunction::new(Polynomial { terms }, Some(mlp), m, inputs).unwrap();
+        let gf =
+            GeneratingFunction::new(Polynomial::new(terms).unwrap(), Some(mlp), m, inputs).unwrap();
         let mut ws_jet = gf.workspace();
         let ws = std::cell::RefCell::new(gf.workspace());
         let value =
@@ -115,7 +116,7 @@ fn homogeneous_inputs_scale_correctly() {
         let mlp = random_mlp(&mut rng, 10, 1.0);
         let m = 1 + rng.below(4) as u32;
         let gf = GeneratingFunction::new(
-            Polynomial { terms: taylor3() },
+            Polynomial::new(taylor3()).unwrap(),
             Some(mlp),
             m,
             MlpInputs::Homogeneous,
@@ -174,7 +175,9 @@ fn polynomial_jet_matches_central_differences() {
     let mut rng = Rng::new(0x5EED_0002);
     for case in 0..50 {
         let terms = random_terms(&mut rng, 6, (1, 5), 4, 1.0);
-        let gf = GeneratingFunction::new(Polynomial { terms }, None, 0, MlpInputs::Plain).unwrap();
+        let gf =
+            GeneratingFunction::new(Polynomial::new(terms).unwrap(), None, 0, MlpInputs::Plain)
+                .unwrap();
         let mut ws = gf.workspace();
         let t = rng.range(0.1, 1.2);
         let p = rng.vec3(-1.5, 1.5);

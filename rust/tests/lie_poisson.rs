@@ -79,7 +79,8 @@ pub(super) fn minus_t_h_terms<const N: usize>(system: &LiePoisson<N>) -> Vec<Mon
 fn minus_t_h_stepper<const N: usize>(system: &LiePoisson<N>) -> BisectionStepper<N> {
     let terms = minus_t_h_terms(system);
     BisectionStepper::new(
-        GeneratingFunction::new(Polynomial { terms }, None, 0, MlpInputs::Plain).unwrap(),
+        GeneratingFunction::new(Polynomial::new(terms).unwrap(), None, 0, MlpInputs::Plain)
+            .unwrap(),
         Groupoid::new(system.algebra.clone(), Chart::Exp).unwrap(),
         NewtonOptions::default(),
     )

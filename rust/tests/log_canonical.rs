@@ -22,8 +22,13 @@ fn batched_steps_are_the_one_trajectory_step_bit_for_bit() {
     let mut rng = Rng::new(20);
     for chart in [Chart::Cayley, Chart::Exp] {
         for gf in [
-            GeneratingFunction::new(Polynomial { terms: taylor3() }, None, 0, MlpInputs::Plain)
-                .unwrap(),
+            GeneratingFunction::new(
+                Polynomial::new(taylor3()).unwrap(),
+                None,
+                0,
+                MlpInputs::Plain,
+            )
+            .unwrap(),
             random_generating(&mut rng, MlpInputs::Plain),
         ] {
             let newton = NewtonOptions {

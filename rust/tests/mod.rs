@@ -212,7 +212,7 @@ fn random_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction<3> 
     terms.extend(random_terms(rng, 4, (2, 4), 3, 0.02));
     let mlp = random_mlp(rng, 12, 1.0);
     let m = 2 + rng.below(3) as u32;
-    GeneratingFunction::new(Polynomial { terms }, Some(mlp), m, inputs).unwrap()
+    GeneratingFunction::new(Polynomial::new(terms).unwrap(), Some(mlp), m, inputs).unwrap()
 }
 
 /// Like [`random_generating`] with two hidden layers of 40: wide enough for the batched path.
@@ -220,7 +220,7 @@ fn wide_generating(rng: &mut Rng, inputs: MlpInputs) -> GeneratingFunction<3> {
     let mlp = mlp_with_widths(rng, &[4, 40, 40, 1], 1.0);
     let mut terms = minus_t_h();
     terms.extend(random_terms(rng, 4, (2, 4), 3, 0.02));
-    GeneratingFunction::new(Polynomial { terms }, Some(mlp), 3, inputs).unwrap()
+    GeneratingFunction::new(Polynomial::new(terms).unwrap(), Some(mlp), 3, inputs).unwrap()
 }
 
 fn stepper(generating: GeneratingFunction<3>, chart: Chart) -> BisectionStepper<3> {
@@ -232,8 +232,13 @@ fn stepper(generating: GeneratingFunction<3>, chart: Chart) -> BisectionStepper<
 }
 
 fn hamiltonian_stepper(chart: Chart) -> BisectionStepper<3> {
-    let gf = GeneratingFunction::new(Polynomial { terms: minus_t_h() }, None, 0, MlpInputs::Plain)
-        .unwrap();
+    let gf = GeneratingFunction::new(
+        Polynomial::new(minus_t_h()).unwrap(),
+        None,
+        0,
+        MlpInputs::Plain,
+    )
+    .unwrap();
     stepper(gf, chart)
 }
 

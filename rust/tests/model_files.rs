@@ -69,9 +69,9 @@ fn metadata(chart: &str, mlp: Option<(u32, MlpInputs)>) -> HashMap<String, Strin
 }
 
 fn polynomial_tensors(poly: &Polynomial<3>) -> Vec<Tensor> {
-    let n = poly.terms.len();
+    let n = poly.terms().len();
     let powers: Vec<i64> = poly
-        .terms
+        .terms()
         .iter()
         .flat_map(|m| {
             [
@@ -82,7 +82,7 @@ fn polynomial_tensors(poly: &Polynomial<3>) -> Vec<Tensor> {
             ]
         })
         .collect();
-    let coeffs: Vec<f64> = poly.terms.iter().map(|m| m.coeff).collect();
+    let coeffs: Vec<f64> = poly.terms().iter().map(|m| m.coeff).collect();
     vec![
         i64_tensor("poly.powers", &[n, 4], &powers),
         f64_tensor("poly.coeffs", &[n], &coeffs),
@@ -192,7 +192,7 @@ fn model_round_trips_through_safetensors() {
         assert_ne!(a, mu0);
     }
     // Polynomial only (no MLP, no mlp_power needed) and MLP only (no polynomial tensors).
-    let poly = Polynomial { terms: taylor3() };
+    let poly = Polynomial::new(taylor3()).unwrap();
     let bytes = serialize_tensors(&polynomial_tensors(&poly), Some(metadata("cayley", None)));
     let model = Model::from_bytes(&bytes).unwrap();
     assert_eq!(model.generating::<3>().unwrap().polynomial, poly);
@@ -206,7 +206,12 @@ fn model_round_trips_through_safetensors() {
     let model = Model::from_bytes(&bytes).unwrap();
     assert_eq!(model.generating::<3>().unwrap().mlp.as_ref(), Some(&mlp));
     assert_eq!(model.generating::<3>().unwrap().mlp_power, 3);
-    assert!(model.generating::<3>().unwrap().polynomial.terms.is_empty());
+    assert!(model
+        .generating::<3>()
+        .unwrap()
+        .polynomial
+        .terms()
+        .is_empty());
 }
 
 #[test]
@@ -607,7 +612,7 @@ fn model_rejects_bad_mlps() {
 #[test]
 fn model_rejects_absurd_layer_index() {
     let meta = metadata("cayley", Some((3, MlpInputs::Plain)));
-    let mut t = polynomial_tensors(&Polynomial { terms: minus_t_h() });
+    let mut t = polynomial_tensors(&Polynomial::new(minus_t_h()).unwrap());
     t.push(f64_tensor(
         &format!("mlp.{}.weight", usize::MAX),
         &[1],
@@ -641,7 +646,7 @@ fn model_rejects_non_canonical_layer_names() {
 fn model_huge_mlp_power_is_refused_or_correct() {
     let mut rng = Rng::new(0x5EED_0071);
     let mlp = random_mlp(&mut rng, 4, 1.0);
-    let mut t = polynomial_tensors(&Polynomial { terms: minus_t_h() });
+    let mut t = polynomial_tensors(&Polynomial::new(minus_t_h()).unwrap());
     t.extend(mlp_tensors(&mlp));
     let bytes = serialize_tensors(
         &t,
@@ -675,7 +680,7 @@ fn model_huge_mlp_power_is_refused_or_correct() {
 #[test]
 fn model_rejects_huge_layer_index() {
     let meta = metadata("cayley", Some((3, MlpInputs::Plain)));
-    let mut t = polynomial_tensors(&Polynomial { terms: minus_t_h() });
+    let mut t = polynomial_tensors(&Polynomial::new(minus_t_h()).unwrap());
     t.push(f64_tensor("mlp.4000000000.weight", &[1], &[1.0]));
     expect_format_error(&serialize_tensors(&t, Some(meta)), "mlp", "layer index 4e9");
 }

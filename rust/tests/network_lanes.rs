@@ -239,7 +239,7 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
         coeff: -1.0,
     });
     let mut gf = network::<6>(&mut rng, 16, MlpInputs::Plain);
-    gf.polynomial = Polynomial { terms };
+    gf.polynomial = Polynomial::new(terms).unwrap();
     gf.mlp_power = 3;
     assert!(gf.network_lanes().is_some());
     let st = BisectionStepper::new(

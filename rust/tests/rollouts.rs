@@ -16,7 +16,7 @@ fn rollout_reports_newton_failure_per_trajectory() {
     ])
     .unwrap();
     let gf = GeneratingFunction::new(
-        Polynomial { terms: minus_t_h() },
+        Polynomial::new(minus_t_h()).unwrap(),
         Some(mlp),
         1,
         MlpInputs::Plain,
@@ -324,7 +324,7 @@ fn segmented_rollout_is_bit_identical_to_one_shot() {
     ])
     .unwrap();
     let failing = GeneratingFunction::new(
-        Polynomial { terms: minus_t_h() },
+        Polynomial::new(minus_t_h()).unwrap(),
         Some(bump),
         1,
         MlpInputs::Plain,

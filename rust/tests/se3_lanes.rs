@@ -29,7 +29,7 @@ fn top_polynomial(rng: &mut Rng, extra: usize) -> Polynomial<6> {
             });
         }
     }
-    Polynomial { terms }
+    Polynomial::new(terms).unwrap()
 }
 
 fn top_state(rng: &mut Rng) -> [f64; 6] {

@@ -68,7 +68,7 @@ fn polynomial<const N: usize>(rng: &mut Rng, extra: usize) -> Polynomial<N> {
             });
         }
     }
-    Polynomial { terms }
+    Polynomial::new(terms).unwrap()
 }
 
 fn stepper<const N: usize>(algebra: LieAlgebra<N>, poly: Polynomial<N>) -> BisectionStepper<N> {

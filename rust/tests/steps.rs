@@ -168,8 +168,13 @@ fn minus_t_h_step_is_second_order_with_tight_residual() {
 /// is O(h⁵), a ratio of about 32 — the test vectors for S₃ are right.
 #[test]
 fn taylor3_step_is_fourth_order() {
-    let gf = GeneratingFunction::new(Polynomial { terms: taylor3() }, None, 0, MlpInputs::Plain)
-        .unwrap();
+    let gf = GeneratingFunction::new(
+        Polynomial::new(taylor3()).unwrap(),
+        None,
+        0,
+        MlpInputs::Plain,
+    )
+    .unwrap();
     let st = stepper(gf, Chart::Cayley);
     let mut ws = st.workspace();
     for mu0 in [[1.0, 1.0, 2.0], [3.0, 2.0, 0.0], [-0.5, 1.5, 1.0]] {
@@ -228,7 +233,7 @@ fn newton_failure_is_reported_by_step() {
     .unwrap();
     for chart in [Chart::Cayley, Chart::Exp] {
         let gf = GeneratingFunction::new(
-            Polynomial { terms: minus_t_h() },
+            Polynomial::new(minus_t_h()).unwrap(),
             Some(mlp.clone()),
             1,
             MlpInputs::Plain,

@@ -32,7 +32,7 @@ impl<const N: usize> LearnedExp<N> {
         taylor: ExpPolynomial<N>,
         network: GeneratingFunction<N>,
     ) -> Result<Self, CoreError> {
-        if !network.polynomial.terms.is_empty() {
+        if !network.polynomial.terms().is_empty() {
             return Err(CoreError::Invalid(
                 "the network part of a log-canonical generating function must hold no \
                  polynomial terms (the Taylor terms are exponential monomials)"
