@@ -710,3 +710,72 @@ fn predicted_start_saves_newton_updates() {
     assert_eq!(c.predict(&[0.0, 2.0 * PREDICT_MAX_SHIFT + 1.0], &q), None);
     assert_eq!(c.predict(&[f64::NAN, 0.0], &q), None);
 }
+
+/// The lane jet of an exp-polynomial S against its scalar closed form (`jet_at`, y^e by `powi`),
+/// lane by lane: exponents of both signs, zero, past the table of powers (8) and t-powers past
+/// the table of t's (16), so every branch of the compiled terms runs; the gradient pass alone
+/// gives the jet pass's gradient bits.
+#[test]
+fn lane_jets_of_an_exp_polynomial_match_its_closed_form() {
+    const N: usize = 4;
+    const L: usize = 8;
+    let mut rng = Rng::new(0x5EED_0E27);
+    for case in 0..20 {
+        let terms: Vec<ExpMonomial<N>> = (0..12)
+            .map(|_| ExpMonomial {
+                t_power: 1 + rng.below(20) as u32,
+                // About half the exponents 0, the rest in −11 ..= 11.
+                exponents: [0; N].map(|_: i32| {
+                    if rng.below(2) == 0 {
+                        0
+                    } else {
+                        rng.below(23) as i32 - 11
+                    }
+                }),
+                coeff: rng.range(-1.0, 1.0),
+            })
+            .collect();
+        let linear = [0; N].map(|_: i32| rng.range(-1.0, 1.0));
+        let s = ExpPolynomial::new(terms, linear).unwrap();
+        let t = rng.range(0.5, 1.2);
+        let mut q = [[0.0; L]; N];
+        for i in 0..N {
+            for l in 0..L {
+                q[i][l] = rng.range(-0.4, 0.4);
+            }
+        }
+        let table = crate::structures::log_canonical::t_power_table(t);
+        let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
+        s.taylor_lanes::<L, true>(t, &table, &q, &mut g, &mut hs);
+        let (mut g1, mut unused) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
+        s.taylor_lanes::<L, false>(t, &table, &q, &mut g1, &mut unused);
+        for l in 0..L {
+            let ql: [f64; N] = std::array::from_fn(|i| q[i][l]);
+            let jet = s.jet_at(t, &ql);
+            let hess = jet.hess();
+            let scale = 1.0 + jet.g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            for a in 0..N {
+                assert_eq!(
+                    g[a][l].to_bits(),
+                    g1[a][l].to_bits(),
+                    "case {case} lane {l}"
+                );
+                assert!(
+                    (g[a][l] - jet.g[a]).abs() <= 1e-12 * scale,
+                    "case {case} lane {l}: ∂S/∂q{a} {} against {}",
+                    g[a][l],
+                    jet.g[a]
+                );
+                for b in 0..N {
+                    let want = hess[a][b];
+                    assert_eq!(hs[a][b][l].to_bits(), hs[b][a][l].to_bits());
+                    assert!(
+                        (hs[a][b][l] - want).abs() <= 1e-12 * (1.0 + want.abs()) * scale,
+                        "case {case} lane {l}: ∂²S/∂q{a}∂q{b} {} against {want}",
+                        hs[a][b][l]
+                    );
+                }
+            }
+        }
+    }
+}

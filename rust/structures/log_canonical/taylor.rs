@@ -10,6 +10,7 @@ use crate::error::{CoreError, StepFailure};
 use crate::exp::exp_lanes;
 use crate::generating::LaneRow;
 use crate::lanes::{solve_small_lanes, FullNewton, LaneStepper};
+use crate::memory::try_collect;
 use crate::realization::{Generating, Realization};
 use crate::step::{StepMap, StepResult, StepStats};
 use crate::stepper::BisectionStepper;
@@ -28,6 +29,23 @@ pub struct ExpMonomial<const N: usize> {
 pub struct ExpPolynomial<const N: usize> {
     terms: Vec<ExpMonomial<N>>,
     linear: [f64; N],
+    /// The terms compiled once for [`ExpPolynomial::taylor_lanes`]: each term's variables with a
+    /// nonzero exponent, where every evaluation tested all N exponents and all N(N+1)/2 pairs.
+    planned: Vec<PlannedExp<N>>,
+    /// The largest |exponent| of each coordinate: the rows of the table of powers to build.
+    max_power: [u32; N],
+}
+
+/// One term c t^k Π y_v^e_v as the lanes evaluate it: its `count` variables with a nonzero
+/// exponent, in increasing order, with the exponent as a float and its size.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct PlannedExp<const N: usize> {
+    t_power: u32,
+    coeff: f64,
+    count: usize,
+    var: [usize; N],
+    e: [f64; N],
+    size: [u32; N],
 }
 
 /// Largest |exponent| of a term.
@@ -47,7 +65,41 @@ impl<const N: usize> ExpPolynomial<N> {
         if linear.iter().any(|v| !v.is_finite()) {
             return Err(CoreError::Invalid("linear part must be finite".into()));
         }
-        Ok(ExpPolynomial { terms, linear })
+        let mut max_power = [0u32; N];
+        for m in &terms {
+            for i in 0..N {
+                max_power[i] = max_power[i].max(m.exponents[i].unsigned_abs());
+            }
+        }
+        let planned = try_collect(
+            terms.len(),
+            terms.iter().map(|m| {
+                let mut term = PlannedExp {
+                    t_power: m.t_power,
+                    coeff: m.coeff,
+                    count: 0,
+                    var: [0; N],
+                    e: [0.0; N],
+                    size: [0; N],
+                };
+                for (i, &e) in m.exponents.iter().enumerate() {
+                    if e != 0 {
+                        let j = term.count;
+                        (term.var[j], term.e[j], term.size[j]) =
+                            (i, f64::from(e), e.unsigned_abs());
+                        term.count += 1;
+                    }
+                }
+                term
+            }),
+            "the generating function's terms",
+        )?;
+        Ok(ExpPolynomial {
+            terms,
+            linear,
+            planned,
+            max_power,
+        })
     }
 
     /// S(t, ·) at q with its q-gradient and q-Hessian, in closed form: ∂/∂q_i y^e = e_i y^e.
@@ -107,7 +159,7 @@ impl<const N: usize> ExpPolynomial<N> {
     /// ∇S(t, ·) at L points q, and with `HESS` its Hessian (`hs[a][b][l]`, both triangles),
     /// lane by lane: y = e^q once per coordinate, each term's y^e by binary powering.
     #[inline(always)]
-    pub(super) fn taylor_lanes<const L: usize, const HESS: bool>(
+    pub(crate) fn taylor_lanes<const L: usize, const HESS: bool>(
         &self,
         t: f64,
         t_powers: &[f64; T_POWERS],
@@ -115,11 +167,12 @@ impl<const N: usize> ExpPolynomial<N> {
         g: &mut [[f64; L]; N],
         hs: &mut [[[f64; L]; N]; N],
     ) {
-        // pw[i][k] = y_i^k for k ≤ POWER_TABLE, y = e^q, by successive products.
+        // pw[i][k] = y_i^k for k ≤ POWER_TABLE (and the largest |exponent| of coordinate i), y =
+        // e^q, by successive products.
         let mut pw = [[[1.0; L]; POWER_TABLE + 1]; N];
         for i in 0..N {
             exp_lanes(&q[i], &mut pw[i][1]);
-            for k in 2..=POWER_TABLE {
+            for k in 2..=(self.max_power[i] as usize).min(POWER_TABLE) {
                 for l in 0..L {
                     pw[i][k][l] = pw[i][k - 1][l] * pw[i][1][l];
                 }
@@ -129,26 +182,25 @@ impl<const N: usize> ExpPolynomial<N> {
         if HESS {
             *hs = [[[0.0; L]; N]; N];
         }
-        for m in &self.terms {
+        // The terms' products and sums in the order of the scalar jet: the factors by increasing
+        // variable, ∂/∂q_a for each variable of the term, ∂²/∂q_a∂q_b for each pair a ≤ b of
+        // them (the others add w·0, which the loop over all N skipped too).
+        for m in &self.planned {
             let tk = t_powers
                 .get(m.t_power as usize)
                 .copied()
                 .unwrap_or_else(|| t.powi(m.t_power as i32));
             let mut w = [m.coeff * tk; L];
-            for i in 0..N {
-                // The exponent is the term's, not the lane's: one loop per case, so no lane
-                // divides for a positive exponent.
-                let e = m.exponents[i];
-                let k = e.unsigned_abs() as usize;
-                if e == 0 {
-                    continue;
-                }
+            for j in 0..m.count {
+                let (i, k) = (m.var[j], m.size[j] as usize);
                 let power = if k <= POWER_TABLE {
                     pw[i][k]
                 } else {
-                    pow_lanes(&pw[i][1], e.unsigned_abs())
+                    pow_lanes(&pw[i][1], m.size[j])
                 };
-                if e > 0 {
+                // The exponent is the term's, not the lane's: one loop per case, so no lane
+                // divides for a positive exponent.
+                if m.e[j] > 0.0 {
                     for l in 0..L {
                         w[l] *= power[l];
                     }
@@ -158,21 +210,17 @@ impl<const N: usize> ExpPolynomial<N> {
                     }
                 }
             }
-            let e = m.exponents.map(f64::from);
-            for a in 0..N {
-                if e[a] == 0.0 {
-                    continue;
-                }
+            for j in 0..m.count {
+                let (a, ea) = (m.var[j], m.e[j]);
                 for l in 0..L {
-                    g[a][l] += w[l] * e[a];
+                    g[a][l] += w[l] * ea;
                 }
                 if HESS {
-                    for b in a..N {
-                        let eab = e[a] * e[b];
-                        if eab != 0.0 {
-                            for l in 0..L {
-                                hs[a][b][l] += w[l] * eab;
-                            }
+                    for jb in j..m.count {
+                        let eab = ea * m.e[jb];
+                        let b = m.var[jb];
+                        for l in 0..L {
+                            hs[a][b][l] += w[l] * eab;
                         }
                     }
                 }
@@ -195,7 +243,7 @@ impl<const N: usize> ExpPolynomial<N> {
 }
 
 /// t⁰ … t^(T_POWERS − 1), computed once a step (larger powers of t take `powi`).
-pub(super) const T_POWERS: usize = 16;
+pub(crate) const T_POWERS: usize = 16;
 
 /// A generating function that the log-canonical lane solver evaluates: ∇S and, with `HESS`,
 /// ∇²S (`hs`, both triangles) at L points q, lane by lane.
@@ -231,7 +279,7 @@ impl<const N: usize> LogLaneGenerating<N> for ExpPolynomial<N> {
 
 /// The table of powers of t that [`ExpPolynomial::taylor_lanes`] reads.
 #[inline(always)]
-pub(super) fn t_power_table(t: f64) -> [f64; T_POWERS] {
+pub(crate) fn t_power_table(t: f64) -> [f64; T_POWERS] {
     let mut table = [1.0; T_POWERS];
     for k in 1..T_POWERS {
         table[k] = table[k - 1] * t;
