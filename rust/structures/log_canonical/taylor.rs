@@ -182,48 +182,17 @@ impl<const N: usize> ExpPolynomial<N> {
         if HESS {
             *hs = [[[0.0; L]; N]; N];
         }
-        // The terms' products and sums in the order of the scalar jet: the factors by increasing
-        // variable, ∂/∂q_a for each variable of the term, ∂²/∂q_a∂q_b for each pair a ≤ b of
-        // them (the others add w·0, which the loop over all N skipped too).
         for m in &self.planned {
             let tk = t_powers
                 .get(m.t_power as usize)
                 .copied()
                 .unwrap_or_else(|| t.powi(m.t_power as i32));
-            let mut w = [m.coeff * tk; L];
-            for j in 0..m.count {
-                let (i, k) = (m.var[j], m.size[j] as usize);
-                let power = if k <= POWER_TABLE {
-                    pw[i][k]
-                } else {
-                    pow_lanes(&pw[i][1], m.size[j])
-                };
-                // The exponent is the term's, not the lane's: one loop per case, so no lane
-                // divides for a positive exponent.
-                if m.e[j] > 0.0 {
-                    for l in 0..L {
-                        w[l] *= power[l];
-                    }
-                } else {
-                    for l in 0..L {
-                        w[l] *= 1.0 / power[l];
-                    }
-                }
-            }
-            for j in 0..m.count {
-                let (a, ea) = (m.var[j], m.e[j]);
-                for l in 0..L {
-                    g[a][l] += w[l] * ea;
-                }
-                if HESS {
-                    for jb in j..m.count {
-                        let eab = ea * m.e[jb];
-                        let b = m.var[jb];
-                        for l in 0..L {
-                            hs[a][b][l] += w[l] * eab;
-                        }
-                    }
-                }
+            // A term in every variable takes loops over N with constant indices (unrolled); the
+            // others loop over their own variables only. The same operations either way.
+            if m.count == N {
+                add_term::<N, L, HESS, true>(m, m.coeff * tk, &pw, g, hs);
+            } else {
+                add_term::<N, L, HESS, false>(m, m.coeff * tk, &pw, g, hs);
             }
         }
         for i in 0..N {
@@ -236,6 +205,57 @@ impl<const N: usize> ExpPolynomial<N> {
             for a in 0..N {
                 for b in 0..a {
                     hs[a][b] = hs[b][a];
+                }
+            }
+        }
+    }
+}
+
+/// One term's w = c t^k Π y_v^e_v added to ∇S (and with `HESS` to ∇²S's upper triangle) in the
+/// order of the scalar jet: the factors by increasing variable, ∂/∂q_a for each variable of the
+/// term, ∂²/∂q_a∂q_b for each pair a ≤ b of them (the others add w·0, which the loop over all N
+/// skipped too). `DENSE`: the term has every variable (`var[j]` = j).
+#[inline(always)]
+fn add_term<const N: usize, const L: usize, const HESS: bool, const DENSE: bool>(
+    m: &PlannedExp<N>,
+    c: f64,
+    pw: &[[[f64; L]; POWER_TABLE + 1]; N],
+    g: &mut [[f64; L]; N],
+    hs: &mut [[[f64; L]; N]; N],
+) {
+    let count = if DENSE { N } else { m.count };
+    let var = |j: usize| if DENSE { j } else { m.var[j] };
+    let mut w = [c; L];
+    for j in 0..count {
+        let (i, k) = (var(j), m.size[j] as usize);
+        let power = if k <= POWER_TABLE {
+            pw[i][k]
+        } else {
+            pow_lanes(&pw[i][1], m.size[j])
+        };
+        // The exponent is the term's, not the lane's: one loop per case, so no lane divides
+        // for a positive exponent.
+        if m.e[j] > 0.0 {
+            for l in 0..L {
+                w[l] *= power[l];
+            }
+        } else {
+            for l in 0..L {
+                w[l] *= 1.0 / power[l];
+            }
+        }
+    }
+    for j in 0..count {
+        let (a, ea) = (var(j), m.e[j]);
+        for l in 0..L {
+            g[a][l] += w[l] * ea;
+        }
+        if HESS {
+            for jb in j..count {
+                let eab = ea * m.e[jb];
+                let b = var(jb);
+                for l in 0..L {
+                    hs[a][b][l] += w[l] * eab;
                 }
             }
         }
