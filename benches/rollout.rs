@@ -75,8 +75,8 @@ fn taylor3() -> Polynomial<3> {
         (3, [0, 2, 2], -11.0 / 720.0),
         (3, [0, 0, 4], -2.0 / 375.0),
     ];
-    Polynomial {
-        terms: terms
+    Polynomial::new(
+        terms
             .iter()
             .map(|&(t_power, p_powers, coeff)| Monomial {
                 t_power,
@@ -84,7 +84,8 @@ fn taylor3() -> Polynomial<3> {
                 coeff,
             })
             .collect(),
-    }
+    )
+    .unwrap()
 }
 
 /// Taylor K=3 + t⁵ · MLP 4 → 32 → 32 → 1 with Xavier-uniform weights (seed 42).
@@ -132,8 +133,7 @@ fn paper_stepper(newton: NewtonOptions) -> BisectionStepper<3> {
             Layer::new(n_in, n_out, weight, vec![0.0; n_out]).unwrap()
         })
         .collect();
-    let mut terms = taylor3();
-    terms.terms.truncate(3); // −tH
+    let terms = Polynomial::new(taylor3().terms()[..3].to_vec()).unwrap(); // −tH
     let mlp = Mlp::new(layers).unwrap();
     let generating = GeneratingFunction::new(terms, Some(mlp), 1, MlpInputs::Plain).unwrap();
     BisectionStepper::new(generating, Groupoid::so3(Chart::Cayley).unwrap(), newton)

@@ -20,6 +20,7 @@ mod taylor;
 pub use classical::{FieldInX, LogClassical, LogExplicit, LogMethod, LogMidpoint, OrthantChecked};
 pub use learned::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
 pub use structure::{LogCanonical, LogSystem, MAX_HAMILTONIAN_EXPONENT, PREDICT_MAX_SHIFT};
+#[cfg(test)]
 pub(crate) use taylor::t_power_table;
 pub use taylor::{ExpMonomial, ExpPolynomial, LogBisection, LogTaylorLanes, MAX_EXPONENT};
 
