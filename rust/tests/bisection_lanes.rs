@@ -188,6 +188,43 @@ fn fast_tanh_is_within_four_ulp_of_libm() {
     }
 }
 
+/// The lockstep tanh of the lane networks (4 rows of 8 lanes, each stage over every element)
+/// against the one-at-a-time [`tanh_fast`], bit for bit: the same operations per element, in
+/// every slot of the block, over a dense grid, random magnitudes and the edge values (±0,
+/// clamped arguments, infinities, NaN).
+#[test]
+fn lockstep_tanh_has_the_bits_of_tanh_fast() {
+    use crate::generating::{tanh_fast, tanh_fast_rows};
+    let mut rng = Rng::new(0x1A2E_5006);
+    let mut xs: Vec<f64> = (-20_000..=20_000).map(|i| f64::from(i) * 1.3e-3).collect();
+    xs.extend((0..20_000).map(|_| rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-300.0, 3.0))));
+    xs.extend([
+        0.0,
+        -0.0,
+        19.5,
+        -19.5,
+        40.0,
+        1e300,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::NAN,
+    ]);
+    let mut checked = 0;
+    for chunk in xs.chunks(32) {
+        let mut block = [[0.0f64; 8]; 4];
+        for (i, &x) in chunk.iter().enumerate() {
+            block[i / 8][i % 8] = x;
+        }
+        let want = block.map(|row| row.map(tanh_fast));
+        tanh_fast_rows(&mut block);
+        for (got, want) in block.iter().flatten().zip(want.iter().flatten()) {
+            assert_eq!(got.to_bits(), want.to_bits(), "tanh of a block slot");
+            checked += 1;
+        }
+    }
+    assert!(checked >= xs.len());
+}
+
 /// The narrow-layer kernel of the MLP passes against the panel kernel: the same chain of
 /// multiply-adds per element, so the same bits, for every shape up to its limits and column
 /// counts that are not multiples of its 8-column blocks (which kernel a layer takes never
