@@ -131,60 +131,59 @@ impl<'a> NetworkLanes<'a> {
         match self.inputs {
             MlpInputs::Plain => (InputJets::Plain { t, p: *p }, constant([tm; L]), vanish),
             MlpInputs::Homogeneous => {
-                // r² = |p|², r, 1/r and r^(m+1) by the chain rule; lanes at the origin take
-                // r² = 1 (finite numbers, then dropped).
-                let mut r2 = constant::<N, L>([0.0; L]);
+                // r = |p| and u = p / r; lanes at the origin take r² = 1 (finite numbers, then
+                // dropped). The inputs' derivatives are closed forms in u and 1/r
+                // (`InputJets::Homogeneous`); jets of |p|², r, 1/r and p_i/r by the chain rule
+                // cost the learned rigid body 11 % of its step.
+                let mut r2 = [0.0; L];
                 for i in 0..N {
-                    let q = variable(p, i);
-                    r2 = add(&r2, &product::<N, L, HESS>(&q, &q));
-                }
-                for l in 0..L {
-                    if r2.v[l] <= HOMOGENEOUS_MIN_R2 {
-                        vanish[l] = true;
-                        r2.v[l] = 1.0;
+                    for l in 0..L {
+                        r2[l] += p[i][l] * p[i][l];
                     }
                 }
-                let (mut f0, mut f1, mut f2) = ([0.0; L], [0.0; L], [0.0; L]);
                 for l in 0..L {
-                    let s = r2.v[l].sqrt();
-                    f0[l] = s;
-                    f1[l] = 0.5 / s;
-                    f2[l] = -0.25 / (s * r2.v[l]);
+                    if r2[l] <= HOMOGENEOUS_MIN_R2 {
+                        vanish[l] = true;
+                        r2[l] = 1.0;
+                    }
                 }
-                let r = chain::<N, L, HESS>(&r2, &f0, &f1, &f2);
-                for l in 0..L {
-                    let x = r.v[l];
-                    f0[l] = 1.0 / x;
-                    f1[l] = -1.0 / (x * x);
-                    f2[l] = 2.0 / (x * x * x);
-                }
-                let inv = chain::<N, L, HESS>(&r, &f0, &f1, &f2);
-                // r^(m+1) by repeated products (the same operations in every lane).
+                let r: [f64; L] = std::array::from_fn(|l| r2[l].sqrt());
+                let ir: [f64; L] = std::array::from_fn(|l| 1.0 / r[l]);
+                let u: [[f64; L]; N] =
+                    std::array::from_fn(|i| std::array::from_fn(|l| p[i][l] * ir[l]));
+                // F = t^m r^k (k = m + 1): ∇F = t^m k r^(k−1) u and
+                // ∇²F = t^m k r^(k−2) (I + (k − 2) u uᵀ); r's powers by repeated products.
                 let k = self.power + 1;
-                let mut powers = [[1.0; L]; 3];
+                let mut factor = constant::<N, L>([0.0; L]);
                 for l in 0..L {
-                    let x = r.v[l];
-                    let mut acc = 1.0;
+                    let x = r[l];
+                    let (mut acc, mut below, mut two_below) = (1.0, 1.0, 1.0);
                     for e in 0..k {
                         if e + 2 == k {
-                            powers[2][l] = acc;
+                            two_below = acc;
                         }
                         if e + 1 == k {
-                            powers[1][l] = acc;
+                            below = acc;
                         }
                         acc *= x;
                     }
-                    powers[0][l] = acc;
-                    f0[l] = acc;
-                    f1[l] = f64::from(k) * powers[1][l];
-                    f2[l] = f64::from(k * (k - 1)) * powers[2][l];
+                    factor.v[l] = tm * acc;
+                    let d1 = tm * f64::from(k) * below;
+                    for a in 0..N {
+                        factor.g[a][l] = d1 * u[a][l];
+                    }
+                    if HESS {
+                        let d2 = tm * f64::from(k) * two_below;
+                        let bend = f64::from(k) - 2.0;
+                        for a in 0..N {
+                            for b in a..N {
+                                let delta = if a == b { 1.0 } else { 0.0 };
+                                factor.h[a][b][l] = d2 * (delta + bend * u[a][l] * u[b][l]);
+                            }
+                        }
+                    }
                 }
-                let factor = scale(&chain::<N, L, HESS>(&r, &f0, &f1, &f2), tm);
-                let inputs = InputJets::Jets {
-                    time: scale(&r, t),
-                    p: std::array::from_fn(|i| product::<N, L, HESS>(&variable(p, i), &inv)),
-                };
-                (inputs, factor, vanish)
+                (InputJets::Homogeneous { t, r, ir, u }, factor, vanish)
             }
         }
     }
@@ -291,18 +290,7 @@ impl<'a> NetworkLanes<'a> {
             std::mem::swap(&mut delta, &mut grad);
         }
         // delta holds x̄; the plain inputs (t and p) are linear in p and add nothing.
-        if let InputJets::Jets { time, p } = inputs {
-            for i in 0..=N {
-                let hi = &input_jet(time, p, i).h;
-                for a in 0..N {
-                    for b in a..N {
-                        for l in 0..L {
-                            out.h[a][b][l] += delta[i][l] * hi[a][b][l];
-                        }
-                    }
-                }
-            }
-        }
+        inputs.add_curvature(delta, &mut out.h);
         out
     }
 
@@ -441,10 +429,14 @@ enum InputJets<const N: usize, const L: usize> {
     /// (t, p): whole jets of the heavy top's 7 inputs (2.7 KB each, Hessians of zeros) cost a
     /// block 11 % of its step in memset and memcpy.
     Plain { t: f64, p: [[f64; L]; N] },
-    /// (t r, p / r) with r = |p|, as whole jets.
-    Jets {
-        time: JetLanes<N, L>,
-        p: [JetLanes<N, L>; N],
+    /// (t r, u = p / r) with r = |p|, kept as r, 1/r and u: ∇(t r) = t u,
+    /// ∂u_i/∂p_a = (δ_ia − u_i u_a)/r, and the curvature in closed form
+    /// ([`InputJets::add_curvature`]).
+    Homogeneous {
+        t: f64,
+        r: [f64; L],
+        ir: [f64; L],
+        u: [[f64; L]; N],
     },
 }
 
@@ -460,7 +452,13 @@ impl<const N: usize, const L: usize> InputJets<N, L> {
                     p[i - 1]
                 }
             }
-            InputJets::Jets { time, p } => input_jet(time, p, i).v,
+            InputJets::Homogeneous { t, r, u, .. } => {
+                if i == 0 {
+                    std::array::from_fn(|l| t * r[l])
+                } else {
+                    u[i - 1]
+                }
+            }
         }
     }
 
@@ -470,22 +468,41 @@ impl<const N: usize, const L: usize> InputJets<N, L> {
     fn tangent(&self, i: usize, a: usize) -> [f64; L] {
         match self {
             InputJets::Plain { .. } => [if i == 1 + a { 1.0 } else { 0.0 }; L],
-            InputJets::Jets { time, p } => input_jet(time, p, i).g[a],
+            InputJets::Homogeneous { t, ir, u, .. } => {
+                if i == 0 {
+                    std::array::from_fn(|l| t * u[a][l])
+                } else {
+                    let d = if i - 1 == a { 1.0 } else { 0.0 };
+                    std::array::from_fn(|l| (d - u[i - 1][l] * u[a][l]) * ir[l])
+                }
+            }
         }
     }
-}
 
-/// Input i of (time, p...) as whole jets.
-#[inline(always)]
-fn input_jet<'a, const N: usize, const L: usize>(
-    time: &'a JetLanes<N, L>,
-    p: &'a [JetLanes<N, L>; N],
-    i: usize,
-) -> &'a JetLanes<N, L> {
-    if i == 0 {
-        time
-    } else {
-        &p[i - 1]
+    /// `h` += Σ_i x̄_i ∇²(input i) (upper triangle) with x̄ = `adj` (1 + N rows, time first):
+    /// nothing for plain inputs; for the homogeneous map, with w = Σ_i x̄_(1+i) u_i,
+    /// x̄_0 t (δ_ab − u_a u_b)/r − (x̄_(1+a) u_b + x̄_(1+b) u_a + δ_ab w − 3 w u_a u_b)/r².
+    #[inline(always)]
+    fn add_curvature(&self, adj: &[LaneRow], h: &mut [[[f64; L]; N]; N]) {
+        let InputJets::Homogeneous { t, ir, u, .. } = self else {
+            return;
+        };
+        for l in 0..L {
+            let mut w = 0.0;
+            for i in 0..N {
+                w += adj[1 + i][l] * u[i][l];
+            }
+            let (ir, tr) = (ir[l], adj[0][l] * t);
+            for a in 0..N {
+                for b in a..N {
+                    let delta = if a == b { 1.0 } else { 0.0 };
+                    let uu = u[a][l] * u[b][l];
+                    let bend = adj[1 + a][l] * u[b][l] + adj[1 + b][l] * u[a][l] + delta * w
+                        - 3.0 * w * uu;
+                    h[a][b][l] += ir * (tr * (delta - uu) - ir * bend);
+                }
+            }
+        }
     }
 }
 
@@ -501,52 +518,6 @@ fn constant<const N: usize, const L: usize>(v: [f64; L]) -> JetLanes<N, L> {
         g: [[0.0; L]; N],
         h: [[[0.0; L]; N]; N],
     }
-}
-
-/// p_i's jet: its value and the unit vector e_i.
-#[inline(always)]
-fn variable<const N: usize, const L: usize>(p: &[[f64; L]; N], i: usize) -> JetLanes<N, L> {
-    let mut j = constant(p[i]);
-    j.g[i] = [1.0; L];
-    j
-}
-
-#[inline(always)]
-fn add<const N: usize, const L: usize>(a: &JetLanes<N, L>, b: &JetLanes<N, L>) -> JetLanes<N, L> {
-    let mut r = *a;
-    for l in 0..L {
-        r.v[l] += b.v[l];
-    }
-    for i in 0..N {
-        for l in 0..L {
-            r.g[i][l] += b.g[i][l];
-        }
-        for k in i..N {
-            for l in 0..L {
-                r.h[i][k][l] += b.h[i][k][l];
-            }
-        }
-    }
-    r
-}
-
-#[inline(always)]
-fn scale<const N: usize, const L: usize>(a: &JetLanes<N, L>, s: f64) -> JetLanes<N, L> {
-    let mut r = *a;
-    for l in 0..L {
-        r.v[l] *= s;
-    }
-    for i in 0..N {
-        for l in 0..L {
-            r.g[i][l] *= s;
-        }
-        for k in i..N {
-            for l in 0..L {
-                r.h[i][k][l] *= s;
-            }
-        }
-    }
-    r
 }
 
 /// The jet of a·b (the Hessian's upper triangle when `HESS`).
@@ -569,30 +540,6 @@ fn product<const N: usize, const L: usize, const HESS: bool>(
                     r.h[i][k][l] = a.v[l] * b.h[i][k][l]
                         + b.v[l] * a.h[i][k][l]
                         + (a.g[i][l] * b.g[k][l] + a.g[k][l] * b.g[i][l]);
-                }
-            }
-        }
-    }
-    r
-}
-
-/// The jet of f(z) from f, f′ and f″ at z's value.
-#[inline(always)]
-fn chain<const N: usize, const L: usize, const HESS: bool>(
-    z: &JetLanes<N, L>,
-    f0: &[f64; L],
-    f1: &[f64; L],
-    f2: &[f64; L],
-) -> JetLanes<N, L> {
-    let mut r = constant::<N, L>(*f0);
-    for i in 0..N {
-        for l in 0..L {
-            r.g[i][l] = f1[l] * z.g[i][l];
-        }
-        if HESS {
-            for k in i..N {
-                for l in 0..L {
-                    r.h[i][k][l] = f1[l] * z.h[i][k][l] + f2[l] * (z.g[i][l] * z.g[k][l]);
                 }
             }
         }
