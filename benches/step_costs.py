@@ -9,9 +9,10 @@ h = 0.1, a batch of seeded states (``--batch``, default 4096): every fixed-step 
 the system names (``pr.classical_methods``; DOP853 left out: it is adaptive and in SciPy),
 Taylor-HJ K = 3 and 5 in each chart the system names (``system.taylor_charts()``; the exact
 log-canonical groupoid for Lotka–Volterra, a polynomial bivector's default realization only),
-and the shipped learned models of that system. ``--system`` picks one system. Each stepper rolls the
-batch forward for a fixed amount of work and keeps only the final state; a cell is the median of
-``--rounds`` timed rollouts after a warm-up, rounds alternating the steppers. Reported: ns per
+and the shipped learned models of that system. ``--system`` picks one system, ``--stepper``
+(repeatable) the steppers to time. Each stepper rolls the batch forward for a fixed amount of
+work and keeps only the final state; a cell is the median of ``--rounds`` timed rollouts after a
+warm-up, rounds alternating the steppers. Reported: ns per
 trajectory-step, the ratio to the package's own RK4 step in the same run, and the mean Newton
 updates per step of the implicit ones (from ``integrate(..., return_info=True)``). ``--json
 FILE`` writes the numbers.
@@ -308,6 +309,12 @@ def main() -> None:
         default=None,
         help="a directory from which `import poisson_rs` loads the build before",
     )
+    parser.add_argument(
+        "--stepper",
+        action="append",
+        default=None,
+        help="time only this stepper (repeatable; RK4 always runs, for the ratios)",
+    )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.batch < 1 or args.rounds < 1:
@@ -332,7 +339,8 @@ def main() -> None:
             raise SystemExit(f"--baseline: both builds load {packages['now']}")
         print(f"now: {packages['now']}\nbefore: {packages['before']}")
     try:
-        rows = measure(builds, args.batch, args.rounds)
+        only = None if args.stepper is None else {"rk4", *args.stepper}
+        rows = measure(builds, args.batch, args.rounds, only)
     except RuntimeError as exc:  # a failed step in this process's rollout: said, no traceback
         raise SystemExit(str(exc)) from None
     finally:
@@ -348,15 +356,22 @@ def main() -> None:
         atomic_write_bytes(args.json, json.dumps({**meta, "rows": rows}, indent=1).encode())
 
 
-def measure(builds: dict[str, Any], batch: int, rounds: int) -> list[dict[str, Any]]:
-    """Every system's steppers in every build: Newton updates from one rollout, then ``rounds``
-    rounds of one timed rollout per stepper and build, the builds' order alternating."""
+def measure(
+    builds: dict[str, Any], batch: int, rounds: int, only: set[str] | None = None
+) -> list[dict[str, Any]]:
+    """Every system's steppers (those in ``only`` where given) in every build: Newton updates
+    from one rollout, then ``rounds`` rounds of one timed rollout per stepper and build, the
+    builds' order alternating."""
     names = {key: b.names() for key, b in builds.items()}
     rows: list[dict[str, Any]] = []
     for label in names["now"]:
         order = list(names["now"][label])
         for key in builds:
             order += [n for n in names[key].get(label, []) if n not in order]
+        if only is not None:
+            order = [n for n in order if n in only]
+        if order == ["rk4"] and only is not None:
+            continue
         have = {key: set(names[key].get(label, [])) for key in builds}
         updates = {
             key: {n: b.updates(label, n) for n in order if n in have[key]}
