@@ -12,10 +12,9 @@ log-canonical groupoid for Lotka–Volterra, a polynomial bivector's default rea
 and the shipped learned models of that system. ``--system`` picks one system, ``--stepper``
 (repeatable) the steppers to time. Each stepper rolls the batch forward for a fixed amount of
 work and keeps only the final state; a cell is the median of ``--rounds`` timed rollouts after a
-warm-up, rounds alternating the steppers. Reported: ns per
-trajectory-step, the ratio to the package's own RK4 step in the same run, and the mean Newton
-updates per step of the implicit ones (from ``integrate(..., return_info=True)``). ``--json
-FILE`` writes the numbers.
+warm-up, rounds alternating the steppers. Reported: ns per trajectory-step, the ratio to the
+package's own RK4 step in the same run, and the mean Newton updates per step of the implicit
+ones (from ``integrate(..., return_info=True)``). ``--json FILE`` writes the numbers.
 
 ``--baseline DIR`` times the build before in the same run: ``DIR`` is a directory from which
 ``import poisson_rs`` loads that build (a checkout's ``python/`` with its extension built, or a
@@ -363,6 +362,14 @@ def measure(
     from one rollout, then ``rounds`` rounds of one timed rollout per stepper and build, the
     builds' order alternating."""
     names = {key: b.names() for key, b in builds.items()}
+    if only is not None:
+        offered = {n for table in names.values() for steppers in table.values() for n in steppers}
+        unknown = sorted(only - offered)
+        if unknown:
+            raise SystemExit(
+                f"--stepper: no stepper named {', '.join(unknown)} here; "
+                f"the steppers: {', '.join(sorted(offered))}"
+            )
     rows: list[dict[str, Any]] = []
     for label in names["now"]:
         order = list(names["now"][label])
@@ -370,8 +377,8 @@ def measure(
             order += [n for n in names[key].get(label, []) if n not in order]
         if only is not None:
             order = [n for n in order if n in only]
-        if order == ["rk4"] and only is not None:
-            continue
+            if order == ["rk4"]:
+                continue
         have = {key: set(names[key].get(label, [])) for key in builds}
         updates = {
             key: {n: b.updates(label, n) for n in order if n in have[key]}

@@ -253,21 +253,18 @@ pub fn tanh_fast_fma(x: f64) -> f64 {
     tanh_with::<true>(x)
 }
 
-/// [`tanh_fast`] on R rows of L lanes at once, bit for bit: the same operations per element,
-/// each stage over every element before the next. One tanh is a chain of ~20 dependent
-/// operations; run unit by unit, the out-of-order window holds about two of those chains and
-/// the core waits on their latency. In lockstep 4 rows of 8 lanes (8 AVX2 registers) advance
-/// together (1.2× the single-unit loop's throughput in isolation).
+/// [`tanh_fast`] on R rows of L lanes at once, bit for bit: each stage of [`tanh_with`]
+/// (`tanh_reduce`, the Horner steps, `tanh_finish`) over every element before the next. One
+/// tanh is a chain of ~20 dependent operations; run unit by unit, the out-of-order window holds
+/// about two of those chains and the core waits on their latency. In lockstep 4 rows of 8 lanes
+/// (8 AVX2 registers) advance together (1.2× the single-unit loop's throughput in isolation).
 #[inline(always)]
-pub fn tanh_fast_rows<const R: usize, const L: usize>(x: &mut [[f64; L]; R]) {
+pub(crate) fn tanh_fast_rows<const R: usize, const L: usize>(x: &mut [[f64; L]; R]) {
     let mut shifted = [[0.0; L]; R];
     let mut r = [[0.0; L]; R];
     for i in 0..R {
         for l in 0..L {
-            let y = (2.0 * x[i][l]).clamp(-40.0, 40.0);
-            shifted[i][l] = madd::<false>(y, TANH_LOG2E, TANH_SHIFT);
-            let k = shifted[i][l] - TANH_SHIFT;
-            r[i][l] = madd::<false>(-k, TANH_LN2_LO, madd::<false>(-k, TANH_LN2_HI, y));
+            (shifted[i][l], r[i][l]) = tanh_reduce::<false>(x[i][l]);
         }
     }
     let mut q = [[TANH_C[0]; L]; R];
@@ -280,23 +277,12 @@ pub fn tanh_fast_rows<const R: usize, const L: usize>(x: &mut [[f64; L]; R]) {
     }
     for i in 0..R {
         for l in 0..L {
-            let (r, q) = (r[i][l], q[i][l]);
-            let em = madd::<false>(r * r, q, r);
-            let s = f64::from_bits(shifted[i][l].to_bits().wrapping_add(1023) << 52);
-            let e = madd::<false>(s, em, s - 1.0);
-            x[i][l] = e / (e + 2.0);
+            x[i][l] = tanh_finish::<false>(shifted[i][l], r[i][l], q[i][l]);
         }
     }
 }
 
-// tanh_with's constants. 1.5 · 2^52: adding it rounds to an integer, whose bits land in the
-// mantissa's low bits.
-const TANH_SHIFT: f64 = 6755399441055744.0;
-const TANH_LOG2E: f64 = std::f64::consts::LOG2_E;
-// ln 2 split so that k · LN2_HI is exact for |k| < 2^11 (fdlibm's constants).
-const TANH_LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
-const TANH_LN2_LO: f64 = f64::from_bits(0x3DEA_39EF_3579_3C76);
-// 1/n! for n = 13 down to 2.
+// 1/n! for n = 13 down to 2: expm1(r) = r + r² (1/2 + r/6 + …).
 const TANH_C: [f64; 12] = [
     1.0 / 6227020800.0,
     1.0 / 479001600.0,
@@ -314,17 +300,35 @@ const TANH_C: [f64; 12] = [
 
 #[inline(always)]
 fn tanh_with<const FMA: bool>(x: f64) -> f64 {
-    // |tanh(x)| rounds to 1 beyond |x| ≈ 19.1; clamping keeps 2^k finite (NaN passes through).
-    let y = (2.0 * x).clamp(-40.0, 40.0);
-    let shifted = madd::<FMA>(y, TANH_LOG2E, TANH_SHIFT);
-    let k = shifted - TANH_SHIFT;
-    // k · LN2_HI is exact, so the fused and the plain form agree on the first subtraction.
-    let r = madd::<FMA>(-k, TANH_LN2_LO, madd::<FMA>(-k, TANH_LN2_HI, y));
+    let (shifted, r) = tanh_reduce::<FMA>(x);
     let mut q = TANH_C[0];
     for c in &TANH_C[1..] {
         q = madd::<FMA>(q, r, *c);
     }
-    // expm1(r) = r + r² (1/2 + r/6 + …)
+    tanh_finish::<FMA>(shifted, r, q)
+}
+
+/// tanh's first stage: 2x = k ln 2 + r, |r| ≤ ln 2 / 2, as (k + 1.5 · 2^52, r).
+#[inline(always)]
+fn tanh_reduce<const FMA: bool>(x: f64) -> (f64, f64) {
+    // 1.5 · 2^52: adding it rounds to an integer, whose bits land in the mantissa's low bits.
+    const SHIFT: f64 = 6755399441055744.0;
+    const LOG2E: f64 = std::f64::consts::LOG2_E;
+    // ln 2 split so that k · LN2_HI is exact for |k| < 2^11 (fdlibm's constants).
+    const LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
+    const LN2_LO: f64 = f64::from_bits(0x3DEA_39EF_3579_3C76);
+    // |tanh(x)| rounds to 1 beyond |x| ≈ 19.1; clamping keeps 2^k finite (NaN passes through).
+    let y = (2.0 * x).clamp(-40.0, 40.0);
+    let shifted = madd::<FMA>(y, LOG2E, SHIFT);
+    let k = shifted - SHIFT;
+    // k · LN2_HI is exact, so the fused and the plain form agree on the first subtraction.
+    (shifted, madd::<FMA>(-k, LN2_LO, madd::<FMA>(-k, LN2_HI, y)))
+}
+
+/// tanh's last stage from the first's (shifted k, r) and the Horner sum q: e = expm1(2x) =
+/// 2^k (expm1(r) + 1) − 1, and tanh = e / (e + 2).
+#[inline(always)]
+fn tanh_finish<const FMA: bool>(shifted: f64, r: f64, q: f64) -> f64 {
     let em = madd::<FMA>(r * r, q, r);
     // 2^k: k + 1023 into the exponent field (the shift drops SHIFT's own exponent bits).
     let s = f64::from_bits(shifted.to_bits().wrapping_add(1023) << 52);

@@ -16,7 +16,8 @@ mod workspace;
 
 #[cfg(test)]
 pub(crate) use mlp::narrow_gemm;
-pub use mlp::{tanh_fast, tanh_fast_fma, tanh_fast_rows, Layer, Mlp};
+pub(crate) use mlp::tanh_fast_rows;
+pub use mlp::{tanh_fast, tanh_fast_fma, Layer, Mlp};
 pub use network_lanes::{
     scratch_len, LaneRow, NetworkLanes, NETWORK_LANES_MAX_DIM, NETWORK_LANES_MAX_WIDTH,
 };

@@ -209,7 +209,6 @@ fn lockstep_tanh_has_the_bits_of_tanh_fast() {
         f64::NEG_INFINITY,
         f64::NAN,
     ]);
-    let mut checked = 0;
     for chunk in xs.chunks(32) {
         let mut block = [[0.0f64; 8]; 4];
         for (i, &x) in chunk.iter().enumerate() {
@@ -219,10 +218,8 @@ fn lockstep_tanh_has_the_bits_of_tanh_fast() {
         tanh_fast_rows(&mut block);
         for (got, want) in block.iter().flatten().zip(want.iter().flatten()) {
             assert_eq!(got.to_bits(), want.to_bits(), "tanh of a block slot");
-            checked += 1;
         }
     }
-    assert!(checked >= xs.len());
 }
 
 /// The narrow-layer kernel of the MLP passes against the panel kernel: the same chain of
