@@ -19,6 +19,13 @@ updates; the core's own count on the same states (``integrate(..., return_info=T
 step) checks the replay of its start. Reported: mean updates per step and the median
 size of each update. No timing: what an update saved is worth is the cost of an update, in
 ``docs/step_costs.json``.
+
+The same replay weighs a stop the core does not take: after update k ≥ 2, stop where the
+contraction θ = |δₖ| / |δₖ₋₁| puts the error left, θ/(1 − θ)·|δₖ| (Hairer & Wanner, IV.8), below
+a share of the bound. Per share: the mean updates it would take, the share of solves it stops
+before the size rule does, and the largest error it would leave (the size of the update it
+skips, relative to |p|∞). Update 1 is full Newton and update 2 simplified, so θ₂ is not the rate
+of update 3: the estimate is off by up to ~30× (docs/performance.md, "Tried and rejected").
 """
 
 from __future__ import annotations
@@ -68,6 +75,20 @@ def gradient(s: Any, t: float, p: torch.Tensor, graph: bool = False) -> torch.Te
 #: The predictors replayed (see the module's docstring).
 PREDICTORS = ("linear", "chart", "second")
 
+#: Shares of the bound tol·|p|∞ the contraction estimate is weighed at (the module's docstring).
+ESTIMATE_SHARES = (1e-2, 1e-3)
+
+
+def estimate_stop(sizes: list[float], scales: list[float], tol: float, share: float) -> int:
+    """The update after which the contraction estimate (or the size rule) would stop a solve
+    whose size-rule updates are ``sizes`` (|p|∞ after each in ``scales``), counted from 1."""
+    for k in range(1, len(sizes)):
+        bound = tol * scales[k]
+        theta = sizes[k] / sizes[k - 1]
+        if sizes[k] <= bound or (theta < 1.0 and sizes[k] * theta <= share * bound * (1 - theta)):
+            return k + 1
+    return len(sizes)
+
 
 def series(system: Any, order: int, chart: str) -> tuple[Any, Any, Any]:
     """S, its t-linear terms and its terms up to t² (torch callables), once per row."""
@@ -82,9 +103,9 @@ def solve(
     mu: torch.Tensor,
     predictor: str,
     tol: float,
-) -> tuple[int, list[float]]:
+) -> tuple[int, list[float], list[float]]:
     """Simplified Newton from a predictor of :data:`PREDICTORS` for S = ``s[0]`` (``s`` from
-    :func:`series`), stopping at |δ|∞ ≤ tol·|p|∞: updates and their sizes."""
+    :func:`series`), stopping at |δ|∞ ≤ tol·|p|∞: updates, their sizes and |p|∞ after each."""
     alg = system.algebra
     s, s1, s2 = s
     x0 = gradient(s1, H, mu)
@@ -101,6 +122,7 @@ def solve(
         xa = gradient(s2, H, p)
         p = p + (mu - tar(chart, xa, p, alg))
     sizes: list[float] = []
+    scales: list[float] = []
     refresh, last, inv = True, float("inf"), None
     while len(sizes) < 50:
         if refresh:
@@ -113,10 +135,11 @@ def solve(
         p = (p + delta).detach()
         size = float(delta.abs().max())
         sizes.append(size)
-        if size <= tol * float(p.abs().max()):
+        scales.append(float(p.abs().max()))
+        if size <= tol * scales[-1]:
             break
         refresh, last = size > SIMPLIFIED_RATE * last, size
-    return len(sizes), sizes
+    return len(sizes), sizes, scales
 
 
 def core_updates(stepper: Any, states: np.ndarray) -> float:
@@ -164,22 +187,46 @@ def main() -> None:
                         solve(system, terms, chart, torch.as_tensor(m), key, stepper.tol)
                         for m in states
                     ]
-                    row[key] = float(np.mean([n for n, _ in runs]))
-                    depth = max(len(z) for _, z in runs)
+                    # Under "<predictor>_updates": "chart" is the row's chart.
+                    row[f"{key}_updates"] = float(np.mean([n for n, _, _ in runs]))
+                    depth = max(len(z) for _, z, _ in runs)
                     row[f"{key}_median_sizes"] = [
-                        float(np.median([z[i] for _, z in runs if len(z) > i]))
+                        float(np.median([z[i] for _, z, _ in runs if len(z) > i]))
                         for i in range(depth)
                     ]
+                    for share in ESTIMATE_SHARES:
+                        stops = [estimate_stop(z, sc, stepper.tol, share) for _, z, sc in runs]
+                        left = [
+                            z[k] / sc[k - 1] if k < n else 0.0
+                            for (n, z, sc), k in zip(runs, stops, strict=True)
+                        ]
+                        row[f"{key}_estimate_{share:g}"] = {
+                            "updates": float(np.mean(stops)),
+                            "stopped_sooner": float(
+                                np.mean([k < n for (n, _, _), k in zip(runs, stops, strict=True)])
+                            ),
+                            "largest_error_left": float(max(left)),
+                        }
                 rows.append(row)
                 sizes = " / ".join(
                     ", ".join(f"{v:.1e}" for v in row[f"{k}_median_sizes"]) for k in PREDICTORS
                 )
-                print(
-                    f"| {label} | {chart}, {order} | {row['core']:.2f} | "
-                    f"{row['linear']:.2f} | {row['chart']:.2f} | {row['second']:.2f} | {sizes} |"
-                )
+                counts = " | ".join(f"{row[f'{k}_updates']:.2f}" for k in PREDICTORS)
+                print(f"| {label} | {chart}, {order} | {row['core']:.2f} | {counts} | {sizes} |")
+                for share in ESTIMATE_SHARES:
+                    est = [row[f"{k}_estimate_{share:g}"] for k in PREDICTORS]
+                    print(
+                        f"|   estimate stop at {share:g} of the bound | | | "
+                        + " | ".join(
+                            f"{e['updates']:.2f} ({100 * e['stopped_sooner']:.0f} % sooner, "
+                            f"left ≤ {e['largest_error_left']:.1e})"
+                            for e in est
+                        )
+                        + " | |"
+                    )
     if args.json is not None:
-        doc = {"h": H, "tol": tol, "states": args.states, "rows": rows}
+        doc = {"h": H, "tol": tol, "states": args.states, "estimate_shares": ESTIMATE_SHARES}
+        doc["rows"] = rows
         atomic_write_bytes(args.json, (json.dumps(doc, indent=1) + "\n").encode())
 
 
