@@ -225,8 +225,13 @@ def main() -> None:
                         + " | |"
                     )
     if args.json is not None:
-        doc = {"h": H, "tol": tol, "states": args.states, "estimate_shares": ESTIMATE_SHARES}
-        doc["rows"] = rows
+        doc = {
+            "h": H,
+            "tol": tol,
+            "states": args.states,
+            "estimate_shares": ESTIMATE_SHARES,
+            "rows": rows,
+        }
         atomic_write_bytes(args.json, (json.dumps(doc, indent=1) + "\n").encode())
 
 
