@@ -1,4 +1,4 @@
-"""Newton updates per Taylor-HJ step with the core's predictor and with a second-order one.
+"""Newton updates per Taylor-HJ step with the core's predictors and with the others tried.
 
     PYTHONPATH=python python benches/newton_predictors.py --json docs/newton_predictors.json
 
@@ -9,11 +9,15 @@ solution: "linear" (tar's part linear in x₀, p₀ = μ + ½ ad*_{x₀} μ) or 
 tar(x₀, μ), the whole chart at x₀). "second": "linear" in the exponential chart, "chart" in the
 Cayley one, then one step of the fixed-point iteration p ← p + μ − tar(x, p) with x the gradient
 of S's t¹ and t² terms at p₀ (the cheap part of S: no network, no t³ … t^K terms; on g* the
-Taylor-HJ S has no t² term, so x is t∇H at p₀), O(h³): the core's start on se(3). On so(3) the
-core keeps the first-order start: the fixed-point step saved an update there but cost more than
-the cheap 3×3 update it saved (``benches/step_costs.py``).
+Taylor-HJ S has no t² term, so x is t∇H at p₀), O(h³): the core's start on se(3). "hessian":
+the same fixed-point step with x linearized at μ, x₀ + Hess·(p₀ − μ), x₀ and Hess from one jet
+of S's t¹ and t² terms at μ (the first-order start from that x₀ too), O(h³) without a second
+pass: the core's start in so(3)'s exponential chart. "second" saved an update on so(3) but cost
+more than the 3×3 update it saved; "hessian" saves it for less in the exponential chart, and in
+the Cayley one (0.2 updates saved) costs more than it saves, where the core keeps "chart"
+(``benches/step_costs.py``, docs/performance.md).
 
-Each row replays the three in float64 torch (autograd Jacobians, the package's own ``tar`` and
+Each row replays the four in float64 torch (autograd Jacobians, the package's own ``tar`` and
 Taylor terms) on the states of ``benches/step_costs.py`` (seed 42, h = 0.1) and counts the
 updates; the core's own count on the same states (``integrate(..., return_info=True)``, one
 step) checks the replay of its start. Reported: mean updates per step and the median
@@ -73,7 +77,7 @@ def gradient(s: Any, t: float, p: torch.Tensor, graph: bool = False) -> torch.Te
 
 
 #: The predictors replayed (see the module's docstring).
-PREDICTORS = ("linear", "chart", "second")
+PREDICTORS = ("linear", "chart", "second", "hessian")
 
 #: Shares of the bound tol·|p|∞ the contraction estimate is weighed at (the module's docstring).
 ESTIMATE_SHARES = (1e-2, 1e-3)
@@ -108,8 +112,9 @@ def solve(
     :func:`series`), stopping at |δ|∞ ≤ tol·|p|∞: updates, their sizes and |p|∞ after each."""
     alg = system.algebra
     s, s1, s2 = s
-    x0 = gradient(s1, H, mu)
-    if predictor == "linear" or (predictor == "second" and chart == "exp"):
+    # "hessian" takes its first-order start from the t¹ and t² terms (the core's so(3) pass).
+    x0 = gradient(s2 if predictor == "hessian" else s1, H, mu)
+    if predictor == "linear" or (predictor in ("second", "hessian") and chart == "exp"):
         # tar(x, p) = p − ½ ad*_x p + O(|x|²): p₀ = μ + ½ ad*_{x₀} μ, the core's predictor.
         one = torch.ones((), dtype=mu.dtype)
         _, lin = torch.autograd.functional.jvp(
@@ -121,6 +126,10 @@ def solve(
     if predictor == "second":
         xa = gradient(s2, H, p)
         p = p + (mu - tar(chart, xa, p, alg))
+    elif predictor == "hessian":
+        # The same fixed-point step with ∇S(p₀) linearized at μ: x₀ + Hess · (p₀ − μ).
+        hess = torch.autograd.functional.hessian(lambda q: s2(H, q), mu)
+        p = p + (mu - tar(chart, x0 + hess @ (p - mu), p, alg))
     sizes: list[float] = []
     scales: list[float] = []
     refresh, last, inv = True, float("inf"), None
@@ -173,8 +182,11 @@ def main() -> None:
     ]
     rows = []
     tol = pr.taylor_integrator(systems[0][1], order=3).tol
-    print("| system | chart, K | core | linear | chart | second | median |δ| (each predictor) |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| system | chart, K | core | linear | chart | second | hessian "
+        "| median |δ| (each predictor) |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for label, system, states, charts in systems:
         for chart in charts:
             for order in (3, 5):

@@ -457,9 +457,10 @@ pub(crate) struct ChartNewton<'a, const N: usize, C> {
     pub tol: f64,
     pub max_iter: u32,
     /// Start Newton from a predicted p₀ instead of μ, where |x₀|² ≤ [`PREDICT_MAX_S`] (x₀: the
-    /// t-linear terms' gradient at μ). On so(3), p₀ = μ + ½ x₀ × μ (in the Cayley chart minus
-    /// ¼ x₀ (x₀·μ) as well); on the exponential charts, the chart's first-order start and one
-    /// fixed-point step from there.
+    /// gradient of S's cheap terms at μ). On so(3), p₀ = μ + ½ x₀ × μ in the Cayley chart (minus
+    /// ¼ x₀ (x₀·μ) as well) and a second-order start in the exponential one (`exp_start`); on the
+    /// exponential charts of other algebras, the chart's first-order start and one fixed-point
+    /// step from there.
     pub predict: bool,
 }
 
@@ -526,6 +527,33 @@ fn gradient_and_hessian<const N: usize, const L: usize>(jet: &JetLanes<N, L>) ->
     let x = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
     let h = m3(|a, b| V(jet.h[a.min(b)][a.max(b)]));
     (x, h)
+}
+
+/// The exponential chart's Newton start on so(3), O(h³) from the solution, and |x₀|²: from the
+/// jet of S's t¹ and t² terms at μ (one pass, with its Hessian), the first-order start
+/// p₁ = μ + ½ x₀ × μ and then one fixed-point step p₀ = μ + ½ x̃ × p₁ − x̃ × (x̃ × p₁)/12, with
+/// x̃ = x₀ + Hess · (p₁ − μ) = ∇S(p₁) + O(h³) (the Hessian at μ standing in for a gradient pass
+/// at p₁) and 1/12 = c(0), tar's quadratic coefficient (c(s) − c(0) = O(h²) is O(h⁴) here).
+/// `benches/newton_predictors.py`: 3.00 → 2.00 updates a step on the rigid body.
+#[inline(always)]
+pub(crate) fn exp_start<const N: usize, const L: usize>(
+    poly: &Polynomial<N>,
+    t: f64,
+    pl: &[[f64; L]; N],
+    mu: &V3<L>,
+    scratch: &mut Scratch<N, L>,
+    jet: &mut JetLanes<N, L>,
+) -> (V3<L>, V<L>) {
+    jet_lanes_into::<N, L, true, 2>(poly, t, pl, scratch, jet);
+    let (x0, h0) = gradient_and_hessian(jet);
+    let turn = cross(&x0, mu);
+    let p1 = v3(|i| mu[i] + turn[i].scale(0.5));
+    let d = v3(|i| p1[i] - mu[i]);
+    let xt = v3(|a| x0[a] + (h0[a][0] * d[0] + h0[a][1] * d[1] + h0[a][2] * d[2]));
+    let turn = cross(&xt, &p1);
+    let twice = cross(&xt, &turn);
+    let p0 = v3(|i| mu[i] + turn[i].scale(0.5) - twice[i].scale(C_SERIES[0]));
+    (p0, dot(&x0, &x0))
 }
 
 /// Simplified Newton's bookkeeping for a block, lane by lane (the rule of the generic
@@ -679,12 +707,13 @@ pub(crate) fn load_block<const N: usize, const L: usize>(
 /// by simplified Newton in lanes: the same rule as [`crate::stepper::BisectionStepper`]'s
 /// (refresh the Jacobian while updates contract by less than [`SIMPLIFIED_RATE`], stop once
 /// |δ|∞ ≤ tol · max(|p|∞, 1e-300)) and the same failures in the same order, lane by lane. A
-/// lane that converged or failed is frozen; the block runs until every lane has.
+/// lane that converged or failed is frozen; the block runs until every lane has. `EXP`: the
+/// chart is the exponential one (else Cayley), as `sys.chart` says.
 // Out of line in debug builds: inlined there, every local of every instantiation keeps its
 // own slot in the dispatching frames, and a test thread's stack overflowed.
 #[cfg_attr(not(debug_assertions), inline(always))]
 #[cfg_attr(debug_assertions, inline(never))]
-fn so3_block<const N: usize, const L: usize>(
+fn so3_block<const N: usize, const L: usize, const EXP: bool>(
     sys: &So3Newton<'_, N>,
     buf: &mut [LaneRow],
     t: f64,
@@ -693,7 +722,8 @@ fn so3_block<const N: usize, const L: usize>(
     results: &mut [StepResult],
 ) {
     let n = mu.len();
-    debug_assert!(N == 3 && n <= L);
+    debug_assert!(N == 3 && n <= L && EXP == (sys.chart == Chart::Exp));
+    let chart = if EXP { Chart::Exp } else { Chart::Cayley };
     let (mut pl, active) = load_block::<N, L>(mu, live);
     let target: V3<L> = [V(pl[0]), V(pl[1]), V(pl[2])];
     let mut p = target;
@@ -705,21 +735,27 @@ fn so3_block<const N: usize, const L: usize>(
         h: [[[0.0; L]; N]; N],
     };
     if sys.predict {
-        // p₀ = μ + ½ x₀ × μ, with x₀ the gradient of the terms of S linear in t at μ: tar(x, p)
-        // = p − ½ x×p + O(|x|²) in both charts, so p₀ is O(h²) from the solution where μ is
-        // O(h). Simplified Newton's contraction is proportional to that first error.
-        jet_lanes_into::<N, L, false, 1>(sys.poly, t, &pl, &mut scratch, &mut jet);
-        let x0: V3<L> = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
-        let turn = cross(&x0, &target);
-        let mut p0 = v3(|i| target[i] + turn[i].scale(0.5));
-        if sys.chart == Chart::Cayley {
-            // The Cayley chart's quadratic term too: p₀ = 2μ − tar(x₀, μ), tar(x, p) = p − ½ x×p
-            // + ¼ x (x·p). Its O(h²) part is as large as the first error left otherwise
-            // (`benches/newton_predictors.py`: 3.66 → 3.00 updates a step on the rigid body).
-            let along = dot(&x0, &target).scale(0.25);
-            p0 = v3(|i| p0[i] - x0[i] * along);
-        }
-        let s0 = dot(&x0, &x0);
+        // p₀ = μ + ½ x₀ × μ to first order, with x₀ the gradient of S's cheap terms at μ:
+        // tar(x, p) = p − ½ x×p + O(|x|²) in both charts, so p₀ is O(h²) from the solution where
+        // μ is O(h). Simplified Newton's contraction is proportional to that first error.
+        let p0 = match chart {
+            Chart::Exp => exp_start(sys.poly, t, &pl, &target, &mut scratch, &mut jet),
+            Chart::Cayley => {
+                // The t-linear terms, and the Cayley chart's quadratic term too: p₀ = 2μ −
+                // tar(x₀, μ), tar(x, p) = p − ½ x×p + ¼ x (x·p). Its O(h²) part is as large
+                // as the first error left otherwise (`benches/newton_predictors.py`: 3.66 →
+                // 3.00 updates a step on the rigid body). The exponential chart's second-order
+                // start saves 0.2 updates here and costs more than they do (1.02–1.07× the
+                // step's time, docs/performance.md).
+                jet_lanes_into::<N, L, false, 1>(sys.poly, t, &pl, &mut scratch, &mut jet);
+                let x0: V3<L> = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
+                let turn = cross(&x0, &target);
+                let along = dot(&x0, &target).scale(0.25);
+                let p0 = v3(|i| target[i] + turn[i].scale(0.5) - x0[i] * along);
+                (p0, dot(&x0, &x0))
+            }
+        };
+        let (p0, s0) = p0;
         for l in 0..L {
             // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large
             // for the series, h = 5 say) the predictor can throw Newton past the exp chart's
@@ -740,7 +776,7 @@ fn so3_block<const N: usize, const L: usize>(
     let mut xs: V3<L> = [V::splat(0.0); 3];
     let mut hk: M3<L> = [[V::splat(0.0); 3]; 3];
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
-    let exp = sys.chart == Chart::Exp;
+    let exp = EXP;
     while progress.running() {
         let hess = progress.jacobian_wanted();
         for i in 0..3 {
@@ -752,7 +788,7 @@ fn so3_block<const N: usize, const L: usize>(
             evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
         }
         let (x, h) = gradient_and_hessian(&jet);
-        let (tar, s, jac) = so3_chart_lanes(sys.chart, -1.0, &x, &p, hess.then_some(&h));
+        let (tar, s, jac) = so3_chart_lanes(chart, -1.0, &x, &p, hess.then_some(&h));
         let fresh = jac.map(|j| inverse3_lanes(&j));
         let (probe, hess_probe) = round_probes(&jet.v, &x, &h, hess);
         let fresh_probe = fresh
@@ -797,8 +833,8 @@ fn so3_block<const N: usize, const L: usize>(
     // μ' = R(x) μ with x = ∇S(p) at the converged p (= sou(x, p) up to the residual, which
     // R(x) μ leaves out: see Groupoid::coadjoint); the residual of the solved equation.
     let x = xs;
-    let (tar, s, _) = so3_chart_lanes(sys.chart, -1.0, &x, &p, None);
-    let next = so3_rotate_lanes(sys.chart, &x, &target, s);
+    let (tar, s, _) = so3_chart_lanes(chart, -1.0, &x, &p, None);
+    let next = so3_rotate_lanes(chart, &x, &target, s);
     for l in (0..n).filter(|&l| progress.converged[l]) {
         results[l] = if !(0..3).all(|i| x[i].0[l].is_finite()) {
             Err(StepFailure::NonFinite)
@@ -844,7 +880,13 @@ impl<const N: usize> LaneSolve<N> for So3Newton<'_, N> {
         live: &[bool],
         results: &mut [StepResult],
     ) {
-        so3_block::<N, L>(self, buf, t, mu, live, results);
+        // One instantiation per chart: each block's code then holds its own chart only (with
+        // the chart a run-time value, the exponential chart's start made the Cayley chart's
+        // block 1.16× slower with the same operations).
+        match self.chart {
+            Chart::Exp => so3_block::<N, L, true>(self, buf, t, mu, live, results),
+            Chart::Cayley => so3_block::<N, L, false>(self, buf, t, mu, live, results),
+        }
     }
 }
 

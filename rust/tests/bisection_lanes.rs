@@ -400,6 +400,98 @@ fn lane_newton_equals_the_generic_step() {
     }
 }
 
+/// The exponential chart's Newton start on so(3) is second order: its distance to the solved
+/// bisection momentum p* falls as h³ (the slope fitted from h = 0.2 to 0.025), where the
+/// first-order start p₁ = μ + ½ x₀ × μ falls as h². The oracle p* is the fixed-point iteration
+/// p ← p + μ − tar(∇S(p), p) of the scalar chart (a contraction by O(h)), run 200 times. From
+/// that start the lane solve of the rigid body's Taylor K = 3 at h = 0.1 takes 2 updates a step
+/// (3 from the first-order one, `benches/newton_predictors.py`).
+#[test]
+fn exp_start_is_second_order() {
+    use crate::generating::polynomial_lanes::{JetLanes, Scratch};
+    use crate::lanes_bisection::{exp_start, so3_newton_steps, So3Newton, V};
+    // The exponential chart's Taylor K = 3 for I = (1.5, 2, 2.5): −t H and t³ S₃ (S₃ as
+    // `system_taylor_terms` gives it).
+    let mut terms = minus_t_h();
+    let s3: [([u32; 3], f64); 3] = [
+        ([0, 2, 2], -1.0 / 3600.0),
+        ([2, 0, 2], -1.0 / 675.0),
+        ([2, 2, 0], -1.0 / 2160.0),
+    ];
+    terms.extend(s3.iter().map(|&(p_powers, coeff)| Monomial {
+        t_power: 3,
+        p_powers,
+        coeff,
+    }));
+    let poly = Polynomial::new(terms).unwrap();
+    let chart = Groupoid::so3(Chart::Exp).unwrap();
+    let mut rng = Rng::new(0x1A2E_5020);
+    let hs = [0.2, 0.025];
+    for _ in 0..8 {
+        let r = rng.range(1.0, 3.0);
+        let mu = rng.sphere(r);
+        let (mut second, mut first) = ([0.0; 2], [0.0; 2]);
+        for (k, &h) in hs.iter().enumerate() {
+            let mut solved = mu;
+            for _ in 0..200 {
+                let x = poly.gradient(h, &solved).g;
+                let t = chart.tar(&x, &solved).unwrap();
+                solved = std::array::from_fn(|i| solved[i] + (mu[i] - t[i]));
+            }
+            let mut scratch = Scratch::<3, 1>::new();
+            let mut jet = JetLanes {
+                v: [0.0],
+                g: [[0.0]; 3],
+                h: [[[0.0]; 3]; 3],
+            };
+            let target = mu.map(|m| V([m]));
+            let (p0, _) = exp_start(&poly, h, &mu.map(|m| [m]), &target, &mut scratch, &mut jet);
+            second[k] = norm(&sub(&p0.map(|v| v.0[0]), &solved));
+            // x₀ = ∇ of S's t-linear terms, −t H: −h μᵢ / Iᵢ.
+            let x0: [f64; 3] = std::array::from_fn(|i| -h * mu[i] / INERTIA[i]);
+            let turn = cross(&x0, &mu);
+            let p1: [f64; 3] = std::array::from_fn(|i| mu[i] + 0.5 * turn[i]);
+            first[k] = norm(&sub(&p1, &solved));
+        }
+        let slope = |e: [f64; 2]| (e[0] / e[1]).ln() / (hs[0] / hs[1]).ln();
+        let (a, b) = (slope(second), slope(first));
+        assert!((2.8..=3.2).contains(&a), "second-order start: slope {a}");
+        assert!((1.7..=2.6).contains(&b), "first-order start: slope {b}");
+    }
+    let sys = So3Newton {
+        poly: &poly,
+        network: None,
+        chart: Chart::Exp,
+        tol: 1e-12,
+        max_iter: 50,
+        predict: true,
+    };
+    let mut mu: Vec<[f64; 3]> = (0..64)
+        .map(|_| {
+            let r = rng.range(1.0, 3.0);
+            rng.sphere(r)
+        })
+        .collect();
+    let mut results = vec![Err(StepFailure::OutOfDomain); mu.len()];
+    let live = vec![true; mu.len()];
+    so3_newton_steps(
+        &sys,
+        Isa::detect(),
+        &mut [],
+        0.1,
+        &mut mu,
+        &live,
+        &mut results,
+    );
+    let updates: u32 = results.iter().map(|r| r.unwrap().iterations).sum();
+    eprintln!("{updates} updates over {} steps", mu.len());
+    assert!(
+        updates as f64 <= 2.1 * mu.len() as f64,
+        "{updates} updates over {} steps",
+        mu.len()
+    );
+}
+
 /// Lane bits depend on neither the dispatch path nor the block: the portable and the widest
 /// dispatch, whole chunks, and one state at a time agree bit for bit, failures included (a NaN
 /// state fails with NonFinite, a state beyond the exp chart with ChartSingular, and the other
