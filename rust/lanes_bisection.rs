@@ -738,7 +738,7 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
         // p₀ = μ + ½ x₀ × μ to first order, with x₀ the gradient of S's cheap terms at μ:
         // tar(x, p) = p − ½ x×p + O(|x|²) in both charts, so p₀ is O(h²) from the solution where
         // μ is O(h). Simplified Newton's contraction is proportional to that first error.
-        let p0 = match chart {
+        let (p0, s0) = match chart {
             Chart::Exp => exp_start(sys.poly, t, &pl, &target, &mut scratch, &mut jet),
             Chart::Cayley => {
                 // The t-linear terms, and the Cayley chart's quadratic term too: p₀ = 2μ −
@@ -755,7 +755,6 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
                 (p0, dot(&x0, &x0))
             }
         };
-        let (p0, s0) = p0;
         for l in 0..L {
             // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large
             // for the series, h = 5 say) the predictor can throw Newton past the exp chart's
@@ -776,7 +775,6 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
     let mut xs: V3<L> = [V::splat(0.0); 3];
     let mut hk: M3<L> = [[V::splat(0.0); 3]; 3];
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
-    let exp = EXP;
     while progress.running() {
         let hess = progress.jacobian_wanted();
         for i in 0..3 {
@@ -794,7 +792,7 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
         let fresh_probe = fresh
             .as_ref()
             .map(|(fi, det)| finite_probe(fi.iter().flatten().chain([det])));
-        let chart = |l: usize| (exp && s.0[l] >= max_s).then_some(StepFailure::ChartSingular);
+        let chart = |l: usize| (EXP && s.0[l] >= max_s).then_some(StepFailure::ChartSingular);
         let inverted = |l: usize| match (&fresh, &fresh_probe) {
             (Some((_, det)), Some(fp)) => det.0[l] != 0.0 && fp.0[l] == 0.0,
             _ => false,
@@ -838,7 +836,7 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
     for l in (0..n).filter(|&l| progress.converged[l]) {
         results[l] = if !(0..3).all(|i| x[i].0[l].is_finite()) {
             Err(StepFailure::NonFinite)
-        } else if exp && s.0[l] >= max_s {
+        } else if EXP && s.0[l] >= max_s {
             Err(StepFailure::ChartSingular)
         } else if !(0..3).all(|i| next[i].0[l].is_finite()) {
             Err(StepFailure::NonFinite)

@@ -410,20 +410,7 @@ fn lane_newton_equals_the_generic_step() {
 fn exp_start_is_second_order() {
     use crate::generating::polynomial_lanes::{JetLanes, Scratch};
     use crate::lanes_bisection::{exp_start, so3_newton_steps, So3Newton, V};
-    // The exponential chart's Taylor K = 3 for I = (1.5, 2, 2.5): −t H and t³ S₃ (S₃ as
-    // `system_taylor_terms` gives it).
-    let mut terms = minus_t_h();
-    let s3: [([u32; 3], f64); 3] = [
-        ([0, 2, 2], -1.0 / 3600.0),
-        ([2, 0, 2], -1.0 / 675.0),
-        ([2, 2, 0], -1.0 / 2160.0),
-    ];
-    terms.extend(s3.iter().map(|&(p_powers, coeff)| Monomial {
-        t_power: 3,
-        p_powers,
-        coeff,
-    }));
-    let poly = Polynomial::new(terms).unwrap();
+    let poly = Polynomial::new(taylor3_exp()).unwrap();
     let chart = Groupoid::so3(Chart::Exp).unwrap();
     let mut rng = Rng::new(0x1A2E_5020);
     let hs = [0.2, 0.025];

@@ -142,7 +142,6 @@ fn minus_t_h() -> Vec<Monomial<3>> {
 
 /// The Taylor K = 3 generating function t S₁ + t³ S₃ for I = (1.5, 2, 2.5), Cayley chart.
 fn taylor3() -> Vec<Monomial<3>> {
-    let mut terms = minus_t_h();
     let s3: [([u32; 3], f64); 6] = [
         ([4, 0, 0], -2.0 / 81.0),
         ([2, 2, 0], -71.0 / 2160.0),
@@ -151,6 +150,22 @@ fn taylor3() -> Vec<Monomial<3>> {
         ([0, 2, 2], -11.0 / 720.0),
         ([0, 0, 4], -2.0 / 375.0),
     ];
+    with_t3(minus_t_h(), &s3)
+}
+
+/// The exponential chart's Taylor K = 3 for I = (1.5, 2, 2.5): −t H and t³ S₃ (S₃ as Python's
+/// `system_taylor_terms` gives it).
+fn taylor3_exp() -> Vec<Monomial<3>> {
+    let s3: [([u32; 3], f64); 3] = [
+        ([0, 2, 2], -1.0 / 3600.0),
+        ([2, 0, 2], -1.0 / 675.0),
+        ([2, 2, 0], -1.0 / 2160.0),
+    ];
+    with_t3(minus_t_h(), &s3)
+}
+
+/// `terms` and a t³ term c·pᵉ for each (e, c) of `s3`.
+fn with_t3(mut terms: Vec<Monomial<3>>, s3: &[([u32; 3], f64)]) -> Vec<Monomial<3>> {
     terms.extend(s3.iter().map(|&(p_powers, coeff)| Monomial {
         t_power: 3,
         p_powers,
