@@ -11,11 +11,12 @@ Cayley one, then one step of the fixed-point iteration p ← p + μ − tar(x, p
 of S's t¹ and t² terms at p₀ (the cheap part of S: no network, no t³ … t^K terms; on g* the
 Taylor-HJ S has no t² term, so x is t∇H at p₀), O(h³): the core's start on se(3). "hessian":
 the same fixed-point step with x linearized at μ, x₀ + Hess·(p₀ − μ), x₀ and Hess from one jet
-of S's t¹ and t² terms at μ (the first-order start from that x₀ too), O(h³) without a second
-pass: the core's start in so(3)'s exponential chart. "second" saved an update on so(3) but cost
-more than the 3×3 update it saved; "hessian" saves it for less in the exponential chart, and in
-the Cayley one (0.2 updates saved) costs more than it saves, where the core keeps "chart"
-(``benches/step_costs.py``, docs/performance.md).
+of S's cheap terms at μ (the first-order start from that x₀ too), O(h³) without a second pass:
+the core's start on so(3). The cheap terms are t¹ and t² in the exponential chart, t¹ … t³ in
+the Cayley one, whose S₃ is 10–20× larger and, left out, the start's largest error (2.78
+updates a step where it takes 2.0). "second" saved an update on so(3) but cost more than the
+3×3 update it saved; "hessian" saves it for less (``benches/step_costs.py``,
+docs/performance.md).
 
 Each row replays the four in float64 torch (autograd Jacobians, the package's own ``tar`` and
 Taylor terms) on the states of ``benches/step_costs.py`` (seed 42, h = 0.1) and counts the
@@ -94,15 +95,16 @@ def estimate_stop(sizes: list[float], scales: list[float], tol: float, share: fl
     return len(sizes)
 
 
-def series(system: Any, order: int, chart: str) -> tuple[Any, Any, Any]:
-    """S, its t-linear terms and its terms up to t² (torch callables), once per row."""
+def series(system: Any, order: int, chart: str) -> tuple[Any, Any, Any, Any]:
+    """S, its t-linear terms, its terms up to t² and those up to t³ (torch callables), once per
+    row."""
     powers, coeffs = system_taylor_terms(system, order, chart)
-    return tuple(polynomial(powers, coeffs, k) for k in (None, 1, 2))  # type: ignore[return-value]
+    return tuple(polynomial(powers, coeffs, k) for k in (None, 1, 2, 3))  # type: ignore[return-value]
 
 
 def solve(
     system: Any,
-    s: tuple[Any, Any, Any],
+    s: tuple[Any, Any, Any, Any],
     chart: str,
     mu: torch.Tensor,
     predictor: str,
@@ -111,9 +113,11 @@ def solve(
     """Simplified Newton from a predictor of :data:`PREDICTORS` for S = ``s[0]`` (``s`` from
     :func:`series`), stopping at |δ|∞ ≤ tol·|p|∞: updates, their sizes and |p|∞ after each."""
     alg = system.algebra
-    s, s1, s2 = s
-    # "hessian" takes its first-order start from the t¹ and t² terms (the core's so(3) pass).
-    x0 = gradient(s2 if predictor == "hessian" else s1, H, mu)
+    s, s1, s2, s3 = s
+    # "hessian" takes its first-order start from S's cheap terms (the core's so(3) pass): t¹ and
+    # t² in the exponential chart, t¹ … t³ in the Cayley one.
+    cheap = s2 if chart == "exp" else s3
+    x0 = gradient(cheap if predictor == "hessian" else s1, H, mu)
     if predictor == "linear" or (predictor in ("second", "hessian") and chart == "exp"):
         # tar(x, p) = p − ½ ad*_x p + O(|x|²): p₀ = μ + ½ ad*_{x₀} μ, the core's predictor.
         one = torch.ones((), dtype=mu.dtype)
@@ -128,7 +132,7 @@ def solve(
         p = p + (mu - tar(chart, xa, p, alg))
     elif predictor == "hessian":
         # The same fixed-point step with ∇S(p₀) linearized at μ: x₀ + Hess · (p₀ − μ).
-        hess = torch.autograd.functional.hessian(lambda q: s2(H, q), mu)
+        hess = torch.autograd.functional.hessian(lambda q: cheap(H, q), mu)
         p = p + (mu - tar(chart, x0 + hess @ (p - mu), p, alg))
     sizes: list[float] = []
     scales: list[float] = []

@@ -457,10 +457,9 @@ pub(crate) struct ChartNewton<'a, const N: usize, C> {
     pub tol: f64,
     pub max_iter: u32,
     /// Start Newton from a predicted p₀ instead of μ, where |x₀|² ≤ [`PREDICT_MAX_S`] (x₀: the
-    /// gradient of S's cheap terms at μ). On so(3), p₀ = μ + ½ x₀ × μ in the Cayley chart (minus
-    /// ¼ x₀ (x₀·μ) as well) and a second-order start in the exponential one (`exp_start`); on the
-    /// exponential charts of other algebras, the chart's first-order start and one fixed-point
-    /// step from there.
+    /// gradient of S's cheap terms at μ): a second-order start from one jet of those terms with
+    /// its Hessian, so(3)'s in either chart (`so3_start`), every other algebra's exponential
+    /// chart's from tar's second-order part (`lanes_bisection_exp::second_order_start`).
     pub predict: bool,
 }
 
@@ -529,14 +528,23 @@ fn gradient_and_hessian<const N: usize, const L: usize>(jet: &JetLanes<N, L>) ->
     (x, h)
 }
 
-/// The exponential chart's Newton start on so(3), O(h³) from the solution, and |x₀|²: from the
-/// jet of S's t¹ and t² terms at μ (one pass, with its Hessian), the first-order start
-/// p₁ = μ + ½ x₀ × μ and then one fixed-point step p₀ = μ + ½ x̃ × p₁ − x̃ × (x̃ × p₁)/12, with
-/// x̃ = x₀ + Hess · (p₁ − μ) = ∇S(p₁) + O(h³) (the Hessian at μ standing in for a gradient pass
-/// at p₁) and 1/12 = c(0), tar's quadratic coefficient (c(s) − c(0) = O(h²) is O(h⁴) here).
-/// `benches/newton_predictors.py`: 3.00 → 2.00 updates a step on the rigid body.
+/// so(3)'s Newton start, O(h³) from the solution, and |x₀|²: from one jet of S's cheap terms at
+/// μ with its Hessian (x₀ and Hess), a first-order start p₁ and then one fixed-point step
+/// p₀ = p₁ + μ − tar(x̃, p₁) with x̃ = x₀ + Hess · (p₁ − μ) = ∇S(p₁) + O(h³) (the Hessian at μ
+/// standing in for a gradient pass at p₁). The step contracts p₁'s error by O(h), so both
+/// constants count: the rigid body's Taylor K = 3 at h = 0.1 takes 2 updates a step from p₀ in
+/// either chart, 3 from p₁ (`benches/newton_predictors.py`).
+///
+/// - Exponential chart (`EXP`): S's t¹ and t² terms (S₂ = 0 there), p₁ = μ + ½ x₀ × μ, and
+///   tar's quadratic coefficient taken at c(0) = 1/12 (c(s) − c(0) = O(h²) is O(h⁴) here):
+///   p₀ = μ + ½ x̃ × p₁ − x̃ × (x̃ × p₁)/12.
+/// - Cayley: tar(x, p) = p − ½ x×p + ¼ x (x·p) is exactly quadratic in x, and both of its
+///   large parts enter: p₁ = 2μ − tar(x₀, μ) (from μ + ½ x₀ × μ alone, whose O(h²) error is
+///   30× the exponential chart's, 2.78 updates a step) and S's t³ terms in the jet (its S₃
+///   is 10–20× the exponential chart's; left out, 2.78 as well). p₀ = μ + ½ x̃ × p₁ −
+///   ¼ x̃ (x̃·p₁).
 #[inline(always)]
-pub(crate) fn exp_start<const N: usize, const L: usize>(
+pub(crate) fn so3_start<const N: usize, const L: usize, const EXP: bool>(
     poly: &Polynomial<N>,
     t: f64,
     pl: &[[f64; L]; N],
@@ -544,15 +552,29 @@ pub(crate) fn exp_start<const N: usize, const L: usize>(
     scratch: &mut Scratch<N, L>,
     jet: &mut JetLanes<N, L>,
 ) -> (V3<L>, V<L>) {
-    jet_lanes_into::<N, L, true, 2>(poly, t, pl, scratch, jet);
+    if EXP {
+        jet_lanes_into::<N, L, true, 2>(poly, t, pl, scratch, jet);
+    } else {
+        jet_lanes_into::<N, L, true, 3>(poly, t, pl, scratch, jet);
+    }
     let (x0, h0) = gradient_and_hessian(jet);
     let turn = cross(&x0, mu);
-    let p1 = v3(|i| mu[i] + turn[i].scale(0.5));
+    let p1 = if EXP {
+        v3(|i| mu[i] + turn[i].scale(0.5))
+    } else {
+        let along = dot(&x0, mu).scale(0.25);
+        v3(|i| mu[i] + turn[i].scale(0.5) - x0[i] * along)
+    };
     let d = v3(|i| p1[i] - mu[i]);
     let xt = v3(|a| x0[a] + (h0[a][0] * d[0] + h0[a][1] * d[1] + h0[a][2] * d[2]));
     let turn = cross(&xt, &p1);
-    let twice = cross(&xt, &turn);
-    let p0 = v3(|i| mu[i] + turn[i].scale(0.5) - twice[i].scale(C_SERIES[0]));
+    let p0 = if EXP {
+        let twice = cross(&xt, &turn);
+        v3(|i| mu[i] + turn[i].scale(0.5) - twice[i].scale(C_SERIES[0]))
+    } else {
+        let along = dot(&xt, &p1).scale(0.25);
+        v3(|i| mu[i] + turn[i].scale(0.5) - xt[i] * along)
+    };
     (p0, dot(&x0, &x0))
 }
 
@@ -735,26 +757,11 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
         h: [[[0.0; L]; N]; N],
     };
     if sys.predict {
-        // p₀ = μ + ½ x₀ × μ to first order, with x₀ the gradient of S's cheap terms at μ:
-        // tar(x, p) = p − ½ x×p + O(|x|²) in both charts, so p₀ is O(h²) from the solution where
-        // μ is O(h). Simplified Newton's contraction is proportional to that first error.
-        let (p0, s0) = match chart {
-            Chart::Exp => exp_start(sys.poly, t, &pl, &target, &mut scratch, &mut jet),
-            Chart::Cayley => {
-                // The t-linear terms, and the Cayley chart's quadratic term too: p₀ = 2μ −
-                // tar(x₀, μ), tar(x, p) = p − ½ x×p + ¼ x (x·p). Its O(h²) part is as large
-                // as the first error left otherwise (`benches/newton_predictors.py`: 3.66 →
-                // 3.00 updates a step on the rigid body). The exponential chart's second-order
-                // start saves 0.2 updates here and costs more than they do (1.02–1.07× the
-                // step's time, docs/performance.md).
-                jet_lanes_into::<N, L, false, 1>(sys.poly, t, &pl, &mut scratch, &mut jet);
-                let x0: V3<L> = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
-                let turn = cross(&x0, &target);
-                let along = dot(&x0, &target).scale(0.25);
-                let p0 = v3(|i| target[i] + turn[i].scale(0.5) - x0[i] * along);
-                (p0, dot(&x0, &x0))
-            }
-        };
+        // tar(x, p) = p − ½ x×p + O(|x|²) in both charts, so p₁ = μ + ½ x₀ × μ (x₀ the
+        // gradient of S's cheap terms at μ) is O(h²) from the solution where μ is O(h), and one
+        // fixed-point step from it O(h³) (`so3_start`). Simplified Newton's contraction is
+        // proportional to that first error: 2 updates a step where p₁ takes 3.
+        let (p0, s0) = so3_start::<N, L, EXP>(sys.poly, t, &pl, &target, &mut scratch, &mut jet);
         for l in 0..L {
             // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large
             // for the series, h = 5 say) the predictor can throw Newton past the exp chart's

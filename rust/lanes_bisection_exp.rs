@@ -4,15 +4,15 @@
 //! ([`crate::lanes_bisection_series`]). A block of trajectories in lockstep, each lane
 //! bit-identical to the one-lane solve (the one-trajectory step):
 //!
-//! - Newton started from the chart's first-order start p₀ = μ − ½ A(x₀) μ (x₀: the gradient of
-//!   S's terms linear in t) and one fixed-point step from there;
+//! - Newton started second order: the first-order p₁ = μ − ½ A(x₀) μ (x₀: the gradient of S's
+//!   t¹ and t² terms at μ) and one fixed-point step from there, ∇S linearized at μ;
 //! - each round tar(x, p) with x = ∇S(p), and on a Jacobian refresh its exact p-Jacobian
 //!   J = ∂tar/∂p + ∂tar/∂x · Hess S, inverted by Gauss–Jordan lane by lane ([`inverse_lanes`]);
 //! - the new state e^{−A(x)} μ by the chart's coadjoint action, on μ's coadjoint orbit whatever
 //!   Newton's residual.
 //!
 //! so(3) keeps its own solver ([`crate::lanes_bisection`]): its Cayley chart, its 3×3 inverse by
-//! cofactors and its first-order start only.
+//! cofactors and its own second-order start (`so3_start`).
 
 // Index loops over lanes, coordinates and matrix entries read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
@@ -32,9 +32,15 @@ use crate::step::{StepResult, StepStats};
 /// A Lie algebra's exponential chart on g* in lanes, as [`ChartNewton`]'s solve needs it. Every
 /// method works lane by lane: a lane's numbers never depend on another lane's.
 pub(crate) trait ExpChartLanes<const N: usize> {
-    /// p₀ = μ − ½ A(x₀) μ with A = ad_{x₀}ᵀ: tar(x, p) = p + ½ A(x) p + O(|x|²), so p₀ is O(h²)
-    /// from the solution where μ is O(h) (the groupoid's `predict`).
-    fn first_order_start<const L: usize>(&self, x0: &[V<L>; N], mu: &[V<L>; N]) -> [V<L>; N];
+    /// A(x) q with A = ad_xᵀ, and with `twice` also A(x)² q (else zeros), lane by lane. On every
+    /// exponential chart tar(x, p) = p + ½ A(x) p + A(x)² p / 12 + O(|x|⁴) (the Bernoulli
+    /// series: B₁ = −½, B₂/2! = 1/12), which Newton's start reads.
+    fn turns<const L: usize>(
+        &self,
+        x: &[V<L>; N],
+        q: &[V<L>; N],
+        twice: bool,
+    ) -> ([V<L>; N], [V<L>; N]);
 
     /// tar(x, p) on the lanes in `live`, and with `hess` (S's Hessian, symmetric) also its exact
     /// p-Jacobian into `jac` (left alone without it), J[r][k] = ∂tar_r/∂p_k. Per lane the
@@ -56,6 +62,42 @@ pub(crate) trait ExpChartLanes<const N: usize> {
         mu: &[V<L>; N],
         live: &[bool; L],
     ) -> ([V<L>; N], [Option<StepFailure>; L]);
+}
+
+/// Newton's start, O(h³) from the solution, and the lanes that take it: from one jet of S's t¹
+/// and t² terms at μ with its Hessian (x₀ and Hess; no network, no t³ … terms), the first-order
+/// p₁ = μ − ½ A(x₀) μ and one fixed-point step p₀ = p₁ + μ − tar(x̃, p₁) with tar to second
+/// order, p₀ = μ − ½ A(x̃) p₁ − A(x̃)² p₁ / 12, and x̃ = x₀ + Hess · (p₁ − μ) = ∇S(p₁) + O(h³)
+/// (the Hessian at μ standing in for a gradient pass and a chart evaluation at p₁: the same
+/// 3.00 updates a step on the heavy top as with them, `benches/newton_predictors.py`). Taken
+/// where |x₀|², |x̃|² ≤ [`PREDICT_MAX_S`] (the expansion meaningful) and p₀ is finite.
+#[inline(always)]
+pub(crate) fn second_order_start<const N: usize, const L: usize, C: ExpChartLanes<N>>(
+    sys: &ChartNewton<'_, N, C>,
+    t: f64,
+    pl: &[[f64; L]; N],
+    mu: &[V<L>; N],
+    scratch: &mut Scratch<N, L>,
+    jet: &mut JetLanes<N, L>,
+) -> ([V<L>; N], [bool; L]) {
+    jet_lanes_into::<N, L, true, 2>(sys.poly, t, pl, scratch, jet);
+    let x0: [V<L>; N] = from_fn(|i| V(jet.g[i]));
+    let (a0, _) = sys.chart.turns(&x0, mu, false);
+    let p1: [V<L>; N] = from_fn(|i| mu[i] - a0[i].scale(0.5));
+    let mut xt = x0;
+    for a in 0..N {
+        for b in 0..N {
+            xt[a] = xt[a] + V(jet.h[a.min(b)][a.max(b)]) * (p1[b] - mu[b]);
+        }
+    }
+    let (a1, a2) = sys.chart.turns(&xt, &p1, true);
+    let p0: [V<L>; N] = from_fn(|i| mu[i] - a1[i].scale(0.5) - a2[i].scale(1.0 / 12.0));
+    let square = |x: &[V<L>; N]| x.iter().fold(V::splat(0.0), |a, v| a + *v * *v);
+    let (s0, st) = (square(&x0), square(&xt));
+    let probe = finite_probe(p0);
+    let keep =
+        from_fn(|l| s0.0[l] <= PREDICT_MAX_S && st.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
+    (p0, keep)
 }
 
 /// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)
@@ -92,34 +134,9 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
     let zero = [[V::splat(0.0); N]; N];
     let (mut inv, mut h, mut jac, mut fresh) = (zero, zero, zero, zero);
     if sys.predict {
-        jet_lanes_into::<N, L, false, 1>(sys.poly, t, &pl, &mut scratch, &mut jet);
-        let x0: [V<L>; N] = from_fn(|i| V(jet.g[i]));
-        let p0 = sys.chart.first_order_start(&x0, &target);
-        let s0 = x0.iter().fold(V::splat(0.0), |a, v| a + *v * *v);
-        let probe = finite_probe(p0);
-        let near: [bool; L] = from_fn(|l| s0.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
+        let (p0, keep) = second_order_start(sys, t, &pl, &target, &mut scratch, &mut jet);
         for i in 0..N {
-            p[i] = p[i].blend(&near, p0[i]);
-        }
-        // Second order: one fixed-point step p ← p + μ − tar(x, p) with x the gradient of S's
-        // t¹ and t² terms at p₀ (no network, no t³ … terms) leaves an O(h³) error: 3.67 → 3.00
-        // updates a step on the heavy top (`benches/newton_predictors.py`), 0.82× its step's
-        // time. Kept where p₀ was, the chart's size ≤ PREDICT_MAX_S, the chart summed and the
-        // new start finite. Not on so(3): there it saved an update (2.97 → 2.00) but cost more
-        // than the cheap 3×3 update it saved (1.05–1.35× the step's time, measured).
-        for i in 0..N {
-            pl[i] = p[i].0;
-        }
-        jet_lanes_into::<N, L, false, 2>(sys.poly, t, &pl, &mut scratch, &mut jet);
-        let xa: [V<L>; N] = from_fn(|i| V(jet.g[i]));
-        let (tar, chart, sa) = sys.chart.tar(&xa, &p, None, &mut jac, &near);
-        let p1: [V<L>; N] = from_fn(|i| p[i] + (target[i] - tar[i]));
-        let probe = finite_probe(p1);
-        let keep: [bool; L] = from_fn(|l| {
-            near[l] && sa.0[l] <= PREDICT_MAX_S && chart[l].is_none() && probe.0[l] == 0.0
-        });
-        for i in 0..N {
-            p[i] = p[i].blend(&keep, p1[i]);
+            p[i] = p[i].blend(&keep, p0[i]);
         }
     }
     let mut progress = Progress::new(active);

@@ -6,7 +6,7 @@
 //! - tar(x, p) in lanes with the scalar chart's operations, so its values are the scalar chart's
 //!   bits; its exact p-Jacobian J = ∂T/∂p + ∂T/∂x · Hess S in forward mode, six tangents per
 //!   lane (x carries the Hessian's rows, p the identity);
-//! - the first-order start p₀ = μ − ½ ad_{x₀}ᵀ μ (x₀: the gradient of S's terms linear in t);
+//! - A(x) q = ad_xᵀ q in closed form, for Newton's second-order start;
 //! - the new state g(x)·μ by the closed-form coadjoint action (`se3_coadjoint`), lane by lane.
 //!
 //! The Newton solve around it is [`crate::lanes_bisection_exp`]'s, shared with every other
@@ -189,15 +189,31 @@ pub(crate) type Se3Newton<'a, const N: usize> = ChartNewton<'a, N, Se3Chart>;
 
 impl<const N: usize> ExpChartLanes<N> for Se3Chart {
     #[inline(always)]
-    fn first_order_start<const L: usize>(&self, x0: &[V<L>; N], mu: &[V<L>; N]) -> [V<L>; N] {
-        // On se(3)*, −½ ad_{x₀}ᵀ μ = ½ (ω₀×M + v₀×Γ, ω₀×Γ).
-        let (w, v) = ([x0[0], x0[1], x0[2]], [x0[3], x0[4], x0[5]]);
-        let (m, g) = ([mu[0], mu[1], mu[2]], [mu[3], mu[4], mu[5]]);
-        let (wm, vg, wg) = (cross(&w, &m), cross(&v, &g), cross(&w, &g));
-        from_fn(|i| {
-            let turn = if i < 3 { wm[i] + vg[i] } else { wg[i - 3] };
-            mu[i] + turn.scale(0.5)
-        })
+    fn turns<const L: usize>(
+        &self,
+        x: &[V<L>; N],
+        q: &[V<L>; N],
+        twice: bool,
+    ) -> ([V<L>; N], [V<L>; N]) {
+        // On se(3)*, A(x) q = ad_xᵀ q = −(ω×q_R + v×q_T, ω×q_T).
+        let turn = |q: &[V<L>; N]| -> [V<L>; N] {
+            let (w, v) = ([x[0], x[1], x[2]], [x[3], x[4], x[5]]);
+            let (qr, qt) = ([q[0], q[1], q[2]], [q[3], q[4], q[5]]);
+            let (wr, vt, wt) = (cross(&w, &qr), cross(&v, &qt), cross(&w, &qt));
+            let mut out = *q;
+            for i in 0..3 {
+                out[i] = V::splat(0.0) - (wr[i] + vt[i]);
+                out[3 + i] = V::splat(0.0) - wt[i];
+            }
+            out
+        };
+        let once = turn(q);
+        let second = if twice {
+            turn(&once)
+        } else {
+            [V::splat(0.0); N]
+        };
+        (once, second)
     }
 
     /// [`se3_tar_lanes`] on every lane; ChartSingular where |ω|² reaches the chart's singular

@@ -11,7 +11,7 @@
 //!   wanted;
 //! - its exact p-Jacobian J = ∂tar/∂p + ∂tar/∂x · Hess S in forward mode (N tangents a lane: x
 //!   carries the Hessian's rows, p the identity), summed to the values' term count;
-//! - the first-order start p₀ = μ − ½ A(x₀) μ (x₀: the gradient of S's terms linear in t);
+//! - A(x) q = ad_xᵀ q in lanes, for Newton's second-order start;
 //! - the new state e^{−A(x)} μ in lanes ([`LieAlgebra::exp_coadjoint`]'s rule, each lane its own
 //!   term count), on μ's coadjoint orbit whatever Newton's residual.
 //!
@@ -304,10 +304,20 @@ pub(crate) type SeriesNewton<'a, const N: usize> = ChartNewton<'a, N, SeriesChar
 
 impl<const N: usize> ExpChartLanes<N> for SeriesChart<'_, N> {
     #[inline(always)]
-    fn first_order_start<const L: usize>(&self, x0: &[V<L>; N], mu: &[V<L>; N]) -> [V<L>; N] {
-        let (a, used) = ad_transpose(self.algebra.structure_constants(), x0);
-        let turn = apply(&a, &used, mu);
-        from_fn(|i| mu[i] - turn[i].scale(0.5))
+    fn turns<const L: usize>(
+        &self,
+        x: &[V<L>; N],
+        q: &[V<L>; N],
+        twice: bool,
+    ) -> ([V<L>; N], [V<L>; N]) {
+        let (a, used) = ad_transpose(self.algebra.structure_constants(), x);
+        let once = apply(&a, &used, q);
+        let second = if twice {
+            apply(&a, &used, &once)
+        } else {
+            [V::splat(0.0); N]
+        };
+        (once, second)
     }
 
     /// [`series_tar_lanes`]; the size is |x|².

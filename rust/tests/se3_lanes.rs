@@ -5,7 +5,9 @@
 
 #![allow(clippy::needless_range_loop)]
 
-use super::exp_chart_lanes::{newton_against_the_generic_step, same_for_every_dispatch_and_block};
+use super::exp_chart_lanes::{
+    newton_against_the_generic_step, same_for_every_dispatch_and_block, start_is_second_order,
+};
 use super::lie_poisson::{heavy_top, minus_t_h_terms};
 use super::*;
 use crate::dual::Dual1;
@@ -170,6 +172,19 @@ fn lane_newton_equals_the_generic_step() {
         let states: Vec<[f64; 6]> = (0..25).map(|_| top_state(&mut rng)).collect();
         let label = format!("se(3), {extra} extra terms");
         newton_against_the_generic_step(&st, Se3Chart, &states, casimirs, &label);
+    }
+}
+
+/// The shared solver's start is second order (`exp_chart_lanes`) on the heavy top's −tH, and
+/// with 8 random t², t³ terms added.
+#[test]
+fn start_is_second_order_on_se3() {
+    let mut rng = Rng::new(0x5E3_0005);
+    for extra in [0, 8] {
+        let st = top_stepper(top_polynomial(&mut rng, extra));
+        let states: Vec<[f64; 6]> = (0..8).map(|_| top_state(&mut rng)).collect();
+        let label = format!("se(3), {extra} extra terms");
+        start_is_second_order(&st, Se3Chart, &states, &label);
     }
 }
 

@@ -6,7 +6,9 @@
 
 #![allow(clippy::needless_range_loop)]
 
-use super::exp_chart_lanes::{newton_against_the_generic_step, same_for_every_dispatch_and_block};
+use super::exp_chart_lanes::{
+    newton_against_the_generic_step, same_for_every_dispatch_and_block, start_is_second_order,
+};
 use super::*;
 use crate::dual::Dual1;
 use crate::lanes_bisection::V;
@@ -211,6 +213,28 @@ where
         let label = format!("dim {N}, {extra} extra terms");
         newton_against_the_generic_step(&st, chart, &states, casimirs, &label);
     }
+}
+
+/// The shared solver's start is second order (`exp_chart_lanes`) on sl(2) and the oscillator
+/// algebra, with and without 8 random t², t³ terms in S.
+#[test]
+fn start_is_second_order_on_any_algebra() {
+    fn on<const N: usize>(algebra: LieAlgebra<N>, seed: u64) {
+        let mut rng = Rng::new(seed);
+        for extra in [0, 8] {
+            let st = stepper(algebra.clone(), polynomial::<N>(&mut rng, extra));
+            let states: Vec<[f64; N]> = (0..8).map(|_| state::<N>(&mut rng)).collect();
+            let chart = SeriesChart { algebra: &algebra };
+            start_is_second_order(
+                &st,
+                chart,
+                &states,
+                &format!("dim {N}, {extra} extra terms"),
+            );
+        }
+    }
+    on(sl2(), 0x5E1_0006);
+    on(oscillator(), 0x5E1_0007);
 }
 
 #[test]
