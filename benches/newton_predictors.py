@@ -9,14 +9,15 @@ solution: "linear" (tar's part linear in x₀, p₀ = μ + ½ ad*_{x₀} μ) or 
 tar(x₀, μ), the whole chart at x₀). "second": "linear" in the exponential chart, "chart" in the
 Cayley one, then one step of the fixed-point iteration p ← p + μ − tar(x, p) with x the gradient
 of S's t¹ and t² terms at p₀ (the cheap part of S: no network, no t³ … t^K terms; on g* the
-Taylor-HJ S has no t² term, so x is t∇H at p₀), O(h³): the core's start on se(3). "hessian":
-the same fixed-point step with x linearized at μ, x₀ + Hess·(p₀ − μ), x₀ and Hess from one jet
-of S's cheap terms at μ (the first-order start from that x₀ too), O(h³) without a second pass:
-the core's start on so(3). The cheap terms are t¹ and t² in the exponential chart, t¹ … t³ in
-the Cayley one, whose S₃ is 10–20× larger and, left out, the start's largest error (2.78
-updates a step where it takes 2.0). "second" saved an update on so(3) but cost more than the
-3×3 update it saved; "hessian" saves it for less (``benches/step_costs.py``,
-docs/performance.md).
+Taylor-HJ S has no t² term, so x is t∇H at p₀), O(h³): the core's start on se(3) before.
+"hessian", the core's start now: a fixed-point step with x linearized at μ, x₀ + Hess·(p − μ),
+x₀ and Hess from one pass at μ (no pass at p): :data:`CORE_START` gives the t-degrees of x₀'s
+and the Hessian's terms. The Cayley chart takes S's t³ terms too (its S₃ is 10–20× the
+exponential chart's and, left out, the start's largest error: 2.78 updates a step where it
+takes 2.06). On se(3) the step leaves 3.00 updates, as "second" does, for less: no second pass
+and no chart at p (the core sums tar to second order in x there, O(h⁴) from this). "second"
+saved an update on so(3) but cost more than the 3×3 update it saved; "hessian" saves it for
+less (``benches/step_costs.py``, docs/performance.md).
 
 Each row replays the four in float64 torch (autograd Jacobians, the package's own ``tar`` and
 Taylor terms) on the states of ``benches/step_costs.py`` (seed 42, h = 0.1) and counts the
@@ -77,6 +78,10 @@ def gradient(s: Any, t: float, p: torch.Tensor, graph: bool = False) -> torch.Te
     return torch.autograd.grad(s(t, p), p, create_graph=graph)[0]
 
 
+#: The core's start ("hessian"), by algebra and chart: the largest power of t in S's terms that
+#: x₀ and the Hessian are taken from.
+CORE_START = {("so3", "exp"): 2, ("so3", "cayley"): 3, ("other", "exp"): 2}
+
 #: The predictors replayed (see the module's docstring).
 PREDICTORS = ("linear", "chart", "second", "hessian")
 
@@ -114,9 +119,7 @@ def solve(
     :func:`series`), stopping at |δ|∞ ≤ tol·|p|∞: updates, their sizes and |p|∞ after each."""
     alg = system.algebra
     s, s1, s2, s3 = s
-    # "hessian" takes its first-order start from S's cheap terms (the core's so(3) pass): t¹ and
-    # t² in the exponential chart, t¹ … t³ in the Cayley one.
-    cheap = s2 if chart == "exp" else s3
+    cheap = {2: s2, 3: s3}[CORE_START[("so3" if alg.is_so3() else "other", chart)]]
     x0 = gradient(cheap if predictor == "hessian" else s1, H, mu)
     if predictor == "linear" or (predictor in ("second", "hessian") and chart == "exp"):
         # tar(x, p) = p − ½ ad*_x p + O(|x|²): p₀ = μ + ½ ad*_{x₀} μ, the core's predictor.

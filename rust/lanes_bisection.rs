@@ -540,7 +540,7 @@ fn gradient_and_hessian<const N: usize, const L: usize>(jet: &JetLanes<N, L>) ->
 ///   p₀ = μ + ½ x̃ × p₁ − x̃ × (x̃ × p₁)/12.
 /// - Cayley: tar(x, p) = p − ½ x×p + ¼ x (x·p) is exactly quadratic in x, and both of its
 ///   large parts enter: p₁ = 2μ − tar(x₀, μ) (from μ + ½ x₀ × μ alone, whose O(h²) error is
-///   30× the exponential chart's, 2.78 updates a step) and S's t³ terms in the jet (its S₃
+///   about 35× the exponential chart's, 2.78 updates a step) and S's t³ terms in the jet (its S₃
 ///   is 10–20× the exponential chart's; left out, 2.78 as well). p₀ = μ + ½ x̃ × p₁ −
 ///   ¼ x̃ (x̃·p₁).
 #[inline(always)]

@@ -4,9 +4,8 @@
 //! ([`crate::lanes_bisection_series`]). A block of trajectories in lockstep, each lane
 //! bit-identical to the one-lane solve (the one-trajectory step):
 //!
-//! - Newton started from the first-order p₁ = μ − ½ A(x₀) μ (x₀: the gradient of S's t¹ … t³
-//!   terms at μ) and a few fixed-point steps from there, ∇S linearized at μ
-//!   ([`second_order_start`]);
+//! - Newton started second order: the first-order p₁ = μ − ½ A(x₀) μ (x₀: the gradient of S's
+//!   t¹ and t² terms at μ) and one fixed-point step from there, ∇S linearized at μ;
 //! - each round tar(x, p) with x = ∇S(p), and on a Jacobian refresh its exact p-Jacobian
 //!   J = ∂tar/∂p + ∂tar/∂x · Hess S, inverted by Gauss–Jordan lane by lane ([`inverse_lanes`]);
 //! - the new state e^{−A(x)} μ by the chart's coadjoint action, on μ's coadjoint orbit whatever
@@ -65,23 +64,21 @@ pub(crate) trait ExpChartLanes<const N: usize> {
     ) -> ([V<L>; N], [Option<StepFailure>; L]);
 }
 
-/// Fixed-point steps of Newton's start on an exponential chart: 3 take the heavy top's Taylor
-/// K = 3 / 5 at h = 0.1 from 3.00 to 2.00 Newton updates a step (1 leaves 3.00, 2 leave 2.39;
-/// `benches/newton_predictors.py`'s replay).
-pub(crate) const START_STEPS: usize = 3;
-
-/// Newton's start and the lanes that take it. From two passes at μ, the gradient x₀ of S's t¹ …
-/// t³ terms and the Hessian of its t¹, t² terms (no network, no t⁴ … terms), the first-order
-/// p = μ − ½ A(x₀) μ and then [`START_STEPS`] steps of the fixed-point iteration
-/// p ← p + μ − tar(x̃, p), with tar to second order, p ← μ − ½ A(x̃) p − A(x̃)² p / 12, and
-/// x̃ = x₀ + Hess · (p − μ), ∇S(p) linearized at μ (a t³ term's Hessian times p − μ is O(h⁴)).
-/// Each step costs a few products, where a gradient pass and a chart evaluation at p would
-/// cost about a Newton update. On the heavy top the t³ terms' gradient and the third step
-/// matter: with S's t¹, t² terms alone the steps stall where update 1 moves 1.6e-5 (3.00
-/// updates), with them it moves 7e-7 (2.00). Taken where |x₀|², |x̃|² ≤ [`PREDICT_MAX_S`] (the
-/// expansion meaningful) and the start is finite.
-// Out of line: once a block, and inlined it moved the learned heavy top's network Hessian in
-// the block's frame (1.9× its step).
+/// Newton's start, O(h³) from the solution, and the lanes that take it: from one jet of S's t¹
+/// and t² terms at μ with its Hessian (x₀ and Hess; no network, no t³ … terms), the first-order
+/// p₁ = μ − ½ A(x₀) μ and one fixed-point step p₀ = p₁ + μ − tar(x̃, p₁) with tar to second
+/// order, p₀ = μ − ½ A(x̃) p₁ − A(x̃)² p₁ / 12, and x̃ = x₀ + Hess · (p₁ − μ) = ∇S(p₁) + O(h³)
+/// (the Hessian at μ standing in for a gradient pass and a chart evaluation at p₁: the same
+/// 3.00 updates a step on the heavy top as with them, `benches/newton_predictors.py`). Taken
+/// where |x₀|², |x̃|² ≤ [`PREDICT_MAX_S`] (the expansion meaningful) and p₀ is finite.
+///
+/// Tried and not kept (`benches/step_costs.py`, docs/performance.md): three such steps from the
+/// gradient of S's t¹ … t³ terms take the heavy top's Taylor K = 3 / 5 to 2.02 updates a step
+/// but 1.18× / 1.04× its time (the t³ gradient is most of S at K = 3); three steps without the
+/// t³ terms, 2.77 updates and 1.26× / 1.18×.
+// Out of line: inlined into the block it made the learned heavy top's step 1.9× slower (its
+// network Hessian's code in the same frame). Out of line it runs without the block's
+// `avx2,fma` code generation, which one step can afford.
 #[inline(never)]
 pub(crate) fn second_order_start<const N: usize, const L: usize, C: ExpChartLanes<N>>(
     sys: &ChartNewton<'_, N, C>,
@@ -92,27 +89,23 @@ pub(crate) fn second_order_start<const N: usize, const L: usize, C: ExpChartLane
     jet: &mut JetLanes<N, L>,
 ) -> ([V<L>; N], [bool; L]) {
     jet_lanes_into::<N, L, true, 2>(sys.poly, t, pl, scratch, jet);
-    let hess: [[V<L>; N]; N] = from_fn(|a| from_fn(|b| V(jet.h[a.min(b)][a.max(b)])));
-    jet_lanes_into::<N, L, false, 3>(sys.poly, t, pl, scratch, jet);
     let x0: [V<L>; N] = from_fn(|i| V(jet.g[i]));
     let (a0, _) = sys.chart.turns(&x0, mu, false);
-    let mut p: [V<L>; N] = from_fn(|i| mu[i] - a0[i].scale(0.5));
-    let square = |x: &[V<L>; N]| x.iter().fold(V::splat(0.0), |a, v| a + *v * *v);
-    let mut largest = square(&x0);
-    for _ in 0..START_STEPS {
-        let mut xt = x0;
-        for a in 0..N {
-            for b in 0..N {
-                xt[a] = xt[a] + hess[a][b] * (p[b] - mu[b]);
-            }
+    let p1: [V<L>; N] = from_fn(|i| mu[i] - a0[i].scale(0.5));
+    let mut xt = x0;
+    for a in 0..N {
+        for b in 0..N {
+            xt[a] = xt[a] + V(jet.h[a.min(b)][a.max(b)]) * (p1[b] - mu[b]);
         }
-        let (a1, a2) = sys.chart.turns(&xt, &p, true);
-        p = from_fn(|i| mu[i] - a1[i].scale(0.5) - a2[i].scale(1.0 / 12.0));
-        largest = largest.max(square(&xt));
     }
-    let probe = finite_probe(p);
-    let keep = from_fn(|l| largest.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
-    (p, keep)
+    let (a1, a2) = sys.chart.turns(&xt, &p1, true);
+    let p0: [V<L>; N] = from_fn(|i| mu[i] - a1[i].scale(0.5) - a2[i].scale(1.0 / 12.0));
+    let square = |x: &[V<L>; N]| x.iter().fold(V::splat(0.0), |a, v| a + *v * *v);
+    let (s0, st) = (square(&x0), square(&xt));
+    let probe = finite_probe(p0);
+    let keep =
+        from_fn(|l| s0.0[l] <= PREDICT_MAX_S && st.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
+    (p0, keep)
 }
 
 /// One step of at most L trajectories (`mu.len()` ≤ L; those with `live` false are left alone)

@@ -410,7 +410,7 @@ fn lane_newton_equals_the_generic_step() {
 #[test]
 fn so3_start_is_second_order() {
     use crate::generating::polynomial_lanes::{JetLanes, Scratch};
-    use crate::lanes_bisection::{so3_newton_steps, so3_start, So3Newton, V};
+    use crate::lanes_bisection::{so3_newton_steps, so3_start, V};
     let mut rng = Rng::new(0x1A2E_5020);
     for (chart, terms) in [(Chart::Exp, taylor3_exp()), (Chart::Cayley, taylor3())] {
         let poly = Polynomial::new(terms).unwrap();
@@ -460,14 +460,7 @@ fn so3_start_is_second_order() {
                 "{chart:?}: first-order start: slope {b}"
             );
         }
-        let sys = So3Newton {
-            poly: &poly,
-            network: None,
-            chart,
-            tol: 1e-12,
-            max_iter: 50,
-            predict: true,
-        };
+        let sys = predicted(&poly, chart);
         let mut mu: Vec<[f64; 3]> = (0..64)
             .map(|_| {
                 let r = rng.range(1.0, 3.0);
@@ -501,18 +494,11 @@ fn so3_start_is_second_order() {
 /// lanes of their blocks keep their bits).
 #[test]
 fn lane_newton_is_the_same_for_every_dispatch_and_block() {
-    use crate::lanes_bisection::{so3_newton_steps, So3Newton};
+    use crate::lanes_bisection::so3_newton_steps;
     let mut rng = Rng::new(0x1A2E_5019);
     for chart in [Chart::Cayley, Chart::Exp] {
         let poly = Polynomial::new(taylor3()).unwrap();
-        let sys = So3Newton {
-            poly: &poly,
-            network: None,
-            chart,
-            tol: 1e-12,
-            max_iter: 50,
-            predict: true,
-        };
+        let sys = predicted(&poly, chart);
         let mut mu0: Vec<[f64; 3]> = (0..29)
             .map(|_| {
                 let r = rng.range(0.5, 4.0);
@@ -644,4 +630,17 @@ fn the_lane_chart_is_the_realizations_answer() {
     let log = LogCanonical::<2>::new([[0.0, 1.0], [-1.0, 0.0]]).unwrap();
     assert_eq!(log.lane_chart(), None);
     assert!(sl2.lie_algebra().is_some() && log.lie_algebra().is_none());
+}
+
+/// The lane solve of `poly` in `chart` from the predicted start, at tol 1e-12 and at most 50
+/// updates (the steppers' settings).
+fn predicted(poly: &Polynomial<3>, chart: Chart) -> crate::lanes_bisection::So3Newton<'_, 3> {
+    crate::lanes_bisection::So3Newton {
+        poly,
+        network: None,
+        chart,
+        tol: 1e-12,
+        max_iter: 50,
+        predict: true,
+    }
 }
