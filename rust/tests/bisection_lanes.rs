@@ -452,13 +452,7 @@ fn so3_start_is_second_order() {
                 let p1: [f64; 3] = std::array::from_fn(|i| mu[i] + 0.5 * turn[i]);
                 first[k] = norm(&sub(&p1, &solved));
             }
-            let slope = |e: [f64; 2]| (e[0] / e[1]).ln() / (hs[0] / hs[1]).ln();
-            let (a, b) = (slope(second), slope(first));
-            assert!(a >= 2.8, "{chart:?}: second-order start: slope {a}");
-            assert!(
-                (1.7..=2.6).contains(&b),
-                "{chart:?}: first-order start: slope {b}"
-            );
+            assert_start_orders(hs, second, first, &format!("{chart:?}"));
         }
         let sys = predicted(&poly, chart);
         let mut mu: Vec<[f64; 3]> = (0..64)

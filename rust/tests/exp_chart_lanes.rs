@@ -201,12 +201,6 @@ pub(super) fn start_is_second_order<const N: usize, C: ExpChartLanes<N>>(
             let p1: [f64; N] = std::array::from_fn(|i| mu[i] - 0.5 * turn[i].0[0]);
             first[k] = dist(&p1, &solved);
         }
-        let slope = |e: [f64; 2]| (e[0] / e[1]).ln() / (hs[0] / hs[1]).ln();
-        let (a, b) = (slope(second), slope(first));
-        assert!(a >= 2.8, "{label}: second-order start: slope {a}");
-        assert!(
-            (1.7..=2.6).contains(&b),
-            "{label}: first-order start: slope {b}"
-        );
+        assert_start_orders(hs, second, first, label);
     }
 }

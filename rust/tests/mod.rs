@@ -109,6 +109,19 @@ fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// A Newton start's distances to the solved p at the steps hs[0] > hs[1] (`second`) fall at
+/// least as h³ (the slope fitted between them ≥ 2.8), the first-order start's (`first`) as h²
+/// (1.7–2.6).
+fn assert_start_orders(hs: [f64; 2], second: [f64; 2], first: [f64; 2], label: &str) {
+    let slope = |e: [f64; 2]| (e[0] / e[1]).ln() / (hs[0] / hs[1]).ln();
+    let (a, b) = (slope(second), slope(first));
+    assert!(a >= 2.8, "{label}: second-order start: slope {a}");
+    assert!(
+        (1.7..=2.6).contains(&b),
+        "{label}: first-order start: slope {b}"
+    );
+}
+
 fn norm(a: &[f64; 3]) -> f64 {
     dot(a, a).sqrt()
 }
