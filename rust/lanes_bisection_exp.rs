@@ -32,15 +32,10 @@ use crate::step::{StepResult, StepStats};
 /// A Lie algebra's exponential chart on g* in lanes, as [`ChartNewton`]'s solve needs it. Every
 /// method works lane by lane: a lane's numbers never depend on another lane's.
 pub(crate) trait ExpChartLanes<const N: usize> {
-    /// A(x) q with A = ad_xᵀ, and with `twice` also A(x)² q (else zeros), lane by lane. On every
-    /// exponential chart tar(x, p) = p + ½ A(x) p + A(x)² p / 12 + O(|x|⁴) (the Bernoulli
-    /// series: B₁ = −½, B₂/2! = 1/12), which Newton's start reads.
-    fn turns<const L: usize>(
-        &self,
-        x: &[V<L>; N],
-        q: &[V<L>; N],
-        twice: bool,
-    ) -> ([V<L>; N], [V<L>; N]);
+    /// A(x) q with A = ad_xᵀ, lane by lane. On every exponential chart
+    /// tar(x, p) = p + ½ A(x) p + A(x)² p / 12 + O(|x|⁴) (the Bernoulli series: B₁ = −½,
+    /// B₂/2! = 1/12), which Newton's start reads.
+    fn turn<const L: usize>(&self, x: &[V<L>; N], q: &[V<L>; N]) -> [V<L>; N];
 
     /// tar(x, p) on the lanes in `live`, and with `hess` (S's Hessian, symmetric) also its exact
     /// p-Jacobian into `jac` (left alone without it), J[r][k] = ∂tar_r/∂p_k. Per lane the
@@ -90,7 +85,7 @@ pub(crate) fn second_order_start<const N: usize, const L: usize, C: ExpChartLane
 ) -> ([V<L>; N], [bool; L]) {
     jet_lanes_into::<N, L, true, 2>(sys.poly, t, pl, scratch, jet);
     let x0: [V<L>; N] = from_fn(|i| V(jet.g[i]));
-    let (a0, _) = sys.chart.turns(&x0, mu, false);
+    let a0 = sys.chart.turn(&x0, mu);
     let p1: [V<L>; N] = from_fn(|i| mu[i] - a0[i].scale(0.5));
     let mut xt = x0;
     for a in 0..N {
@@ -98,7 +93,8 @@ pub(crate) fn second_order_start<const N: usize, const L: usize, C: ExpChartLane
             xt[a] = xt[a] + V(jet.h[a.min(b)][a.max(b)]) * (p1[b] - mu[b]);
         }
     }
-    let (a1, a2) = sys.chart.turns(&xt, &p1, true);
+    let a1 = sys.chart.turn(&xt, &p1);
+    let a2 = sys.chart.turn(&xt, &a1);
     let p0: [V<L>; N] = from_fn(|i| mu[i] - a1[i].scale(0.5) - a2[i].scale(1.0 / 12.0));
     let square = |x: &[V<L>; N]| x.iter().fold(V::splat(0.0), |a, v| a + *v * *v);
     let (s0, st) = (square(&x0), square(&xt));

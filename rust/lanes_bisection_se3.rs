@@ -188,32 +188,18 @@ pub(crate) struct Se3Chart;
 pub(crate) type Se3Newton<'a, const N: usize> = ChartNewton<'a, N, Se3Chart>;
 
 impl<const N: usize> ExpChartLanes<N> for Se3Chart {
+    /// A(x) q = ad_xᵀ q = −(ω×q_R + v×q_T, ω×q_T) on se(3)*.
     #[inline(always)]
-    fn turns<const L: usize>(
-        &self,
-        x: &[V<L>; N],
-        q: &[V<L>; N],
-        twice: bool,
-    ) -> ([V<L>; N], [V<L>; N]) {
-        // On se(3)*, A(x) q = ad_xᵀ q = −(ω×q_R + v×q_T, ω×q_T).
-        let turn = |q: &[V<L>; N]| -> [V<L>; N] {
-            let (w, v) = ([x[0], x[1], x[2]], [x[3], x[4], x[5]]);
-            let (qr, qt) = ([q[0], q[1], q[2]], [q[3], q[4], q[5]]);
-            let (wr, vt, wt) = (cross(&w, &qr), cross(&v, &qt), cross(&w, &qt));
-            let mut out = *q;
-            for i in 0..3 {
-                out[i] = V::splat(0.0) - (wr[i] + vt[i]);
-                out[3 + i] = V::splat(0.0) - wt[i];
-            }
-            out
-        };
-        let once = turn(q);
-        let second = if twice {
-            turn(&once)
-        } else {
-            [V::splat(0.0); N]
-        };
-        (once, second)
+    fn turn<const L: usize>(&self, x: &[V<L>; N], q: &[V<L>; N]) -> [V<L>; N] {
+        let (w, v) = ([x[0], x[1], x[2]], [x[3], x[4], x[5]]);
+        let (qr, qt) = ([q[0], q[1], q[2]], [q[3], q[4], q[5]]);
+        let (wr, vt, wt) = (cross(&w, &qr), cross(&v, &qt), cross(&w, &qt));
+        let mut out = *q;
+        for i in 0..3 {
+            out[i] = V::splat(0.0) - (wr[i] + vt[i]);
+            out[3 + i] = V::splat(0.0) - wt[i];
+        }
+        out
     }
 
     /// [`se3_tar_lanes`] on every lane; ChartSingular where |ω|² reaches the chart's singular

@@ -304,20 +304,9 @@ pub(crate) type SeriesNewton<'a, const N: usize> = ChartNewton<'a, N, SeriesChar
 
 impl<const N: usize> ExpChartLanes<N> for SeriesChart<'_, N> {
     #[inline(always)]
-    fn turns<const L: usize>(
-        &self,
-        x: &[V<L>; N],
-        q: &[V<L>; N],
-        twice: bool,
-    ) -> ([V<L>; N], [V<L>; N]) {
+    fn turn<const L: usize>(&self, x: &[V<L>; N], q: &[V<L>; N]) -> [V<L>; N] {
         let (a, used) = ad_transpose(self.algebra.structure_constants(), x);
-        let once = apply(&a, &used, q);
-        let second = if twice {
-            apply(&a, &used, &once)
-        } else {
-            [V::splat(0.0); N]
-        };
-        (once, second)
+        apply(&a, &used, q)
     }
 
     /// [`series_tar_lanes`]; the size is |x|².

@@ -197,7 +197,7 @@ pub(super) fn start_is_second_order<const N: usize, C: ExpChartLanes<N>>(
             second[k] = dist(&p0.map(|v| v.0[0]), &solved);
             jet_lanes_into::<N, 1, false, 1>(poly, h, &pl, &mut scratch, &mut jet);
             let x1: [V<1>; N] = std::array::from_fn(|i| V(jet.g[i]));
-            let (turn, _) = sys.chart.turns(&x1, &target, false);
+            let turn = sys.chart.turn(&x1, &target);
             let p1: [f64; N] = std::array::from_fn(|i| mu[i] - 0.5 * turn[i].0[0]);
             first[k] = dist(&p1, &solved);
         }
