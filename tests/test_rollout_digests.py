@@ -46,8 +46,10 @@ a second-order p₀ (one fixed-point step with ∇S linearized at μ from the sa
 :data:`AFTER_THE_EXP_SECOND_ORDER_START`. Then the Cayley chart's start went second order the
 same way (with S's t³ terms in the pass: 2.98 → 2.06 updates a step), and every other algebra's
 exponential chart took its fixed-point step from μ's Hessian instead of a second pass; the
-rollouts that take them moved by at most 8.2e-15: :data:`AFTER_THE_HESSIAN_STARTS`. Nothing else
-may change."""
+rollouts that take them moved by at most 8.2e-15: :data:`AFTER_THE_HESSIAN_STARTS`. The
+learned models with plain inputs (the heavy top's, Lotka–Volterra's) and the rigid body's
+large-step model joined the list then (:data:`LEARNED_MODELS`), before the network Hessian's
+sums moved into registers, which keeps every bit. Nothing else may change."""
 
 from __future__ import annotations
 
@@ -205,6 +207,16 @@ AFTER_THE_HESSIAN_STARTS = {
 }
 
 
+#: The learned models with plain inputs (t, p) and the rigid body's large-step model, first
+#: recorded with the build whose network Hessian summed each entry unit by unit in memory
+#: (848f834); the later changes keep their bits.
+LEARNED_MODELS = {
+    "rb-learned-large-step": "1fc2cc237379efb2",
+    "top-learned-h05": "cf187dd0001c0186",
+    "lv-learned-h01": "95fd4ce575fe0dc9",
+}
+
+
 def _digests() -> dict[str, str]:
     out: dict[str, str] = {}
 
@@ -221,15 +233,19 @@ def _digests() -> dict[str, str]:
         if m != "dop853":
             dig(f"rb-{m}", pr.classical(rb, m), x_rb, 0.1, 200)
     dig("rb-learned-default", pr.load_model(), x_rb, 0.1, 200)
+    dig("rb-learned-large-step", pr.load_model("large_step_h05"), x_rb, 0.5, 100)
     top = pr.HeavyTop()
     x_top = np.array([[0.3, -0.8, 1.2, 0.6, 0.0, 0.8], [2.0, 0.5, -1.0, 0.0, 0.6, 0.8]])
     dig("top-taylor3-exp", pr.taylor_integrator(top, 3), x_top, 0.1, 100)
+    x_in = np.array([[0.3, -0.8, 1.2, 0.6, 0.0, 0.8], [0.5, 0.2, -0.4, 0.0, 0.6, 0.8]])
+    dig("top-learned-h05", pr.load_model("heavy_top_h05"), x_in, 0.5, 40)
     for m in ("rk4", "midpoint", "splitting"):
         dig(f"top-{m}", pr.classical(top, m), x_top, 0.1, 100)
     lv = pr.lotka_volterra([[0, 1], [-1, 0]], [1, 2])
     x_lv = np.array([[1.0, 0.8], [1.0, 1.2]])
     for k in (1, 3, 5):
         dig(f"lv-taylor{k}", pr.log_canonical_taylor(lv, k), x_lv, 0.1, 200)
+    dig("lv-learned-h01", pr.load_model("lotka_volterra_h01"), x_lv, 0.1, 200)
     for m in ("rk4", "midpoint", "log_splitting", "log_splitting4"):
         dig(f"lv-{m}", pr.log_canonical_classical(lv, m), x_lv, 0.1, 200)
     c = np.zeros((3, 3, 3))
@@ -254,9 +270,9 @@ def _digests() -> dict[str, str]:
 
 def test_every_old_stepper_keeps_its_bits() -> None:
     got = _digests()
-    assert set(got) == set(BEFORE)
     want = {
         **BEFORE,
+        **LEARNED_MODELS,
         **AFTER_THE_CASIMIR_FIX,
         **AFTER_THE_PREDICTOR,
         **AFTER_THE_MIDPOINT_SWEEPS,
@@ -272,5 +288,6 @@ def test_every_old_stepper_keeps_its_bits() -> None:
         **AFTER_THE_EXP_SECOND_ORDER_START,
         **AFTER_THE_HESSIAN_STARTS,
     }
+    assert set(got) == set(want)
     changed = sorted(k for k in want if got[k] != want[k])
     assert not changed, f"rollouts changed: {changed}"
