@@ -71,9 +71,10 @@ pub(crate) trait ExpChartLanes<const N: usize> {
 /// gradient of S's t¹ … t³ terms take the heavy top's Taylor K = 3 / 5 to 2.02 updates a step
 /// but 1.18× / 1.04× its time (the t³ gradient is most of S at K = 3); three steps without the
 /// t³ terms, 2.77 updates and 1.26× / 1.18×.
-// Out of line: inlined into the block it made the learned heavy top's step 1.9× slower (its
-// network Hessian's code in the same frame). Out of line it runs without the block's
-// `avx2,fma` code generation, which one step can afford.
+// Out of line: inlined into the block it made the learned heavy top's step 1.9× slower while
+// the network Hessian summed its entries through memory; with those sums in registers, inlined
+// it read 0.98–1.01× on the heavy top's steps (no gain). Out of line it runs without the
+// block's `avx2,fma` code generation, which one step can afford.
 #[inline(never)]
 pub(crate) fn second_order_start<const N: usize, const L: usize, C: ExpChartLanes<N>>(
     sys: &ChartNewton<'_, N, C>,

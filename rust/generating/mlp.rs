@@ -253,31 +253,34 @@ pub fn tanh_fast_fma(x: f64) -> f64 {
     tanh_with::<true>(x)
 }
 
-/// [`tanh_fast`] on R rows of L lanes at once, bit for bit: each stage of [`tanh_with`]
+/// [`tanh_fast`] (`FMA` false) or [`tanh_fast_fma`] (true) on R rows of L lanes at once, bit for
+/// bit: each stage of [`tanh_with`]
 /// (`tanh_reduce`, the Horner steps, `tanh_finish`) over every element before the next. One
 /// tanh is a chain of ~20 dependent operations; run unit by unit, the out-of-order window holds
 /// about two of those chains and the core waits on their latency. In lockstep 4 rows of 8 lanes
 /// (8 AVX2 registers) advance together (1.2× the single-unit loop's throughput in isolation).
 #[inline(always)]
-pub(crate) fn tanh_fast_rows<const R: usize, const L: usize>(x: &mut [[f64; L]; R]) {
+pub(crate) fn tanh_fast_rows<const FMA: bool, const R: usize, const L: usize>(
+    x: &mut [[f64; L]; R],
+) {
     let mut shifted = [[0.0; L]; R];
     let mut r = [[0.0; L]; R];
     for i in 0..R {
         for l in 0..L {
-            (shifted[i][l], r[i][l]) = tanh_reduce::<false>(x[i][l]);
+            (shifted[i][l], r[i][l]) = tanh_reduce::<FMA>(x[i][l]);
         }
     }
     let mut q = [[TANH_C[0]; L]; R];
     for c in &TANH_C[1..] {
         for i in 0..R {
             for l in 0..L {
-                q[i][l] = madd::<false>(q[i][l], r[i][l], *c);
+                q[i][l] = madd::<FMA>(q[i][l], r[i][l], *c);
             }
         }
     }
     for i in 0..R {
         for l in 0..L {
-            x[i][l] = tanh_finish::<false>(shifted[i][l], r[i][l], q[i][l]);
+            x[i][l] = tanh_finish::<FMA>(shifted[i][l], r[i][l], q[i][l]);
         }
     }
 }

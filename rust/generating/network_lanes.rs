@@ -9,17 +9,23 @@
 //! weighted tangents, one adjoint comes back, and the Hessian is a sum of outer products of the
 //! units' tangents (tanh is the only nonlinearity).
 //!
-//! **Bit identity.** Every lane performs the same operations in the same order (plain
-//! multiplies and adds, IEEE square root and division, the portable [`tanh_fast`]), so one
+//! **Bit identity.** Every lane performs the same operations in the same order (multiplies,
+//! adds, fused multiply-adds, IEEE square root and division, [`tanh_fast_fma`]), so one
 //! trajectory (L = 1) and a block (L = [`crate::isa::LANES`]) give the same bits whatever the
-//! instruction set. The numbers agree with the scalar forward mode to round-off (tested), not
-//! bit for bit: the scalar path's tanh is libm's.
+//! instruction set: IEEE 754 rounds a fused multiply-add once, in an FMA instruction and in
+//! the C library's software `fma` alike. The AVX2+FMA solvers (every block and every lone
+//! trajectory on such a CPU) run it as one instruction; the portable build calls the library
+//! per operation, slower, with the same bits. The numbers agree with the scalar forward mode
+//! to round-off (tested), not bit for bit: the scalar path's tanh is libm's.
+//!
+//! Fused, a weight's multiply-add is one instruction where it was two: the learned heavy top's
+//! step (layers of 32) took 0.7× its time with the plain form (docs/performance.md).
 
 // Index loops over lanes, units and components read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
 use super::polynomial_lanes::JetLanes;
-use super::{tanh_fast, tanh_fast_rows, Layer, Mlp, MlpInputs, HOMOGENEOUS_MIN_R2};
+use super::{tanh_fast_fma, tanh_fast_rows, Layer, Mlp, MlpInputs, HOMOGENEOUS_MIN_R2};
 use crate::isa::LANES;
 
 /// Widest layer the lane path takes: wider networks keep the batched kernel, whose matrix
@@ -207,10 +213,15 @@ impl<'a> NetworkLanes<'a> {
         let width = self.mlp.max_width().max(N + 1);
         let (rows, rest) = buf[..units * c + 2 * width].split_at_mut(units * c);
         let (mut delta, mut grad) = rest.split_at_mut(width);
+        // Plain inputs' tangents are 0 and the unit vectors, so the first layer's tangents are
+        // its weight columns (below) and the input rows hold the values alone.
+        let plain = matches!(inputs, InputJets::Plain { .. });
         for i in 0..=N {
             put(&mut rows[i * c], &inputs.value(i));
-            for a in 0..N {
-                put(&mut rows[i * c + 1 + a], &inputs.tangent(i, a));
+            if !plain {
+                for a in 0..N {
+                    put(&mut rows[i * c + 1 + a], &inputs.tangent(i, a));
+                }
             }
         }
         let last = layers.len() - 1;
@@ -221,14 +232,28 @@ impl<'a> NetworkLanes<'a> {
                 let row = &layer.weight[k * layer.n_in..(k + 1) * layer.n_in];
                 let mut v = [layer.bias[k]; L];
                 let mut d = [[0.0; L]; N];
-                for (j, &w) in row.iter().enumerate() {
-                    let x = &src[j * c..j * c + 1 + N];
-                    for l in 0..L {
-                        v[l] += w * x[0][l];
-                    }
-                    for a in 0..N {
+                if depth == 0 && plain {
+                    for (j, &w) in row.iter().enumerate() {
                         for l in 0..L {
-                            d[a][l] += w * x[1 + a][l];
+                            v[l] = w.mul_add(src[j * c][l], v[l]);
+                        }
+                    }
+                    // Σ_j w_j ∂x_j/∂p_a from 0 adds the ±0 products and w_(1+a)·1: exactly
+                    // 0 + w_(1+a) (the weights are finite), the bits of the full sum, fused or
+                    // not.
+                    for a in 0..N {
+                        d[a] = [0.0 + row[1 + a]; L];
+                    }
+                } else {
+                    for (j, &w) in row.iter().enumerate() {
+                        let x = &src[j * c..j * c + 1 + N];
+                        for l in 0..L {
+                            v[l] = w.mul_add(x[0][l], v[l]);
+                        }
+                        for a in 0..N {
+                            for l in 0..L {
+                                d[a][l] = w.mul_add(x[1 + a][l], d[a][l]);
+                            }
                         }
                     }
                 }
@@ -246,7 +271,7 @@ impl<'a> NetworkLanes<'a> {
                 tanh_units::<L>(dst, c, layer.n_out);
                 for k in 0..layer.n_out {
                     let u = &mut dst[k * c..(k + 1) * c];
-                    let s: [f64; L] = std::array::from_fn(|l| 1.0 - u[0][l] * u[0][l]);
+                    let s: [f64; L] = std::array::from_fn(|l| (-u[0][l]).mul_add(u[0][l], 1.0));
                     for a in 0..N {
                         for l in 0..L {
                             u[1 + a][l] = s[l] * u[1 + N + a][l];
@@ -266,26 +291,18 @@ impl<'a> NetworkLanes<'a> {
             adjoint_through::<L>(layer, delta, grad);
             base -= layer.n_in;
             if depth > 0 {
-                // grad holds ȳ of the layer below: its Hessian term, then z̄ = ȳ tanh′(z).
-                for j in 0..layer.n_in {
-                    let u = &rows[(base + j) * c..(base + j + 1) * c];
-                    let (mut s, mut curv) = ([0.0; L], [0.0; L]);
+                // grad holds ȳ of the layer below: its Hessian term, then z̄ = ȳ tanh′(z). A
+                // unit's y is not read again, so its row takes the curvature ȳ · tanh″(z).
+                let below = &mut rows[base * c..(base + layer.n_in) * c];
+                for (j, u) in below.chunks_exact_mut(c).enumerate() {
                     for l in 0..L {
                         let y = u[0][l];
-                        s[l] = 1.0 - y * y;
-                        curv[l] = grad[j][l] * (-2.0 * y * s[l]);
-                    }
-                    for a in 0..N {
-                        for b in a..N {
-                            for l in 0..L {
-                                out.h[a][b][l] += curv[l] * (u[1 + N + a][l] * u[1 + N + b][l]);
-                            }
-                        }
-                    }
-                    for l in 0..L {
-                        grad[j][l] *= s[l];
+                        let s = (-y).mul_add(y, 1.0);
+                        u[0][l] = grad[j][l] * (-2.0 * y * s);
+                        grad[j][l] *= s;
                     }
                 }
+                add_outer_products::<N, L>(below, &mut out.h);
             }
             std::mem::swap(&mut delta, &mut grad);
         }
@@ -321,7 +338,7 @@ impl<'a> NetworkLanes<'a> {
                 let mut acc = [layer.bias[k]; L];
                 for (j, &w) in row.iter().enumerate() {
                     for l in 0..L {
-                        acc[l] += w * x[j][l];
+                        acc[l] = w.mul_add(x[j][l], acc[l]);
                     }
                 }
                 put(&mut z[k], &acc);
@@ -342,7 +359,7 @@ impl<'a> NetworkLanes<'a> {
                 for j in 0..layer.n_in {
                     let y = acts[off + j];
                     for l in 0..L {
-                        grad[j][l] *= 1.0 - y[l] * y[l];
+                        grad[j][l] *= (-y[l]).mul_add(y[l], 1.0);
                     }
                 }
             }
@@ -354,11 +371,44 @@ impl<'a> NetworkLanes<'a> {
             for a in 0..N {
                 let g = inputs.tangent(i, a);
                 for l in 0..L {
-                    out.g[a][l] += delta[i][l] * g[l];
+                    out.g[a][l] = delta[i][l].mul_add(g[l], out.g[a][l]);
                 }
             }
         }
         out
+    }
+}
+
+/// `h` += Σ_units curv · ∇z ∇zᵀ (upper triangle) over a layer's unit rows (curvature in row 0,
+/// ∇z in rows 1 + N …), each entry summed over the units in order, in registers: three entries
+/// of a row of `h` a sweep over the units, (curv ∂_a z) · ∂_b z fused into each (an entry
+/// stored and reloaded every unit made the learned heavy top's step depend on where the
+/// compiler placed `h`: 1.9× with the same operations).
+#[inline(always)]
+fn add_outer_products<const N: usize, const L: usize>(
+    units: &[LaneRow],
+    h: &mut [[[f64; L]; N]; N],
+) {
+    const B: usize = 3;
+    let c = unit_rows(N);
+    for a in 0..N {
+        let mut b0 = a;
+        while b0 < N {
+            let nb = (N - b0).min(B);
+            let mut acc = [[0.0; L]; B];
+            acc[..nb].copy_from_slice(&h[a][b0..b0 + nb]);
+            for u in units.chunks_exact(c) {
+                let cza: [f64; L] = std::array::from_fn(|l| u[0][l] * u[1 + N + a][l]);
+                for i in 0..nb {
+                    let zb: [f64; L] = get(&u[1 + N + b0 + i]);
+                    for l in 0..L {
+                        acc[i][l] = cza[l].mul_add(zb[l], acc[i][l]);
+                    }
+                }
+            }
+            h[a][b0..b0 + nb].copy_from_slice(&acc[..nb]);
+            b0 += B;
+        }
     }
 }
 
@@ -378,7 +428,7 @@ fn adjoint_through<const L: usize>(layer: &Layer, delta: &[LaneRow], grad: &mut 
             let w = &layer.weight[k * n_in + j..k * n_in + j + J];
             for b in 0..J {
                 for l in 0..L {
-                    acc[b][l] += w[b] * d[l];
+                    acc[b][l] = w[b].mul_add(d[l], acc[b][l]);
                 }
             }
         }
@@ -393,7 +443,7 @@ fn adjoint_through<const L: usize>(layer: &Layer, delta: &[LaneRow], grad: &mut 
             let d: [f64; L] = get(&delta[k]);
             let w = layer.weight[k * n_in + j];
             for l in 0..L {
-                acc[l] += w * d[l];
+                acc[l] = w.mul_add(d[l], acc[l]);
             }
         }
         put(&mut grad[j], &acc);
@@ -401,14 +451,14 @@ fn adjoint_through<const L: usize>(layer: &Layer, delta: &[LaneRow], grad: &mut 
 }
 
 /// tanh (lanes 0..L) of the rows `rows[k · stride]`, k < n (one layer's units), four units in
-/// lockstep ([`tanh_fast_rows`], the bits of [`tanh_fast`]) and the rest one at a time.
+/// lockstep ([`tanh_fast_rows`], the bits of [`tanh_fast_fma`]) and the rest one at a time.
 #[inline(always)]
 fn tanh_units<const L: usize>(rows: &mut [LaneRow], stride: usize, n: usize) {
     const R: usize = 4;
     let mut k = 0;
     while k + R <= n {
         let mut block: [[f64; L]; R] = std::array::from_fn(|i| get(&rows[(k + i) * stride]));
-        tanh_fast_rows(&mut block);
+        tanh_fast_rows::<true, R, L>(&mut block);
         for (i, v) in block.iter().enumerate() {
             put(&mut rows[(k + i) * stride], v);
         }
@@ -417,7 +467,7 @@ fn tanh_units<const L: usize>(rows: &mut [LaneRow], stride: usize, n: usize) {
     for k in k..n {
         let u = &mut rows[k * stride];
         for l in 0..L {
-            u[l] = tanh_fast(u[l]);
+            u[l] = tanh_fast_fma(u[l]);
         }
     }
 }

@@ -189,12 +189,12 @@ fn fast_tanh_is_within_four_ulp_of_libm() {
 }
 
 /// The lockstep tanh of the lane networks (4 rows of 8 lanes, each stage over every element)
-/// against the one-at-a-time [`tanh_fast`], bit for bit: the same operations per element, in
-/// every slot of the block, over a dense grid, random magnitudes and the edge values (±0,
-/// clamped arguments, infinities, NaN).
+/// against the one-at-a-time [`tanh_fast`] and [`tanh_fast_fma`], bit for bit in both forms: the
+/// same operations per element, in every slot of the block, over a dense grid, random
+/// magnitudes and the edge values (±0, clamped arguments, infinities, NaN).
 #[test]
 fn lockstep_tanh_has_the_bits_of_tanh_fast() {
-    use crate::generating::{tanh_fast, tanh_fast_rows};
+    use crate::generating::{tanh_fast, tanh_fast_fma, tanh_fast_rows};
     let mut rng = Rng::new(0x1A2E_5006);
     let mut xs: Vec<f64> = (-20_000..=20_000).map(|i| f64::from(i) * 1.3e-3).collect();
     xs.extend((0..20_000).map(|_| rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-300.0, 3.0))));
@@ -214,10 +214,15 @@ fn lockstep_tanh_has_the_bits_of_tanh_fast() {
         for (i, &x) in chunk.iter().enumerate() {
             block[i / 8][i % 8] = x;
         }
-        let want = block.map(|row| row.map(tanh_fast));
-        tanh_fast_rows(&mut block);
-        for (got, want) in block.iter().flatten().zip(want.iter().flatten()) {
-            assert_eq!(got.to_bits(), want.to_bits(), "tanh of a block slot");
+        let (mut plain, mut fused) = (block, block);
+        tanh_fast_rows::<false, 4, 8>(&mut plain);
+        tanh_fast_rows::<true, 4, 8>(&mut fused);
+        let pairs = [(plain, tanh_fast as fn(f64) -> f64), (fused, tanh_fast_fma)];
+        for (got, tanh) in pairs {
+            let want = block.map(|row| row.map(tanh));
+            for (got, want) in got.iter().flatten().zip(want.iter().flatten()) {
+                assert_eq!(got.to_bits(), want.to_bits(), "tanh of a block slot");
+            }
         }
     }
 }

@@ -210,6 +210,135 @@ fn learned_so3_step_in_lanes_equals_the_generic_step() {
     }
 }
 
+/// The premise of the lane networks' bit identity across instruction sets: the FMA instruction
+/// and `f64::mul_add` in portable code (the C library's `fma`) round alike, on random operands of every magnitude, on cancelling ones (a·b ≈ −c, where the fused
+/// and the plain forms differ most), subnormal results and the special values.
+#[test]
+fn fused_multiply_add_has_the_same_bits_in_hardware_and_software() {
+    #[cfg(target_arch = "x86_64")]
+    {
+        // The instruction itself (`f64::mul_add` is a call to the C library in a debug build).
+        #[target_feature(enable = "fma")]
+        fn hardware(a: f64, b: f64, c: f64) -> f64 {
+            use std::arch::x86_64::{_mm_cvtsd_f64, _mm_fmadd_sd, _mm_set_sd};
+            _mm_cvtsd_f64(_mm_fmadd_sd(_mm_set_sd(a), _mm_set_sd(b), _mm_set_sd(c)))
+        }
+        #[inline(never)]
+        fn software(a: f64, b: f64, c: f64) -> f64 {
+            a.mul_add(b, c)
+        }
+        if !std::is_x86_feature_detected!("fma") {
+            return;
+        }
+        let mut rng = Rng::new(0x4E7_1A53);
+        let specials = [
+            0.0,
+            -0.0,
+            1.0,
+            f64::MIN_POSITIVE,
+            5e-324,
+            f64::MAX,
+            f64::INFINITY,
+        ];
+        let mut cases: Vec<[f64; 3]> = (0..200_000)
+            .map(|_| {
+                let mut x = || rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-300.0, 300.0));
+                [x(), x(), x()]
+            })
+            .collect();
+        for _ in 0..200_000 {
+            let (a, b) = (rng.range(-2.0, 2.0), rng.range(-2.0, 2.0));
+            let c = -(a * b) * (1.0 + rng.range(-1e-15, 1e-15));
+            cases.push([a, b, c]);
+            cases.push([a * 1e-300, b * 1e-10, c * 1e-310]);
+        }
+        for &a in &specials {
+            for &b in &specials {
+                for c in [0.0, -1.0, f64::NEG_INFINITY, f64::NAN] {
+                    cases.push([a, -b, c]);
+                }
+            }
+        }
+        let mut differ = 0;
+        for [a, b, c] in cases {
+            // SAFETY: this CPU runs FMA (detected above).
+            let h = unsafe { hardware(a, b, c) };
+            let s = software(a, b, c);
+            assert!(
+                h.to_bits() == s.to_bits() || (h.is_nan() && s.is_nan()),
+                "fma({a:e}, {b:e}, {c:e}): {h:e} against {s:e}"
+            );
+            differ += usize::from(h.to_bits() != (a * b + c).to_bits());
+        }
+        // The cases reach where fusing matters (so the comparison is not of plain products).
+        assert!(
+            differ > 10_000,
+            "{differ} cases where fused and plain differ"
+        );
+    }
+}
+
+/// A learned so(3) step's bits depend on neither the dispatch nor the block: the portable path
+/// (the C library's `fma` for every fused multiply-add), the widest one (FMA instructions),
+/// whole chunks and one state at a time agree bit for bit, in both charts and for both input
+/// maps, with a NaN state failing alone.
+#[test]
+fn learned_lane_bits_are_the_same_for_every_dispatch_and_block() {
+    use crate::lanes_bisection::{so3_newton_steps, ChartNewton};
+    use crate::realization::Generating;
+    let mut rng = Rng::new(0x4E7_1A52);
+    for chart in [Chart::Cayley, Chart::Exp] {
+        for inputs in ALL_INPUTS {
+            // t · N (m = 1): the network's last bits reach the states at h = 0.1 (t^m N with a
+            // larger m rounds away against the polynomial's terms).
+            let mut terms = minus_t_h();
+            terms.extend(random_terms(&mut rng, 4, (2, 4), 3, 0.02));
+            let poly = Polynomial::new(terms).unwrap();
+            let mlp = random_mlp(&mut rng, 12, 1.0);
+            let gf = GeneratingFunction::new(poly, Some(mlp), 1, inputs).unwrap();
+            let (poly, network) = gf.lane_parts().expect("a narrow network");
+            let sys = ChartNewton {
+                poly,
+                network,
+                chart,
+                tol: 1e-12,
+                max_iter: 50,
+                predict: true,
+            };
+            let mut mu0: Vec<[f64; 3]> = (0..29)
+                .map(|_| {
+                    let r = rng.range(0.5, 3.0);
+                    rng.sphere(r)
+                })
+                .collect();
+            mu0[5] = [f64::NAN, 1.0, 0.0];
+            let mut buf = vec![[0.0; LANES]; scratch_len(gf.mlp.as_ref().unwrap(), 3)];
+            let mut run = |isa: Isa, block: usize| {
+                let mut mu = mu0.clone();
+                let mut res = vec![Ok(StepStats::default()); mu.len()];
+                for (m, r) in mu.chunks_mut(block).zip(res.chunks_mut(block)) {
+                    let live = vec![true; m.len()];
+                    so3_newton_steps(&sys, isa, &mut buf, 0.1, m, &live, r);
+                }
+                (mu, res)
+            };
+            let (reference, ref_results) = run(Isa::PORTABLE, 29);
+            assert_eq!(ref_results[5], Err(StepFailure::NonFinite));
+            assert!(ref_results.iter().filter(|r| r.is_ok()).count() == 28);
+            for isa in isas() {
+                for block in [1, 3, 8, 13, 29] {
+                    let (mu, res) = run(isa, block);
+                    assert_eq!(res, ref_results, "{chart:?} {inputs:?} {isa:?} {block}");
+                    assert!(
+                        same_bits(&mu.concat(), &reference.concat()),
+                        "{chart:?} {inputs:?} {isa:?} blocks of {block}"
+                    );
+                }
+            }
+        }
+    }
+}
+
 /// A learned S on se(3) (−tH of a heavy top plus a random network, plain inputs), in the lane
 /// solver itself from μ: the generic step's Newton counts and states to 1e-12 over 15 steps,
 /// both Casimirs kept to 1e-13 a step, and a block of 8 gives the one-lane bits; through the
