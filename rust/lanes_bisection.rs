@@ -942,6 +942,18 @@ fn solve_one<const N: usize, S: LaneSolve<N>>(
     mu: &mut [f64; N],
     result: &mut StepResult,
 ) {
+    one_lane(sys, buf, t, mu, result);
+}
+
+/// [`LaneSolve::block`] with one lane: the body of [`solve_one`] and `solve_one_avx2`.
+#[inline(always)]
+fn one_lane<const N: usize, S: LaneSolve<N>>(
+    sys: &S,
+    buf: &mut [LaneRow],
+    t: f64,
+    mu: &mut [f64; N],
+    result: &mut StepResult,
+) {
     sys.block::<1>(
         buf,
         t,
@@ -963,13 +975,7 @@ fn solve_one_avx2<const N: usize, S: LaneSolve<N>>(
     mu: &mut [f64; N],
     result: &mut StepResult,
 ) {
-    sys.block::<1>(
-        buf,
-        t,
-        std::slice::from_mut(mu),
-        &[true],
-        std::slice::from_mut(result),
-    );
+    one_lane(sys, buf, t, mu, result);
 }
 
 #[cfg(target_arch = "x86_64")]
