@@ -22,8 +22,10 @@ RK4 (float64) and numba ``@njit`` RK4 (a loop over trajectories and steps), and,
 main checkout's, to say what a change bought). Rounds alternate the contenders; each cell is the
 median of ``--rounds`` (≥ 5) timed runs after a warm-up (JAX compiles there). A missing peer is
 skipped with a message. Every contender's final states are checked against poisson_rs's: numba
-gives the same bits, JAX agrees to 1e-10 or better (the same RK4, summed in a different order),
-except on the heavy top's 10⁴ steps, where chaotic orbits amplify that order to O(1). On the
+gives the same bits on the heavy top and agrees as JAX does on the rigid body (where the core
+takes the factored field (1/I_k − 1/I_j) μ_j μ_k), JAX to 3e-10 or better (the same RK4, summed
+in a different order), except on the heavy top's 10⁴ steps, where chaotic orbits amplify that
+order to O(1). On the
 expression systems the peers' fields are other formulas (and the core has its own sin), so no
 bits are shared: the vortices agree to 1e-12 or better, the pendulum to a few 1e-9 at worst, from
 the few states that pass close to its separatrix's saddle (the median trajectory agrees to 1e-14

@@ -2,18 +2,19 @@
 ``RAYON_NUM_THREADS=1 taskset -c 0 python benches/step_costs.py``.
 
 For the rigid body (I = (1.5, 2, 2.5)), the heavy top (I = (1, 1.5, 2), mgl = 0.981, χ = e₃),
-Lotka–Volterra (PNN's 2D system, the 3D one of ``scenes/lotka_volterra_3d.toml`` and a 5D one),
-an affine structure (``scenes/extended_pendulum.toml``) and a polynomial bivector
+Lotka–Volterra (PNN's 2D system, the 3D one of ``scenes/lotka_volterra_3d.toml`` and a 5D one), an
+affine structure (``scenes/extended_pendulum.toml``) and a polynomial bivector
 (``scenes/nambu_cubic.toml``; their scenes' states scaled by seeded factors in [0.95, 1.05]),
 h = 0.1, a batch of seeded states (``--batch``, default 4096): every fixed-step classical method
 the system names (``pr.classical_methods``; DOP853 left out: it is adaptive and in SciPy),
 Taylor-HJ K = 3 and 5 in each chart the system names (``system.taylor_charts()``; the exact
-log-canonical groupoid for Lotka–Volterra, a polynomial bivector's default realization only),
-and the shipped learned models of that system. ``--system`` picks one system, ``--stepper``
-(repeatable) the steppers to time. Each stepper rolls the batch forward for a fixed amount of
-work and keeps only the final state; a cell is the median of ``--rounds`` timed rollouts after a
-warm-up, rounds alternating the steppers. Reported: ns per trajectory-step, the ratio to the
-package's own RK4 step in the same run, and the mean Newton updates per step of the implicit
+log-canonical groupoid for Lotka–Volterra, a polynomial bivector's default realization only), and
+the shipped learned models of that system. ``--system`` picks one system, ``--stepper``
+(repeatable) the steppers to time, ``--model FILE`` (repeatable) adds a model file, timed as
+``learned:FILE`` on the system it was trained for. Each stepper rolls the batch forward for a fixed
+amount of work and keeps only the final state; a cell is the median of ``--rounds`` timed rollouts
+after a warm-up, rounds alternating the steppers. Reported: ns per trajectory-step, the ratio to
+the package's own RK4 step in the same run, and the mean Newton updates per step of the implicit
 ones (from ``integrate(..., return_info=True)``). ``--json FILE`` writes the numbers.
 
 ``--baseline DIR`` times the build before in the same run: ``DIR`` is a directory from which
@@ -189,13 +190,17 @@ def steps_for(name: str, batch: int) -> int:
 class Build:
     """The steppers of the build this process imports, timed on request."""
 
-    def __init__(self, batch: int, which: str) -> None:
+    def __init__(self, batch: int, which: str, models: list[str] | None = None) -> None:
         # A learned model's orbits may leave its training domain over the rollout: that
         # changes its accuracy, not the cost of a step, and the warning would only clutter.
         warnings.filterwarnings("ignore", message=".*outside the training domain.*")
         self.batch = batch
+        files = {f: pr.load_model(f).system for f in models or []}
         self.table = {
-            label: (mu0, steppers(system, learned))
+            label: (
+                mu0,
+                steppers(system, [*learned, *(f for f, s in files.items() if s == system)]),
+            )
             for label, system, mu0, learned in cases(batch, which)
         }
 
@@ -228,10 +233,20 @@ class Worker:
     """A :class:`Build` in a child process that imports ``poisson_rs`` from ``path`` (one JSON
     request and answer per line); the child inherits this process's core and threads."""
 
-    def __init__(self, path: Path, batch: int, which: str) -> None:
+    def __init__(self, path: Path, batch: int, which: str, models: list[str]) -> None:
         env = {**os.environ, "PYTHONPATH": str(path)}
+        extra = [a for f in models for a in ("--model", f)]
         self.proc = subprocess.Popen(
-            [sys.executable, __file__, "--worker", "--batch", str(batch), "--system", which],
+            [
+                sys.executable,
+                __file__,
+                "--worker",
+                "--batch",
+                str(batch),
+                "--system",
+                which,
+                *extra,
+            ],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
@@ -269,12 +284,12 @@ class Worker:
         self.proc.wait()
 
 
-def serve(batch: int, which: str) -> None:
+def serve(batch: int, which: str, models: list[str]) -> None:
     """The worker's loop: requests on stdin, answers on the real stdout; anything the package
     prints goes to stderr, so it cannot break the protocol."""
     out = sys.stdout
     sys.stdout = sys.stderr
-    build = Build(batch, which)
+    build = Build(batch, which, models)
     for line in sys.stdin:
         method, *args = json.loads(line)
         try:
@@ -314,24 +329,30 @@ def main() -> None:
         default=None,
         help="time only this stepper (repeatable; RK4 always runs, for the ratios)",
     )
+    parser.add_argument(
+        "--model",
+        action="append",
+        default=[],
+        help="a model file to time too, as learned:FILE on its system (repeatable)",
+    )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.batch < 1 or args.rounds < 1:
         raise SystemExit("--batch and --rounds must be at least 1")
     if args.worker:
-        return serve(args.batch, args.system)
+        return serve(args.batch, args.system, args.model)
     if args.json is not None:
         check_output_path(args.json)
     builds: dict[str, Any]
     if args.baseline is None:
-        builds = {"now": Build(args.batch, args.system)}
+        builds = {"now": Build(args.batch, args.system, args.model)}
     else:
         if not (args.baseline / "poisson_rs" / "__init__.py").is_file():
             raise SystemExit(f"--baseline: {args.baseline} holds no poisson_rs package")
         here = Path(pr.__file__).resolve().parent.parent
         builds = {
-            "now": Worker(here, args.batch, args.system),
-            "before": Worker(args.baseline, args.batch, args.system),
+            "now": Worker(here, args.batch, args.system, args.model),
+            "before": Worker(args.baseline, args.batch, args.system, args.model),
         }
         packages = {k: b.package() for k, b in builds.items()}
         if packages["now"] == packages["before"]:

@@ -21,6 +21,10 @@ pub trait LaneField<const N: usize>: Sync {
     /// program), whose dispatch per instruction is then spread over four times the lanes.
     const WIDE: bool = false;
 
+    /// Whether RK4 on this field runs its blocks compiled for AVX-512 where the CPU has it
+    /// ([`crate::lanes::LaneStepper::AVX512`]).
+    const AVX512: bool = false;
+
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
 
     /// ∂f/∂μ at L states (`out[r][c][l]`), where the field provides it (in straight-line form,

@@ -35,20 +35,30 @@ use crate::structures::lie_poisson::{
     lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField,
 };
 
-/// μ × (a∘μ) at L states: the rigid body's kernel (a = 1/I), 12 flops a lane.
+/// μ × (a∘μ) at L states: the rigid body's kernel (a = 1/I), 6 multiplications a lane.
+/// Component i is μ_j (a_k μ_k) − μ_k (a_j μ_j) = (a_k − a_j) μ_j μ_k for (i, j, k) cyclic,
+/// taken in that factored form ([`weight_differences`] once a call): 9 multiplications and 3
+/// subtractions become 6 multiplications, and an RK4 step, bound by the CPU's two multiply
+/// ports, takes 39 instead of 51.
 #[inline(always)]
 pub fn weighted_cross_lanes<const L: usize>(
     a: &[f64; 3],
     mu: &[[f64; L]; 3],
     out: &mut [[f64; L]; 3],
 ) {
+    let d = weight_differences(a);
     for l in 0..L {
-        let (a0, a1, a2) = (mu[0][l], mu[1][l], mu[2][l]);
-        let (b0, b1, b2) = (a0 * a[0], a1 * a[1], a2 * a[2]);
-        out[0][l] = a1 * b2 - a2 * b1;
-        out[1][l] = a2 * b0 - a0 * b2;
-        out[2][l] = a0 * b1 - a1 * b0;
+        let (m0, m1, m2) = (mu[0][l], mu[1][l], mu[2][l]);
+        out[0][l] = d[0] * (m1 * m2);
+        out[1][l] = d[1] * (m2 * m0);
+        out[2][l] = d[2] * (m0 * m1);
     }
+}
+
+/// (a₂ − a₁, a₀ − a₂, a₁ − a₀): the factors of μ × (a∘μ) ([`weighted_cross_lanes`]).
+#[inline(always)]
+pub fn weight_differences(a: &[f64; 3]) -> [f64; 3] {
+    [a[2] - a[1], a[0] - a[2], a[1] - a[0]]
 }
 
 /// The matrix of v ↦ x × v, row-major.
@@ -75,7 +85,7 @@ impl So3Quadratic {
 }
 
 /// The midpoint's fixed-point sweeps for μ × (a∘μ) ([`LaneField::MIDPOINT_SWEEPS`]): a sweep
-/// (12 flops) costs a small fraction of a Newton update, and on the rigid body at h = 0.1 two
+/// (9 flops) costs a small fraction of a Newton update, and on the rigid body at h = 0.1 two
 /// bring the Euler midpoint close enough for 2 updates, not 3.
 pub(crate) const SO3_MIDPOINT_SWEEPS: u32 = 2;
 

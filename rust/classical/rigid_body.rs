@@ -61,10 +61,17 @@ impl RigidBody {
         ]
     }
 
-    /// Euler's equations μ̇ = μ × (μ/I).
+    /// Euler's equations μ̇ = μ × (μ/I), as (1/I_k − 1/I_j) μ_j μ_k for (i, j, k) cyclic: the
+    /// lane kernel's operations ([`crate::straight_line::weighted_cross_lanes`]), so a scalar
+    /// step and every lane agree bit for bit.
     #[inline]
     pub fn vector_field(&self, mu: &[f64; 3]) -> [f64; 3] {
-        cross(mu, &self.velocity(mu))
+        let d = crate::straight_line::weight_differences(&self.inv);
+        [
+            d[0] * (mu[1] * mu[2]),
+            d[1] * (mu[2] * mu[0]),
+            d[2] * (mu[0] * mu[1]),
+        ]
     }
 
     /// Exact flow for time t of Hᵢ = μᵢ²/(2Iᵢ), in place.

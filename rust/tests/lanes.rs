@@ -938,21 +938,31 @@ fn max_abs(v: &[f64; 6]) -> f64 {
     v.iter().fold(0.0, |a: f64, x| a.max(x.abs()))
 }
 
-/// An `Isa` claiming AVX2 comes from run-time detection only: `Isa::avx2()` is Some exactly
-/// where the CPU reports AVX2 and FMA, `Isa::detect()` is it or the portable baseline, and the
-/// baseline claims nothing. (Writing the proof by hand, `Isa { avx2: true }`, does not compile
-/// outside `lanes`: the doctest of `Isa` checks that.)
+/// An `Isa` claiming AVX2 or AVX-512 comes from run-time detection only: `Isa::avx2()` is Some
+/// exactly where the CPU reports AVX2 and FMA, `Isa::avx512()` where it also reports AVX-512 F
+/// and VL, `Isa::detect()` is the widest of them or the portable baseline, and the baseline
+/// claims nothing. (Writing a proof by hand, `Isa { avx2: true, avx512: false }`, does not
+/// compile outside `isa`: the doctest of `Isa` checks that.)
 #[test]
-fn the_avx2_proof_comes_from_detection_only() {
+fn the_isa_proofs_come_from_detection_only() {
     use crate::lanes::Isa;
     #[cfg(target_arch = "x86_64")]
     let has = std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma");
     #[cfg(not(target_arch = "x86_64"))]
     let has = false;
     assert_eq!(Isa::avx2().is_some(), has);
-    assert!(Isa::avx2().is_none_or(|isa| isa.is_avx2()));
-    assert_eq!(Isa::detect(), Isa::avx2().unwrap_or(Isa::PORTABLE));
+    assert!(Isa::avx2().is_none_or(|isa| isa.is_avx2() && !isa.is_avx512()));
+    #[cfg(target_arch = "x86_64")]
+    let wide = has
+        && std::is_x86_feature_detected!("avx512f")
+        && std::is_x86_feature_detected!("avx512vl");
+    #[cfg(not(target_arch = "x86_64"))]
+    let wide = false;
+    assert_eq!(Isa::avx512().is_some(), wide);
+    assert!(Isa::avx512().is_none_or(|isa| isa.is_avx2() && isa.is_avx512()));
+    let widest = Isa::avx512().or(Isa::avx2()).unwrap_or(Isa::PORTABLE);
+    assert_eq!(Isa::detect(), widest);
     assert_eq!(Isa::detect().is_avx2(), has);
-    assert!(!Isa::PORTABLE.is_avx2());
+    assert!(!Isa::PORTABLE.is_avx2() && !Isa::PORTABLE.is_avx512());
     assert_eq!(Isa::PORTABLE.name(), "portable");
 }

@@ -87,10 +87,10 @@ fn same_bits(a: &[f64], b: &[f64]) -> bool {
 /// Every instruction set this CPU runs: the portable path, and the detected one if wider.
 fn isas() -> Vec<crate::lanes::Isa> {
     use crate::lanes::Isa;
+    // Every path this CPU runs: the baseline, AVX2 and AVX-512 where detected.
     let mut v = vec![Isa::PORTABLE];
-    if Isa::detect() != Isa::PORTABLE {
-        v.push(Isa::detect());
-    }
+    v.extend(Isa::avx2());
+    v.extend(Isa::avx512());
     v
 }
 
