@@ -300,6 +300,19 @@ def serve(batch: int, which: str, models: list[str]) -> None:
         out.flush()
 
 
+def check_models(models: list[str], which: str) -> None:
+    """Before any work: every ``--model`` file loads and was trained for a system this run
+    times; SystemExit naming the file otherwise."""
+    systems = [system for _, system, _, _ in cases(1, which)]
+    for f in models:
+        try:
+            system = pr.load_model(f).system
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"--model {f}: {exc}") from None
+        if system not in systems:
+            raise SystemExit(f"--model {f}: trained for {system!r}, which --system {which} omits")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=4096)
@@ -343,6 +356,7 @@ def main() -> None:
         return serve(args.batch, args.system, args.model)
     if args.json is not None:
         check_output_path(args.json)
+    check_models(args.model, args.system)
     builds: dict[str, Any]
     if args.baseline is None:
         builds = {"now": Build(args.batch, args.system, args.model)}

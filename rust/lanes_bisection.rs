@@ -931,52 +931,39 @@ fn solve_chunk<const N: usize, S: LaneSolve<N>>(
     }
 }
 
-/// One trajectory: [`LaneSolve::block`] with one lane, compiled on its own (scalar code gains
-/// nothing from the block's vector registers, and a separate function keeps its registers to
-/// itself).
-#[inline(never)]
-fn solve_one<const N: usize, S: LaneSolve<N>>(
-    sys: &S,
-    buf: &mut [LaneRow],
-    t: f64,
-    mu: &mut [f64; N],
-    result: &mut StepResult,
-) {
-    one_lane(sys, buf, t, mu, result);
+/// A function stepping one trajectory: [`LaneSolve::block`] with one lane, compiled on its own
+/// (scalar code gains nothing from the block's vector registers, and a separate function keeps
+/// its registers to itself), under the attributes given.
+macro_rules! one_lane_solver {
+    ($(#[$attr:meta])* $name:ident) => {
+        $(#[$attr])*
+        #[inline(never)]
+        fn $name<const N: usize, S: LaneSolve<N>>(
+            sys: &S,
+            buf: &mut [LaneRow],
+            t: f64,
+            mu: &mut [f64; N],
+            result: &mut StepResult,
+        ) {
+            sys.block::<1>(
+                buf,
+                t,
+                std::slice::from_mut(mu),
+                &[true],
+                std::slice::from_mut(result),
+            );
+        }
+    };
 }
 
-/// [`LaneSolve::block`] with one lane: the body of [`solve_one`] and `solve_one_avx2`.
-#[inline(always)]
-fn one_lane<const N: usize, S: LaneSolve<N>>(
-    sys: &S,
-    buf: &mut [LaneRow],
-    t: f64,
-    mu: &mut [f64; N],
-    result: &mut StepResult,
-) {
-    sys.block::<1>(
-        buf,
-        t,
-        std::slice::from_mut(mu),
-        &[true],
-        std::slice::from_mut(result),
-    );
-}
-
-/// [`solve_one`] compiled for AVX2 and FMA: the lane networks' fused multiply-adds are one
-/// instruction each here, where the portable build calls the C library's `fma`.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-#[inline(never)]
-fn solve_one_avx2<const N: usize, S: LaneSolve<N>>(
-    sys: &S,
-    buf: &mut [LaneRow],
-    t: f64,
-    mu: &mut [f64; N],
-    result: &mut StepResult,
-) {
-    one_lane(sys, buf, t, mu, result);
-}
+one_lane_solver!(solve_one);
+one_lane_solver!(
+    /// `solve_one` compiled for AVX2 and FMA: the lane networks' fused multiply-adds are one
+    /// instruction each here, where the portable build calls the C library's `fma`.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    solve_one_avx2
+);
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]

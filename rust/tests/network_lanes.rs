@@ -211,8 +211,9 @@ fn learned_so3_step_in_lanes_equals_the_generic_step() {
 }
 
 /// The premise of the lane networks' bit identity across instruction sets: the FMA instruction
-/// and `f64::mul_add` in portable code (the C library's `fma`) round alike, on random operands of every magnitude, on cancelling ones (a·b ≈ −c, where the fused
-/// and the plain forms differ most), subnormal results and the special values.
+/// and `f64::mul_add` in portable code (the C library's `fma`) round alike, on random operands
+/// of every magnitude, on cancelling ones (a·b ≈ −c, where the fused and the plain forms differ
+/// most), subnormal results and the special values.
 #[test]
 fn fused_multiply_add_has_the_same_bits_in_hardware_and_software() {
     #[cfg(target_arch = "x86_64")]
