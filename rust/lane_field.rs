@@ -22,8 +22,8 @@ pub trait LaneField<const N: usize>: Sync {
     const WIDE: bool = false;
 
     /// Whether RK4 on this field runs its blocks compiled for AVX-512 where the CPU has it
-    /// ([`crate::lanes::LaneStepper::AVX512`]).
-    const AVX512: bool = false;
+    /// ([`crate::lanes::LaneStepper::AVX512`], whose default by dimension this follows).
+    const AVX512: bool = N <= 3;
 
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
 

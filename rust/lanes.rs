@@ -61,9 +61,6 @@ impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
 }
 
 impl LaneField<3> for RigidBody {
-    /// Its RK4 block (k₁ … k₄, y and μ: 18 registers of 8 lanes) fits AVX-512's 32.
-    const AVX512: bool = true;
-
     /// μ × (μ/I), as [`RigidBody::vector_field`].
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
@@ -104,11 +101,13 @@ pub trait LaneStepper<const N: usize>: Sync {
 
     /// Whether a block of [`LANES`] runs compiled for AVX-512 where the CPU has it
     /// ([`Isa::is_avx512`]): eight lanes are then one register, and a kernel whose block fits
-    /// the 32 registers runs with half the instructions. Chosen by measurement: the rigid body's
-    /// RK4 took 0.81× its AVX2 time; the heavy top's RK4 took 2.5× and the point vortices' 1.7×
-    /// (docs/performance.md), so no stepper takes it unless it says so. The same operations
+    /// the 32 registers runs with fewer instructions. Chosen by measurement
+    /// (`benches/step_costs.py`, docs/performance.md): at N ≤ 3 coordinates the steppers took
+    /// 0.75–0.97× their AVX2 time, at N ≥ 5 every one lost (the heavy top's RK4 2.3×, 5-D
+    /// Lotka–Volterra's 2.4×: the compiler mixes lanes and coordinates in its shuffles there),
+    /// hence the default; a stepper measured to lose at N ≤ 3 says false. The same operations
     /// either way, so the same bits.
-    const AVX512: bool = false;
+    const AVX512: bool = N <= 3;
 
     /// Flags the lanes that may have left the domain: a cheap test over all lanes that may
     /// flag too many (never too few); each flagged lane then gets [`LaneStepper::domain`].

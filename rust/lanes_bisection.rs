@@ -864,6 +864,14 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
 /// bits of its one-lane solve ([`So3Newton`]; [`ChartNewton`] on any
 /// [`crate::lanes_bisection_exp::ExpChartLanes`]).
 pub(crate) trait LaneSolve<const N: usize> {
+    /// Whether blocks run compiled for AVX-512 where the CPU has it ([`Isa::is_avx512`]):
+    /// eight lanes are then one register. By dimension as
+    /// [`crate::lanes::LaneStepper::AVX512`] (the se(3) chart's solve took 1.8–2.0× its AVX2
+    /// time; at N ≤ 3 the solves took 0.86–0.97×); a solver measured to lose says false.
+    fn avx512(&self) -> bool {
+        N <= 3
+    }
+
     /// One step of `mu` (at most L states; those with `live` false left alone) into `results`.
     fn block<const L: usize>(
         &self,
@@ -876,6 +884,12 @@ pub(crate) trait LaneSolve<const N: usize> {
 }
 
 impl<const N: usize> LaneSolve<N> for So3Newton<'_, N> {
+    /// The exponential chart's Taylor steps took 0.90–0.96× their AVX2 time and a network's
+    /// 0.89–0.91×; the Cayley chart's Taylor steps 1.03–1.07×, so they stay on AVX2.
+    fn avx512(&self) -> bool {
+        self.chart == Chart::Exp || self.network.is_some()
+    }
+
     #[inline(always)]
     fn block<const L: usize>(
         &self,
@@ -965,19 +979,28 @@ one_lane_solver!(
     solve_one_avx2
 );
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn solve_chunk_avx2<const N: usize, S: LaneSolve<N>>(
-    sys: &S,
-    isa: Isa,
-    buf: &mut [LaneRow],
-    t: f64,
-    mu: &mut [[f64; N]],
-    live: &[bool],
-    results: &mut [StepResult],
-) {
-    solve_chunk(sys, isa, buf, t, mu, live, results);
+/// [`solve_chunk`] compiled for the CPU features `$features`: callable only behind the
+/// [`Isa`] proof that detection found them.
+macro_rules! solve_chunk_for {
+    ($name:ident, $features:literal) => {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        fn $name<const N: usize, S: LaneSolve<N>>(
+            sys: &S,
+            isa: Isa,
+            buf: &mut [LaneRow],
+            t: f64,
+            mu: &mut [[f64; N]],
+            live: &[bool],
+            results: &mut [StepResult],
+        ) {
+            solve_chunk(sys, isa, buf, t, mu, live, results);
+        }
+    };
 }
+
+solve_chunk_for!(solve_chunk_avx2, "avx2,fma");
+solve_chunk_for!(solve_chunk_avx512, "avx512f,avx512vl,avx2,fma");
 
 /// One step of every `mu[j]` with `live[j]` by the lane solver `sys`, compiled for `isa`;
 /// `results[j]` as [`crate::stepper::StepMap::step`] reports it. Lane j's bits depend neither on
@@ -996,6 +1019,13 @@ pub(crate) fn lane_newton_steps<const N: usize, S: LaneSolve<N>>(
         live.len() == mu.len() && results.len() == mu.len(),
         "one flag and one result per state"
     );
+    #[cfg(target_arch = "x86_64")]
+    if isa.is_avx512() && sys.avx512() {
+        // SAFETY: an `Isa` claims AVX-512 (F, VL) with AVX2 and FMA only where run-time
+        // detection found all four (its fields are private: safe code cannot forge it).
+        unsafe { solve_chunk_avx512(sys, isa, buf, t, mu, live, results) };
+        return;
+    }
     #[cfg(target_arch = "x86_64")]
     if isa.is_avx2() {
         // SAFETY: an `Isa` claims AVX2 only where run-time detection found AVX2 and FMA (its

@@ -66,6 +66,8 @@ fn axis_flow_lanes<const L: usize>(inv: &[f64; 3], i: usize, t: f64, mu: &mut [[
 }
 
 impl<const M: usize> LaneStepper<3> for SplittingComposition<M> {
+    /// Measured: Strang's splitting took 0.94× its AVX2 time, the order-4 composition 1.11×.
+    const AVX512: bool = M == 1;
     /// The scalar step's rotations in the same order, the merged H₁ half-flows included.
     #[inline(always)]
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
@@ -199,6 +201,8 @@ impl MoserVeselov {
 }
 
 impl LaneStepper<3> for MoserVeselov {
+    /// Measured: 1.08–1.09× its AVX2 time.
+    const AVX512: bool = false;
     const REPORTS: bool = true;
 
     /// The scalar [`MoserVeselov`] step lane by lane: each Newton update for the whole block,
