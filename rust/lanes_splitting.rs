@@ -66,8 +66,10 @@ fn axis_flow_lanes<const L: usize>(inv: &[f64; 3], i: usize, t: f64, mu: &mut [[
 }
 
 impl<const M: usize> LaneStepper<3> for SplittingComposition<M> {
-    /// Measured: Strang's splitting took 0.94× its AVX2 time, the order-4 composition 1.11×.
-    const AVX512: bool = M == 1;
+    /// Measured: the order-4 composition took 1.11× its AVX2 time; Strang's splitting 0.94× in
+    /// one build and 1.10× in two runs of another (code layout, not the instructions), so both
+    /// stay on AVX2.
+    const AVX512: bool = false;
     /// The scalar step's rotations in the same order, the merged H₁ half-flows included.
     #[inline(always)]
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
