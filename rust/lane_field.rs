@@ -25,6 +25,10 @@ pub trait LaneField<const N: usize>: Sync {
     /// ([`crate::lanes::LaneStepper::AVX512`], whose default by dimension this follows).
     const AVX512: bool = N <= 3;
 
+    /// Whether RK4 on this field runs AVX-512 blocks of two registers a coordinate
+    /// ([`crate::lanes::LaneStepper::avx512_paired`]).
+    const AVX512_PAIRED: bool = false;
+
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
 
     /// ∂f/∂μ at L states (`out[r][c][l]`), where the field provides it (in straight-line form,

@@ -39,6 +39,10 @@ pub const LANE_CHUNK: usize = 8 * LANES;
 /// Lanes of a wide block ([`LaneStepper::WIDE`]).
 pub const WIDE_LANES: usize = 4 * LANES;
 
+/// Lanes of a paired AVX-512 block ([`LaneStepper::avx512_paired`]): two registers a
+/// coordinate.
+pub const PAIRED_LANES: usize = 2 * LANES;
+
 impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
@@ -61,6 +65,9 @@ impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
 }
 
 impl LaneField<3> for RigidBody {
+    /// Measured: RK4 in blocks of 16 took 0.55× the time of blocks of 8.
+    const AVX512_PAIRED: bool = true;
+
     /// μ × (μ/I), as [`RigidBody::vector_field`].
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
@@ -109,6 +116,18 @@ pub trait LaneStepper<const N: usize>: Sync {
     /// either way, so the same bits.
     const AVX512: bool = N <= 3;
 
+    /// Whether an AVX-512 block ([`LaneStepper::AVX512`]) holds [`PAIRED_LANES`] trajectories,
+    /// two registers a coordinate, rather than [`LANES`]. A step is a chain of dependent
+    /// operations; two independent chains interleaved hide each other's latency, as two AVX2
+    /// registers a coordinate do at [`LANES`]. Where the doubled block spills out of the
+    /// registers it costs more, so a stepper says so where measured to pay (the rigid body's RK4
+    /// and Casimir splitting, 0.55–0.59× the time of blocks of 8; docs/performance.md). A
+    /// method, so that a stepper with a run-time variant can answer for each.
+    #[inline(always)]
+    fn avx512_paired(&self) -> bool {
+        false
+    }
+
     /// Flags the lanes that may have left the domain: a cheap test over all lanes that may
     /// flag too many (never too few); each flagged lane then gets [`LaneStepper::domain`].
     #[inline(always)]
@@ -148,6 +167,11 @@ pub trait LaneStepper<const N: usize>: Sync {
 impl<const N: usize, F: LaneField<N>> LaneStepper<N> for Rk4<F> {
     const WIDE: bool = F::WIDE;
     const AVX512: bool = F::AVX512;
+
+    #[inline(always)]
+    fn avx512_paired(&self) -> bool {
+        F::AVX512_PAIRED
+    }
 
     #[inline(always)]
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
@@ -323,6 +347,12 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
 /// The heavy top and the rigid body as a Lie–Poisson system: the variant of [`LieField`] is
 /// matched once a step, then its own RK4 runs (a straight-line kernel, or the compiled field).
 impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
+    /// The so(3) kernel's RK4 as the rigid body's (the other variants are unmeasured).
+    #[inline(always)]
+    fn avx512_paired(&self) -> bool {
+        matches!(self.system, LieField::So3(_))
+    }
+
     #[inline(always)]
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
         match &self.system {
@@ -449,7 +479,15 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
             return;
         }
         let row = out.len() / mu.len();
-        let width = if S::WIDE { WIDE_LANES } else { LANES };
+        let avx512 = S::AVX512 && !S::WIDE && self.isa.is_avx512();
+        let paired = avx512 && self.stepper.avx512_paired();
+        let width = if S::WIDE {
+            WIDE_LANES
+        } else if paired {
+            PAIRED_LANES
+        } else {
+            LANES
+        };
         for ((m, i), o) in mu
             .chunks_mut(width)
             .zip(info.chunks_mut(width))
@@ -469,17 +507,27 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
             }
             let wide = S::WIDE && block.mu.len() > LANES;
             #[cfg(target_arch = "x86_64")]
-            if S::AVX512 && !wide && self.isa.is_avx512() {
+            if avx512 {
                 // SAFETY: an `Isa` claims AVX-512 only where run-time detection found AVX-512 F
                 // and VL, AVX2 and FMA (its fields are private: safe code cannot forge it).
                 unsafe {
-                    advance_block_avx512::<N, LANES, S>(
-                        self.stepper,
-                        h,
-                        steps.clone(),
-                        every,
-                        block,
-                    )
+                    if paired && block.mu.len() > LANES {
+                        advance_block_avx512::<N, PAIRED_LANES, S>(
+                            self.stepper,
+                            h,
+                            steps.clone(),
+                            every,
+                            block,
+                        )
+                    } else {
+                        advance_block_avx512::<N, LANES, S>(
+                            self.stepper,
+                            h,
+                            steps.clone(),
+                            every,
+                            block,
+                        )
+                    }
                 };
                 continue;
             }

@@ -88,6 +88,12 @@ impl<const M: usize> LaneStepper<3> for SplittingComposition<M> {
 }
 
 impl LaneStepper<3> for CasimirSplitting {
+    /// Measured: 0.59× the time of blocks of 8.
+    #[inline(always)]
+    fn avx512_paired(&self) -> bool {
+        true
+    }
+
     #[inline(always)]
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
         let ([j, k], [aj, ak]) = self.axes_and_coefficients();

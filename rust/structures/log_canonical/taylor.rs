@@ -331,6 +331,12 @@ impl<const N: usize> LaneStepper<N> for LogTaylorLanes<'_, N> {
     const AVX512: bool = N == 3;
     const REPORTS: bool = true;
 
+    /// Measured at N = 3: 0.74–0.82× the time of blocks of 8.
+    #[inline(always)]
+    fn avx512_paired(&self) -> bool {
+        true
+    }
+
     #[inline(always)]
     fn step_lanes_reporting<const L: usize>(
         &self,
