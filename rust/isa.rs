@@ -6,6 +6,14 @@
 /// core independent chains to overlap; 4 was slower (see docs/performance.md).
 pub const LANES: usize = 8;
 
+/// The most coordinates at which a block pays to run compiled for AVX-512 ([`Isa::is_avx512`]):
+/// the default of every lane stepper and Newton solve (`LaneStepper::AVX512`, `LaneField::AVX512`,
+/// `LaneSolve::avx512`). Measured (`benches/step_costs.py`, docs/performance.md): at N ≤ 3 the
+/// blocks took 0.75–0.97× their AVX2 time; at N ≥ 5 every one lost (the heavy top's RK4 2.3×,
+/// its se(3) solve 1.8–2.0×, 5-D Lotka–Volterra's RK4 2.4×), the compiler mixing lanes and
+/// coordinates in its shuffles there.
+pub const AVX512_MAX_DIM: usize = 3;
+
 /// The instruction set a block loop runs with, as a proof about this CPU: the portable baseline
 /// ([`Isa::PORTABLE`], which every CPU runs), AVX2 with FMA, which only [`Isa::detect`] and
 /// [`Isa::avx2`] can return, and only where the CPU runs both, or that with AVX-512 (F and VL),

@@ -23,7 +23,7 @@ pub trait LaneField<const N: usize>: Sync {
 
     /// Whether RK4 on this field runs its blocks compiled for AVX-512 where the CPU has it
     /// ([`crate::lanes::LaneStepper::AVX512`], whose default by dimension this follows).
-    const AVX512: bool = N <= 3;
+    const AVX512: bool = N <= crate::isa::AVX512_MAX_DIM;
 
     /// Whether RK4 on this field runs AVX-512 blocks of two registers a coordinate
     /// ([`crate::lanes::LaneStepper::avx512_paired`]).

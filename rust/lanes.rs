@@ -25,7 +25,7 @@ use nalgebra::{Const, DimMin};
 
 use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
-pub use crate::isa::{Isa, LANES};
+pub use crate::isa::{Isa, AVX512_MAX_DIM, LANES};
 pub use crate::lane_field::{
     midpoint_predictor_lanes, midpoint_update_lanes, LaneField, MidpointSolve,
 };
@@ -109,13 +109,10 @@ pub trait LaneStepper<const N: usize>: Sync {
 
     /// Whether a block of [`LANES`] runs compiled for AVX-512 where the CPU has it
     /// ([`Isa::is_avx512`]): eight lanes are then one register, and a kernel whose block fits
-    /// the 32 registers runs with fewer instructions. Chosen by measurement
-    /// (`benches/step_costs.py`, docs/performance.md): at N ≤ 3 coordinates the steppers took
-    /// 0.75–0.97× their AVX2 time, at N ≥ 5 every one lost (the heavy top's RK4 2.3×, 5-D
-    /// Lotka–Volterra's 2.4×: the compiler mixes lanes and coordinates in its shuffles there),
-    /// hence the default; a stepper measured to lose at N ≤ 3 says false. The same operations
-    /// either way, so the same bits.
-    const AVX512: bool = N <= 3;
+    /// the 32 registers runs with fewer instructions. By default up to [`AVX512_MAX_DIM`]
+    /// coordinates, where it was measured to pay; a stepper measured to lose there says false.
+    /// The same operations either way, so the same bits.
+    const AVX512: bool = N <= AVX512_MAX_DIM;
 
     /// Whether an AVX-512 block ([`LaneStepper::AVX512`]) holds [`PAIRED_LANES`] trajectories,
     /// two registers a coordinate, rather than [`LANES`]. A step is a chain of dependent
@@ -500,10 +497,16 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 out: o,
                 row,
             };
+            // The block loop `$f` at `$lanes` lanes; every path passes the same arguments.
+            macro_rules! advance {
+                ($f:ident, $lanes:expr) => {
+                    $f::<N, { $lanes }, S>(self.stepper, h, steps.clone(), every, block)
+                };
+            }
             if block.mu.len() == 1 {
                 // A lone trajectory: a block of one lane does the same arithmetic (bit for bit)
                 // without carrying seven idle ones.
-                advance_block::<N, 1, S>(self.stepper, h, steps.clone(), every, block);
+                advance!(advance_block, 1);
                 continue;
             }
             let wide = S::WIDE && block.mu.len() > LANES;
@@ -513,21 +516,9 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 // and VL, AVX2 and FMA (its fields are private: safe code cannot forge it).
                 unsafe {
                     if paired && block.mu.len() > LANES {
-                        advance_block_avx512::<N, PAIRED_LANES, S>(
-                            self.stepper,
-                            h,
-                            steps.clone(),
-                            every,
-                            block,
-                        )
+                        advance!(advance_block_avx512, PAIRED_LANES)
                     } else {
-                        advance_block_avx512::<N, LANES, S>(
-                            self.stepper,
-                            h,
-                            steps.clone(),
-                            every,
-                            block,
-                        )
+                        advance!(advance_block_avx512, LANES)
                     }
                 };
                 continue;
@@ -538,29 +529,17 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 // (its field is private: safe code cannot forge it).
                 unsafe {
                     if wide {
-                        advance_block_avx2::<N, WIDE_LANES, S>(
-                            self.stepper,
-                            h,
-                            steps.clone(),
-                            every,
-                            block,
-                        )
+                        advance!(advance_block_avx2, WIDE_LANES)
                     } else {
-                        advance_block_avx2::<N, LANES, S>(
-                            self.stepper,
-                            h,
-                            steps.clone(),
-                            every,
-                            block,
-                        )
+                        advance!(advance_block_avx2, LANES)
                     }
                 };
                 continue;
             }
             if wide {
-                advance_block::<N, WIDE_LANES, S>(self.stepper, h, steps.clone(), every, block);
+                advance!(advance_block, WIDE_LANES);
             } else {
-                advance_block::<N, LANES, S>(self.stepper, h, steps.clone(), every, block);
+                advance!(advance_block, LANES);
             }
         }
     }

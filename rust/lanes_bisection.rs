@@ -865,11 +865,11 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
 /// [`crate::lanes_bisection_exp::ExpChartLanes`]).
 pub(crate) trait LaneSolve<const N: usize> {
     /// Whether blocks run compiled for AVX-512 where the CPU has it ([`Isa::is_avx512`]):
-    /// eight lanes are then one register. By dimension as
-    /// [`crate::lanes::LaneStepper::AVX512`] (the se(3) chart's solve took 1.8–2.0× its AVX2
-    /// time; at N ≤ 3 the solves took 0.86–0.97×); a solver measured to lose says false.
+    /// eight lanes are then one register. By default up to [`crate::isa::AVX512_MAX_DIM`]
+    /// coordinates (the solves there took 0.86–0.97× their AVX2 time); a solver measured to
+    /// lose says false.
     fn avx512(&self) -> bool {
-        N <= 3
+        N <= crate::isa::AVX512_MAX_DIM
     }
 
     /// One step of `mu` (at most L states; those with `live` false left alone) into `results`.
