@@ -27,7 +27,8 @@ use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 pub use crate::isa::{Isa, AVX512_MAX_DIM, LANES};
 pub use crate::lane_field::{
-    midpoint_predictor_lanes, midpoint_update_lanes, LaneField, MidpointSolve,
+    midpoint_predictor_lanes, midpoint_update_lanes, rk4_by_lane, rk4_with, LaneField,
+    MidpointSolve,
 };
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
 use crate::step::{NewtonOptions, StepResult, StepStats};
@@ -68,6 +69,9 @@ impl<const N: usize> LaneField<N> for CompiledLiePoisson<N> {
 impl LaneField<3> for RigidBody {
     /// Measured: RK4 in blocks of 16 took 0.55× the time of blocks of 8.
     const AVX512_PAIRED: bool = true;
+
+    /// Straight-line (six multiplications).
+    const AVX512_BY_LANE: bool = true;
 
     /// μ × (μ/I), as [`RigidBody::vector_field`].
     #[inline(always)]
@@ -126,6 +130,18 @@ pub trait LaneStepper<const N: usize>: Sync {
         false
     }
 
+    /// Whether this stepper's AVX-512 blocks step lane by lane, the loop over lanes outermost
+    /// ([`rk4_by_lane`]): for a straight-line step whose lane-inner form the compiler packs
+    /// badly for AVX-512 (N ≥ 5), and which by lane is one vector instruction an operation.
+    /// Such a stepper runs paired AVX-512 blocks, at any N (its [`LaneStepper::AVX512`] aside),
+    /// and steps by lane in them only: a block of [`PAIRED_LANES`] is always an AVX-512 block,
+    /// so the step tells them apart by L. Where [`LaneStepper::AVX512`] is false, a block of at
+    /// most [`LANES`] trajectories runs AVX2 (by lane it would carry idle lanes).
+    #[inline(always)]
+    fn avx512_by_lane(&self) -> bool {
+        false
+    }
+
     /// Flags the lanes that may have left the domain: a cheap test over all lanes that may
     /// flag too many (never too few); each flagged lane then gets [`LaneStepper::domain`].
     #[inline(always)]
@@ -172,34 +188,30 @@ impl<const N: usize, F: LaneField<N>> LaneStepper<N> for Rk4<F> {
     }
 
     #[inline(always)]
+    fn avx512_by_lane(&self) -> bool {
+        F::AVX512_BY_LANE
+    }
+
+    #[inline(always)]
     fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
         rk4_lanes(&self.system, h, mu);
     }
 }
 
 /// One [`Rk4`] step of the field `f` at L states: the same operations as the scalar step, lane
-/// by lane.
+/// by lane; in an AVX-512 paired block of a field that asks for it, the loop over lanes
+/// outermost ([`rk4_by_lane`]).
 #[inline(always)]
 fn rk4_lanes<const N: usize, const L: usize, F: LaneField<N>>(
     f: &F,
     h: f64,
     mu: &mut [[f64; L]; N],
 ) {
-    let (mut k1, mut k2, mut k3, mut k4) =
-        ([[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N]);
-    let mut y = [[0.0; L]; N];
-    let (half, sixth) = (0.5 * h, h / 6.0);
-    f.field_lanes(mu, &mut k1);
-    axpy_lanes(half, &k1, mu, &mut y);
-    f.field_lanes(&y, &mut k2);
-    axpy_lanes(half, &k2, mu, &mut y);
-    f.field_lanes(&y, &mut k3);
-    axpy_lanes(h, &k3, mu, &mut y);
-    f.field_lanes(&y, &mut k4);
-    for i in 0..N {
-        for l in 0..L {
-            mu[i][l] += sixth * (k1[i][l] + 2.0 * (k2[i][l] + k3[i][l]) + k4[i][l]);
-        }
+    // A block of PAIRED_LANES is always an AVX-512 block (`Lanes::advance_chunk`).
+    if F::AVX512_BY_LANE && L == PAIRED_LANES {
+        rk4_by_lane(|y, o| f.field_lanes(y, o), h, mu);
+    } else {
+        rk4_with(|y, o| f.field_lanes(y, o), h, mu);
     }
 }
 
@@ -345,10 +357,17 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
 /// The heavy top and the rigid body as a Lie–Poisson system: the variant of [`LieField`] is
 /// matched once a step, then its own RK4 runs (a straight-line kernel, or the compiled field).
 impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
-    /// The so(3) kernel's RK4 as the rigid body's (the other variants are unmeasured).
+    /// The so(3) kernel's RK4 as the rigid body's (the compiled variant is unmeasured).
     #[inline(always)]
     fn avx512_paired(&self) -> bool {
         matches!(self.system, LieField::So3(_))
+    }
+
+    /// The pattern kernels: straight-line fields (the se(3) one with its torque pattern matched
+    /// once a step, [`crate::straight_line::Se3QuadraticLinear::rk4_by_lane`]).
+    #[inline(always)]
+    fn avx512_by_lane(&self) -> bool {
+        matches!(self.system, LieField::So3(_) | LieField::Se3(_))
     }
 
     #[inline(always)]
@@ -361,6 +380,8 @@ impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
                 None => *mu = [[f64::NAN; L]; N],
             },
             LieField::Se3(f) => match sized_mut::<_, N, 6>(mu) {
+                // A block of PAIRED_LANES is always an AVX-512 block (`Lanes::advance_chunk`).
+                Some(m) if L == PAIRED_LANES => f.rk4_by_lane(h, m),
                 Some(m) => rk4_lanes(f, h, m),
                 None => *mu = [[f64::NAN; L]; N],
             },
@@ -409,21 +430,6 @@ where
         if !done {
             // Unreachable: a pattern variant is built for its own dimension only.
             result.fill(Err(StepFailure::NonFinite));
-        }
-    }
-}
-
-/// out = y + a·x, lane by lane (the scalar `axpy`).
-#[inline(always)]
-fn axpy_lanes<const L: usize, const N: usize>(
-    a: f64,
-    x: &[[f64; L]; N],
-    y: &[[f64; L]; N],
-    out: &mut [[f64; L]; N],
-) {
-    for i in 0..N {
-        for l in 0..L {
-            out[i][l] = y[i][l] + a * x[i][l];
         }
     }
 }
@@ -477,8 +483,9 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
             return;
         }
         let row = out.len() / mu.len();
-        let avx512 = S::AVX512 && !S::WIDE && self.isa.is_avx512();
-        let paired = avx512 && self.stepper.avx512_paired();
+        let by_lane = !S::WIDE && self.isa.is_avx512() && self.stepper.avx512_by_lane();
+        let avx512 = (S::AVX512 && !S::WIDE && self.isa.is_avx512()) || by_lane;
+        let paired = avx512 && (by_lane || self.stepper.avx512_paired());
         let width = if S::WIDE {
             WIDE_LANES
         } else if paired {
@@ -510,8 +517,10 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 continue;
             }
             let wide = S::WIDE && block.mu.len() > LANES;
+            // A by-lane stepper's short block (at most LANES) runs AVX2 unless the stepper runs
+            // AVX-512 at LANES too.
             #[cfg(target_arch = "x86_64")]
-            if avx512 {
+            if avx512 && (S::AVX512 || (paired && block.mu.len() > LANES)) {
                 // SAFETY: an `Isa` claims AVX-512 only where run-time detection found AVX-512 F
                 // and VL, AVX2 and FMA (its fields are private: safe code cannot forge it).
                 unsafe {

@@ -30,7 +30,7 @@
 use nalgebra::{Const, DimMin, SMatrix};
 
 use crate::error::StepFailure;
-use crate::lane_field::{LaneField, MidpointSolve};
+use crate::lane_field::{rk4_by_lane, LaneField, MidpointSolve};
 use crate::structures::lie_poisson::{
     lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField,
 };
@@ -90,6 +90,9 @@ impl So3Quadratic {
 pub(crate) const SO3_MIDPOINT_SWEEPS: u32 = 2;
 
 impl LaneField<3> for So3Quadratic {
+    /// Straight-line (six multiplications).
+    const AVX512_BY_LANE: bool = true;
+
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
         weighted_cross_lanes(&self.a, mu, out);
@@ -277,6 +280,16 @@ fn se3_lanes<const L: usize>(
         out[3][l] = g1 * w2 - g2 * w1;
         out[4][l] = g2 * w0 - g0 * w2;
         out[5][l] = g0 * w1 - g1 * w0;
+    }
+}
+
+impl Se3QuadraticLinear {
+    /// One RK4 step at L states with the loop over lanes outermost ([`rk4_by_lane`]), the
+    /// torque's pattern matched once, outside that loop (a branch inside it keeps the loop
+    /// scalar). The same operations as [`LaneField::field_lanes`]'s RK4, so the same bits.
+    #[inline(always)]
+    pub fn rk4_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 6]) {
+        with_torque!(self.torque, t => rk4_by_lane(|y, o| se3_lanes(&self.a, y, o, t), h, mu))
     }
 }
 

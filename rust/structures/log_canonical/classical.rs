@@ -12,7 +12,7 @@ use crate::dual::Dual1;
 use crate::error::{CoreError, StepFailure};
 use crate::exp::{exp_lanes, EXP_MAX, EXP_MIN};
 use crate::lane_field::LaneField;
-use crate::lanes::LaneStepper;
+use crate::lanes::{LaneStepper, PAIRED_LANES};
 use crate::step::{NewtonOptions, StepMap, StepResult, StepStats};
 use crate::structures::lie_poisson::VectorField;
 
@@ -64,6 +64,32 @@ pub struct LogClassical<const N: usize> {
 /// Suzuki's weight p = 1/(4 − 4^{1/3}).
 fn suzuki_p() -> f64 {
     1.0 / (4.0 - 4f64.powf(1.0 / 3.0))
+}
+
+/// RK4 in x on `field` at L states, lane by lane (the scalar step is L = 1).
+#[inline(always)]
+fn rk4_in_x<const N: usize, const L: usize>(
+    field: impl Fn(&[[f64; L]; N], &mut [[f64; L]; N]),
+    h: f64,
+    x: &mut [[f64; L]; N],
+) {
+    let f = |y: &[[f64; L]; N]| {
+        let mut out = [[0.0; L]; N];
+        field(y, &mut out);
+        out
+    };
+    let at = |k: &[[f64; L]; N], w: f64| -> [[f64; L]; N] {
+        std::array::from_fn(|i| std::array::from_fn(|l| x[i][l] + w * k[i][l]))
+    };
+    let k1 = f(x);
+    let k2 = f(&at(&k1, 0.5 * h));
+    let k3 = f(&at(&k2, 0.5 * h));
+    let k4 = f(&at(&k3, h));
+    for i in 0..N {
+        for l in 0..L {
+            x[i][l] += h / 6.0 * (k1[i][l] + 2.0 * k2[i][l] + 2.0 * k3[i][l] + k4[i][l]);
+        }
+    }
 }
 
 /// A stepper in q whose every step is checked to keep x = e^q in the open orthant (finite,
@@ -148,23 +174,19 @@ where
 
     #[inline(always)]
     fn rk4_lanes<const L: usize>(&self, h: f64, x: &mut [[f64; L]; N]) {
-        let f = |y: &[[f64; L]; N]| {
-            let mut out = [[0.0; L]; N];
-            self.system.field_lanes(y, &mut out);
-            out
-        };
-        let at = |k: &[[f64; L]; N], w: f64| -> [[f64; L]; N] {
-            std::array::from_fn(|i| std::array::from_fn(|l| x[i][l] + w * k[i][l]))
-        };
-        let k1 = f(x);
-        let k2 = f(&at(&k1, 0.5 * h));
-        let k3 = f(&at(&k2, 0.5 * h));
-        let k4 = f(&at(&k3, h));
-        for i in 0..N {
+        // A block of PAIRED_LANES is always an AVX-512 block (`Lanes::advance_chunk`): a linear
+        // H steps it by lane (`LogExplicit::avx512_by_lane`).
+        if let (Some(a), true) = (self.system.linear(), L == PAIRED_LANES) {
             for l in 0..L {
-                x[i][l] += h / 6.0 * (k1[i][l] + 2.0 * k2[i][l] + 2.0 * k3[i][l] + k4[i][l]);
+                let mut one: [[f64; 1]; N] = std::array::from_fn(|i| [x[i][l]]);
+                rk4_in_x(|y, o| self.system.linear_field_lanes(a, y, o), h, &mut one);
+                for i in 0..N {
+                    x[i][l] = one[i][0];
+                }
             }
+            return;
         }
+        rk4_in_x(|y, o| self.system.field_lanes(y, o), h, x);
     }
 
     /// One step of an explicit method (RK4 or a log splitting) at L states, lane by lane; the
@@ -251,10 +273,16 @@ where
     const CHECKS_DOMAIN: bool = true;
 
     /// Measured: the log splittings 0.44–0.70× the time of blocks of 8; RK4 in x lost
-    /// (1.30–1.56×, its exp kernels spilling), so it keeps blocks of 8.
+    /// (1.30–1.56×, its loop over H's terms spilling), so it keeps blocks of 8 unless by lane.
     #[inline(always)]
     fn avx512_paired(&self) -> bool {
         self.0.method.in_log()
+    }
+
+    /// RK4 in x on a linear H (Lotka–Volterra's form): its field is straight-line code.
+    #[inline(always)]
+    fn avx512_by_lane(&self) -> bool {
+        self.0.method == LogMethod::Rk4 && self.0.system.linear().is_some()
     }
 
     #[inline(always)]
