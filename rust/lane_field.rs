@@ -30,9 +30,18 @@ pub trait LaneField<const N: usize>: Sync {
     const AVX512_PAIRED: bool = false;
 
     /// Whether RK4 on this field steps its AVX-512 blocks of [`crate::lanes::PAIRED_LANES`]
-    /// lane by lane ([`rk4_by_lane`]; [`crate::lanes::LaneStepper::avx512_by_lane`]). For a
-    /// field whose [`LaneField::field_lanes`] is straight-line code with no branch.
+    /// lane by lane ([`LaneField::rk4_step_by_lane`]; [`crate::lanes::LaneStepper::avx512_by_lane`]).
+    /// For a field whose [`LaneField::field_lanes`] is straight-line code with no branch.
     const AVX512_BY_LANE: bool = false;
+
+    /// One RK4 step at L states by lane ([`rk4_by_lane`]), for [`LaneField::AVX512_BY_LANE`].
+    /// A field overrides it to run on a copy of its constants (read through `self`, they are
+    /// loaded again in every lane, since the compiler cannot tell them apart from the block it
+    /// stores to, and the loop stays scalar) and to match any variant outside the loop.
+    #[inline(always)]
+    fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
+        rk4_by_lane(|y, o| self.field_lanes(y, o), h, mu);
+    }
 
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
 

@@ -73,6 +73,16 @@ impl LaneField<3> for RigidBody {
     /// Straight-line (six multiplications).
     const AVX512_BY_LANE: bool = true;
 
+    #[inline(always)]
+    fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
+        let a = self.inverse_inertia();
+        rk4_by_lane(
+            |y, o| crate::straight_line::weighted_cross_lanes(&a, y, o),
+            h,
+            mu,
+        );
+    }
+
     /// μ × (μ/I), as [`RigidBody::vector_field`].
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
@@ -209,7 +219,7 @@ fn rk4_lanes<const N: usize, const L: usize, F: LaneField<N>>(
 ) {
     // A block of PAIRED_LANES is always an AVX-512 block (`Lanes::advance_chunk`).
     if F::AVX512_BY_LANE && L == PAIRED_LANES {
-        rk4_by_lane(|y, o| f.field_lanes(y, o), h, mu);
+        f.rk4_step_by_lane(h, mu);
     } else {
         rk4_with(|y, o| f.field_lanes(y, o), h, mu);
     }
@@ -364,7 +374,7 @@ impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
     }
 
     /// The pattern kernels: straight-line fields (the se(3) one with its torque pattern matched
-    /// once a step, [`crate::straight_line::Se3QuadraticLinear::rk4_by_lane`]).
+    /// once a step).
     #[inline(always)]
     fn avx512_by_lane(&self) -> bool {
         matches!(self.system, LieField::So3(_) | LieField::Se3(_))
@@ -380,8 +390,6 @@ impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
                 None => *mu = [[f64::NAN; L]; N],
             },
             LieField::Se3(f) => match sized_mut::<_, N, 6>(mu) {
-                // A block of PAIRED_LANES is always an AVX-512 block (`Lanes::advance_chunk`).
-                Some(m) if L == PAIRED_LANES => f.rk4_by_lane(h, m),
                 Some(m) => rk4_lanes(f, h, m),
                 None => *mu = [[f64::NAN; L]; N],
             },

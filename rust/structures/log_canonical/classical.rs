@@ -6,6 +6,7 @@
 
 use nalgebra::{Const, DimMin, SMatrix};
 
+use super::structure::linear_field_lanes;
 use super::{in_orthant, log_state_in_orthant, LogSystem};
 use crate::classical::ImplicitMidpoint;
 use crate::dual::Dual1;
@@ -172,21 +173,31 @@ where
         }
     }
 
+    /// RK4 in x. A linear H (Lotka–Volterra's form) takes the straight-line field, lane by
+    /// lane, or by lane in a block of [`PAIRED_LANES`], which is always an AVX-512 block
+    /// (`Lanes::advance_chunk`; `LogExplicit::avx512_by_lane`).
     #[inline(always)]
     fn rk4_lanes<const L: usize>(&self, h: f64, x: &mut [[f64; L]; N]) {
-        // A block of PAIRED_LANES is always an AVX-512 block (`Lanes::advance_chunk`): a linear
-        // H steps it by lane (`LogExplicit::avx512_by_lane`).
-        if let (Some(a), true) = (self.system.linear(), L == PAIRED_LANES) {
+        let Some(a) = self.system.linear() else {
+            rk4_in_x(|y, o| self.system.field_lanes(y, o), h, x);
+            return;
+        };
+        // Copies: the loop over lanes then reads registers. Read through `self`, the
+        // coefficients were loaded again in every lane and the loop stayed scalar (the
+        // compiler could not tell them apart from the block it stores to).
+        let (a, b, c) = (*a, *self.system.b(), *self.system.structure.c());
+        let field = |y: &[[f64; 1]; N], o: &mut [[f64; 1]; N]| linear_field_lanes(&a, &b, &c, y, o);
+        if L == PAIRED_LANES {
             for l in 0..L {
                 let mut one: [[f64; 1]; N] = std::array::from_fn(|i| [x[i][l]]);
-                rk4_in_x(|y, o| self.system.linear_field_lanes(a, y, o), h, &mut one);
+                rk4_in_x(field, h, &mut one);
                 for i in 0..N {
                     x[i][l] = one[i][0];
                 }
             }
-            return;
+        } else {
+            rk4_in_x(|y, o| linear_field_lanes(&a, &b, &c, y, o), h, x);
         }
-        rk4_in_x(|y, o| self.system.field_lanes(y, o), h, x);
     }
 
     /// One step of an explicit method (RK4 or a log splitting) at L states, lane by lane; the

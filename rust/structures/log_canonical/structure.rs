@@ -117,7 +117,7 @@ pub struct LogSystem<const N: usize> {
     terms: Vec<([u32; N], f64)>,
     pub(super) b: [f64; N],
     /// a where H = Σ a_i x_i − b_i ln x_i, one linear term a variable (Lotka–Volterra's form):
-    /// the field is then straight-line code ([`LogSystem::linear_field_lanes`]).
+    /// RK4's field is then straight-line code ([`linear_field_lanes`]).
     linear: Option<[f64; N]>,
 }
 
@@ -208,10 +208,6 @@ impl<const N: usize> LogSystem<N> {
     /// (RK4 takes it for one trajectory too, with L = 1, so every lane has the scalar bits).
     #[inline(always)]
     pub(super) fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
-        if let Some(a) = &self.linear {
-            self.linear_field_lanes(a, x, out);
-            return;
-        }
         let mut g: [[f64; L]; N] = std::array::from_fn(|j| [-self.b[j]; L]);
         for (e, a) in &self.terms {
             add_monomial_gradient(&mut g, e, &monomial_lanes(e, *a, x));
@@ -224,39 +220,17 @@ impl<const N: usize> LogSystem<N> {
         }
     }
 
-    /// The coefficients a of a linear H ([`LogSystem::linear_field_lanes`]), if H is one.
+    /// The coefficients a of a linear H, Σ a_i x_i − b_i ln x_i with one term a variable
+    /// ([`linear_field_lanes`]), if H is one.
     #[inline(always)]
-    pub(super) fn linear(&self) -> Option<&[f64; N]> {
+    pub fn linear(&self) -> Option<&[f64; N]> {
         self.linear.as_ref()
     }
 
-    /// [`LogSystem::field_lanes`] for H = Σ a_i x_i − b_i ln x_i: g_j = a_j x_j − b_j and
-    /// ẋ_i = x_i Σ_j c_ij g_j, straight-line code (no loop over terms, no branch), so that RK4
-    /// can step it by lane ([`crate::lane_field::rk4_by_lane`]). The terms' operations: g_j is
-    /// −b_j + (a_j x_j) · 1 there, the same number. The zero entries of c are multiplied, not
-    /// skipped; they add ±0 to the sum, which moves nothing but the sign of an exactly zero
-    /// component (then x_i · 0), and no state: x + h·(±0) is x.
+    /// b, where H = Σ (terms) − b_i ln x_i.
     #[inline(always)]
-    pub(super) fn linear_field_lanes<const L: usize>(
-        &self,
-        a: &[f64; N],
-        x: &[[f64; L]; N],
-        out: &mut [[f64; L]; N],
-    ) {
-        let c = self.structure.c();
-        let g: [[f64; L]; N] =
-            std::array::from_fn(|j| std::array::from_fn(|l| -self.b[j] + a[j] * x[j][l]));
-        for i in 0..N {
-            let mut acc = [0.0; L];
-            for j in 0..N {
-                for l in 0..L {
-                    acc[l] += g[j][l] * c[i][j];
-                }
-            }
-            for l in 0..L {
-                out[i][l] = x[i][l] * acc[l];
-            }
-        }
+    pub(super) fn b(&self) -> &[f64; N] {
+        &self.b
     }
 
     /// ∂f/∂x at L states (`out[i][k][l]`), lane by lane in closed form: with g_j = x_j ∂H/∂x_j,
@@ -323,6 +297,34 @@ impl<const N: usize> LogSystem<N> {
             parts.push((vars[0], e[vars[0]], *a));
         }
         Some(parts)
+    }
+}
+
+/// [`LogSystem::field_lanes`] for H = Σ a_i x_i − b_i ln x_i on the bracket c: g_j = a_j x_j −
+/// b_j and ẋ_i = x_i Σ_j c_ij g_j, straight-line code (no loop over terms, no branch), so that
+/// RK4 can step it by lane ([`crate::lane_field::rk4_by_lane`]). The terms' operations: g_j is
+/// −b_j + (a_j x_j) · 1 there, the same number. The zero entries of c are multiplied, not
+/// skipped; they add ±0 to the sum, which moves nothing but the sign of an exactly zero
+/// component (then x_i · 0), and no state: x + h·(±0) is x.
+#[inline(always)]
+pub(super) fn linear_field_lanes<const N: usize, const L: usize>(
+    a: &[f64; N],
+    b: &[f64; N],
+    c: &[[f64; N]; N],
+    x: &[[f64; L]; N],
+    out: &mut [[f64; L]; N],
+) {
+    let g: [[f64; L]; N] = std::array::from_fn(|j| std::array::from_fn(|l| -b[j] + a[j] * x[j][l]));
+    for i in 0..N {
+        let mut acc = [0.0; L];
+        for j in 0..N {
+            for l in 0..L {
+                acc[l] += g[j][l] * c[i][j];
+            }
+        }
+        for l in 0..L {
+            out[i][l] = x[i][l] * acc[l];
+        }
     }
 }
 
