@@ -305,9 +305,10 @@ where
     fn maybe_outside_lanes<const L: usize>(&self, mu: &[[f64; L]; N], flag: &mut [bool; L]) {
         // In q: e^q can reach 0 or ∞ only outside exp's vectorised range. In x: x ≤ 0 (NaN
         // flags too; the block loop has already sent non-finite lanes to NonFinite).
+        // Lane by lane, the loop over lanes outermost (as the block loop's probe).
         let in_log = self.0.method.in_log();
-        for coordinate in mu {
-            for l in 0..L {
+        for l in 0..L {
+            for coordinate in mu {
                 let v = coordinate[l];
                 flag[l] |= if in_log {
                     !(EXP_MIN..=EXP_MAX).contains(&v)
