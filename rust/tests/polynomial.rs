@@ -212,6 +212,15 @@ fn polynomial_lanes_equal_the_dual_number_step() {
         assert_eq!(results[l].unwrap().iterations, r.iterations);
         assert!(same_bits(&one, &[mu[0][l], mu[1][l], mu[2][l]]), "lane {l}");
     }
+    // Through the rollout kernel on every dispatch path (paired AVX-512 blocks where the CPU
+    // has them) at batches 1–67, one state failing mid-block: the scalar step's bits.
+    super::splitting_lanes::check_lanes_equal_scalar(
+        &lanes,
+        "polynomial lanes",
+        |rng| rng.vec3(-0.8, 0.8),
+        Some([1e200, 0.1, 0.2]),
+        (0.1, 12, 3),
+    );
     // The same failures, the state left alone.
     let mut bad = [f64::NAN, 0.1, 0.2];
     let mut bad2 = bad;
