@@ -39,8 +39,11 @@ pub trait LaneField<const N: usize>: Sync {
     /// loaded again in every lane, since the compiler cannot tell them apart from the block it
     /// stores to, and the loop stays scalar) and to match any variant outside the loop.
     #[inline(always)]
-    fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
-        rk4_by_lane(|y, o| self.field_lanes(y, o), h, mu);
+    fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N])
+    where
+        Self: Sized,
+    {
+        rk4_by_lane(self, h, mu);
     }
 
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
@@ -85,12 +88,37 @@ pub trait LaneField<const N: usize>: Sync {
     }
 }
 
-/// One RK4 step of `field` at L states: the same operations as the scalar step, lane by lane
+/// A field at L states as the RK4 kernels call it: every [`LaneField`], or a kernel at one state
+/// bound to copies of its constants ([`AtOneState`]). A trait, not a closure: a closure left
+/// out of line is compiled without the caller's target features (an interpreted field's RK4
+/// ran 1.09–1.14× slower through one).
+pub trait FieldAt<const N: usize, const L: usize> {
+    fn field_at(&self, y: &[[f64; L]; N], out: &mut [[f64; L]; N]);
+}
+
+impl<const N: usize, const L: usize, F: LaneField<N>> FieldAt<N, L> for F {
+    #[inline(always)]
+    fn field_at(&self, y: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        self.field_lanes(y, out);
+    }
+}
+
+/// A straight-line kernel at one state, `(y, out)`, as a [`FieldAt`] for [`rk4_by_lane`].
+pub struct AtOneState<C>(pub C);
+
+impl<const N: usize, C: Fn(&[[f64; 1]; N], &mut [[f64; 1]; N])> FieldAt<N, 1> for AtOneState<C> {
+    #[inline(always)]
+    fn field_at(&self, y: &[[f64; 1]; N], out: &mut [[f64; 1]; N]) {
+        (self.0)(y, out);
+    }
+}
+
+/// One RK4 step of `f` at L states: the same operations as the scalar step, lane by lane
 /// (k₁ = f(μ), k₂ = f(μ + ½h k₁), k₃ = f(μ + ½h k₂), k₄ = f(μ + h k₃), μ += h/6 (k₁ + 2(k₂ +
 /// k₃) + k₄)).
 #[inline(always)]
-pub fn rk4_with<const N: usize, const L: usize>(
-    field: impl Fn(&[[f64; L]; N], &mut [[f64; L]; N]),
+pub fn rk4_with<const N: usize, const L: usize, F: FieldAt<N, L>>(
+    f: &F,
     h: f64,
     mu: &mut [[f64; L]; N],
 ) {
@@ -98,13 +126,13 @@ pub fn rk4_with<const N: usize, const L: usize>(
         ([[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N], [[0.0; L]; N]);
     let mut y = [[0.0; L]; N];
     let (half, sixth) = (0.5 * h, h / 6.0);
-    field(mu, &mut k1);
+    f.field_at(mu, &mut k1);
     axpy_lanes(half, &k1, mu, &mut y);
-    field(&y, &mut k2);
+    f.field_at(&y, &mut k2);
     axpy_lanes(half, &k2, mu, &mut y);
-    field(&y, &mut k3);
+    f.field_at(&y, &mut k3);
     axpy_lanes(h, &k3, mu, &mut y);
-    field(&y, &mut k4);
+    f.field_at(&y, &mut k4);
     for i in 0..N {
         for l in 0..L {
             mu[i][l] += sixth * (k1[i][l] + 2.0 * (k2[i][l] + k3[i][l]) + k4[i][l]);
@@ -113,21 +141,21 @@ pub fn rk4_with<const N: usize, const L: usize>(
 }
 
 /// [`rk4_with`] at L states with the loop over lanes outermost: each lane runs the scalar
-/// step's code (`field` at one state), and the compiler vectorises that loop across lanes, one
+/// step's code (`f` at one state), and the compiler vectorises that loop across lanes, one
 /// register a coordinate. The same operations, so the same bits. For AVX-512 blocks of a field
-/// whose lane-by-lane form the compiler packs badly: at N = 6 it packs pairs of coordinates into
+/// whose lane-inner form the compiler packs badly: at N = 6 it packs pairs of coordinates into
 /// 128-bit halves (the heavy top's RK4 took 3.7× its AVX2 time), where this form is one vector
-/// instruction an operation. `field` must be straight-line code (a branch in it keeps the loop
-/// scalar).
+/// instruction an operation. `f` must be straight-line code (a branch in it keeps the loop
+/// scalar) on constants the loop holds in registers (copies, [`AtOneState`]).
 #[inline(always)]
-pub fn rk4_by_lane<const N: usize, const L: usize>(
-    field: impl Fn(&[[f64; 1]; N], &mut [[f64; 1]; N]),
+pub fn rk4_by_lane<const N: usize, const L: usize, F: FieldAt<N, 1>>(
+    f: &F,
     h: f64,
     mu: &mut [[f64; L]; N],
 ) {
     for l in 0..L {
         let mut one: [[f64; 1]; N] = std::array::from_fn(|i| [mu[i][l]]);
-        rk4_with(&field, h, &mut one);
+        rk4_with(f, h, &mut one);
         for i in 0..N {
             mu[i][l] = one[i][0];
         }

@@ -27,8 +27,8 @@ use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 pub use crate::isa::{Isa, AVX512_MAX_DIM, LANES};
 pub use crate::lane_field::{
-    midpoint_predictor_lanes, midpoint_update_lanes, rk4_by_lane, rk4_with, LaneField,
-    MidpointSolve,
+    midpoint_predictor_lanes, midpoint_update_lanes, rk4_by_lane, rk4_with, AtOneState, FieldAt,
+    LaneField, MidpointSolve,
 };
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
 use crate::step::{NewtonOptions, StepResult, StepStats};
@@ -76,11 +76,10 @@ impl LaneField<3> for RigidBody {
     #[inline(always)]
     fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
         let a = self.inverse_inertia();
-        rk4_by_lane(
-            |y, o| crate::straight_line::weighted_cross_lanes(&a, y, o),
-            h,
-            mu,
-        );
+        let f = AtOneState(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| {
+            crate::straight_line::weighted_cross_lanes(&a, y, o);
+        });
+        rk4_by_lane(&f, h, mu);
     }
 
     /// μ × (μ/I), as [`RigidBody::vector_field`].
@@ -223,7 +222,7 @@ fn rk4_lanes<const N: usize, const L: usize, F: LaneField<N>>(
     if F::AVX512_BY_LANE && L == PAIRED_LANES {
         f.rk4_step_by_lane(h, mu);
     } else {
-        rk4_with(|y, o| f.field_lanes(y, o), h, mu);
+        rk4_with(f, h, mu);
     }
 }
 
@@ -637,22 +636,12 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
         }
         stepper.step_lanes(h, &mut lanes);
         // x · 0 is 0 for finite x and NaN for ±∞ and NaN: one multiply-add per coordinate.
-        // The same sums either way. Up to PAIRED_LANES lane by lane, the loop over lanes
-        // outermost: coordinate by coordinate, the sums of 16 lanes were compiled to shuffles
-        // (a quarter of 3-D Lotka–Volterra's RK4). Wide blocks coordinate by coordinate: lane
-        // by lane, the interpreted fields' RK4 took 1.09–1.14× the time.
+        // Lane by lane, the loop over lanes outermost: coordinate by coordinate, the sums of 16
+        // lanes were compiled to shuffles (a quarter of 3-D Lotka–Volterra's RK4).
         let mut probe = [0.0; L];
-        if L <= PAIRED_LANES {
-            for l in 0..L {
-                for c in 0..N {
-                    probe[l] += lanes[c][l] * 0.0;
-                }
-            }
-        } else {
+        for l in 0..L {
             for c in 0..N {
-                for l in 0..L {
-                    probe[l] += lanes[c][l] * 0.0;
-                }
+                probe[l] += lanes[c][l] * 0.0;
             }
         }
         let all_finite = probe.iter().all(|p| *p == 0.0);

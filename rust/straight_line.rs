@@ -30,7 +30,7 @@
 use nalgebra::{Const, DimMin, SMatrix};
 
 use crate::error::StepFailure;
-use crate::lane_field::{rk4_by_lane, LaneField, MidpointSolve};
+use crate::lane_field::{rk4_by_lane, AtOneState, LaneField, MidpointSolve};
 use crate::structures::lie_poisson::{
     lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField,
 };
@@ -96,7 +96,10 @@ impl LaneField<3> for So3Quadratic {
     #[inline(always)]
     fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
         let a = self.a;
-        rk4_by_lane(|y, o| weighted_cross_lanes(&a, y, o), h, mu);
+        let f = AtOneState(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| {
+            weighted_cross_lanes(&a, y, o);
+        });
+        rk4_by_lane(&f, h, mu);
     }
 
     #[inline(always)]
@@ -304,7 +307,10 @@ impl LaneField<6> for Se3QuadraticLinear {
     #[inline(always)]
     fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 6]) {
         let a = self.a;
-        with_torque!(self.torque, t => rk4_by_lane(|y, o| se3_lanes(&a, y, o, t), h, mu))
+        with_torque!(self.torque, t => {
+            let f = AtOneState(|y: &[[f64; 1]; 6], o: &mut [[f64; 1]; 6]| se3_lanes(&a, y, o, t));
+            rk4_by_lane(&f, h, mu);
+        })
     }
 
     /// Four sweeps: a field evaluation (about 30 flops) costs a fraction of a Newton update, and

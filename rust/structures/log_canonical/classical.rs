@@ -12,7 +12,7 @@ use crate::classical::ImplicitMidpoint;
 use crate::dual::Dual1;
 use crate::error::{CoreError, StepFailure};
 use crate::exp::{exp_lanes, EXP_MAX, EXP_MIN};
-use crate::lane_field::LaneField;
+use crate::lane_field::{FieldAt, LaneField};
 use crate::lanes::{LaneStepper, PAIRED_LANES};
 use crate::step::{NewtonOptions, StepMap, StepResult, StepStats};
 use crate::structures::lie_poisson::VectorField;
@@ -67,16 +67,32 @@ fn suzuki_p() -> f64 {
     1.0 / (4.0 - 4f64.powf(1.0 / 3.0))
 }
 
+/// The field in x of H = Σ a_i x_i − b_i ln x_i on the bracket c ([`linear_field_lanes`]),
+/// on copies of its constants.
+#[derive(Clone, Copy)]
+struct LinearField<const N: usize> {
+    a: [f64; N],
+    b: [f64; N],
+    c: [[f64; N]; N],
+}
+
+impl<const N: usize, const L: usize> FieldAt<N, L> for LinearField<N> {
+    #[inline(always)]
+    fn field_at(&self, y: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
+        linear_field_lanes(&self.a, &self.b, &self.c, y, out);
+    }
+}
+
 /// RK4 in x on `field` at L states, lane by lane (the scalar step is L = 1).
 #[inline(always)]
-fn rk4_in_x<const N: usize, const L: usize>(
-    field: impl Fn(&[[f64; L]; N], &mut [[f64; L]; N]),
+fn rk4_in_x<const N: usize, const L: usize, F: FieldAt<N, L>>(
+    field: &F,
     h: f64,
     x: &mut [[f64; L]; N],
 ) {
     let f = |y: &[[f64; L]; N]| {
         let mut out = [[0.0; L]; N];
-        field(y, &mut out);
+        field.field_at(y, &mut out);
         out
     };
     let at = |k: &[[f64; L]; N], w: f64| -> [[f64; L]; N] {
@@ -179,24 +195,27 @@ where
     #[inline(always)]
     fn rk4_lanes<const L: usize>(&self, h: f64, x: &mut [[f64; L]; N]) {
         let Some(a) = self.system.linear() else {
-            rk4_in_x(|y, o| self.system.field_lanes(y, o), h, x);
+            rk4_in_x(&FieldInX(&self.system), h, x);
             return;
         };
-        // Copies: the loop over lanes then reads registers. Read through `self`, the
+        // A copy: the loop over lanes then reads registers. Read through `self`, the
         // coefficients were loaded again in every lane and the loop stayed scalar (the
         // compiler could not tell them apart from the block it stores to).
-        let (a, b, c) = (*a, *self.system.b(), *self.system.structure.c());
-        let field = |y: &[[f64; 1]; N], o: &mut [[f64; 1]; N]| linear_field_lanes(&a, &b, &c, y, o);
+        let field = LinearField {
+            a: *a,
+            b: *self.system.b(),
+            c: *self.system.structure.c(),
+        };
         if L == PAIRED_LANES {
             for l in 0..L {
                 let mut one: [[f64; 1]; N] = std::array::from_fn(|i| [x[i][l]]);
-                rk4_in_x(field, h, &mut one);
+                rk4_in_x(&field, h, &mut one);
                 for i in 0..N {
                     x[i][l] = one[i][0];
                 }
             }
         } else {
-            rk4_in_x(|y, o| linear_field_lanes(&a, &b, &c, y, o), h, x);
+            rk4_in_x(&field, h, x);
         }
     }
 
