@@ -70,18 +70,6 @@ impl LaneField<3> for RigidBody {
     /// Measured: RK4 in blocks of 16 took 0.55× the time of blocks of 8.
     const AVX512_PAIRED: bool = true;
 
-    /// Straight-line (six multiplications).
-    const AVX512_BY_LANE: bool = true;
-
-    #[inline(always)]
-    fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
-        let a = self.inverse_inertia();
-        let f = AtOneState(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| {
-            crate::straight_line::weighted_cross_lanes(&a, y, o);
-        });
-        rk4_by_lane(&f, h, mu);
-    }
-
     /// μ × (μ/I), as [`RigidBody::vector_field`].
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
@@ -369,17 +357,17 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
 /// matched once a step, then its own RK4 runs (a straight-line kernel, or the compiled field).
 impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
     /// The so(3) kernel's RK4 as the rigid body's (the compiled variant is unmeasured; the
-    /// se(3) one steps by lane).
+    /// se(3) one steps by lane, [`LaneStepper::avx512_by_lane`]).
     #[inline(always)]
     fn avx512_paired(&self) -> bool {
         matches!(self.system, LieField::So3(_))
     }
 
-    /// The pattern kernels: straight-line fields (the se(3) one with its torque pattern matched
-    /// once a step).
+    /// The se(3) kernel: straight-line for each pattern of b (the so(3) one pairs lane-inner,
+    /// which read 0.91× the time of by lane).
     #[inline(always)]
     fn avx512_by_lane(&self) -> bool {
-        matches!(self.system, LieField::So3(_) | LieField::Se3(_))
+        matches!(self.system, LieField::Se3(_))
     }
 
     #[inline(always)]

@@ -90,18 +90,6 @@ impl So3Quadratic {
 pub(crate) const SO3_MIDPOINT_SWEEPS: u32 = 2;
 
 impl LaneField<3> for So3Quadratic {
-    /// Straight-line (six multiplications).
-    const AVX512_BY_LANE: bool = true;
-
-    #[inline(always)]
-    fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
-        let a = self.a;
-        let f = AtOneState(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| {
-            weighted_cross_lanes(&a, y, o);
-        });
-        rk4_by_lane(&f, h, mu);
-    }
-
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
         weighted_cross_lanes(&self.a, mu, out);
