@@ -462,6 +462,9 @@ struct Block<'a, const N: usize> {
     info: &'a mut [TrajectoryInfo],
     out: &'a mut [f64],
     row: usize,
+    /// Whether the finiteness probe runs lane by lane (for a by-lane stepper) or coordinate by
+    /// coordinate.
+    probe_by_lane: bool,
 }
 
 impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
@@ -509,6 +512,7 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 info: i,
                 out: o,
                 row,
+                probe_by_lane: by_lane,
             };
             // The block loop `$f` at `$lanes` lanes; every path passes the same arguments.
             macro_rules! advance {
