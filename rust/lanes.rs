@@ -641,7 +641,8 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
         // After a lane-inner step, coordinate by coordinate: lane by lane, the rigid body's RK4
         // took 1.28× its time.
         let mut probe = [0.0; L];
-        if probe_by_lane {
+        // (A block of PAIRED_LANES is the only one a by-lane stepper steps by lane.)
+        if probe_by_lane && L == PAIRED_LANES {
             for l in 0..L {
                 for c in 0..N {
                     probe[l] += lanes[c][l] * 0.0;
