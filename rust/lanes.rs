@@ -141,6 +141,14 @@ pub trait LaneStepper<const N: usize>: Sync {
         false
     }
 
+    /// Whether the block loop's finiteness probe (Σ x·0 over each lane's coordinates, after
+    /// every step) runs lane by lane in a block of [`PAIRED_LANES`], rather than coordinate by
+    /// coordinate. The same sums; which order compiles to vector code depends on the step before
+    /// it (measured): after Lotka–Volterra's by-lane RK4 the coordinate-by-coordinate sums of 16
+    /// lanes compiled to shuffles (a quarter of its time), after the rigid body's lane-inner
+    /// RK4 the lane-by-lane ones did (1.28–1.6× its time).
+    const PROBE_BY_LANE: bool = false;
+
     /// Flags the lanes that may have left the domain: a cheap test over all lanes that may
     /// flag too many (never too few); each flagged lane then gets [`LaneStepper::domain`].
     #[inline(always)]
@@ -180,6 +188,7 @@ pub trait LaneStepper<const N: usize>: Sync {
 impl<const N: usize, F: LaneField<N>> LaneStepper<N> for Rk4<F> {
     const WIDE: bool = F::WIDE;
     const AVX512: bool = F::AVX512;
+    const PROBE_BY_LANE: bool = F::AVX512_BY_LANE;
 
     #[inline(always)]
     fn avx512_paired(&self) -> bool {
@@ -462,9 +471,6 @@ struct Block<'a, const N: usize> {
     info: &'a mut [TrajectoryInfo],
     out: &'a mut [f64],
     row: usize,
-    /// Whether the finiteness probe runs lane by lane (for a by-lane stepper) or coordinate by
-    /// coordinate.
-    probe_by_lane: bool,
 }
 
 impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
@@ -493,8 +499,7 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
         // Blocks of more than LANES trajectories run paired AVX-512 where the stepper asks (at
         // any N); blocks of at most LANES run AVX-512 where `S::AVX512` says, else AVX2.
         let isa512 = !S::WIDE && self.isa.is_avx512();
-        let by_lane = isa512 && self.stepper.avx512_by_lane();
-        let paired = isa512 && (self.stepper.avx512_paired() || by_lane);
+        let paired = isa512 && (self.stepper.avx512_paired() || self.stepper.avx512_by_lane());
         let single = isa512 && S::AVX512;
         let width = if S::WIDE {
             WIDE_LANES
@@ -513,7 +518,6 @@ impl<const N: usize, S: LaneStepper<N>> ChunkKernel<N> for Lanes<'_, S> {
                 info: i,
                 out: o,
                 row,
-                probe_by_lane: by_lane,
             };
             // The block loop `$f` at `$lanes` lanes; every path passes the same arguments.
             macro_rules! advance {
@@ -594,13 +598,7 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
     every: usize,
     block: Block<'_, N>,
 ) {
-    let Block {
-        mu,
-        info,
-        out,
-        row,
-        probe_by_lane,
-    } = block;
+    let Block { mu, info, out, row } = block;
     let n = mu.len();
     let mut lanes = [[0.0; L]; N];
     let mut live = [false; L];
@@ -635,14 +633,9 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
         }
         stepper.step_lanes(h, &mut lanes);
         // x · 0 is 0 for finite x and NaN for ±∞ and NaN: one multiply-add per coordinate.
-        // The same sums in either order; which one compiles to vector code depends on the step
-        // before it (measured). After a by-lane step, lane by lane: coordinate by coordinate, the
-        // sums of 16 lanes compiled to shuffles there (a quarter of 3-D Lotka–Volterra's RK4).
-        // After a lane-inner step, coordinate by coordinate: lane by lane, the rigid body's RK4
-        // took 1.28× its time.
+        // The same sums in either order ([`LaneStepper::PROBE_BY_LANE`]).
         let mut probe = [0.0; L];
-        // (A block of PAIRED_LANES is the only one a by-lane stepper steps by lane.)
-        if probe_by_lane && L == PAIRED_LANES {
+        if S::PROBE_BY_LANE && L == PAIRED_LANES {
             for l in 0..L {
                 for c in 0..N {
                     probe[l] += lanes[c][l] * 0.0;

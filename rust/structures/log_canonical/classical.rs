@@ -301,6 +301,8 @@ where
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
     const CHECKS_DOMAIN: bool = true;
+    /// Measured with RK4 by lane and with the paired splittings.
+    const PROBE_BY_LANE: bool = true;
 
     /// Measured: the log splittings 0.44–0.70× the time of blocks of 8; RK4 in x lost
     /// (1.30–1.56×, its loop over H's terms spilling), so it keeps blocks of 8 unless by lane.
