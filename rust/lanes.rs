@@ -12,10 +12,11 @@
 //!
 //! **Dispatch.** The block loop is compiled for the baseline x86-64 (SSE2, two lanes per
 //! instruction), behind `#[target_feature(enable = "avx2,fma")]` for AVX2 (four lanes per
-//! instruction) and, for the steppers that take it ([`LaneStepper::AVX512`], by default those on
-//! N ≤ 3 coordinates), behind `#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]` (eight,
-//! in blocks of [`PAIRED_LANES`] where [`LaneStepper::avx512_paired`] says so), chosen once at
-//! run time with `is_x86_feature_detected!` ([`Isa::detect`]). `std::arch` needs no dependency and no
+//! instruction) and behind `#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]` (eight):
+//! blocks of [`PAIRED_LANES`] where [`LaneStepper::avx512_paired`] says so (at any N; stepped
+//! lane by lane where [`LaneStepper::avx512_by_lane`] says so), blocks of [`LANES`] where
+//! [`LaneStepper::AVX512`] does (by default N ≤ 3), chosen once at run time with
+//! `is_x86_feature_detected!` ([`Isa::detect`]). `std::arch` needs no dependency and no
 //! `unsafe` beyond the call of the feature-gated function.
 
 // Index loops over lanes and coordinates read as the formulas they evaluate.
