@@ -33,7 +33,7 @@ pub use crate::lane_field::{
 };
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
 use crate::step::{NewtonOptions, StepResult, StepStats};
-use crate::straight_line::{sized_mut, LieField};
+use crate::straight_line::{sized_mut, LieField, Se3QuadraticLinear, So3Quadratic};
 use crate::structures::lie_poisson::{CompiledLiePoisson, VectorField};
 
 /// Trajectories per rollout chunk (a multiple of [`WIDE_LANES`]).
@@ -366,18 +366,24 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
 /// The heavy top and the rigid body as a Lie–Poisson system: the variant of [`LieField`] is
 /// matched once a step, then its own RK4 runs (a straight-line kernel, or the compiled field).
 impl<const N: usize> LaneStepper<N> for Rk4<LieField<N>> {
-    /// The so(3) kernel's RK4 as the rigid body's (the compiled variant is unmeasured; the
-    /// se(3) one steps by lane, [`LaneStepper::avx512_by_lane`]).
+    /// The variant's own [`LaneField::AVX512_PAIRED`].
     #[inline(always)]
     fn avx512_paired(&self) -> bool {
-        matches!(self.system, LieField::So3(_))
+        match self.system {
+            LieField::Compiled(_) => <CompiledLiePoisson<N> as LaneField<N>>::AVX512_PAIRED,
+            LieField::So3(_) => <So3Quadratic as LaneField<3>>::AVX512_PAIRED,
+            LieField::Se3(_) => <Se3QuadraticLinear as LaneField<6>>::AVX512_PAIRED,
+        }
     }
 
-    /// The se(3) kernel: straight-line for each pattern of b (the so(3) one pairs lane-inner,
-    /// which read 0.91× the time of by lane).
+    /// The variant's own [`LaneField::AVX512_BY_LANE`].
     #[inline(always)]
     fn avx512_by_lane(&self) -> bool {
-        matches!(self.system, LieField::Se3(_))
+        match self.system {
+            LieField::Compiled(_) => <CompiledLiePoisson<N> as LaneField<N>>::AVX512_BY_LANE,
+            LieField::So3(_) => <So3Quadratic as LaneField<3>>::AVX512_BY_LANE,
+            LieField::Se3(_) => <Se3QuadraticLinear as LaneField<6>>::AVX512_BY_LANE,
+        }
     }
 
     #[inline(always)]

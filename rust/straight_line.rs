@@ -90,6 +90,10 @@ impl So3Quadratic {
 pub(crate) const SO3_MIDPOINT_SWEEPS: u32 = 2;
 
 impl LaneField<3> for So3Quadratic {
+    /// As the rigid body's (the same kernel): RK4 in blocks of 16 took 0.55× the time of
+    /// blocks of 8; by lane read 1.10× lane-inner.
+    const AVX512_PAIRED: bool = true;
+
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
         weighted_cross_lanes(&self.a, mu, out);

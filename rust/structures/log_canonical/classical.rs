@@ -203,7 +203,7 @@ where
         // compiler could not tell them apart from the block it stores to).
         let field = LinearField {
             a: *a,
-            b: *self.system.b(),
+            b: self.system.b,
             c: *self.system.structure.c(),
         };
         if L == PAIRED_LANES {

@@ -227,12 +227,6 @@ impl<const N: usize> LogSystem<N> {
         self.linear.as_ref()
     }
 
-    /// b, where H = Σ (terms) − b_i ln x_i.
-    #[inline(always)]
-    pub(super) fn b(&self) -> &[f64; N] {
-        &self.b
-    }
-
     /// ∂f/∂x at L states (`out[i][k][l]`), lane by lane in closed form: with g_j = x_j ∂H/∂x_j,
     /// ∂f_i/∂x_k = δ_ik (c g)_i + x_i Σ_j c_ij ∂g_j/∂x_k and ∂g_j/∂x_k = Σ_m a_m e_mj e_mk
     /// x^{e_m − 1_k}.
