@@ -164,6 +164,33 @@ impl DistanceSum {
         self.vars
     }
 
+    /// The scales 2w_ij (at `[i][j]`, i < j) where H = Σ_{i<j} w_ij ln r_ij² over every pair of
+    /// the N/2 points of the plane, point i at (x_{2i}, x_{2i+1}), its terms in the order
+    /// (0, 1), (0, 2), …, (1, 2), … and no polynomial: point vortices, whose gradient is then
+    /// the straight-line loop of [`crate::structures::point_vortices`]. None for any other H.
+    pub fn planar_log_pairs<const N: usize>(&self) -> Option<[[f64; N]; N]> {
+        let points = N / 2;
+        if self.vars != N || N % 2 != 0 || self.polynomial.is_some() {
+            return None;
+        }
+        let mut scale = [[0.0; N]; N];
+        let mut terms = self.terms.iter();
+        for i in 0..points {
+            for j in i + 1..points {
+                let t = terms.next()?;
+                let pair = t.radial == Radial::Log
+                    && t.dims == 2
+                    && t.a[..2] == [2 * i, 2 * i + 1]
+                    && t.b.is_some_and(|b| b[..2] == [2 * j, 2 * j + 1]);
+                if !pair {
+                    return None;
+                }
+                scale[i][j] = t.scale;
+            }
+        }
+        terms.next().is_none().then_some(scale)
+    }
+
     /// ∇H at L states at once (`x[i][l]`: coordinate i of lane l; `grad` overwritten). Every
     /// lane is computed alone, so a lane's bits do not depend on its neighbours.
     #[inline(always)]

@@ -24,6 +24,7 @@ use crate::stepper::NewtonOptions;
 use crate::structures::bivector::{DistanceField, HamiltonianField};
 use crate::structures::lie_groupoid::LieAlgebra;
 use crate::structures::lie_poisson::VectorField;
+use crate::structures::point_vortices::PointVortices;
 use crate::structures::PolynomialRealization;
 use crate::with_dim;
 
@@ -243,10 +244,16 @@ pub(super) fn rollout_hamiltonian_field<'py>(
         let field = field_of::<N>(&code, &a, &b, &c, &upper_index, &upper_coeffs, &upper_exponents, program.as_ref(), distances.as_ref())?;
         let x0 = states::<N>(&x0, "x0")?;
         match name {
-            "rk4" if field.has_distances() => {
-                let rk4 = crate::classical::Rk4 { system: DistanceField::new(field)? };
-                run_rollout(py, &Lanes::new(&rk4), &x0, h, n_steps, every, None)
-            }
+            "rk4" if field.has_distances() => match PointVortices::new(field) {
+                Ok(vortices) => {
+                    let rk4 = crate::classical::Rk4 { system: vortices };
+                    run_rollout(py, &Lanes::new(&rk4), &x0, h, n_steps, every, None)
+                }
+                Err(field) => {
+                    let rk4 = crate::classical::Rk4 { system: DistanceField::new(field)? };
+                    run_rollout(py, &Lanes::new(&rk4), &x0, h, n_steps, every, None)
+                }
+            },
             "rk4" => {
                 let rk4 = crate::classical::Rk4 { system: field };
                 run_rollout(py, &Lanes::new(&rk4), &x0, h, n_steps, every, None)

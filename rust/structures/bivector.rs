@@ -157,6 +157,27 @@ impl<const N: usize> HamiltonianField<N> {
         self.distances.is_some()
     }
 
+    /// H as a sum over distances, where it is one.
+    pub fn distances(&self) -> Option<&DistanceSum> {
+        self.distances.as_ref()
+    }
+
+    /// c_i where π's entries that are not zero are exactly the constants {x_{2i}, x_{2i+1}} =
+    /// c_i, one for each i < N/2 (the point vortices' bracket, c_i = 1/Γ_i); None otherwise.
+    pub fn constant_pair_blocks(&self) -> Option<[f64; N]> {
+        if N % 2 != 0 || self.entries.len() != N / 2 {
+            return None;
+        }
+        let mut c = [0.0; N];
+        for (p, &(i, j, _, constant)) in self.entries.iter().enumerate() {
+            if (i, j) != (2 * p, 2 * p + 1) {
+                return None;
+            }
+            c[p] = constant?;
+        }
+        Some(c)
+    }
+
     /// π∇H at W states, ∇H from the distance terms.
     #[inline(always)]
     fn distance_field<const W: usize>(

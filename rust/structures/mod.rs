@@ -6,7 +6,8 @@
 //! - [`log_canonical`]: π_ij = c_ij x_i x_j (Lotka–Volterra in any dimension), stepped in
 //!   q = ln x where the bracket is the constant matrix c and the groupoid is linear.
 //! - [`bivector`]: any polynomial bivector with any smooth Hamiltonian (an expression): its
-//!   vector field, for the classical baselines.
+//!   vector field, for the classical baselines; [`point_vortices`], its straight-line form for
+//!   vortices in the plane.
 //! - [`polynomial`]: any polynomial bivector, through an approximate realization of order n
 //!   whose maps and generating function arrive as polynomial coefficients.
 
@@ -14,6 +15,7 @@ pub mod bivector;
 pub mod lie_groupoid;
 pub mod lie_poisson;
 pub mod log_canonical;
+pub mod point_vortices;
 pub mod polynomial;
 pub mod polynomial_lanes;
 

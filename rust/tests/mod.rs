@@ -290,6 +290,7 @@ mod lie_poisson;
 mod log_canonical;
 mod model_files;
 mod network_lanes;
+mod point_vortices;
 mod polynomial;
 mod rollouts;
 mod se3_lanes;
