@@ -150,9 +150,12 @@ def poisson_rs_runner(system: str, core: ModuleType | None = None) -> Runner | N
         if not hasattr(core, "rollout_hamiltonian_field"):
             return None
         tables = (*expr.tape, *expr.terms.tables())
+        # The fast path that build's integrate takes: H's distance terms where it reads them.
+        extra = {} if expr.distances is None else {"distances": expr.distances.table()}
         return lambda x0, n: core.rollout_hamiltonian_field(
-            "rk4", *tables, x0, h, n, n, NEWTON_TOL, NEWTON_MAX_ITER, program=expr.field_program
-        )[0][:, -1]
+            "rk4", *tables, x0, h, n, n, NEWTON_TOL, NEWTON_MAX_ITER,
+            program=expr.field_program, **extra,
+        )[0][:, -1]  # fmt: skip
     if system == "lotka-volterra":
         lv = pr.lotka_volterra(LV_C, LV_B)
         if core is None:

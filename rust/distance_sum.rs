@@ -168,9 +168,10 @@ impl DistanceSum {
     /// the N/2 points of the plane, point i at (x_{2i}, x_{2i+1}), its terms in the order
     /// (0, 1), (0, 2), …, (1, 2), … and no polynomial: point vortices, whose gradient is then
     /// the straight-line loop of [`crate::structures::point_vortices`]. None for any other H.
+    #[allow(clippy::needless_range_loop)] // (i, j) name the points, not just the entry.
     pub fn planar_log_pairs<const N: usize>(&self) -> Option<[[f64; N]; N]> {
         let points = N / 2;
-        if self.vars != N || N % 2 != 0 || self.polynomial.is_some() {
+        if self.vars != N || !N.is_multiple_of(2) || self.polynomial.is_some() {
             return None;
         }
         let mut scale = [[0.0; N]; N];

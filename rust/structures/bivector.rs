@@ -165,7 +165,7 @@ impl<const N: usize> HamiltonianField<N> {
     /// c_i where π's entries that are not zero are exactly the constants {x_{2i}, x_{2i+1}} =
     /// c_i, one for each i < N/2 (the point vortices' bracket, c_i = 1/Γ_i); None otherwise.
     pub fn constant_pair_blocks(&self) -> Option<[f64; N]> {
-        if N % 2 != 0 || self.entries.len() != N / 2 {
+        if !N.is_multiple_of(2) || self.entries.len() != N / 2 {
             return None;
         }
         let mut c = [0.0; N];

@@ -209,7 +209,8 @@ fn other_systems_keep_the_distance_path() {
     from_origin[2] = (0, w, 0.0, 2, [2, 3, 0], [-1, -1, 0]);
     let mut crossed = in_order;
     crossed[0] = (0, w, 0.0, 2, [0, 3, 0], [2, 1, 0]);
-    let cases: [(&str, &[Term], &[(usize, usize, f64)]); 6] = [
+    type Case<'a> = (&'a str, &'a [Term], &'a [(usize, usize, f64)]);
+    let cases: [Case; 6] = [
         (
             "pairs out of order",
             &[in_order[1], in_order[0], in_order[2]],
@@ -250,4 +251,29 @@ fn other_systems_keep_the_distance_path() {
     // Points in space (three coordinates a point): N = 6 is two points, not three.
     let space = [(0, w, 0.0, 3, [0, 1, 2], [3, 4, 5])];
     assert!(PointVortices::new(system::<6>(&space, &blocks)).is_err());
+}
+
+/// Two lanes an iteration ([`rk4_by_lane_pairs`]) is RK4 lane by lane, bit for bit, on even
+/// blocks and on an odd one (its last lane run as a pair with itself).
+#[test]
+fn pairs_of_lanes_take_each_lanes_own_step() {
+    use crate::lane_field::{rk4_by_lane_pairs, rk4_with, AtTwoStates, LaneField};
+    fn check<const L: usize>(v: &PointVortices<6>, rng: &mut Rng) {
+        let mu: [[f64; L]; 6] =
+            std::array::from_fn(|_| std::array::from_fn(|_| rng.range(-1.5, 1.5)));
+        let (mut lanes, mut pairs) = (mu, mu);
+        rk4_with(v, 0.05, &mut lanes);
+        let f = AtTwoStates(|y: &[[f64; 2]; 6], o: &mut [[f64; 2]; 6]| v.field_lanes(y, o));
+        rk4_by_lane_pairs(&f, 0.05, &mut pairs);
+        assert_eq!(
+            lanes.map(|r| r.map(f64::to_bits)),
+            pairs.map(|r| r.map(f64::to_bits)),
+            "L = {L}"
+        );
+    }
+    let v = PointVortices::new(vortices::<6>(&[1.0, 1.0, 0.5])).unwrap();
+    let mut rng = Rng::new(0x9A125);
+    check::<1>(&v, &mut rng);
+    check::<5>(&v, &mut rng);
+    check::<16>(&v, &mut rng);
 }
