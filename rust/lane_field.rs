@@ -43,7 +43,7 @@ pub trait LaneField<const N: usize>: Sync {
     where
         Self: Sized,
     {
-        rk4_by_lane(self, h, mu);
+        rk4_by_lane::<N, L, 1, Self>(self, h, mu);
     }
 
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; N], out: &mut [[f64; L]; N]);
@@ -88,8 +88,8 @@ pub trait LaneField<const N: usize>: Sync {
     }
 }
 
-/// A field at L states as the RK4 kernels call it: every [`LaneField`], or a kernel at one state
-/// bound to copies of its constants ([`AtOneState`]). A trait, not a closure: a closure left
+/// A field at L states as the RK4 kernels call it: every [`LaneField`], or a kernel at K states
+/// bound to copies of its constants ([`AtStates`]). A trait, not a closure: a closure left
 /// out of line is compiled without the caller's target features (an interpreted field's RK4
 /// ran 1.09–1.14× slower through one).
 pub trait FieldAt<const N: usize, const L: usize> {
@@ -103,12 +103,14 @@ impl<const N: usize, const L: usize, F: LaneField<N>> FieldAt<N, L> for F {
     }
 }
 
-/// A straight-line kernel at one state, `(y, out)`, as a [`FieldAt`] for [`rk4_by_lane`].
-pub struct AtOneState<C>(pub C);
+/// A straight-line kernel at K states, `(y, out)`, as a [`FieldAt`] for [`rk4_by_lane`].
+pub struct AtStates<const K: usize, C>(pub C);
 
-impl<const N: usize, C: Fn(&[[f64; 1]; N], &mut [[f64; 1]; N])> FieldAt<N, 1> for AtOneState<C> {
+impl<const N: usize, const K: usize, C: Fn(&[[f64; K]; N], &mut [[f64; K]; N])> FieldAt<N, K>
+    for AtStates<K, C>
+{
     #[inline(always)]
-    fn field_at(&self, y: &[[f64; 1]; N], out: &mut [[f64; 1]; N]) {
+    fn field_at(&self, y: &[[f64; K]; N], out: &mut [[f64; K]; N]) {
         (self.0)(y, out);
     }
 }
@@ -141,65 +143,40 @@ pub fn rk4_with<const N: usize, const L: usize, F: FieldAt<N, L>>(
 }
 
 /// [`rk4_with`] at L states with the loop over lanes outermost: each lane runs the scalar
-/// step's code (`f` at one state), and the compiler vectorises that loop across lanes, one
-/// register a coordinate. The same operations, so the same bits. For AVX-512 blocks of a field
-/// whose lane-inner form the compiler packs badly: at N = 6 it packs pairs of coordinates into
-/// 128-bit halves (the heavy top's RK4 took 3.7× its AVX2 time), where this form is one vector
-/// instruction an operation. `f` must be straight-line code (a branch in it keeps the loop
-/// scalar) on constants the loop holds in registers (copies, [`AtOneState`]).
+/// step's code (`f` at K states, lanes l, l + L/K, …, each its own chain of operations), and the
+/// compiler vectorises that loop across lanes, one register a coordinate. The same operations,
+/// so the same bits. For AVX-512 blocks of a field whose lane-inner form the compiler packs
+/// badly: at N = 6 it packs pairs of coordinates into 128-bit halves (the heavy top's RK4 took
+/// 3.7× its AVX2 time), where this form is one vector instruction an operation. `f` must be
+/// straight-line code (a branch in it keeps the loop scalar) on constants the loop holds in
+/// registers (copies, [`AtStates`]).
+///
+/// K = 2 puts twice the independent work in flight, for a step whose one chain is
+/// latency-bound (the point vortices' divisions: 0.72× the time of K = 1); a field with many
+/// coordinates and no division runs out of registers that way (the heavy top's RK4 took 1.1×
+/// its time). Where K does not divide L, each of the last lanes runs as K copies of itself.
 #[inline(always)]
-pub fn rk4_by_lane<const N: usize, const L: usize, F: FieldAt<N, 1>>(
+pub fn rk4_by_lane<const N: usize, const L: usize, const K: usize, F: FieldAt<N, K>>(
     f: &F,
     h: f64,
     mu: &mut [[f64; L]; N],
 ) {
-    for l in 0..L {
-        let mut one: [[f64; 1]; N] = std::array::from_fn(|i| [mu[i][l]]);
-        rk4_with(f, h, &mut one);
+    let stride = L / K;
+    for l in 0..stride {
+        let mut some: [[f64; K]; N] =
+            std::array::from_fn(|i| std::array::from_fn(|j| mu[i][l + j * stride]));
+        rk4_with(f, h, &mut some);
         for i in 0..N {
-            mu[i][l] = one[i][0];
+            for j in 0..K {
+                mu[i][l + j * stride] = some[i][j];
+            }
         }
     }
-}
-
-/// A straight-line kernel at two states, `(y, out)`, as a [`FieldAt`] for
-/// [`rk4_by_lane_pairs`].
-pub struct AtTwoStates<C>(pub C);
-
-impl<const N: usize, C: Fn(&[[f64; 2]; N], &mut [[f64; 2]; N])> FieldAt<N, 2> for AtTwoStates<C> {
-    #[inline(always)]
-    fn field_at(&self, y: &[[f64; 2]; N], out: &mut [[f64; 2]; N]) {
-        (self.0)(y, out);
-    }
-}
-
-/// [`rk4_by_lane`] with two lanes an iteration, l and l + L/2, each its own chain of the same
-/// operations (so the same bits): twice the independent work in flight, for a step whose one
-/// chain is latency-bound (the point vortices' divisions: 0.72× the time of one lane an
-/// iteration). A field with many coordinates runs out of registers this way (the heavy top's
-/// RK4 took 1.1× its time).
-#[inline(always)]
-pub fn rk4_by_lane_pairs<const N: usize, const L: usize, F: FieldAt<N, 2>>(
-    f: &F,
-    h: f64,
-    mu: &mut [[f64; L]; N],
-) {
-    let half = L / 2;
-    for l in 0..half {
-        let mut two: [[f64; 2]; N] = std::array::from_fn(|i| [mu[i][l], mu[i][l + half]]);
-        rk4_with(f, h, &mut two);
+    for l in stride * K..L {
+        let mut copies: [[f64; K]; N] = std::array::from_fn(|i| [mu[i][l]; K]);
+        rk4_with(f, h, &mut copies);
         for i in 0..N {
-            mu[i][l] = two[i][0];
-            mu[i][l + half] = two[i][1];
-        }
-    }
-    if L % 2 == 1 {
-        // An odd block's last lane, as a pair with a copy of itself.
-        let last = L - 1;
-        let mut two: [[f64; 2]; N] = std::array::from_fn(|i| [mu[i][last]; 2]);
-        rk4_with(f, h, &mut two);
-        for i in 0..N {
-            mu[i][last] = two[i][0];
+            mu[i][l] = copies[i][0];
         }
     }
 }

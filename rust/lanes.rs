@@ -28,7 +28,7 @@ use crate::classical::{ImplicitMidpoint, RigidBody, Rk4};
 use crate::error::StepFailure;
 pub use crate::isa::{Isa, AVX512_MAX_DIM, LANES};
 pub use crate::lane_field::{
-    midpoint_predictor_lanes, midpoint_update_lanes, rk4_by_lane, rk4_with, AtOneState, FieldAt,
+    midpoint_predictor_lanes, midpoint_update_lanes, rk4_by_lane, rk4_with, AtStates, FieldAt,
     LaneField, MidpointSolve,
 };
 use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};

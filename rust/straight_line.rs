@@ -30,7 +30,7 @@
 use nalgebra::{Const, DimMin, SMatrix};
 
 use crate::error::StepFailure;
-use crate::lane_field::{rk4_by_lane, AtOneState, LaneField, MidpointSolve};
+use crate::lane_field::{rk4_by_lane, AtStates, LaneField, MidpointSolve};
 use crate::structures::lie_poisson::{
     lie_poisson_rate, CompiledLiePoisson, Hamiltonian, LiePoisson, VectorField,
 };
@@ -300,7 +300,7 @@ impl LaneField<6> for Se3QuadraticLinear {
     fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 6]) {
         let a = self.a;
         with_torque!(self.torque, t => {
-            let f = AtOneState(|y: &[[f64; 1]; 6], o: &mut [[f64; 1]; 6]| se3_lanes(&a, y, o, t));
+            let f = AtStates::<1, _>(|y: &[[f64; 1]; 6], o: &mut [[f64; 1]; 6]| se3_lanes(&a, y, o, t));
             rk4_by_lane(&f, h, mu);
         })
     }

@@ -6,7 +6,7 @@
 //! each term's coordinates at run-time indices, so its gradient and field go through memory and
 //! have no by-lane form. Here the pairs are loops over constants the compiler unrolls: the
 //! field stays in registers, and RK4 runs by lane in AVX-512 blocks, two lanes an iteration
-//! ([`crate::lane_field::rk4_by_lane_pairs`]). The same operations in the same order as the generic
+//! ([`crate::lane_field::rk4_by_lane`] with K = 2). The same operations in the same order as the generic
 //! path, so the same bits (`rust/tests/point_vortices.rs`).
 
 // Index loops over points and lanes read as the formulas they evaluate.
@@ -14,7 +14,7 @@
 
 use nalgebra::SMatrix;
 
-use crate::lane_field::{rk4_by_lane_pairs, AtTwoStates, LaneField};
+use crate::lane_field::{rk4_by_lane, AtStates, LaneField};
 use crate::structures::bivector::HamiltonianField;
 use crate::structures::lie_poisson::VectorField;
 
@@ -109,10 +109,10 @@ impl<const N: usize> LaneField<N> for PointVortices<N> {
     #[inline(always)]
     fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; N]) {
         let (scale, bracket) = (self.scale, self.bracket);
-        let f = AtTwoStates(|y: &[[f64; 2]; N], o: &mut [[f64; 2]; N]| {
+        let f = AtStates::<2, _>(|y: &[[f64; 2]; N], o: &mut [[f64; 2]; N]| {
             vortices_lanes(&scale, &bracket, y, o)
         });
-        rk4_by_lane_pairs(&f, h, mu);
+        rk4_by_lane(&f, h, mu);
     }
 
     #[inline(always)]

@@ -253,23 +253,24 @@ fn other_systems_keep_the_distance_path() {
     assert!(PointVortices::new(system::<6>(&space, &blocks)).is_err());
 }
 
-/// Two lanes an iteration ([`rk4_by_lane_pairs`]) is RK4 lane by lane, bit for bit, on even
-/// blocks and on an odd one (its last lane run as a pair with itself).
+/// By lane, one or two lanes an iteration ([`rk4_by_lane`]), is RK4 lane by lane, bit for bit,
+/// on even blocks and on odd ones (the last lane run as a pair with itself).
 #[test]
-fn pairs_of_lanes_take_each_lanes_own_step() {
-    use crate::lane_field::{rk4_by_lane_pairs, rk4_with, AtTwoStates, LaneField};
+fn by_lane_takes_each_lanes_own_step() {
+    use crate::lane_field::{rk4_by_lane, rk4_with, AtStates, LaneField};
     fn check<const L: usize>(v: &PointVortices<6>, rng: &mut Rng) {
         let mu: [[f64; L]; 6] =
             std::array::from_fn(|_| std::array::from_fn(|_| rng.range(-1.5, 1.5)));
         let (mut lanes, mut pairs) = (mu, mu);
         rk4_with(v, 0.05, &mut lanes);
-        let f = AtTwoStates(|y: &[[f64; 2]; 6], o: &mut [[f64; 2]; 6]| v.field_lanes(y, o));
-        rk4_by_lane_pairs(&f, 0.05, &mut pairs);
-        assert_eq!(
-            lanes.map(|r| r.map(f64::to_bits)),
-            pairs.map(|r| r.map(f64::to_bits)),
-            "L = {L}"
-        );
+        let bits = |m: &[[f64; L]; 6]| m.map(|r| r.map(f64::to_bits));
+        let f = AtStates::<2, _>(|y: &[[f64; 2]; 6], o: &mut [[f64; 2]; 6]| v.field_lanes(y, o));
+        rk4_by_lane(&f, 0.05, &mut pairs);
+        assert_eq!(bits(&lanes), bits(&pairs), "pairs, L = {L}");
+        let mut ones = mu;
+        let f = AtStates::<1, _>(|y: &[[f64; 1]; 6], o: &mut [[f64; 1]; 6]| v.field_lanes(y, o));
+        rk4_by_lane(&f, 0.05, &mut ones);
+        assert_eq!(bits(&lanes), bits(&ones), "one lane, L = {L}");
     }
     let v = PointVortices::new(vortices::<6>(&[1.0, 1.0, 0.5])).unwrap();
     let mut rng = Rng::new(0x9A125);
