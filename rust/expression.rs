@@ -357,8 +357,10 @@ fn slots(ops: &[Op], outputs: &[usize]) -> Result<(Vec<u16>, usize), CoreError> 
 /// Lanes of one block of [`Expression::values_lanes`] (the rollouts' SIMD width).
 pub const BLOCK: usize = crate::isa::LANES;
 /// Lanes of a wide block, for calls of at least that many lanes: each instruction's dispatch
-/// (the match, the operand lookups) is paid once for four times the arithmetic.
-pub const WIDE_BLOCK: usize = 4 * BLOCK;
+/// (the match, the operand lookups) is paid once for eight times the arithmetic (the rollouts'
+/// AVX-512 wide blocks, [`crate::lanes::WIDE512_LANES`]; their AVX2 blocks of 32 run as one
+/// block too).
+pub const WIDE_BLOCK: usize = 8 * BLOCK;
 
 thread_local! {
     /// The value registers of [`Expression::values_lanes`] on this thread, flat (register r of
@@ -1434,5 +1436,8 @@ mod tests {
         check::<8>(&e, 2);
         check::<32>(&e, 3);
         check::<40>(&e, 4);
+        check::<64>(&e, 5);
+        // More than a wide block: in blocks of WIDE_BLOCK, the last one padded.
+        check::<100>(&e, 6);
     }
 }

@@ -284,6 +284,7 @@ mod bisection_lanes;
 mod charts;
 mod derivatives;
 mod exp_chart_lanes;
+mod expression_field;
 mod lanes;
 mod layout;
 mod lie_poisson;
