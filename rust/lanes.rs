@@ -15,7 +15,9 @@
 //! instruction) and behind `#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]` (eight):
 //! blocks of [`PAIRED_LANES`] where [`LaneStepper::avx512_paired`] says so (at any N; stepped
 //! lane by lane where [`LaneStepper::avx512_by_lane`] says so), blocks of [`LANES`] where
-//! [`LaneStepper::AVX512`] does (by default N ≤ 3), chosen once at run time with
+//! [`LaneStepper::AVX512`] does (by default N ≤ 3), a wide stepper's blocks of
+//! [`WIDE512_LANES`] where there are more than [`WIDE_LANES`] trajectories, chosen once at run
+//! time with
 //! `is_x86_feature_detected!` ([`Isa::detect`]). `std::arch` needs no dependency and no
 //! `unsafe` beyond the call of the feature-gated function.
 
@@ -107,9 +109,10 @@ pub trait LaneStepper<const N: usize>: Sync {
     /// residuals, failures) that the block loop must record after every step.
     const REPORTS: bool = false;
 
-    /// Whether blocks of [`WIDE_LANES`] trajectories pay (rather than [`LANES`]): for work
-    /// whose cost per instruction does not grow with the lanes (an interpreted program's
-    /// dispatch). A block of at most [`LANES`] live trajectories stays narrow.
+    /// Whether blocks of [`WIDE_LANES`] trajectories pay (rather than [`LANES`]; of
+    /// [`WIDE512_LANES`] on AVX-512): for work whose cost per instruction does not grow with the
+    /// lanes (an interpreted program's dispatch). A block of at most [`LANES`] live trajectories
+    /// stays narrow.
     const WIDE: bool = false;
 
     /// Whether the stepper has a domain beyond finite states (the block loop then asks
