@@ -12,34 +12,25 @@ use crate::structures::SparsePolynomial;
 /// The extended pendulum's field as `benches/peers.py`'s peers write it, as a program in
 /// (u, v, r): u̇ = −sin v, v̇ = u + r − u² − v², ṙ = 2(u u̇ + v v̇).
 fn pendulum_program() -> Expression {
-    const VAR: i64 = 0;
-    const CONST: i64 = 1;
-    const ADD: i64 = 2;
-    const SUB: i64 = 3;
-    const MUL: i64 = 4;
-    const NEG: i64 = 6;
-    const SIN: i64 = 11;
+    let [var, constant, add, sub, mul, neg, sin] =
+        ["var", "const", "add", "sub", "mul", "neg", "sin"].map(opcode);
     #[rustfmt::skip]
-    let tape: [(i64, i64, i64, f64); 15] = [
-        (VAR, 0, 0, 0.0), (VAR, 1, 0, 0.0), (VAR, 2, 0, 0.0),   // 0 u, 1 v, 2 r
-        (SIN, 1, 0, 0.0), (NEG, 3, 0, 0.0),                     // 4 u̇
-        (MUL, 0, 0, 0.0), (MUL, 1, 1, 0.0), (ADD, 0, 2, 0.0),   // 5 u², 6 v², 7 u + r
-        (SUB, 7, 5, 0.0), (SUB, 8, 6, 0.0),                     // 9 v̇
-        (MUL, 0, 4, 0.0), (MUL, 1, 9, 0.0), (ADD, 10, 11, 0.0), // 12 u u̇ + v v̇
-        (CONST, 0, 0, 2.0), (MUL, 13, 12, 0.0),                 // 14 ṙ
+    let rows: [TapeRow; 15] = [
+        (var, 0, 0, 0.0), (var, 1, 0, 0.0), (var, 2, 0, 0.0),   // 0 u, 1 v, 2 r
+        (sin, 1, 0, 0.0), (neg, 3, 0, 0.0),                     // 4 u̇
+        (mul, 0, 0, 0.0), (mul, 1, 1, 0.0), (add, 0, 2, 0.0),   // 5 u², 6 v², 7 u + r
+        (sub, 7, 5, 0.0), (sub, 8, 6, 0.0),                     // 9 v̇
+        (mul, 0, 4, 0.0), (mul, 1, 9, 0.0), (add, 10, 11, 0.0), // 12 u u̇ + v v̇
+        (constant, 0, 0, 2.0), (mul, 13, 12, 0.0),              // 14 ṙ
     ];
-    let code: Vec<i64> = tape.iter().map(|t| t.0).collect();
-    let a: Vec<i64> = tape.iter().map(|t| t.1).collect();
-    let b: Vec<i64> = tape.iter().map(|t| t.2).collect();
-    let c: Vec<f64> = tape.iter().map(|t| t.3).collect();
-    Expression::program(3, &code, &a, &b, &c, &[4, 9, 14]).unwrap()
+    tape(3, &rows, Some(&[4, 9, 14]))
 }
 
 #[test]
 fn rk4_on_an_interpreted_field_takes_each_lanes_scalar_step() {
     let zero = || SparsePolynomial::new(3, &[], &[]).unwrap();
     // H (read only by the Jacobian, which RK4 does not use): u.
-    let h = Expression::from_table(3, &[0], &[0], &[0], &[0.0]).unwrap();
+    let h = tape(3, &[(opcode("var"), 0, 0, 0.0)], None);
     let field = HamiltonianField::<3>::new(
         vec![zero(), zero(), zero()],
         h,

@@ -85,6 +85,30 @@ fn same_bits(a: &[f64], b: &[f64]) -> bool {
 }
 
 /// Every instruction set this CPU runs: the portable path, and the detected one if wider.
+/// One row (opcode, a, b, c) of an expression's table, as the bindings receive it.
+type TapeRow = (i64, i64, i64, f64);
+
+/// The opcode of `name` in an expression's table ([`crate::expression::OPCODES`]).
+fn opcode(name: &str) -> i64 {
+    crate::expression::OPCODES
+        .iter()
+        .position(|&n| n == name)
+        .expect("an opcode") as i64
+}
+
+/// The program of `rows` in `vars` variables with these outputs (None: one output, the last
+/// row, as a Hamiltonian).
+fn tape(vars: usize, rows: &[TapeRow], outputs: Option<&[i64]>) -> crate::expression::Expression {
+    let column = |f: fn(&TapeRow) -> i64| rows.iter().map(f).collect::<Vec<_>>();
+    let (code, a, b) = (column(|t| t.0), column(|t| t.1), column(|t| t.2));
+    let c: Vec<f64> = rows.iter().map(|t| t.3).collect();
+    match outputs {
+        None => crate::expression::Expression::from_table(vars, &code, &a, &b, &c),
+        Some(o) => crate::expression::Expression::program(vars, &code, &a, &b, &c, o),
+    }
+    .unwrap()
+}
+
 fn isas() -> Vec<crate::lanes::Isa> {
     use crate::lanes::Isa;
     // Every path this CPU runs: the baseline, AVX2 and AVX-512 where detected.

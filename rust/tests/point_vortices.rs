@@ -27,58 +27,44 @@ fn pair(i: i64, j: i64, w: f64) -> Term {
 /// H = Σ_k w_k φ_k(r_k²) as an expression tape (code, a, b, c), for the jets' ∇H: φ = ln or a
 /// power, a second point of −1s the origin.
 fn distances_expression(vars: usize, terms: &[Term]) -> Expression {
-    const VAR: i64 = 0;
-    const CONST: i64 = 1;
-    const ADD: i64 = 2;
-    const SUB: i64 = 3;
-    const MUL: i64 = 4;
-    const POWF: i64 = 8;
-    const LOG: i64 = 10;
-    let mut tape: Vec<(i64, i64, i64, f64)> = Vec::new();
-    let mut push = |op: (i64, i64, i64, f64)| {
-        tape.push(op);
-        tape.len() as i64 - 1
+    let [var, constant, add, sub, mul, powf, log] =
+        ["var", "const", "add", "sub", "mul", "powf", "log"].map(opcode);
+    let mut rows: Vec<TapeRow> = Vec::new();
+    let mut push = |row: TapeRow| {
+        rows.push(row);
+        rows.len() as i64 - 1
     };
     let mut total = None;
     for &(radial, w, power, dims, a, b) in terms {
         let mut q = None;
         for d in 0..dims as usize {
-            let xa = push((VAR, a[d], 0, 0.0));
+            let xa = push((var, a[d], 0, 0.0));
             let diff = match b[d] {
                 -1 => xa,
                 bd => {
-                    let xb = push((VAR, bd, 0, 0.0));
-                    push((SUB, xa, xb, 0.0))
+                    let xb = push((var, bd, 0, 0.0));
+                    push((sub, xa, xb, 0.0))
                 }
             };
-            let square = push((MUL, diff, diff, 0.0));
+            let square = push((mul, diff, diff, 0.0));
             q = Some(match q {
                 None => square,
-                Some(q) => push((ADD, q, square, 0.0)),
+                Some(q) => push((add, q, square, 0.0)),
             });
         }
         let q = q.unwrap();
         let phi = match radial {
-            0 => push((LOG, q, 0, 0.0)),
-            _ => push((POWF, q, 0, power)),
+            0 => push((log, q, 0, 0.0)),
+            _ => push((powf, q, 0, power)),
         };
-        let weight = push((CONST, 0, 0, w));
-        let term = push((MUL, weight, phi, 0.0));
+        let weight = push((constant, 0, 0, w));
+        let term = push((mul, weight, phi, 0.0));
         total = Some(match total {
             None => term,
-            Some(t) => push((ADD, t, term, 0.0)),
+            Some(t) => push((add, t, term, 0.0)),
         });
     }
-    let column = |f: fn(&(i64, i64, i64, f64)) -> i64| tape.iter().map(f).collect::<Vec<_>>();
-    let c: Vec<f64> = tape.iter().map(|t| t.3).collect();
-    Expression::from_table(
-        vars,
-        &column(|t| t.0),
-        &column(|t| t.1),
-        &column(|t| t.2),
-        &c,
-    )
-    .unwrap()
+    tape(vars, &rows, None)
 }
 
 /// The expression system of H = Σ terms on the bracket whose upper triangle has the constant
