@@ -475,10 +475,12 @@ fn learned_se3_lane_solve_equals_the_generic_step() {
 
 /// A learned log-canonical S (the exact t-linear terms of a Lotka–Volterra H plus a random
 /// network, plain inputs) stepped by [`LearnedLogStepper`] in lanes against the generic
-/// dual-number step of the same integrator, on PNN's 2-D system and a 5-D one (one Casimir): the
-/// same states to 1e-12 over 20 steps of 13 states, the same Newton counts; `step` and
+/// dual-number step of the same integrator (full Newton from the whole S's start), on PNN's 2-D
+/// system and a 5-D one (one Casimir): the same states to 1e-12 over 20 steps of 13 states; the
+/// same Newton counts for a t⁵ network term (the shipped models' power), at most one update more
+/// for a t³ one (the lanes keep the network's Hessian from their first update); `step` and
 /// `step_batch` in blocks of 1, 5, 8 and 13 give the same bits; a network too wide for the lanes
-/// takes the generic step itself.
+/// takes the generic step itself, with its counts.
 #[test]
 fn learned_log_canonical_steps_in_lanes_equal_the_generic_step() {
     let mut rng = Rng::new(0x4E7_1A52);
@@ -528,9 +530,14 @@ fn check_learned_log<const N: usize>(
     Const<N>: DimMin<Const<N>, Output = Const<N>>,
 {
     use crate::structures::log_canonical::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
-    for width in [6, NETWORK_LANES_MAX_WIDTH + 4] {
-        let mut network = network::<N>(rng, width, MlpInputs::Plain);
-        network.mlp_power = 3;
+    // (width, m): the lanes (narrow) and the batched kernel (wide); m = 5 is the shipped
+    // models' power, m = 3 a network term 100× larger at h = 0.1.
+    for (width, power) in [(6, 5), (6, 3), (NETWORK_LANES_MAX_WIDTH + 1, 3)] {
+        let mut network = network::<N>(rng, width.min(6), MlpInputs::Plain);
+        if width > NETWORK_LANES_MAX_WIDTH {
+            network.mlp = Some(super::mlp_with_widths(rng, &[N + 1, width, 1], 1.0));
+        }
+        network.mlp_power = power;
         let wide = network.network_lanes().is_none();
         let s = LearnedExp::new(taylor.clone(), network).unwrap();
         let stepper = LearnedLogStepper(LearnedLogBisection::unit_scale(
@@ -549,13 +556,23 @@ fn check_learned_log<const N: usize>(
             for _ in 0..20 {
                 let ra = stepper.step(0.1, &mut a, &mut ws).unwrap();
                 let rb = stepper.0.step(0.1, &mut b, &mut ws).unwrap();
-                assert_eq!(ra.iterations, rb.iterations, "Newton counts");
+                // The lanes start from the Taylor terms alone and keep the network's Hessian
+                // from their first update (full Newton refreshes all of it): the same updates
+                // where the term is t⁵-small, at most one more where it is t³.
+                if wide || power == 5 {
+                    assert_eq!(ra.iterations, rb.iterations, "Newton counts, m = {power}");
+                } else {
+                    assert!(
+                        ra.iterations <= rb.iterations + 1,
+                        "Newton counts, m = {power}"
+                    );
+                }
                 worst = worst.max((0..N).fold(0.0f64, |m, i| m.max((a[i] - b[i]).abs())));
             }
         }
         assert!(
             worst <= 1e-12,
-            "N = {N}, width {width}: lanes vs generic {worst:e}"
+            "N = {N}, width {width}, m = {power}: lanes vs generic {worst:e}"
         );
         let mut one = states.clone();
         for q in &mut one {

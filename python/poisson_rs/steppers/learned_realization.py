@@ -114,8 +114,10 @@ class LearnedLogCanonicalIntegrator(_LearnedRealizationIntegrator):
     """A learned generating function on the exact log-canonical groupoid, read from a model file
     whose metadata says ``structure = log_canonical``
     (:mod:`poisson_rs.realizations.log_canonical_hj`): S(t, q) = exact Taylor terms +
-    t^m·MLP(t, q) in q = ln x. A step solves q + ½ c ∇S(h, q) = ln x_k by full Newton in Rust
-    (|δ|∞ ≤ tol · max(|q|∞, 1)) and returns x_{k+1} = exp(q − ½ c ∇S(h, q)): a Poisson map that
+    t^m·MLP(t, q) in q = ln x. A step solves q + ½ c ∇S(h, q) = ln x_k by Newton in Rust
+    (|δ|∞ ≤ tol · max(|q|∞, 1); started from the Taylor terms' q_k − ½ c ∇S(q_k), the t^m-small
+    network term's Hessian taken at the first update and kept) and returns
+    x_{k+1} = exp(q − ½ c ∇S(h, q)): a Poisson map that
     keeps every monomial Casimir to round-off whatever the network learned. States are x > 0.
     Built by :func:`load_model`.
     """

@@ -62,11 +62,29 @@ impl<const N: usize> Generating<N> for LearnedExp<N> {
 }
 
 impl<const N: usize> LogLaneGenerating<N> for LearnedExp<N> {
-    /// The Taylor terms' closed form plus the network term in lanes. Only called where the
-    /// network fits the lanes ([`GeneratingFunction::network_lanes`]); anywhere else the
-    /// derivatives are NaN, so that a misuse fails as NonFinite instead of dropping the term.
+    const NETWORK: bool = true;
+
+    /// The Taylor terms' gradient alone.
     #[inline(always)]
-    fn derivatives_lanes<const L: usize, const HESS: bool>(
+    fn start_gradient_lanes<const L: usize>(
+        &self,
+        t: f64,
+        t_powers: &[f64; T_POWERS],
+        q: &[[f64; L]; N],
+        _: &mut [LaneRow],
+        g: &mut [[f64; L]; N],
+        hs: &mut [[[f64; L]; N]; N],
+        _: &mut [[[f64; L]; N]; N],
+    ) {
+        self.taylor.taylor_lanes::<L, false>(t, t_powers, q, g, hs);
+    }
+
+    /// The Taylor terms' closed form plus the network term in lanes, its Hessian (with
+    /// `NET_HESS`) in `hn`. Only called where the network fits the lanes
+    /// ([`GeneratingFunction::network_lanes`]); anywhere else the derivatives are NaN, so that a
+    /// misuse fails as NonFinite instead of dropping the term.
+    #[inline(always)]
+    fn derivatives_lanes<const L: usize, const HESS: bool, const NET_HESS: bool>(
         &self,
         t: f64,
         t_powers: &[f64; T_POWERS],
@@ -74,6 +92,7 @@ impl<const N: usize> LogLaneGenerating<N> for LearnedExp<N> {
         buf: &mut [LaneRow],
         g: &mut [[f64; L]; N],
         hs: &mut [[[f64; L]; N]; N],
+        hn: &mut [[[f64; L]; N]; N],
     ) {
         self.taylor.taylor_lanes::<L, HESS>(t, t_powers, q, g, hs);
         let Some(net) = self.network.network_lanes() else {
@@ -85,17 +104,15 @@ impl<const N: usize> LogLaneGenerating<N> for LearnedExp<N> {
             g: [[0.0; L]; N],
             h: [[[0.0; L]; N]; N],
         };
-        net.add_jet_lanes::<N, L, HESS>(t, q, buf, &mut jet);
+        net.add_jet_lanes::<N, L, NET_HESS>(t, q, buf, &mut jet);
         for a in 0..N {
             for l in 0..L {
                 g[a][l] += jet.g[a][l];
             }
-            if HESS {
+            if NET_HESS {
                 for b in a..N {
-                    for l in 0..L {
-                        hs[a][b][l] += jet.h[a][b][l];
-                    }
-                    hs[b][a] = hs[a][b];
+                    hn[a][b] = jet.h[a][b];
+                    hn[b][a] = jet.h[a][b];
                 }
             }
         }
