@@ -12,7 +12,7 @@ use crate::classical::ImplicitMidpoint;
 use crate::dual::Dual1;
 use crate::error::{CoreError, StepFailure};
 use crate::exp::{exp_lanes, EXP_MAX, EXP_MIN};
-use crate::lane_field::{FieldAt, LaneField};
+use crate::lane_field::{by_lane, FieldAt, LaneField, StepAt};
 use crate::lanes::{LaneStepper, PAIRED_LANES};
 use crate::step::{NewtonOptions, StepMap, StepResult, StepStats};
 use crate::structures::lie_poisson::VectorField;
@@ -80,6 +80,16 @@ impl<const N: usize, const L: usize> FieldAt<N, L> for LinearField<N> {
     #[inline(always)]
     fn field_at(&self, y: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
         linear_field_lanes(&self.a, &self.b, &self.c, y, out);
+    }
+}
+
+/// [`rk4_in_x`] of a field, as a [`StepAt`] (for [`by_lane`]).
+struct Rk4InX<'a, F>(&'a F);
+
+impl<const N: usize, const K: usize, F: FieldAt<N, K>> StepAt<N, K> for Rk4InX<'_, F> {
+    #[inline(always)]
+    fn step_at(&self, h: f64, y: &mut [[f64; K]; N]) {
+        rk4_in_x(self.0, h, y);
     }
 }
 
@@ -207,13 +217,7 @@ where
             c: *self.system.structure.c(),
         };
         if L == PAIRED_LANES {
-            for l in 0..L {
-                let mut one: [[f64; 1]; N] = std::array::from_fn(|i| [x[i][l]]);
-                rk4_in_x(&field, h, &mut one);
-                for i in 0..N {
-                    x[i][l] = one[i][0];
-                }
-            }
+            by_lane::<N, L, 1, _>(&Rk4InX(&field), h, x);
         } else {
             rk4_in_x(&field, h, x);
         }
