@@ -33,7 +33,7 @@ pub use crate::lane_field::{
     midpoint_predictor_lanes, midpoint_update_lanes, rk4_by_lane, rk4_with, AtStates, FieldAt,
     LaneField, MidpointSolve,
 };
-use crate::rollout::{record_step, ChunkKernel, TrajectoryInfo};
+use crate::rollout::{record_of, record_step, ChunkKernel, TrajectoryInfo};
 use crate::step::{NewtonOptions, StepResult, StepStats};
 use crate::straight_line::{sized_mut, LieField, Se3QuadraticLinear, So3Quadratic};
 use crate::structures::lie_poisson::{CompiledLiePoisson, VectorField};
@@ -325,18 +325,13 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
         }
         // m += δ in the active lanes and the scalar step's test |δ|∞ ≤ tol·max(|m|∞, 1e-300),
         // for all lanes at once (the maxima folded in the scalar `max_abs`'s order).
-        let (mut dmax, mut mmax) = ([0.0f64; L], [0.0f64; L]);
-        for i in 0..N {
-            for l in 0..L {
-                m[i][l] = if active[l] {
-                    m[i][l] + wide[i][l]
-                } else {
-                    m[i][l]
-                };
-                dmax[l] = dmax[l].max(wide[i][l].abs());
-                mmax[l] = mmax[l].max(m[i][l].abs());
-            }
-        }
+        // Every lane active (the rule) needs no choice per entry in a block of two registers a
+        // coordinate: see [`midpoint_predictor_lanes`] for what one costs there.
+        let (dmax, mmax) = if L > LANES && !active.contains(&false) {
+            add_update::<N, L, true>(&mut m, &wide, &active)
+        } else {
+            add_update::<N, L, false>(&mut m, &wide, &active)
+        };
         for l in 0..L {
             if active[l] && dmax[l] <= newton.tol * mmax[l].max(1e-300) {
                 active[l] = false;
@@ -347,18 +342,13 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
     }
     f.field_lanes(&m, &mut fm);
     // The scalar step's residual (its `max_abs`, folded in the same order) and μ + h f(m), for
-    // all lanes at once; only the converged lanes keep them.
-    let mut residual = [0.0f64; L];
-    let mut finite = [true; L];
-    for i in 0..N {
-        for l in 0..L {
-            let r = m[i][l] - mu0[i][l] - half * fm[i][l];
-            residual[l] = residual[l].max(r.abs());
-            let next = mu0[i][l] + h * fm[i][l];
-            finite[l] &= next.is_finite();
-            mu[i][l] = if done[l] { next } else { mu[i][l] };
-        }
-    }
+    // all lanes at once; only the converged lanes keep them (every lane converged, the rule,
+    // needs no choice per entry in a block of two registers a coordinate).
+    let (residual, finite) = if L > LANES && !done.contains(&false) {
+        finish_midpoint::<N, L, true>(h, &mu0, &m, &fm, &done, mu)
+    } else {
+        finish_midpoint::<N, L, false>(h, &mu0, &m, &fm, &done, mu)
+    };
     for l in 0..L {
         if done[l] {
             result[l] = if finite[l] {
@@ -371,6 +361,56 @@ fn midpoint_lanes<const N: usize, const L: usize, F: LaneField<N> + VectorField<
             };
         }
     }
+}
+
+/// m += δ in the lanes `active` (in every lane where `ALL`: the same numbers without a choice
+/// per entry) and the maxima |δ|∞ and |m|∞ of each lane, folded in the scalar `max_abs`'s order.
+#[inline(always)]
+fn add_update<const N: usize, const L: usize, const ALL: bool>(
+    m: &mut [[f64; L]; N],
+    delta: &[[f64; L]; N],
+    active: &[bool; L],
+) -> ([f64; L], [f64; L]) {
+    let (mut dmax, mut mmax) = ([0.0f64; L], [0.0f64; L]);
+    for i in 0..N {
+        for l in 0..L {
+            m[i][l] = if ALL || active[l] {
+                m[i][l] + delta[i][l]
+            } else {
+                m[i][l]
+            };
+            dmax[l] = dmax[l].max(delta[i][l].abs());
+            mmax[l] = mmax[l].max(m[i][l].abs());
+        }
+    }
+    (dmax, mmax)
+}
+
+/// The midpoint step's end at m: μ = μ₀ + h f(m) in the lanes `done` (every lane where `ALL`),
+/// and each lane's residual |m − μ₀ − ½h f(m)|∞ (the scalar `max_abs`'s order) and whether its
+/// new state is finite.
+#[inline(always)]
+fn finish_midpoint<const N: usize, const L: usize, const ALL: bool>(
+    h: f64,
+    mu0: &[[f64; L]; N],
+    m: &[[f64; L]; N],
+    fm: &[[f64; L]; N],
+    done: &[bool; L],
+    mu: &mut [[f64; L]; N],
+) -> ([f64; L], [bool; L]) {
+    let half = 0.5 * h;
+    let mut residual = [0.0f64; L];
+    let mut finite = [true; L];
+    for i in 0..N {
+        for l in 0..L {
+            let r = m[i][l] - mu0[i][l] - half * fm[i][l];
+            residual[l] = residual[l].max(r.abs());
+            let next = mu0[i][l] + h * fm[i][l];
+            finite[l] &= next.is_finite();
+            mu[i][l] = if ALL || done[l] { next } else { mu[i][l] };
+        }
+    }
+    (residual, finite)
 }
 
 /// The heavy top and the rigid body as a Lie–Poisson system: the variant of [`LieField`] is
@@ -643,8 +683,16 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
         if S::REPORTS {
             let mut result = [Ok(StepStats::default()); L];
             stepper.step_lanes_reporting(h, &mut lanes, &live, &mut result);
+            let record = record_of(k, every);
             for l in 0..n {
                 if !live[l] {
+                    continue;
+                }
+                // A step that succeeded between records only counts its updates: no state
+                // gathered from the lanes, no call (the two were 8 % of the heavy top's midpoint
+                // step in a profile).
+                if let (Ok(stats), None) = (result[l], record) {
+                    info[l].count(stats);
                     continue;
                 }
                 let state: [f64; N] = std::array::from_fn(|c| lanes[c][l]);
@@ -652,7 +700,7 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
                     mu[l] = state;
                 }
                 let o = &mut out[l * row..(l + 1) * row];
-                live[l] = record_step(result[l], k, every, &state, &mut info[l], o);
+                live[l] = record_step(result[l], k, every, record, &state, &mut info[l], o);
             }
             if !live.contains(&true) {
                 return;
@@ -684,8 +732,8 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
             // Padding lanes (zero states) may be flagged; only live ones count.
             inside = !(0..n).any(|l| live[l] && flagged[l]);
         }
-        let keep = (k + 1) % every == 0;
-        if !keep && all_finite && inside {
+        let record = record_of(k, every);
+        if record.is_none() && all_finite && inside {
             continue;
         }
         for l in 0..n {
@@ -704,7 +752,7 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
                 mu[l] = state;
             }
             let o = &mut out[l * row..(l + 1) * row];
-            live[l] = record_step(result, k, every, &state, &mut info[l], o);
+            live[l] = record_step(result, k, every, record, &state, &mut info[l], o);
         }
         if !live.contains(&true) {
             return;

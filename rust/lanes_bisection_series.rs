@@ -159,8 +159,15 @@ fn tar_series<const N: usize, const L: usize, T: Lane<L>>(
         }
         // The target map's sign: (−A)ⁿ is −Aⁿ for odd n.
         let coef = if n % 2 == 1 { -bn } else { bn };
-        for i in 0..N {
-            out[i] = out[i].blend(&running, out[i] + term[i].times(coef));
+        // Every lane still summing (the rule until the first one stops): no blend.
+        if running.contains(&false) {
+            for i in 0..N {
+                out[i] = out[i].blend(&running, out[i] + term[i].times(coef));
+            }
+        } else {
+            for i in 0..N {
+                out[i] = out[i] + term[i].times(coef);
+            }
         }
         let (t, o) = (size(&term), size(&out));
         let probe = finite_probe(term.iter().map(|v| v.value()));

@@ -29,6 +29,16 @@ pub struct TrajectoryInfo {
     pub max_residual: f64,
 }
 
+impl TrajectoryInfo {
+    /// Counts one successful step's Newton updates and residual.
+    #[inline(always)]
+    pub(crate) fn count(&mut self, stats: StepStats) {
+        self.newton_iterations += u64::from(stats.iterations);
+        self.max_newton_iterations = self.max_newton_iterations.max(stats.iterations);
+        self.max_residual = self.max_residual.max(stats.residual);
+    }
+}
+
 impl Default for TrajectoryInfo {
     fn default() -> Self {
         TrajectoryInfo {
@@ -283,26 +293,33 @@ impl<const N: usize, S: StepMap<N>> ChunkKernel<N> for PerStep<'_, S> {
     }
 }
 
+/// The record global step k (state k → k+1) writes, if any: state k + 1 is kept where
+/// `every` divides it. Computed once a step for a whole block, not once a trajectory (an
+/// integer division costs about as much as the rest of [`record_step`]).
+#[inline(always)]
+pub(crate) fn record_of(k: usize, every: usize) -> Option<usize> {
+    (k + 1).is_multiple_of(every).then(|| (k + 1) / every)
+}
+
 /// Records the outcome of global step k (state k → k+1) of one trajectory: its diagnostics, and
-/// its new state `mu` if it is kept, or NaN in every later record if the step failed. `o` is the
-/// trajectory's row of the output. Returns whether the trajectory is still live.
+/// its new state `mu` in record `record` ([`record_of`]) if it is kept, or NaN in every later
+/// record if the step failed. `o` is the trajectory's row of the output. Returns whether the
+/// trajectory is still live.
 #[inline]
 pub(crate) fn record_step<const N: usize>(
     result: StepResult,
     k: usize,
     every: usize,
+    record: Option<usize>,
     mu: &[f64; N],
     info: &mut TrajectoryInfo,
     o: &mut [f64],
 ) -> bool {
     match result {
         Ok(stats) => {
-            info.newton_iterations += u64::from(stats.iterations);
-            info.max_newton_iterations = info.max_newton_iterations.max(stats.iterations);
-            info.max_residual = info.max_residual.max(stats.residual);
-            if (k + 1).is_multiple_of(every) {
-                let r = N * ((k + 1) / every);
-                o[r..r + N].copy_from_slice(mu);
+            info.count(stats);
+            if let Some(r) = record {
+                o[N * r..N * r + N].copy_from_slice(mu);
             }
             true
         }
@@ -343,12 +360,13 @@ fn advance_chunk<const N: usize, S: StepMap<N>>(
             return;
         }
         stepper.step_batch(h, mu, &live[..n], &mut results[..n], ws);
+        let record = record_of(k, every);
         for i in 0..n {
             if !live[i] {
                 continue;
             }
             let o = &mut out[i * row..(i + 1) * row];
-            live[i] = record_step(results[i], k, every, &mu[i], &mut info[i], o);
+            live[i] = record_step(results[i], k, every, record, &mu[i], &mut info[i], o);
         }
     }
 }

@@ -647,6 +647,13 @@ fn taylor_in_lanes_equals_the_scalar_path_and_the_generic_stepper() {
         .iter()
         .filter(|i| i.converged)
         .all(|i| i.max_newton_iterations >= 2));
+    // The overflowing state (e^705 in S's terms: ∇S overflows) fails as the generic stepper
+    // fails it, for the reason the lanes' finiteness probe gives.
+    let (mut a, mut b) = ([705.0, 0.0], [705.0, 0.0]);
+    let generic = OrthantChecked(pnn_taylor(3)).step(0.2, &mut a, &mut ());
+    let mine = lanes.step(0.2, &mut b, &mut ());
+    assert_eq!(mine.err(), Some(StepFailure::NonFinite));
+    assert_eq!(generic.err(), mine.err());
     // S = t S₁ of the 3D system (N = 3 takes the 3×3 cofactor inverse).
     let c = [[0.0, 1.0, 1.0], [-1.0, 0.0, 1.0], [-1.0, -1.0, 0.0]];
     let terms = (0..3)
