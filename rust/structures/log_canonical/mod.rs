@@ -60,7 +60,8 @@ pub(super) fn in_orthant<const N: usize>(x: &[f64; N]) -> Result<(), StepFailure
 
 /// q must stay finite and x = e^q representable (neither 0 nor ∞). On [[`EXP_MIN`],
 /// [`EXP_MAX`]] e^q is a normal number, so libm is asked only outside it: the same answer, without
-/// two calls to libm's exp a trajectory and step (8 % of a Lotka–Volterra Taylor step).
+/// two calls to libm's exp a trajectory and step (7.6 % of a profile's samples of PNN's
+/// Taylor K = 5 rollout).
 #[inline]
 pub(super) fn log_state_in_orthant<const N: usize>(q: &[f64; N]) -> Result<(), StepFailure> {
     if q.iter().any(|v| !v.is_finite()) {
