@@ -275,8 +275,9 @@ pub fn midpoint_predictor_lanes<const N: usize, const L: usize, F: LaneField<N>>
         // Where every lane takes the sweep (the rule, not the exception), a copy: in a block of
         // two registers a coordinate (more than `LANES`) the lane-by-lane choice compiles to
         // one masked scalar move an entry (11 % of a profile's samples of the heavy top's
-        // midpoint rollout); in a block of one register it is one blend, and the
-        // branch cost more than it saved (Lotka–Volterra's N = 2 midpoint 1.1–1.3× the time).
+        // midpoint rollout); in a block of one register it is one blend, and such branches
+        // cost more than they saved (in the Newton update and the step's end they took
+        // Lotka–Volterra's N = 2 midpoint to 1.12–1.30× its time).
         if L > crate::isa::LANES && !go.contains(&false) {
             *m = next;
             continue;
