@@ -32,6 +32,10 @@ use crate::step::{StepResult, StepStats};
 /// A Lie algebra's exponential chart on g* in lanes, as [`ChartNewton`]'s solve needs it. Every
 /// method works lane by lane: a lane's numbers never depend on another lane's.
 pub(crate) trait ExpChartLanes<const N: usize> {
+    /// Whether the chart's blocks run compiled for AVX-512 where the CPU has it
+    /// ([`LaneSolve::avx512`]); by default up to [`crate::isa::AVX512_MAX_DIM`] coordinates.
+    const AVX512: bool = N <= crate::isa::AVX512_MAX_DIM;
+
     /// A(x) q with A = ad_xᵀ, lane by lane. On every exponential chart
     /// tar(x, p) = p + ½ A(x) p + A(x)² p / 12 + O(|x|⁴) (the Bernoulli series: B₁ = −½,
     /// B₂/2! = 1/12), which Newton's start reads.
@@ -255,6 +259,10 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
 }
 
 impl<const N: usize, C: ExpChartLanes<N>> LaneSolve<N> for ChartNewton<'_, N, C> {
+    fn avx512(&self) -> bool {
+        C::AVX512
+    }
+
     #[inline(always)]
     fn block<const L: usize>(
         &self,

@@ -310,6 +310,11 @@ pub(crate) struct SeriesChart<'a, const N: usize> {
 pub(crate) type SeriesNewton<'a, const N: usize> = ChartNewton<'a, N, SeriesChart<'a, N>>;
 
 impl<const N: usize> ExpChartLanes<N> for SeriesChart<'_, N> {
+    /// Up to four coordinates: the affine system's central extension (N = 4) took 0.88× / 0.91×
+    /// its AVX2 time at Taylor K = 3 / 5 (`benches/step_costs.py --system affine`, the same
+    /// build otherwise). At N ≥ 5 the lane solves lost (see [`crate::isa::AVX512_MAX_DIM`]).
+    const AVX512: bool = N <= 4;
+
     #[inline(always)]
     fn turn<const L: usize>(&self, x: &[V<L>; N], q: &[V<L>; N]) -> [V<L>; N] {
         let (a, used) = ad_transpose(self.algebra.structure_constants(), x);

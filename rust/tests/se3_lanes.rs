@@ -162,6 +162,80 @@ fn lane_inverse_pivots_and_flags_singular_lanes() {
     );
 }
 
+/// The lane inverse picks each lane's pivot as textbook partial pivoting does (the first row of
+/// the largest |entry|; ties and NaN entries leave the earlier row): bit for bit against a
+/// one-matrix Gauss–Jordan with the same operations, on small-integer matrices whose columns tie
+/// often, lanes pivoting differently in one block, a NaN lane among them.
+#[test]
+fn lane_inverse_pivots_as_one_matrix_gauss_jordan() {
+    fn one_matrix(m: &[[f64; 6]; 6]) -> [[f64; 6]; 6] {
+        let mut a = *m;
+        let mut inv = [[0.0; 6]; 6];
+        for r in 0..6 {
+            inv[r][r] = 1.0;
+        }
+        for col in 0..6 {
+            let mut best = col;
+            for r in col + 1..6 {
+                if a[r][col].abs() > a[best][col].abs() {
+                    best = r;
+                }
+            }
+            a.swap(best, col);
+            inv.swap(best, col);
+            let r = 1.0 / a[col][col];
+            for j in col + 1..6 {
+                a[col][j] *= r;
+            }
+            for j in 0..6 {
+                inv[col][j] *= r;
+            }
+            for row in (0..6).filter(|&row| row != col) {
+                let f = a[row][col];
+                for j in col + 1..6 {
+                    a[row][j] -= f * a[col][j];
+                }
+                for j in 0..6 {
+                    inv[row][j] -= f * inv[col][j];
+                }
+            }
+        }
+        inv
+    }
+    let mut rng = Rng::new(0x5E3_0007);
+    let mut swapped = 0;
+    for round in 0..30 {
+        let mut ms = [[[0.0; 6]; 6]; L];
+        for l in 0..L {
+            for r in 0..6 {
+                for c in 0..6 {
+                    ms[l][r][c] = rng.below(5) as f64 - 2.0 + if r == c { 0.25 } else { 0.0 };
+                }
+            }
+        }
+        if round % 3 == 0 {
+            ms[round % L][1][1] = f64::NAN;
+        }
+        swapped += (0..L)
+            .filter(|&l| (1..6).any(|r| ms[l][r][0].abs() > ms[l][0][0].abs()))
+            .count();
+        let m: [[V<L>; 6]; 6] = std::array::from_fn(|r| {
+            std::array::from_fn(|c| V(std::array::from_fn(|l| ms[l][r][c])))
+        });
+        let mut inv = [[V([0.0; L]); 6]; 6];
+        inverse_lanes(&m, &mut inv);
+        for l in 0..L {
+            let want = one_matrix(&ms[l]);
+            for r in 0..6 {
+                let got: Vec<f64> = (0..6).map(|c| inv[r][c].0[l]).collect();
+                assert!(same_bits(&got, &want[r]), "round {round} lane {l} row {r}");
+            }
+        }
+    }
+    // Lanes whose first pivot moves, and lanes whose does not, in the same blocks.
+    assert!(swapped > 30 && swapped < 30 * L, "{swapped} lanes swapped");
+}
+
 /// The shared solver's checks (`exp_chart_lanes`) on the heavy top's −tH plus random terms:
 /// against the generic dual-number step from 25 states, Casimirs |Γ|² and M·Γ kept.
 #[test]
