@@ -227,17 +227,13 @@ impl<const N: usize> VectorField<N> for PolynomialField<N> {
     }
 }
 
-/// Lane by lane through the scalar evaluation (the same bits as [`VectorField::field`]): the
-/// polynomial's terms vary per system, so there is no straight-line form; what the lanes buy
-/// here is the block loop and the implicit midpoint's lane-wide solve.
+/// The field in lanes by [`SparsePolynomial::eval_lanes`] (the same bits as
+/// [`VectorField::field`]); the Jacobian lane by lane through dual numbers.
 impl<const N: usize> LaneField<N> for PolynomialField<N> {
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, x: &[[f64; L]; N], out: &mut [[f64; L]; N]) {
-        for l in 0..L {
-            let f = self.field(&std::array::from_fn(|i| x[i][l]));
-            for i in 0..N {
-                out[i][l] = f[i];
-            }
+        for (row, f) in out.iter_mut().zip(&self.f) {
+            *row = f.eval_lanes(x);
         }
     }
 

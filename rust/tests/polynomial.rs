@@ -93,7 +93,8 @@ fn jets_after_the_constant_t_are_evals_bits() {
 
 /// `derivative` against the jets' exact gradient and Hessian (the dual numbers' product rule),
 /// on random sparse polynomials in (t, x, y, z); `eval_lanes_after_t` of a block against
-/// `eval_after_constant` on f64, lane by lane, bit for bit.
+/// `eval_after_constant` on f64, and `eval_lanes` (the polynomial field's lanes) against `eval`,
+/// lane by lane, bit for bit.
 #[test]
 fn derivative_polynomials_are_the_jets_derivatives() {
     use crate::dual::Scalar;
@@ -108,11 +109,16 @@ fn derivative_polynomials_are_the_jets_derivatives() {
         let pts: Vec<[f64; 3]> = (0..8).map(|_| rng.vec3(-1.5, 1.5)).collect();
         let lanes: [[f64; 8]; 3] = std::array::from_fn(|i| std::array::from_fn(|l| pts[l][i]));
         let value = s.eval_lanes_after_t(t, &lanes);
+        let with_t: [[f64; 8]; 4] = std::array::from_fn(|i| {
+            std::array::from_fn(|l| if i == 0 { t } else { lanes[i - 1][l] })
+        });
+        let plain = s.eval_lanes(&with_t);
         for (l, q) in pts.iter().enumerate() {
             assert_eq!(
                 value[l].to_bits(),
                 s.eval_after_constant(t, q).value().to_bits()
             );
+            assert_eq!(plain[l].to_bits(), s.eval(&[t, q[0], q[1], q[2]]).to_bits());
             let jet = g.jet(t, q, &mut ());
             let scale = 1.0 + jet.flat().iter().fold(0.0f64, |m, v| m.max(v.abs()));
             for a in 0..3 {
