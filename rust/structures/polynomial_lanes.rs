@@ -14,7 +14,7 @@
 // Index loops over lanes, coordinates and matrix entries read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use super::polynomial::{PolynomialBisection, SparsePolynomial, MAX_DIM};
+use super::polynomial::{PolynomialBisection, SparsePolynomial};
 use crate::error::{CoreError, StepFailure};
 use crate::lanes::{solve_small_lanes, FullNewton, LaneStepper};
 use crate::step::{StepMap, StepResult, StepStats};
@@ -95,12 +95,12 @@ impl<'a, const N: usize> PolynomialLanes<'a, N> {
         p: &[[f64; L]; N],
         x: &[[f64; L]; N],
     ) -> [[f64; L]; N] {
-        let mut v = [[0.0; L]; 2 * MAX_DIM];
-        v[..N].copy_from_slice(p);
-        v[N..2 * N].copy_from_slice(x);
+        // (p, x) side by side, as one slice of 2N rows (no buffer of the largest size to clear).
+        let v = [*p, *x];
+        let v = v.as_flattened();
         let mut out = [[0.0; L]; N];
         for i in 0..N {
-            out[i] = maps[i].eval_lanes(&v[..2 * N]);
+            out[i] = maps[i].eval_lanes(v);
         }
         out
     }
@@ -161,21 +161,22 @@ impl<const N: usize> LaneStepper<N> for PolynomialLanes<'_, N> {
             let tar = Self::apply(tar_maps, &p, &x);
             let tar_ok = finite(&tar);
             // J = ∂α/∂x + ∂α/∂p · ∇²S (x moves p = ∇S(x)); f = x_k − α.
-            let mut v = [[0.0; L]; 2 * MAX_DIM];
-            v[..N].copy_from_slice(&p);
-            v[N..2 * N].copy_from_slice(&x);
+            let v = [p, x];
+            let v = v.as_flattened();
             let mut j = [[[0.0; L]; N]; N];
             let mut f = [[0.0; L]; N];
             for i in 0..N {
-                let mut d = [[0.0; L]; 2 * MAX_DIM];
-                for k in 0..2 * N {
-                    d[k] = self.tar_d[i * 2 * N + k].eval_lanes(&v[..2 * N]);
+                // ∂α_i/∂p first, then each column's ∂α_i/∂x_c with ∂α_i/∂p · ∇²S added in
+                // order (the sum as before, without a buffer of the largest size).
+                let mut dp = [[0.0; L]; N];
+                for m in 0..N {
+                    dp[m] = self.tar_d[i * 2 * N + m].eval_lanes(v);
                 }
                 for c in 0..N {
-                    let mut acc = d[N + c];
+                    let mut acc = self.tar_d[i * 2 * N + N + c].eval_lanes(v);
                     for m in 0..N {
                         for l in 0..L {
-                            acc[l] += d[m][l] * hs[m][c][l];
+                            acc[l] += dp[m][l] * hs[m][c][l];
                         }
                     }
                     j[i][c] = acc;
