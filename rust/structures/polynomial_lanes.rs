@@ -107,6 +107,8 @@ impl<'a, const N: usize> PolynomialLanes<'a, N> {
 }
 
 /// Whether every lane value of `rows` is finite, lane by lane.
+// `r − r` is the point: 0 for a finite r, NaN for ±∞ and NaN.
+#[allow(clippy::eq_op)]
 #[inline(always)]
 fn finite<const L: usize>(rows: &[[f64; L]]) -> [bool; L] {
     // x − x is 0 for a finite x and NaN otherwise: a sum in vectors, where a per-lane `all` was
