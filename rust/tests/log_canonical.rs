@@ -822,6 +822,88 @@ fn predicted_start_saves_newton_updates() {
 /// lane by lane: exponents of both signs, zero, past the table of powers (8) and t-powers past
 /// the table of t's (16), so every branch of the compiled terms runs; the gradient pass alone
 /// gives the jet pass's gradient bits.
+/// The accumulation in registers (every term into every entry, zeros included) and the one by
+/// each term's own variables give the same bits, for N = 2 and 3 with and without the Hessian,
+/// at random terms with many zero exponents, a constant term among them, and lanes whose y^e
+/// overflows (non-finite sums must stay non-finite where they were).
+#[test]
+fn dense_and_sparse_lane_jets_agree_bit_for_bit() {
+    fn check<const N: usize>(rng: &mut Rng) {
+        const L: usize = 8;
+        for case in 0..30 {
+            let mut terms: Vec<ExpMonomial<N>> = (0..14)
+                .map(|_| ExpMonomial {
+                    t_power: 1 + rng.below(6) as u32,
+                    exponents: [0; N].map(|_: i32| {
+                        if rng.below(2) == 0 {
+                            0
+                        } else {
+                            rng.below(23) as i32 - 11
+                        }
+                    }),
+                    coeff: rng.range(-1.0, 1.0),
+                })
+                .collect();
+            terms.push(ExpMonomial {
+                t_power: 2,
+                exponents: [0; N],
+                coeff: 0.5,
+            });
+            let mut high = [0; N];
+            high[0] = 11;
+            terms.push(ExpMonomial {
+                t_power: 1,
+                exponents: high,
+                coeff: 0.25,
+            });
+            let s = ExpPolynomial::new(terms, [0; N].map(|_: i32| rng.range(-1.0, 1.0))).unwrap();
+            let t = rng.range(0.05, 1.2);
+            let mut q = [[0.0; L]; N];
+            for i in 0..N {
+                for l in 0..L {
+                    // Lane 7 far out: y^11 overflows there.
+                    q[i][l] = if l == 7 { 80.0 } else { rng.range(-0.4, 0.4) };
+                }
+            }
+            let table = crate::structures::log_canonical::t_power_table(t);
+            for hess in [false, true] {
+                let mut out = [([[0.0; L]; N], [[[0.0; L]; N]; N]); 2];
+                for (k, dense) in [true, false].into_iter().enumerate() {
+                    let (g, hs) = &mut out[k];
+                    if hess {
+                        s.taylor_lanes_by::<L, true>(dense, t, &table, &q, g, hs);
+                    } else {
+                        s.taylor_lanes_by::<L, false>(dense, t, &table, &q, g, hs);
+                    }
+                }
+                for l in 0..L {
+                    let entries = |k: usize| {
+                        let (g, hs) = &out[k];
+                        let mut v: Vec<f64> = (0..N).map(|a| g[a][l]).collect();
+                        v.extend((0..N * N).map(|ab| hs[ab / N][ab % N][l]));
+                        v
+                    };
+                    let (d, p) = (entries(0), entries(1));
+                    let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+                    // A lane is judged whole: where a sum is not finite the solve fails there,
+                    // and the dense sums may carry NaN (w·0 at w = ∞) into more entries.
+                    assert_eq!(finite(&d), finite(&p), "N {N} case {case} lane {l}");
+                    if finite(&p) {
+                        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                        assert_eq!(bits(&d), bits(&p), "N {N} case {case} lane {l} hess {hess}");
+                    }
+                }
+                // The far lane's y^11 overflows: not finite in both, so the solve fails there
+                // either way.
+                assert!(!out[1].0[0][7].is_finite());
+            }
+        }
+    }
+    let mut rng = Rng::new(0x5eed_d3a5e);
+    check::<2>(&mut rng);
+    check::<3>(&mut rng);
+}
+
 #[test]
 fn lane_jets_of_an_exp_polynomial_match_its_closed_form() {
     const N: usize = 4;

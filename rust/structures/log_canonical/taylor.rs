@@ -32,6 +32,9 @@ pub struct ExpPolynomial<const N: usize> {
     /// The terms compiled once for [`ExpPolynomial::taylor_lanes`]: each term's variables with a
     /// nonzero exponent, where every evaluation tested all N exponents and all N(N+1)/2 pairs.
     planned: Vec<PlannedExp<N>>,
+    /// Each planned term's exponent of every coordinate, 0 where it lacks one, for the
+    /// accumulation in registers; empty above [`DENSE_MAX_DIM`].
+    dense_e: Vec<[f64; N]>,
     /// The largest |exponent| of each coordinate: the rows of the table of powers to build.
     max_power: [u32; N],
 }
@@ -47,6 +50,14 @@ struct PlannedExp<const N: usize> {
     e: [f64; N],
     size: [u32; N],
 }
+
+/// Up to this N every term adds to all of ∇S and ∇²S (zeros included) in loops over N with
+/// constant indices, so the accumulators stay in registers across the terms; with a term's own
+/// variables as run-time indices they were stored and reloaded at every term, a chain through
+/// memory that took a fifth of PNN's Taylor step. Adding w·0 = ±0 to a sum that started at +0
+/// leaves its bits, so both ways give the same numbers. Above it the zeros cost more than the
+/// stores (a 5-D term has 2–3 of 5 variables; 15 Hessian entries would not fit in registers).
+const DENSE_MAX_DIM: usize = 3;
 
 /// Largest |exponent| of a term.
 pub const MAX_EXPONENT: i32 = 256;
@@ -94,10 +105,20 @@ impl<const N: usize> ExpPolynomial<N> {
             }),
             "the generating function's terms",
         )?;
+        let dense_e = if N <= DENSE_MAX_DIM {
+            try_collect(
+                terms.len(),
+                terms.iter().map(|m| m.exponents.map(f64::from)),
+                "the generating function's terms",
+            )?
+        } else {
+            Vec::new()
+        };
         Ok(ExpPolynomial {
             terms,
             linear,
             planned,
+            dense_e,
             max_power,
         })
     }
@@ -156,11 +177,36 @@ pub type LogBisection<const N: usize> = BisectionStepper<N, LogCanonical<N>, Exp
 const POWER_TABLE: usize = 8;
 
 impl<const N: usize> ExpPolynomial<N> {
+    /// t^k of a term: from the step's table, `powi` past it.
+    #[inline(always)]
+    fn t_power(&self, t: f64, t_powers: &[f64; T_POWERS], m: &PlannedExp<N>) -> f64 {
+        t_powers
+            .get(m.t_power as usize)
+            .copied()
+            .unwrap_or_else(|| t.powi(m.t_power as i32))
+    }
+
     /// ∇S(t, ·) at L points q, and with `HESS` its Hessian (`hs[a][b][l]`, both triangles),
     /// lane by lane: y = e^q once per coordinate, each term's y^e by binary powering.
     #[inline(always)]
     pub(crate) fn taylor_lanes<const L: usize, const HESS: bool>(
         &self,
+        t: f64,
+        t_powers: &[f64; T_POWERS],
+        q: &[[f64; L]; N],
+        g: &mut [[f64; L]; N],
+        hs: &mut [[[f64; L]; N]; N],
+    ) {
+        self.taylor_lanes_by::<L, HESS>(N <= DENSE_MAX_DIM, t, t_powers, q, g, hs);
+    }
+
+    /// [`Self::taylor_lanes`] with the accumulation chosen: `dense` (honoured up to
+    /// [`DENSE_MAX_DIM`]) adds every term to every entry in registers, else each term to its own
+    /// entries (the same bits; a test holds both).
+    #[inline(always)]
+    pub(crate) fn taylor_lanes_by<const L: usize, const HESS: bool>(
+        &self,
+        dense: bool,
         t: f64,
         t_powers: &[f64; T_POWERS],
         q: &[[f64; L]; N],
@@ -182,17 +228,33 @@ impl<const N: usize> ExpPolynomial<N> {
         if HESS {
             *hs = [[[0.0; L]; N]; N];
         }
-        for m in &self.planned {
-            let tk = t_powers
-                .get(m.t_power as usize)
-                .copied()
-                .unwrap_or_else(|| t.powi(m.t_power as i32));
-            // A term in every variable takes loops over N with constant indices (unrolled); the
-            // others loop over their own variables only. The same operations either way.
-            if m.count == N {
-                add_term::<N, L, HESS, true>(m, m.coeff * tk, &pw, g, hs);
-            } else {
-                add_term::<N, L, HESS, false>(m, m.coeff * tk, &pw, g, hs);
+        // `dense_e` is filled up to DENSE_MAX_DIM only.
+        if dense && N <= DENSE_MAX_DIM {
+            // Local sums, indexed by constants only: registers across the loop over terms.
+            let mut ga = [[0.0; L]; N];
+            let mut ha = [[[0.0; L]; N]; N];
+            for (m, e) in self.planned.iter().zip(&self.dense_e) {
+                // A constant term has no derivative (and its w·0 could be NaN at an overflow).
+                if m.count == 0 {
+                    continue;
+                }
+                let w = term_weight(m, m.coeff * self.t_power(t, t_powers, m), &pw);
+                add_dense::<N, L, HESS>(e, &w, &mut ga, &mut ha);
+            }
+            *g = ga;
+            if HESS {
+                *hs = ha;
+            }
+        } else {
+            for m in &self.planned {
+                let c = m.coeff * self.t_power(t, t_powers, m);
+                // A term in every variable takes loops over N with constant indices (unrolled);
+                // the others loop over their own variables only. The same operations either way.
+                if m.count == N {
+                    add_term::<N, L, HESS, true>(m, c, &pw, g, hs);
+                } else {
+                    add_term::<N, L, HESS, false>(m, c, &pw, g, hs);
+                }
             }
         }
         for i in 0..N {
@@ -225,25 +287,11 @@ fn add_term<const N: usize, const L: usize, const HESS: bool, const DENSE: bool>
 ) {
     let count = if DENSE { N } else { m.count };
     let var = |j: usize| if DENSE { j } else { m.var[j] };
+    // w in place (not through `term_weight`'s returned array: that took the 5-D Taylor K = 5
+    // step to 1.2× its time).
     let mut w = [c; L];
     for j in 0..count {
-        let (i, k) = (var(j), m.size[j] as usize);
-        let power = if k <= POWER_TABLE {
-            pw[i][k]
-        } else {
-            pow_lanes(&pw[i][1], m.size[j])
-        };
-        // The exponent is the term's, not the lane's: one loop per case, so no lane divides
-        // for a positive exponent.
-        if m.e[j] > 0.0 {
-            for l in 0..L {
-                w[l] *= power[l];
-            }
-        } else {
-            for l in 0..L {
-                w[l] *= 1.0 / power[l];
-            }
-        }
+        times_factor(&mut w, pw, var(j), m.size[j], m.e[j]);
     }
     for j in 0..count {
         let (a, ea) = (var(j), m.e[j]);
@@ -254,6 +302,72 @@ fn add_term<const N: usize, const L: usize, const HESS: bool, const DENSE: bool>
             for jb in j..count {
                 let eab = ea * m.e[jb];
                 let b = var(jb);
+                for l in 0..L {
+                    hs[a][b][l] += w[l] * eab;
+                }
+            }
+        }
+    }
+}
+
+/// A term's w = c Π y_v^e_v at L points, the factors by increasing variable.
+#[inline(always)]
+fn term_weight<const N: usize, const L: usize>(
+    m: &PlannedExp<N>,
+    c: f64,
+    pw: &[[[f64; L]; POWER_TABLE + 1]; N],
+) -> [f64; L] {
+    let mut w = [c; L];
+    for j in 0..m.count {
+        times_factor(&mut w, pw, m.var[j], m.size[j], m.e[j]);
+    }
+    w
+}
+
+/// w ·= y_i^e lane by lane (|e| = `size`), from the table of powers or by binary powering.
+#[inline(always)]
+fn times_factor<const N: usize, const L: usize>(
+    w: &mut [f64; L],
+    pw: &[[[f64; L]; POWER_TABLE + 1]; N],
+    i: usize,
+    size: u32,
+    e: f64,
+) {
+    let power = if size as usize <= POWER_TABLE {
+        pw[i][size as usize]
+    } else {
+        pow_lanes(&pw[i][1], size)
+    };
+    // The exponent is the term's, not the lane's: one loop per case, so no lane divides for a
+    // positive exponent.
+    if e > 0.0 {
+        for l in 0..L {
+            w[l] *= power[l];
+        }
+    } else {
+        for l in 0..L {
+            w[l] *= 1.0 / power[l];
+        }
+    }
+}
+
+/// w·e added to ∇S and w·e_a·e_b to ∇²S's upper triangle for every coordinate and pair (`e`
+/// with its zeros): the sums of [`add_term`] with ±0 between them, the same bits.
+#[inline(always)]
+fn add_dense<const N: usize, const L: usize, const HESS: bool>(
+    e: &[f64; N],
+    w: &[f64; L],
+    g: &mut [[f64; L]; N],
+    hs: &mut [[[f64; L]; N]; N],
+) {
+    for a in 0..N {
+        let ea = e[a];
+        for l in 0..L {
+            g[a][l] += w[l] * ea;
+        }
+        if HESS {
+            for b in a..N {
+                let eab = ea * e[b];
                 for l in 0..L {
                     hs[a][b][l] += w[l] * eab;
                 }
