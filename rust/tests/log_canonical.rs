@@ -822,6 +822,28 @@ fn predicted_start_saves_newton_updates() {
 /// lane by lane: exponents of both signs, zero, past the table of powers (8) and t-powers past
 /// the table of t's (16), so every branch of the compiled terms runs; the gradient pass alone
 /// gives the jet pass's gradient bits.
+/// `count` random terms c t^k y^e: k in 1 ..= `t_powers`, about half the exponents 0 and the
+/// rest in −11 ..= 11, c in [−1, 1).
+fn random_exp_terms<const N: usize>(
+    rng: &mut Rng,
+    count: usize,
+    t_powers: usize,
+) -> Vec<ExpMonomial<N>> {
+    (0..count)
+        .map(|_| ExpMonomial {
+            t_power: 1 + rng.below(t_powers) as u32,
+            exponents: [0; N].map(|_: i32| {
+                if rng.below(2) == 0 {
+                    0
+                } else {
+                    rng.below(23) as i32 - 11
+                }
+            }),
+            coeff: rng.range(-1.0, 1.0),
+        })
+        .collect()
+}
+
 /// The accumulation in registers (every term into every entry, zeros included) and the one by
 /// each term's own variables give the same bits, for N = 2 and 3 with and without the Hessian,
 /// at random terms with many zero exponents, a constant term among them, and lanes whose y^e
@@ -831,19 +853,7 @@ fn dense_and_sparse_lane_jets_agree_bit_for_bit() {
     fn check<const N: usize>(rng: &mut Rng) {
         const L: usize = 8;
         for case in 0..30 {
-            let mut terms: Vec<ExpMonomial<N>> = (0..14)
-                .map(|_| ExpMonomial {
-                    t_power: 1 + rng.below(6) as u32,
-                    exponents: [0; N].map(|_: i32| {
-                        if rng.below(2) == 0 {
-                            0
-                        } else {
-                            rng.below(23) as i32 - 11
-                        }
-                    }),
-                    coeff: rng.range(-1.0, 1.0),
-                })
-                .collect();
+            let mut terms = random_exp_terms::<N>(rng, 14, 6);
             terms.push(ExpMonomial {
                 t_power: 2,
                 exponents: [0; N],
@@ -910,20 +920,7 @@ fn lane_jets_of_an_exp_polynomial_match_its_closed_form() {
     const L: usize = 8;
     let mut rng = Rng::new(0x5EED_0E27);
     for case in 0..20 {
-        let terms: Vec<ExpMonomial<N>> = (0..12)
-            .map(|_| ExpMonomial {
-                t_power: 1 + rng.below(20) as u32,
-                // About half the exponents 0, the rest in −11 ..= 11.
-                exponents: [0; N].map(|_: i32| {
-                    if rng.below(2) == 0 {
-                        0
-                    } else {
-                        rng.below(23) as i32 - 11
-                    }
-                }),
-                coeff: rng.range(-1.0, 1.0),
-            })
-            .collect();
+        let terms = random_exp_terms::<N>(&mut rng, 12, 20);
         let linear = [0; N].map(|_: i32| rng.range(-1.0, 1.0));
         let s = ExpPolynomial::new(terms, linear).unwrap();
         let t = rng.range(0.5, 1.2);
