@@ -55,8 +55,8 @@ struct PlannedExp<const N: usize> {
 /// constant indices, so the accumulators stay in registers across the terms; with a term's own
 /// variables as run-time indices they were stored and reloaded at every term, a chain through
 /// memory that took a fifth of PNN's Taylor step. Adding w·0 = ±0 to a sum that started at +0
-/// leaves its bits, so both ways give the same numbers. Above it the zeros cost more than the
-/// stores (a 5-D term has 2–3 of 5 variables; 15 Hessian entries would not fit in registers).
+/// leaves its bits, so both ways give the same numbers. Above it the sparse sums stay: a 5-D
+/// term has 2–3 of its 5 variables, and 15 Hessian sums of two registers each would not fit.
 const DENSE_MAX_DIM: usize = 3;
 
 /// Largest |exponent| of a term.
