@@ -177,15 +177,6 @@ pub type LogBisection<const N: usize> = BisectionStepper<N, LogCanonical<N>, Exp
 const POWER_TABLE: usize = 8;
 
 impl<const N: usize> ExpPolynomial<N> {
-    /// t^k of a term: from the step's table, `powi` past it.
-    #[inline(always)]
-    fn t_power(&self, t: f64, t_powers: &[f64; T_POWERS], m: &PlannedExp<N>) -> f64 {
-        t_powers
-            .get(m.t_power as usize)
-            .copied()
-            .unwrap_or_else(|| t.powi(m.t_power as i32))
-    }
-
     /// ∇S(t, ·) at L points q, and with `HESS` its Hessian (`hs[a][b][l]`, both triangles),
     /// lane by lane: y = e^q once per coordinate, each term's y^e by binary powering.
     #[inline(always)]
@@ -238,7 +229,7 @@ impl<const N: usize> ExpPolynomial<N> {
                 if m.count == 0 {
                     continue;
                 }
-                let w = term_weight(m, m.coeff * self.t_power(t, t_powers, m), &pw);
+                let w = term_weight(m, m.coeff * t_power(t, t_powers, m.t_power), &pw);
                 add_dense::<N, L, HESS>(e, &w, &mut ga, &mut ha);
             }
             *g = ga;
@@ -247,7 +238,7 @@ impl<const N: usize> ExpPolynomial<N> {
             }
         } else {
             for m in &self.planned {
-                let c = m.coeff * self.t_power(t, t_powers, m);
+                let c = m.coeff * t_power(t, t_powers, m.t_power);
                 // A term in every variable takes loops over N with constant indices (unrolled);
                 // the others loop over their own variables only. The same operations either way.
                 if m.count == N {
@@ -308,6 +299,15 @@ fn add_term<const N: usize, const L: usize, const HESS: bool, const DENSE: bool>
             }
         }
     }
+}
+
+/// t^k from the step's table, `powi` past it.
+#[inline(always)]
+fn t_power(t: f64, t_powers: &[f64; T_POWERS], k: u32) -> f64 {
+    t_powers
+        .get(k as usize)
+        .copied()
+        .unwrap_or_else(|| t.powi(k as i32))
 }
 
 /// A term's w = c Π y_v^e_v at L points, the factors by increasing variable.
