@@ -914,6 +914,51 @@ fn dense_and_sparse_lane_jets_agree_bit_for_bit() {
     check::<3>(&mut rng);
 }
 
+/// L random points q in [−0.4, 0.4]^N, lane by lane.
+fn random_lanes<const N: usize, const L: usize>(rng: &mut Rng) -> [[f64; L]; N] {
+    let mut q = [[0.0; L]; N];
+    for i in 0..N {
+        for l in 0..L {
+            q[i][l] = rng.range(-0.4, 0.4);
+        }
+    }
+    q
+}
+
+/// The lane gradient `g` and Hessian `hs` of S at the points `q` against its closed form
+/// (`jet_at`), to 1e-12 of the gradient's size.
+fn assert_closed_form<const N: usize, const L: usize>(
+    s: &ExpPolynomial<N>,
+    t: f64,
+    q: &[[f64; L]; N],
+    g: &[[f64; L]; N],
+    hs: &[[[f64; L]; N]; N],
+    what: &str,
+) {
+    for l in 0..L {
+        let ql: [f64; N] = std::array::from_fn(|i| q[i][l]);
+        let jet = s.jet_at(t, &ql);
+        let hess = jet.hess();
+        let scale = 1.0 + jet.g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for a in 0..N {
+            assert!(
+                (g[a][l] - jet.g[a]).abs() <= 1e-12 * scale,
+                "{what} lane {l}: ∂S/∂q{a} {} against {}",
+                g[a][l],
+                jet.g[a]
+            );
+            for b in 0..N {
+                let want = hess[a][b];
+                assert!(
+                    (hs[a][b][l] - want).abs() <= 1e-12 * (1.0 + want.abs()) * scale,
+                    "{what} lane {l}: ∂²S/∂q{a}∂q{b} {} against {want}",
+                    hs[a][b][l]
+                );
+            }
+        }
+    }
+}
+
 #[test]
 fn lane_jets_of_an_exp_polynomial_match_its_closed_form() {
     const N: usize = 4;
@@ -924,42 +969,22 @@ fn lane_jets_of_an_exp_polynomial_match_its_closed_form() {
         let linear = [0; N].map(|_: i32| rng.range(-1.0, 1.0));
         let s = ExpPolynomial::new(terms, linear).unwrap();
         let t = rng.range(0.5, 1.2);
-        let mut q = [[0.0; L]; N];
-        for i in 0..N {
-            for l in 0..L {
-                q[i][l] = rng.range(-0.4, 0.4);
-            }
-        }
+        let q = random_lanes::<N, L>(&mut rng);
         let table = crate::structures::log_canonical::t_power_table(t);
         let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
         s.taylor_lanes::<L, true>(t, &table, &q, &mut g, &mut hs);
         let (mut g1, mut unused) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
         s.taylor_lanes::<L, false>(t, &table, &q, &mut g1, &mut unused);
+        assert_closed_form(&s, t, &q, &g, &hs, &format!("case {case}"));
         for l in 0..L {
-            let ql: [f64; N] = std::array::from_fn(|i| q[i][l]);
-            let jet = s.jet_at(t, &ql);
-            let hess = jet.hess();
-            let scale = 1.0 + jet.g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             for a in 0..N {
                 assert_eq!(
                     g[a][l].to_bits(),
                     g1[a][l].to_bits(),
                     "case {case} lane {l}"
                 );
-                assert!(
-                    (g[a][l] - jet.g[a]).abs() <= 1e-12 * scale,
-                    "case {case} lane {l}: ∂S/∂q{a} {} against {}",
-                    g[a][l],
-                    jet.g[a]
-                );
                 for b in 0..N {
-                    let want = hess[a][b];
                     assert_eq!(hs[a][b][l].to_bits(), hs[b][a][l].to_bits());
-                    assert!(
-                        (hs[a][b][l] - want).abs() <= 1e-12 * (1.0 + want.abs()) * scale,
-                        "case {case} lane {l}: ∂²S/∂q{a}∂q{b} {} against {want}",
-                        hs[a][b][l]
-                    );
                 }
             }
         }
@@ -986,39 +1011,13 @@ fn terms_sharing_an_exponent_vector_match_the_closed_form() {
             let linear = [0; N].map(|_: i32| rng.range(-1.0, 1.0));
             let s = ExpPolynomial::new(terms, linear).unwrap();
             let t = rng.range(0.5, 1.2);
-            let mut q = [[0.0; L]; N];
-            for i in 0..N {
-                for l in 0..L {
-                    q[i][l] = rng.range(-0.4, 0.4);
-                }
-            }
+            let q = random_lanes::<N, L>(rng);
             let table = crate::structures::log_canonical::t_power_table(t);
             for dense in [true, false] {
                 let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
                 s.taylor_lanes_by::<L, true>(dense, t, &table, &q, &mut g, &mut hs);
-                for l in 0..L {
-                    let ql: [f64; N] = std::array::from_fn(|i| q[i][l]);
-                    let jet = s.jet_at(t, &ql);
-                    let hess = jet.hess();
-                    let scale = 1.0 + jet.g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                    for a in 0..N {
-                        let what = format!("N {N} case {case} dense {dense} lane {l}");
-                        assert!(
-                            (g[a][l] - jet.g[a]).abs() <= 1e-12 * scale,
-                            "{what}: ∂S/∂q{a} {} against {}",
-                            g[a][l],
-                            jet.g[a]
-                        );
-                        for b in 0..N {
-                            let want = hess[a][b];
-                            assert!(
-                                (hs[a][b][l] - want).abs() <= 1e-12 * (1.0 + want.abs()) * scale,
-                                "{what}: ∂²S/∂q{a}∂q{b} {} against {want}",
-                                hs[a][b][l]
-                            );
-                        }
-                    }
-                }
+                let what = format!("N {N} case {case} dense {dense}");
+                assert_closed_form(&s, t, &q, &g, &hs, &what);
             }
         }
     }
