@@ -818,10 +818,6 @@ fn predicted_start_saves_newton_updates() {
     assert_eq!(c.predict(&[f64::NAN, 0.0], &q), None);
 }
 
-/// The lane jet of an exp-polynomial S against its scalar closed form (`jet_at`, y^e by `powi`),
-/// lane by lane: exponents of both signs, zero, past the table of powers (8) and t-powers past
-/// the table of t's (16), so every branch of the compiled terms runs; the gradient pass alone
-/// gives the jet pass's gradient bits.
 /// `count` random terms c t^k y^e: k in 1 ..= `t_powers`, about half the exponents 0 and the
 /// rest in −11 ..= 11, c in [−1, 1).
 fn random_exp_terms<const N: usize>(
@@ -959,6 +955,10 @@ fn assert_closed_form<const N: usize, const L: usize>(
     }
 }
 
+/// The lane jet of an exp-polynomial S against its scalar closed form (`jet_at`, y^e by `powi`),
+/// lane by lane: exponents of both signs, zero, past the table of powers (8) and t-powers past
+/// the table of t's (16), so every branch of the compiled terms runs; the gradient pass alone
+/// gives the jet pass's gradient bits.
 #[test]
 fn lane_jets_of_an_exp_polynomial_match_its_closed_form() {
     const N: usize = 4;
