@@ -80,6 +80,22 @@ impl LaneField<3> for RigidBody {
     /// Measured: RK4 in blocks of 16 took 0.55× the time of blocks of 8.
     const AVX512_PAIRED: bool = true;
 
+    /// Those blocks by lane: lane-inner, the block took 1.3 ns a step built by `cargo build`
+    /// (the crate an rlib and a cdylib) and 4.2–4.4 ns in a cdylib-only build, which is what
+    /// maturin builds for a wheel (lane shuffles and stack stores in its loop;
+    /// docs/performance.md).
+    const AVX512_BY_LANE: bool = true;
+
+    /// On a copy of 1/I, which the loop over lanes would otherwise load again in every lane.
+    #[inline(always)]
+    fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
+        let a = self.inverse_inertia();
+        let f = crate::lane_field::AtStates::<1, _>(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| {
+            crate::straight_line::weighted_cross_lanes(&a, y, o)
+        });
+        crate::lane_field::rk4_by_lane(&f, h, mu);
+    }
+
     /// μ × (μ/I), as [`RigidBody::vector_field`].
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {

@@ -91,8 +91,23 @@ pub(crate) const SO3_MIDPOINT_SWEEPS: u32 = 2;
 
 impl LaneField<3> for So3Quadratic {
     /// As the rigid body's (the same kernel): RK4 in blocks of 16 took 0.55× the time of
-    /// blocks of 8; by lane read 1.10× lane-inner.
+    /// blocks of 8.
     const AVX512_PAIRED: bool = true;
+
+    /// By lane, as the rigid body's ([`crate::classical::RigidBody`]'s `LaneField`): the
+    /// lane-inner block compiled well as part of an rlib and badly in the cdylib-only build
+    /// that a wheel is (docs/performance.md).
+    const AVX512_BY_LANE: bool = true;
+
+    /// On a copy of `a`, which the loop over lanes would otherwise load again in every lane.
+    #[inline(always)]
+    fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
+        let a = self.a;
+        let f = AtStates::<1, _>(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| {
+            weighted_cross_lanes(&a, y, o)
+        });
+        rk4_by_lane(&f, h, mu);
+    }
 
     #[inline(always)]
     fn field_lanes<const L: usize>(&self, mu: &[[f64; L]; 3], out: &mut [[f64; L]; 3]) {
