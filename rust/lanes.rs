@@ -86,14 +86,9 @@ impl LaneField<3> for RigidBody {
     /// docs/performance.md).
     const AVX512_BY_LANE: bool = true;
 
-    /// On a copy of 1/I, which the loop over lanes would otherwise load again in every lane.
     #[inline(always)]
     fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
-        let a = self.inverse_inertia();
-        let f = crate::lane_field::AtStates::<1, _>(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| {
-            crate::straight_line::weighted_cross_lanes(&a, y, o)
-        });
-        crate::lane_field::rk4_by_lane(&f, h, mu);
+        crate::straight_line::weighted_cross_rk4_by_lane(self.inverse_inertia(), h, mu);
     }
 
     /// μ × (μ/I), as [`RigidBody::vector_field`].

@@ -55,6 +55,20 @@ pub fn weighted_cross_lanes<const L: usize>(
     }
 }
 
+/// One RK4 step of μ × (a∘μ) at L states by lane ([`rk4_by_lane`]), on the copy `a` (read
+/// through a field's `self`, the constants would be loaded again in every lane): the by-lane RK4
+/// of the rigid body's field and of [`So3Quadratic`].
+#[inline(always)]
+pub(crate) fn weighted_cross_rk4_by_lane<const L: usize>(
+    a: [f64; 3],
+    h: f64,
+    mu: &mut [[f64; L]; 3],
+) {
+    let f =
+        AtStates::<1, _>(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| weighted_cross_lanes(&a, y, o));
+    rk4_by_lane(&f, h, mu);
+}
+
 /// (a₂ − a₁, a₀ − a₂, a₁ − a₀): the factors of μ × (a∘μ) ([`weighted_cross_lanes`]).
 #[inline(always)]
 pub fn weight_differences(a: &[f64; 3]) -> [f64; 3] {
@@ -99,14 +113,9 @@ impl LaneField<3> for So3Quadratic {
     /// that a wheel is (docs/performance.md).
     const AVX512_BY_LANE: bool = true;
 
-    /// On a copy of `a`, which the loop over lanes would otherwise load again in every lane.
     #[inline(always)]
     fn rk4_step_by_lane<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
-        let a = self.a;
-        let f = AtStates::<1, _>(|y: &[[f64; 1]; 3], o: &mut [[f64; 1]; 3]| {
-            weighted_cross_lanes(&a, y, o)
-        });
-        rk4_by_lane(&f, h, mu);
+        weighted_cross_rk4_by_lane(self.a, h, mu);
     }
 
     #[inline(always)]
