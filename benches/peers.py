@@ -20,9 +20,11 @@ Contenders: poisson_rs (``pr.integrate`` with ``every=n_steps``), JAX ``jit(vmap
 (float64) and numba ``@njit`` RK4 (a loop over trajectories and steps), and, with ``--baseline
 PATH``, the ``_core`` extension of an earlier build loaded beside this one (e.g. the main
 checkout's, to say what a change bought). Time the build a user runs: the wheel ``pip`` installs is
-a cdylib-only build (``cargo rustc --crate-type cdylib``), and the compiler has packed a block loop
-differently there than in ``cargo build``'s cdylib-and-rlib build (the rigid body's RK4 once ran 3×
-slower in the wheel; docs/performance.md). Rounds alternate the contenders; each cell is the median
+a cdylib-only build (``cargo rustc --crate-type cdylib``); ``benches/build_core.sh REV DIR`` builds
+a revision that way, and its ``DIR/python/poisson_rs/_core.abi3.so`` is a ``--baseline`` (while the
+profile had thin LTO, which ``cargo build`` skips beside the rlib, the wheel's code differed from
+``cargo build``'s: the rigid body's RK4 once ran 3× slower in the wheel; docs/performance.md, "The
+build the benches time"). Rounds alternate the contenders; each cell is the median
 of ``--rounds`` (≥ 5) timed runs after a warm-up (JAX compiles there). A missing peer is skipped
 with a message. Every contender's final states are checked against poisson_rs's: numba gives the
 same bits on the heavy top and agrees as JAX does on the rigid body (where the core takes the

@@ -22,11 +22,11 @@ ones (from ``integrate(..., return_info=True)``). ``--json FILE`` writes the num
 ``site-packages`` where its wheel is installed). This build and that one then run in two worker
 processes on the same core, one timed rollout at a time, the builds alternating within every
 round; each cell gains the baseline's ns per step, the ratio now / before and its Newton updates.
-A stepper one build lacks is "n/a" there. For a revision ``REV``::
+A stepper one build lacks is "n/a" there. Build both the way the wheel is built
+(``benches/build_core.sh``; ``cargo build --release`` skips the profile's LTO and compiles other
+code), for a revision ``REV``::
 
-    git worktree add /tmp/base REV
-    (cd /tmp/base && cargo build --release --features python &&
-     cp target/release/libpoisson_rs.so python/poisson_rs/_core.abi3.so)
+    benches/build_core.sh REV /tmp/base
     RAYON_NUM_THREADS=1 taskset -c 0 python benches/step_costs.py --baseline /tmp/base/python
 
 A step's cost is only half of the choice: what it buys in accuracy is charted by ``poisson-rs
