@@ -11,8 +11,8 @@
 # silently skips the profile's LTO, so its code is not the wheel's (docs/performance.md, "The
 # build the benches time"). --cargo keeps that build for comparisons with earlier figures.
 #
-# DIR gets a detached worktree of REV (removed first if DIR is one already) and its own
-# target folder, DIR/target. Remove it afterwards with `git worktree remove --force DIR`.
+# DIR, which must not exist, gets a detached worktree of REV and its own target folder,
+# DIR/target. Remove it afterwards with `git worktree remove --force DIR`.
 set -euo pipefail
 
 if [[ $# -lt 2 || $# -gt 3 || ( $# -eq 3 && "$3" != "--cargo" ) ]]; then
@@ -26,13 +26,15 @@ kind=${3:-}
 repo=$(git -C "$(dirname "$0")" rev-parse --show-toplevel)
 git -C "$repo" rev-parse --verify --quiet "$rev^{commit}" > /dev/null \
     || { echo "$0: REV '$rev' is not a commit of $repo" >&2; exit 2; }
+# Never built over: a folder there may hold someone's work.
 if [[ -e "$dir" ]]; then
-    git -C "$repo" worktree remove --force "$dir" 2> /dev/null \
-        || { echo "$0: DIR '$dir' exists and is not a worktree of $repo" >&2; exit 2; }
+    echo "$0: DIR '$dir' exists; remove it first (git worktree remove --force '$dir')" >&2
+    exit 2
 fi
 git -C "$repo" worktree add --detach --quiet "$dir" "$rev"
 
 cd "$dir"
+dir=$(pwd)
 export CARGO_TARGET_DIR="$dir/target"
 if [[ "$kind" == "--cargo" ]]; then
     cargo build --quiet --release --features python
