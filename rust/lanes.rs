@@ -33,7 +33,7 @@ pub use crate::lane_field::{
     midpoint_predictor_lanes, midpoint_update_lanes, rk4_by_lane, rk4_with, AtStates, FieldAt,
     LaneField, MidpointSolve,
 };
-use crate::rollout::{record_step, ChunkKernel, Records, TrajectoryInfo};
+use crate::rollout::{record_of, record_step, ChunkKernel, TrajectoryInfo};
 use crate::step::{NewtonOptions, StepResult, StepStats};
 use crate::straight_line::{sized_mut, LieField, Se3QuadraticLinear, So3Quadratic};
 use crate::structures::lie_poisson::{CompiledLiePoisson, VectorField};
@@ -690,12 +690,11 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
     if !live.contains(&true) {
         return;
     }
-    let mut records = Records::starting_at(steps.start, every);
     for k in steps {
-        let record = records.next(k);
         if S::REPORTS {
             let mut result = [Ok(StepStats::default()); L];
             stepper.step_lanes_reporting(h, &mut lanes, &live, &mut result);
+            let record = record_of(k, every);
             for l in 0..n {
                 if !live[l] {
                     continue;
@@ -744,6 +743,7 @@ fn advance_block<const N: usize, const L: usize, S: LaneStepper<N>>(
             // Padding lanes (zero states) may be flagged; only live ones count.
             inside = !(0..n).any(|l| live[l] && flagged[l]);
         }
+        let record = record_of(k, every);
         if record.is_none() && all_finite && inside {
             continue;
         }

@@ -293,41 +293,16 @@ impl<const N: usize, S: StepMap<N>> ChunkKernel<N> for PerStep<'_, S> {
     }
 }
 
-/// The record each global step k (state k → k+1) of a range writes, if any: state k + 1 is kept
-/// where `every` divides it, as record (k + 1) / every. Asked once a step for a whole block of
-/// lanes, and counted rather than divided: an integer division a step sat in the block loop of
-/// every lane stepper.
-pub(crate) struct Records {
-    every: usize,
-    /// (k + 1) mod every for the next step k.
-    phase: usize,
-}
-
-impl Records {
-    /// For the steps `first, first + 1, …`; `every` ≥ 1 (checked where a rollout starts).
-    #[inline(always)]
-    pub(crate) fn starting_at(first: usize, every: usize) -> Self {
-        let every = every.max(1);
-        Records {
-            every,
-            phase: (first + 1) % every,
-        }
-    }
-
-    /// The record of the next step k of the range, then moves on to k + 1.
-    #[inline(always)]
-    pub(crate) fn next(&mut self, k: usize) -> Option<usize> {
-        let record = (self.phase == 0).then(|| (k + 1) / self.every);
-        self.phase += 1;
-        if self.phase == self.every {
-            self.phase = 0;
-        }
-        record
-    }
+/// The record global step k (state k → k+1) writes, if any: state k + 1 is kept where
+/// `every` divides it. Computed once a step for a whole block, not once a trajectory (an
+/// integer division costs about as much as the rest of [`record_step`]).
+#[inline(always)]
+pub(crate) fn record_of(k: usize, every: usize) -> Option<usize> {
+    (k + 1).is_multiple_of(every).then(|| (k + 1) / every)
 }
 
 /// Records the outcome of global step k (state k → k+1) of one trajectory: its diagnostics, and
-/// its new state `mu` in record `record` ([`Records`]) if it is kept, or NaN in every later
+/// its new state `mu` in record `record` ([`record_of`]) if it is kept, or NaN in every later
 /// record if the step failed. `o` is the trajectory's row of the output. Returns whether the
 /// trajectory is still live.
 #[inline]
@@ -380,13 +355,12 @@ fn advance_chunk<const N: usize, S: StepMap<N>>(
     for (l, i) in live.iter_mut().zip(info.iter()) {
         *l = i.converged;
     }
-    let mut records = Records::starting_at(steps.start, every);
     for k in steps {
         if !live[..n].contains(&true) {
             return;
         }
         stepper.step_batch(h, mu, &live[..n], &mut results[..n], ws);
-        let record = records.next(k);
+        let record = record_of(k, every);
         for i in 0..n {
             if !live[i] {
                 continue;

@@ -4,26 +4,6 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::*;
-use crate::rollout::Records;
-
-/// Records, counted, against the division they replace: step k writes record (k + 1) / every
-/// where every divides k + 1, from any first step of a segment.
-#[test]
-fn records_count_what_the_division_gives() {
-    for every in [1, 2, 3, 7, 64] {
-        for first in [0, 1, 5, 6, 63, 64, 1000] {
-            let mut records = Records::starting_at(first, every);
-            for k in first..first + 3 * every + 5 {
-                let divided = ((k + 1) % every == 0).then(|| (k + 1) / every);
-                assert_eq!(
-                    records.next(k),
-                    divided,
-                    "every {every}, first {first}, k {k}"
-                );
-            }
-        }
-    }
-}
 
 /// A generating function that fails only in a region of phase space: with a sharp tanh bump of
 /// huge amplitude around p₁ = 5, trajectories starting there fail, the others are unaffected.
