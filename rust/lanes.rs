@@ -81,9 +81,9 @@ impl LaneField<3> for RigidBody {
     const AVX512_PAIRED: bool = true;
 
     /// Those blocks by lane: lane-inner, the block took 1.3 ns a step built by `cargo build`
-    /// (the crate an rlib and a cdylib) and 4.2–4.4 ns in a cdylib-only build, which is what
-    /// maturin builds for a wheel (lane shuffles and stack stores in its loop;
-    /// docs/performance.md).
+    /// (no LTO beside the rlib) and 4.2–4.4 ns in the wheel's cdylib-only build while the
+    /// profile had thin LTO (lane shuffles and stack stores in its loop; by lane it compiles
+    /// well in both; docs/performance.md, "The build the benches time").
     const AVX512_BY_LANE: bool = true;
 
     #[inline(always)]

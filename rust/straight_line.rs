@@ -109,8 +109,8 @@ impl LaneField<3> for So3Quadratic {
     const AVX512_PAIRED: bool = true;
 
     /// By lane, as the rigid body's ([`crate::classical::RigidBody`]'s `LaneField`): the
-    /// lane-inner block compiled well as part of an rlib and badly in the cdylib-only build
-    /// that a wheel is (docs/performance.md).
+    /// lane-inner block compiled well in `cargo build` and badly in the wheel's cdylib-only
+    /// build while the profile had thin LTO (docs/performance.md).
     const AVX512_BY_LANE: bool = true;
 
     #[inline(always)]
