@@ -22,7 +22,7 @@
 // Index loops over lanes, coordinates and monomials read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
-use super::polynomial::Factor;
+use super::polynomial::{Factor, PlannedTerm};
 use super::{Polynomial, TABLE_POWER};
 use crate::dual::{Dual1, Jet2};
 use crate::isa::{Isa, LANES};
@@ -136,7 +136,6 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
             }
         }
     }
-    let f = &mut scratch.j;
     for m in &plan.terms {
         // With T_MAX > 0, only the terms in t¹ … t^T_MAX (the cheap part of S that the Newton
         // predictors take: T_MAX = 1 is t ∂S/∂t(0, p)).
@@ -149,68 +148,97 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
             t.powi(m.t_power as i32)
         };
         let c = m.coeff * tk;
-        // The (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of this term's variables lane by lane
-        // (generating::power_jet), by position in the term (the plan lists its variables in
-        // increasing order); the second derivative only where n ≥ 2.
-        let count = m.count;
-        for k in 0..count {
-            let Factor { var: i, n, nf, nn } = m.factors[k];
-            let fk = &mut f[k];
-            if n == 1 {
-                for l in 0..L {
-                    fk[0][l] = p[i][l];
-                    fk[1][l] = 1.0;
-                }
-            } else if n as usize <= TABLE_POWER {
-                let k = n as usize;
-                for l in 0..L {
-                    fk[0][l] = pw[i][k][l];
-                    fk[1][l] = nf * pw[i][k - 1][l];
-                    fk[2][l] = nn * pw[i][k - 2][l];
-                }
-            } else {
-                for l in 0..L {
-                    let x = p[i][l];
-                    let xn2 = x.powi(n as i32 - 2);
-                    fk[0][l] = xn2 * x * x;
-                    fk[1][l] = nf * xn2 * x;
-                    fk[2][l] = nn * xn2;
-                }
+        // Terms in one, two or three variables (every term of the so(3) and se(3) Taylor S's) take
+        // code with their count fixed at compile time: the loops over their factors unroll and
+        // the factor jets stay in registers, where a count read at run time kept every loop and
+        // every factor in memory. The same operations in the same order: the same bits.
+        match m.count {
+            1 => term_into::<N, L, HESS, 1>(m, 1, c, p, &scratch.pw, &mut [[[0.0; L]; 3]; 1], out),
+            2 if N >= 2 => {
+                let f = &mut [[[0.0; L]; 3]; 2];
+                term_into::<N, L, HESS, 2>(m, 2, c, p, &scratch.pw, f, out)
             }
-        }
-        // Every product is c times the factors in increasing variable order, left to right,
-        // as the scalar jet forms it; products that start alike share their common prefix.
-        // `prefix` = c · Π_{r<k} xⁿ of position r.
-        let mut prefix = [c; L];
-        for k in 0..count {
-            let a = m.factors[k].var;
-            // ∂/∂p_a = prefix · n xⁿ⁻¹ · Π_{r>k} xⁿ; the off-diagonal ∂²/∂p_a∂p_b (b at a
-            // position l > k) branch off this chain at l.
-            let mut chain = prefix;
-            mul_into(&mut chain, &f[k][1]);
-            if HESS {
-                if m.factors[k].n >= 2 {
-                    let mut aa = prefix;
-                    mul_into(&mut aa, &f[k][2]);
-                    add_into(&mut out.h[a][a], &times_values(aa, f, k + 1, count));
-                }
-                for l in k + 1..count {
-                    let mut ab = chain;
-                    mul_into(&mut ab, &f[l][1]);
-                    add_into(
-                        &mut out.h[a][m.factors[l].var],
-                        &times_values(ab, f, l + 1, count),
-                    );
-                    mul_into(&mut chain, &f[l][0]);
-                }
-            } else {
-                chain = times_values(chain, f, k + 1, count);
+            3 if N >= 3 => {
+                let f = &mut [[[0.0; L]; 3]; 3];
+                term_into::<N, L, HESS, 3>(m, 3, c, p, &scratch.pw, f, out)
             }
-            add_into(&mut out.g[a], &chain);
-            mul_into(&mut prefix, &f[k][0]);
+            count => term_into::<N, L, HESS, N>(m, count, c, p, &scratch.pw, &mut scratch.j, out),
         }
-        add_into(&mut out.v, &prefix);
     }
+}
+
+/// One term c · Π xⁿ of [`jet_lanes_into`] added into `out`: its `count` (≤ C) factors, `f` the
+/// scratch of their jets (C = the count where the caller fixed it, else N).
+#[inline(always)]
+fn term_into<const N: usize, const L: usize, const HESS: bool, const C: usize>(
+    m: &PlannedTerm<N>,
+    count: usize,
+    c: f64,
+    p: &[[f64; L]; N],
+    pw: &PowerLanes<N, L>,
+    f: &mut [[[f64; L]; 3]; C],
+    out: &mut JetLanes<N, L>,
+) {
+    // The (xⁿ, n xⁿ⁻¹, n(n−1) xⁿ⁻²) of this term's variables lane by lane
+    // (generating::power_jet), by position in the term (the plan lists its variables in
+    // increasing order); the second derivative only where n ≥ 2.
+    for k in 0..count {
+        let Factor { var: i, n, nf, nn } = m.factors[k];
+        let fk = &mut f[k];
+        if n == 1 {
+            for l in 0..L {
+                fk[0][l] = p[i][l];
+                fk[1][l] = 1.0;
+            }
+        } else if n as usize <= TABLE_POWER {
+            let k = n as usize;
+            for l in 0..L {
+                fk[0][l] = pw[i][k][l];
+                fk[1][l] = nf * pw[i][k - 1][l];
+                fk[2][l] = nn * pw[i][k - 2][l];
+            }
+        } else {
+            for l in 0..L {
+                let x = p[i][l];
+                let xn2 = x.powi(n as i32 - 2);
+                fk[0][l] = xn2 * x * x;
+                fk[1][l] = nf * xn2 * x;
+                fk[2][l] = nn * xn2;
+            }
+        }
+    }
+    // Every product is c times the factors in increasing variable order, left to right,
+    // as the scalar jet forms it; products that start alike share their common prefix.
+    // `prefix` = c · Π_{r<k} xⁿ of position r.
+    let mut prefix = [c; L];
+    for k in 0..count {
+        let a = m.factors[k].var;
+        // ∂/∂p_a = prefix · n xⁿ⁻¹ · Π_{r>k} xⁿ; the off-diagonal ∂²/∂p_a∂p_b (b at a
+        // position l > k) branch off this chain at l.
+        let mut chain = prefix;
+        mul_into(&mut chain, &f[k][1]);
+        if HESS {
+            if m.factors[k].n >= 2 {
+                let mut aa = prefix;
+                mul_into(&mut aa, &f[k][2]);
+                add_into(&mut out.h[a][a], &times_values(aa, f, k + 1, count));
+            }
+            for l in k + 1..count {
+                let mut ab = chain;
+                mul_into(&mut ab, &f[l][1]);
+                add_into(
+                    &mut out.h[a][m.factors[l].var],
+                    &times_values(ab, f, l + 1, count),
+                );
+                mul_into(&mut chain, &f[l][0]);
+            }
+        } else {
+            chain = times_values(chain, f, k + 1, count);
+        }
+        add_into(&mut out.g[a], &chain);
+        mul_into(&mut prefix, &f[k][0]);
+    }
+    add_into(&mut out.v, &prefix);
 }
 
 /// [`jet_lanes_into`] with fresh scratch.
