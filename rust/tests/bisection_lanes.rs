@@ -25,9 +25,47 @@ fn random_polynomial<const N: usize>(rng: &mut Rng, n_terms: usize) -> Polynomia
     .unwrap()
 }
 
+/// Random polynomials whose terms lack variables: each exponent 0 half the time, so a term has
+/// any number of variables from 0 to N (the lanes take terms in one, two or three variables by
+/// code of their own and the others by the general loop). Every count appears at least once.
+fn sparse_polynomial<const N: usize>(rng: &mut Rng, n_terms: usize) -> Polynomial<N> {
+    let mut terms: Vec<Monomial<N>> = (0..=N)
+        .map(|count| {
+            let mut p_powers = [0; N];
+            for i in 0..count {
+                p_powers[(i + count) % N] = 1 + rng.below(11) as u32;
+            }
+            Monomial {
+                t_power: 1 + rng.below(10) as u32,
+                p_powers,
+                coeff: rng.range(-1.0, 1.0),
+            }
+        })
+        .collect();
+    terms.extend((0..n_terms).map(|_| Monomial {
+        t_power: 1 + rng.below(10) as u32,
+        p_powers: [0; N].map(|_: u32| {
+            if rng.below(2) == 0 {
+                0
+            } else {
+                1 + rng.below(11) as u32
+            }
+        }),
+        coeff: rng.range(-1.0, 1.0),
+    }));
+    Polynomial::new(terms).unwrap()
+}
+
 fn check_jets<const N: usize>(rng: &mut Rng) {
-    for n in [1, 7, 8, 13, 37] {
-        let poly = random_polynomial::<N>(rng, 9);
+    for (n, sparse) in [1, 7, 8, 13, 37]
+        .into_iter()
+        .flat_map(|n| [(n, false), (n, true)])
+    {
+        let poly = if sparse {
+            sparse_polynomial::<N>(rng, 9)
+        } else {
+            random_polynomial::<N>(rng, 9)
+        };
         let t = rng.range(0.0, 0.5);
         let p: Vec<[f64; N]> = (0..n)
             .map(|_| [0.0; N].map(|_: f64| rng.range(-2.0, 2.0)))
@@ -57,7 +95,9 @@ fn check_jets<const N: usize>(rng: &mut Rng) {
 fn polynomial_lanes_equal_the_scalar_jets() {
     let mut rng = Rng::new(0x1A2E_5001);
     check_jets::<1>(&mut rng);
+    check_jets::<2>(&mut rng);
     check_jets::<3>(&mut rng);
+    check_jets::<4>(&mut rng);
     check_jets::<6>(&mut rng);
 }
 
