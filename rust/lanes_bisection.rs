@@ -846,13 +846,15 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
         }
         let (x, h) = gradient_and_hessian(&jet);
         let (tar, s, jac) = so3_chart_lanes(chart, -1.0, &x, &p, hess.then_some(&h));
-        // A match, not `Option::map`: a closure left out of line is compiled without the
+        // Matches, not `Option::map`: a closure left out of line is compiled without the
         // block's target features (it was: SSE2 code for the whole 3×3 inverse).
+        #[allow(clippy::manual_map)]
         let fresh = match &jac {
             Some(j) => Some(inverse3_lanes(j)),
             None => None,
         };
         let (probe, hess_probe) = round_probes(&jet.v, &x, &h, hess);
+        #[allow(clippy::manual_map)]
         let fresh_probe = match &fresh {
             Some((fi, det)) => Some(matrix_probe(fi) + det.finite_probe()),
             None => None,
