@@ -297,20 +297,47 @@ pub(crate) fn inverse_lanes<const N: usize, const L: usize>(
 type V3<const L: usize> = [V<L>; 3];
 type M3<const L: usize> = [[V<L>; 3]; 3];
 
-/// `[f(0), f(1), f(2)]`, built in place: `array::map` on lane vectors goes through memcpy.
-#[inline(always)]
-fn v3<const L: usize>(f: impl Fn(usize) -> V<L>) -> V3<L> {
-    [f(0), f(1), f(2)]
+/// `[e(0), e(1), e(2)]` with the index bound to 0, 1, 2, written out in place. Not a helper
+/// taking a closure: a closure the compiler leaves out of line is compiled without the block's
+/// target features (the profile found SSE2 code for a 3×3 inverse and for the charts' vectors
+/// inside the AVX-512 block).
+macro_rules! v3 {
+    (|$i:ident| $e:expr) => {
+        [
+            {
+                let $i = 0;
+                $e
+            },
+            {
+                let $i = 1;
+                $e
+            },
+            {
+                let $i = 2;
+                $e
+            },
+        ]
+    };
 }
 
-/// The 3×3 matrix with entries `f(r, c)`, built in place.
-#[inline(always)]
-fn m3<const L: usize>(f: impl Fn(usize, usize) -> V<L>) -> M3<L> {
-    [
-        [f(0, 0), f(0, 1), f(0, 2)],
-        [f(1, 0), f(1, 1), f(1, 2)],
-        [f(2, 0), f(2, 1), f(2, 2)],
-    ]
+/// The 3×3 matrix with entries `e(r, c)`, written out in place as `v3!` does.
+macro_rules! m3 {
+    (|$r:ident, $c:ident| $e:expr) => {
+        [
+            v3!(|$c| {
+                let $r = 0;
+                $e
+            }),
+            v3!(|$c| {
+                let $r = 1;
+                $e
+            }),
+            v3!(|$c| {
+                let $r = 2;
+                $e
+            }),
+        ]
+    };
 }
 
 /// The same products in the same order as the chart's (groupoid::cross).
@@ -350,11 +377,11 @@ pub(crate) fn so3_chart_lanes<const L: usize>(
 ) -> (V3<L>, V<L>, Option<M3<L>>) {
     let xp = cross(x, p);
     let s = dot(x, x);
-    let half = v3(|i| xp[i].scale(0.5 * sign));
+    let half = v3!(|i| xp[i].scale(0.5 * sign));
     let (t, c, dc, u) = match chart {
         Chart::Cayley => {
             let q = dot(x, p).scale(0.25);
-            let t = v3(|i| p[i] + half[i] + x[i] * q);
+            let t = v3!(|i| p[i] + half[i] + x[i] * q);
             (t, V::splat(0.25), V::splat(0.0), [V::splat(0.0); 3])
         }
         Chart::Exp => {
@@ -374,7 +401,7 @@ pub(crate) fn so3_chart_lanes<const L: usize>(
                 }
             }
             let u = cross(x, &xp);
-            let t = v3(|i| p[i] + half[i] + c * u[i]);
+            let t = v3!(|i| p[i] + half[i] + c * u[i]);
             (t, c, dc, u)
         }
     };
@@ -389,12 +416,12 @@ pub(crate) fn so3_chart_lanes<const L: usize>(
         Chart::Exp => {
             let two_dc = dc.scale(2.0);
             let two_c = c.scale(2.0);
-            (one - c * s, v3(|i| two_dc * u[i] - two_c * p[i]))
+            (one - c * s, v3!(|i| two_dc * u[i] - two_c * p[i]))
         }
     };
     // ∂T/∂p = diag I − ½ x̂ + c x xᵀ, with x̂ = [[0, −x₂, x₁], [x₂, 0, −x₀], [−x₁, x₀, 0]].
-    let hx = v3(|i| x[i].scale(0.5));
-    let mut jp = m3(|r, k| c * x[r] * x[k]);
+    let hx = v3!(|i| x[i].scale(0.5));
+    let mut jp = m3!(|r, k| c * x[r] * x[k]);
     jp[0][1] = jp[0][1] + hx[2];
     jp[0][2] = jp[0][2] - hx[1];
     jp[1][0] = jp[1][0] - hx[2];
@@ -405,8 +432,8 @@ pub(crate) fn so3_chart_lanes<const L: usize>(
         jp[i][i] = jp[i][i] + diag;
     }
     // ∂T/∂x = ½ p̂ + c (x pᵀ + w I) + v xᵀ.
-    let hp = v3(|i| p[i].scale(0.5));
-    let mut a = m3(|r, k| c * x[r] * p[k] + v[r] * x[k]);
+    let hp = v3!(|i| p[i].scale(0.5));
+    let mut a = m3!(|r, k| c * x[r] * p[k] + v[r] * x[k]);
     a[0][1] = a[0][1] - hp[2];
     a[0][2] = a[0][2] + hp[1];
     a[1][0] = a[1][0] + hp[2];
@@ -417,7 +444,7 @@ pub(crate) fn so3_chart_lanes<const L: usize>(
     for i in 0..3 {
         a[i][i] = a[i][i] + cw;
     }
-    let j = m3(|r, k| jp[r][k] + a[r][0] * h[0][k] + a[r][1] * h[1][k] + a[r][2] * h[2][k]);
+    let j = m3!(|r, k| jp[r][k] + a[r][0] * h[0][k] + a[r][1] * h[1][k] + a[r][2] * h[2][k]);
     (t, s, Some(j))
 }
 
@@ -452,7 +479,7 @@ pub(crate) fn so3_rotate_lanes<const L: usize>(
     };
     let xm = cross(x, mu);
     let xxm = cross(x, &xm);
-    v3(|i| mu[i] + (a * xm[i] + b * xxm[i]))
+    v3!(|i| mu[i] + (a * xm[i] + b * xxm[i]))
 }
 
 /// The cofactor inverse of [`crate::stepper::inverse3`] lane by lane (the same operations), and
@@ -461,7 +488,7 @@ pub(crate) fn so3_rotate_lanes<const L: usize>(
 fn inverse3_lanes<const L: usize>(m: &M3<L>) -> (M3<L>, V<L>) {
     let (adj, det) = crate::step::adjugate3(m);
     let r = V::splat(1.0).zip(det, |a, b| a / b);
-    (adj.map(|row| row.map(|v| v * r)), det)
+    (m3!(|i, j| adj[i][j] * r), det)
 }
 
 /// Largest |x₀|² at which the Newton predictor is used (see [`So3Newton::predict`]).
@@ -544,7 +571,7 @@ fn evaluate_polynomial<const N: usize, const L: usize, const HESS: bool>(
 #[inline(always)]
 fn gradient_and_hessian<const N: usize, const L: usize>(jet: &JetLanes<N, L>) -> (V3<L>, M3<L>) {
     let x = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
-    let h = m3(|a, b| V(jet.h[a.min(b)][a.max(b)]));
+    let h = m3!(|a, b| V(jet.h[a.min(b)][a.max(b)]));
     (x, h)
 }
 
@@ -580,20 +607,20 @@ pub(crate) fn so3_start<const N: usize, const L: usize, const EXP: bool>(
     let (x0, h0) = gradient_and_hessian(jet);
     let turn = cross(&x0, mu);
     let p1 = if EXP {
-        v3(|i| mu[i] + turn[i].scale(0.5))
+        v3!(|i| mu[i] + turn[i].scale(0.5))
     } else {
         let along = dot(&x0, mu).scale(0.25);
-        v3(|i| mu[i] + turn[i].scale(0.5) - x0[i] * along)
+        v3!(|i| mu[i] + turn[i].scale(0.5) - x0[i] * along)
     };
-    let d = v3(|i| p1[i] - mu[i]);
-    let xt = v3(|a| x0[a] + (h0[a][0] * d[0] + h0[a][1] * d[1] + h0[a][2] * d[2]));
+    let d = v3!(|i| p1[i] - mu[i]);
+    let xt = v3!(|a| x0[a] + (h0[a][0] * d[0] + h0[a][1] * d[1] + h0[a][2] * d[2]));
     let turn = cross(&xt, &p1);
     let p0 = if EXP {
         let twice = cross(&xt, &turn);
-        v3(|i| mu[i] + turn[i].scale(0.5) - twice[i].scale(C_SERIES[0]))
+        v3!(|i| mu[i] + turn[i].scale(0.5) - twice[i].scale(C_SERIES[0]))
     } else {
         let along = dot(&xt, &p1).scale(0.25);
-        v3(|i| mu[i] + turn[i].scale(0.5) - xt[i] * along)
+        v3!(|i| mu[i] + turn[i].scale(0.5) - xt[i] * along)
     };
     (p0, dot(&x0, &x0))
 }
@@ -811,11 +838,19 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
         }
         let (x, h) = gradient_and_hessian(&jet);
         let (tar, s, jac) = so3_chart_lanes(chart, -1.0, &x, &p, hess.then_some(&h));
-        let fresh = jac.map(|j| inverse3_lanes(&j));
+        // Matches, not `Option::map`: a closure left out of line is compiled without the
+        // block's target features (it was: SSE2 code for the whole 3×3 inverse).
+        #[allow(clippy::manual_map)]
+        let fresh = match &jac {
+            Some(j) => Some(inverse3_lanes(j)),
+            None => None,
+        };
         let (probe, hess_probe) = round_probes(&jet.v, &x, &h, hess);
-        let fresh_probe = fresh
-            .as_ref()
-            .map(|(fi, det)| matrix_probe(fi) + det.finite_probe());
+        #[allow(clippy::manual_map)]
+        let fresh_probe = match &fresh {
+            Some((fi, det)) => Some(matrix_probe(fi) + det.finite_probe()),
+            None => None,
+        };
         let chart = |l: usize| (EXP && s.0[l] >= max_s).then_some(StepFailure::ChartSingular);
         let inverted = |l: usize| match (&fresh, &fresh_probe) {
             (Some((_, det)), Some(fp)) => det.0[l] != 0.0 && fp.0[l] == 0.0,
@@ -840,10 +875,10 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
             }
         }
         // δ = J⁻¹ (μ − tar), each component summed in column order (Inverse::apply).
-        let f = v3(|i| target[i] - tar[i]);
-        let delta = v3(|r| inv[r][0] * f[0] + inv[r][1] * f[1] + inv[r][2] * f[2]);
+        let f = v3!(|i| target[i] - tar[i]);
+        let delta = v3!(|r| inv[r][0] * f[0] + inv[r][1] * f[1] + inv[r][2] * f[2]);
         progress.update(&go, &mut p, &delta, sys.tol, results);
-        let step = v3(|a| hk[a][0] * delta[0] + hk[a][1] * delta[1] + hk[a][2] * delta[2]);
+        let step = v3!(|a| hk[a][0] * delta[0] + hk[a][1] * delta[1] + hk[a][2] * delta[2]);
         let newly: [bool; L] = std::array::from_fn(|l| go[l] && progress.converged[l]);
         for a in 0..3 {
             xs[a] = xs[a].blend(&newly, x[a] + step[a]);
