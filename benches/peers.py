@@ -37,6 +37,11 @@ steps, 1e-12 over 10⁴).
 
 Peers install with ``pip install 'poisson_rs[bench]'``, which pins jax[cpu] 0.10.2 and numba
 0.68.1: the ratios compare across runs only with those versions (and on the same machine).
+``--copies N`` (default 2) times this build and the baseline from N fresh copies each of their
+extension file, loaded side by side, the copies alternating with the peers: the same extension ran
+one kernel up to 1.3× apart from two files holding the same bytes (``benches/placements.py``). A
+build's rate is the median over its copies of each copy's median, printed with the copies' range
+(``rate_copies`` in the JSON); the one-call costs time the installed files.
 ``--systems`` runs only the named systems' workloads. Pin one thread: the script sets
 ``RAYON_NUM_THREADS=1``, XLA's and numba's thread counts to 1 before importing them; run it
 under ``taskset -c 0`` as well. ``--json FILE`` writes the numbers.
@@ -53,6 +58,7 @@ import os
 import platform
 import statistics
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -70,6 +76,9 @@ import numpy as np
 
 import poisson_rs as pr
 from poisson_rs.files import atomic_write_bytes, check_output_path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from placements import fresh_copies, summary
 
 H = 0.1
 RIGID_I = (1.5, 2.0, 2.5)
@@ -332,10 +341,12 @@ def numba_runner(system: str) -> Runner | None:
     return run  # type: ignore[no-any-return]
 
 
-def load_core(path: Path) -> ModuleType:
-    """An earlier build's ``_core`` extension, loaded beside this one."""
-    loader = importlib.machinery.ExtensionFileLoader("baseline_core._core", str(path))
-    spec = importlib.util.spec_from_file_location("baseline_core._core", path, loader=loader)
+def load_core(path: Path, package: str = "baseline_core") -> ModuleType:
+    """A ``_core`` extension file (an earlier build's, or a copy), loaded beside this one as
+    ``<package>._core``."""
+    name = f"{package}._core"
+    loader = importlib.machinery.ExtensionFileLoader(name, str(path))
+    spec = importlib.util.spec_from_file_location(name, path, loader=loader)
     if spec is None:
         raise SystemExit(f"cannot load {path}")
     module = importlib.util.module_from_spec(spec)
@@ -396,11 +407,69 @@ def one_call_costs(rounds: int, baseline: ModuleType | None) -> dict[str, float]
     return calls
 
 
+def workload(
+    system: str, batch: int, n: int, rounds: int, cores: dict[str, list[ModuleType]]
+) -> dict[str, Any]:
+    """One workload's rates (trajectory-steps/s) and agreement with ``pr.integrate``: each build
+    from each of its copies (``cores``), JAX and numba, in alternating rounds."""
+    mu0 = states(system, batch)
+    runners: dict[str, Runner | None] = {"jax": jax_runner(system), "numba": numba_runner(system)}
+    for key, copies in cores.items():
+        for i, core in enumerate(copies):
+            runners[f"{key}#{i}"] = poisson_rs_runner(system, core)
+    live = {k: r for k, r in runners.items() if r is not None}
+    reference = poisson_rs_runner(system)
+    assert reference is not None
+    ref = reference(mu0, n)
+    agree: dict[str, float] = {}
+    for name, run in live.items():  # warm-up (JIT compiles) and agreement
+        key = name.split("#")[0]
+        agree[key] = max(agree.get(key, 0.0), float(np.abs(run(mu0, n) - ref).max()))
+    samples: dict[str, list[float]] = {k: [] for k in live}
+    names = list(live)
+    for r in range(rounds):
+        for name in names if r % 2 == 0 else names[::-1]:
+            samples[name].append(timed(live[name], mu0, n)[0])
+    per_copy: dict[str, list[float]] = {}
+    for name, v in samples.items():
+        per_copy.setdefault(name.split("#")[0], []).append(batch * n / statistics.median(v))
+    rate = {k: summary(v)[0] for k, v in per_copy.items()}
+    order = ["poisson_rs", "jax", "numba", "baseline"]
+    rate = {k: rate[k] for k in order if k in rate}
+
+    def shown(k: str) -> str:
+        v = per_copy[k]
+        return f"{k} {rate[k]:.2e}" + (f" [{min(v):.2e}-{max(v):.2e}]" if len(v) > 1 else "")
+
+    print(
+        f"{system:17s} batch {batch:5d}: "
+        + ", ".join(shown(k) for k in rate)
+        + " trajectory-steps/s; max |diff| "
+        + ", ".join(f"{k} {v:.1e}" for k, v in agree.items() if k != "poisson_rs"),
+        flush=True,
+    )
+    return {
+        "system": system,
+        "batch": batch,
+        "steps": n,
+        "h": step_size(system),
+        "rate": rate,
+        "rate_copies": {k: v for k, v in per_copy.items() if k in cores},
+        "agree": agree,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=7, help="timed rounds per cell (>= 5)")
     parser.add_argument("--baseline", type=Path, help="an earlier build's _core extension")
     parser.add_argument("--json", type=Path, help="write the numbers here")
+    parser.add_argument(
+        "--copies",
+        type=int,
+        default=2,
+        help="time each build from this many fresh copies of its extension (placements; >= 1)",
+    )
     parser.add_argument(
         "--systems",
         nargs="+",
@@ -410,46 +479,28 @@ def main() -> None:
     args = parser.parse_args()
     if args.json:  # before minutes of work, not after
         check_output_path(args.json)
+    if args.copies < 1:
+        raise SystemExit("--copies must be at least 1")
+    if args.baseline is not None and not args.baseline.is_file():
+        raise SystemExit(f"--baseline: {args.baseline} is not a file")
     rounds = max(5, args.rounds)
     baseline = load_core(args.baseline) if args.baseline else None
-    rows: list[dict[str, Any]] = []
-    for system, batch, n in WORKLOADS:
-        if args.systems and system not in args.systems:
-            continue
-        mu0 = states(system, batch)
-        runners: dict[str, Runner | None] = {
-            "poisson_rs": poisson_rs_runner(system),
-            "jax": jax_runner(system),
-            "numba": numba_runner(system),
+    sources = {"poisson_rs": Path(pr._core.__file__)}
+    if args.baseline is not None:
+        sources["baseline"] = args.baseline
+    with tempfile.TemporaryDirectory(prefix="peers_") as tmp:
+        cores = {
+            key: [
+                load_core(copy, f"placement_{key}_{i}")
+                for i, copy in enumerate(fresh_copies(source, args.copies, Path(tmp) / key))
+            ]
+            for key, source in sources.items()
         }
-        if baseline is not None:
-            runners["baseline"] = poisson_rs_runner(system, baseline)
-        live = {k: r for k, r in runners.items() if r is not None}
-        ref = live["poisson_rs"](mu0, n)
-        agree = {}
-        for name, run in live.items():  # warm-up (JIT compiles) and agreement
-            agree[name] = float(np.abs(run(mu0, n) - ref).max())
-        samples: dict[str, list[float]] = {k: [] for k in live}
-        for _ in range(rounds):
-            for name, run in live.items():
-                samples[name].append(timed(run, mu0, n)[0])
-        rate = {k: batch * n / statistics.median(v) for k, v in samples.items()}
-        row = {
-            "system": system,
-            "batch": batch,
-            "steps": n,
-            "h": step_size(system),
-            "rate": rate,
-            "agree": agree,
-        }
-        rows.append(row)
-        print(
-            f"{system:17s} batch {batch:5d}: "
-            + ", ".join(f"{k} {v:.2e}" for k, v in rate.items())
-            + " trajectory-steps/s; max |diff| "
-            + ", ".join(f"{k} {v:.1e}" for k, v in agree.items() if k != "poisson_rs"),
-            flush=True,
-        )
+        rows = [
+            workload(system, batch, n, rounds, cores)
+            for system, batch, n in WORKLOADS
+            if not args.systems or system in args.systems
+        ]
     calls = {} if args.systems else one_call_costs(rounds, baseline)
     if calls:
         print(
@@ -460,7 +511,13 @@ def main() -> None:
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
     print(f"machine: {machine}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     if args.json:
-        data = {"workloads": rows, "call_seconds": calls, "load": load, "machine": machine}
+        data = {
+            "workloads": rows,
+            "call_seconds": calls,
+            "copies": args.copies,
+            "load": load,
+            "machine": machine,
+        }
         atomic_write_bytes(args.json, json.dumps(data, indent=1).encode())
 
 

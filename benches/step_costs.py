@@ -22,12 +22,20 @@ ones (from ``integrate(..., return_info=True)``). ``--json FILE`` writes the num
 ``site-packages`` where its wheel is installed). This build and that one then run in two worker
 processes on the same core, one timed rollout at a time, the builds alternating within every
 round; each cell gains the baseline's ns per step, the ratio now / before and its Newton updates.
-A stepper one build lacks is "n/a" there. Build both the way the wheel is built
+A stepper one build lacks is "n/a" there.
+
+Each build is timed from ``--copies`` (default 2) fresh copies of its package, one worker
+process each, the copies alternating within every round too: the same extension ran one kernel
+up to 1.3× apart from two files holding the same bytes (``benches/placements.py``). A cell is
+the median over the copies of each copy's median, printed with the copies' range; now / before
+is the ratio of those medians, with the range any copy of one build against any copy of the
+other gives (``vs_baseline_range`` in the JSON). Build both the way the wheel is built
 (``benches/build_core.sh``; ``cargo build --release`` skips the profile's LTO and compiles other
 code), for a revision ``REV``::
 
     benches/build_core.sh REV /tmp/base
-    RAYON_NUM_THREADS=1 taskset -c 0 python benches/step_costs.py --baseline /tmp/base/python
+    RAYON_NUM_THREADS=1 taskset -c 0 python benches/step_costs.py --baseline /tmp/base/python \
+        --copies 3
 
 A step's cost is only half of the choice: what it buys in accuracy is charted by ``poisson-rs
 select`` and the work–precision charts; this table says where the time of a step goes.
@@ -42,6 +50,7 @@ import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -54,6 +63,9 @@ import numpy as np
 import poisson_rs as pr
 from poisson_rs.files import atomic_write_bytes, check_output_path
 from poisson_rs.scenes import load_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from placements import fresh_copies, ratio_range, summary
 
 H = 0.1
 #: A 5-D Lotka–Volterra system (c of rank 4: one Casimir), for the dimensions above 3.
@@ -348,55 +360,72 @@ def main() -> None:
         default=[],
         help="a model file to time too, as learned:FILE on its system (repeatable)",
     )
+    parser.add_argument(
+        "--copies",
+        type=int,
+        default=2,
+        help="time each build from this many fresh copies of its package (placements; >= 1)",
+    )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.batch < 1 or args.rounds < 1:
-        raise SystemExit("--batch and --rounds must be at least 1")
+    if args.batch < 1 or args.rounds < 1 or args.copies < 1:
+        raise SystemExit("--batch, --rounds and --copies must be at least 1")
     if args.worker:
         return serve(args.batch, args.system, args.model)
     if args.json is not None:
         check_output_path(args.json)
     check_models(args.model, args.system)
-    builds: dict[str, Any]
-    if args.baseline is None:
-        builds = {"now": Build(args.batch, args.system, args.model)}
-    else:
+    here = Path(pr.__file__).resolve().parent.parent
+    sources = {"now": here}
+    if args.baseline is not None:
         if not (args.baseline / "poisson_rs" / "__init__.py").is_file():
             raise SystemExit(f"--baseline: {args.baseline} holds no poisson_rs package")
-        here = Path(pr.__file__).resolve().parent.parent
-        builds = {
-            "now": Worker(here, args.batch, args.system, args.model),
-            "before": Worker(args.baseline, args.batch, args.system, args.model),
-        }
-        packages = {k: b.package() for k, b in builds.items()}
-        if packages["now"] == packages["before"]:
-            raise SystemExit(f"--baseline: both builds load {packages['now']}")
-        print(f"now: {packages['now']}\nbefore: {packages['before']}")
-    try:
-        only = None if args.stepper is None else {"rk4", *args.stepper}
-        rows = measure(builds, args.batch, args.rounds, only)
-    except RuntimeError as exc:  # a failed step in this process's rollout: said, no traceback
-        raise SystemExit(str(exc)) from None
-    finally:
-        for b in builds.values():
-            if isinstance(b, Worker):
-                b.close()
+        if (args.baseline / "poisson_rs").resolve() == here / "poisson_rs":
+            raise SystemExit(f"--baseline: both builds are {here / 'poisson_rs'}")
+        sources["before"] = args.baseline
+    with tempfile.TemporaryDirectory(prefix="step_costs_") as tmp:
+        builds: dict[str, list[Worker]] = {}
+        try:
+            for key, source in sources.items():
+                copies = fresh_copies(source / "poisson_rs", args.copies, Path(tmp) / key)
+                builds[key] = []
+                for copy in copies:
+                    worker = Worker(copy.parent, args.batch, args.system, args.model)
+                    builds[key].append(worker)
+                    loaded = Path(worker.package())
+                    if loaded != copy.resolve():  # a package on the path ahead of PYTHONPATH
+                        raise SystemExit(f"{key}: the worker loaded {loaded}, not {copy}")
+                print(f"{key}: {source / 'poisson_rs'}, {args.copies} fresh copies")
+            only = None if args.stepper is None else {"rk4", *args.stepper}
+            rows = measure(builds, args.batch, args.rounds, only)
+        except RuntimeError as exc:  # a failed step in a worker's rollout: said, no traceback
+            raise SystemExit(str(exc)) from None
+        finally:
+            for workers in builds.values():
+                for w in workers:
+                    w.close()
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; load average {load}")
     if args.json is not None:
-        meta = {"h": H, "batch": args.batch, "rounds": args.rounds, "load_average": load}
+        meta = {
+            "h": H,
+            "batch": args.batch,
+            "rounds": args.rounds,
+            "copies": args.copies,
+            "load_average": load,
+        }
         if args.baseline is not None:
             meta["baseline"] = str(args.baseline)
         atomic_write_bytes(args.json, json.dumps({**meta, "rows": rows}, indent=1).encode())
 
 
 def measure(
-    builds: dict[str, Any], batch: int, rounds: int, only: set[str] | None = None
+    builds: dict[str, list[Worker]], batch: int, rounds: int, only: set[str] | None = None
 ) -> list[dict[str, Any]]:
     """Every system's steppers (those in ``only`` where given) in every build: Newton updates
-    from one rollout, then ``rounds`` rounds of one timed rollout per stepper and build, the
-    builds' order alternating."""
-    names = {key: b.names() for key, b in builds.items()}
+    from one rollout of the first copy, then ``rounds`` rounds of one timed rollout per stepper,
+    build and copy, the builds' order and the copies' order alternating."""
+    names = {key: copies[0].names() for key, copies in builds.items()}
     if only is not None:
         offered = {n for table in names.values() for steppers in table.values() for n in steppers}
         unknown = sorted(only - offered)
@@ -406,6 +435,7 @@ def measure(
                 f"the steppers: {', '.join(sorted(offered))}"
             )
     rows: list[dict[str, Any]] = []
+    keys = list(builds)
     for label in names["now"]:
         order = list(names["now"][label])
         for key in builds:
@@ -416,55 +446,74 @@ def measure(
                 continue
         have = {key: set(names[key].get(label, [])) for key in builds}
         updates = {
-            key: {n: b.updates(label, n) for n in order if n in have[key]}
-            for key, b in builds.items()
+            key: {n: copies[0].updates(label, n) for n in order if n in have[key]}
+            for key, copies in builds.items()
         }
-        times: dict[str, dict[str, list[float]]] = {key: {n: [] for n in order} for key in builds}
-        keys = list(builds)
+        # times[key][name][copy]: that copy's timed rollouts.
+        times = {key: {n: [[] for _ in copies] for n in order} for key, copies in builds.items()}
         for r in range(rounds):
             for name in order:
                 for key in keys if r % 2 == 0 else keys[::-1]:
-                    if name in have[key]:
-                        times[key][name].append(builds[key].time(label, name))
+                    if name not in have[key]:
+                        continue
+                    copies = list(enumerate(builds[key]))
+                    for c, worker in copies if r % 2 == 0 else copies[::-1]:
+                        times[key][name][c].append(worker.time(label, name))
+        # Per copy: the median of its rounds, in ns.
         med = {
-            k: {n: statistics.median(v) * 1e9 for n, v in t.items() if v} for k, t in times.items()
+            key: {n: [statistics.median(v) * 1e9 for v in per] for n, per in t.items() if per[0]}
+            for key, t in times.items()
         }
         for name in order:
             row: dict[str, Any] = {"system": label, "stepper": name, "batch": batch}
             for key in keys:
                 tag = "" if key == "now" else "_baseline"
-                ns, rk4 = med[key].get(name), med[key].get("rk4")
+                per, rk4 = med[key].get(name), med[key].get("rk4")
+                ns = None if per is None else summary(per)[0]
                 row["ns_per_step" + tag] = ns
-                row["vs_rk4" + tag] = ns / rk4 if ns is not None and rk4 else None
+                row["ns_per_step_copies" + tag] = per
+                row["vs_rk4" + tag] = ns / summary(rk4)[0] if ns is not None and rk4 else None
                 row["newton_updates_per_step" + tag] = updates[key].get(name)
             if "before" in builds:
-                a, b = row["ns_per_step"], row["ns_per_step_baseline"]
-                row["vs_baseline"] = a / b if a is not None and b else None
+                a, b = row["ns_per_step_copies"], row["ns_per_step_copies_baseline"]
+                both = a is not None and b is not None
+                ratios = ratio_range(a, b) if both else None
+                row["vs_baseline"] = None if ratios is None else ratios[0]
+                row["vs_baseline_range"] = None if ratios is None else list(ratios[1:])
             rows.append(row)
             print(line_of(row), flush=True)
     return rows
 
 
 def line_of(row: dict[str, Any]) -> str:
-    """One printed row: ns per step, × RK4, Newton updates; with a baseline, its cells."""
+    """One printed row: ns per step (the copies' range where there are several), × RK4, Newton
+    updates; with a baseline, its cells and now/before with its range over the copies."""
 
-    def cell(ns: float | None, ratio: float | None, u: float | None) -> str:
-        if ns is None:
+    def cell(
+        ns: float | None, per: list[float] | None, ratio: float | None, u: float | None
+    ) -> str:
+        if ns is None or per is None or ratio is None:
             return f"{'n/a':>9s} {'':11s}"
+        spread = f" [{min(per):.1f}-{max(per):.1f}]" if len(per) > 1 else ""
         note = f", {u:.2f} upd" if u is not None else ""
-        return f"{ns:9.1f} ns {ratio:7.1f}x RK4{note}"
+        return f"{ns:9.1f} ns{spread} {ratio:7.1f}x RK4{note}"
 
     text = f"{row['system']:17s} {row['stepper']:24s} " + cell(
-        row["ns_per_step"], row["vs_rk4"], row["newton_updates_per_step"]
+        row["ns_per_step"], row["ns_per_step_copies"], row["vs_rk4"], row["newton_updates_per_step"]
     )
     if "vs_baseline" in row:
         text += " | before " + cell(
             row["ns_per_step_baseline"],
+            row["ns_per_step_copies_baseline"],
             row["vs_rk4_baseline"],
             row["newton_updates_per_step_baseline"],
         )
-        ratio = row["vs_baseline"]
-        text += f" | now/before {ratio:.2f}" if ratio is not None else " | now/before n/a"
+        ratio, (lo, hi) = row["vs_baseline"], row["vs_baseline_range"] or (None, None)
+        text += (
+            f" | now/before {ratio:.2f} [{lo:.2f}-{hi:.2f}]"
+            if ratio is not None
+            else " | now/before n/a"
+        )
     return text
 
 
