@@ -107,18 +107,13 @@ def series(system: Any, order: int, chart: str) -> tuple[Any, Any, Any, Any]:
     return tuple(polynomial(powers, coeffs, k) for k in (None, 1, 2, 3))  # type: ignore[return-value]
 
 
-def solve(
-    system: Any,
-    s: tuple[Any, Any, Any, Any],
-    chart: str,
-    mu: torch.Tensor,
-    predictor: str,
-    tol: float,
-) -> tuple[int, list[float], list[float]]:
-    """Simplified Newton from a predictor of :data:`PREDICTORS` for S = ``s[0]`` (``s`` from
-    :func:`series`), stopping at |δ|∞ ≤ tol·|p|∞: updates, their sizes and |p|∞ after each."""
+def predict(
+    system: Any, s: tuple[Any, Any, Any, Any], chart: str, mu: torch.Tensor, predictor: str
+) -> torch.Tensor:
+    """The start p₀ of a predictor of :data:`PREDICTORS` for one state ``mu`` (n,), from the
+    terms ``s`` of :func:`series` (only its cheap terms, up to t³, are read)."""
     alg = system.algebra
-    s, s1, s2, s3 = s
+    _, s1, s2, s3 = s
     cheap = {2: s2, 3: s3}[CORE_START[("so3" if alg.is_so3() else "other", chart)]]
     x0 = gradient(cheap if predictor == "hessian" else s1, H, mu)
     if predictor == "linear" or (predictor in ("second", "hessian") and chart == "exp"):
@@ -137,17 +132,33 @@ def solve(
         # The same fixed-point step with ∇S(p₀) linearized at μ: x₀ + Hess · (p₀ − μ).
         hess = torch.autograd.functional.hessian(lambda q: cheap(H, q), mu)
         p = p + (mu - tar(chart, x0 + hess @ (p - mu), p, alg))
+    return p.detach()
+
+
+def solve(
+    system: Any,
+    s: tuple[Any, Any, Any, Any],
+    chart: str,
+    mu: torch.Tensor,
+    predictor: str,
+    tol: float,
+) -> tuple[int, list[float], list[float]]:
+    """Simplified Newton from a predictor of :data:`PREDICTORS` for S = ``s[0]`` (``s`` from
+    :func:`series`), stopping at |δ|∞ ≤ tol·|p|∞: updates, their sizes and |p|∞ after each."""
+    alg = system.algebra
+    p = predict(system, s, chart, mu, predictor)
+    full = s[0]
     sizes: list[float] = []
     scales: list[float] = []
     refresh, last, inv = True, float("inf"), None
     while len(sizes) < 50:
         if refresh:
             jac = torch.autograd.functional.jacobian(
-                lambda q: tar(chart, gradient(s, H, q, graph=True), q, alg), p
+                lambda q: tar(chart, gradient(full, H, q, graph=True), q, alg), p
             )
             inv = torch.linalg.inv(jac)
         assert inv is not None
-        delta = inv @ (mu - tar(chart, gradient(s, H, p), p, alg))
+        delta = inv @ (mu - tar(chart, gradient(full, H, p), p, alg))
         p = (p + delta).detach()
         size = float(delta.abs().max())
         sizes.append(size)
