@@ -9,7 +9,9 @@
 //! `paper` model (or a random stand-in of its size) in steps/s and, under full Newton, flops/s.
 //!
 //! And RK4 on three point vortices with the field as a Hamiltonian's program (interpreted)
-//! against the same field written out by hand (`classical/vortices`).
+//! against the same field written out by hand (`classical/vortices`); the rigid body's Taylor
+//! K = 3 step in the exponential chart by the package's solver against the same step map
+//! written out by hand, and RK4 (`taylor3-exp`).
 //!
 //! Each rollout size does a few thousand to twenty thousand steps per iteration, so
 //! `cargo bench --bench rollout` takes about three minutes on two cores.
@@ -652,8 +654,350 @@ fn bench_expression_field(c: &mut Criterion) {
     g.finish();
 }
 
+/// S of the rigid body's Taylor K = 3 step in the exponential chart, I = (1.5, 2, 2.5):
+/// t Σ aᵢ pᵢ² + t³ Σ_{i<j} b_ij pᵢ² pⱼ² (`poisson_rs.taylor.system_taylor_terms`).
+const EXP3_A: [f64; 3] = [-1.0 / 3.0, -1.0 / 4.0, -1.0 / 5.0];
+/// b₀₁, b₀₂, b₁₂.
+const EXP3_B: [f64; 3] = [-1.0 / 2160.0, -1.0 / 675.0, -1.0 / 3600.0];
+
+fn taylor3_exp() -> Polynomial<3> {
+    let mut terms: Vec<Monomial<3>> = (0..3)
+        .map(|i| Monomial {
+            t_power: 1,
+            p_powers: std::array::from_fn(|k| if k == i { 2 } else { 0 }),
+            coeff: EXP3_A[i],
+        })
+        .collect();
+    for (&(i, j), &coeff) in [(0, 1), (0, 2), (1, 2)].iter().zip(&EXP3_B) {
+        terms.push(Monomial {
+            t_power: 3,
+            p_powers: std::array::from_fn(|k| if k == i || k == j { 2 } else { 0 }),
+            coeff,
+        });
+    }
+    Polynomial::new(terms).unwrap()
+}
+
+/// The rigid body's Taylor K = 3 step in the exponential chart, written out by hand for
+/// [`taylor3_exp`]'s S: the package's start, one Newton update with a fresh Jacobian and one
+/// simplified update (what the package's solver takes on these states), then the rotation. No
+/// convergence test, no failure handling, no lane verdicts: what the step's arithmetic costs
+/// when it runs straight through, as a bound for the package's solver, not a stepper.
+struct StraightLineExp3;
+
+/// Three (nine) entries written out: no closures, which the compiler may leave out of line
+/// and compile without the block's target features.
+macro_rules! v3 {
+    (|$i:ident| $e:expr) => {
+        [
+            {
+                let $i = 0;
+                $e
+            },
+            {
+                let $i = 1;
+                $e
+            },
+            {
+                let $i = 2;
+                $e
+            },
+        ]
+    };
+}
+macro_rules! m3 {
+    (|$r:ident, $k:ident| $e:expr) => {
+        [
+            {
+                let $r = 0;
+                v3!(|$k| $e)
+            },
+            {
+                let $r = 1;
+                v3!(|$k| $e)
+            },
+            {
+                let $r = 2;
+                v3!(|$k| $e)
+            },
+        ]
+    };
+}
+
+type M3 = [[f64; 3]; 3];
+
+impl StraightLineExp3 {
+    #[inline(always)]
+    fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    }
+
+    #[inline(always)]
+    fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+        a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    }
+
+    #[inline(always)]
+    fn apply(m: &M3, v: [f64; 3]) -> [f64; 3] {
+        v3!(|r| m[r][0] * v[0] + m[r][1] * v[1] + m[r][2] * v[2])
+    }
+
+    /// The cofactor inverse (`poisson_rs::stepper::inverse3`'s operations, inlined).
+    #[inline(always)]
+    fn inverse(m: &M3) -> M3 {
+        let (adj, det) = poisson_rs::stepper::adjugate3(m);
+        let r = 1.0 / det;
+        m3!(|i, j| adj[i][j] * r)
+    }
+
+    /// ∇S and S's Hessian at p (t folded into `a`, `b`).
+    #[inline(always)]
+    fn jet(a: &[f64; 3], b: &[f64; 3], p: [f64; 3]) -> ([f64; 3], M3) {
+        let q = [p[0] * p[0], p[1] * p[1], p[2] * p[2]];
+        let d = [
+            a[0] + b[0] * q[1] + b[1] * q[2],
+            a[1] + b[0] * q[0] + b[2] * q[2],
+            a[2] + b[1] * q[0] + b[2] * q[1],
+        ];
+        let g = [2.0 * p[0] * d[0], 2.0 * p[1] * d[1], 2.0 * p[2] * d[2]];
+        let (h01, h02, h12) = (
+            4.0 * b[0] * p[0] * p[1],
+            4.0 * b[1] * p[0] * p[2],
+            4.0 * b[2] * p[1] * p[2],
+        );
+        let h = [
+            [2.0 * d[0], h01, h02],
+            [h01, 2.0 * d[1], h12],
+            [h02, h12, 2.0 * d[2]],
+        ];
+        (g, h)
+    }
+
+    /// c(s) and c'(s) of the exponential chart by its series (|x|² < 1 here).
+    #[inline(always)]
+    fn c_series(s: f64) -> (f64, f64) {
+        // |B₂ₙ|/(2n)!: rust/structures/lie_groupoid.rs's C_SERIES.
+        const C: [f64; 12] = [
+            1.0 / 12.0,
+            1.0 / 720.0,
+            1.0 / 30240.0,
+            1.0 / 1209600.0,
+            1.0 / 47900160.0,
+            691.0 / 1307674368000.0,
+            1.0 / 74724249600.0,
+            3617.0 / 10670622842880000.0,
+            43867.0 / 5109094217170944000.0,
+            174611.0 / 802857662698291200000.0,
+            77683.0 / 14101100039391805440000.0,
+            236364091.0 / 1693824136731743669452800000.0,
+        ];
+        let (mut c, mut dc) = (0.0, 0.0);
+        for n in (0..12).rev() {
+            c = c * s + C[n];
+            if n >= 1 {
+                dc = dc * s + n as f64 * C[n];
+            }
+        }
+        (c, dc)
+    }
+
+    /// tar(x, p) = p − ½ x×p + c x×(x×p).
+    #[inline(always)]
+    fn tar(x: [f64; 3], p: [f64; 3]) -> [f64; 3] {
+        let xp = Self::cross(x, p);
+        let (c, _) = Self::c_series(Self::dot(x, x));
+        let u = Self::cross(x, xp);
+        v3!(|i| p[i] - 0.5 * xp[i] + c * u[i])
+    }
+
+    /// tar and its p-Jacobian ∂T/∂p + ∂T/∂x · hess, with ∂T/∂p = (1 − c s) I − ½ x̂ + c x xᵀ
+    /// and ∂T/∂x = ½ p̂ + c (x pᵀ + w I) + v xᵀ, v = 2c′u − 2c p.
+    #[inline(always)]
+    fn tar_jacobian(x: [f64; 3], p: [f64; 3], h: &M3) -> ([f64; 3], M3) {
+        let xp = Self::cross(x, p);
+        let s = Self::dot(x, x);
+        let (c, dc) = Self::c_series(s);
+        let u = Self::cross(x, xp);
+        let t = v3!(|i| p[i] - 0.5 * xp[i] + c * u[i]);
+        let w = Self::dot(x, p);
+        let v = v3!(|i| 2.0 * dc * u[i] - 2.0 * c * p[i]);
+        let (diag, cw) = (1.0 - c * s, c * w);
+        let (hx, hp) = (v3!(|i| 0.5 * x[i]), v3!(|i| 0.5 * p[i]));
+        let jp = [
+            [
+                c * x[0] * x[0] + diag,
+                c * x[0] * x[1] + hx[2],
+                c * x[0] * x[2] - hx[1],
+            ],
+            [
+                c * x[1] * x[0] - hx[2],
+                c * x[1] * x[1] + diag,
+                c * x[1] * x[2] + hx[0],
+            ],
+            [
+                c * x[2] * x[0] + hx[1],
+                c * x[2] * x[1] - hx[0],
+                c * x[2] * x[2] + diag,
+            ],
+        ];
+        let mut jx = m3!(|r, k| c * x[r] * p[k] + v[r] * x[k]);
+        jx[0][0] += cw;
+        jx[1][1] += cw;
+        jx[2][2] += cw;
+        jx[0][1] -= hp[2];
+        jx[0][2] += hp[1];
+        jx[1][0] += hp[2];
+        jx[1][2] -= hp[0];
+        jx[2][0] -= hp[1];
+        jx[2][1] += hp[0];
+        let j = m3!(|r, k| jp[r][k] + jx[r][0] * h[0][k] + jx[r][1] * h[1][k] + jx[r][2] * h[2][k]);
+        (t, j)
+    }
+
+    #[inline(always)]
+    fn step(h: f64, mu: [f64; 3]) -> [f64; 3] {
+        let inv_i = [1.0 / 1.5, 1.0 / 2.0, 1.0 / 2.5];
+        let t3 = h * h * h;
+        let a = v3!(|i| EXP3_A[i] * h);
+        let b = v3!(|i| EXP3_B[i] * t3);
+        // The package's start: x₀ = −h μ/I and its Hessian diag(−h/I) from −hH, a first-order
+        // p₁ and one fixed-point step with ∇S(p₁) linearised at μ.
+        let x0 = v3!(|i| -h * mu[i] * inv_i[i]);
+        let turn = Self::cross(x0, mu);
+        let p1 = v3!(|i| mu[i] + 0.5 * turn[i]);
+        let xt = v3!(|i| x0[i] - h * inv_i[i] * (p1[i] - mu[i]));
+        let turn = Self::cross(xt, p1);
+        let twice = Self::cross(xt, turn);
+        let p = v3!(|i| mu[i] + 0.5 * turn[i] - twice[i] / 12.0);
+        // Update 1, a fresh Jacobian; update 2, simplified.
+        let (x, hess) = Self::jet(&a, &b, p);
+        let (t, j) = Self::tar_jacobian(x, p, &hess);
+        let inv = Self::inverse(&j);
+        let d = Self::apply(&inv, v3!(|i| mu[i] - t[i]));
+        let p = v3!(|i| p[i] + d[i]);
+        let (x, _) = Self::jet(&a, &b, p);
+        let t = Self::tar(x, p);
+        let d = Self::apply(&inv, v3!(|i| mu[i] - t[i]));
+        let hd = Self::apply(&hess, d);
+        let x = v3!(|i| x[i] + hd[i]);
+        // μ' = exp(x̂) μ by Rodrigues' coefficients, from their series (the package's
+        // SIN_SERIES and COS_SERIES: (−1)ⁿ/(2n+1)! and (−1)ⁿ/(2n+2)! in s = θ²).
+        const SIN: [f64; 10] = [
+            1.0,
+            -1.0 / 6.0,
+            1.0 / 120.0,
+            -1.0 / 5040.0,
+            1.0 / 362880.0,
+            -1.0 / 39916800.0,
+            1.0 / 6227020800.0,
+            -1.0 / 1307674368000.0,
+            1.0 / 355687428096000.0,
+            -1.0 / 121645100408832000.0,
+        ];
+        const COS: [f64; 10] = [
+            1.0 / 2.0,
+            -1.0 / 24.0,
+            1.0 / 720.0,
+            -1.0 / 40320.0,
+            1.0 / 3628800.0,
+            -1.0 / 479001600.0,
+            1.0 / 87178291200.0,
+            -1.0 / 20922789888000.0,
+            1.0 / 6402373705728000.0,
+            -1.0 / 2432902008176640000.0,
+        ];
+        let s = Self::dot(x, x);
+        let (mut sa, mut sb) = (0.0, 0.0);
+        for n in (0..10).rev() {
+            sa = sa * s + SIN[n];
+            sb = sb * s + COS[n];
+        }
+        let xm = Self::cross(x, mu);
+        let xxm = Self::cross(x, xm);
+        v3!(|i| mu[i] + (sa * xm[i] + sb * xxm[i]))
+    }
+}
+
+impl poisson_rs::lanes::LaneStepper<3> for StraightLineExp3 {
+    #[inline(always)]
+    fn step_lanes<const L: usize>(&self, h: f64, mu: &mut [[f64; L]; 3]) {
+        // Lane by lane, each lane the scalar step: the compiler vectorises the loop, one
+        // register a quantity (an iterator over `mu` would hide that it is one loop).
+        #[allow(clippy::needless_range_loop)]
+        for l in 0..L {
+            let next = Self::step(h, [mu[0][l], mu[1][l], mu[2][l]]);
+            (mu[0][l], mu[1][l], mu[2][l]) = (next[0], next[1], next[2]);
+        }
+    }
+}
+
+/// The rigid body's Taylor K = 3 step in the exponential chart, 4096 trajectories × 20 steps:
+/// the package's lane solver, the same step map written out by hand ([`StraightLineExp3`]),
+/// and the package's RK4 in the same lanes, for the ratios. Before timing, the two Taylor
+/// rollouts are checked to agree to 1e-13. `cargo bench --bench rollout -- taylor3-exp`.
+fn bench_straight_line_taylor(c: &mut Criterion) {
+    use poisson_rs::lanes::{Isa, Lanes};
+    use poisson_rs::rollout::{ChunkKernel, Rollout};
+    use poisson_rs::{RigidBody, Rk4};
+
+    fn run<K: ChunkKernel<3>>(k: &K, mu0: &[[f64; 3]], n: usize, out: &mut [f64]) {
+        let mut r = Rollout::start(mu0, H, n, n, out).unwrap();
+        r.advance_kernel(k, n, out, false).unwrap();
+        black_box(r.info());
+    }
+    let stepper = BisectionStepper::new(
+        GeneratingFunction::new(taylor3_exp(), None, 0, MlpInputs::Plain).unwrap(),
+        Groupoid::so3(Chart::Exp).unwrap(),
+        NewtonOptions::default(),
+    );
+    let (batch, n) = (4096usize, 20usize);
+    let mu0 = initial_states(batch);
+    let isa = Isa::detect();
+    let by_hand = Lanes {
+        stepper: &StraightLineExp3,
+        isa,
+    };
+    let rk4 = Rk4 {
+        system: RigidBody::new([1.5, 2.0, 2.5]).unwrap(),
+    };
+    let rk4 = Lanes { stepper: &rk4, isa };
+    let mut out = vec![0.0; batch * 2 * 3];
+    let mut reference = vec![0.0; batch * 2 * 3];
+    rollout(&stepper, &mu0, H, n, n, &mut reference).unwrap();
+    run(&by_hand, &mu0, n, &mut out);
+    let worst = out
+        .iter()
+        .zip(&reference)
+        .map(|(a, b)| (a - b).abs() / b.abs().max(1.0))
+        .fold(0.0f64, f64::max);
+    assert!(
+        worst <= 1e-13,
+        "the hand-written step is {worst:e} off the package's"
+    );
+    let mut g = c.benchmark_group("taylor3-exp");
+    g.sample_size(10);
+    g.warm_up_time(Duration::from_millis(500));
+    g.measurement_time(Duration::from_secs(2));
+    g.throughput(Throughput::Elements((batch * n) as u64));
+    g.bench_function("package", |b| {
+        b.iter(|| black_box(rollout(&stepper, black_box(&mu0), H, n, n, &mut out).unwrap()))
+    });
+    g.bench_function(format!("straight-line-{}", isa.name()), |b| {
+        b.iter(|| run(&by_hand, &mu0, n, &mut out))
+    });
+    g.bench_function(format!("rk4-{}", isa.name()), |b| {
+        b.iter(|| run(&rk4, &mu0, n, &mut out))
+    });
+    g.finish();
+}
+
 criterion_group!(
     benches,
+    bench_straight_line_taylor,
     bench_classical,
     bench_expression_field,
     bench_splitting_lanes,
