@@ -24,9 +24,10 @@ use std::time::Duration;
 use criterion::{
     criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput,
 };
+use poisson_rs::structures::lie_groupoid::{COS_SERIES, C_SERIES, SIN_SERIES};
 use poisson_rs::{
-    kernel, rollout, BisectionStepper, Chart, GeneratingFunction, Groupoid, Layer, Mlp, MlpInputs,
-    Model, Monomial, NewtonOptions, Polynomial, StepMap,
+    kernel, m3, rollout, v3, BisectionStepper, Chart, GeneratingFunction, Groupoid, Layer, Mlp,
+    MlpInputs, Model, Monomial, NewtonOptions, Polynomial, StepMap,
 };
 
 /// Step size of the paper's scene.
@@ -685,45 +686,6 @@ fn taylor3_exp() -> Polynomial<3> {
 /// when it runs straight through, as a bound for the package's solver, not a stepper.
 struct StraightLineExp3;
 
-/// Three (nine) entries written out: no closures, which the compiler may leave out of line
-/// and compile without the block's target features.
-macro_rules! v3 {
-    (|$i:ident| $e:expr) => {
-        [
-            {
-                let $i = 0;
-                $e
-            },
-            {
-                let $i = 1;
-                $e
-            },
-            {
-                let $i = 2;
-                $e
-            },
-        ]
-    };
-}
-macro_rules! m3 {
-    (|$r:ident, $k:ident| $e:expr) => {
-        [
-            {
-                let $r = 0;
-                v3!(|$k| $e)
-            },
-            {
-                let $r = 1;
-                v3!(|$k| $e)
-            },
-            {
-                let $r = 2;
-                v3!(|$k| $e)
-            },
-        ]
-    };
-}
-
 type M3 = [[f64; 3]; 3];
 
 impl StraightLineExp3 {
@@ -780,26 +742,11 @@ impl StraightLineExp3 {
     /// c(s) and c'(s) of the exponential chart by its series (|x|² < 1 here).
     #[inline(always)]
     fn c_series(s: f64) -> (f64, f64) {
-        // |B₂ₙ|/(2n)!: rust/structures/lie_groupoid.rs's C_SERIES.
-        const C: [f64; 12] = [
-            1.0 / 12.0,
-            1.0 / 720.0,
-            1.0 / 30240.0,
-            1.0 / 1209600.0,
-            1.0 / 47900160.0,
-            691.0 / 1307674368000.0,
-            1.0 / 74724249600.0,
-            3617.0 / 10670622842880000.0,
-            43867.0 / 5109094217170944000.0,
-            174611.0 / 802857662698291200000.0,
-            77683.0 / 14101100039391805440000.0,
-            236364091.0 / 1693824136731743669452800000.0,
-        ];
         let (mut c, mut dc) = (0.0, 0.0);
         for n in (0..12).rev() {
-            c = c * s + C[n];
+            c = c * s + C_SERIES[n];
             if n >= 1 {
-                dc = dc * s + n as f64 * C[n];
+                dc = dc * s + n as f64 * C_SERIES[n];
             }
         }
         (c, dc)
@@ -884,37 +831,12 @@ impl StraightLineExp3 {
         let d = Self::apply(&inv, v3!(|i| mu[i] - t[i]));
         let hd = Self::apply(&hess, d);
         let x = v3!(|i| x[i] + hd[i]);
-        // μ' = exp(x̂) μ by Rodrigues' coefficients, from their series (the package's
-        // SIN_SERIES and COS_SERIES: (−1)ⁿ/(2n+1)! and (−1)ⁿ/(2n+2)! in s = θ²).
-        const SIN: [f64; 10] = [
-            1.0,
-            -1.0 / 6.0,
-            1.0 / 120.0,
-            -1.0 / 5040.0,
-            1.0 / 362880.0,
-            -1.0 / 39916800.0,
-            1.0 / 6227020800.0,
-            -1.0 / 1307674368000.0,
-            1.0 / 355687428096000.0,
-            -1.0 / 121645100408832000.0,
-        ];
-        const COS: [f64; 10] = [
-            1.0 / 2.0,
-            -1.0 / 24.0,
-            1.0 / 720.0,
-            -1.0 / 40320.0,
-            1.0 / 3628800.0,
-            -1.0 / 479001600.0,
-            1.0 / 87178291200.0,
-            -1.0 / 20922789888000.0,
-            1.0 / 6402373705728000.0,
-            -1.0 / 2432902008176640000.0,
-        ];
+        // μ' = exp(x̂) μ by Rodrigues' coefficients, from their series.
         let s = Self::dot(x, x);
         let (mut sa, mut sb) = (0.0, 0.0);
         for n in (0..10).rev() {
-            sa = sa * s + SIN[n];
-            sb = sb * s + COS[n];
+            sa = sa * s + SIN_SERIES[n];
+            sb = sb * s + COS_SERIES[n];
         }
         let xm = Self::cross(x, mu);
         let xxm = Self::cross(x, xm);

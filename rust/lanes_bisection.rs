@@ -300,7 +300,9 @@ type M3<const L: usize> = [[V<L>; 3]; 3];
 /// `[e(0), e(1), e(2)]` with the index bound to 0, 1, 2, written out in place. Not a helper
 /// taking a closure: a closure the compiler leaves out of line is compiled without the block's
 /// target features (the profile found SSE2 code for a 3×3 inverse and for the charts' vectors
-/// inside the AVX-512 block).
+/// inside the AVX-512 block). Exported for the benches' hand-written steps.
+#[doc(hidden)]
+#[macro_export]
 macro_rules! v3 {
     (|$i:ident| $e:expr) => {
         [
@@ -321,18 +323,20 @@ macro_rules! v3 {
 }
 
 /// The 3×3 matrix with entries `e(r, c)`, written out in place as `v3!` does.
+#[doc(hidden)]
+#[macro_export]
 macro_rules! m3 {
     (|$r:ident, $c:ident| $e:expr) => {
         [
-            v3!(|$c| {
+            $crate::v3!(|$c| {
                 let $r = 0;
                 $e
             }),
-            v3!(|$c| {
+            $crate::v3!(|$c| {
                 let $r = 1;
                 $e
             }),
-            v3!(|$c| {
+            $crate::v3!(|$c| {
                 let $r = 2;
                 $e
             }),

@@ -50,7 +50,7 @@ pub enum LaneChart {
 pub const EXP_CHART_MAX_ANGLE: f64 = 2.0 * std::f64::consts::PI - 0.1;
 
 /// Taylor coefficients of c(θ) = (1 − (θ/2)cot(θ/2))/θ² in s = θ²: |B₂ₙ|/(2n)!.
-pub(crate) const C_SERIES: [f64; 12] = [
+pub const C_SERIES: [f64; 12] = [
     1.0 / 12.0,
     1.0 / 720.0,
     1.0 / 30240.0,
@@ -157,7 +157,7 @@ pub(crate) fn exp_chart_coefficient_derivatives_to(s: f64, order: u8) -> (f64, f
 
 /// (−1)ⁿ/(2n+1)! and (−1)ⁿ/(2n+2)!, n = 0 … 9: the series of sin θ/θ and (1 − cos θ)/θ² in
 /// s = θ², summed below s = 1 (the tenth terms are below 2e-20 there).
-pub(crate) const SIN_SERIES: [f64; 10] = [
+pub const SIN_SERIES: [f64; 10] = [
     1.0,
     -1.0 / 6.0,
     1.0 / 120.0,
@@ -169,7 +169,7 @@ pub(crate) const SIN_SERIES: [f64; 10] = [
     1.0 / 355687428096000.0,
     -1.0 / 121645100408832000.0,
 ];
-pub(crate) const COS_SERIES: [f64; 10] = [
+pub const COS_SERIES: [f64; 10] = [
     1.0 / 2.0,
     -1.0 / 24.0,
     1.0 / 720.0,
