@@ -681,9 +681,10 @@ fn taylor3_exp() -> Polynomial<3> {
 
 /// The rigid body's Taylor K = 3 step in the exponential chart, written out by hand for
 /// [`taylor3_exp`]'s S: the package's start, one Newton update with a fresh Jacobian and one
-/// simplified update (what the package's solver takes on these states), then the rotation. No
-/// convergence test, no failure handling, no lane verdicts: what the step's arithmetic costs
-/// when it runs straight through, as a bound for the package's solver, not a stepper.
+/// simplified update (the package's solver averages 2.00 updates a step in
+/// `benches/step_costs.py`), then the rotation. No convergence test, no failure handling, no
+/// lane verdicts: what the step's arithmetic costs when it runs straight through, as a bound
+/// for the package's solver, not a stepper.
 struct StraightLineExp3;
 
 type M3 = [[f64; 3]; 3];
