@@ -16,24 +16,25 @@ Workloads (h = 0.1 unless said, final state only, so no contender pays for stori
   the vortices' Biot–Savart sums pair by pair), which costs them fewer operations than π∇H;
 - ``integrate()`` of one state for one step: the cost of one call, in µs.
 
-Contenders: poisson_rs (``pr.integrate`` with ``every=n_steps``), JAX ``jit(vmap(lax.scan))`` RK4
-(float64) and numba ``@njit`` RK4 (a loop over trajectories and steps), and, with ``--baseline
+Contenders: poisson_rs (its extension's rollout, called as ``pr.integrate`` calls it with
+``every=n_steps``, from fresh copies of the file: ``--copies`` below), JAX ``jit(vmap(lax.scan))``
+RK4 (float64) and numba ``@njit`` RK4 (a loop over trajectories and steps), and, with ``--baseline
 PATH``, the ``_core`` extension of an earlier build loaded beside this one (e.g. the main
 checkout's, to say what a change bought). Time the build a user runs: the wheel ``pip`` installs is
 a cdylib-only build (``cargo rustc --crate-type cdylib``); ``benches/build_core.sh REV DIR`` builds
 a revision that way, and its ``DIR/python/poisson_rs/_core.abi3.so`` is a ``--baseline`` (while the
 profile had thin LTO, which ``cargo build`` skips beside the rlib, the wheel's code differed from
 ``cargo build``'s: the rigid body's RK4 once ran 3× slower in the wheel; docs/performance.md, "The
-build the benches time"). Rounds alternate the contenders; each cell is the median
-of ``--rounds`` (≥ 5) timed runs after a warm-up (JAX compiles there). A missing peer is skipped
-with a message. Every contender's final states are checked against poisson_rs's: numba gives the
-same bits on the heavy top and agrees as JAX does on the rigid body (where the core takes the
-factored field (1/I_k − 1/I_j) μ_j μ_k), JAX to 3e-10 or better (the same RK4, summed in a different
-order), except on the heavy top's 10⁴ steps, where chaotic orbits amplify that order to O(1). On the
-expression systems the peers' fields are other formulas (and the core has its own sin), so no bits
-are shared: the vortices agree to 1e-12 or better, the pendulum to a few 1e-9 at worst, from the few
-states that pass close to its separatrix's saddle (the median trajectory agrees to 1e-14 over 200
-steps, 1e-12 over 10⁴).
+build the benches time"). Rounds alternate the contenders; each cell is the median of ``--rounds``
+(≥ 5) timed runs after a warm-up (JAX compiles there). A missing peer is skipped with a message.
+Every contender's final states are checked against ``pr.integrate``'s: numba gives the same bits on
+the heavy top and agrees as JAX does on the rigid body (where the core takes the factored field
+(1/I_k − 1/I_j) μ_j μ_k), JAX to 3e-10 or better (the same RK4, summed in a different order), except
+on the heavy top's 10⁴ steps, where chaotic orbits amplify that order to O(1). On the expression
+systems the peers' fields are other formulas (and the core has its own sin), so no bits are shared:
+the vortices agree to 1e-12 or better, the pendulum to a few 1e-9 at worst, from the few states that
+pass close to its separatrix's saddle (the median trajectory agrees to 1e-14 over 200 steps, 1e-12
+over 10⁴).
 
 Peers install with ``pip install 'poisson_rs[bench]'``, which pins jax[cpu] 0.10.2 and numba
 0.68.1: the ratios compare across runs only with those versions (and on the same machine).
