@@ -632,6 +632,7 @@ pub(crate) fn so3_start<const N: usize, const L: usize, const EXP: bool>(
 /// Simplified Newton's bookkeeping for a block, lane by lane (the rule of the generic
 /// one-trajectory step): which lanes still iterate, which take a fresh Jacobian next, the last
 /// update's size, the update counts and which lanes converged.
+#[derive(Clone, Copy)]
 pub(crate) struct Progress<const L: usize> {
     pub active: [bool; L],
     pub refresh: [bool; L],
@@ -804,22 +805,25 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
         g: [[0.0; L]; N],
         h: [[[0.0; L]; N]; N],
     };
+    // Every lane live and started from the prediction: the block may take its first two
+    // rounds straight through (`so3_two_rounds`).
+    let mut started = false;
     if sys.predict {
         // tar(x, p) = p − ½ x×p + O(|x|²) in both charts, so p₁ = μ + ½ x₀ × μ (x₀ the
         // gradient of S's cheap terms at μ) is O(h²) from the solution where μ is O(h), and one
         // fixed-point step from it O(h³) (`so3_start`). Simplified Newton's contraction is
         // proportional to that first error: 2 updates a step where p₁ takes 3.
         let (p0, s0) = so3_start::<N, L, EXP>(sys.poly, t, &pl, &target, &mut scratch, &mut jet);
-        for l in 0..L {
-            // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large
-            // for the series, h = 5 say) the predictor can throw Newton past the exp chart's
-            // singular angle that a start from μ avoids.
-            if s0.0[l] <= PREDICT_MAX_S && (0..3).all(|i| p0[i].0[l].is_finite()) {
-                for i in 0..3 {
-                    p[i].0[l] = p0[i].0[l];
-                }
-            }
+        // Only where the expansion is meaningful: at |x₀| > 1 rad (a step far too large for
+        // the series, h = 5 say) the predictor can throw Newton past the exp chart's singular
+        // angle that a start from μ avoids.
+        let probe = finite_probe(p0);
+        let keep: [bool; L] =
+            std::array::from_fn(|l| s0.0[l] <= PREDICT_MAX_S && probe.0[l] == 0.0);
+        for i in 0..3 {
+            p[i] = p[i].blend(&keep, p0[i]);
         }
+        started = n == L && active.iter().chain(&keep).all(|&k| k);
     }
     let mut progress = Progress::new(active);
     let mut inv: M3<L> = [[V::splat(0.0); 3]; 3];
@@ -830,6 +834,36 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
     let mut xs: V3<L> = [V::splat(0.0); 3];
     let mut hk: M3<L> = [[V::splat(0.0); 3]; 3];
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
+    #[cfg(test)]
+    if L > 1 && !started {
+        two_rounds_tally::count(0);
+    }
+    if started && L > 1 && sys.max_iter >= 2 {
+        let mut state = Rounds {
+            p,
+            inv,
+            hk,
+            xs,
+            progress,
+        };
+        let taken =
+            so3_two_rounds::<N, L, EXP>(sys, buf, t, &target, &mut scratch, &mut jet, &mut state);
+        if taken {
+            Rounds {
+                p,
+                inv,
+                hk,
+                xs,
+                progress,
+            } = state;
+        }
+        #[cfg(test)]
+        two_rounds_tally::count(match (taken, progress.running()) {
+            (false, _) => 1,
+            (true, true) => 2,
+            (true, false) => 3,
+        });
+    }
     while progress.running() {
         let hess = progress.jacobian_wanted();
         for i in 0..3 {
@@ -914,6 +948,134 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
             })
         };
     }
+}
+
+/// How so(3) blocks of several lanes ran on this thread (tests only): the loop alone (not every
+/// lane live and started from the prediction), [`so3_two_rounds`] declined (the loop from the
+/// start), handed on (the loop went on for some lanes), finished (every lane converged).
+#[cfg(test)]
+pub(crate) mod two_rounds_tally {
+    use std::cell::Cell;
+    thread_local! {
+        static TALLY: Cell<[u64; 4]> = const { Cell::new([0; 4]) };
+    }
+    pub(crate) fn count(outcome: usize) {
+        TALLY.with(|t| {
+            let mut v = t.get();
+            v[outcome] += 1;
+            t.set(v);
+        });
+    }
+    /// The tally so far, and zero from here on.
+    pub(crate) fn take() -> [u64; 4] {
+        TALLY.with(|t| t.replace([0; 4]))
+    }
+}
+
+/// The state of [`so3_block`]'s Newton loop between rounds.
+struct Rounds<const L: usize> {
+    p: V3<L>,
+    inv: M3<L>,
+    hk: M3<L>,
+    xs: V3<L>,
+    progress: Progress<L>,
+}
+
+/// [`so3_block`]'s first two rounds on a block whose every lane is live and starts from the
+/// prediction, straight through: a fresh Jacobian, then a simplified update, each lane's
+/// verdicts taken at the end as vector tests instead of round by round. Where every lane took
+/// both updates as the loop would (finite, in the chart, invertible, not converged after the
+/// first: the loop's rule then refreshes no Jacobian for the second, whose contraction is
+/// against an infinite `last`), `state` becomes the loop's state after its second round with
+/// the same operations in the same order, so the same bits, and true is returned; the loop
+/// goes on from there for the lanes that have not converged. Otherwise `state` is left as it
+/// was and the loop runs from the start. The rigid body's Taylor steps take two updates a step
+/// (`benches/step_costs.py`), so most blocks end here.
+#[inline(always)]
+fn so3_two_rounds<const N: usize, const L: usize, const EXP: bool>(
+    sys: &So3Newton<'_, N>,
+    buf: &mut [LaneRow],
+    t: f64,
+    target: &V3<L>,
+    scratch: &mut Scratch<N, L>,
+    jet: &mut JetLanes<N, L>,
+    state: &mut Rounds<L>,
+) -> bool {
+    let chart = if EXP { Chart::Exp } else { Chart::Cayley };
+    let net = sys.network.as_ref();
+    let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
+    let p0 = state.p;
+    let mut pl = [[0.0; L]; N];
+    for i in 0..3 {
+        pl[i] = p0[i].0;
+    }
+    // Round 1: S's jet with its Hessian, the chart's Jacobian and its inverse.
+    evaluate::<N, L, true>(sys.poly, net, t, &pl, scratch, buf, jet);
+    let (x1, h1) = gradient_and_hessian(jet);
+    let (tar1, s1, jac) = so3_chart_lanes(chart, -1.0, &x1, &p0, Some(&h1));
+    let Some(jac) = jac else {
+        return false;
+    };
+    let (fi, det) = inverse3_lanes(&jac);
+    let (probe, hess_probe) = round_probes(&jet.v, &x1, &h1, true);
+    let fresh_probe = matrix_probe(&fi) + det.finite_probe();
+    let f = v3!(|i| target[i] - tar1[i]);
+    let d1 = v3!(|r| fi[r][0] * f[0] + fi[r][1] * f[1] + fi[r][2] * f[2]);
+    let p1 = v3!(|i| p0[i] + d1[i]);
+    let (size1, pmax1) = sizes(&d1, &p1);
+    // Every probe 0 and every determinant non-zero, each lane in the chart and still moving
+    // (Progress::judge's and Progress::update's verdicts, all passed).
+    let probes = probe + hess_probe + fresh_probe + finite_probe(d1);
+    for l in 0..L {
+        let bad = probes.0[l] != 0.0 || det.0[l] == 0.0 || (EXP && s1.0[l] >= max_s);
+        if bad || size1.0[l] <= sys.tol * pmax1.0[l].max(1e-300) {
+            return false;
+        }
+    }
+    // Round 2: the gradient only, the kept inverse.
+    for i in 0..3 {
+        pl[i] = p1[i].0;
+    }
+    evaluate::<N, L, false>(sys.poly, net, t, &pl, scratch, buf, jet);
+    let x2 = [V(jet.g[0]), V(jet.g[1]), V(jet.g[2])];
+    let (tar2, s2, _) = so3_chart_lanes(chart, -1.0, &x2, &p1, None);
+    let f = v3!(|i| target[i] - tar2[i]);
+    let d2 = v3!(|r| fi[r][0] * f[0] + fi[r][1] * f[1] + fi[r][2] * f[2]);
+    let p2 = v3!(|i| p1[i] + d2[i]);
+    let (size2, pmax2) = sizes(&d2, &p2);
+    let probes = finite_probe(x2) + V(jet.v).finite_probe() + finite_probe(d2);
+    for l in 0..L {
+        if probes.0[l] != 0.0 || (EXP && s2.0[l] >= max_s) {
+            return false;
+        }
+    }
+    let step = v3!(|a| h1[a][0] * d2[0] + h1[a][1] * d2[1] + h1[a][2] * d2[2]);
+    let converged: [bool; L] =
+        std::array::from_fn(|l| size2.0[l] <= sys.tol * pmax2.0[l].max(1e-300));
+    let progress = &mut state.progress;
+    for l in 0..L {
+        progress.iterations[l] = 2;
+        progress.converged[l] = converged[l];
+        progress.active[l] = !converged[l];
+        progress.refresh[l] = !converged[l] && size2.0[l] > SIMPLIFIED_RATE * size1.0[l];
+        progress.last[l] = if converged[l] { size1.0[l] } else { size2.0[l] };
+    }
+    state.p = p2;
+    state.inv = fi;
+    state.hk = h1;
+    state.xs = v3!(|a| state.xs[a].blend(&converged, x2[a] + step[a]));
+    true
+}
+
+/// An update's size |δ|∞ and the new |p|∞ lane by lane, as [`Progress::update`] forms them.
+#[inline(always)]
+fn sizes<const L: usize>(delta: &V3<L>, p: &V3<L>) -> (V<L>, V<L>) {
+    let (mut size, mut pmax) = (V::splat(0.0), V::splat(0.0));
+    for i in 0..3 {
+        size = size.max(delta[i].abs());
+        pmax = pmax.max(p[i].abs());
+    }
+    (size, pmax)
 }
 
 /// A Newton solve in lanes: one step of a block of at most L trajectories, every lane with the

@@ -683,3 +683,74 @@ fn predicted(poly: &Polynomial<3>, chart: Chart) -> crate::lanes_bisection::So3N
         predict: true,
     }
 }
+
+/// so(3)'s first two rounds taken straight through (`so3_two_rounds`) end every kind of block
+/// as the round-by-round loop does: each lane of a block of 8 has the bits, update count and
+/// residual of its one-trajectory step (which never takes them), whether the block finishes
+/// there (every lane 2 updates), hands lanes on to the loop (one lane needing more), or is
+/// declined (one lane converged after one update: μ = 0), and where the loop runs alone (one
+/// lane too far out for the prediction, beyond the exponential chart). The tally of how blocks
+/// ran shows that each of the four did.
+#[test]
+fn two_rounds_straight_through_end_as_the_loop_does() {
+    use crate::lanes_bisection::two_rounds_tally;
+    let mut rng = Rng::new(0x1A2E_5010);
+    let h = 0.1;
+    let steppers = taylor_steppers()
+        .into_iter()
+        .filter(|s| s.newton.simplified);
+    for (st, chart) in steppers.zip(["Cayley", "exp"]) {
+        let mut ws = st.workspace();
+        let scalar = |mu: [f64; 3], ws: &mut _| {
+            let mut m = mu;
+            let r = st.step(h, &mut m, ws);
+            (m, r)
+        };
+        // Eight states the scalar step takes two updates for.
+        let base: Vec<[f64; 3]> = (0..400)
+            .map(|_| {
+                let r = rng.range(0.5, 2.0);
+                rng.sphere(r)
+            })
+            .filter(|&m| matches!(scalar(m, &mut ws).1, Ok(s) if s.iterations == 2))
+            .take(LANES)
+            .collect();
+        assert_eq!(base.len(), LANES);
+        // A state the scalar step takes more than two updates for, from larger momenta.
+        let slow = (0..400)
+            .map(|_| {
+                let r = rng.range(4.0, 9.0);
+                rng.sphere(r)
+            })
+            .find(|&m| matches!(scalar(m, &mut ws).1, Ok(s) if s.iterations > 2))
+            .expect("a state with more than two updates");
+        let mut cases = vec![(base.clone(), 3usize)];
+        for (lane, state, outcome) in [
+            (5, slow, 2),
+            (2, [0.0; 3], 1),
+            (6, [400.0, -300.0, 250.0], 0),
+        ] {
+            let mut mu = base.clone();
+            mu[lane] = state;
+            cases.push((mu, outcome));
+        }
+        for (mu0, outcome) in cases {
+            let mut mu = mu0.clone();
+            let mut results = vec![Ok(StepStats::default()); LANES];
+            two_rounds_tally::take();
+            st.step_batch(h, &mut mu, &[true; LANES], &mut results, &mut ws);
+            let mut expected = [0; 4];
+            expected[outcome] = 1;
+            assert_eq!(two_rounds_tally::take(), expected, "{chart}, {:?}", mu0);
+            for l in 0..LANES {
+                let (m, r) = scalar(mu0[l], &mut ws);
+                assert_eq!(results[l], r, "lane {l}, {chart}");
+                let want = if r.is_ok() { m } else { mu0[l] };
+                assert!(same_bits(&mu[l], &want), "lane {l}");
+                if outcome == 3 {
+                    assert_eq!(r.unwrap().iterations, 2);
+                }
+            }
+        }
+    }
+}
