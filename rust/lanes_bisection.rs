@@ -632,7 +632,6 @@ pub(crate) fn so3_start<const N: usize, const L: usize, const EXP: bool>(
 /// Simplified Newton's bookkeeping for a block, lane by lane (the rule of the generic
 /// one-trajectory step): which lanes still iterate, which take a fresh Jacobian next, the last
 /// update's size, the update counts and which lanes converged.
-#[derive(Clone, Copy)]
 pub(crate) struct Progress<const L: usize> {
     pub active: [bool; L],
     pub refresh: [bool; L],
@@ -736,19 +735,17 @@ impl<const L: usize> Progress<L> {
                 take[l] = false;
             }
         }
-        let (mut size, mut pmax) = (V::splat(0.0), V::splat(0.0));
         for i in 0..D {
             p[i] = p[i].blend(&take, p[i] + delta[i]);
-            size = size.max(delta[i].abs());
-            pmax = pmax.max(p[i].abs());
         }
+        let (size, pmax) = sizes(delta, p);
         for l in 0..L {
             if !take[l] {
                 continue;
             }
             let size = size.0[l];
             self.iterations[l] += 1;
-            if size <= tol * pmax.0[l].max(1e-300) {
+            if converged(size, pmax.0[l], tol) {
                 self.converged[l] = true;
                 self.active[l] = false;
             } else {
@@ -757,6 +754,23 @@ impl<const L: usize> Progress<L> {
             }
         }
     }
+}
+
+/// An update's size |δ|∞ and the updated |p|∞, lane by lane.
+#[inline(always)]
+fn sizes<const D: usize, const L: usize>(delta: &[V<L>; D], p: &[V<L>; D]) -> (V<L>, V<L>) {
+    let (mut size, mut pmax) = (V::splat(0.0), V::splat(0.0));
+    for i in 0..D {
+        size = size.max(delta[i].abs());
+        pmax = pmax.max(p[i].abs());
+    }
+    (size, pmax)
+}
+
+/// Newton's stop rule, the one-trajectory step's: |δ|∞ ≤ tol · max(|p|∞, 1e-300).
+#[inline(always)]
+fn converged(size: f64, pmax: f64, tol: f64) -> bool {
+    size <= tol * pmax.max(1e-300)
 }
 
 /// A block's states as lanes (`pl[i][j]` = `mu[j][i]`, zero past `mu.len()`) and which lanes
@@ -838,17 +852,13 @@ fn so3_block<const N: usize, const L: usize, const EXP: bool>(
     if L > 1 && !started {
         two_rounds_tally::count(0);
     }
+    // Blocks only: the one-lane solve stays on the loop, the reference each lane of a block is
+    // tested against (`two_rounds_straight_through_end_as_the_loop_does`).
     if started && L > 1 && sys.max_iter >= 2 {
-        let mut state = Rounds {
-            p,
-            inv,
-            hk,
-            xs,
-            progress,
-        };
-        let taken =
-            so3_two_rounds::<N, L, EXP>(sys, buf, t, &target, &mut scratch, &mut jet, &mut state);
-        if taken {
+        let rounds = so3_two_rounds::<N, L, EXP>(sys, buf, t, &p, &target, &mut scratch, &mut jet);
+        #[cfg(test)]
+        let taken = rounds.is_some();
+        if let Some(state) = rounds {
             Rounds {
                 p,
                 inv,
@@ -986,25 +996,23 @@ struct Rounds<const L: usize> {
 /// verdicts taken at the end as vector tests instead of round by round. Where every lane took
 /// both updates as the loop would (finite, in the chart, invertible, not converged after the
 /// first: the loop's rule then refreshes no Jacobian for the second, whose contraction is
-/// against an infinite `last`), `state` becomes the loop's state after its second round with
-/// the same operations in the same order, so the same bits, and true is returned; the loop
-/// goes on from there for the lanes that have not converged. Otherwise `state` is left as it
-/// was and the loop runs from the start. The rigid body's Taylor steps take two updates a step
+/// against an infinite `last`), the loop's state after its second round is returned, made by
+/// the same operations in the same order, so with the same bits; the loop goes on from there
+/// for the lanes that have not converged. Otherwise None, and the loop runs from the start. The rigid body's Taylor steps take two updates a step
 /// (`benches/step_costs.py`), so most blocks end here.
 #[inline(always)]
 fn so3_two_rounds<const N: usize, const L: usize, const EXP: bool>(
     sys: &So3Newton<'_, N>,
     buf: &mut [LaneRow],
     t: f64,
+    p0: &V3<L>,
     target: &V3<L>,
     scratch: &mut Scratch<N, L>,
     jet: &mut JetLanes<N, L>,
-    state: &mut Rounds<L>,
-) -> bool {
+) -> Option<Rounds<L>> {
     let chart = if EXP { Chart::Exp } else { Chart::Cayley };
     let net = sys.network.as_ref();
     let max_s = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
-    let p0 = state.p;
     let mut pl = [[0.0; L]; N];
     for i in 0..3 {
         pl[i] = p0[i].0;
@@ -1012,10 +1020,8 @@ fn so3_two_rounds<const N: usize, const L: usize, const EXP: bool>(
     // Round 1: S's jet with its Hessian, the chart's Jacobian and its inverse.
     evaluate::<N, L, true>(sys.poly, net, t, &pl, scratch, buf, jet);
     let (x1, h1) = gradient_and_hessian(jet);
-    let (tar1, s1, jac) = so3_chart_lanes(chart, -1.0, &x1, &p0, Some(&h1));
-    let Some(jac) = jac else {
-        return false;
-    };
+    let (tar1, s1, jac) = so3_chart_lanes(chart, -1.0, &x1, p0, Some(&h1));
+    let jac = jac?;
     let (fi, det) = inverse3_lanes(&jac);
     let (probe, hess_probe) = round_probes(&jet.v, &x1, &h1, true);
     let fresh_probe = matrix_probe(&fi) + det.finite_probe();
@@ -1028,8 +1034,8 @@ fn so3_two_rounds<const N: usize, const L: usize, const EXP: bool>(
     let probes = probe + hess_probe + fresh_probe + finite_probe(d1);
     for l in 0..L {
         let bad = probes.0[l] != 0.0 || det.0[l] == 0.0 || (EXP && s1.0[l] >= max_s);
-        if bad || size1.0[l] <= sys.tol * pmax1.0[l].max(1e-300) {
-            return false;
+        if bad || converged(size1.0[l], pmax1.0[l], sys.tol) {
+            return None;
         }
     }
     // Round 2: the gradient only, the kept inverse.
@@ -1046,36 +1052,26 @@ fn so3_two_rounds<const N: usize, const L: usize, const EXP: bool>(
     let probes = finite_probe(x2) + V(jet.v).finite_probe() + finite_probe(d2);
     for l in 0..L {
         if probes.0[l] != 0.0 || (EXP && s2.0[l] >= max_s) {
-            return false;
+            return None;
         }
     }
     let step = v3!(|a| h1[a][0] * d2[0] + h1[a][1] * d2[1] + h1[a][2] * d2[2]);
-    let converged: [bool; L] =
-        std::array::from_fn(|l| size2.0[l] <= sys.tol * pmax2.0[l].max(1e-300));
-    let progress = &mut state.progress;
+    let done: [bool; L] = std::array::from_fn(|l| converged(size2.0[l], pmax2.0[l], sys.tol));
+    let mut progress = Progress::new([true; L]);
     for l in 0..L {
         progress.iterations[l] = 2;
-        progress.converged[l] = converged[l];
-        progress.active[l] = !converged[l];
-        progress.refresh[l] = !converged[l] && size2.0[l] > SIMPLIFIED_RATE * size1.0[l];
-        progress.last[l] = if converged[l] { size1.0[l] } else { size2.0[l] };
+        progress.converged[l] = done[l];
+        progress.active[l] = !done[l];
+        progress.refresh[l] = !done[l] && size2.0[l] > SIMPLIFIED_RATE * size1.0[l];
+        progress.last[l] = if done[l] { size1.0[l] } else { size2.0[l] };
     }
-    state.p = p2;
-    state.inv = fi;
-    state.hk = h1;
-    state.xs = v3!(|a| state.xs[a].blend(&converged, x2[a] + step[a]));
-    true
-}
-
-/// An update's size |δ|∞ and the new |p|∞ lane by lane, as [`Progress::update`] forms them.
-#[inline(always)]
-fn sizes<const L: usize>(delta: &V3<L>, p: &V3<L>) -> (V<L>, V<L>) {
-    let (mut size, mut pmax) = (V::splat(0.0), V::splat(0.0));
-    for i in 0..3 {
-        size = size.max(delta[i].abs());
-        pmax = pmax.max(p[i].abs());
-    }
-    (size, pmax)
+    Some(Rounds {
+        p: p2,
+        inv: fi,
+        hk: h1,
+        xs: v3!(|a| V::splat(0.0).blend(&done, x2[a] + step[a])),
+        progress,
+    })
 }
 
 /// A Newton solve in lanes: one step of a block of at most L trajectories, every lane with the
