@@ -204,3 +204,69 @@ pub(super) fn start_is_second_order<const N: usize, C: ExpChartLanes<N>>(
         assert_start_orders(hs, second, first, label);
     }
 }
+
+/// The first two rounds taken straight through (`chart_two_rounds`) end every kind of block of
+/// [`crate::isa::LANES`] as the round-by-round loop does: each lane has the bits, update count
+/// and residual of its one-trajectory step (which never takes them). Kinds: a block whose lanes
+/// all converge in two updates (finished there), one with a lane that needs more (handed on to
+/// the loop), one with μ = 0 (tar is linear in p, so that lane's first update is exactly 0:
+/// converged after one, declined), and one with `far`, too far out for the prediction (the loop
+/// alone). The tally of how blocks ran shows that each kind took its path. `pool`: states of
+/// which at least eight take two updates at step `h` and one more than three.
+pub(super) fn two_rounds_end_as_the_loop_does<const N: usize>(
+    st: &BisectionStepper<N>,
+    h: f64,
+    pool: &[[f64; N]],
+    far: [f64; N],
+    label: &str,
+) where
+    nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
+{
+    use crate::isa::LANES;
+    use crate::lanes_bisection::two_rounds_tally;
+    let mut ws = st.workspace();
+    let mut scalar = |mu: [f64; N]| {
+        let mut m = mu;
+        let r = st.step(h, &mut m, &mut ws);
+        (m, r)
+    };
+    let updates = |r: &crate::stepper::StepResult| r.as_ref().map_or(0u32, |s| s.iterations);
+    let two: Vec<[f64; N]> = pool
+        .iter()
+        .copied()
+        .filter(|&m| updates(&scalar(m).1) == 2)
+        .take(LANES)
+        .collect();
+    assert_eq!(two.len(), LANES, "{label}: states with two updates");
+    // The state that takes the most updates: the loop's rule then matters after the hand-on.
+    let slow = *pool.iter().max_by_key(|&&m| updates(&scalar(m).1)).unwrap();
+    assert!(
+        updates(&scalar(slow).1) > 3,
+        "{label}: a state with more than three updates"
+    );
+    let mut cases = vec![(two.clone(), 3usize)];
+    for (lane, state, outcome) in [(5, slow, 2), (2, [0.0; N], 1), (6, far, 0)] {
+        let mut mu = two.clone();
+        mu[lane] = state;
+        cases.push((mu, outcome));
+    }
+    for (mu0, outcome) in cases {
+        let mut mu = mu0.clone();
+        let mut results = vec![Ok(StepStats::default()); LANES];
+        let mut ws = st.workspace();
+        two_rounds_tally::take();
+        st.step_batch(h, &mut mu, &[true; LANES], &mut results, &mut ws);
+        let mut expected = [0; 4];
+        expected[outcome] = 1;
+        assert_eq!(two_rounds_tally::take(), expected, "{label}: {mu0:?}");
+        for l in 0..LANES {
+            let (m, r) = scalar(mu0[l]);
+            assert_eq!(results[l], r, "{label}: lane {l}, kind {outcome}");
+            let want = if r.is_ok() { m } else { mu0[l] };
+            assert!(
+                same_bits(&mu[l], &want),
+                "{label}: lane {l}, kind {outcome}"
+            );
+        }
+    }
+}
