@@ -11,7 +11,8 @@
 //! And RK4 on three point vortices with the field as a Hamiltonian's program (interpreted)
 //! against the same field written out by hand (`classical/vortices`); the rigid body's Taylor
 //! K = 3 step in the exponential chart by the package's solver against the same step map
-//! written out by hand, and RK4 (`taylor3-exp`).
+//! written out by hand, and RK4 (`taylor3-exp`); the heavy top's Taylor K = 3 step on se(3)
+//! against its RK4 (`taylor3-heavy-top`).
 //!
 //! Each rollout size does a few thousand to twenty thousand steps per iteration, so
 //! `cargo bench --bench rollout` takes about three minutes on two cores.
@@ -918,8 +919,87 @@ fn bench_straight_line_taylor(c: &mut Criterion) {
     g.finish();
 }
 
+/// S of the heavy top's Taylor K = 3 step (I = (1, 1.5, 2), mgl χ = (0, 0, 0.981), the
+/// exponential chart on se(3)): rows (k, e₁ … e₆) of tᵏ Π pᵢ^eᵢ and their coefficients, from
+/// `poisson_rs.taylor.lie_taylor_terms` (S's t² terms vanish).
+const TOP3: [([u32; 7], f64); 11] = [
+    ([1, 0, 0, 0, 0, 0, 1], -0.981),
+    ([1, 0, 0, 2, 0, 0, 0], -0.25),
+    ([1, 0, 2, 0, 0, 0, 0], -0.333_333_333_333_333_3),
+    ([1, 2, 0, 0, 0, 0, 0], -0.5),
+    ([3, 0, 0, 0, 0, 2, 0], -0.040_098_375),
+    ([3, 0, 0, 0, 2, 0, 0], -0.026_732_25),
+    ([3, 0, 1, 1, 0, 1, 0], 0.013_624_999_999_999_996),
+    ([3, 0, 2, 2, 0, 0, 0], -0.001_157_407_407_407_407),
+    ([3, 1, 0, 1, 1, 0, 0], 0.027_249_999_999_999_996),
+    ([3, 2, 0, 2, 0, 0, 0], -0.006_944_444_444_444_444),
+    ([3, 2, 2, 0, 0, 0, 0], -0.002_314_814_814_814_815),
+];
+
+/// The heavy top's Taylor K = 3 step (the package's exponential-chart lane solver on se(3)) and
+/// its RK4 in lanes, 4096 trajectories (|M| up to √3, Γ a unit vector) × 20 steps of h = 0.1.
+/// `cargo bench --bench rollout -- taylor3-heavy-top`.
+fn bench_heavy_top_taylor(c: &mut Criterion) {
+    use poisson_rs::lanes::{Isa, Lanes};
+    use poisson_rs::rollout::Rollout;
+    use poisson_rs::{LieAlgebra, LiePoisson, Rk4};
+
+    let terms = TOP3
+        .iter()
+        .map(|&(e, coeff)| Monomial {
+            t_power: e[0],
+            p_powers: std::array::from_fn(|i| e[1 + i]),
+            coeff,
+        })
+        .collect();
+    let stepper = BisectionStepper::new(
+        GeneratingFunction::new(
+            Polynomial::<6>::new(terms).unwrap(),
+            None,
+            0,
+            MlpInputs::Plain,
+        )
+        .unwrap(),
+        Groupoid::new(LieAlgebra::se3(), Chart::Exp).unwrap(),
+        NewtonOptions::default(),
+    );
+    let top = LiePoisson::heavy_top([1.0, 1.5, 2.0], [0.0, 0.0, 0.981]).unwrap();
+    let rk4 = Rk4 {
+        system: poisson_rs::straight_line::LieField::new(&top),
+    };
+    let isa = Isa::detect();
+    let rk4 = Lanes { stepper: &rk4, isa };
+    let mut rng = Rng(11);
+    let mu0: Vec<[f64; 6]> = (0..4096)
+        .map(|_| {
+            let m: [f64; 3] = std::array::from_fn(|_| rng.range(-1.0, 1.0));
+            let g = rng.sphere(1.0);
+            [m[0], m[1], m[2], g[0], g[1], g[2]]
+        })
+        .collect();
+    let n = 20;
+    let mut out = vec![0.0; mu0.len() * 2 * 6];
+    let mut g = c.benchmark_group("taylor3-heavy-top");
+    g.sample_size(10);
+    g.warm_up_time(Duration::from_millis(500));
+    g.measurement_time(Duration::from_secs(3));
+    g.throughput(Throughput::Elements((mu0.len() * n) as u64));
+    g.bench_function("package", |b| {
+        b.iter(|| black_box(rollout(&stepper, black_box(&mu0), H, n, n, &mut out).unwrap()))
+    });
+    g.bench_function(format!("rk4-{}", isa.name()), |b| {
+        b.iter(|| {
+            let mut r = Rollout::start(&mu0, H, n, n, &mut out).unwrap();
+            r.advance_kernel(&rk4, n, &mut out, false).unwrap();
+            black_box(r.info());
+        })
+    });
+    g.finish();
+}
+
 criterion_group!(
     benches,
+    bench_heavy_top_taylor,
     bench_straight_line_taylor,
     bench_classical,
     bench_expression_field,

@@ -754,15 +754,13 @@ impl<const L: usize> Progress<L> {
             }
         }
     }
-}
 
-impl<const L: usize> Progress<L> {
     /// The state [`Progress::update`] leaves after two rounds in which every lane was live,
     /// took a fresh Jacobian and then a simplified update, and none converged after the first:
-    /// `size1`, `size2` the two updates' |δ|∞, `pmax2` |p|∞ after the second. What the straight
-    /// rounds (`so3_two_rounds`, `chart_two_rounds`) hand the loop.
+    /// `size1`, `size2` the two updates' |δ|∞, `pmax2` |p|∞ after the second. What
+    /// [`so3_two_rounds`] hands the loop.
     #[inline(always)]
-    pub(crate) fn after_two_updates(size1: &V<L>, size2: &V<L>, pmax2: &V<L>, tol: f64) -> Self {
+    fn after_two_updates(size1: &V<L>, size2: &V<L>, pmax2: &V<L>, tol: f64) -> Self {
         let mut progress = Progress::new([true; L]);
         for l in 0..L {
             let done = converged(size2.0[l], pmax2.0[l], tol);
@@ -778,10 +776,7 @@ impl<const L: usize> Progress<L> {
 
 /// An update's size |δ|∞ and the updated |p|∞, lane by lane.
 #[inline(always)]
-pub(crate) fn sizes<const D: usize, const L: usize>(
-    delta: &[V<L>; D],
-    p: &[V<L>; D],
-) -> (V<L>, V<L>) {
+fn sizes<const D: usize, const L: usize>(delta: &[V<L>; D], p: &[V<L>; D]) -> (V<L>, V<L>) {
     let (mut size, mut pmax) = (V::splat(0.0), V::splat(0.0));
     for i in 0..D {
         size = size.max(delta[i].abs());
@@ -792,7 +787,7 @@ pub(crate) fn sizes<const D: usize, const L: usize>(
 
 /// Newton's stop rule, the one-trajectory step's: |δ|∞ ≤ tol · max(|p|∞, 1e-300).
 #[inline(always)]
-pub(crate) fn converged(size: f64, pmax: f64, tol: f64) -> bool {
+fn converged(size: f64, pmax: f64, tol: f64) -> bool {
     size <= tol * pmax.max(1e-300)
 }
 

@@ -24,13 +24,10 @@ use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::LaneRow;
 use crate::isa::Isa;
 use crate::lanes_bisection::{
-    converged, evaluate, finite_probe, inverse_lanes, lane_newton_steps, load_block, round_probes,
-    sizes, ChartNewton, LaneSolve, Progress, PREDICT_MAX_S, V,
+    evaluate, finite_probe, inverse_lanes, lane_newton_steps, load_block, round_probes,
+    ChartNewton, LaneSolve, Progress, PREDICT_MAX_S, V,
 };
 use crate::step::{StepResult, StepStats};
-
-#[cfg(test)]
-use crate::lanes_bisection::two_rounds_tally;
 
 /// A Lie algebra's exponential chart on g* in lanes, as [`ChartNewton`]'s solve needs it. Every
 /// method works lane by lane: a lane's numbers never depend on another lane's.
@@ -145,47 +142,17 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
     // The kept inverse per lane, and this round's Hessian, Jacobian and inverse.
     let zero = [[V::splat(0.0); N]; N];
     let (mut inv, mut h, mut jac, mut fresh) = (zero, zero, zero, zero);
-    // Every lane live and started from the prediction: the block may take its first two
-    // rounds straight through (`chart_two_rounds`).
-    let mut started = false;
     if sys.predict {
         let (p0, keep) = second_order_start(sys, t, &pl, &target, &mut scratch, &mut jet);
         for i in 0..N {
             p[i] = p[i].blend(&keep, p0[i]);
         }
-        started = n == L && active.iter().chain(&keep).all(|&k| k);
     }
     let mut progress = Progress::new(active);
     // x = ∇S at each converged lane's p from its last update, x + Hess S · δ with the Hessian
     // of the lane's last refresh (off by O(|δ| · |p − p_refresh| + |δ|²), far below a rounding
     // at |δ| ≤ tol·|p|; the gradient pass at the solution saved).
     let mut xs: [V<L>; N] = [V::splat(0.0); N];
-    #[cfg(test)]
-    if L > 1 && !started {
-        two_rounds_tally::count(0);
-    }
-    // Blocks only, as on so(3): the one-lane solve stays on the loop, the reference each lane
-    // of a block is tested against.
-    if started && L > 1 && sys.max_iter >= 2 {
-        let rounds = chart_two_rounds(sys, buf, t, &p, &target, &mut scratch, &mut jet);
-        #[cfg(test)]
-        let taken = rounds.is_some();
-        if let Some(state) = rounds {
-            ChartRounds {
-                p,
-                inv,
-                h,
-                xs,
-                progress,
-            } = state;
-        }
-        #[cfg(test)]
-        two_rounds_tally::count(match (taken, progress.running()) {
-            (false, _) => 1,
-            (true, true) => 2,
-            (true, false) => 3,
-        });
-    }
     while progress.running() {
         let hess = progress.jacobian_wanted();
         for i in 0..N {
@@ -196,7 +163,10 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
         } else {
             evaluate::<N, L, false>(sys.poly, net, t, &pl, &mut scratch, buf, &mut jet);
         }
-        let x = gradient(&jet);
+        let mut x = target;
+        for i in 0..N {
+            x[i] = V(jet.g[i]);
+        }
         if hess {
             // Only the refreshing lanes take the new Hessian: `h` is each lane's Hessian of its
             // own last refresh, which the first-order x at the solution needs (another lane's
@@ -233,13 +203,28 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
                 }
             }
         }
-        let delta = newton_update(&inv, &target, &tar);
+        // δ = J⁻¹ (μ − tar), each component summed in column order.
+        let mut f = tar;
+        for i in 0..N {
+            f[i] = target[i] - tar[i];
+        }
+        let mut delta = f;
+        for r in 0..N {
+            let mut acc = inv[r][0] * f[0];
+            for k in 1..N {
+                acc = acc + inv[r][k] * f[k];
+            }
+            delta[r] = acc;
+        }
         progress.update(&go, &mut p, &delta, sys.tol, results);
         let newly: [bool; L] = from_fn(|l| go[l] && progress.converged[l]);
         if newly.contains(&true) {
-            let at_solution = first_order_x(&x, &h, &delta);
             for a in 0..N {
-                xs[a] = xs[a].blend(&newly, at_solution[a]);
+                let mut acc = x[a];
+                for b in 0..N {
+                    acc = acc + h[a][b] * delta[b];
+                }
+                xs[a] = xs[a].blend(&newly, acc);
             }
         }
     }
@@ -271,128 +256,6 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
             })
         };
     }
-}
-
-/// ∇S from a block's jet.
-#[inline(always)]
-fn gradient<const N: usize, const L: usize>(jet: &JetLanes<N, L>) -> [V<L>; N] {
-    from_fn(|i| V(jet.g[i]))
-}
-
-/// S's Hessian from a block's jet (its upper triangle), both triangles filled.
-#[inline(always)]
-fn hessian<const N: usize, const L: usize>(jet: &JetLanes<N, L>) -> [[V<L>; N]; N] {
-    from_fn(|a| from_fn(|b| V(jet.h[a.min(b)][a.max(b)])))
-}
-
-/// Newton's update δ = J⁻¹ (μ − tar), each component summed in column order.
-#[inline(always)]
-fn newton_update<const N: usize, const L: usize>(
-    inv: &[[V<L>; N]; N],
-    target: &[V<L>; N],
-    tar: &[V<L>; N],
-) -> [V<L>; N] {
-    let f: [V<L>; N] = from_fn(|i| target[i] - tar[i]);
-    from_fn(|r| {
-        let mut acc = inv[r][0] * f[0];
-        for k in 1..N {
-            acc = acc + inv[r][k] * f[k];
-        }
-        acc
-    })
-}
-
-/// x = ∇S at p + δ to first order, x + Hess S · δ, summed left to right.
-#[inline(always)]
-fn first_order_x<const N: usize, const L: usize>(
-    x: &[V<L>; N],
-    h: &[[V<L>; N]; N],
-    delta: &[V<L>; N],
-) -> [V<L>; N] {
-    from_fn(|a| {
-        let mut acc = x[a];
-        for b in 0..N {
-            acc = acc + h[a][b] * delta[b];
-        }
-        acc
-    })
-}
-
-/// The state of [`chart_block`]'s Newton loop between rounds.
-struct ChartRounds<const N: usize, const L: usize> {
-    p: [V<L>; N],
-    inv: [[V<L>; N]; N],
-    h: [[V<L>; N]; N],
-    xs: [V<L>; N],
-    progress: Progress<L>,
-}
-
-/// [`chart_block`]'s first two rounds on a block whose every lane is live and starts from the
-/// prediction, straight through, as so(3)'s (`so3_two_rounds`): a fresh Jacobian, then a
-/// simplified update, each lane's verdicts taken at the end as vector tests. Where every lane
-/// took both updates as the loop would (finite, in the chart, invertible, not converged after
-/// the first), the loop's state after its second round, made by the same operations in the
-/// same order (the same bits); otherwise None, and the loop runs from the start. The heavy
-/// top's Taylor steps take three updates, so the loop takes the third.
-#[inline(always)]
-fn chart_two_rounds<const N: usize, const L: usize, C: ExpChartLanes<N>>(
-    sys: &ChartNewton<'_, N, C>,
-    buf: &mut [LaneRow],
-    t: f64,
-    p0: &[V<L>; N],
-    target: &[V<L>; N],
-    scratch: &mut Scratch<N, L>,
-    jet: &mut JetLanes<N, L>,
-) -> Option<ChartRounds<N, L>> {
-    let net = sys.network.as_ref();
-    let all = [true; L];
-    let mut pl: [[f64; L]; N] = from_fn(|i| p0[i].0);
-    // Round 1: S's jet with its Hessian, the chart's Jacobian and its inverse.
-    evaluate::<N, L, true>(sys.poly, net, t, &pl, scratch, buf, jet);
-    let x1 = gradient(jet);
-    let h = hessian(jet);
-    let mut jac = [[V::splat(0.0); N]; N];
-    let (tar1, chart1, _) = sys.chart.tar(&x1, p0, Some(&h), &mut jac, &all);
-    let mut inv = [[V::splat(0.0); N]; N];
-    let ok = inverse_lanes(&jac, &mut inv);
-    let (probe, hess_probe) = round_probes(&jet.v, &x1, &h, true);
-    let d1 = newton_update(&inv, target, &tar1);
-    let p1: [V<L>; N] = from_fn(|i| p0[i] + d1[i]);
-    let (size1, pmax1) = sizes(&d1, &p1);
-    // Progress::judge's and Progress::update's verdicts, all passed: every probe 0, each lane
-    // in the chart with a usable inverse and still moving.
-    let probes = probe + hess_probe + finite_probe(d1);
-    for l in 0..L {
-        let bad = probes.0[l] != 0.0 || chart1[l].is_some() || !ok[l];
-        if bad || converged(size1.0[l], pmax1.0[l], sys.tol) {
-            return None;
-        }
-    }
-    // Round 2: the gradient only, the kept inverse.
-    for i in 0..N {
-        pl[i] = p1[i].0;
-    }
-    evaluate::<N, L, false>(sys.poly, net, t, &pl, scratch, buf, jet);
-    let x2 = gradient(jet);
-    let (tar2, chart2, _) = sys.chart.tar(&x2, &p1, None, &mut jac, &all);
-    let d2 = newton_update(&inv, target, &tar2);
-    let p2: [V<L>; N] = from_fn(|i| p1[i] + d2[i]);
-    let (size2, pmax2) = sizes(&d2, &p2);
-    let probes = finite_probe(x2) + V(jet.v).finite_probe() + finite_probe(d2);
-    for l in 0..L {
-        if probes.0[l] != 0.0 || chart2[l].is_some() {
-            return None;
-        }
-    }
-    let progress = Progress::after_two_updates(&size1, &size2, &pmax2, sys.tol);
-    let at_solution = first_order_x(&x2, &h, &d2);
-    Some(ChartRounds {
-        p: p2,
-        inv,
-        h,
-        xs: from_fn(|a| V::splat(0.0).blend(&progress.converged, at_solution[a])),
-        progress,
-    })
 }
 
 impl<const N: usize, C: ExpChartLanes<N>> LaneSolve<N> for ChartNewton<'_, N, C> {

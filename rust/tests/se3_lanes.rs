@@ -7,7 +7,6 @@
 
 use super::exp_chart_lanes::{
     newton_against_the_generic_step, same_for_every_dispatch_and_block, start_is_second_order,
-    two_rounds_end_as_the_loop_does,
 };
 use super::lie_poisson::{heavy_top, minus_t_h_terms};
 use super::*;
@@ -281,25 +280,6 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     mu0[5] = [f64::NAN, 1.0, 0.0, 0.0, 0.0, 1.0];
     mu0[17] = [400.0, -300.0, 250.0, 0.0, 0.6, 0.8];
     same_for_every_dispatch_and_block(&st, sys, &mu0);
-}
-
-/// The first two rounds straight through on the heavy top's S (and a network-free S with extra
-/// terms): every kind of block ends as the loop alone would (`exp_chart_lanes`).
-#[test]
-fn two_rounds_straight_through_end_as_the_loop_does() {
-    let mut rng = Rng::new(0x5E3_0010);
-    for extra in [0, 6] {
-        let st = top_stepper(top_polynomial(&mut rng, extra));
-        let pool: Vec<[f64; 6]> = (0..400)
-            .map(|k| {
-                let s = top_state(&mut rng);
-                let r = [0.01, 0.1, 1.0, 3.0][k % 4];
-                [s[0] * r, s[1] * r, s[2] * r, s[3], s[4], s[5]]
-            })
-            .collect();
-        let far = [400.0, -300.0, 250.0, 0.0, 0.6, 0.8];
-        two_rounds_end_as_the_loop_does(&st, 0.1, &pool, far, &format!("top + {extra}"));
-    }
 }
 
 /// |Γ|² and M·Γ.

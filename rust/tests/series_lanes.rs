@@ -8,7 +8,6 @@
 
 use super::exp_chart_lanes::{
     newton_against_the_generic_step, same_for_every_dispatch_and_block, start_is_second_order,
-    two_rounds_end_as_the_loop_does,
 };
 use super::*;
 use crate::dual::Dual1;
@@ -263,30 +262,6 @@ fn lane_newton_is_the_same_for_every_dispatch_and_block() {
     mu0[5] = [f64::NAN, 1.0, 0.0, 0.5];
     mu0[17] = [400.0, -300.0, 250.0, 200.0];
     same_for_every_dispatch_and_block(&st, sys, &mu0);
-}
-
-/// The first two rounds straight through on sl(2) and the oscillator algebra: every kind of
-/// block ends as the loop alone would (`exp_chart_lanes`).
-#[test]
-fn two_rounds_straight_through_end_as_the_loop_does() {
-    fn on<const N: usize>(algebra: LieAlgebra<N>, far: [f64; N], seed: u64, label: &str)
-    where
-        nalgebra::Const<N>: nalgebra::DimMin<nalgebra::Const<N>, Output = nalgebra::Const<N>>,
-    {
-        let mut rng = Rng::new(seed);
-        let st = stepper(algebra, polynomial::<N>(&mut rng, 6));
-        let pool: Vec<[f64; N]> = (0..400)
-            .map(|k| state::<N>(&mut rng).map(|v| v * [0.01, 0.1, 1.0, 2.0][k % 4]))
-            .collect();
-        two_rounds_end_as_the_loop_does(&st, 0.1, &pool, far, label);
-    }
-    on(sl2(), [400.0, -300.0, 250.0], 0x5E1_0010, "sl(2)");
-    on(
-        oscillator(),
-        [400.0, -300.0, 250.0, 200.0],
-        0x5E1_0011,
-        "oscillator",
-    );
 }
 
 /// A learned S (−tH plus a network term) on the oscillator algebra takes the series lanes
