@@ -754,24 +754,6 @@ impl<const L: usize> Progress<L> {
             }
         }
     }
-
-    /// The state [`Progress::update`] leaves after two rounds in which every lane was live,
-    /// took a fresh Jacobian and then a simplified update, and none converged after the first:
-    /// `size1`, `size2` the two updates' |δ|∞, `pmax2` |p|∞ after the second. What
-    /// [`so3_two_rounds`] hands the loop.
-    #[inline(always)]
-    fn after_two_updates(size1: &V<L>, size2: &V<L>, pmax2: &V<L>, tol: f64) -> Self {
-        let mut progress = Progress::new([true; L]);
-        for l in 0..L {
-            let done = converged(size2.0[l], pmax2.0[l], tol);
-            progress.iterations[l] = 2;
-            progress.converged[l] = done;
-            progress.active[l] = !done;
-            progress.refresh[l] = !done && size2.0[l] > SIMPLIFIED_RATE * size1.0[l];
-            progress.last[l] = if done { size1.0[l] } else { size2.0[l] };
-        }
-        progress
-    }
 }
 
 /// An update's size |δ|∞ and the updated |p|∞, lane by lane.
@@ -1074,12 +1056,20 @@ fn so3_two_rounds<const N: usize, const L: usize, const EXP: bool>(
         }
     }
     let step = v3!(|a| h1[a][0] * d2[0] + h1[a][1] * d2[1] + h1[a][2] * d2[2]);
-    let progress = Progress::after_two_updates(&size1, &size2, &pmax2, sys.tol);
+    let done: [bool; L] = std::array::from_fn(|l| converged(size2.0[l], pmax2.0[l], sys.tol));
+    let mut progress = Progress::new([true; L]);
+    for l in 0..L {
+        progress.iterations[l] = 2;
+        progress.converged[l] = done[l];
+        progress.active[l] = !done[l];
+        progress.refresh[l] = !done[l] && size2.0[l] > SIMPLIFIED_RATE * size1.0[l];
+        progress.last[l] = if done[l] { size1.0[l] } else { size2.0[l] };
+    }
     Some(Rounds {
         p: p2,
         inv: fi,
         hk: h1,
-        xs: v3!(|a| V::splat(0.0).blend(&progress.converged, x2[a] + step[a])),
+        xs: v3!(|a| V::splat(0.0).blend(&done, x2[a] + step[a])),
         progress,
     })
 }
