@@ -58,7 +58,11 @@ RK4 and midpoint rollouts moved, by at most 5.1e-15 after 200 steps:
 :data:`AFTER_THE_FACTORED_FIELD`. Then the learned log-canonical step started Newton from its
 Taylor terms alone and kept its network term's Hessian from the first update (the same 3.00
 updates a step), so the Lotka–Volterra model's rollout moved, by at most 5.8e-15 after 200 steps:
-:data:`AFTER_THE_NETWORK_START`. Nothing else may change."""
+:data:`AFTER_THE_NETWORK_START`. Then the se(3) lane solve took its chart's p-Jacobian from
+closed 3×3 blocks of ∂tar/∂p and ∂tar/∂x instead of six forward-mode tangents (the same Jacobian
+to rounding; ``rust/tests/se3_lanes.rs`` checks it against dual numbers to 1e-13): the heavy
+top's Taylor rollout kept its bits, and the learned heavy top's (h = 0.5) moved by at most
+1.05e-14 after 40 steps: :data:`AFTER_THE_SE3_JACOBIAN`. Nothing else may change."""
 
 from __future__ import annotations
 
@@ -308,6 +312,7 @@ def test_every_old_stepper_keeps_its_bits() -> None:
         **AFTER_THE_FUSED_NETWORK,
         **AFTER_THE_FACTORED_FIELD,
         **AFTER_THE_NETWORK_START,
+        **AFTER_THE_SE3_JACOBIAN,
     }
     assert set(got) == set(want)
     changed = sorted(k for k in want if got[k] != want[k])
@@ -325,4 +330,10 @@ AFTER_THE_FACTORED_FIELD = {
 #: Jacobian kept the network's Hessian from the first update.
 AFTER_THE_NETWORK_START = {
     "lv-learned-h01": "c91d9bfea4fe0cb1",
+}
+
+
+#: The learned heavy top's rollout after the se(3) chart's Jacobian came from closed blocks.
+AFTER_THE_SE3_JACOBIAN = {
+    "top-learned-h05": "4f8a68bfbf69748f",
 }
