@@ -966,3 +966,98 @@ fn the_isa_proofs_come_from_detection_only() {
     assert!(!Isa::PORTABLE.is_avx2() && !Isa::PORTABLE.is_avx512());
     assert_eq!(Isa::PORTABLE.name(), "portable");
 }
+
+/// The pivoted lane solve searches its pivots in vectors; each lane still takes the first of the
+/// largest |a[r][col]| and gives the bits of the same elimination on that one matrix (a plain
+/// one-matrix oracle here), for N = 4, 5 and 6: random matrices, near-identity ones (no lane
+/// pivots), columns with tied sizes (the first row wins), and singular or non-finite lanes
+/// (flagged, the others untouched by them).
+#[test]
+fn pivoted_lane_solve_equals_one_matrix_elimination() {
+    /// Partial pivoting on one matrix (the first of the largest |a| in the column), then back
+    /// substitution: δ and whether every pivot was nonzero and finite.
+    fn one<const N: usize>(j: [[f64; N]; N], f: [f64; N]) -> ([f64; N], bool) {
+        let (mut a, mut b, mut ok) = (j, f, true);
+        for col in 0..N {
+            let mut best = col;
+            for r in col + 1..N {
+                if a[r][col].abs() > a[best][col].abs() {
+                    best = r;
+                }
+            }
+            a.swap(best, col);
+            b.swap(best, col);
+            ok &= a[col][col] != 0.0 && a[col][col].is_finite();
+            for row in col + 1..N {
+                let factor = a[row][col] / a[col][col];
+                for k in col + 1..N {
+                    a[row][k] -= factor * a[col][k];
+                }
+                b[row] -= factor * b[col];
+            }
+        }
+        let mut delta = [0.0; N];
+        for row in (0..N).rev() {
+            let mut acc = b[row];
+            for k in row + 1..N {
+                acc -= a[row][k] * delta[k];
+            }
+            delta[row] = acc / a[row][row];
+        }
+        (delta, ok)
+    }
+    fn check<const N: usize>(rng: &mut Rng) {
+        const L: usize = 8;
+        let (mut pivoted, mut flagged) = (0, 0);
+        for case in 0..40 {
+            let mut j = [[[0.0; L]; N]; N];
+            let mut f = [[0.0; L]; N];
+            for l in 0..L {
+                for r in 0..N {
+                    f[r][l] = rng.range(-1.0, 1.0);
+                    for c in 0..N {
+                        j[r][c][l] = match case % 4 {
+                            // Near I: every pivot stays on the diagonal.
+                            0 => f64::from(u8::from(r == c)) + rng.range(-0.1, 0.1),
+                            // Sizes from a few values: ties in most columns.
+                            1 => [-2.0, -1.0, 1.0, 2.0][rng.below(4)],
+                            _ => rng.range(-1.0, 1.0),
+                        };
+                    }
+                }
+            }
+            if case % 4 == 3 {
+                // Lane 2 singular (two equal rows), lane 5 with a NaN entry.
+                for c in 0..N {
+                    j[1][c][2] = j[0][c][2];
+                }
+                j[N - 1][0][5] = f64::NAN;
+            }
+            let mut delta = [[0.0; L]; N];
+            let mut ok = [false; L];
+            crate::lanes::solve_pivoted_lanes(&j, &f, &mut delta, &mut ok);
+            for l in 0..L {
+                let jl: [[f64; N]; N] =
+                    std::array::from_fn(|r| std::array::from_fn(|c| j[r][c][l]));
+                let fl: [f64; N] = std::array::from_fn(|r| f[r][l]);
+                let (want, want_ok) = one(jl, fl);
+                assert_eq!(ok[l], want_ok, "N {N} case {case} lane {l}");
+                flagged += usize::from(!want_ok);
+                pivoted += usize::from((1..N).any(|r| jl[r][0].abs() > jl[0][0].abs()));
+                assert_eq!(
+                    std::array::from_fn::<u64, N, _>(|r| delta[r][l].to_bits()),
+                    want.map(f64::to_bits),
+                    "N {N} case {case} lane {l}"
+                );
+            }
+        }
+        assert!(
+            pivoted > 40 && flagged >= 10,
+            "{pivoted} pivoted, {flagged} flagged"
+        );
+    }
+    let mut rng = Rng::new(0x5eed_1u64 << 8);
+    check::<4>(&mut rng);
+    check::<5>(&mut rng);
+    check::<6>(&mut rng);
+}
