@@ -7,7 +7,7 @@
 //!   bits; its exact p-Jacobian J = ∂T/∂p + ∂T/∂x · Hess S from both derivatives in closed
 //!   3×3 blocks (`tar_derivatives`);
 //! - A(x) q = ad_xᵀ q in closed form, for Newton's second-order start;
-//! - the new state g(x)·μ by the closed-form coadjoint action (`se3_coadjoint`) in lanes.
+//! - the new state g(x)·μ by the closed-form coadjoint action (`se3_coadjoint`), lane by lane.
 //!
 //! The Newton solve around it is [`crate::lanes_bisection_exp`]'s, shared with every other
 //! algebra's chart.
@@ -15,13 +15,15 @@
 // Index loops over lanes, coordinates and matrix entries read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
+use std::array::from_fn;
+
 use crate::error::StepFailure;
 use crate::lanes_bisection::ChartNewton;
 use crate::lanes_bisection::V;
 use crate::lanes_bisection_exp::ExpChartLanes;
 use crate::structures::lie_groupoid::{
-    exp_chart_coefficient_derivatives_to, exp_chart_coefficient_to, rodrigues_coefficients,
-    rodrigues_derivatives, COS_SERIES, C_SERIES, EXP_CHART_MAX_ANGLE, SIN_SERIES,
+    exp_chart_coefficient_derivatives_to, exp_chart_coefficient_to, se3_coadjoint, C_SERIES,
+    EXP_CHART_MAX_ANGLE,
 };
 
 type V6<const L: usize> = [V<L>; 6];
@@ -295,11 +297,7 @@ impl<const N: usize> ExpChartLanes<N> for Se3Chart {
         (value, failed, s)
     }
 
-    /// The closed-form coadjoint action ([`se3_coadjoint`](crate::structures::lie_groupoid::se3_coadjoint)) in lanes, its operations in its
-    /// order: the Rodrigues coefficients and their s-derivatives by the same Horner chains below
-    /// s = 1 (summed in lanes), by the scalar closed forms lane by lane above; the crosses and
-    /// sums in lanes. Each lane has the scalar function's bits and failure. (Lane by lane through
-    /// the scalar function before: 6 % of the heavy top's Taylor step.)
+    /// The closed-form coadjoint action ([`se3_coadjoint`]), lane by lane.
     // Out of line in debug builds, as the block is (a debug frame keeps every local).
     #[cfg_attr(not(debug_assertions), inline(always))]
     #[cfg_attr(debug_assertions, inline(never))]
@@ -309,86 +307,20 @@ impl<const N: usize> ExpChartLanes<N> for Se3Chart {
         mu: &[V<L>; N],
         live: &[bool; L],
     ) -> ([V<L>; N], [Option<StepFailure>; L]) {
-        debug_assert!(N == 6);
-        let x6: V6<L> = [x[0], x[1], x[2], x[3], x[4], x[5]];
-        let mu6: V6<L> = [mu[0], mu[1], mu[2], mu[3], mu[4], mu[5]];
-        let (next, failed) = coadjoint_lanes(&x6, &mu6, live);
         let mut out = *mu;
-        out[..6].copy_from_slice(&next);
+        let mut failed = [None; L];
+        for l in (0..L).filter(|&l| live[l]) {
+            let xl: [f64; 6] = from_fn(|i| x[i].0[l]);
+            let ml: [f64; 6] = from_fn(|i| mu[i].0[l]);
+            match se3_coadjoint(&xl, &ml) {
+                Ok(next) => {
+                    for i in 0..6 {
+                        out[i].0[l] = next[i];
+                    }
+                }
+                Err(e) => failed[l] = Some(e),
+            }
+        }
         (out, failed)
     }
-}
-
-/// [`se3_coadjoint`](crate::structures::lie_groupoid::se3_coadjoint) at L lanes (see [`ExpChartLanes::coadjoint`] for se(3)); the lanes not in
-/// `live`, and those that fail, keep μ.
-#[inline(always)]
-pub(crate) fn coadjoint_lanes<const L: usize>(
-    x: &V6<L>,
-    mu: &V6<L>,
-    live: &[bool; L],
-) -> (V6<L>, [Option<StepFailure>; L]) {
-    let w = [x[0], x[1], x[2]];
-    let v = [x[3], x[4], x[5]];
-    let m = [mu[0], mu[1], mu[2]];
-    let g = [mu[3], mu[4], mu[5]];
-    let s = dot(&w, &w);
-    let zero = V::splat(0.0);
-    let (mut a, mut b, mut da, mut db) = (zero, zero, zero, zero);
-    for (&u, &c) in SIN_SERIES.iter().zip(&COS_SERIES).rev() {
-        a = a * s + V::splat(u);
-        b = b * s + V::splat(c);
-    }
-    for (n, (&u, &c)) in SIN_SERIES.iter().zip(&COS_SERIES).enumerate().rev() {
-        if n == 0 {
-            break;
-        }
-        let n = n as f64;
-        da = da * s + V::splat(n * u);
-        db = db * s + V::splat(n * c);
-    }
-    let max = EXP_CHART_MAX_ANGLE * EXP_CHART_MAX_ANGLE;
-    let mut failed = [None; L];
-    for l in 0..L {
-        let sl = s.0[l];
-        if sl >= max {
-            failed[l] = Some(StepFailure::ChartSingular);
-        } else if sl >= 1.0 {
-            (a.0[l], b.0[l]) = rodrigues_coefficients(sl);
-            (da.0[l], db.0[l]) = rodrigues_derivatives(sl);
-        }
-    }
-    let k = V::splat(2.0) * dot(&w, &v);
-    let (wm, wg, vg) = (cross(&w, &m), cross(&w, &g), cross(&v, &g));
-    let (wwm, wwg) = (cross(&w, &wm), cross(&w, &wg));
-    let (vwg, wvg) = (cross(&v, &wg), cross(&w, &vg));
-    let mut next = *mu;
-    for i in 0..3 {
-        let d = k * da * wg[i] + a * vg[i] + k * db * wwg[i] + b * (vwg[i] + wvg[i]);
-        next[i] = m[i] + ((a * wm[i] + b * wwm[i]) + d);
-        next[3 + i] = g[i] + (a * wg[i] + b * wwg[i]);
-    }
-    // x · 0 is 0 for a finite x and NaN otherwise: one probe for all six components.
-    let mut probe = zero;
-    for i in 0..6 {
-        probe = probe + next[i] * zero;
-    }
-    let mut out = *mu;
-    for l in 0..L {
-        if !live[l] || failed[l].is_some() {
-            continue;
-        }
-        if probe.0[l] != 0.0 {
-            failed[l] = Some(StepFailure::NonFinite);
-            continue;
-        }
-        for i in 0..6 {
-            out[i].0[l] = next[i].0[l];
-        }
-    }
-    for l in 0..L {
-        if !live[l] {
-            failed[l] = None;
-        }
-    }
-    (out, failed)
 }

@@ -21,7 +21,9 @@
 
 use super::polynomial::{PolynomialBisection, SparsePolynomial};
 use crate::error::{CoreError, StepFailure};
-use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
+use crate::generating::polynomial_lanes::{
+    jet_lanes_after_powers, jet_lanes_into, JetLanes, Scratch,
+};
 use crate::generating::{Monomial, Polynomial};
 use crate::lanes::{solve_small_lanes, FullNewton, LaneStepper};
 use crate::memory::try_collect;
@@ -35,6 +37,9 @@ pub struct PolynomialLanes<'a, const N: usize, const M: usize> {
     s: Polynomial<N>,
     /// α_i in v = (p, x).
     tar: Vec<Polynomial<M>>,
+    /// The largest exponent of each of v's variables over every α_i: the rows of the tables of
+    /// powers that the N passes share.
+    tar_max: [u32; M],
 }
 
 /// `poly`'s terms as monomials in `K` variables after `skip` leading ones, whose first exponent
@@ -84,10 +89,20 @@ impl<'a, const N: usize, const M: usize> PolynomialLanes<'a, N, M> {
         let mut tar = Vec::new();
         tar.try_reserve_exact(N)
             .map_err(|_| CoreError::Invalid("too many polynomials".into()))?;
+        let mut tar_max = [0u32; M];
         for map in maps {
-            tar.push(compiled::<M>(map, 0, "tar")?);
+            let poly = compiled::<M>(map, 0, "tar")?;
+            for k in 0..M {
+                tar_max[k] = tar_max[k].max(poly.plan().p_max[k]);
+            }
+            tar.push(poly);
         }
-        Ok(PolynomialLanes { stepper, s, tar })
+        Ok(PolynomialLanes {
+            stepper,
+            s,
+            tar,
+            tar_max,
+        })
     }
 
     /// `maps` at (p, x) for L points (values only: β and α at the solution).
@@ -190,13 +205,20 @@ impl<const N: usize, const M: usize> LaneStepper<N> for PolynomialLanes<'_, N, M
             let mut v = [[0.0; L]; M];
             v[..N].copy_from_slice(&p);
             v[N..2 * N].copy_from_slice(&x);
-            // α_i with its gradient in (p, x); J = ∂α/∂x + ∂α/∂p · ∇²S (x moves p = ∇S(x));
+            // α_i with its gradient in (p, x) (the tables of v's powers built once for all i); J = ∂α/∂x + ∂α/∂p · ∇²S (x moves p = ∇S(x));
             // f = x_k − α.
             let mut tar = [[0.0; L]; N];
             let mut j = [[[0.0; L]; N]; N];
             let mut f = [[0.0; L]; N];
+            a_scratch.fill_powers(&self.tar_max, &v);
             for i in 0..N {
-                jet_lanes_into::<M, L, false, 0>(&self.tar[i], 0.0, &v, &mut a_scratch, &mut a_jet);
+                jet_lanes_after_powers::<M, L, false>(
+                    &self.tar[i],
+                    0.0,
+                    &v,
+                    &mut a_scratch,
+                    &mut a_jet,
+                );
                 tar[i] = a_jet.v;
                 for c in 0..N {
                     let mut acc = a_jet.g[N + c];

@@ -9,7 +9,7 @@ use super::*;
 use crate::exp::{exp, exp_lanes, EXP_MAX, EXP_MIN};
 use crate::lanes::{Isa, LANES};
 use crate::realization::Realization;
-use crate::structures::log_canonical::{Accumulation, PREDICT_MAX_SHIFT};
+use crate::structures::log_canonical::PREDICT_MAX_SHIFT;
 use crate::structures::{
     ExpMonomial, ExpPolynomial, LogBisection, LogCanonical, LogClassical, LogMethod, LogSystem,
     OrthantChecked,
@@ -877,9 +877,9 @@ fn dense_and_sparse_lane_jets_agree_bit_for_bit() {
                 for (k, dense) in [true, false].into_iter().enumerate() {
                     let (g, hs) = &mut out[k];
                     if hess {
-                        s.taylor_lanes_by::<L, true>(accumulation(dense), t, &table, &q, g, hs);
+                        s.taylor_lanes_by::<L, true>(dense, t, &table, &q, g, hs);
                     } else {
-                        s.taylor_lanes_by::<L, false>(accumulation(dense), t, &table, &q, g, hs);
+                        s.taylor_lanes_by::<L, false>(dense, t, &table, &q, g, hs);
                     }
                 }
                 for l in 0..L {
@@ -908,70 +908,6 @@ fn dense_and_sparse_lane_jets_agree_bit_for_bit() {
     let mut rng = Rng::new(0x5eed_d3a5e);
     check::<2>(&mut rng);
     check::<3>(&mut rng);
-}
-
-/// Dense or sparse accumulation (the sparse one with its fixed counts).
-fn accumulation(dense: bool) -> Accumulation {
-    if dense {
-        Accumulation::Dense
-    } else {
-        Accumulation::Sparse
-    }
-}
-
-/// The sparse accumulation's terms in 1–4 variables (and in all N) take loops over a count fixed
-/// at compile time; the same loops over the count read at run time give the same bits, for N = 4
-/// and 5 with and without the Hessian, at random terms of every count, exponents past the table
-/// of powers among them, and a lane whose y^e overflows.
-#[test]
-fn fixed_and_run_time_term_counts_agree_bit_for_bit() {
-    fn check<const N: usize>(rng: &mut Rng) {
-        const L: usize = 8;
-        let mut seen = [false; 6];
-        for case in 0..30 {
-            let terms = random_exp_terms::<N>(rng, 40, 12);
-            for m in &terms {
-                seen[m.exponents.iter().filter(|&&e| e != 0).count()] = true;
-            }
-            let s = ExpPolynomial::new(terms, [0; N].map(|_: i32| rng.range(-1.0, 1.0))).unwrap();
-            let t = rng.range(0.05, 1.2);
-            let mut q = random_lanes::<N, L>(rng);
-            q[0][7] = 80.0;
-            let table = crate::structures::log_canonical::t_power_table(t);
-            for hess in [false, true] {
-                let mut out = [([[0.0; L]; N], [[[0.0; L]; N]; N]); 2];
-                let hows = [Accumulation::Sparse, Accumulation::SparseCountsAtRunTime];
-                for (k, how) in hows.into_iter().enumerate() {
-                    let (g, hs) = &mut out[k];
-                    if hess {
-                        s.taylor_lanes_by::<L, true>(how, t, &table, &q, g, hs);
-                    } else {
-                        s.taylor_lanes_by::<L, false>(how, t, &table, &q, g, hs);
-                    }
-                }
-                let bits = |k: usize, l: usize| {
-                    let (g, hs) = &out[k];
-                    let mut v: Vec<u64> = (0..N).map(|a| g[a][l].to_bits()).collect();
-                    v.extend((0..N * N).map(|ab| hs[ab / N][ab % N][l].to_bits()));
-                    v
-                };
-                for l in 0..L {
-                    assert_eq!(
-                        bits(0, l),
-                        bits(1, l),
-                        "N {N} case {case} lane {l} hess {hess}"
-                    );
-                }
-            }
-        }
-        // Every count from 1 to N was drawn.
-        for c in 1..=N {
-            assert!(seen[c], "N {N}: no term in {c} variables");
-        }
-    }
-    let mut rng = Rng::new(0x5eed_c0a7);
-    check::<4>(&mut rng);
-    check::<5>(&mut rng);
 }
 
 /// L random points q in [−0.4, 0.4]^N, lane by lane.
@@ -1079,7 +1015,7 @@ fn terms_sharing_an_exponent_vector_match_the_closed_form() {
             let table = crate::structures::log_canonical::t_power_table(t);
             for dense in [true, false] {
                 let (mut g, mut hs) = ([[0.0; L]; N], [[[0.0; L]; N]; N]);
-                s.taylor_lanes_by::<L, true>(accumulation(dense), t, &table, &q, &mut g, &mut hs);
+                s.taylor_lanes_by::<L, true>(dense, t, &table, &q, &mut g, &mut hs);
                 let what = format!("N {N} case {case} dense {dense}");
                 assert_closed_form(&s, t, &q, &g, &hs, &what);
             }

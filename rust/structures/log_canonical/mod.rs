@@ -21,7 +21,7 @@ pub use classical::{FieldInX, LogClassical, LogExplicit, LogMethod, LogMidpoint,
 pub use learned::{LearnedExp, LearnedLogBisection, LearnedLogStepper};
 pub use structure::{LogCanonical, LogSystem, MAX_HAMILTONIAN_EXPONENT, PREDICT_MAX_SHIFT};
 #[cfg(test)]
-pub(crate) use taylor::{t_power_table, Accumulation};
+pub(crate) use taylor::t_power_table;
 pub use taylor::{ExpMonomial, ExpPolynomial, LogBisection, LogTaylorLanes, MAX_EXPONENT};
 
 use crate::error::StepFailure;

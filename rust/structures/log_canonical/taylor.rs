@@ -188,20 +188,16 @@ impl<const N: usize> ExpPolynomial<N> {
         g: &mut [[f64; L]; N],
         hs: &mut [[[f64; L]; N]; N],
     ) {
-        let how = if N <= DENSE_MAX_DIM {
-            Accumulation::Dense
-        } else {
-            Accumulation::Sparse
-        };
-        self.taylor_lanes_by::<L, HESS>(how, t, t_powers, q, g, hs);
+        self.taylor_lanes_by::<L, HESS>(N <= DENSE_MAX_DIM, t, t_powers, q, g, hs);
     }
 
-    /// [`Self::taylor_lanes`] with the accumulation chosen (the same bits every way; tests hold
-    /// them).
+    /// [`Self::taylor_lanes`] with the accumulation chosen: `dense` (honoured up to
+    /// [`DENSE_MAX_DIM`]) adds every term to every entry in registers, else each term to its own
+    /// entries (the same bits; a test holds both).
     #[inline(always)]
     pub(crate) fn taylor_lanes_by<const L: usize, const HESS: bool>(
         &self,
-        how: Accumulation,
+        dense: bool,
         t: f64,
         t_powers: &[f64; T_POWERS],
         q: &[[f64; L]; N],
@@ -224,7 +220,7 @@ impl<const N: usize> ExpPolynomial<N> {
             *hs = [[[0.0; L]; N]; N];
         }
         // `dense_e` is filled up to DENSE_MAX_DIM only.
-        if how == Accumulation::Dense && N <= DENSE_MAX_DIM {
+        if dense && N <= DENSE_MAX_DIM {
             // Local sums, indexed by constants only: registers across the loop over terms.
             let mut ga = [[0.0; L]; N];
             let mut ha = [[[0.0; L]; N]; N];
@@ -243,23 +239,12 @@ impl<const N: usize> ExpPolynomial<N> {
         } else {
             for m in &self.planned {
                 let c = m.coeff * t_power(t, t_powers, m.t_power);
-                // A term in every variable takes loops over N with constant indices, and a term
-                // in one to four variables loops over its count fixed at compile time: both
-                // unroll. Only the rest loop over a count read at run time (at N = 5, where
-                // every term of the Taylor S has at most 5 variables, none). The same
-                // operations in the same order every way: the same bits.
-                #[cfg(test)]
-                if how == Accumulation::SparseCountsAtRunTime {
-                    add_term::<N, L, HESS, 0, false>(m, c, &pw, g, hs);
-                    continue;
-                }
-                match m.count {
-                    count if count == N => add_term::<N, L, HESS, 0, true>(m, c, &pw, g, hs),
-                    1 if N > 1 => add_term::<N, L, HESS, 1, false>(m, c, &pw, g, hs),
-                    2 if N > 2 => add_term::<N, L, HESS, 2, false>(m, c, &pw, g, hs),
-                    3 if N > 3 => add_term::<N, L, HESS, 3, false>(m, c, &pw, g, hs),
-                    4 if N > 4 => add_term::<N, L, HESS, 4, false>(m, c, &pw, g, hs),
-                    _ => add_term::<N, L, HESS, 0, false>(m, c, &pw, g, hs),
+                // A term in every variable takes loops over N with constant indices (unrolled);
+                // the others loop over their own variables only. The same operations either way.
+                if m.count == N {
+                    add_term::<N, L, HESS, true>(m, c, &pw, g, hs);
+                } else {
+                    add_term::<N, L, HESS, false>(m, c, &pw, g, hs);
                 }
             }
         }
@@ -279,42 +264,19 @@ impl<const N: usize> ExpPolynomial<N> {
     }
 }
 
-/// How [`ExpPolynomial::taylor_lanes_by`] adds the terms into ∇S and ∇²S.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Accumulation {
-    /// Every term into every entry, zeros included, in registers (honoured up to
-    /// [`DENSE_MAX_DIM`]; above it, [`Accumulation::Sparse`]).
-    Dense,
-    /// Each term into its own entries, its count of variables fixed at compile time where it
-    /// has 1–4 or all N.
-    Sparse,
-    /// Each term into its own entries, every count read at run time: the loops the fixed counts
-    /// unroll, kept for the test that they give the same bits.
-    #[cfg(test)]
-    SparseCountsAtRunTime,
-}
-
 /// One term's w = c t^k Π y_v^e_v added to ∇S (and with `HESS` to ∇²S's upper triangle) in the
 /// order of the scalar jet: the factors by increasing variable, ∂/∂q_a for each variable of the
 /// term, ∂²/∂q_a∂q_b for each pair a ≤ b of them (the others add w·0, which the loop over all N
-/// skipped too). `DENSE`: the term has every variable (`var[j]` = j); else `C` > 0: the term
-/// has C variables (`m.count` = C), known at compile time.
+/// skipped too). `DENSE`: the term has every variable (`var[j]` = j).
 #[inline(always)]
-fn add_term<const N: usize, const L: usize, const HESS: bool, const C: usize, const DENSE: bool>(
+fn add_term<const N: usize, const L: usize, const HESS: bool, const DENSE: bool>(
     m: &PlannedExp<N>,
     c: f64,
     pw: &[[[f64; L]; POWER_TABLE + 1]; N],
     g: &mut [[f64; L]; N],
     hs: &mut [[[f64; L]; N]; N],
 ) {
-    debug_assert!(DENSE || C == 0 || m.count == C);
-    let count = if DENSE {
-        N
-    } else if C > 0 {
-        C
-    } else {
-        m.count
-    };
+    let count = if DENSE { N } else { m.count };
     let var = |j: usize| if DENSE { j } else { m.var[j] };
     // w in place (not through `term_weight`'s returned array: that took the 5-D Taylor K = 5
     // step to 1.2× its time).
