@@ -153,7 +153,7 @@ pub(super) fn rollout_polynomial_realization<'py>(
             newton,
         );
         // The Newton systems solved in SIMD lanes (every lane the scalar bits).
-        let lanes = PolynomialLanes::<N, { 2 * N }>::new(&stepper)?;
+        let lanes = PolynomialLanes::new(&stepper)?;
         let x0 = states::<N>(&x0, "x0")?;
         run_rollout(py, &Lanes::new(&lanes), &x0, h, n_steps, every, None)
     }, Err(dim_error(dim)))

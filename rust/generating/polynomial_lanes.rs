@@ -59,21 +59,6 @@ impl<const N: usize, const L: usize> Scratch<N, L> {
             j: [[[0.0; L]; 3]; N],
         }
     }
-
-    /// The tables of powers p_i⁰ … p_i^min(p_max[i], TABLE_POWER), lane by lane, by successive
-    /// products (as `Polynomial::powers` builds them).
-    #[inline(always)]
-    pub(crate) fn fill_powers(&mut self, p_max: &[u32; N], p: &[[f64; L]; N]) {
-        let pw = &mut self.pw;
-        for i in 0..N {
-            pw[i][0] = [1.0; L];
-            for k in 1..=(p_max[i] as usize).min(TABLE_POWER) {
-                for l in 0..L {
-                    pw[i][k][l] = pw[i][k - 1][l] * p[i][l];
-                }
-            }
-        }
-    }
 }
 
 /// `acc[l] += x[l]` lane by lane.
@@ -126,37 +111,6 @@ pub(crate) fn jet_lanes_into<const N: usize, const L: usize, const HESS: bool, c
     scratch: &mut Scratch<N, L>,
     out: &mut JetLanes<N, L>,
 ) {
-    jet_lanes_by::<N, L, HESS, T_MAX, false>(poly, t, p, scratch, out);
-}
-
-/// [`jet_lanes_into`] with the tables of powers of p already in `scratch`
-/// ([`Scratch::fill_powers`] at these p, up to at least `poly`'s largest exponents): several
-/// polynomials at the same points build them once.
-#[inline(always)]
-pub(crate) fn jet_lanes_after_powers<const N: usize, const L: usize, const HESS: bool>(
-    poly: &Polynomial<N>,
-    t: f64,
-    p: &[[f64; L]; N],
-    scratch: &mut Scratch<N, L>,
-    out: &mut JetLanes<N, L>,
-) {
-    jet_lanes_by::<N, L, HESS, 0, true>(poly, t, p, scratch, out);
-}
-
-#[inline(always)]
-fn jet_lanes_by<
-    const N: usize,
-    const L: usize,
-    const HESS: bool,
-    const T_MAX: u32,
-    const POWERS_FILLED: bool,
->(
-    poly: &Polynomial<N>,
-    t: f64,
-    p: &[[f64; L]; N],
-    scratch: &mut Scratch<N, L>,
-    out: &mut JetLanes<N, L>,
-) {
     out.v = [0.0; L];
     for i in 0..N {
         out.g[i] = [0.0; L];
@@ -177,8 +131,14 @@ fn jet_lanes_by<
     for k in 1..=TABLE_POWER {
         tp[k] = tp[k - 1] * t;
     }
-    if !POWERS_FILLED {
-        scratch.fill_powers(&plan.p_max, p);
+    let pw = &mut scratch.pw;
+    for i in 0..N {
+        pw[i][0] = [1.0; L];
+        for k in 1..=(plan.p_max[i] as usize).min(TABLE_POWER) {
+            for l in 0..L {
+                pw[i][k][l] = pw[i][k - 1][l] * p[i][l];
+            }
+        }
     }
     for m in &plan.terms {
         // With T_MAX > 0, only the terms in t¹ … t^T_MAX (the cheap part of S that the Newton

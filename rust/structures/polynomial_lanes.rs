@@ -2,110 +2,93 @@
 //! [`PolynomialBisection`] (full Newton on α(∇S(h, x), x) = x_k, then β) for a block of
 //! trajectories in lockstep, one trajectory a lane.
 //!
-//! A Newton update takes two kinds of pass, both the sparse jets of
-//! [`crate::generating::polynomial_lanes`] (tables of powers, the products of a term sharing
-//! their prefixes): one jet of S(h, ·) gives ∇S and ∇²S, and one value-and-gradient pass of each
-//! α_i in v = (p, x) gives α_i, ∂α_i/∂p and ∂α_i/∂x. It then forms
+//! Every derivative the solve needs is a polynomial of its own, differentiated once when the
+//! stepper is built ([`SparsePolynomial::derivative`], exact coefficients): ∇S and the upper
+//! Hessian of S in (t, x), and ∂α/∂(p, x). A Newton update evaluates them lane by lane in f64
+//! (powers by repeated multiplication, as the scalar polynomials), forms
 //! J = ∂α/∂x + ∂α/∂p · ∇²S and solves J δ = x_k − α by cofactors (N ≤ 3) or pivoted
 //! elimination. The rules are the dual-number step's (start at x_k, |δ|∞ ≤ tol · max(|x|∞, 1),
 //! the same failures in the same order, β at ∇S of the converged x), so the two agree to
 //! round-off (tested); the scalar step is this one with one lane, so every lane has its bits.
-//!
-//! (Each derivative was a polynomial of its own before, 2N² + N(N + 3)/2 of them, each term's
-//! powers by repeated multiplication: at the order-5 realization of the cubic Nambu bracket,
-//! 596 derivative terms and 182 of α an update, where α's value-and-gradient passes take its
-//! 182 once.)
 
 // Index loops over lanes, coordinates and matrix entries read as the formulas they evaluate.
 #![allow(clippy::needless_range_loop)]
 
 use super::polynomial::{PolynomialBisection, SparsePolynomial};
 use crate::error::{CoreError, StepFailure};
-use crate::generating::polynomial_lanes::{
-    jet_lanes_after_powers, jet_lanes_into, JetLanes, Scratch,
-};
-use crate::generating::{Monomial, Polynomial};
 use crate::lanes::{solve_small_lanes, FullNewton, LaneStepper};
-use crate::memory::try_collect;
 use crate::step::{StepMap, StepResult, StepStats};
 
-/// [`PolynomialBisection`] with S and α compiled for their jets, stepped in lanes; M = 2N, the
-/// variables (p, x) of α (a const parameter of its own: `2 * N` cannot be one in generic code).
-pub struct PolynomialLanes<'a, const N: usize, const M: usize> {
+/// [`PolynomialBisection`] with its derivative polynomials, stepped in lanes.
+pub struct PolynomialLanes<'a, const N: usize> {
     stepper: &'a PolynomialBisection<N>,
-    /// S(t, x): x's powers with t's (t is the first variable of the stored polynomial).
-    s: Polynomial<N>,
-    /// α_i in v = (p, x).
-    tar: Vec<Polynomial<M>>,
-    /// The largest exponent of each of v's variables over every α_i: the rows of the tables of
-    /// powers that the N passes share.
-    tar_max: [u32; M],
+    /// ∂S/∂x_a, polynomials in (t, x).
+    grad: Vec<SparsePolynomial>,
+    /// ∂²S/∂x_a∂x_b for a ≤ b, row by row (N(N+1)/2 of them).
+    hess: Vec<SparsePolynomial>,
+    /// ∂α_i/∂v_k at i · 2N + k, v = (p, x).
+    tar_d: Vec<SparsePolynomial>,
 }
 
-/// `poly`'s terms as monomials in `K` variables after `skip` leading ones, whose first exponent
-/// (when `skip` is 1) is the power of t. Fallible allocation.
-fn compiled<const K: usize>(
-    poly: &SparsePolynomial,
-    skip: usize,
-    what: &str,
-) -> Result<Polynomial<K>, CoreError> {
-    if poly.vars() != skip + K {
-        return Err(CoreError::Invalid(format!(
-            "{what} must be a polynomial in {} variables, got {}",
-            skip + K,
-            poly.vars()
-        )));
+/// A fallibly allocated vector of `n` polynomials.
+fn polynomials(
+    n: usize,
+    f: impl Fn(usize) -> Result<SparsePolynomial, CoreError>,
+) -> Result<Vec<SparsePolynomial>, CoreError> {
+    let mut out = Vec::new();
+    out.try_reserve_exact(n)
+        .map_err(|_| CoreError::Invalid("too many polynomials".into()))?;
+    for k in 0..n {
+        out.push(f(k)?);
     }
-    let terms = try_collect(
-        poly.terms().count(),
-        poly.terms().map(|(coeff, row)| {
-            let mut p_powers = [0u32; K];
-            for i in 0..K {
-                p_powers[i] = u32::from(row[skip + i]);
-            }
-            Monomial {
-                t_power: if skip == 1 { u32::from(row[0]) } else { 0 },
-                p_powers,
-                coeff,
-            }
-        }),
-        what,
-    )?;
-    Polynomial::new(terms)
+    Ok(out)
 }
 
-impl<'a, const N: usize, const M: usize> PolynomialLanes<'a, N, M> {
-    /// The lane form of `stepper`: S and α compiled for their jets. `M` must be 2N.
+/// (a, b) with a ≤ b of the k-th upper-triangle entry of an N × N matrix, row by row.
+fn upper_entry<const N: usize>(mut k: usize) -> (usize, usize) {
+    let mut a = 0;
+    while k >= N - a {
+        k -= N - a;
+        a += 1;
+    }
+    (a, a + k)
+}
+
+impl<'a, const N: usize> PolynomialLanes<'a, N> {
+    /// The lane form of `stepper`: its derivative polynomials.
     pub fn new(stepper: &'a PolynomialBisection<N>) -> Result<Self, CoreError> {
-        if M != 2 * N {
-            return Err(CoreError::Invalid(format!(
-                "the lanes of a realization in dimension {N} take its maps in 2N = {} \
-                 variables, not {M}",
-                2 * N
-            )));
-        }
-        let s = compiled::<N>(stepper.generating.as_polynomial(), 1, "S")?;
-        let (_, maps) = stepper.realization.maps();
-        let mut tar = Vec::new();
-        tar.try_reserve_exact(N)
-            .map_err(|_| CoreError::Invalid("too many polynomials".into()))?;
-        let mut tar_max = [0u32; M];
-        for map in maps {
-            let poly = compiled::<M>(map, 0, "tar")?;
-            for k in 0..M {
-                tar_max[k] = tar_max[k].max(poly.plan().p_max[k]);
-            }
-            tar.push(poly);
-        }
+        let s = stepper.generating.as_polynomial();
+        let (_, tar) = stepper.realization.maps();
+        // S's variables are (t, x): x_a is variable 1 + a.
+        let grad = polynomials(N, |a| s.derivative(1 + a))?;
+        let hess = polynomials(N * (N + 1) / 2, |k| {
+            let (a, b) = upper_entry::<N>(k);
+            grad[a].derivative(1 + b)
+        })?;
+        let tar_d = polynomials(2 * N * N, |k| tar[k / (2 * N)].derivative(k % (2 * N)))?;
         Ok(PolynomialLanes {
             stepper,
-            s,
-            tar,
-            tar_max,
+            grad,
+            hess,
+            tar_d,
         })
     }
 
-    /// `maps` at (p, x) for L points (values only: β and α at the solution).
+    /// ∇S at L points x (t = h).
+    ///
+    /// Here and in the step, loops fill the arrays rather than `std::array::from_fn`: a closure
+    /// that evaluates polynomials is compiled out of line, for the baseline CPU (SSE2), not inside
+    /// the AVX-512 or AVX2 kernel that calls it (0.68–0.79× the step's time, the same bits).
+    #[inline(always)]
+    fn gradient<const L: usize>(&self, h: f64, x: &[[f64; L]; N]) -> [[f64; L]; N] {
+        let mut out = [[0.0; L]; N];
+        for a in 0..N {
+            out[a] = self.grad[a].eval_lanes_after_t(h, x);
+        }
+        out
+    }
+
+    /// `maps` at (p, x) for L points.
     #[inline(always)]
     fn apply<const L: usize>(
         maps: &[SparsePolynomial],
@@ -142,7 +125,7 @@ fn finite<const L: usize>(rows: &[[f64; L]]) -> [bool; L] {
     ok
 }
 
-impl<const N: usize, const M: usize> LaneStepper<N> for PolynomialLanes<'_, N, M> {
+impl<const N: usize> LaneStepper<N> for PolynomialLanes<'_, N> {
     const REPORTS: bool = true;
 
     /// Measured on the Nambu bracket (N = 3): paired blocks 0.66–0.68× the time of AVX2 blocks.
@@ -151,9 +134,6 @@ impl<const N: usize, const M: usize> LaneStepper<N> for PolynomialLanes<'_, N, M
         true
     }
 
-    // Loops fill the arrays here rather than `std::array::from_fn`: a closure that evaluates
-    // polynomials is compiled out of line, for the baseline CPU (SSE2), not inside the AVX-512
-    // or AVX2 kernel that calls it (0.68–0.79× the step's time, the same bits).
     #[inline(always)]
     fn step_lanes_reporting<const L: usize>(
         &self,
@@ -173,26 +153,15 @@ impl<const N: usize, const M: usize> LaneStepper<N> for PolynomialLanes<'_, N, M
         let mut active = *live;
         let mut converged = [false; L];
         let mut iterations = [0u32; L];
-        let (mut s_scratch, mut a_scratch) = (Scratch::<N, L>::new(), Scratch::<M, L>::new());
-        let mut s_jet = JetLanes::<N, L> {
-            v: [0.0; L],
-            g: [[0.0; L]; N],
-            h: [[[0.0; L]; N]; N],
-        };
-        let mut a_jet = JetLanes::<M, L> {
-            v: [0.0; L],
-            g: [[0.0; L]; M],
-            h: [[[0.0; L]; M]; M],
-        };
         while active.contains(&true) {
-            // p = ∇S(h, x) and ∇²S (the jet's upper triangle, mirrored).
-            jet_lanes_into::<N, L, true, 0>(&self.s, h, &x, &mut s_scratch, &mut s_jet);
-            let p = s_jet.g;
+            let p = self.gradient(h, &x);
             let mut hs = [[[0.0; L]; N]; N];
+            let mut k = 0;
             for a in 0..N {
                 for b in a..N {
-                    hs[a][b] = s_jet.h[a][b];
+                    hs[a][b] = self.hess[k].eval_lanes_after_t(h, &x);
                     hs[b][a] = hs[a][b];
+                    k += 1;
                 }
             }
             let mut jet_ok = finite(&p);
@@ -202,29 +171,25 @@ impl<const N: usize, const M: usize> LaneStepper<N> for PolynomialLanes<'_, N, M
                     jet_ok[l] &= ok[l];
                 }
             }
-            let mut v = [[0.0; L]; M];
-            v[..N].copy_from_slice(&p);
-            v[N..2 * N].copy_from_slice(&x);
-            // α_i with its gradient in (p, x) (the tables of v's powers built once for all i); J = ∂α/∂x + ∂α/∂p · ∇²S (x moves p = ∇S(x));
-            // f = x_k − α.
-            let mut tar = [[0.0; L]; N];
+            let tar = Self::apply(tar_maps, &p, &x);
+            let tar_ok = finite(&tar);
+            // J = ∂α/∂x + ∂α/∂p · ∇²S (x moves p = ∇S(x)); f = x_k − α.
+            let v = [p, x];
+            let v = v.as_flattened();
             let mut j = [[[0.0; L]; N]; N];
             let mut f = [[0.0; L]; N];
-            a_scratch.fill_powers(&self.tar_max, &v);
             for i in 0..N {
-                jet_lanes_after_powers::<M, L, false>(
-                    &self.tar[i],
-                    0.0,
-                    &v,
-                    &mut a_scratch,
-                    &mut a_jet,
-                );
-                tar[i] = a_jet.v;
+                // ∂α_i/∂p first, then each column's ∂α_i/∂x_c with ∂α_i/∂p · ∇²S added in
+                // order (the sum as before, without a buffer of the largest size).
+                let mut dp = [[0.0; L]; N];
+                for m in 0..N {
+                    dp[m] = self.tar_d[i * 2 * N + m].eval_lanes(v);
+                }
                 for c in 0..N {
-                    let mut acc = a_jet.g[N + c];
+                    let mut acc = self.tar_d[i * 2 * N + N + c].eval_lanes(v);
                     for m in 0..N {
                         for l in 0..L {
-                            acc[l] += a_jet.g[m][l] * hs[m][c][l];
+                            acc[l] += dp[m][l] * hs[m][c][l];
                         }
                     }
                     j[i][c] = acc;
@@ -233,7 +198,6 @@ impl<const N: usize, const M: usize> LaneStepper<N> for PolynomialLanes<'_, N, M
                     f[i][l] = target[i][l] - tar[i][l];
                 }
             }
-            let tar_ok = finite(&tar);
             let mut delta = [[0.0; L]; N];
             let mut solvable = [true; L];
             solve_small_lanes(&j, &f, &mut delta, &mut solvable);
@@ -257,8 +221,7 @@ impl<const N: usize, const M: usize> LaneStepper<N> for PolynomialLanes<'_, N, M
             return;
         }
         // β(∇S(x), x) at the converged x, and α's residual there.
-        jet_lanes_into::<N, L, false, 0>(&self.s, h, &x, &mut s_scratch, &mut s_jet);
-        let p = s_jet.g;
+        let p = self.gradient(h, &x);
         let tar = Self::apply(tar_maps, &p, &x);
         let out = Self::apply(sou, &p, &x);
         let (p_ok, tar_ok, out_ok) = (finite(&p), finite(&tar), finite(&out));
@@ -280,7 +243,7 @@ impl<const N: usize, const M: usize> LaneStepper<N> for PolynomialLanes<'_, N, M
     }
 }
 
-impl<const N: usize, const M: usize> StepMap<N> for PolynomialLanes<'_, N, M> {
+impl<const N: usize> StepMap<N> for PolynomialLanes<'_, N> {
     type Workspace = ();
     fn workspace(&self) {}
     fn step(&self, h: f64, mu: &mut [f64; N], _: &mut ()) -> StepResult {

@@ -193,7 +193,7 @@ fn polynomial_lanes_equal_the_dual_number_step() {
         PolynomialRealization::new(map(-1.0), map(1.0)).unwrap(),
         newton,
     );
-    let lanes = PolynomialLanes::<3, 6>::new(&generic).unwrap();
+    let lanes = PolynomialLanes::new(&generic).unwrap();
     let mut rng = Rng::new(0x5EED_0009);
     let states: Vec<[f64; 3]> = (0..24).map(|_| rng.vec3(-0.8, 0.8)).collect();
     let mut worst = 0.0f64;
@@ -243,7 +243,7 @@ fn polynomial_lanes_equal_the_dual_number_step() {
             ..newton
         },
     );
-    let capped_lanes = PolynomialLanes::<3, 6>::new(&capped).unwrap();
+    let capped_lanes = PolynomialLanes::new(&capped).unwrap();
     let (mut a, mut b) = (states[0], states[0]);
     let (ra, rb) = (
         capped_lanes.step(0.1, &mut a, &mut ()),
@@ -252,28 +252,4 @@ fn polynomial_lanes_equal_the_dual_number_step() {
     assert_eq!(ra, Err(StepFailure::NotConverged));
     assert_eq!(ra, rb);
     assert_eq!(a, states[0]);
-}
-
-/// The lane form takes α's variables (p, x) as a const parameter of their own: any count but 2N
-/// is refused when it is made, by name.
-#[test]
-fn polynomial_lanes_refuse_a_variable_count_other_than_2n() {
-    use crate::structures::{PolynomialBisection, PolynomialLanes, PolynomialRealization};
-    let identity = |i: usize| {
-        let mut row = vec![0u32; 4];
-        row[2 + i] = 1;
-        SparsePolynomial::new(4, &[1.0], &row).unwrap()
-    };
-    let maps = || (0..2).map(identity).collect::<Vec<_>>();
-    let s = SparsePolynomial::new(3, &[-0.5], &[1, 2, 0]).unwrap();
-    let stepper = PolynomialBisection::<2>::unit_scale(
-        PolynomialGenerating::new(s).unwrap(),
-        PolynomialRealization::new(maps(), maps()).unwrap(),
-        NewtonOptions::default(),
-    );
-    assert!(PolynomialLanes::<2, 4>::new(&stepper).is_ok());
-    let Err(CoreError::Invalid(msg)) = PolynomialLanes::<2, 3>::new(&stepper) else {
-        panic!("M = 3 accepted for N = 2");
-    };
-    assert!(msg.contains("2N = 4"), "{msg}");
 }
