@@ -218,145 +218,80 @@ impl<const L: usize, const K: usize> std::ops::Mul for D<L, K> {
     }
 }
 
-/// LU factors of an N×N matrix lane by lane, with partial pivoting (each lane picks and swaps
-/// its own pivot rows): below the diagonal the multipliers of the unit lower factor, on and above
-/// it U with the reciprocals of its pivots on the diagonal, and per column each lane's swapped
-/// row. A Newton solve keeps them from a refresh to the updates after it, as it kept the inverse
-/// before: a solve costs the same N² multiply-adds as a product with the inverse, and the
-/// factors take N³/3 where Gauss–Jordan's inverse took N³ (19 % of the heavy top's Taylor step).
-#[derive(Clone, Copy)]
-pub(crate) struct LuLanes<const N: usize, const L: usize> {
-    lu: [[V<L>; N]; N],
-    /// `swap[col][l]`: the row lane l swapped with row `col` at that column (`col` where none).
-    swap: [[u8; L]; N],
-    /// Whether any lane swapped a row (else a solve skips the permutation).
-    swapped: bool,
-}
-
-impl<const N: usize, const L: usize> LuLanes<N, L> {
-    #[inline(always)]
-    pub(crate) fn new() -> Self {
-        let mut swap = [[0u8; L]; N];
-        for col in 0..N {
-            swap[col] = [col as u8; L];
-        }
-        LuLanes {
-            lu: [[V::splat(0.0); N]; N],
-            swap,
-            swapped: false,
-        }
+/// The inverse of an N×N matrix lane by lane, by Gauss–Jordan with partial pivoting (each lane
+/// picks and swaps its own pivot rows), and per lane whether every pivot was non-zero and the
+/// inverse finite. `m` is reduced in `a` while `inv` (starting at I) takes the same row
+/// operations.
+#[inline(always)]
+pub(crate) fn inverse_lanes<const N: usize, const L: usize>(
+    m: &[[V<L>; N]; N],
+    inv: &mut [[V<L>; N]; N],
+) -> [bool; L] {
+    let (zero, one) = (V::splat(0.0), V::splat(1.0));
+    let mut a = *m;
+    for r in 0..N {
+        inv[r] = [zero; N];
+        inv[r][r] = one;
     }
-
-    /// Factors `m` into `self`; per lane whether every pivot was non-zero and finite and every
-    /// factor finite.
-    #[inline(always)]
-    pub(crate) fn factor(&mut self, m: &[[V<L>; N]; N]) -> [bool; L] {
-        debug_assert!(N <= u8::MAX as usize);
-        let one = V::splat(1.0);
-        let a = &mut self.lu;
-        *a = *m;
-        self.swapped = false;
-        let mut ok = [true; L];
-        for col in 0..N {
-            // Each lane's pivot row (the first of the largest |a[r][col]|), searched in vectors;
-            // whole rows (the multipliers too) are swapped lane by lane, and only where a lane's
-            // pivot moved (J ≈ I in a Newton solve of small steps: rarely).
-            let mut largest = a[col][col].abs();
-            let mut pivot_row = [col; L];
-            for r in col + 1..N {
-                let size = a[r][col].abs();
-                let larger: [bool; L] = std::array::from_fn(|l| size.0[l] > largest.0[l]);
-                largest = largest.blend(&larger, size);
-                for l in 0..L {
-                    pivot_row[l] = if larger[l] { r } else { pivot_row[l] };
+    let mut ok = [true; L];
+    for col in 0..N {
+        // Rows above `col` are pivot rows; below it, columns before `col` are already zero.
+        // Each lane's pivot row (the first of the largest |a[r][col]|), searched in vectors;
+        // the rows are swapped lane by lane, and only where a lane's pivot moved (J ≈ I in a
+        // Newton solve of small steps: rarely).
+        let mut largest = a[col][col].abs();
+        let mut pivot_row = [col; L];
+        for r in col + 1..N {
+            let size = a[r][col].abs();
+            let larger: [bool; L] = std::array::from_fn(|l| size.0[l] > largest.0[l]);
+            largest = largest.blend(&larger, size);
+            for l in 0..L {
+                pivot_row[l] = if larger[l] { r } else { pivot_row[l] };
+            }
+        }
+        for l in 0..L {
+            let best = pivot_row[l];
+            if best != col {
+                for j in col..N {
+                    let t = a[best][j].0[l];
+                    a[best][j].0[l] = a[col][j].0[l];
+                    a[col][j].0[l] = t;
+                }
+                for j in 0..N {
+                    let t = inv[best][j].0[l];
+                    inv[best][j].0[l] = inv[col][j].0[l];
+                    inv[col][j].0[l] = t;
                 }
             }
-            for l in 0..L {
-                let best = pivot_row[l];
-                self.swap[col][l] = best as u8;
-                if best != col {
-                    self.swapped = true;
-                    for j in 0..N {
-                        let t = a[best][j].0[l];
-                        a[best][j].0[l] = a[col][j].0[l];
-                        a[col][j].0[l] = t;
-                    }
-                }
-            }
-            let pivot = a[col][col];
-            for l in 0..L {
-                ok[l] &= pivot.0[l] != 0.0 && pivot.0[l].is_finite();
-            }
-            let r = one.zip(pivot, |a, b| a / b);
-            a[col][col] = r;
-            for row in col + 1..N {
-                let f = a[row][col] * r;
-                a[row][col] = f;
+        }
+        let pivot = a[col][col];
+        for l in 0..L {
+            ok[l] &= pivot.0[l] != 0.0 && pivot.0[l].is_finite();
+        }
+        let r = one.zip(pivot, |a, b| a / b);
+        for j in col + 1..N {
+            a[col][j] = a[col][j] * r;
+        }
+        for j in 0..N {
+            inv[col][j] = inv[col][j] * r;
+        }
+        for row in 0..N {
+            if row != col {
+                let f = a[row][col];
                 for j in col + 1..N {
                     a[row][j] = a[row][j] - f * a[col][j];
                 }
-            }
-        }
-        let probe = matrix_probe(a);
-        for l in 0..L {
-            ok[l] &= probe.0[l] == 0.0;
-        }
-        ok
-    }
-
-    /// The lanes in `take` take `fresh`'s factors.
-    #[inline(always)]
-    pub(crate) fn take(&mut self, take: &[bool; L], fresh: &Self) {
-        for r in 0..N {
-            for k in 0..N {
-                self.lu[r][k] = self.lu[r][k].blend(take, fresh.lu[r][k]);
-            }
-            for l in 0..L {
-                self.swap[r][l] = if take[l] {
-                    fresh.swap[r][l]
-                } else {
-                    self.swap[r][l]
-                };
-            }
-        }
-        self.swapped |= fresh.swapped;
-    }
-
-    /// δ = M⁻¹ f: f's rows permuted as the lane's were, then L y = Pf and U δ = y by
-    /// substitution, each sum in column order.
-    #[inline(always)]
-    pub(crate) fn solve(&self, f: &[V<L>; N]) -> [V<L>; N] {
-        let a = &self.lu;
-        let mut b = *f;
-        if self.swapped {
-            for col in 0..N {
-                for l in 0..L {
-                    let s = self.swap[col][l] as usize;
-                    if s != col {
-                        let t = b[s].0[l];
-                        b[s].0[l] = b[col].0[l];
-                        b[col].0[l] = t;
-                    }
+                for j in 0..N {
+                    inv[row][j] = inv[row][j] - f * inv[col][j];
                 }
             }
         }
-        for row in 1..N {
-            let mut acc = b[row];
-            for k in 0..row {
-                acc = acc - a[row][k] * b[k];
-            }
-            b[row] = acc;
-        }
-        let mut delta = b;
-        for row in (0..N).rev() {
-            let mut acc = b[row];
-            for k in row + 1..N {
-                acc = acc - a[row][k] * delta[k];
-            }
-            delta[row] = acc * a[row][row];
-        }
-        delta
     }
+    let probe = matrix_probe(inv);
+    for l in 0..L {
+        ok[l] &= probe.0[l] == 0.0;
+    }
+    ok
 }
 
 type V3<const L: usize> = [V<L>; 3];

@@ -7,7 +7,7 @@
 //! - Newton started second order: the first-order p₁ = μ − ½ A(x₀) μ (x₀: the gradient of S's
 //!   t¹ and t² terms at μ) and one fixed-point step from there, ∇S linearized at μ;
 //! - each round tar(x, p) with x = ∇S(p), and on a Jacobian refresh its exact p-Jacobian
-//!   J = ∂tar/∂p + ∂tar/∂x · Hess S, factored LU lane by lane ([`LuLanes`]);
+//!   J = ∂tar/∂p + ∂tar/∂x · Hess S, inverted by Gauss–Jordan lane by lane ([`inverse_lanes`]);
 //! - the new state e^{−A(x)} μ by the chart's coadjoint action, on μ's coadjoint orbit whatever
 //!   Newton's residual.
 //!
@@ -24,8 +24,8 @@ use crate::generating::polynomial_lanes::{jet_lanes_into, JetLanes, Scratch};
 use crate::generating::LaneRow;
 use crate::isa::Isa;
 use crate::lanes_bisection::{
-    evaluate, finite_probe, lane_newton_steps, load_block, round_probes, ChartNewton, LaneSolve,
-    LuLanes, Progress, PREDICT_MAX_S, V,
+    evaluate, finite_probe, inverse_lanes, lane_newton_steps, load_block, round_probes,
+    ChartNewton, LaneSolve, Progress, PREDICT_MAX_S, V,
 };
 use crate::step::{StepResult, StepStats};
 
@@ -139,10 +139,9 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
         g: [[0.0; L]; N],
         h: [[[0.0; L]; N]; N],
     };
-    // This round's Hessian and Jacobian, and the LU factors each lane keeps and this round's.
+    // The kept inverse per lane, and this round's Hessian, Jacobian and inverse.
     let zero = [[V::splat(0.0); N]; N];
-    let (mut h, mut jac) = (zero, zero);
-    let (mut lu, mut fresh) = (LuLanes::<N, L>::new(), LuLanes::<N, L>::new());
+    let (mut inv, mut h, mut jac, mut fresh) = (zero, zero, zero, zero);
     if sys.predict {
         let (p0, keep) = second_order_start(sys, t, &pl, &target, &mut scratch, &mut jet);
         for i in 0..N {
@@ -182,9 +181,13 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
         let (tar, chart, _) = sys
             .chart
             .tar(&x, &p, hess.then_some(&h), &mut jac, &progress.active);
-        let ok = if hess { fresh.factor(&jac) } else { [false; L] };
+        let ok = if hess {
+            inverse_lanes(&jac, &mut fresh)
+        } else {
+            [false; L]
+        };
         let (probe, hess_probe) = round_probes(&jet.v, &x, &h, hess);
-        // `take`: the lanes whose fresh factors are taken this round.
+        // `take`: the lanes whose fresh inverse is taken this round.
         let (go, take) = progress.judge(
             &probe,
             &hess_probe,
@@ -194,14 +197,25 @@ fn chart_block<const N: usize, const L: usize, C: ExpChartLanes<N>>(
             results,
         );
         if take.contains(&true) {
-            lu.take(&take, &fresh);
+            for r in 0..N {
+                for k in 0..N {
+                    inv[r][k] = inv[r][k].blend(&take, fresh[r][k]);
+                }
+            }
         }
-        // δ = J⁻¹ (μ − tar) from each lane's kept factors.
+        // δ = J⁻¹ (μ − tar), each component summed in column order.
         let mut f = tar;
         for i in 0..N {
             f[i] = target[i] - tar[i];
         }
-        let delta = lu.solve(&f);
+        let mut delta = f;
+        for r in 0..N {
+            let mut acc = inv[r][0] * f[0];
+            for k in 1..N {
+                acc = acc + inv[r][k] * f[k];
+            }
+            delta[r] = acc;
+        }
         progress.update(&go, &mut p, &delta, sys.tol, results);
         let newly: [bool; L] = from_fn(|l| go[l] && progress.converged[l]);
         if newly.contains(&true) {

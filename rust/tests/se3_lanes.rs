@@ -11,7 +11,7 @@ use super::exp_chart_lanes::{
 use super::lie_poisson::{heavy_top, minus_t_h_terms};
 use super::*;
 use crate::dual::Dual1;
-use crate::lanes_bisection::{LuLanes, V};
+use crate::lanes_bisection::{inverse_lanes, V};
 use crate::lanes_bisection_se3::{se3_tar_lanes, Se3Chart, Se3Newton};
 use crate::structures::lie_groupoid::LieAlgebra;
 
@@ -112,11 +112,11 @@ fn lane_chart_equals_the_scalar_chart_and_its_dual_jacobian() {
     assert!(worst <= 1e-13, "Jacobian off by {worst:e}");
 }
 
-/// LU with partial pivoting: M δ = f to 1e-12 on random and on permuted matrices (a zero
-/// leading pivot that pivoting must step over), per lane; a singular lane (two equal rows) and a
-/// NaN lane are flagged without touching the other lanes' solutions.
+/// Gauss–Jordan with partial pivoting: M M⁻¹ = I to 1e-12 on random and on permuted matrices
+/// (a zero leading pivot that pivoting must step over), per lane; a singular lane (two equal
+/// rows) and a NaN lane are flagged without touching the other lanes' inverses.
 #[test]
-fn lane_lu_pivots_and_flags_singular_lanes() {
+fn lane_inverse_pivots_and_flags_singular_lanes() {
     let mut rng = Rng::new(0x5E3_0002);
     let mut ms = [[[0.0; 6]; 6]; L];
     for l in 0..L {
@@ -137,40 +137,43 @@ fn lane_lu_pivots_and_flags_singular_lanes() {
     ms[6][3][3] = f64::NAN;
     let m: [[V<L>; 6]; 6] =
         std::array::from_fn(|r| std::array::from_fn(|c| V(std::array::from_fn(|l| ms[l][r][c]))));
-    let f: [V<L>; 6] = std::array::from_fn(|_| V(std::array::from_fn(|_| rng.range(-1.0, 1.0))));
-    let mut lu = LuLanes::<6, L>::new();
-    let ok = lu.factor(&m);
-    let delta = lu.solve(&f);
+    let mut inv = [[V([0.0; L]); 6]; 6];
+    let ok = inverse_lanes(&m, &mut inv);
     assert!(!ok[6], "NaN lane accepted");
     for l in (0..L).filter(|&l| l != 5 && l != 6) {
         assert!(ok[l], "lane {l} refused");
         for r in 0..6 {
-            let e: f64 = (0..6).map(|k| ms[l][r][k] * delta[k].0[l]).sum();
-            assert!(
-                (e - f[r].0[l]).abs() <= 1e-12,
-                "lane {l}: row {r} {e} against {}",
-                f[r].0[l]
-            );
+            for c in 0..6 {
+                let e: f64 = (0..6).map(|k| ms[l][r][k] * inv[k][c].0[l]).sum();
+                let want = if r == c { 1.0 } else { 0.0 };
+                assert!((e - want).abs() <= 1e-12, "lane {l}: ({r}, {c}) = {e}");
+            }
         }
     }
-    // Exactly singular in exact arithmetic; rounding may leave a tiny pivot, whose solution is
-    // then huge: either way the lane is not a usable solve of a well-conditioned system.
-    let big = delta.iter().fold(0.0f64, |a, v| a.max(v.0[5].abs()));
+    // Exactly singular in exact arithmetic; rounding may leave a tiny pivot, whose inverse is
+    // then huge: either way the lane is not a usable inverse of a well-conditioned matrix.
+    let big = inv
+        .iter()
+        .flatten()
+        .fold(0.0f64, |a, v| a.max(v.0[5].abs()));
     assert!(
-        !ok[5] || big > 1e10,
-        "singular lane: ok with max |δ| {big:e}"
+        !ok[5] || big > 1e12,
+        "singular lane: ok with max |inverse| {big:e}"
     );
 }
 
-/// The lane LU picks each lane's pivot as textbook partial pivoting does (the first row of the
-/// largest |entry|; ties and NaN entries leave the earlier row): its solves bit for bit against
-/// a one-matrix LU with the same operations, on small-integer matrices whose columns tie often,
-/// lanes pivoting differently in one block, a NaN lane among them, blocks where no lane pivots,
-/// and factors taken by some lanes only.
+/// The lane inverse picks each lane's pivot as textbook partial pivoting does (the first row of
+/// the largest |entry|; ties and NaN entries leave the earlier row): bit for bit against a
+/// one-matrix Gauss–Jordan with the same operations, on small-integer matrices whose columns tie
+/// often, lanes pivoting differently in one block, a NaN lane among them.
 #[test]
-fn lane_lu_pivots_as_one_matrix_lu() {
-    fn one_matrix(m: &[[f64; 6]; 6], f: &[f64; 6]) -> [f64; 6] {
-        let (mut a, mut b) = (*m, *f);
+fn lane_inverse_pivots_as_one_matrix_gauss_jordan() {
+    fn one_matrix(m: &[[f64; 6]; 6]) -> [[f64; 6]; 6] {
+        let mut a = *m;
+        let mut inv = [[0.0; 6]; 6];
+        for r in 0..6 {
+            inv[r][r] = 1.0;
+        }
         for col in 0..6 {
             let mut best = col;
             for r in col + 1..6 {
@@ -179,80 +182,58 @@ fn lane_lu_pivots_as_one_matrix_lu() {
                 }
             }
             a.swap(best, col);
-            b.swap(best, col);
+            inv.swap(best, col);
             let r = 1.0 / a[col][col];
-            a[col][col] = r;
-            for row in col + 1..6 {
-                let f = a[row][col] * r;
-                a[row][col] = f;
+            for j in col + 1..6 {
+                a[col][j] *= r;
+            }
+            for j in 0..6 {
+                inv[col][j] *= r;
+            }
+            for row in (0..6).filter(|&row| row != col) {
+                let f = a[row][col];
                 for j in col + 1..6 {
                     a[row][j] -= f * a[col][j];
                 }
+                for j in 0..6 {
+                    inv[row][j] -= f * inv[col][j];
+                }
             }
         }
-        for row in 1..6 {
-            for k in 0..row {
-                b[row] -= a[row][k] * b[k];
-            }
-        }
-        let mut delta = b;
-        for row in (0..6).rev() {
-            let mut acc = b[row];
-            for k in row + 1..6 {
-                acc -= a[row][k] * delta[k];
-            }
-            delta[row] = acc * a[row][row];
-        }
-        delta
+        inv
     }
-    let random = |rng: &mut Rng, round: usize| {
+    let mut rng = Rng::new(0x5E3_0007);
+    let mut swapped = 0;
+    for round in 0..30 {
         let mut ms = [[[0.0; 6]; 6]; L];
         for l in 0..L {
             for r in 0..6 {
                 for c in 0..6 {
-                    ms[l][r][c] = if round % 4 == 1 {
-                        // Diagonally dominant: no lane pivots.
-                        rng.range(-0.1, 0.1) + if r == c { 1.0 } else { 0.0 }
-                    } else {
-                        rng.below(5) as f64 - 2.0 + if r == c { 0.25 } else { 0.0 }
-                    };
+                    ms[l][r][c] = rng.below(5) as f64 - 2.0 + if r == c { 0.25 } else { 0.0 };
                 }
             }
         }
-        ms
-    };
-    let lanes = |ms: &[[[f64; 6]; 6]; L]| -> [[V<L>; 6]; 6] {
-        std::array::from_fn(|r| std::array::from_fn(|c| V(std::array::from_fn(|l| ms[l][r][c]))))
-    };
-    let mut rng = Rng::new(0x5E3_0007);
-    let mut swapped = 0;
-    for round in 0..40 {
-        let mut ms = random(&mut rng, round);
         if round % 3 == 0 {
             ms[round % L][1][1] = f64::NAN;
         }
         swapped += (0..L)
             .filter(|&l| (1..6).any(|r| ms[l][r][0].abs() > ms[l][0][0].abs()))
             .count();
-        let others = random(&mut rng, round + 1);
-        // Lanes take the factors of `ms` or keep those of `others`, alternately.
-        let take: [bool; L] = std::array::from_fn(|l| (l + round) % 2 == 0);
-        let (mut kept, mut fresh) = (LuLanes::<6, L>::new(), LuLanes::<6, L>::new());
-        kept.factor(&lanes(&others));
-        fresh.factor(&lanes(&ms));
-        kept.take(&take, &fresh);
-        let f: [V<L>; 6] =
-            std::array::from_fn(|_| V(std::array::from_fn(|_| rng.range(-1.0, 1.0))));
-        let delta = kept.solve(&f);
+        let m: [[V<L>; 6]; 6] = std::array::from_fn(|r| {
+            std::array::from_fn(|c| V(std::array::from_fn(|l| ms[l][r][c])))
+        });
+        let mut inv = [[V([0.0; L]); 6]; 6];
+        inverse_lanes(&m, &mut inv);
         for l in 0..L {
-            let fl: [f64; 6] = std::array::from_fn(|r| f[r].0[l]);
-            let want = one_matrix(if take[l] { &ms[l] } else { &others[l] }, &fl);
-            let got: Vec<f64> = (0..6).map(|r| delta[r].0[l]).collect();
-            assert!(same_bits(&got, &want), "round {round} lane {l}");
+            let want = one_matrix(&ms[l]);
+            for r in 0..6 {
+                let got: Vec<f64> = (0..6).map(|c| inv[r][c].0[l]).collect();
+                assert!(same_bits(&got, &want[r]), "round {round} lane {l} row {r}");
+            }
         }
     }
     // Lanes whose first pivot moves, and lanes whose does not, in the same blocks.
-    assert!(swapped > 30 && swapped < 40 * L, "{swapped} lanes swapped");
+    assert!(swapped > 30 && swapped < 30 * L, "{swapped} lanes swapped");
 }
 
 /// The shared solver's checks (`exp_chart_lanes`) on the heavy top's −tH plus random terms:
