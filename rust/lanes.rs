@@ -835,24 +835,13 @@ pub(crate) fn solve_pivoted_lanes<const N: usize, const L: usize>(
     let (mut a, mut b) = (*j, *f);
     *ok = [true; L];
     for col in 0..N {
-        // Each lane's pivot row (the first of the largest |a[r][col]|), searched in vectors;
-        // the rows are swapped lane by lane, and only where a lane's pivot moved (a Newton
-        // Jacobian near I: rarely). A search lane by lane took a branch per entry.
-        let mut largest = [0.0; L];
         for l in 0..L {
-            largest[l] = a[col][col][l].abs();
-        }
-        let mut pivot_row = [col; L];
-        for r in col + 1..N {
-            for l in 0..L {
-                let size = a[r][col][l].abs();
-                let larger = size > largest[l];
-                largest[l] = if larger { size } else { largest[l] };
-                pivot_row[l] = if larger { r } else { pivot_row[l] };
+            let mut best = col;
+            for r in col + 1..N {
+                if a[r][col][l].abs() > a[best][col][l].abs() {
+                    best = r;
+                }
             }
-        }
-        for l in 0..L {
-            let best = pivot_row[l];
             if best != col {
                 for k in col..N {
                     let t = a[best][k][l];
