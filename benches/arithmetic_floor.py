@@ -26,6 +26,19 @@ dimension, J = 1 + N + N(N + 1)/2 the numbers of a packed jet: value, gradient, 
   its σ' (41).
 - Passes a step: one Hessian pass and u − 1 gradient passes, u the model's measured Newton
   updates a step (the core takes the last ∇S from the Hessian, with no pass at the solution).
+
+``--log-taylor`` counts the Lotka–Volterra Taylor-HJ steps of ``benches/step_costs.py`` the same
+way: their S is a sum of terms c t^k y^e in y = e^q, and a pass over them is the whole of S's
+arithmetic, so the count bounds the step from below as the network's does (the chart, the N×N
+solve and the bookkeeping not counted). Per term in m variables, as the core's sparse sums form
+it (``ExpPolynomial::taylor_lanes``; the dense sums up to N = 3 add zeros too, so this stays a
+floor there): its weight c·t^k times one factor a variable (a division too where the exponent
+is negative), its gradient's m multiply-adds (2m) and, in a Hessian pass, its upper Hessian's
+m(m + 1)/2 (m(m + 1)); per pass, each coordinate's exponential (25 flops: the core's, in
+``rust/exp.rs``) and its table of powers (a multiply a row past y¹). A step is the start's
+gradient pass and u Hessian passes (full Newton, u the measured updates); the row also gives the
+count with one Hessian pass and u − 1 gradient passes (simplified Newton), the least a step of
+that S could take with the same updates.
 """
 
 from __future__ import annotations
@@ -58,6 +71,16 @@ MODELS = {
 TANH = 38
 #: Issue #29's target for a learned step, in RK4 steps.
 TARGET = 50.0
+#: Issue #29's target for a Taylor-HJ step, in RK4 steps.
+TAYLOR_TARGET = 20.0
+#: Flops of the core's exponential (rust/exp.rs: 6 in the reduction, 10 in the Horner chain of
+#: c, 6 in the quotient, 3 to finish and scale).
+EXP = 25
+#: The Lotka–Volterra rows of ``benches/step_costs.py`` that --log-taylor counts, and their orders.
+LOG_TAYLOR = ("lotka-volterra", "lotka-volterra 3d", "lotka-volterra 5d")
+LOG_TAYLOR_ORDERS = (3, 5)
+#: Rows of the table of powers the core builds (rust/structures/log_canonical/taylor.rs).
+POWER_TABLE = 8
 
 
 def network_flops(widths: list[int], n: int, homogeneous: bool) -> dict[str, int]:
@@ -77,6 +100,65 @@ def network_flops(widths: list[int], n: int, homogeneous: bool) -> dict[str, int
     return {"hessian_pass": hessian, "gradient_pass": gradient, "weights": sum(weights)}
 
 
+def log_taylor_flops(exponents: np.ndarray) -> dict[str, int]:
+    """Flops of one Hessian pass and one gradient pass over an exponential polynomial
+    S = Σ c t^k y^e whose terms have the rows of ``exponents`` (M, N) (the module's rules)."""
+    e = np.asarray(exponents)
+    if e.ndim != 2 or e.shape[1] < 1:
+        raise ValueError(f"log_taylor_flops: exponents of shape {e.shape} must be (terms, N >= 1)")
+    m = (e != 0).sum(axis=1)
+    factors = (e > 0).sum(axis=1) + 2 * (e < 0).sum(axis=1)
+    weights = int((1 + factors).sum())
+    gradient = weights + int((2 * m).sum())
+    hessian = gradient + int((m * (m + 1)).sum())
+    largest = np.minimum(np.abs(e).max(axis=0), POWER_TABLE)
+    per_pass = e.shape[1] * EXP + int(np.maximum(largest - 1, 0).sum())
+    return {
+        "hessian_pass": hessian + per_pass,
+        "gradient_pass": gradient + per_pass,
+        "terms": int(e.shape[0]),
+    }
+
+
+def log_taylor_rows(
+    table: dict[tuple[str, str], dict[str, Any]], rate: float
+) -> list[dict[str, Any]]:
+    """One row per Lotka–Volterra system of ``benches/step_costs.py`` and order: its S's count,
+    priced at ``rate`` flops/s against the measured RK4 and Taylor steps of ``table``."""
+    import step_costs  # the bench's own systems, so the counted S is the timed one
+
+    from poisson_rs.realizations.log_canonical import taylor_arrays
+
+    systems = {label: system for label, system, _, _ in step_costs.cases(1, "lotka-volterra")}
+    rows = []
+    for label in LOG_TAYLOR:
+        for order in LOG_TAYLOR_ORDERS:
+            _, exponents, _ = taylor_arrays(systems[label], order)
+            count = log_taylor_flops(exponents)
+            step = table[(label, f"taylor{order}-log")]
+            rk4 = table[(label, "rk4")]["ns_per_step"]
+            u = step["newton_updates_per_step"]
+            full = count["gradient_pass"] + u * count["hessian_pass"]
+            simplified = count["hessian_pass"] + u * count["gradient_pass"]
+            rows.append(
+                {
+                    "system": label,
+                    "order": order,
+                    **count,
+                    "updates_per_step": u,
+                    "flops_per_step": full,
+                    "flops_per_step_simplified": simplified,
+                    "floor_vs_rk4": full / rate * 1e9 / rk4,
+                    "floor_vs_rk4_simplified": simplified / rate * 1e9 / rk4,
+                    "rk4_ns": rk4,
+                    "measured_ns": step["ns_per_step"],
+                    "measured_vs_rk4": step["ns_per_step"] / rk4,
+                    "target_within_floor": full / rate * 1e9 / rk4 <= TAYLOR_TARGET,
+                }
+            )
+    return rows
+
+
 def matmul_rate(size: int = 1024, repeats: int = 5) -> float:
     """Float64 flops per second of NumPy's ``size``² matrix product on this thread (best of
     ``repeats``)."""
@@ -91,9 +173,9 @@ def matmul_rate(size: int = 1024, repeats: int = 5) -> float:
     return 2.0 * size**3 / best
 
 
-def measured(costs: Path) -> dict[tuple[str, str], dict[str, Any]]:
-    """(system, stepper) → row of a ``benches/step_costs.py`` JSON; SystemExit naming the file
-    and what is missing otherwise."""
+def measured(costs: Path, log_taylor: bool = False) -> dict[tuple[str, str], dict[str, Any]]:
+    """(system, stepper) → row of a ``benches/step_costs.py`` JSON (with ``log_taylor``, the
+    Lotka–Volterra Taylor rows too); SystemExit naming the file and what is missing otherwise."""
     try:
         rows = json.loads(costs.read_text())["rows"]
         table = {(r["system"], r["stepper"]): r for r in rows}
@@ -101,6 +183,12 @@ def measured(costs: Path) -> dict[tuple[str, str], dict[str, Any]]:
         raise SystemExit(f"--costs {costs}: not a step_costs.py JSON ({exc})") from None
     for name, system in MODELS.items():
         for stepper in ("rk4", f"learned:{name}"):
+            if (system, stepper) not in table:
+                raise SystemExit(f"--costs {costs}: no row for {system}, {stepper}")
+    if not log_taylor:
+        return table
+    for system in LOG_TAYLOR:
+        for stepper in ["rk4", *(f"taylor{k}-log" for k in LOG_TAYLOR_ORDERS)]:
             if (system, stepper) not in table:
                 raise SystemExit(f"--costs {costs}: no row for {system}, {stepper}")
     return table
@@ -115,12 +203,17 @@ def main() -> None:
         type=float,
         help="also price the flops at this rate, GFLOP/s (e.g. the vector units' peak)",
     )
+    ap.add_argument(
+        "--log-taylor",
+        action="store_true",
+        help="also count the Lotka-Volterra Taylor-HJ steps of step_costs.py",
+    )
     args = ap.parse_args()
     if args.peak is not None and not args.peak > 0:
         raise SystemExit(f"--peak: {args.peak} GFLOP/s must be positive")
     if args.json is not None:
         check_output_path(args.json)
-    table = measured(args.costs)
+    table = measured(args.costs, args.log_taylor)
     rate = matmul_rate()
     print(f"float64 matrix multiply, one thread: {rate / 1e9:.1f} GFLOP/s")
     rows = []
@@ -166,12 +259,23 @@ def main() -> None:
             ),
             flush=True,
         )
+    taylor = log_taylor_rows(table, rate) if args.log_taylor else []
+    for row in taylor:
+        print(
+            f"{row['system']:18s} K = {row['order']}: {row['terms']:4d} terms, Hessian pass "
+            f"{row['hessian_pass']:6d}, gradient pass {row['gradient_pass']:5d} flops; "
+            f"{row['updates_per_step']:.2f} updates -> {row['flops_per_step']:8.0f} flops = "
+            f"{row['floor_vs_rk4']:5.1f}x RK4 ({row['rk4_ns']:.2f} ns; simplified Newton "
+            f"{row['floor_vs_rk4_simplified']:.1f}x); measured {row['measured_vs_rk4']:.1f}x",
+            flush=True,
+        )
     if args.json is not None:
         doc = {
             "costs": str(args.costs),
             "matmul_flops_per_s": rate,
             "peak_flops_per_s": None if args.peak is None else args.peak * 1e9,
             "rows": rows,
+            **({"log_taylor_rows": taylor} if args.log_taylor else {}),
         }
         atomic_write_bytes(args.json, (json.dumps(doc, indent=1) + "\n").encode())
 

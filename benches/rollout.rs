@@ -34,7 +34,8 @@ use poisson_rs::{
 /// Step size of the paper's scene.
 const H: f64 = 0.1;
 
-/// `n` steps of `h` of `mu0` by the chunk kernel `k` (every step recorded into `out`).
+/// `n` steps of `h` of `mu0` by the chunk kernel `k` (the first and last states recorded into
+/// `out`: 2 · len(mu0) · N numbers).
 fn run_kernel<const N: usize, K: poisson_rs::rollout::ChunkKernel<N>>(
     k: &K,
     mu0: &[[f64; N]],

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,3 +93,73 @@ def test_the_floor_of_the_shipped_models_from_a_costs_file(tmp_path: Path) -> No
     widths = {r["model"]: (r["widths"], r["inputs"]) for r in doc["rows"]}
     assert widths["default"] == ([8, 8], "homogeneous")
     assert widths["heavy_top_h05"] == ([32, 32], "t,p")
+
+
+def test_counts_of_an_exponential_polynomial_small_enough_to_count_by_hand() -> None:
+    # N = 2, terms y₁, y₁² y₂⁻¹ and a constant. Weights c·t^k times a factor each (a division
+    # too for y₂⁻¹): 2 + 4 + 1 = 7. Gradients 2m: 2 + 4 + 0. Upper Hessians m(m + 1): 2 + 6 + 0.
+    # A pass: two exponentials (50) and y₁'s table up to y₁² (1).
+    e = np.array([[1, 0], [2, -1], [0, 0]])
+    assert af.log_taylor_flops(e) == {
+        "hessian_pass": 7 + 6 + 8 + 51,
+        "gradient_pass": 7 + 6 + 51,
+        "terms": 3,
+    }
+
+
+def test_exponents_that_are_not_a_table_are_refused() -> None:
+    with pytest.raises(ValueError, match="must be"):
+        af.log_taylor_flops(np.array([1, 2, 3]))
+
+
+def _costs(with_log_taylor: bool) -> list[dict[str, object]]:
+    """Made-up costs: RK4 1 ns, each learned and Taylor step 100 ns, 3 updates."""
+    rows: list[dict[str, object]] = []
+    for name, system in af.MODELS.items():
+        rows.append({"system": system, "stepper": "rk4", "ns_per_step": 1.0})
+        rows.append(
+            {
+                "system": system,
+                "stepper": f"learned:{name}",
+                "ns_per_step": 100.0,
+                "newton_updates_per_step": 3.0,
+            }
+        )
+    for system in af.LOG_TAYLOR if with_log_taylor else ():
+        rows.append({"system": system, "stepper": "rk4", "ns_per_step": 1.0})
+        for k in af.LOG_TAYLOR_ORDERS:
+            rows.append(
+                {
+                    "system": system,
+                    "stepper": f"taylor{k}-log",
+                    "ns_per_step": 100.0,
+                    "newton_updates_per_step": 3.0,
+                }
+            )
+    return rows
+
+
+def test_the_lotka_volterra_taylor_floors_from_a_costs_file(tmp_path: Path) -> None:
+    costs = tmp_path / "costs.json"
+    # Without the Taylor rows, --log-taylor is refused before the multiply is timed.
+    costs.write_text(json.dumps({"rows": _costs(False)}))
+    run = _run("--costs", str(costs), "--log-taylor", cwd=tmp_path)
+    assert run.returncode != 0 and "no row for lotka-volterra, taylor3-log" in run.stderr
+    assert "GFLOP/s" not in run.stdout
+    costs.write_text(json.dumps({"rows": _costs(True)}))
+    out = tmp_path / "floor.json"
+    run = _run("--costs", str(costs), "--json", str(out), "--log-taylor", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    doc = json.loads(out.read_text())
+    rate = doc["matmul_flops_per_s"]
+    rows = {(r["system"], r["order"]): r for r in doc["log_taylor_rows"]}
+    assert set(rows) == {(s, k) for s in af.LOG_TAYLOR for k in af.LOG_TAYLOR_ORDERS}
+    for row in rows.values():
+        assert row["flops_per_step"] == row["gradient_pass"] + 3 * row["hessian_pass"]
+        assert row["flops_per_step_simplified"] == row["hessian_pass"] + 3 * row["gradient_pass"]
+        assert row["floor_vs_rk4"] == pytest.approx(row["flops_per_step"] / rate * 1e9)
+        assert row["measured_vs_rk4"] == 100.0
+    # The counted S is the bench's: PNN's system at K = 3 has the fewest terms, the 5-D one at
+    # K = 5 has 247 (15, 99, 108, 24 and 1 in one to five variables).
+    assert rows[("lotka-volterra 5d", 5)]["terms"] == 247
+    assert min(rows.values(), key=lambda r: r["terms"]) is rows[("lotka-volterra", 3)]
