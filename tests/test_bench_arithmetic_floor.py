@@ -64,9 +64,9 @@ def test_a_costs_file_it_cannot_read_is_named(tmp_path: Path) -> None:
     assert "GFLOP/s" not in run.stdout  # refused before the multiply was timed
 
 
-def test_the_floor_of_the_shipped_models_from_a_costs_file(tmp_path: Path) -> None:
-    # Costs made up so that every ratio is known: RK4 1 ns, each learned step 100 ns, 3 updates.
-    rows = []
+def _costs(with_log_taylor: bool) -> list[dict[str, object]]:
+    """Made-up costs: RK4 1 ns, each learned and Taylor step 100 ns, 3 updates."""
+    rows: list[dict[str, object]] = []
     for name, system in af.MODELS.items():
         rows.append({"system": system, "stepper": "rk4", "ns_per_step": 1.0})
         rows.append(
@@ -77,8 +77,24 @@ def test_the_floor_of_the_shipped_models_from_a_costs_file(tmp_path: Path) -> No
                 "newton_updates_per_step": 3.0,
             }
         )
+    for system in af.LOG_TAYLOR if with_log_taylor else ():
+        rows.append({"system": system, "stepper": "rk4", "ns_per_step": 1.0})
+        for k in af.LOG_TAYLOR_ORDERS:
+            rows.append(
+                {
+                    "system": system,
+                    "stepper": f"taylor{k}-log",
+                    "ns_per_step": 100.0,
+                    "newton_updates_per_step": 3.0,
+                }
+            )
+    return rows
+
+
+def test_the_floor_of_the_shipped_models_from_a_costs_file(tmp_path: Path) -> None:
+    # Costs made up so that every ratio is known: RK4 1 ns, each learned step 100 ns, 3 updates.
     costs = tmp_path / "costs.json"
-    costs.write_text(json.dumps({"rows": rows}))
+    costs.write_text(json.dumps({"rows": _costs(False)}))
     out = tmp_path / "floor.json"
     run = _run("--costs", str(costs), "--json", str(out), "--peak", "100", cwd=tmp_path)
     assert run.returncode == 0, run.stderr
@@ -110,33 +126,6 @@ def test_counts_of_an_exponential_polynomial_small_enough_to_count_by_hand() -> 
 def test_exponents_that_are_not_a_table_are_refused() -> None:
     with pytest.raises(ValueError, match="must be"):
         af.log_taylor_flops(np.array([1, 2, 3]))
-
-
-def _costs(with_log_taylor: bool) -> list[dict[str, object]]:
-    """Made-up costs: RK4 1 ns, each learned and Taylor step 100 ns, 3 updates."""
-    rows: list[dict[str, object]] = []
-    for name, system in af.MODELS.items():
-        rows.append({"system": system, "stepper": "rk4", "ns_per_step": 1.0})
-        rows.append(
-            {
-                "system": system,
-                "stepper": f"learned:{name}",
-                "ns_per_step": 100.0,
-                "newton_updates_per_step": 3.0,
-            }
-        )
-    for system in af.LOG_TAYLOR if with_log_taylor else ():
-        rows.append({"system": system, "stepper": "rk4", "ns_per_step": 1.0})
-        for k in af.LOG_TAYLOR_ORDERS:
-            rows.append(
-                {
-                    "system": system,
-                    "stepper": f"taylor{k}-log",
-                    "ns_per_step": 100.0,
-                    "newton_updates_per_step": 3.0,
-                }
-            )
-    return rows
 
 
 def test_the_lotka_volterra_taylor_floors_from_a_costs_file(tmp_path: Path) -> None:
